@@ -1,0 +1,40 @@
+"""Camera backends behind one small interface, chosen by name, imported only when used.
+
+>>> with open_camera("sim", fps=60) as cam:       # doctest: +SKIP
+...     captured = cam.read()
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from .base import Camera, CapturedFrame
+
+#: Backend name -> "module:class", imported on first use (python-can style).
+BACKENDS: dict[str, str] = {
+    "sim": "optitac_edge.cameras.sim:SimCamera",
+    "recording": "optitac_edge.cameras.recording:RecordingCamera",
+}
+
+
+def open_camera(name: str, **kwargs: Any) -> Camera:
+    """Open the camera backend called ``name`` with backend-specific ``kwargs``.
+
+    Raises
+    ------
+    CameraError
+        If no backend has that name or the backend cannot be opened.
+    """
+    from ..errors import CameraError
+
+    try:
+        target = BACKENDS[name]
+    except KeyError:
+        raise CameraError(f"unknown camera backend {name!r} (known: {', '.join(sorted(BACKENDS))})") from None
+    module_name, class_name = target.split(":")
+    cls = getattr(importlib.import_module(module_name), class_name)
+    return cls(**kwargs)
+
+
+__all__ = ["BACKENDS", "Camera", "CapturedFrame", "open_camera"]

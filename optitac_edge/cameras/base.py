@@ -1,0 +1,100 @@
+"""The camera interface every backend implements (cf. python-can's ``BusABC``)."""
+
+from __future__ import annotations
+
+import threading
+from abc import ABC, abstractmethod
+from typing import NamedTuple
+
+import numpy as np
+
+from ..errors import CameraError
+from ..frames import frame_geometry
+
+
+class CapturedFrame(NamedTuple):
+    """One frame as delivered by a camera.
+
+    Attributes
+    ----------
+    frame : ndarray, uint8
+        In the camera's ``pixel_format`` (see :mod:`optitac_edge.frames`).
+    t_ns : int
+        Exposure timestamp, CLOCK_MONOTONIC nanoseconds.
+    seq : int
+        Frame sequence number from the source; gaps mean dropped frames.
+    """
+
+    frame: np.ndarray
+    t_ns: int
+    seq: int
+
+
+class Camera(ABC):
+    """A frame source. Subclasses implement :meth:`_read_internal` and :meth:`_close_internal`.
+
+    Use as a context manager; :meth:`close` is idempotent and thread-safe.
+    """
+
+    pixel_format: str
+    height: int
+    width: int
+    fps: float
+
+    def __init__(self) -> None:
+        self._closed = False
+        self._close_lock = threading.Lock()
+        self.frames_read = 0
+
+    @abstractmethod
+    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
+        """Return the next frame, ``None`` at the end of a finite source."""
+
+    def _close_internal(self) -> None:  # noqa: B027 - optional hook
+        """Release the device; called once."""
+
+    def read(self, timeout_s: float = 1.0) -> CapturedFrame | None:
+        """Next frame, or ``None`` when a finite source (a recording) is exhausted.
+
+        Raises
+        ------
+        CameraError
+            If the camera is closed or fails to deliver within ``timeout_s``.
+        """
+        if self._closed:
+            raise CameraError("camera is closed")
+        captured = self._read_internal(timeout_s)
+        if captured is not None:
+            self.frames_read += 1
+        return captured
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        """Array shape of the frames this camera delivers."""
+        if self.pixel_format == "rgb":
+            return (self.height, self.width, 3)
+        if self.pixel_format == "yuv420":
+            return (self.height * 3 // 2, self.width)
+        return (self.height, self.width)
+
+    def check_geometry(self, frame: np.ndarray) -> None:
+        """Raise :class:`CameraError` if ``frame`` is not what this camera announced."""
+        if frame.dtype != np.uint8 or frame_geometry(frame.shape, self.pixel_format) != (self.height, self.width):
+            raise CameraError(f"camera delivered {frame.dtype} {frame.shape}, expected uint8 {self.frame_shape}")
+
+    def close(self) -> None:
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._close_internal()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> Camera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,219 @@
+"""The ``optitac-edge`` command line.
+
+Every expected failure (bad recording, bad bundle, frames that don't match)
+ends in one line on stderr and exit status 2; Ctrl-C ends a run with status 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+from . import __version__
+from .errors import OptiTacError
+
+EXIT_ERROR = 2
+log = logging.getLogger("optitac_edge")
+
+
+class _Parser(argparse.ArgumentParser):
+    """Argument parser whose usage errors are one line."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _add_orientation(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rotation-deg", type=float, default=0.0, metavar="A",
+                   help="the array appears rotated counter-clockwise by about A degrees in the image")
+    p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .sim.scenarios import SCENARIOS
+
+    parser = _Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("sim", help="write a recording from the built-in simulator")
+    p.add_argument("out_dir", type=Path)
+    p.add_argument("--scenario", required=True, choices=SCENARIOS)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--frames", type=int, default=None, help="number of frames (scenario default if omitted)")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--rgb", action="store_true", help="write (N,H,W,3) RGB frames")
+    p.add_argument("--dark-fibers", type=str, default="", metavar="I,J,...",
+                   help="layout indices of fibers that transmit no light")
+    _add_orientation(p)
+
+    cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
+        dest="step", required=True, parser_class=_Parser)
+    p = cal.add_parser("fibers", help="build a calibration bundle from a recording's rest frames")
+    p.add_argument("recording", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="CAL")
+    p.add_argument("--layout", type=Path, default=None, metavar="CSV", help="custom layout (fiber,x_mm,y_mm)")
+    _add_orientation(p)
+
+    p = sub.add_parser("replay", help="process every frame of a recording into a contacts CSV")
+    p.add_argument("recording", type=Path)
+    p.add_argument("--cal", type=Path, required=True, metavar="CAL")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="CONTACTS.csv")
+
+    p = sub.add_parser("run", help="the live loop (default: the built-in simulated sensor)")
+    p.add_argument("--cal", type=Path, default=None, help="use this bundle instead of calibrating at start")
+    p.add_argument("--fps", type=float, default=60.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: until Ctrl-C)")
+    return parser
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from .sim import CameraOptics
+    from .sim.scenarios import write_scenario
+
+    try:
+        dark = tuple(int(s) for s in args.dark_fibers.split(",") if s.strip())
+    except ValueError:
+        raise OptiTacError(f"--dark-fibers must be comma-separated integers, got {args.dark_fibers!r}") from None
+    if args.frames is not None and args.frames < 1:
+        raise OptiTacError("--frames must be at least 1")
+    optics = CameraOptics(width=args.width, height=args.height, rgb=args.rgb,
+                          rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
+    path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics)
+    print(f"wrote {path}")
+    return 0
+
+
+def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
+    from .bundle import save_bundle
+    from .calibration import calibrate_fibers
+    from .layout import load_layout_csv
+    from .recording import Recording
+
+    rec = Recording(args.recording)
+    layout = load_layout_csv(args.layout) if args.layout else None
+    bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
+                              rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+    bundle = save_bundle(bundle, args.output)
+    report = bundle.fiber_map_report
+    dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
+    print(f"wrote {args.output} (id {bundle.calibration_id}): "
+          f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found, "
+          f"dead {dead if dead else 'none'}, {len(bundle.fibers.unmatched_px)} unmatched blobs, "
+          f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .bundle import load_bundle
+    from .contacts_csv import ContactsCsvWriter
+    from .pipeline import Pipeline
+    from .recording import Recording
+
+    rec = Recording(args.recording)
+    bundle = load_bundle(args.cal)
+    bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
+    pipeline = Pipeline(bundle)
+    period_ns = int(1e9 / rec.meta.fps)
+    contacts = 0
+    with ContactsCsvWriter(args.output) as out:
+        for i in tqdm(range(len(rec)), desc="replay", unit="frame", disable=not sys.stderr.isatty()):
+            estimate = pipeline.process(rec.frames[i], i * period_ns)
+            contacts += int(estimate.contact)
+            out.write(i, estimate)
+    print(f"wrote {args.output}: {len(rec)} frames, {contacts} with contact")
+    return 0
+
+
+def _status_line(est: Any, fps: float) -> str:
+    if not est.baseline_ready:
+        return f"{fps:5.1f} fps  baselining..."
+    if not est.contact:
+        return f"{fps:5.1f} fps  no contact"
+    shape = f"  {est.shape}" if est.shape else ""
+    return (f"{fps:5.1f} fps  CONTACT x {est.x_mm:+6.2f} y {est.y_mm:+6.2f} mm  "
+            f"width {est.major_mm:5.2f} x {est.minor_mm:5.2f} mm  angle {est.angle_deg:+6.1f} deg  "
+            f"strength {est.strength:7.1f}{shape}")
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .bundle import load_bundle
+    from .cameras import open_camera
+    from .live import run_loop, self_calibrate
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    tty = sys.stdout.isatty()
+    last = [0.0]
+
+    def show(est: Any, stats: Any) -> None:
+        now = time.monotonic()
+        if now - last[0] < (0.1 if tty else 1.0):
+            return
+        last[0] = now
+        line = _status_line(est, stats.fps(time.monotonic_ns()))
+        if tty:
+            sys.stdout.write("\r\x1b[2K" + line)
+        else:
+            sys.stdout.write(line + "\n")
+        sys.stdout.flush()
+
+    with open_camera("sim", fps=args.fps, seed=args.seed) as camera:
+        if args.cal is not None:
+            bundle = load_bundle(args.cal)
+        else:
+            print("calibrating fibers from the first rest frames...", flush=True)
+            bundle = self_calibrate(camera)
+            print(f"found {int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; "
+                  "running (Ctrl-C to stop)", flush=True)
+        try:
+            stats = run_loop(camera, bundle, show, stop, max_frames=args.frames)
+        except KeyboardInterrupt:
+            stats = None
+    if tty:
+        sys.stdout.write("\n")
+    if stats is not None:
+        print(f"processed {stats.frames} frames, {stats.contacts} with contact")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``optitac-edge`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    handlers = {"sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run,
+                "calibrate": {"fibers": _cmd_calibrate_fibers}}
+    handler = handlers[args.command]
+    if isinstance(handler, dict):
+        handler = handler[args.step]
+    try:
+        return handler(args)
+    except OptiTacError as exc:
+        print(f"optitac-edge: error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("", file=sys.stderr)
+        return 0
+    except OSError as exc:  # e.g. an output path that cannot be written
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"optitac-edge: error: {where}{exc.strerror or exc}", file=sys.stderr)
+    except MemoryError:
+        print("optitac-edge: error: out of memory", file=sys.stderr)
+    return EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())

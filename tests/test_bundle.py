@@ -1,0 +1,111 @@
+import zipfile
+
+import numpy as np
+import pytest
+
+from optitac_edge.bundle import BUNDLE_VERSION, CalibrationBundle, ContactThresholds, load_bundle, save_bundle
+from optitac_edge.errors import BundleError, FrameMismatchError
+from optitac_edge.fiber_table import FiberTable
+from optitac_edge.grid import SurfaceGrid
+from optitac_edge.image_transform import ImageTransform
+from optitac_edge.layout import hex_layout
+
+
+def small_bundle(height=40, width=50, pixel_format="gray"):
+    layout = hex_layout(rings=2)
+    n = layout.n_fibers
+    index = np.arange(2 * n, dtype=np.int32) * 3
+    table = FiberTable(height=height, width=width, pixel_format=pixel_format, pixel_index=index,
+                       pixel_start=np.arange(0, 2 * n + 1, 2, dtype=np.int64),
+                       centroid_px=np.random.default_rng(0).uniform(0, 40, (n, 2)),
+                       dead=np.arange(n) == 3, unmatched_px=np.array([[1.5, 2.5]]))
+    grid = SurfaceGrid.over_layout(layout, n=10)
+    return CalibrationBundle(
+        layout=layout, transform=ImageTransform(12.0, 3.0, 25.0, 20.0, mirror=True, k1=0.01, r_ref_mm=3.0),
+        fibers=table, grid=grid,
+        interpolation=np.random.default_rng(1).random((100, n), dtype=np.float32),
+        thresholds=ContactThresholds(threshold=7.5, min_area_mm2=2.0),
+        fiber_map_report={"found": n - 1}, extra_arrays={"error_x": np.ones((3, 3))},
+        extra_meta={"model": "x"},
+    )
+
+
+def test_round_trip_keeps_everything(tmp_path):
+    original = small_bundle()
+    saved = save_bundle(original, tmp_path / "cal.npz")
+    loaded = load_bundle(tmp_path / "cal.npz")
+    assert loaded.calibration_id == saved.calibration_id and len(loaded.calibration_id) == 16
+    assert loaded.transform == original.transform and loaded.grid == original.grid
+    assert loaded.thresholds == original.thresholds
+    for name in ("pixel_index", "pixel_start", "centroid_px", "dead", "unmatched_px"):
+        np.testing.assert_array_equal(getattr(loaded.fibers, name), getattr(original.fibers, name))
+    np.testing.assert_array_equal(loaded.interpolation, original.interpolation)
+    np.testing.assert_array_equal(loaded.layout.xy_mm, original.layout.xy_mm)
+    np.testing.assert_array_equal(loaded.extra_arrays["error_x"], np.ones((3, 3)))
+    assert loaded.extra_meta == {"model": "x"} and loaded.fiber_map_report == {"found": 18}
+    assert not list(tmp_path.glob("*.tmp")), "temporary file left behind"
+
+
+def test_bundle_is_loaded_without_pickle(tmp_path):
+    save_bundle(small_bundle(), tmp_path / "cal.npz")
+    with zipfile.ZipFile(tmp_path / "cal.npz") as z:
+        for name in z.namelist():
+            header = z.read(name)[:128]
+            assert b"'descr': '|O'" not in header and b"'descr': 'O'" not in header
+
+
+def test_truncated_bundle_is_refused(tmp_path):
+    path = tmp_path / "cal.npz"
+    save_bundle(small_bundle(), path)
+    data = path.read_bytes()
+    for cut in (0, 10, len(data) // 2, len(data) - 5):
+        path.write_bytes(data[:cut])
+        with pytest.raises(BundleError):
+            load_bundle(path)
+
+
+def test_a_bit_flip_never_loads_a_different_bundle(tmp_path):
+    """A flipped bit is refused, or it hit zip bookkeeping that changes nothing loaded."""
+    path = tmp_path / "cal.npz"
+    good = load_bundle(save_bundle(small_bundle(), path) and path)
+    data = bytearray(path.read_bytes())
+    rng = np.random.default_rng(3)
+    refused = 0
+    for pos in rng.integers(0, len(data), 200):
+        damaged = bytearray(data)
+        damaged[pos] ^= 1 << int(rng.integers(8))
+        path.write_bytes(bytes(damaged))
+        try:
+            loaded = load_bundle(path)
+        except BundleError:
+            refused += 1
+            continue
+        np.testing.assert_array_equal(loaded.interpolation, good.interpolation)
+        np.testing.assert_array_equal(loaded.fibers.pixel_index, good.fibers.pixel_index)
+        assert loaded.transform == good.transform and loaded.calibration_id == good.calibration_id
+    assert refused > 150  # nearly every byte of the file is data
+
+
+def test_other_version_and_non_bundles_are_refused(tmp_path, monkeypatch):
+    import optitac_edge.bundle as bundle_mod
+
+    path = tmp_path / "cal.npz"
+    monkeypatch.setattr(bundle_mod, "BUNDLE_VERSION", BUNDLE_VERSION + 1)
+    save_bundle(small_bundle(), path)
+    monkeypatch.undo()
+    with pytest.raises(BundleError, match="version"):
+        load_bundle(path)
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(BundleError, match="not a calibration bundle"):
+        load_bundle(tmp_path / "other.npz")
+    with pytest.raises(BundleError, match="not found"):
+        load_bundle(tmp_path / "absent.npz")
+
+
+def test_frame_of_another_size_or_format_is_refused():
+    table = small_bundle(height=40, width=50, pixel_format="gray").fibers
+    table.check_frame(np.zeros((40, 50), np.uint8), "gray")
+    for frame, fmt in [(np.zeros((41, 50), np.uint8), "gray"), (np.zeros((40, 50, 3), np.uint8), "rgb"),
+                       (np.zeros((40, 50), np.float32), "gray"), (np.zeros((40, 50, 2), np.uint8), "gray")]:
+        with pytest.raises(FrameMismatchError, match="built for"):
+            table.check_frame(frame, fmt)

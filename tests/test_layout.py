@@ -1,0 +1,58 @@
+import numpy as np
+import pytest
+
+from optitac_edge.errors import ConfigError
+from optitac_edge.layout import hex_layout, load_layout_csv, save_layout_csv
+
+
+def test_default_layout_is_217_fiber_hexagon():
+    layout = hex_layout()
+    assert layout.n_fibers == 217
+    assert layout.pitch_mm == pytest.approx(1.5)
+    # the central fiber is at the origin, the corners of the hexagon 8 pitches out
+    assert np.linalg.norm(layout.xy_mm, axis=1).min() == 0.0
+    assert layout.radius_mm == pytest.approx(12.0)
+    # every interior fiber has six neighbours at exactly one pitch
+    counts = np.array([len(n) for n in layout.neighbours()])
+    assert counts.max() == 6 and np.sum(counts == 6) == 217 - 6 * 8
+    # rows parallel to x: 17 distinct y values, the middle row has 17 fibers
+    ys = np.round(layout.xy_mm[:, 1], 9)
+    assert len(np.unique(ys)) == 17 and np.sum(ys == 0) == 17
+
+
+def test_fiber_numbering_is_row_major_from_top():
+    xy = hex_layout().xy_mm
+    assert xy[0, 1] == xy[:, 1].max() and xy[0, 0] < xy[1, 0]
+    assert np.all(np.diff(xy[:, 1]) <= 1e-9)
+    assert tuple(xy[108]) == (0.0, 0.0)
+
+
+def test_layout_csv_round_trip(tmp_path):
+    layout = hex_layout(rings=3, pitch_mm=2.0)
+    save_layout_csv(layout, tmp_path / "l.csv")
+    back = load_layout_csv(tmp_path / "l.csv")
+    np.testing.assert_array_equal(back.ids, layout.ids)
+    np.testing.assert_allclose(back.xy_mm, layout.xy_mm, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("a,b,c\n1,2,3\n", "header"),
+        ("fiber,x_mm,y_mm\n1,2\n", "expected 3 cells"),
+        ("fiber,x_mm,y_mm\n1,2,zz\n", "not a number"),
+        ("fiber,x_mm,y_mm\n" + "1,0,0\n" * 8, "duplicate"),
+        ("fiber,x_mm,y_mm\n1,0,0\n2,1,0\n", "at least 7"),
+    ],
+)
+def test_bad_layout_csv_names_file_and_problem(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message) as info:
+        load_layout_csv(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_layout_file(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_layout_csv(tmp_path / "nope.csv")
