@@ -1,0 +1,35 @@
+"""Shared fixtures: small simulated recordings and bundles, made once per session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from optitac_edge.cli import main
+
+
+@pytest.fixture(scope="session")
+def sim_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("sim")
+
+
+@pytest.fixture(scope="session")
+def unseen_rec(sim_dir) -> Path:
+    path = sim_dir / "unseen"
+    assert main(["sim", str(path), "--scenario", "unseen", "--seed", "1"]) == 0
+    return path
+
+
+@pytest.fixture(scope="session")
+def rest_rec(sim_dir) -> Path:
+    path = sim_dir / "rest"
+    assert main(["sim", str(path), "--scenario", "rest", "--seed", "2"]) == 0
+    return path
+
+
+@pytest.fixture(scope="session")
+def bundle_path(sim_dir, rest_rec) -> Path:
+    path = sim_dir / "cal.npz"
+    assert main(["calibrate", "fibers", str(rest_rec), "-o", str(path)]) == 0
+    return path

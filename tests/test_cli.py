@@ -1,0 +1,139 @@
+"""The command line: the documented commands work and bad input ends in one line, exit 2."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from optitac_edge.cli import main
+from optitac_edge.recording import Recording, RecordingMeta, RecordingWriter
+
+
+def _one_line_error(capsys, argv, *needles):
+    code = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err.startswith("optitac-edge: error:") and "\n" not in err and "Traceback" not in err
+    for needle in needles:
+        assert needle in err, err
+    return err
+
+
+def test_sim_calibrate_replay_round_trip(tmp_path, unseen_rec, bundle_path, capsys):
+    out = tmp_path / "contacts.csv"
+    assert main(["replay", str(unseen_rec), "--cal", str(bundle_path), "-o", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    rec = Recording(unseen_rec)
+    assert len(rows) == len(rec)
+    assert set(rows[0]) >= {"frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg",
+                            "strength", "shape", "confidence"}
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_missing_recording(capsys, tmp_path, bundle_path):
+    _one_line_error(capsys, ["replay", str(tmp_path / "nope"), "--cal", str(bundle_path), "-o",
+                             str(tmp_path / "c.csv")], "not found")
+    assert not (tmp_path / "c.csv").exists()
+
+
+def test_garbled_recording(capsys, tmp_path, bundle_path, rest_rec):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "meta.json").write_text(json.dumps({"rest_frames": 10, "fps": 60}))
+    (bad / "frames.npy").write_bytes(b"\x93NUMPY garbage")
+    _one_line_error(capsys, ["replay", str(bad), "--cal", str(bundle_path), "-o", str(tmp_path / "c.csv")],
+                    "frames.npy")
+    _one_line_error(capsys, ["calibrate", "fibers", str(bad), "-o", str(tmp_path / "x.npz")], "frames.npy")
+
+
+def test_frames_of_the_wrong_size_for_the_bundle(capsys, tmp_path, bundle_path):
+    small = tmp_path / "small"
+    assert main(["sim", str(small), "--scenario", "rest", "--frames", "12", "--width", "320",
+                 "--height", "240"]) == 0
+    _one_line_error(capsys, ["replay", str(small), "--cal", str(bundle_path), "-o", str(tmp_path / "c.csv")],
+                    "built for 640x480")
+    rgb = tmp_path / "rgb"
+    assert main(["sim", str(rgb), "--scenario", "rest", "--frames", "12", "--rgb"]) == 0
+    _one_line_error(capsys, ["replay", str(rgb), "--cal", str(bundle_path), "-o", str(tmp_path / "c.csv")],
+                    "gray")
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "empty", "text"])
+def test_corrupted_or_truncated_bundle(capsys, tmp_path, bundle_path, rest_rec, damage):
+    data = bundle_path.read_bytes()
+    bad = tmp_path / "bad.npz"
+    if damage == "truncate":
+        bad.write_bytes(data[: len(data) // 3])
+    elif damage == "flip":
+        b = bytearray(data)
+        b[len(b) // 2] ^= 0xFF
+        bad.write_bytes(bytes(b))
+    elif damage == "empty":
+        bad.write_bytes(b"")
+    else:
+        bad.write_text("hello")
+    _one_line_error(capsys, ["replay", str(rest_rec), "--cal", str(bad), "-o", str(tmp_path / "c.csv")],
+                    str(bad))
+
+
+@pytest.mark.parametrize("fill", [0, 255])
+def test_rest_frames_without_fibers_are_refused(capsys, tmp_path, fill):
+    path = tmp_path / f"flat{fill}"
+    with RecordingWriter(path, 10, (480, 640), RecordingMeta(rest_frames=10, fps=60.0)) as w:
+        for i in range(10):
+            w.write(i, np.full((480, 640), fill, np.uint8))
+    _one_line_error(capsys, ["calibrate", "fibers", str(path), "-o", str(tmp_path / "cal.npz")], "fiber")
+    assert not (tmp_path / "cal.npz").exists()
+
+
+def test_usage_errors_are_one_line(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["sim", "/tmp/x", "--scenario", "nope"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "invalid choice" in err
+
+
+def test_installed_console_script_reports_without_traceback(tmp_path):
+    """The real process: exit status 2 and one stderr line, no traceback."""
+    proc = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "replay", str(tmp_path / "absent"),
+                           "--cal", str(tmp_path / "absent.npz"), "-o", str(tmp_path / "c.csv")],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_run_calibrates_itself_and_stops_cleanly_on_ctrl_c():
+    proc = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--fps", "100"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        lines = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            lines.append(line)
+            if "fps" in line:
+                break
+        assert any("fps" in line for line in lines), lines
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    assert "processed" in out or "fps" in out
+
+
+def test_run_with_frame_limit_reports_contacts(tmp_path, capsys):
+    assert main(["run", "--fps", "1000", "--frames", "400"]) == 0
+    out = capsys.readouterr().out
+    assert "processed 400 frames" in out
