@@ -1,0 +1,30 @@
+"""The project's own camera-level simulator of an OptiTac sensor, with ground truth.
+
+``optics``     :class:`CameraOptics`: camera geometry, lens, illumination, noise.
+``skin``       :class:`Indenter`, :class:`SkinModel`, :func:`fiber_darkening`.
+``render``     :class:`FrameRenderer`: per-fiber light -> uint8 frames, fast.
+``sensor``     :class:`SimulatedSensor`: indenters -> frames, plus truth.
+``scenarios``  :func:`write_scenario`: built-in recordings with ``truth.csv``.
+"""
+
+from .optics import CameraOptics, Projection
+from .render import SENSOR_SEED, FrameRenderer, fiber_rest_peak
+from .scenarios import SCENARIOS, schedule, write_scenario
+from .sensor import SimulatedSensor
+from .skin import Indenter, SkinModel, fiber_darkening, signed_distance
+
+__all__ = [
+    "SCENARIOS",
+    "SENSOR_SEED",
+    "CameraOptics",
+    "FrameRenderer",
+    "Indenter",
+    "Projection",
+    "SimulatedSensor",
+    "SkinModel",
+    "fiber_darkening",
+    "fiber_rest_peak",
+    "schedule",
+    "signed_distance",
+    "write_scenario",
+]

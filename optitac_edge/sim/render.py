@@ -1,0 +1,160 @@
+"""Rendering camera frames of the fiber array from per-fiber light levels.
+
+Everything that does not change between frames is computed once: which fiber's
+end face each pixel shows and with what weight (a soft-edged, slightly domed,
+blurred disc seen through the lens distortion), every fiber's rest brightness
+(LED, transmission, vignetting, dead fibers), the fixed-pattern background and a
+bank of noise drawn once and sliced at a random offset per frame.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import erfc
+
+from ..layout import FiberLayout
+from .optics import DEFAULT_OPTICS, CameraOptics, Projection
+
+log = logging.getLogger(__name__)
+
+#: Default seed of the simulated sensor's own randomness (fiber transmission,
+#: fixed-pattern noise): the same physical sensor in every scenario.
+SENSOR_SEED = 20240611
+
+#: Pixels whose weight is below this are left at background.
+_MIN_WEIGHT = 1e-3
+
+
+def fiber_rest_peak(
+    layout: FiberLayout, optics: CameraOptics, sensor_seed: int = SENSOR_SEED
+) -> np.ndarray:
+    """Peak gray level of every fiber at rest (no contact), shape (N,), float64.
+
+    ``led_peak_gray`` x transmission ~ N(1, ``transmission_sigma``) clipped at
+    +-2.5 sigma (drawn from ``sensor_seed``) x LED-ring vignetting; 0 for
+    ``dark_fibers``. Excludes the background level and RGB gains.
+    """
+    rng = np.random.default_rng(sensor_seed)
+    s = optics.transmission_sigma
+    trans = np.clip(rng.normal(1.0, s, layout.n_fibers), 1 - 2.5 * s, 1 + 2.5 * s)
+    r = np.linalg.norm(layout.xy_mm, axis=1) / max(layout.radius_mm, 1e-9)
+    vign = 1.0 + optics.vignetting * (2.0 * r * r - 1.0)
+    peak = optics.led_peak_gray * trans * vign
+    peak[list(optics.dark_fibers)] = 0.0
+    return peak
+
+
+class FrameRenderer:
+    """Renders frames of one simulated sensor seen by one camera.
+
+    Parameters
+    ----------
+    layout : FiberLayout
+        The sensor's fiber layout.
+    optics : CameraOptics
+        Camera, lens and illumination.
+    sensor_seed : int
+        Seed of the physical sensor's randomness (transmission spread,
+        fixed-pattern noise); default :data:`SENSOR_SEED`.
+    noise_seed : int
+        Seed of the bank of temporal noise (default 0).
+
+    Attributes
+    ----------
+    projection : Projection
+        The resolved layout <-> image mapping.
+    fiber_centres_px : ndarray, shape (N, 2), float64
+        True image point (col, row) of every fiber centre, layout order.
+    rest_peak : ndarray, shape (N,), float64
+        Rest peak gray level of every fiber above background (0 for dead ones).
+    frame_shape : tuple of int
+        (H, W) or (H, W, 3).
+    """
+
+    def __init__(
+        self,
+        layout: FiberLayout,
+        optics: CameraOptics = DEFAULT_OPTICS,
+        sensor_seed: int = SENSOR_SEED,
+        noise_seed: int = 0,
+    ) -> None:
+        bad = [i for i in optics.dark_fibers if not 0 <= i < layout.n_fibers]
+        if bad:
+            raise ValueError(f"dark_fibers {bad} out of range for {layout.n_fibers} fibers")
+        self.layout = layout
+        self.optics = optics
+        self.projection: Projection = optics.projection(layout.radius_mm)
+        self.fiber_centres_px = self.projection.to_image(layout.xy_mm)
+        self.rest_peak = fiber_rest_peak(layout, optics, sensor_seed)
+        self._peak32 = self.rest_peak.astype(np.float32)
+        h, w = optics.height, optics.width
+        channels = 3 if optics.rgb else 1
+        self.frame_shape: tuple[int, ...] = (h, w, 3) if optics.rgb else (h, w)
+        self._pix, self._fid, self._weight = self._face_pixels()
+        sensor_rng = np.random.default_rng([sensor_seed, 1])
+        rows = optics.background_gray + optics.row_noise_sigma * sensor_rng.standard_normal(h)
+        base = np.repeat(rows.astype(np.float32), w * channels).reshape(h * w, channels)
+        self._buf = base.copy()  # (H*W, C), fiber pixels rewritten every frame
+        self._base_pix = base[self._pix]
+        self._tint = np.asarray(optics.rgb_gains if optics.rgb else (1.0,), dtype=np.float32)
+        n = h * w * channels
+        noise_rng = np.random.default_rng([noise_seed, 2])
+        bank_size = n + max(n // 2, 65536)
+        self._noise = noise_rng.standard_normal(bank_size, dtype=np.float32)
+        self._noise *= np.float32(optics.noise_sigma)
+        log.debug(
+            "renderer %s: scale %.2f px/mm, %d face pixels",
+            self.frame_shape,
+            self.projection.scale,
+            self._pix.size,
+        )
+
+    def _face_pixels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Flat pixel index, fiber index and weight (peak 1) of every lit pixel."""
+        o, proj = self.optics, self.projection
+        sigma = max(o.blur_sigma_px, 0.3)
+        r_px = o.fiber_diameter_mm / 2.0 * proj.scale
+        reach = r_px + 4.0 * sigma + 2.0
+        lo = np.floor(self.fiber_centres_px.min(axis=0) - reach).astype(int)
+        hi = np.ceil(self.fiber_centres_px.max(axis=0) + reach).astype(int)
+        c0, r0 = np.maximum(lo, 0)
+        c1, r1 = np.minimum(hi, (o.width - 1, o.height - 1))
+        rows, cols = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
+        rows, cols = rows.ravel(), cols.ravel()
+        xy = proj.to_layout(np.stack([cols, rows], axis=1).astype(np.float64))
+        dist_mm, fid = cKDTree(self.layout.xy_mm).query(xy)
+        d = dist_mm * proj.scale
+        dome = 1.0 - o.face_falloff * np.minimum(d / r_px, 1.0) ** 2
+        weight = dome * 0.5 * erfc((d - r_px) / (np.sqrt(2.0) * sigma))
+        keep = weight > _MIN_WEIGHT
+        pix = rows[keep] * o.width + cols[keep]
+        return pix.astype(np.intp), fid[keep].astype(np.intp), weight[keep].astype(np.float32)
+
+    def render(self, fiber_gain: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """One frame.
+
+        Parameters
+        ----------
+        fiber_gain : ndarray, shape (N,), float
+            Light of every fiber relative to rest (1 = rest, 0 = dark), layout order.
+        rng : numpy.random.Generator
+            Picks the slice of the noise bank.
+
+        Returns
+        -------
+        ndarray, uint8, shape (H, W) or (H, W, 3)
+            The frame, clipped to 0..255.
+        """
+        gain = np.asarray(fiber_gain, dtype=np.float32).reshape(-1)
+        if gain.shape[0] != self.layout.n_fibers:
+            raise ValueError(f"fiber_gain must have shape ({self.layout.n_fibers},)")
+        level = (gain * self._peak32)[self._fid] * self._weight
+        self._buf[self._pix] = self._base_pix + level[:, None] * self._tint
+        n = self._buf.size
+        k = int(rng.integers(0, self._noise.size - n + 1))
+        noise = self._noise[k : k + n].reshape(self.frame_shape)
+        return cv2.add(self._buf.reshape(self.frame_shape), noise, dtype=cv2.CV_8U)

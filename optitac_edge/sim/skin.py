@@ -1,0 +1,213 @@
+"""The skin's response to indenters: how much light each fiber loses.
+
+Model (per indenter, on a mm grid covering the clamped skin):
+
+1. footprint ``F``: 1 inside the indenter outline, 0 outside (signed distance,
+   anti-aliased over one grid step);
+2. deflection ``w = depth * clamp(r) * (F * G_L)``: the footprint smoothed by a
+   Gaussian of spread ``L = spread_mm + spread_per_depth * depth`` (the skin
+   drapes around the indenter), forced to 0 at the clamped rim by
+   ``clamp(r) = tanh(max(Rc - r, 0) / rim_width_mm)`` with ``Rc`` the outermost
+   fiber radius plus ``clamp_margin_mm``;
+3. darkening ``d = max_darkening * (1 - exp(-(compression_gain * w + tilt_gain * |grad w|)))``:
+   pins pressed in (``w``) and pins tilted by the skin's slope both turn their
+   white tips away from the fiber; the response saturates.
+
+Several indenters combine as ``1 - prod(1 - d_i)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter, map_coordinates
+
+from ..recording import SHAPES
+
+
+@dataclass(frozen=True)
+class Indenter:
+    """One rigid flat indenter pressed into the skin.
+
+    Attributes
+    ----------
+    shape : str
+        One of ``edge``, ``circle``, ``square``, ``ellipse``, ``triangle``.
+    x_mm, y_mm : float
+        Centre (centroid) in the layout frame, mm.
+    angle_deg : float
+        Counter-clockwise rotation, degrees. At 0 an ellipse's major axis and an
+        edge's long axis lie along +x, a square's sides are axis-aligned and a
+        triangle has a vertex pointing to +y.
+    size_mm : float
+        Circle: diameter; square and (equilateral) triangle: side; ellipse: major
+        axis; edge: width of the bar.
+    depth_mm : float
+        Indentation depth, mm (>= 0).
+    """
+
+    shape: str
+    x_mm: float
+    y_mm: float
+    angle_deg: float = 0.0
+    size_mm: float = 5.0
+    depth_mm: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.shape not in SHAPES:
+            raise ValueError(f"unknown indenter shape {self.shape!r}; expected one of {SHAPES}")
+        if not self.size_mm > 0 or not self.depth_mm >= 0:
+            raise ValueError("size_mm must be > 0 and depth_mm >= 0")
+
+
+@dataclass(frozen=True)
+class SkinModel:
+    """Response parameters of the skin (see the module docstring for the model).
+
+    Attributes
+    ----------
+    max_darkening : float
+        Largest fraction of light a fiber can lose (default 0.85).
+    compression_gain : float
+        Darkening rate per mm of deflection, 1/mm (default 0.45).
+    tilt_gain : float
+        Darkening rate per unit skin slope (default 0.4).
+    spread_mm, spread_per_depth : float
+        Spread of the deflection ``L = spread_mm + spread_per_depth * depth``
+        (defaults 0.9 mm and 0.2 mm/mm: 1.5 mm at 3 mm depth).
+    clamp_margin_mm : float
+        Skin clamped at the outermost fiber radius plus this (default 1.0).
+    rim_width_mm : float
+        Length over which the clamp suppresses deflection (default 6.0).
+    ellipse_ratio : float
+        Minor / major axis of an ellipse indenter (default 0.6).
+    edge_length_mm : float
+        Length of an edge indenter's bar (default 12).
+    grid_step_mm : float
+        Resolution of the deflection grid (default 0.2).
+    """
+
+    max_darkening: float = 0.85
+    compression_gain: float = 0.45
+    tilt_gain: float = 0.4
+    spread_mm: float = 0.9
+    spread_per_depth: float = 0.2
+    clamp_margin_mm: float = 1.0
+    rim_width_mm: float = 6.0
+    ellipse_ratio: float = 0.6
+    edge_length_mm: float = 12.0
+    grid_step_mm: float = 0.2
+
+    def to_dict(self) -> dict[str, float]:
+        """JSON-able dict of all fields."""
+        return asdict(self)
+
+
+#: The default skin (frozen, safe to share).
+DEFAULT_SKIN = SkinModel()
+
+
+def _box(px: np.ndarray, py: np.ndarray, hx: float, hy: float) -> np.ndarray:
+    qx, qy = np.abs(px) - hx, np.abs(py) - hy
+    outside = np.hypot(np.maximum(qx, 0), np.maximum(qy, 0))
+    return outside + np.minimum(np.maximum(qx, qy), 0)
+
+
+def _ellipse(px: np.ndarray, py: np.ndarray, a: float, b: float) -> np.ndarray:
+    k0 = np.hypot(px / a, py / b)
+    k1 = np.hypot(px / (a * a), py / (b * b))
+    outside = k0 * (k0 - 1.0) / np.maximum(k1, 1e-12)
+    return np.where(k0 >= 1.0, outside, (k0 - 1.0) * min(a, b))  # inside: a lower bound
+
+
+def _triangle(px: np.ndarray, py: np.ndarray, side: float) -> np.ndarray:
+    # Equilateral triangle centred on its centroid, a vertex towards +y (I. Quilez).
+    r, k = side / 2.0, math.sqrt(3.0)
+    x, y = np.abs(px) - r, py + r / k
+    fold = x + k * y > 0
+    x, y = np.where(fold, (x - k * y) / 2, x), np.where(fold, (-k * x - y) / 2, y)
+    x = x - np.clip(x, -2 * r, 0)
+    return -np.hypot(x, y) * np.sign(y)
+
+
+def signed_distance(
+    indenter: Indenter, x_mm: np.ndarray, y_mm: np.ndarray, skin: SkinModel
+) -> np.ndarray:
+    """Signed distance (mm, negative inside) from points to the indenter outline.
+
+    Exact for circle, square, edge and triangle; a close approximation for the ellipse.
+    ``x_mm`` and ``y_mm`` are float arrays of any (equal) shape; the result has that shape.
+    """
+    t = math.radians(indenter.angle_deg)
+    dx, dy = x_mm - indenter.x_mm, y_mm - indenter.y_mm
+    px, py = math.cos(t) * dx + math.sin(t) * dy, -math.sin(t) * dx + math.cos(t) * dy
+    s = indenter.size_mm
+    if indenter.shape == "circle":
+        return np.hypot(px, py) - s / 2
+    if indenter.shape == "square":
+        return _box(px, py, s / 2, s / 2)
+    if indenter.shape == "edge":
+        return _box(px, py, skin.edge_length_mm / 2, s / 2)
+    if indenter.shape == "ellipse":
+        return _ellipse(px, py, s / 2, skin.ellipse_ratio * s / 2)
+    return _triangle(px, py, s)
+
+
+def bounding_radius(indenter: Indenter, skin: SkinModel) -> float:
+    """Largest distance (mm) of the indenter outline from its centre."""
+    s = indenter.size_mm
+    return {
+        "circle": s / 2,
+        "square": s / math.sqrt(2),
+        "ellipse": s / 2,
+        "triangle": s / math.sqrt(3),
+        "edge": math.hypot(skin.edge_length_mm / 2, s / 2),
+    }[indenter.shape]
+
+
+def fiber_darkening(
+    layout_xy_mm: np.ndarray, indenters: Sequence[Indenter], skin: SkinModel = DEFAULT_SKIN
+) -> np.ndarray:
+    """Fraction of light each fiber loses under ``indenters``.
+
+    Parameters
+    ----------
+    layout_xy_mm : ndarray, shape (N, 2), float
+        Fiber positions in the layout frame, mm.
+    indenters : sequence of Indenter
+        Simultaneous contacts (may be empty).
+    skin : SkinModel
+        Response parameters.
+
+    Returns
+    -------
+    ndarray, shape (N,), float64
+        Darkening in [0, ``skin.max_darkening``]; 0 = untouched.
+    """
+    xy = np.asarray(layout_xy_mm, dtype=np.float64)
+    keep = np.ones(len(xy))
+    active = [ind for ind in indenters if ind.depth_mm > 0]
+    if not active:
+        return np.zeros(len(xy))
+    clamp_r = float(np.linalg.norm(xy, axis=1).max()) + skin.clamp_margin_mm
+    h = skin.grid_step_mm
+    half = clamp_r + h
+    axis = np.arange(-half, half + h / 2, h)
+    gx, gy = np.meshgrid(axis, axis[::-1])  # row 0 = largest y
+    clamp = np.tanh(np.maximum(clamp_r - np.hypot(gx, gy), 0.0) / skin.rim_width_mm)
+    # Fractional grid indices (row, col) of the fibers.
+    coords = np.stack([(axis[-1] - xy[:, 1]) / h, (xy[:, 0] - axis[0]) / h])
+    for ind in active:
+        foot = np.clip(0.5 - signed_distance(ind, gx, gy, skin) / h, 0.0, 1.0)
+        spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
+        w = ind.depth_mm * clamp * gaussian_filter(foot, spread / h, mode="constant")
+        gr, gc = np.gradient(w, h)
+        slope = np.hypot(gr, gc)
+        wf = map_coordinates(w, coords, order=1, mode="constant")
+        sf = map_coordinates(slope, coords, order=1, mode="constant")
+        d = skin.max_darkening * (1.0 - np.exp(-(skin.compression_gain * wf + skin.tilt_gain * sf)))
+        keep *= 1.0 - d
+    return np.clip(1.0 - keep, 0.0, skin.max_darkening)
