@@ -149,12 +149,23 @@ def _status_line(est: Any, fps: float) -> str:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    stop = threading.Event()
+    previous = {signum: signal.signal(signum, lambda *_: stop.set())  # Ctrl-C / systemd stop: clean end
+                for signum in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        stats = _run_live(args, stop)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    print(f"processed {stats.frames} frames, {stats.contacts} with contact")
+    return 0
+
+
+def _run_live(args: argparse.Namespace, stop: threading.Event) -> Any:
     from .bundle import load_bundle
     from .cameras import open_camera
     from .live import run_loop, self_calibrate
 
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     tty = sys.stdout.isatty()
     last = [0.0]
 
@@ -178,15 +189,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             bundle = self_calibrate(camera)
             print(f"found {int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; "
                   "running (Ctrl-C to stop)", flush=True)
-        try:
-            stats = run_loop(camera, bundle, show, stop, max_frames=args.frames)
-        except KeyboardInterrupt:
-            stats = None
+        stats = run_loop(camera, bundle, show, stop, max_frames=args.frames)
     if tty:
         sys.stdout.write("\n")
-    if stats is not None:
-        print(f"processed {stats.frames} frames, {stats.contacts} with contact")
-    return 0
+    return stats
 
 
 def main(argv: Sequence[str] | None = None) -> int:

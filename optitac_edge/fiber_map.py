@@ -168,17 +168,17 @@ def _check_exposure(mean: np.ndarray) -> None:
     peak = float(np.percentile(mean, 99.9))
     if peak < 30.0:
         raise FiberMapError(
-            f"rest frames are dark (99.9th percentile gray {peak:.0f}; is the LED on?)"
+            f"cannot find the fibers: rest frames are dark (99.9th percentile gray {peak:.0f}; is the LED on?)"
         )
     saturated = float(np.mean(mean >= 250.0))
     if saturated > 0.25:
         raise FiberMapError(
-            f"rest frames are saturated ({100 * saturated:.0f}% of pixels white; reduce exposure)"
+            f"cannot find the fibers: rest frames are saturated ({100 * saturated:.0f}% of pixels white; reduce exposure)"
         )
     std = float(mean.std())
     if std < 4.0:
         raise FiberMapError(
-            f"rest frames are nearly uniform (gray std {std:.1f}); no fiber array visible"
+            f"cannot find the fibers: rest frames are nearly uniform (gray std {std:.1f}); no fiber array visible"
         )
 
 

@@ -107,8 +107,10 @@ class FiberSampler:
         self._starts = table.pixel_start[:-1].astype(np.intp)
         self._inv_count = (1.0 / table.pixel_count).astype(np.float32)
         p = table.pixel_index.size
-        self._gathered = np.empty(p, dtype=np.float32)
         self._rgb = np.empty((p, 3), dtype=np.uint8) if table.pixel_format == "rgb" else None
+        # gray/Y: gather uint8 and sum in float32 (exact: sums stay below 2**24);
+        # RGB: gather the three channels and weight them into float luma.
+        self._gathered = np.empty(p, dtype=np.float32 if self._rgb is not None else np.uint8)
 
     def means(self, frame: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Mean gray level of each fiber.
@@ -126,6 +128,6 @@ class FiberSampler:
             np.dot(self._rgb, LUMA_WEIGHTS, out=self._gathered)
         else:
             np.take(frame.reshape(-1), self._index, out=self._gathered)
-        np.add.reduceat(self._gathered, self._starts, out=out)
+        np.add.reduceat(self._gathered, self._starts, dtype=np.float32, out=out)
         np.multiply(out, self._inv_count, out=out)
         return out

@@ -1,0 +1,99 @@
+"""The per-frame result of the pipeline."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+def _nan_hu() -> np.ndarray:
+    return np.full(7, np.nan, dtype=np.float64)
+
+
+@dataclass(slots=True)
+class ContactEstimate:
+    """Contact estimate of one frame.
+
+    The runtime :class:`~optitac_edge.pipeline.Pipeline` reuses one instance
+    for every frame (no allocation per frame); call :meth:`copy` to keep one.
+
+    Attributes
+    ----------
+    frame : int
+        Index of the frame among those given to the pipeline, from 0.
+    t_ns : int
+        Timestamp passed with the frame, ns.
+    baseline_ready : bool
+        False while the first ``baseline_frames`` frames are averaged into the
+        baseline (then ``contact`` is False and everything else NaN/0).
+    contact : bool
+        Area above the threshold >= ``ContactThresholds.min_area_mm2``.
+    x_mm, y_mm : float
+        Contact centroid in the sensor (layout) frame, mm. NaN without contact.
+    major_mm, minor_mm : float
+        FWHM widths along the major / minor axis of the second-moment ellipse,
+        mm. NaN without contact.
+    angle_deg : float
+        Major-axis angle from +x towards +y, degrees, (-90, 90]. NaN without contact.
+    strength : float
+        ``m00`` of the truncated inverted surface, gray level * mm^2 (0 if
+        nothing is above the threshold).
+    area_mm2 : float
+        Area of the surface above the threshold, mm^2.
+    hu : ndarray, shape (7,), float64
+        Log-scaled Hu invariants ``-sign(h) log10|h|`` of the binarised surface
+        (shape features). NaN without contact.
+    shape : str
+        Classified contact shape; '' until a classifier exists.
+    confidence : float
+        Classifier confidence; NaN until a classifier exists.
+    """
+
+    frame: int = -1
+    t_ns: int = 0
+    baseline_ready: bool = False
+    contact: bool = False
+    x_mm: float = math.nan
+    y_mm: float = math.nan
+    major_mm: float = math.nan
+    minor_mm: float = math.nan
+    angle_deg: float = math.nan
+    strength: float = 0.0
+    area_mm2: float = 0.0
+    hu: np.ndarray = field(default_factory=_nan_hu)
+    shape: str = ""
+    confidence: float = math.nan
+
+    def clear_geometry(self) -> None:
+        """Set the geometric fields and Hu features to NaN (no contact), in place."""
+        self.x_mm = self.y_mm = math.nan
+        self.major_mm = self.minor_mm = self.angle_deg = math.nan
+        self.hu.fill(np.nan)
+        self.shape = ""
+        self.confidence = math.nan
+
+    def copy(self) -> ContactEstimate:
+        """An independent copy (``hu`` copied)."""
+        return ContactEstimate(
+            self.frame, self.t_ns, self.baseline_ready, self.contact, self.x_mm, self.y_mm,
+            self.major_mm, self.minor_mm, self.angle_deg, self.strength, self.area_mm2,
+            self.hu.copy(), self.shape, self.confidence,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (NaN floats become None, ``hu`` a list)."""
+        def f(v: float) -> float | None:
+            return None if math.isnan(v) else float(v)
+
+        return {
+            "frame": int(self.frame), "t_ns": int(self.t_ns),
+            "baseline_ready": bool(self.baseline_ready), "contact": bool(self.contact),
+            "x_mm": f(self.x_mm), "y_mm": f(self.y_mm),
+            "major_mm": f(self.major_mm), "minor_mm": f(self.minor_mm),
+            "angle_deg": f(self.angle_deg), "strength": f(self.strength),
+            "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
+            "shape": self.shape, "confidence": f(self.confidence),
+        }

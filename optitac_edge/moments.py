@@ -1,0 +1,381 @@
+"""Image moments of a surface on the mesh, in millimetres.
+
+Conventions (all functions here)
+--------------------------------
+A *surface* is an array of shape (n, n) on a :class:`SurfaceGrid`:
+``surface[row, col]`` is the value at ``x = grid.x_mm[col]``,
+``y = grid.y_mm[row]`` (sensor frame, +x right, +y up, mm).
+
+Moments are indexed ``m[p, q]`` with ``p`` the power of **x** and ``q`` the
+power of **y**, and include the cell area, so they approximate integrals::
+
+    m[p, q] = sum_{row, col} x[col]**p * y[row]**q * surface[row, col] * step_mm**2
+
+Units: value * mm**(2 + p + q) (for a gray-level surface, ``m[0, 0]`` is the
+contact strength in gray-level * mm^2). Because the cell area is included,
+the scale-normalised moments and Hu invariants of a binary mask equal those
+OpenCV computes in pixel units for the same array.
+
+The plain functions (:func:`raw_moments`, :func:`central_moments`,
+:func:`contact_ellipse`, :func:`hu_moments`) allocate and are meant for
+analysis and tests; :class:`MomentBasis` is the allocation-free form the
+runtime pipeline uses.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from .grid import SurfaceGrid
+
+#: FWHM of a Gaussian in units of its standard deviation, 2*sqrt(2*ln 2).
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+class ContactEllipse(NamedTuple):
+    """Second-moment ellipse of a surface.
+
+    Attributes
+    ----------
+    x_mm, y_mm : float
+        Centroid, mm.
+    lambda1, lambda2 : float
+        Eigenvalues (lambda1 >= lambda2) of the normalised second central
+        moments (covariance), mm^2.
+    major_mm, minor_mm : float
+        FWHM widths ``2*sqrt(2 ln 2)*sqrt(lambda)`` along the major / minor axis, mm.
+    angle_deg : float
+        Angle of the major axis from +x towards +y, degrees, in (-90, 90].
+    strength : float
+        ``m[0, 0]``: value * mm^2.
+    """
+
+    x_mm: float
+    y_mm: float
+    lambda1: float
+    lambda2: float
+    major_mm: float
+    minor_mm: float
+    angle_deg: float
+    strength: float
+
+
+_NAN_ELLIPSE = ContactEllipse(*([math.nan] * 7), 0.0)
+
+
+def _powers(coord: np.ndarray, order: int) -> np.ndarray:
+    """``coord[k] ** p`` as shape (len(coord), order + 1), float64."""
+    return np.asarray(coord, dtype=np.float64)[:, None] ** np.arange(order + 1)
+
+
+def raw_moments(surface: np.ndarray, grid: SurfaceGrid, order: int = 3) -> np.ndarray:
+    """Raw moments of a surface.
+
+    Parameters
+    ----------
+    surface : ndarray, shape (n, n) or (n*n,), real
+        Values on the mesh (row-major).
+    grid : SurfaceGrid
+    order : int
+        Highest power of x and of y.
+
+    Returns
+    -------
+    ndarray, shape (order + 1, order + 1), float64
+        ``m[p, q]`` (x power ``p``, y power ``q``), value * mm^(2+p+q).
+    """
+    img = np.asarray(surface, dtype=np.float64).reshape(grid.n, grid.n)
+    xp = _powers(grid.x_mm, order)  # (n, P)
+    yq = _powers(grid.y_mm, order)  # (n, Q)
+    return (xp.T @ img.T @ yq) * grid.cell_area_mm2
+
+
+def central_moments(
+    surface: np.ndarray,
+    grid: SurfaceGrid,
+    center: tuple[float, float] | None = None,
+    order: int = 3,
+) -> np.ndarray:
+    """Central moments of a surface, summed directly over centred coordinates.
+
+    Parameters
+    ----------
+    surface : ndarray, shape (n, n) or (n*n,), real
+    grid : SurfaceGrid
+    center : (float, float), optional
+        ``(x_mm, y_mm)`` to take the moments about; default the centroid.
+    order : int
+
+    Returns
+    -------
+    ndarray, shape (order + 1, order + 1), float64
+        ``mu[p, q] = sum (x - cx)**p (y - cy)**q surface * step**2``,
+        value * mm^(2+p+q). NaN (except ``mu[0, 0]``) if the surface sums to
+        zero and no centre is given.
+    """
+    img = np.asarray(surface, dtype=np.float64).reshape(grid.n, grid.n)
+    if center is None:
+        m = raw_moments(img, grid, order=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            center = (m[1, 0] / m[0, 0], m[0, 1] / m[0, 0])
+    xp = _powers(grid.x_mm - center[0], order)
+    yq = _powers(grid.y_mm - center[1], order)
+    return (xp.T @ img.T @ yq) * grid.cell_area_mm2
+
+
+def central_from_raw(m: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Central moments from raw moments (binomial expansion about the centroid).
+
+    Parameters
+    ----------
+    m : ndarray, shape (K, K), float64
+        Raw moments, ``m[0, 0] != 0``.
+    out : ndarray, shape (K, K), float64, optional
+
+    Returns
+    -------
+    ndarray, shape (K, K), float64
+    """
+    k = m.shape[0]
+    cx, cy = m[1, 0] / m[0, 0], m[0, 1] / m[0, 0]
+    bx = _shift_matrix(-cx, k)
+    by = _shift_matrix(-cy, k)
+    if out is None:
+        out = np.empty_like(m, dtype=np.float64)
+    np.matmul(bx @ m, by.T, out=out)
+    return out
+
+
+def _shift_matrix(d: float, k: int) -> np.ndarray:
+    """``B[p, i] = C(p, i) * d**(p - i)`` for ``i <= p``, else 0; shape (k, k)."""
+    p = np.arange(k)
+    binom = np.array([[math.comb(a, b) for b in range(k)] for a in range(k)], dtype=np.float64)
+    return binom * np.float64(d) ** np.clip(p[:, None] - p[None, :], 0, None)
+
+
+def ellipse_from_moments(m: np.ndarray, mu: np.ndarray) -> ContactEllipse:
+    """Centroid, covariance eigenvalues, FWHM widths and angle.
+
+    Parameters
+    ----------
+    m : ndarray, shape (>=2, >=2), float64
+        Raw moments.
+    mu : ndarray, shape (>=3, >=3), float64
+        Central moments.
+
+    Returns
+    -------
+    ContactEllipse
+        All-NaN geometry with strength 0 if ``m[0, 0] <= 0``.
+    """
+    m00 = float(m[0, 0])
+    if not m00 > 0.0:
+        return _NAN_ELLIPSE._replace(strength=m00 if math.isfinite(m00) else 0.0)
+    a = float(mu[2, 0]) / m00
+    b = float(mu[1, 1]) / m00
+    c = float(mu[0, 2]) / m00
+    half_trace = 0.5 * (a + c)
+    half_root = 0.5 * math.sqrt(4.0 * b * b + (a - c) ** 2)
+    lam1 = half_trace + half_root
+    lam2 = half_trace - half_root
+    angle = 0.5 * math.degrees(math.atan2(2.0 * b, a - c))
+    if angle <= -90.0:
+        angle += 180.0
+    return ContactEllipse(
+        x_mm=float(m[1, 0]) / m00,
+        y_mm=float(m[0, 1]) / m00,
+        lambda1=lam1,
+        lambda2=lam2,
+        major_mm=FWHM_PER_SIGMA * math.sqrt(max(lam1, 0.0)),
+        minor_mm=FWHM_PER_SIGMA * math.sqrt(max(lam2, 0.0)),
+        angle_deg=angle,
+        strength=m00,
+    )
+
+
+def contact_ellipse(surface: np.ndarray, grid: SurfaceGrid) -> ContactEllipse:
+    """Second-moment ellipse of a (non-negative) surface.
+
+    Parameters
+    ----------
+    surface : ndarray, shape (n, n) or (n*n,), real
+        E.g. the inverted, truncated contact surface, gray levels.
+    grid : SurfaceGrid
+
+    Returns
+    -------
+    ContactEllipse
+        Centroid (mm), eigenvalues (mm^2), FWHM widths (mm), angle (deg,
+        (-90, 90]), strength (value * mm^2).
+    """
+    m = raw_moments(surface, grid, order=2)
+    if not m[0, 0] > 0.0:
+        return ellipse_from_moments(m, m)
+    mu = central_moments(surface, grid, order=2)
+    return ellipse_from_moments(m, mu)
+
+
+def hu_from_central(mu: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Hu's seven invariants from central moments.
+
+    Parameters
+    ----------
+    mu : ndarray, shape (>=4, >=4), float64
+        Central moments ``mu[p, q]`` (x power ``p``, y power ``q``).
+    out : ndarray, shape (7,), float64, optional
+
+    Returns
+    -------
+    ndarray, shape (7,), float64
+        ``h1 .. h7`` from the scale-normalised moments
+        ``eta_pq = mu_pq / mu_00 ** (1 + (p + q) / 2)`` (dimensionless). NaN if
+        ``mu[0, 0] <= 0``.
+    """
+    if out is None:
+        out = np.empty(7, dtype=np.float64)
+    m00 = float(mu[0, 0])
+    if not m00 > 0.0:
+        out.fill(np.nan)
+        return out
+    s2, s3 = m00 ** 2.0, m00 ** 2.5
+    n20, n11, n02 = float(mu[2, 0]) / s2, float(mu[1, 1]) / s2, float(mu[0, 2]) / s2
+    n30, n21 = float(mu[3, 0]) / s3, float(mu[2, 1]) / s3
+    n12, n03 = float(mu[1, 2]) / s3, float(mu[0, 3]) / s3
+    t0, t1 = n30 + n12, n21 + n03
+    q0, q1 = n30 - 3.0 * n12, 3.0 * n21 - n03
+    out[0] = n20 + n02
+    out[1] = (n20 - n02) ** 2 + 4.0 * n11 * n11
+    out[2] = q0 * q0 + q1 * q1
+    out[3] = t0 * t0 + t1 * t1
+    out[4] = q0 * t0 * (t0 * t0 - 3.0 * t1 * t1) + q1 * t1 * (3.0 * t0 * t0 - t1 * t1)
+    out[5] = (n20 - n02) * (t0 * t0 - t1 * t1) + 4.0 * n11 * t0 * t1
+    out[6] = q1 * t0 * (t0 * t0 - 3.0 * t1 * t1) - q0 * t1 * (3.0 * t0 * t0 - t1 * t1)
+    return out
+
+
+def hu_moments(binary: np.ndarray, grid: SurfaceGrid) -> np.ndarray:
+    """Hu's seven moment invariants of a binary shape on the mesh.
+
+    Parameters
+    ----------
+    binary : ndarray, shape (n, n) or (n*n,), bool or real
+        The shape; nonzero cells count as 1.
+    grid : SurfaceGrid
+        Square cells; coordinates in mm (the invariants are dimensionless and
+        equal OpenCV's ``HuMoments(moments(img, binaryImage=True))``).
+
+    Returns
+    -------
+    ndarray, shape (7,), float64
+        NaN if the shape is empty.
+    """
+    img = (np.asarray(binary) != 0).astype(np.float64)
+    if not img.any():
+        return np.full(7, np.nan)
+    return hu_from_central(central_moments(img, grid, order=3))
+
+
+def log_hu(h: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Log-scaled Hu invariants, ``-sign(h) * log10(|h|)``.
+
+    Parameters
+    ----------
+    h : ndarray, shape (7,), float64
+    out : ndarray, shape (7,), float64, optional
+        May be ``h`` itself.
+
+    Returns
+    -------
+    ndarray, shape (7,), float64
+        0 where ``h == 0`` (guarded, no warning); NaN stays NaN.
+    """
+    h = np.asarray(h, dtype=np.float64)
+    sign = np.sign(h)
+    a = np.abs(h)
+    if out is None:
+        out = np.empty_like(a)
+    out.fill(0.0)
+    np.log10(a, out=out, where=a != 0.0)
+    np.multiply(out, -sign, out=out)
+    return out
+
+
+class MomentBasis:
+    """Allocation-free raw and central moments on one grid (the runtime form).
+
+    Raw moments are two small matrix products with precomputed coordinate
+    powers: ``tmp = S @ Xp`` (row-wise x-power sums, shape (n, P)) then
+    ``m = tmp.T @ Yq`` (shape (P, Q)), with the cell area folded into ``Yq``.
+    Computed in float64 (the float32 surface is copied into a float64 buffer)
+    so the raw -> central conversion does not lose precision.
+
+    Parameters
+    ----------
+    grid : SurfaceGrid
+    order : int
+        Highest power of x and of y (3 for Hu invariants).
+    """
+
+    def __init__(self, grid: SurfaceGrid, order: int = 3) -> None:
+        self.grid = grid
+        self.order = order
+        k = order + 1
+        self._xp = np.ascontiguousarray(_powers(grid.x_mm, order))  # (n, k)
+        self._yq = np.ascontiguousarray(_powers(grid.y_mm, order) * grid.cell_area_mm2)
+        self._img = np.empty((grid.n, grid.n), dtype=np.float64)
+        self._tmp = np.empty((grid.n, k), dtype=np.float64)
+        p = np.arange(k)
+        self._binom = np.array(
+            [[math.comb(a, b) for b in range(k)] for a in range(k)], dtype=np.float64
+        )
+        self._expo = np.clip(p[:, None] - p[None, :], 0, None).astype(np.float64)
+        self._bx = np.empty((k, k), dtype=np.float64)
+        self._by = np.empty((k, k), dtype=np.float64)
+        self._bm = np.empty((k, k), dtype=np.float64)
+
+    def new_moments(self) -> np.ndarray:
+        """A moment buffer, shape (order + 1, order + 1), float64."""
+        k = self.order + 1
+        return np.zeros((k, k), dtype=np.float64)
+
+    def raw(self, surface: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Raw moments ``m[p, q]`` of ``surface``.
+
+        Parameters
+        ----------
+        surface : ndarray, shape (n, n) or (n*n,), float32, float64 or bool
+        out : ndarray, shape (order + 1, order + 1), float64
+
+        Returns
+        -------
+        ndarray
+            ``out``, value * mm^(2+p+q).
+        """
+        np.copyto(self._img, surface.reshape(self.grid.n, self.grid.n))
+        np.matmul(self._img, self._xp, out=self._tmp)
+        np.matmul(self._tmp.T, self._yq, out=out)
+        return out
+
+    def central(self, m: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Central moments from raw moments ``m`` (``m[0, 0] > 0``).
+
+        Parameters
+        ----------
+        m, out : ndarray, shape (order + 1, order + 1), float64
+
+        Returns
+        -------
+        ndarray
+            ``out``.
+        """
+        cx, cy = m[1, 0] / m[0, 0], m[0, 1] / m[0, 0]
+        np.power(-cx, self._expo, out=self._bx)
+        np.multiply(self._bx, self._binom, out=self._bx)
+        np.power(-cy, self._expo, out=self._by)
+        np.multiply(self._by, self._binom, out=self._by)
+        np.matmul(self._bx, m, out=self._bm)
+        np.matmul(self._bm, self._by.T, out=out)
+        return out

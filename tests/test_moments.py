@@ -1,0 +1,211 @@
+"""Moments on the surface mesh: analytic cases, Hu invariance, OpenCV agreement, fast form."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optitac_edge.grid import SurfaceGrid
+from optitac_edge.layout import hex_layout
+from optitac_edge.moments import (
+    FWHM_PER_SIGMA,
+    MomentBasis,
+    central_from_raw,
+    central_moments,
+    contact_ellipse,
+    ellipse_from_moments,
+    hu_from_central,
+    hu_moments,
+    log_hu,
+    raw_moments,
+)
+
+GRID = SurfaceGrid.over_layout(hex_layout())  # 100 x 100, ~0.242 mm cells, +-12 mm
+X, Y = np.meshgrid(GRID.x_mm, GRID.y_mm)
+
+
+def gaussian(x0: float, y0: float, s_major: float, s_minor: float, theta_deg: float) -> np.ndarray:
+    """Sampled anisotropic Gaussian; major axis at ``theta_deg`` from +x towards +y."""
+    t = math.radians(theta_deg)
+    dx, dy = X - x0, Y - y0
+    u = math.cos(t) * dx + math.sin(t) * dy
+    v = -math.sin(t) * dx + math.cos(t) * dy
+    return 50.0 * np.exp(-0.5 * ((u / s_major) ** 2 + (v / s_minor) ** 2))
+
+
+def ellipse_mask(x0: float, y0: float, a: float, b: float, theta_deg: float) -> np.ndarray:
+    t = math.radians(theta_deg)
+    dx, dy = X - x0, Y - y0
+    u = math.cos(t) * dx + math.sin(t) * dy
+    v = -math.sin(t) * dx + math.cos(t) * dy
+    return (u / a) ** 2 + (v / b) ** 2 <= 1.0
+
+
+def polygon_mask(vertices: np.ndarray) -> np.ndarray:
+    """Cells whose centre is inside a convex polygon (counter-clockwise vertices, mm)."""
+    inside = np.ones(X.shape, dtype=bool)
+    for (x1, y1), (x2, y2) in zip(vertices, np.roll(vertices, -1, axis=0)):
+        inside &= (x2 - x1) * (Y - y1) - (y2 - y1) * (X - x1) >= 0
+    return inside
+
+
+def rotate(points: np.ndarray, deg: float, centre=(0.0, 0.0)) -> np.ndarray:
+    t = math.radians(deg)
+    r = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    return (points - centre) @ r.T + centre
+
+
+# -- raw / central moments and the ellipse ------------------------------------------------
+
+
+@pytest.mark.parametrize("theta", [0.0, 30.0, -60.0, 90.0, 47.5])
+def test_gaussian_centroid_widths_angle(theta: float) -> None:
+    x0, y0, sa, sb = 1.3, -0.7, 2.0, 1.1
+    e = contact_ellipse(gaussian(x0, y0, sa, sb, theta), GRID)
+    assert e.x_mm == pytest.approx(x0, abs=1e-6)
+    assert e.y_mm == pytest.approx(y0, abs=1e-6)
+    assert e.lambda1 == pytest.approx(sa**2, rel=1e-4)
+    assert e.lambda2 == pytest.approx(sb**2, rel=1e-4)
+    assert e.major_mm == pytest.approx(2.3548 * sa, rel=0.01)
+    assert e.minor_mm == pytest.approx(2.3548 * sb, rel=0.01)
+    assert e.major_mm == pytest.approx(FWHM_PER_SIGMA * sa, rel=1e-4)
+    assert -90.0 < e.angle_deg <= 90.0
+    assert e.angle_deg == pytest.approx(theta, abs=0.5)
+    # strength = integral of the Gaussian = 2 pi sa sb * peak
+    assert e.strength == pytest.approx(2 * math.pi * sa * sb * 50.0, rel=1e-4)
+
+
+def test_rectangle_exact_discrete_variance() -> None:
+    img = np.zeros((GRID.n, GRID.n))
+    img[30:40, 20:61] = 3.0  # 10 rows (y) x 41 columns (x)
+    e = contact_ellipse(img, GRID)
+    h = GRID.step_mm
+    assert e.x_mm == pytest.approx(GRID.x_mm[40], abs=1e-12)
+    assert e.y_mm == pytest.approx(0.5 * (GRID.y_mm[30] + GRID.y_mm[39]), abs=1e-12)
+    # variance of k equally spaced cells: (k^2 - 1) h^2 / 12
+    assert e.lambda1 == pytest.approx((41**2 - 1) * h * h / 12, rel=1e-10)
+    assert e.lambda2 == pytest.approx((10**2 - 1) * h * h / 12, rel=1e-10)
+    assert e.angle_deg == pytest.approx(0.0, abs=1e-9)
+    assert e.strength == pytest.approx(3.0 * 410 * h * h, rel=1e-12)
+    e90 = contact_ellipse(img.T, GRID)  # long side along y
+    assert e90.angle_deg == pytest.approx(90.0, abs=1e-9)
+
+
+def test_uniform_disc() -> None:
+    r = 4.0
+    e = contact_ellipse(ellipse_mask(-2.0, 1.5, r, r, 0.0).astype(float), GRID)
+    assert e.x_mm == pytest.approx(-2.0, abs=0.01)
+    assert e.y_mm == pytest.approx(1.5, abs=0.01)
+    # continuous disc: variance r^2 / 4 along every axis
+    assert e.lambda1 == pytest.approx(r * r / 4, rel=0.02)
+    assert e.lambda2 == pytest.approx(r * r / 4, rel=0.02)
+    assert e.strength == pytest.approx(math.pi * r * r, rel=0.01)
+
+
+def test_empty_surface_gives_nan_geometry() -> None:
+    e = contact_ellipse(np.zeros((GRID.n, GRID.n)), GRID)
+    assert e.strength == 0.0 and math.isnan(e.x_mm) and math.isnan(e.major_mm)
+    assert np.all(np.isnan(hu_moments(np.zeros((GRID.n, GRID.n), bool), GRID)))
+
+
+def test_raw_and_central_definitions() -> None:
+    rng = np.random.default_rng(1)
+    img = rng.random((GRID.n, GRID.n))
+    m = raw_moments(img, GRID, order=3)
+    dA = GRID.cell_area_mm2
+    for p in range(4):
+        for q in range(4):
+            assert m[p, q] == pytest.approx(np.sum(X**p * Y**q * img) * dA, rel=1e-10, abs=1e-9)
+    mu = central_moments(img, GRID, order=3)
+    cx, cy = m[1, 0] / m[0, 0], m[0, 1] / m[0, 0]
+    for p in range(4):
+        for q in range(4):
+            ref = np.sum((X - cx) ** p * (Y - cy) ** q * img) * dA
+            assert mu[p, q] == pytest.approx(ref, rel=1e-9, abs=1e-9)
+    assert abs(mu[1, 0]) < 1e-9 and abs(mu[0, 1]) < 1e-9
+    np.testing.assert_allclose(central_from_raw(m), mu, rtol=1e-9, atol=1e-9 * np.abs(m).max())
+
+
+# -- Hu invariants ----------------------------------------------------------------------
+
+
+def _shapes() -> dict[str, np.ndarray]:
+    tri = np.array([[-3.0, -2.0], [4.0, -1.0], [0.0, 4.0]])
+    return {
+        "ellipse": ellipse_mask(0.5, -1.0, 5.0, 2.0, 25.0),
+        "triangle": polygon_mask(tri),
+        "rectangle": polygon_mask(np.array([[-4, -1.5], [4, -1.5], [4, 1.5], [-4, 1.5]], float)),
+    }
+
+
+@pytest.mark.parametrize("name", ["ellipse", "triangle", "rectangle"])
+def test_hu_matches_opencv(name: str) -> None:
+    cv2 = pytest.importorskip("cv2")
+    mask = _shapes()[name]
+    ref = cv2.HuMoments(cv2.moments(mask.astype(np.uint8), binaryImage=True)).ravel()
+    np.testing.assert_allclose(hu_moments(mask, GRID), ref, rtol=1e-6, atol=1e-14)
+    if name != "rectangle":  # symmetric: h3..h7 are 0 (OpenCV) vs ~1e-33 noise (log unstable)
+        np.testing.assert_allclose(log_hu(hu_moments(mask, GRID)), log_hu(ref), rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["ellipse", "triangle", "rectangle"])
+def test_hu_translation_and_right_angle_rotation_exact(name: str) -> None:
+    mask = _shapes()[name]
+    h = hu_moments(mask, GRID)
+    shifted = np.roll(np.roll(mask, 7, axis=0), -5, axis=1)
+    assert shifted.sum() == mask.sum()  # nothing wrapped
+    np.testing.assert_allclose(hu_moments(shifted, GRID), h, rtol=1e-9, atol=1e-15)
+    for k in (1, 2, 3):
+        np.testing.assert_allclose(hu_moments(np.rot90(mask, k), GRID), h, rtol=1e-9, atol=1e-15)
+    # a mirror image flips the sign of h7 only
+    hm = hu_moments(mask[:, ::-1], GRID)
+    np.testing.assert_allclose(hm[:6], h[:6], rtol=1e-9, atol=1e-15)
+    assert hm[6] == pytest.approx(-h[6], rel=1e-9, abs=1e-15)
+
+
+def test_hu_arbitrary_rotation_and_scale_approximate() -> None:
+    # h1..h4 only: h5, h6 of this triangle are near 0 and change sign with rasterisation
+    tri = 1.4 * np.array([[-3.0, -2.0], [4.0, -1.0], [0.0, 4.0]])  # ~40 cells across
+    ref = log_hu(hu_moments(polygon_mask(tri), GRID))
+    for deg in (17.0, 41.0, 133.0):
+        got = log_hu(hu_moments(polygon_mask(rotate(tri, deg, centre=(0.3, 0.1))), GRID))
+        np.testing.assert_allclose(got[:4], ref[:4], rtol=0.04)
+    for s in (0.6, 0.8):
+        got = log_hu(hu_moments(polygon_mask(tri * s), GRID))
+        np.testing.assert_allclose(got[:4], ref[:4], rtol=0.04)
+    # ellipses of different size: h1 = (a^2 + b^2) / (4 pi a b) for a continuous ellipse
+    for scale in (0.8, 1.5, 3.0):
+        h = hu_moments(ellipse_mask(0.0, 0.0, 2.5 * scale, 1.25 * scale, 10.0), GRID)
+        assert h[0] == pytest.approx((2.5**2 + 1.25**2) / (4 * math.pi * 2.5 * 1.25), rel=0.03)
+
+
+def test_log_hu_sign_zero_nan() -> None:
+    h = np.array([1e-3, -1e-5, 0.0, np.nan, 1.0, -1.0, 10.0])
+    out = log_hu(h)
+    np.testing.assert_allclose(out[[0, 1, 2, 4, 5, 6]], [3.0, -5.0, 0.0, 0.0, 0.0, -1.0])
+    assert math.isnan(out[3])
+    buf = h.copy()
+    assert log_hu(buf, out=buf) is buf
+
+
+# -- the fast form ------------------------------------------------------------------------
+
+
+def test_moment_basis_equals_plain_functions() -> None:
+    basis = MomentBasis(GRID, order=3)
+    surface = (gaussian(5.0, -3.0, 2.5, 0.8, 70.0) + 3.0 * gaussian(-4, 6, 1.0, 1.0, 0.0))
+    surface = surface.astype(np.float32)
+    m = basis.raw(surface.ravel(), basis.new_moments())
+    m_ref = raw_moments(surface, GRID, order=3)
+    np.testing.assert_allclose(m, m_ref, rtol=1e-10, atol=1e-10 * np.abs(m_ref).max())
+    mu = basis.central(m, basis.new_moments())
+    mu_ref = central_moments(surface, GRID, order=3)
+    np.testing.assert_allclose(mu, mu_ref, rtol=1e-8, atol=1e-9 * np.abs(m_ref).max())
+    e, e_ref = ellipse_from_moments(m, mu), contact_ellipse(surface, GRID)
+    np.testing.assert_allclose(e, e_ref, rtol=1e-9, atol=1e-9)
+    mask = surface > 5.0
+    mb = basis.raw(mask, basis.new_moments())
+    hu = hu_from_central(basis.central(mb, basis.new_moments()))
+    np.testing.assert_allclose(hu, hu_moments(mask, GRID), rtol=1e-8, atol=1e-14)

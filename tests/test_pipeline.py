@@ -1,0 +1,321 @@
+"""The runtime pipeline on synthetic frames, and its agreement with the reference method.
+
+The calibration bundle is built here directly (synthetic fiber table: fiber i
+is a disc of pixels around its transformed layout position), independent of
+the fiber-map code.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from functools import cache
+
+import numpy as np
+import pytest
+
+from optitac_edge.bundle import CalibrationBundle, ContactThresholds
+from optitac_edge.errors import FrameMismatchError
+from optitac_edge.fiber_table import FiberTable
+from optitac_edge.grid import SurfaceGrid
+from optitac_edge.image_transform import ImageTransform
+from optitac_edge.layout import hex_layout
+from optitac_edge.pipeline import Pipeline
+from optitac_edge.reference import ReferencePipeline
+from optitac_edge.surface import build_interpolation_matrix
+
+LAYOUT = hex_layout()
+GRID = SurfaceGrid.over_layout(LAYOUT)
+W, H = 160, 120
+BACKGROUND = 12
+
+
+@cache
+def _matrix() -> np.ndarray:
+    return build_interpolation_matrix(LAYOUT, GRID)
+
+
+def make_bundle(
+    pixel_format: str = "gray",
+    width: int = W,
+    height: int = H,
+    radius_px: int = 2,
+    dead: tuple[int, ...] = (),
+    thresholds: ContactThresholds | None = None,
+) -> CalibrationBundle:
+    """A bundle whose fiber i owns a disc of pixels at its transformed position."""
+    scale = 0.45 * min(width, height) / LAYOUT.radius_mm
+    transform = ImageTransform(rotation_deg=10.0, scale_px_per_mm=scale, cx=width / 2, cy=height / 2)
+    centres = transform.layout_to_image(LAYOUT.xy_mm)
+    dy, dx = np.mgrid[-radius_px:radius_px + 1, -radius_px:radius_px + 1]
+    disc = dx**2 + dy**2 <= radius_px**2
+    dx, dy = dx[disc], dy[disc]
+    cols = np.rint(centres[:, 0])[:, None].astype(np.int64) + dx
+    rows = np.rint(centres[:, 1])[:, None].astype(np.int64) + dy
+    index = (rows * width + cols).ravel().astype(np.int32)
+    assert np.unique(index).size == index.size  # discs do not overlap
+    n = LAYOUT.n_fibers
+    dead_mask = np.zeros(n, dtype=bool)
+    dead_mask[list(dead)] = True
+    table = FiberTable(
+        height=height, width=width, pixel_format=pixel_format, pixel_index=index,
+        pixel_start=np.arange(n + 1, dtype=np.int64) * disc.sum(), centroid_px=centres,
+        dead=dead_mask, unmatched_px=np.zeros((0, 2)),
+    )
+    return CalibrationBundle(layout=LAYOUT, transform=transform, fibers=table, grid=GRID,
+                             interpolation=_matrix(), thresholds=thresholds or ContactThresholds())
+
+
+def rest_levels(seed: int = 0) -> np.ndarray:
+    """Per-fiber rest gray levels (uneven, as real fibers)."""
+    return np.random.default_rng(seed).uniform(150.0, 220.0, LAYOUT.n_fibers)
+
+
+def pressed_levels(rest: np.ndarray, x0: float, y0: float, depth: float = 60.0,
+                   s_major: float = 1.8, s_minor: float = 1.8, theta_deg: float = 0.0) -> np.ndarray:
+    """Fibers near (x0, y0) darkened by an (anisotropic) Gaussian profile, gray levels."""
+    t = math.radians(theta_deg)
+    d = LAYOUT.xy_mm - (x0, y0)
+    u = math.cos(t) * d[:, 0] + math.sin(t) * d[:, 1]
+    v = -math.sin(t) * d[:, 0] + math.cos(t) * d[:, 1]
+    return rest - depth * np.exp(-0.5 * ((u / s_major) ** 2 + (v / s_minor) ** 2))
+
+
+def render(bundle: CalibrationBundle, levels: np.ndarray, pixel_format: str | None = None,
+           seed: int = 0) -> np.ndarray:
+    """A frame whose fiber pixels have gray level ``levels[i]`` (rounded), others BACKGROUND."""
+    fmt = pixel_format or bundle.fibers.pixel_format
+    lut = np.concatenate([[BACKGROUND], np.clip(np.rint(levels), 0, 255)]).astype(np.uint8)
+    y = lut[bundle.fibers.label_image()]
+    if fmt == "gray":
+        return y
+    if fmt == "rgb":
+        return np.ascontiguousarray(np.repeat(y[:, :, None], 3, axis=2))
+    chroma = np.random.default_rng(seed).integers(0, 256, (y.shape[0] // 2, y.shape[1]), dtype=np.uint8)
+    return np.ascontiguousarray(np.concatenate([y, chroma], axis=0))
+
+
+def run(pipe, frames: list[np.ndarray]) -> list:
+    return [pipe.process(f, 1000 * k).copy() for k, f in enumerate(frames)]
+
+
+def warm(bundle: CalibrationBundle, rest: np.ndarray, fmt: str | None = None) -> list[np.ndarray]:
+    return [render(bundle, rest, fmt, seed=k) for k in range(bundle.baseline_frames)]
+
+
+# -- baseline, contact, reuse ------------------------------------------------------------
+
+
+def test_baseline_then_no_contact_at_rest() -> None:
+    bundle = make_bundle()
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    ests = run(pipe, warm(bundle, rest) + [render(bundle, rest)])
+    for k, e in enumerate(ests[:5]):
+        assert e.frame == k and e.t_ns == 1000 * k
+        assert not e.baseline_ready and not e.contact and math.isnan(e.x_mm)
+    last = ests[5]
+    assert last.baseline_ready and not last.contact
+    assert last.area_mm2 == 0.0 and last.strength == 0.0
+    assert math.isnan(last.x_mm) and math.isnan(last.major_mm) and np.all(np.isnan(last.hu))
+    assert last.shape == "" and math.isnan(last.confidence)
+    np.testing.assert_allclose(pipe.baseline, np.rint(rest), atol=1e-4)
+
+
+@pytest.mark.parametrize("x0,y0", [(0.0, 0.0), (3.1, -2.4), (-5.5, 4.0)])
+def test_press_centroid(x0: float, y0: float) -> None:
+    bundle = make_bundle()
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    e = pipe.process(render(bundle, pressed_levels(rest, x0, y0)), 7)
+    assert e.baseline_ready and e.contact
+    assert e.x_mm == pytest.approx(x0, abs=0.15)
+    assert e.y_mm == pytest.approx(y0, abs=0.15)
+    assert e.area_mm2 >= bundle.thresholds.min_area_mm2 and e.strength > 0
+    assert 0 < e.minor_mm <= e.major_mm < 2.3548 * 1.8  # truncation narrows the profile
+    assert np.all(np.isfinite(e.hu))
+
+
+def test_elongated_press_angle() -> None:
+    bundle = make_bundle()
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    for theta in (30.0, -55.0, 90.0):
+        e = pipe.process(render(bundle, pressed_levels(rest, 1.0, -0.5, 60.0, 3.0, 1.2, theta)), 0)
+        assert e.contact
+        assert e.major_mm > 1.5 * e.minor_mm
+        diff = (e.angle_deg - theta + 90.0) % 180.0 - 90.0
+        assert abs(diff) < 3.0
+
+
+def test_estimate_is_reused_and_copy_is_independent() -> None:
+    bundle = make_bundle()
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    e1 = pipe.process(render(bundle, pressed_levels(rest, 2.0, 2.0)), 1)
+    kept = e1.copy()
+    e2 = pipe.process(render(bundle, rest), 2)
+    assert e2 is e1 and not e2.contact
+    assert kept.contact and kept.hu is not e2.hu and np.all(np.isfinite(kept.hu))
+    json.dumps(kept.to_dict())
+    assert e2.to_dict()["x_mm"] is None
+
+
+def test_reset_baseline_tares() -> None:
+    bundle = make_bundle()
+    rest = rest_levels()
+    pressed = render(bundle, pressed_levels(rest, -1.0, 1.0))
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    assert pipe.process(pressed, 0).contact
+    pipe.reset_baseline()
+    assert not pipe.baseline_ready
+    for _ in range(bundle.baseline_frames):
+        e = pipe.process(pressed, 0)
+        assert not e.baseline_ready and not e.contact
+    e = pipe.process(pressed, 0)
+    assert e.baseline_ready and not e.contact  # the press is the new zero
+    assert e.frame == bundle.baseline_frames * 2 + 1
+
+
+def test_dead_fibers_are_ignored() -> None:
+    bundle = make_bundle(dead=(108, 109))
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    flicker = rest.copy()
+    flicker[[108, 109]] = 0.0  # a broken fiber going dark is no contact
+    e = pipe.process(render(bundle, flicker), 0)
+    assert not e.contact and e.area_mm2 == 0.0
+    np.testing.assert_array_equal(pipe.signal[[108, 109]], 0.0)
+
+
+def test_truncation_keeps_values_above_threshold() -> None:
+    bundle = make_bundle(thresholds=ContactThresholds(threshold=10.0, min_area_mm2=1.0))
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    e = pipe.process(render(bundle, pressed_levels(rest, 1.0, 2.0, 40.0)), 0)
+    full = bundle.interpolation.astype(np.float64) @ pipe.signal.astype(np.float64)
+    surface = pipe.surface.ravel()
+    above = full > 10.0
+    np.testing.assert_allclose(surface[above], full[above], rtol=1e-5, atol=1e-4)
+    assert np.all(surface[~above] == 0.0)
+    assert surface.max() > 30.0  # not binarised
+    assert e.area_mm2 == pytest.approx(above.sum() * GRID.cell_area_mm2)
+    assert e.strength == pytest.approx(surface.sum() * GRID.cell_area_mm2, rel=1e-5)
+
+
+def test_min_area_gates_contact() -> None:
+    bundle = make_bundle(thresholds=ContactThresholds(threshold=6.0, min_area_mm2=500.0))
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    e = pipe.process(render(bundle, pressed_levels(rest, 0.0, 0.0, 60.0)), 0)
+    assert not e.contact and 0.0 < e.area_mm2 < 500.0 and e.strength > 0.0
+    assert math.isnan(e.x_mm) and np.all(np.isnan(e.hu))
+
+
+# -- frame checks and pixel formats -----------------------------------------------------
+
+
+def test_frame_mismatch_errors() -> None:
+    bundle = make_bundle()
+    pipe = Pipeline(bundle)
+    good = render(bundle, rest_levels())
+    with pytest.raises(FrameMismatchError):
+        pipe.process(good[:-2], 0)
+    with pytest.raises(FrameMismatchError):
+        pipe.process(good.T.copy(), 0)
+    with pytest.raises(FrameMismatchError):
+        pipe.process(good.astype(np.float32), 0)
+    with pytest.raises(FrameMismatchError):
+        pipe.process(render(bundle, rest_levels(), "rgb"), 0)
+    with pytest.raises(FrameMismatchError):
+        Pipeline(make_bundle("yuv420")).process(good, 0)
+    with pytest.raises(FrameMismatchError):
+        ReferencePipeline(bundle).process(good[:-2], 0)
+    assert pipe.process(good, 0).frame == 0  # failures do not count as frames
+
+
+def test_pixel_formats_agree() -> None:
+    rest = rest_levels(4)
+    levels = [rest] * 5 + [pressed_levels(rest, 2.5, -1.0, 50.0, 2.2, 1.4, 20.0), rest]
+    results = {}
+    for fmt in ("gray", "rgb", "yuv420"):
+        bundle = make_bundle(fmt)
+        results[fmt] = run(Pipeline(bundle), [render(bundle, lv, seed=k) for k, lv in enumerate(levels)])
+    for fmt in ("rgb", "yuv420"):
+        for a, b in zip(results["gray"], results[fmt]):
+            assert (a.baseline_ready, a.contact) == (b.baseline_ready, b.contact)
+            np.testing.assert_allclose(
+                [a.x_mm, a.y_mm, a.major_mm, a.minor_mm, a.angle_deg, a.strength, a.area_mm2],
+                [b.x_mm, b.y_mm, b.major_mm, b.minor_mm, b.angle_deg, b.strength, b.area_mm2],
+                rtol=1e-4, atol=1e-4,
+            )
+            np.testing.assert_allclose(a.hu, b.hu, rtol=1e-4, atol=1e-4)
+    assert results["gray"][5].contact
+
+
+# -- agreement with the reference method ----------------------------------------------------
+
+
+@pytest.mark.parametrize("fmt", ["gray", "rgb", "yuv420"])
+def test_fast_agrees_with_reference(fmt: str) -> None:
+    bundle = make_bundle(fmt, dead=(3,))
+    rest = rest_levels(7)
+    presses = [
+        pressed_levels(rest, 0.4, 0.3, 70.0),
+        pressed_levels(rest, -4.0, 2.5, 40.0, 2.6, 1.3, 35.0),
+        pressed_levels(rest, 6.0, -5.0, 55.0, 1.5, 1.5),
+        pressed_levels(rest, -9.0, 0.0, 60.0, 2.0, 1.0, -70.0),  # at the rim
+    ]
+    frames = warm(bundle, rest) + [render(bundle, p, seed=9) for p in presses] + [render(bundle, rest)]
+    fast, ref = run(Pipeline(bundle), frames), run(ReferencePipeline(bundle), frames)
+    for a, b in zip(fast, ref):
+        assert (a.frame, a.t_ns, a.baseline_ready, a.contact) == (b.frame, b.t_ns, b.baseline_ready, b.contact)
+        if not a.contact:
+            continue
+        assert a.x_mm == pytest.approx(b.x_mm, abs=0.02)
+        assert a.y_mm == pytest.approx(b.y_mm, abs=0.02)
+        assert a.major_mm == pytest.approx(b.major_mm, rel=0.01)
+        assert a.minor_mm == pytest.approx(b.minor_mm, rel=0.01)
+        assert a.strength == pytest.approx(b.strength, rel=0.01)
+        assert a.area_mm2 == pytest.approx(b.area_mm2, rel=0.01)
+        assert abs((a.angle_deg - b.angle_deg + 90) % 180 - 90) < 0.5
+        np.testing.assert_allclose(a.hu[:4], b.hu[:4], rtol=0.01)
+    assert sum(e.contact for e in fast) == len(presses)
+
+
+# -- end to end with the simulator and the fiber calibration ----------------------------------
+
+
+def test_end_to_end_simulated_sensor() -> None:
+    from optitac_edge import calibration, sim
+
+    sensor = sim.SimulatedSensor(seed=1)
+    rest = [sensor.frame() for _ in range(5)]
+    bundle = calibration.calibrate_fibers(rest, "gray")
+    fast, ref = Pipeline(bundle), ReferencePipeline(bundle)
+    for f in rest:
+        fast.process(f, 0)
+        ref.process(f, 0)
+    Ind = sim.Indenter
+    cases = [Ind("circle", 2.0, -1.0, 0.0, 4.0, 2.0), Ind("ellipse", -4.0, 3.0, 30.0, 7.0, 2.0),
+             Ind("edge", 0.0, 0.0, -40.0, 2.0, 2.0), Ind("square", 5.0, 4.0, 20.0, 5.0, 2.5),
+             Ind("triangle", -3.0, -5.0, 0.0, 6.0, 2.0)]
+    for ind in cases:
+        frame = sensor.frame([ind])
+        a, b = fast.process(frame, 0).copy(), ref.process(frame, 0)
+        assert a.contact and b.contact, ind
+        assert a.x_mm == pytest.approx(b.x_mm, abs=0.02) and a.y_mm == pytest.approx(b.y_mm, abs=0.02)
+        assert a.major_mm == pytest.approx(b.major_mm, rel=0.01)
+        assert a.minor_mm == pytest.approx(b.minor_mm, rel=0.01)
+        assert math.hypot(a.x_mm - ind.x_mm, a.y_mm - ind.y_mm) < 0.4, ind
+        if ind.shape in ("ellipse", "edge"):
+            assert abs((a.angle_deg - ind.angle_deg + 90) % 180 - 90) < 3.0, ind
+    for _ in range(3):
+        assert not fast.process(sensor.frame(), 0).contact
