@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .bundle import ContactThresholds, CalibrationBundle
+from .bundle import CalibrationBundle, ContactThresholds
 from .errors import FiberMapError
 from .frames import frame_geometry, to_gray
 from .grid import SurfaceGrid

@@ -216,7 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OptiTacError as exc:
         print(f"optitac-edge: error: {exc}", file=sys.stderr)
     except KeyboardInterrupt:
-        print("", file=sys.stderr)
+        print(file=sys.stderr)
         return 0
     except OSError as exc:  # e.g. an output path that cannot be written
         where = f"{exc.filename}: " if exc.filename else ""

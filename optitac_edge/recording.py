@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import RecordingError
+from .errors import FrameMismatchError, RecordingError
 from .frames import infer_pixel_format
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
@@ -158,7 +158,7 @@ class Recording:
             )
         try:
             self.pixel_format = infer_pixel_format(frames.shape[1:])
-        except Exception:
+        except FrameMismatchError:
             raise RecordingError(f"{frames_path}: frames of shape {frames.shape} are not gray or RGB") from None
         self.frames = frames
         if self.meta.rest_frames > len(frames):

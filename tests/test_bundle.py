@@ -3,7 +3,13 @@ import zipfile
 import numpy as np
 import pytest
 
-from optitac_edge.bundle import BUNDLE_VERSION, CalibrationBundle, ContactThresholds, load_bundle, save_bundle
+from optitac_edge.bundle import (
+    BUNDLE_VERSION,
+    CalibrationBundle,
+    ContactThresholds,
+    load_bundle,
+    save_bundle,
+)
 from optitac_edge.errors import BundleError, FrameMismatchError
 from optitac_edge.fiber_table import FiberTable
 from optitac_edge.grid import SurfaceGrid

@@ -18,7 +18,6 @@ from optitac_edge.fiber_map import FiberMapResult, build_fiber_map
 from optitac_edge.fiber_table import FiberSampler
 from optitac_edge.frames import to_gray
 from optitac_edge.layout import hex_layout
-
 from optitac_edge.sim import CameraOptics, SimulatedSensor
 
 LAYOUT = hex_layout()

@@ -50,7 +50,7 @@ class Camera(ABC):
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
         """Return the next frame, ``None`` at the end of a finite source."""
 
-    def _close_internal(self) -> None:  # noqa: B027 - optional hook
+    def _close_internal(self) -> None:
         """Release the device; called once."""
 
     def read(self, timeout_s: float = 1.0) -> CapturedFrame | None:
