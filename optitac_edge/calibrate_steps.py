@@ -1,0 +1,101 @@
+"""The calibration steps after ``calibrate fibers``: centroid, width, shapes.
+
+Each step replays a recording with known truth through the raw pipeline
+(baseline from its rest frames), fits its model, and returns an updated
+bundle; the CLI saves it atomically. The fitted data are kept in the bundle
+(``report/*`` arrays) so ``optitac-edge report`` can draw them later.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from .bundle import CalibrationBundle
+from .centroid_map import fit_centroid_map
+from .corrections import with_centroid_map, with_shape_model, with_width_model
+from .errors import RecordingError
+from .evaluation import detected_rows
+from .measure import measure_recording
+from .recording import SHAPES, Recording
+from .width_model import fit_width_model
+
+log = logging.getLogger(__name__)
+#: The centroid maps reach this far beyond the outermost fiber, mm.
+MAP_MARGIN_MM = 3.0
+
+
+def _truth(rec: Recording) -> Any:
+    if rec.truth is None:
+        raise RecordingError(f"{rec.path}: calibration needs truth.csv")
+    return rec.truth
+
+
+def _with_report_arrays(bundle: CalibrationBundle, **arrays: np.ndarray) -> CalibrationBundle:
+    extra = dict(bundle.extra_arrays)
+    extra.update({f"report/{k}": np.asarray(v) for k, v in arrays.items()})
+    return bundle.with_updates(extra_arrays=extra)
+
+
+def calibrate_centroid(rec: Recording, bundle: CalibrationBundle) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """The paper's centroid error maps from presses of known position."""
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth))
+    if rows.size < 3:
+        raise RecordingError(f"{rec.path}: only {rows.size} detected presses to calibrate the centroid")
+    frames = truth.frame[rows]
+    measured = np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1)
+    true = np.stack([truth.x_mm[rows], truth.y_mm[rows]], axis=1)
+    error_map = fit_centroid_map(measured, true, half_span_mm=bundle.layout.radius_mm + MAP_MARGIN_MM)
+    corrected = np.array([error_map.correct(x, y) for x, y in measured])
+    summary = {
+        "frames": int(rows.size),
+        "raw_rmse_mm": np.sqrt(np.mean((measured - true) ** 2, axis=0)).round(4).tolist(),
+        "fitted_rmse_mm": np.sqrt(np.mean((corrected - true) ** 2, axis=0)).round(4).tolist(),
+    }
+    bundle = with_centroid_map(bundle, error_map)
+    bundle = _with_report_arrays(bundle, centroid_measured=measured, centroid_true=true)
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": summary}), summary
+
+
+def calibrate_width(rec: Recording, bundle: CalibrationBundle) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Per-axis linear width model from circular presses of known diameter."""
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth) & (truth.shape == "circle"))
+    if rows.size < 2 or np.unique(truth.size_mm[rows]).size < 2:
+        raise RecordingError(f"{rec.path}: width calibration needs circles of at least two diameters")
+    frames = truth.frame[rows]
+    major, minor, true = m.major_mm[frames], m.minor_mm[frames], truth.size_mm[rows]
+    model = fit_width_model(major, minor, true)
+    fitted = np.array([model.correct(a, b) for a, b in zip(major, minor)])
+    summary = {
+        "frames": int(rows.size), **model.to_bundle(),
+        "fitted_rmse_mm": np.sqrt(np.mean((fitted - true[:, None]) ** 2, axis=0)).round(4).tolist(),
+    }
+    bundle = with_width_model(bundle, model)
+    bundle = _with_report_arrays(bundle, width_measured=np.stack([major, minor], axis=1), width_true=true)
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": summary}), summary
+
+
+def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
+                     ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Shape classifier from labelled presses (the paper's GMM search and a supervised alternative)."""
+    from .shapes.fit import fit_shape_model
+
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth))
+    labels = truth.shape[rows]
+    if np.unique(labels).size < 2:
+        raise RecordingError(f"{rec.path}: shape calibration needs presses of at least two shapes")
+    features = m.hu[truth.frame[rows]]
+    report = fit_shape_model(features, labels, seed=seed)
+    summary = report.summary() if hasattr(report, "summary") else {}
+    bundle = with_shape_model(bundle, report.model)
+    bundle = _with_report_arrays(bundle, shape_hu=features,
+                                 shape_label=np.array([SHAPES.index(s) for s in labels], dtype=np.int64))
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": summary}), summary
