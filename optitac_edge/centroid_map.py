@@ -71,6 +71,7 @@ def fit_centroid_map(
     half_span_mm: float,
     cells: int = MAP_CELLS,
     sigma_cells: float = MAP_SIGMA_CELLS,
+    fill: str = "nearest",
 ) -> CentroidErrorMap:
     """Fit the error maps from presses of known position.
 
@@ -85,6 +86,11 @@ def fit_centroid_map(
         Mesh size (the paper: 1000).
     sigma_cells : float
         Gaussian filter σ in cells (the paper: 10).
+    fill : {"nearest", "linear"}
+        ``nearest``: the paper's k-d tree nearest-neighbour fill. ``linear``:
+        piecewise-linear interpolation on the Delaunay triangulation of the
+        measured positions inside their hull, nearest neighbour outside —
+        no steps between presses for the filter to smooth.
     """
     from scipy.ndimage import gaussian_filter
     from scipy.spatial import cKDTree
@@ -97,9 +103,18 @@ def fit_centroid_map(
     measured, error = measured[ok], error[ok]
     axis = np.linspace(-half_span_mm, half_span_mm, cells)
     xx, yy = np.meshgrid(axis, axis)
-    _, nearest = cKDTree(measured).query(np.stack([xx.ravel(), yy.ravel()], axis=1))
-    maps = [gaussian_filter(error[nearest, k].reshape(cells, cells), sigma_cells, mode="nearest")
-            for k in (0, 1)]
+    points = np.stack([xx.ravel(), yy.ravel()], axis=1)
+    _, nearest = cKDTree(measured).query(points)
+    filled = error[nearest]
+    if fill == "linear":
+        from scipy.interpolate import LinearNDInterpolator
+
+        linear = LinearNDInterpolator(measured, error)(points)
+        inside = np.all(np.isfinite(linear), axis=1)
+        filled[inside] = linear[inside]
+    elif fill != "nearest":
+        raise ValueError(f"unknown fill {fill!r}")
+    maps = [gaussian_filter(filled[:, k].reshape(cells, cells), sigma_cells, mode="nearest") for k in (0, 1)]
     return CentroidErrorMap(
         x0_mm=float(axis[0]), y0_mm=float(axis[0]), step_mm=float(axis[1] - axis[0]),
         error_x=maps[0].astype(np.float32), error_y=maps[1].astype(np.float32),
