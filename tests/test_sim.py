@@ -227,6 +227,7 @@ def test_scenario_defaults() -> None:
     assert lengths["repeat"] == REST_FRAMES + 50 * per_press
     assert lengths["widths"] == REST_FRAMES + 60 * per_press
     assert lengths["shapes"] == REST_FRAMES + 200 * per_press
+    assert lengths["drift"] == 1200
     # every press fully on the array (outline within the array) unless at the centre
     skin = SkinModel()
     for name in ("demo", "shapes", "widths"):
@@ -254,7 +255,8 @@ def test_scenarios_write_valid_recordings(tmp_path, name: str) -> None:
     assert sim["scenario"] == name and sim["seed"] == 4
     assert np.asarray(sim["fiber_centres_px"]).shape == (LAYOUT.n_fibers, 2)
     json.dumps(sim)
-    if name != "rest":
+    assert sim["day"] == 0 and sim["variant"] == 0 and sim["drift"]["led_gain"] == 1.0
+    if name not in ("rest", "drift"):  # drift: the first press comes after 100 frames
         assert truth.contact[REST_FRAMES : REST_FRAMES + HOLD_FRAMES].all()
         assert not truth.contact[REST_FRAMES + HOLD_FRAMES]
         held = truth.contact.nonzero()[0]

@@ -5,8 +5,11 @@
 ``render``     :class:`FrameRenderer`: per-fiber light -> uint8 frames, fast.
 ``sensor``     :class:`SimulatedSensor`: indenters -> frames, plus truth.
 ``scenarios``  :func:`write_scenario`: built-in recordings with ``truth.csv``.
+``drift``      :class:`SessionDrift` (the "day" of a recording), :func:`sensor_variant`
+               (other simulated sensors).
 """
 
+from .drift import NO_DRIFT, SessionDrift, sensor_variant, variant_optics, variant_sensor_seed
 from .optics import CameraOptics, Projection
 from .render import SENSOR_SEED, FrameRenderer, fiber_rest_peak
 from .scenarios import SCENARIOS, schedule, write_scenario
@@ -14,17 +17,22 @@ from .sensor import SimulatedSensor
 from .skin import Indenter, SkinModel, fiber_darkening, signed_distance
 
 __all__ = [
+    "NO_DRIFT",
     "SCENARIOS",
     "SENSOR_SEED",
     "CameraOptics",
     "FrameRenderer",
     "Indenter",
     "Projection",
+    "SessionDrift",
     "SimulatedSensor",
     "SkinModel",
     "fiber_darkening",
     "fiber_rest_peak",
     "schedule",
+    "sensor_variant",
     "signed_distance",
+    "variant_optics",
+    "variant_sensor_seed",
     "write_scenario",
 ]

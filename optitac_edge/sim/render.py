@@ -10,6 +10,7 @@ bank of noise drawn once and sliced at a random offset per frame.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -62,6 +63,11 @@ class FrameRenderer:
         fixed-pattern noise); default :data:`SENSOR_SEED`.
     noise_seed : int
         Seed of the bank of temporal noise (default 0).
+    shift_px : tuple of 2 float
+        (dx, dy) shift of the whole image of the array, px (default (0, 0)): the
+        projection's centre moves before the per-pixel maps are built, so a
+        sub-pixel shift is exact, not an interpolation. The fixed-pattern noise
+        (a property of the camera chip) does not move.
 
     Attributes
     ----------
@@ -81,6 +87,7 @@ class FrameRenderer:
         optics: CameraOptics = DEFAULT_OPTICS,
         sensor_seed: int = SENSOR_SEED,
         noise_seed: int = 0,
+        shift_px: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         bad = [i for i in optics.dark_fibers if not 0 <= i < layout.n_fibers]
         if bad:
@@ -88,6 +95,10 @@ class FrameRenderer:
         self.layout = layout
         self.optics = optics
         self.projection: Projection = optics.projection(layout.radius_mm)
+        dx, dy = (float(v) for v in shift_px)
+        if dx or dy:
+            proj = self.projection
+            self.projection = replace(proj, cx=proj.cx + dx, cy=proj.cy + dy)
         self.fiber_centres_px = self.projection.to_image(layout.xy_mm)
         self.rest_peak = fiber_rest_peak(layout, optics, sensor_seed)
         self._peak32 = self.rest_peak.astype(np.float32)

@@ -18,12 +18,22 @@ contact-free frame. ``truth.csv`` has a row for every frame. Scenarios:
              circle could move less than a quarter of the inscribed radius).
 ``shapes``   40 presses of each shape in random order, random angle and
              position fully on the array, size 4-8 mm (edge width 1.5-2 mm), 3 mm deep.
+``drift``    baseline tracking: long contact-free stretches with the LEDs warming
+             up (+:data:`DRIFT_WARMUP` brightness over the recording, per-fiber
+             drift of sigma :data:`DRIFT_FIBER_SIGMA`) and an occasional press:
+             after the rest frames, :data:`DRIFT_GAP` contact-free frames then a
+             random press (as ``demo``, 3 mm deep) held :data:`DRIFT_HOLD`
+             frames, repeated (default 1200 frames = 20 s).
 
 Angles are drawn within each shape's symmetry period (circle 0; square
 [0, 90); triangle [0, 120); ellipse and edge [0, 180)). ``seed`` controls
 positions, sizes and frame noise; the physical sensor (fiber transmission,
 fixed-pattern noise) is set by ``sensor_seed``, the same by default in every
 scenario so that recordings of different seeds come from the same sensor.
+
+``day`` (see :class:`~optitac_edge.sim.drift.SessionDrift`) and ``variant``
+(see :func:`~optitac_edge.sim.drift.sensor_variant`) select the recording
+session and the simulated sensor; both 0 by default (the nominal sensor).
 """
 
 from __future__ import annotations
@@ -31,6 +41,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,17 +49,32 @@ from scipy.spatial import ConvexHull
 
 from ..layout import FiberLayout, hex_layout
 from ..recording import SHAPES, RecordingMeta, RecordingWriter
+from .drift import SessionDrift, sensor_variant, variant_sensor_seed
 from .optics import DEFAULT_OPTICS, CameraOptics
-from .render import SENSOR_SEED
 from .sensor import SimulatedSensor
 from .skin import DEFAULT_SKIN, Indenter, SkinModel, bounding_radius
 
 log = logging.getLogger(__name__)
 
-SCENARIOS: tuple[str, ...] = ("rest", "demo", "seen", "unseen", "repeat", "widths", "shapes")
+SCENARIOS: tuple[str, ...] = (
+    "rest",
+    "demo",
+    "seen",
+    "unseen",
+    "repeat",
+    "widths",
+    "shapes",
+    "drift",
+)
 REST_FRAMES = 10
 HOLD_FRAMES = 2
 FPS = 60.0
+#: ``drift`` scenario: contact-free frames before each press, frames each press is held,
+#: relative LED brightening over the whole recording, per-fiber drift sigma over it.
+DRIFT_GAP = 90
+DRIFT_HOLD = 30
+DRIFT_WARMUP = 0.03
+DRIFT_FIBER_SIGMA = 0.005
 WIDTHS_MM: tuple[float, ...] = tuple(float(d) for d in np.round(np.linspace(1.85, 20.09, 12), 2))
 ANGLE_PERIOD_DEG = {
     "circle": 0.0,
@@ -125,6 +151,17 @@ def _repeat(
     return out
 
 
+def _drift(
+    rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
+) -> list[Indenter]:
+    out = []
+    for _ in range(n):
+        shape = str(rng.choice(SHAPES))
+        size = rng.uniform(1.5, 3.0) if shape == "edge" else rng.uniform(3.0, 10.0)
+        out.append(_place(rng, shape, float(size), 3.0, layout, skin))
+    return out
+
+
 def _widths(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
@@ -151,8 +188,9 @@ _PRESSES: dict[str, _PressMaker] = {
     "repeat": _repeat,
     "widths": _widths,
     "shapes": _shapes,
+    "drift": _drift,
 }
-_DEFAULT_FRAMES = {"rest": 30, "demo": 300}
+_DEFAULT_FRAMES = {"rest": 30, "demo": 300, "drift": 1200}
 
 
 def schedule(
@@ -164,8 +202,8 @@ def schedule(
 ) -> list[Frame]:
     """The contact of every frame of scenario ``name`` (None = contact-free).
 
-    ``frames`` sets the length of ``rest`` and ``demo`` (defaults 30, 300) and
-    truncates the others (default: all their presses).
+    ``frames`` sets the length of ``rest``, ``demo`` and ``drift`` (defaults 30,
+    300, 1200) and truncates the others (default: all their presses).
 
     Raises
     ------
@@ -178,15 +216,39 @@ def schedule(
         raise ValueError(f"a recording needs at least {REST_FRAMES} frames")
     layout = hex_layout() if layout is None else layout
     n_frames = frames if frames is not None else _DEFAULT_FRAMES.get(name)
-    n_presses = 0 if n_frames is None else -(-(n_frames - REST_FRAMES) // (HOLD_FRAMES + 1))
+    period = DRIFT_GAP + DRIFT_HOLD if name == "drift" else HOLD_FRAMES + 1
+    n_presses = 0 if n_frames is None else -(-(n_frames - REST_FRAMES) // period)
     rng = np.random.default_rng([seed, 10])
     presses = _PRESSES[name](rng, layout, skin, n_presses) if name != "rest" else []
     out: list[Frame] = [None] * REST_FRAMES
     for press in presses:
-        out += [press] * HOLD_FRAMES + [None]
+        if name == "drift":
+            out += [None] * DRIFT_GAP + [press] * DRIFT_HOLD
+        else:
+            out += [press] * HOLD_FRAMES + [None]
     if n_frames is not None:
         out = (out + [None] * n_frames)[:n_frames]
     return out
+
+
+def scenario_drift(
+    name: str, drift: SessionDrift, n_frames: int, warmup: float = DRIFT_WARMUP
+) -> SessionDrift:
+    """The drift a recording of scenario ``name`` is made with.
+
+    ``drift`` itself, except for the ``drift`` scenario, which imposes its LED
+    warm-up (brightness x (1 + ``warmup``) from the first to the last frame;
+    negative: the LEDs dim) and per-fiber drift (sigma :data:`DRIFT_FIBER_SIGMA`
+    over the recording), keeping the day's other drift.
+    """
+    if name != "drift":
+        return drift
+    duration = max(n_frames - 1, 1) / FPS
+    return replace(
+        drift,
+        led_drift_per_s=warmup / duration,
+        fiber_drift_per_s=DRIFT_FIBER_SIGMA / duration,
+    )
 
 
 def write_scenario(
@@ -195,9 +257,13 @@ def write_scenario(
     seed: int = 0,
     frames: int | None = None,
     optics: CameraOptics = DEFAULT_OPTICS,
-    skin: SkinModel = DEFAULT_SKIN,
+    skin: SkinModel | None = None,
     layout: FiberLayout | None = None,
-    sensor_seed: int = SENSOR_SEED,
+    sensor_seed: int | None = None,
+    day: int = 0,
+    variant: int = 0,
+    drift: SessionDrift | None = None,
+    warmup: float = DRIFT_WARMUP,
 ) -> Path:
     """Simulate scenario ``name`` and stream it into the recording directory ``out_dir``.
 
@@ -209,59 +275,97 @@ def write_scenario(
     name : str
         One of :data:`SCENARIOS`.
     seed : int
-        Positions, sizes, angles and frame noise (default 0).
+        Positions, sizes, angles, frame noise and per-press depth jitter (default 0).
     frames : int or None
-        Length of ``rest`` / ``demo``; truncation of the others (see :func:`schedule`).
-    optics, skin, layout
-        The simulated camera, skin and fiber layout (default hex_layout()).
-    sensor_seed : int
-        The physical sensor's randomness (default :data:`SENSOR_SEED`, the same
-        sensor for every scenario and seed).
+        Length of ``rest`` / ``demo`` / ``drift``; truncation of the others (see
+        :func:`schedule`).
+    optics : CameraOptics
+        The simulated camera (default ``CameraOptics()``); a ``variant``'s
+        overrides (geometry, lens, illumination, noise) replace its fields,
+        keeping width, height, rgb and dark_fibers.
+    skin : SkinModel or None
+        The skin; None (default): the variant's (``SkinModel()`` for variant 0).
+    layout : FiberLayout or None
+        Fiber layout (default hex_layout()).
+    sensor_seed : int or None
+        The physical sensor's randomness; None (default):
+        :func:`~optitac_edge.sim.drift.variant_sensor_seed` (:data:`SENSOR_SEED`
+        for variant 0, the same sensor for every scenario and seed).
+    day : int
+        Recording session: ``SessionDrift.for_day(day, sensor_seed)`` (default 0:
+        nominal, no drift). Ignored if ``drift`` is given.
+    variant : int
+        Simulated sensor, see :func:`~optitac_edge.sim.drift.sensor_variant`
+        (default 0: the default sensor).
+    drift : SessionDrift or None
+        Explicit session drift instead of ``day``.
+    warmup : float
+        ``drift`` scenario only: relative LED brightness change from the first
+        to the last frame (default :data:`DRIFT_WARMUP` = +0.03; -0.03 dims,
+        the harder case for baseline tracking: it looks like a faint press).
 
     Returns
     -------
     Path
         ``out_dir``. ``meta.json`` holds ``rest_frames``, ``fps`` and a
-        ``simulator`` object: scenario, seed, sensor_seed, optics, skin,
-        scale_px_per_mm, centre_px, rest_peak_gray and ``fiber_centres_px``
-        (N x [col, row], layout order: the ground truth of the fiber map).
+        ``simulator`` object: scenario, seed, sensor_seed, day, variant, optics,
+        skin, drift, scale_px_per_mm, centre_px, rest_peak_gray (nominal),
+        ``fiber_centres_px`` (N x [col, row], layout order, including the day's
+        camera shift: the ground truth of the fiber map) and ``real_depth_mm``
+        ([first frame, real depth] of every press; ``truth.csv`` has the
+        commanded depth).
     """
     layout = hex_layout() if layout is None else layout
+    overrides, variant_skin = sensor_variant(variant, optics.width, optics.height, layout)
+    optics = replace(optics, **overrides) if overrides else optics
+    skin = variant_skin if skin is None else skin
+    sensor_seed = variant_sensor_seed(variant) if sensor_seed is None else sensor_seed
     plan = schedule(name, seed, frames, layout, skin)
-    sensor = SimulatedSensor(layout, optics, skin, seed=seed, sensor_seed=sensor_seed)
+    if drift is None:
+        drift = SessionDrift.for_day(day, sensor_seed)
+    drift = scenario_drift(name, drift, len(plan), warmup)
+    sensor = SimulatedSensor(
+        layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=FPS
+    )
     proj = sensor.renderer.projection
-    extra = {
-        "simulator": {
-            "scenario": name,
-            "seed": seed,
-            "sensor_seed": sensor_seed,
-            "optics": optics.to_dict(),
-            "skin": skin.to_dict(),
-            "scale_px_per_mm": proj.scale,
-            "centre_px": [proj.cx, proj.cy],
-            "rest_peak_gray": np.round(sensor.rest_peak, 3).tolist(),
-            "fiber_centres_px": np.round(sensor.fiber_centres_px, 4).tolist(),
-        }
+    simulator: dict[str, object] = {
+        "scenario": name,
+        "seed": seed,
+        "sensor_seed": sensor_seed,
+        "day": day,
+        "variant": variant,
+        "optics": optics.to_dict(),
+        "skin": skin.to_dict(),
+        "drift": drift.to_dict(),
+        "scale_px_per_mm": proj.scale,
+        "centre_px": [proj.cx, proj.cy],
+        "rest_peak_gray": np.round(sensor.rest_peak, 3).tolist(),
+        "fiber_centres_px": np.round(sensor.fiber_centres_px, 4).tolist(),
     }
-    meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra=extra)
+    meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra={"simulator": simulator})
     out = Path(out_dir)
     log.info(
-        "simulating %s (seed %d): %d frames of %s into %s",
+        "simulating %s (seed %d, day %d, variant %d): %d frames of %s into %s",
         name,
         seed,
+        day,
+        variant,
         len(plan),
         sensor.frame_shape,
         out,
     )
-    rest = np.zeros(layout.n_fibers)
+    real_depths: list[list[float]] = []
     with RecordingWriter(out, len(plan), sensor.frame_shape, meta, with_truth=True) as writer:
         last: Frame = None
-        dark = rest
+        dark = sensor.darkening(())
         for i, press in enumerate(plan):
             if press is not last:
-                dark = rest if press is None else sensor.darkening([press])
+                dark = sensor.darkening(() if press is None else (press,))
+                if press is not None:
+                    real = sensor.last_real_indenters[0].depth_mm
+                    real_depths.append([i, round(real, 5)])
                 last = press
-            writer.write(i, sensor.frame_from_darkening(dark))
+            writer.write(i, sensor.frame_from_darkening(dark, t_s=i / FPS))
             if press is None:
                 writer.write_truth(i, False)
             else:
@@ -275,4 +379,5 @@ def write_scenario(
                     press.size_mm,
                     press.depth_mm,
                 )
+        simulator["real_depth_mm"] = real_depths
     return out
