@@ -1,0 +1,181 @@
+"""ONNX form of a :class:`~optitac_edge.shapes.model.ShapeModel` (needs ``onnx`` to export,
+``onnxruntime`` to run: the ``[calibrate]`` / ``[onnx]`` extras).
+
+The graph takes ``hu_log`` (n, 7) float64 -- the pipeline's log-Hu invariants,
+untransformed -- and outputs ``probabilities`` (n, C) float64, doing the
+feature transform (:func:`~optitac_edge.shapes.features.shape_features`), the
+standardisation and the mixture posterior with the same constants and in the
+same order as :func:`~optitac_edge.shapes.evaluate.class_proba_numpy`. The
+class names are in the model's metadata (``class_names``, JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .evaluate import CompiledShapeModel
+from .features import N_HU, SIGNED, ZERO_IS_NULL
+from .model import ShapeModel
+
+if TYPE_CHECKING:
+    import onnx
+
+#: ONNX opset of the exported graph (onnxruntime >= 1.14 runs it).
+OPSET = 17
+INPUT_NAME = "hu_log"
+OUTPUT_NAME = "probabilities"
+
+
+def build_onnx(model: ShapeModel) -> onnx.ModelProto:
+    """The ONNX model of ``model``; see the module docstring.
+
+    Raises
+    ------
+    ImportError
+        If the ``onnx`` package is not installed.
+    """
+    try:
+        import onnx
+        from onnx import TensorProto, helper, numpy_helper
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("ONNX export needs the 'onnx' package (pip install onnx)") from exc
+
+    c = CompiledShapeModel.from_model(model)
+    k, n_cls = model.n_components, len(model.class_names)
+    cap = model.log_hu_cap
+    consts = {
+        "cap": np.array(cap), "neg_cap": np.array(-cap), "zero": np.array(0.0),
+        "signed": SIGNED.copy(), "zero_null": ZERO_IS_NULL.copy(),
+        "subset": c.subset.astype(np.int64), "mean": c.mean, "std": c.std,
+        "proj": c.proj, "offset": c.offset, "block_sum": c.block_sum,
+        "neg_half": np.array(-0.5), "const": c.const, "class_map": c.class_map,
+    }
+    inits = [numpy_helper.from_array(np.asarray(v), name=n) for n, v in consts.items()]
+    N = helper.make_node
+    nodes = [
+        # h1..h4: clip(L, -C, C) with NaN passing through; exact 0 of h2..h4 -> C
+        N("Greater", ["hu_log", "cap"], ["gt"]),
+        N("Less", ["hu_log", "neg_cap"], ["lt"]),
+        N("Where", ["lt", "neg_cap", "hu_log"], ["lo"]),
+        N("Where", ["gt", "cap", "lo"], ["clipped"]),
+        N("Equal", ["hu_log", "zero"], ["is0"]),
+        N("And", ["is0", "zero_null"], ["null"]),
+        N("Where", ["null", "cap", "clipped"], ["nonneg"]),
+        # h5..h7: sign(L) * (C - |L|), 0 where |L| >= C
+        N("Abs", ["hu_log"], ["a"]),
+        N("Sub", ["cap", "a"], ["rest"]),
+        N("Sign", ["hu_log"], ["sgn"]),
+        N("Mul", ["sgn", "rest"], ["symlog"]),
+        N("GreaterOrEqual", ["a", "cap"], ["far"]),
+        N("Where", ["far", "zero", "symlog"], ["signed_f"]),
+        N("Where", ["signed", "signed_f", "nonneg"], ["features"]),
+        # standardised subset, Mahalanobis distances, log densities
+        N("Gather", ["features", "subset"], ["sel"], axis=1),
+        N("Sub", ["sel", "mean"], ["centred"]),
+        N("Div", ["centred", "std"], ["z"]),
+        N("MatMul", ["z", "proj"], ["zp"]),
+        N("Sub", ["zp", "offset"], ["y"]),
+        N("Mul", ["y", "y"], ["y2"]),
+        N("MatMul", ["y2", "block_sum"], ["maha"]),
+        N("Mul", ["maha", "neg_half"], ["half"]),
+        N("Add", ["half", "const"], ["ll"]),
+        # softmax over components, summed per class
+        N("ReduceMax", ["ll"], ["llmax"], axes=[1], keepdims=1),
+        N("Sub", ["ll", "llmax"], ["shifted"]),
+        N("Exp", ["shifted"], ["e"]),
+        N("MatMul", ["e", "class_map"], ["unnorm"]),
+        N("ReduceSum", ["e", "axis1"], ["total"], keepdims=1),
+        N("Div", ["unnorm", "total"], [OUTPUT_NAME]),
+    ]
+    inits.append(numpy_helper.from_array(np.array([1], dtype=np.int64), name="axis1"))
+    graph = helper.make_graph(
+        nodes, "optitac_edge_shapes",
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.DOUBLE, ["n", N_HU])],
+        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.DOUBLE, ["n", n_cls])], inits,
+    )
+    onnx_model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                                   producer_name="optitac-edge")
+    onnx_model.ir_version = min(onnx_model.ir_version, 8)
+    meta, _ = model.to_bundle()
+    for key, value in {"class_names": json.dumps(list(model.class_names)),
+                       "shape_model": json.dumps(meta), "n_components": str(k)}.items():
+        onnx_model.metadata_props.add(key=key, value=value)
+    onnx.checker.check_model(onnx_model)
+    return onnx_model
+
+
+def export_onnx(model: ShapeModel, path: str | Path) -> Path:
+    """Write the ONNX form of ``model`` to ``path``.
+
+    Parameters
+    ----------
+    model : ShapeModel
+    path : str or Path
+
+    Returns
+    -------
+    Path
+    """
+    import onnx
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(build_onnx(model), str(path))
+    return path
+
+
+class OnnxShapeClassifier:
+    """The :class:`~optitac_edge.shapes.evaluate.ShapeClassifier` API on onnxruntime.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file written by :func:`export_onnx`.
+    threads : int
+        onnxruntime intra-op threads (default 1: the model is tiny).
+
+    Raises
+    ------
+    ImportError
+        If onnxruntime is not installed.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1) -> None:
+        try:
+            import onnxruntime as ort
+        except ImportError as exc:
+            raise ImportError(
+                "OnnxShapeClassifier needs onnxruntime: pip install 'optitac-edge[onnx]' "
+                "(or pip install onnxruntime); the numpy ShapeClassifier needs nothing extra"
+            ) from exc
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        self._session = ort.InferenceSession(str(path), sess_options=opts,
+                                             providers=["CPUExecutionProvider"])
+        props = self._session.get_modelmeta().custom_metadata_map
+        self.class_names: tuple[str, ...] = tuple(json.loads(props["class_names"]))
+        self._one = np.empty((1, N_HU), dtype=np.float64)
+
+    def predict_proba(self, hu_log: np.ndarray) -> np.ndarray:
+        """Class probabilities, shape (n, C), float64 (as :meth:`ShapeClassifier.predict_proba`)."""
+        L = np.ascontiguousarray(hu_log, dtype=np.float64)
+        if L.ndim == 1:
+            L = L[None, :]
+        if L.ndim != 2 or L.shape[1] != N_HU:
+            raise ValueError(f"expected log-Hu features of shape (n, 7), got {np.shape(hu_log)}")
+        return self._session.run([OUTPUT_NAME], {INPUT_NAME: L})[0]
+
+    def classify(self, hu_log: np.ndarray) -> tuple[str, float]:
+        """Shape and confidence of one contact; ``('', nan)`` if a used invariant is NaN."""
+        self._one[0] = hu_log
+        p = self._session.run([OUTPUT_NAME], {INPUT_NAME: self._one})[0][0]
+        best = int(np.argmax(p))
+        if not math.isfinite(float(p[best])) or np.isnan(p).any():
+            return "", math.nan
+        return self.class_names[best], float(p[best])
