@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import zipfile
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,8 @@ BUNDLE_FORMAT = "optitac-edge-calibration"
 BUNDLE_VERSION = 1
 #: Leading contact-free frames averaged into the baseline (the paper's 5).
 BASELINE_FRAMES = 5
+#: Most simultaneous contacts the pipeline reports.
+MAX_CONTACTS = 4
 
 
 @dataclass(frozen=True)
@@ -51,6 +54,141 @@ class ContactThresholds:
 
     threshold: float = 6.0
     min_area_mm2: float = 1.0
+
+
+@dataclass(frozen=True)
+class ContactOptions:
+    """Improvements beyond the paper's per-frame method, each switchable.
+
+    Stored in the bundle's meta under ``contact_options`` (strictly validated:
+    an unknown key or a bad value is a :class:`BundleError` naming the key).
+    :meth:`paper` switches everything off: the pipeline then does exactly the
+    paper's method with :class:`ContactThresholds` (and agrees with
+    :class:`~optitac_edge.reference.ReferencePipeline`). A bundle file without
+    ``contact_options`` (written before they existed) loads as :meth:`paper`.
+
+    Signal units: gray levels, or relative units (fraction of the fiber's rest
+    light above the black level) when ``relative`` is set. The *levels* below
+    (truncation, off, on) are in those units.
+
+    Attributes
+    ----------
+    relative : bool
+        Per-fiber signal ``(baseline - mean) / (baseline - black_level)``:
+        removes the fibers' transmission spread and LED vignetting, and makes
+        the signal invariant to the overall brightness. The paper threshold
+        (when ``noise_levels`` is off) is converted with the median rest level.
+    noise_levels : bool
+        Truncation / off / on levels from the rest-frame noise measured at
+        calibration: ``max(k * noise, floor)`` (``noise_rel`` or ``noise_gray``,
+        the worst surface cell's noise std). Off: the paper's single
+        ``ContactThresholds.threshold`` for all three.
+    hysteresis : bool
+        A contact starts when a blob's peak exceeds the *on* level and stays
+        while it exceeds the lower *off* level. Off: the on level for both.
+    peak_fraction : float
+        Each contact is truncated at ``max(truncation level, peak_fraction *
+        its peak)``: widths and centroid then do not depend on the signal
+        amplitude. 0 switches it off (truncation level only).
+    fill_dead : bool
+        Dead fibers take the (harmonic) mean of their neighbours, folded into
+        the interpolation matrix (``A' = A F``, no per-frame cost). Off: 0.
+    max_contacts : int
+        1..4. More than 1: separate blobs (8-connected) of the truncated surface
+        are separate contacts, strongest ``m00`` first. 1: the whole surface
+        above the truncation level is one contact (the paper).
+    track_baseline : bool
+        Exponential moving average of the fiber means (time constant
+        ``baseline_tau_s`` from the frame timestamps) while there is no
+        contact, no contact ended in the last ``holdoff_s`` seconds and no
+        fiber's signal departs from the median fiber signal by the off level
+        or more (a uniform drift is tracked, a local press is not).
+    k_trunc, k_off, k_on : float
+        Levels in units of the measured noise.
+    floor_trunc, floor_off, floor_on : float
+        Lower bounds of the levels, relative units (converted to gray levels
+        with the median rest level when ``relative`` is off).
+    baseline_tau_s, holdoff_s : float
+        See ``track_baseline``.
+    noise_rel, noise_gray : float
+        Measured by calibration: the largest per-cell std of the surface
+        interpolated from the rest frames' per-fiber temporal noise, relative
+        units and gray levels; 0 if unknown (then only the floors apply).
+    black_level : float
+        Measured by calibration: gray level of the image between the fibers
+        (median), subtracted from the baseline in the relative signal.
+    """
+
+    relative: bool = True
+    noise_levels: bool = True
+    hysteresis: bool = True
+    peak_fraction: float = 0.4
+    fill_dead: bool = True
+    max_contacts: int = 4
+    track_baseline: bool = True
+    k_trunc: float = 4.0
+    k_off: float = 6.0
+    k_on: float = 10.0
+    floor_trunc: float = 0.004
+    floor_off: float = 0.006
+    floor_on: float = 0.01
+    baseline_tau_s: float = 1.0
+    holdoff_s: float = 0.5
+    noise_rel: float = 0.0
+    noise_gray: float = 0.0
+    black_level: float = 0.0
+
+    #: Switches (``paper()`` turns them off).
+    SWITCHES = ("relative", "noise_levels", "hysteresis", "peak_fraction", "fill_dead",
+                "max_contacts", "track_baseline")
+
+    def __post_init__(self) -> None:
+        for name in ("relative", "noise_levels", "hysteresis", "fill_dead", "track_baseline"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        mc = self.max_contacts
+        if isinstance(mc, bool) or not isinstance(mc, int) or not 1 <= mc <= MAX_CONTACTS:
+            raise ValueError(f"max_contacts must be an integer 1..{MAX_CONTACTS}, got {mc!r}")
+        for name in ("peak_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
+                     "floor_on", "baseline_tau_s", "holdoff_s", "noise_rel", "noise_gray",
+                     "black_level"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if not self.peak_fraction < 1.0:
+            raise ValueError(f"peak_fraction must be < 1, got {self.peak_fraction!r}")
+        if self.baseline_tau_s <= 0:
+            raise ValueError(f"baseline_tau_s must be > 0, got {self.baseline_tau_s!r}")
+
+    @classmethod
+    def paper(cls, **measured: Any) -> ContactOptions:
+        """All improvements off: the paper's method (measured values may be kept)."""
+        return cls(relative=False, noise_levels=False, hysteresis=False, peak_fraction=0.0,
+                   fill_dead=False, max_contacts=1, track_baseline=False, **measured)
+
+    @property
+    def is_paper(self) -> bool:
+        p = ContactOptions.paper()
+        return all(getattr(self, k) == getattr(p, k) for k in self.SWITCHES)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> ContactOptions:
+        """Strict: unknown keys and bad values raise ``ValueError`` naming the key."""
+        if not isinstance(d, Mapping):
+            raise TypeError("contact_options must be an object")
+        known = {f.name for f in fields(cls)}
+        for key in d:
+            if key not in known:
+                raise ValueError(f"unknown contact option {key!r}")
+        values = dict(d)
+        for key in ("peak_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
+                    "floor_on", "baseline_tau_s", "holdoff_s", "noise_rel", "noise_gray", "black_level"):
+            if key in values and isinstance(values[key], int) and not isinstance(values[key], bool):
+                values[key] = float(values[key])
+        return cls(**values)
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,6 +209,9 @@ class CalibrationBundle:
         Surface = ``interpolation @ fiber_values`` (row-major mesh order);
         rows of mesh points outside the array are zero.
     thresholds : ContactThresholds
+        The paper's threshold and minimum area.
+    options : ContactOptions
+        Improvements beyond the paper and the noise measured at calibration.
     fiber_map_report : dict
         JSON-able summary of the fiber calibration.
     extra_arrays : mapping of str to ndarray
@@ -85,6 +226,7 @@ class CalibrationBundle:
     grid: SurfaceGrid
     interpolation: np.ndarray
     thresholds: ContactThresholds = ContactThresholds()
+    options: ContactOptions = ContactOptions()
     baseline_frames: int = BASELINE_FRAMES
     fiber_map_report: dict[str, Any] = field(default_factory=dict)
     extra_arrays: Mapping[str, np.ndarray] = field(default_factory=dict)
@@ -134,6 +276,7 @@ def _meta(bundle: CalibrationBundle) -> dict[str, Any]:
         "transform": bundle.transform.to_dict(),
         "grid": asdict(bundle.grid),
         "thresholds": asdict(bundle.thresholds),
+        "contact_options": bundle.options.to_dict(),
         "baseline_frames": bundle.baseline_frames,
         "fiber_map_report": bundle.fiber_map_report,
         "extra": bundle.extra_meta,
@@ -179,6 +322,15 @@ def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundl
     finally:
         os.close(dir_fd)
     return replace(bundle, calibration_id=digest[:16])
+
+
+def _load_options(path: Path, meta: Mapping[str, Any]) -> ContactOptions:
+    if "contact_options" not in meta:  # written before the options existed: the paper's method
+        return ContactOptions.paper()
+    try:
+        return ContactOptions.from_dict(meta["contact_options"])
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{path}: bad contact_options in calibration bundle: {exc}") from None
 
 
 def load_bundle(path: str | Path) -> CalibrationBundle:
@@ -231,6 +383,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
             grid=SurfaceGrid(**meta["grid"]),
             interpolation=members["interpolation"],
             thresholds=ContactThresholds(**meta["thresholds"]),
+            options=_load_options(path, meta),
             baseline_frames=int(meta["baseline_frames"]),
             fiber_map_report=meta["fiber_map_report"],
             extra_arrays={k[len("extra/"):]: v for k, v in members.items() if k.startswith("extra/")},

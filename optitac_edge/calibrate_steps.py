@@ -17,7 +17,7 @@ from .bundle import CalibrationBundle
 from .centroid_map import fit_centroid_map
 from .corrections import with_centroid_map, with_shape_model, with_width_model
 from .errors import RecordingError
-from .evaluation import detected_rows
+from .evaluation import detected_rows, press_ids
 from .measure import measure_recording
 from .recording import SHAPES, Recording
 from .width_model import fit_width_model
@@ -39,8 +39,9 @@ def _with_report_arrays(bundle: CalibrationBundle, **arrays: np.ndarray) -> Cali
     return bundle.with_updates(extra_arrays=extra)
 
 
-def calibrate_centroid(rec: Recording, bundle: CalibrationBundle) -> tuple[CalibrationBundle, dict[str, Any]]:
-    """The paper's centroid error maps from presses of known position."""
+def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "nearest"
+                       ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map)."""
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
     rows = np.flatnonzero(detected_rows(m, truth))
@@ -49,10 +50,11 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle) -> tuple[Calib
     frames = truth.frame[rows]
     measured = np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1)
     true = np.stack([truth.x_mm[rows], truth.y_mm[rows]], axis=1)
-    error_map = fit_centroid_map(measured, true, half_span_mm=bundle.layout.radius_mm + MAP_MARGIN_MM)
+    error_map = fit_centroid_map(measured, true, half_span_mm=bundle.layout.radius_mm + MAP_MARGIN_MM,
+                                 fill=fill)
     corrected = np.array([error_map.correct(x, y) for x, y in measured])
     summary = {
-        "frames": int(rows.size),
+        "frames": int(rows.size), "fill": fill,
         "raw_rmse_mm": np.sqrt(np.mean((measured - true) ** 2, axis=0)).round(4).tolist(),
         "fitted_rmse_mm": np.sqrt(np.mean((corrected - true) ** 2, axis=0)).round(4).tolist(),
     }
@@ -93,9 +95,16 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
     if np.unique(labels).size < 2:
         raise RecordingError(f"{rec.path}: shape calibration needs presses of at least two shapes")
     features = m.hu[truth.frame[rows]]
-    report = fit_shape_model(features, labels, seed=seed)
-    summary = report.summary() if hasattr(report, "summary") else {}
+    report = fit_shape_model(features, labels, groups=press_ids(truth)[rows], seed=seed)
     bundle = with_shape_model(bundle, report.model)
+    details = report.to_dict()
+    summary = {
+        "chosen": f"{report.kind} {details['subset']}",
+        "holdout_average_diagonal": round(details["holdout_average_diagonal"], 4),
+        **{f"{kind}_holdout_average_diagonal": round(details[kind]["holdout"]["average_diagonal"] or 0.0, 4)
+           for kind in ("unsupervised", "supervised")},
+        "train_presses_frames": details["n_train"], "holdout_frames": details["n_test"],
+    }
     bundle = _with_report_arrays(bundle, shape_hu=features,
                                  shape_label=np.array([SHAPES.index(s) for s in labels], dtype=np.int64))
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": summary}), summary
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": details}), summary

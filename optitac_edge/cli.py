@@ -55,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rgb", action="store_true", help="write (N,H,W,3) RGB frames")
     p.add_argument("--dark-fibers", type=str, default="", metavar="I,J,...",
                    help="layout indices of fibers that transmit no light")
+    p.add_argument("--day", type=int, default=0,
+                   help="session drift: camera shift, LED/pin gain, depth jitter, LED drift (0 = none)")
+    p.add_argument("--variant", type=int, default=0,
+                   help="another simulated sensor (optics and skin drawn from seed N; 0 = default); "
+                        "sets its own rotation and mirror")
+    p.add_argument("--warmup", type=float, default=0.03, help="LED change over a 'drift' recording")
     _add_orientation(p)
 
     cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
@@ -64,6 +70,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="CAL")
     p.add_argument("--layout", type=Path, default=None, metavar="CSV", help="custom layout (fiber,x_mm,y_mm)")
     _add_orientation(p)
+
+    for step, text in (("centroid", "centroid error maps from presses of known position"),
+                       ("width", "linear width model from circles of known diameter"),
+                       ("shapes", "shape classifier from labelled presses")):
+        p = cal.add_parser(step, help=text)
+        p.add_argument("recording", type=Path)
+        p.add_argument("--cal", type=Path, required=True, metavar="CAL", help="bundle to update in place")
+        if step == "shapes":
+            p.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the fits")
+        if step == "centroid":
+            p.add_argument("--fill", choices=("nearest", "linear"), default="nearest",
+                           help="error between presses: the paper's nearest neighbour, or linear")
+
+    p = sub.add_parser("evaluate", help="print accuracy metrics of a recording against its truth.csv")
+    p.add_argument("recording", type=Path)
+    p.add_argument("--cal", type=Path, required=True, metavar="CAL")
+    p.add_argument("--shape-backend", choices=("numpy", "onnx"), default="numpy")
+    p.add_argument("--onnx", type=Path, default=None, help="exported shape model for --shape-backend onnx")
+
+    p = sub.add_parser("export-onnx", help="export the bundle's shape classifier to ONNX")
+    p.add_argument("cal", type=Path, metavar="CAL")
+    p.add_argument("-o", "--output", type=Path, required=True)
+
+    p = sub.add_parser("report", help="write calibration figures (PNG) and a summary")
+    p.add_argument("cal", type=Path, metavar="CAL")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
+    p.add_argument("--unseen", type=Path, default=None, metavar="REC", help="recording for the unseen scatter")
+    p.add_argument("--repeat", type=Path, default=None, metavar="REC", help="recording for repeatability")
 
     p = sub.add_parser("replay", help="process every frame of a recording into a contacts CSV")
     p.add_argument("recording", type=Path)
@@ -90,8 +124,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         raise OptiTacError("--frames must be at least 1")
     optics = CameraOptics(width=args.width, height=args.height, rgb=args.rgb,
                           rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
-    path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics)
-    print(f"wrote {path}")
+    path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
+                          day=args.day, variant=args.variant, warmup=args.warmup)
+    from .recording import read_meta
+
+    sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
+    mirror = " --mirror" if sim_optics["mirror"] else ""
+    print(f"wrote {path} (orientation hint: --rotation-deg {sim_optics['rotation_deg']:.0f}{mirror})")
     return 0
 
 
@@ -112,6 +151,66 @@ def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found, "
           f"dead {dead if dead else 'none'}, {len(bundle.fibers.unmatched_px)} unmatched blobs, "
           f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
+    return 0
+
+
+def _cmd_calibrate_model(args: argparse.Namespace) -> int:
+    from . import calibrate_steps
+    from .bundle import load_bundle, save_bundle
+    from .recording import Recording
+
+    rec = Recording(args.recording)
+    bundle = load_bundle(args.cal)
+    if args.step == "shapes":
+        bundle, summary = calibrate_steps.calibrate_shapes(rec, bundle, seed=args.seed)
+    elif args.step == "centroid":
+        bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill)
+    else:
+        bundle, summary = calibrate_steps.calibrate_width(rec, bundle)
+    bundle = save_bundle(bundle, args.cal)
+    print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: {summary}")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .bundle import load_bundle
+    from .errors import RecordingError
+    from .evaluation import format_evaluation
+    from .measure import measure_recording
+    from .recording import Recording
+
+    rec = Recording(args.recording)
+    if rec.truth is None:
+        raise RecordingError(f"{rec.path}: evaluation needs truth.csv")
+    bundle = load_bundle(args.cal)
+    m = measure_recording(rec, bundle, shape_backend=args.shape_backend,
+                          onnx_path=str(args.onnx) if args.onnx else None)
+    print(f"{rec.path} with {args.cal} (id {bundle.calibration_id}):")
+    for line in format_evaluation(m, rec.truth):
+        print(line)
+    return 0
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from .bundle import load_bundle
+    from .corrections import load_shape_model
+    from .errors import BundleError
+
+    model = load_shape_model(load_bundle(args.cal))
+    if model is None:
+        raise BundleError(f"{args.cal}: no shape model (run 'calibrate shapes' first)")
+    from .shapes.onnx_export import export_onnx
+
+    export_onnx(model, args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .report import write_report
+
+    index = write_report(args.cal, args.output, unseen=args.unseen, repeat=args.repeat)
+    print(f"wrote {index}")
     return 0
 
 
@@ -206,8 +305,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    handlers = {"sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run,
-                "calibrate": {"fibers": _cmd_calibrate_fibers}}
+    handlers = {"sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run, "evaluate": _cmd_evaluate,
+                "export-onnx": _cmd_export_onnx, "report": _cmd_report,
+                "calibrate": {"fibers": _cmd_calibrate_fibers, "centroid": _cmd_calibrate_model,
+                              "width": _cmd_calibrate_model, "shapes": _cmd_calibrate_model}}
     handler = handlers[args.command]
     if isinstance(handler, dict):
         handler = handler[args.step]

@@ -50,6 +50,10 @@ class ContactEstimate:
         Classified contact shape; '' until a classifier exists.
     confidence : float
         Classifier confidence; NaN until a classifier exists.
+    n_contacts : int
+        Number of simultaneous contacts in the frame (0 without contact); the
+        same in every contact of the frame. The pipeline's primary estimate is
+        the strongest (largest ``strength``).
     """
 
     frame: int = -1
@@ -66,6 +70,7 @@ class ContactEstimate:
     hu: np.ndarray = field(default_factory=_nan_hu)
     shape: str = ""
     confidence: float = math.nan
+    n_contacts: int = 0
 
     def clear_geometry(self) -> None:
         """Set the geometric fields and Hu features to NaN (no contact), in place."""
@@ -80,8 +85,17 @@ class ContactEstimate:
         return ContactEstimate(
             self.frame, self.t_ns, self.baseline_ready, self.contact, self.x_mm, self.y_mm,
             self.major_mm, self.minor_mm, self.angle_deg, self.strength, self.area_mm2,
-            self.hu.copy(), self.shape, self.confidence,
+            self.hu.copy(), self.shape, self.confidence, self.n_contacts,
         )
+
+    def assign(self, other: ContactEstimate) -> None:
+        """Copy every field of ``other`` into this estimate, in place (``hu`` copied)."""
+        self.frame, self.t_ns, self.baseline_ready = other.frame, other.t_ns, other.baseline_ready
+        self.contact, self.x_mm, self.y_mm = other.contact, other.x_mm, other.y_mm
+        self.major_mm, self.minor_mm, self.angle_deg = other.major_mm, other.minor_mm, other.angle_deg
+        self.strength, self.area_mm2 = other.strength, other.area_mm2
+        np.copyto(self.hu, other.hu)
+        self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (NaN floats become None, ``hu`` a list)."""
@@ -96,4 +110,5 @@ class ContactEstimate:
             "angle_deg": f(self.angle_deg), "strength": f(self.strength),
             "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
             "shape": self.shape, "confidence": f(self.confidence),
+            "n_contacts": int(self.n_contacts),
         }

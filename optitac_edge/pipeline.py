@@ -1,35 +1,50 @@
 """The runtime pipeline: camera frame -> :class:`ContactEstimate`, per frame.
 
 Per frame (the OptiTac method, see :mod:`optitac_edge.reference` for the
-literal version):
+literal version, and :class:`~optitac_edge.bundle.ContactOptions` for the
+switchable improvements beyond the paper noted in brackets):
 
 1. check the frame against the bundle (shape, dtype, pixel format);
 2. per-fiber mean gray level with the precomputed fiber table;
 3. the first ``bundle.baseline_frames`` frames are averaged into the baseline
    (reported with ``baseline_ready=False``);
 4. inverted signal ``baseline - mean`` (contacts darken fibers, so a contact is
-   positive); dead fibers get 0 (a neighbour fill comes later);
+   positive) [relative: divided by ``baseline - black_level``]; dead fibers get
+   0 [fill_dead: the mean of their neighbours, folded into the matrix];
 5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh);
-6. truncate: values <= threshold become 0, values above are kept;
-7. contact if the area above the threshold >= ``min_area_mm2``; then the
+6. truncate: values <= threshold become 0, values above are kept
+   [noise_levels: the truncation level is k * measured noise];
+7. contact if the area above the threshold >= ``min_area_mm2`` [and the peak
+   above the on level, or the off level while in contact (hysteresis);
+   max_contacts > 1: each 8-connected blob is a contact; peak_fraction: each
+   contact truncated at ``max(level, fraction * its peak)``]; then the
    moments give centroid, FWHM widths, angle and strength, and Hu invariants
-   of the binarised surface give the shape features.
+   of the binarised surface give the shape features;
+8. [track_baseline: without contact, on quiet frames, the baseline follows
+   the fiber means with a time constant of seconds (LED warm-up, drift)].
 
 All buffers are allocated at construction; a frame costs no array allocation
-beyond a few scalars. Only numpy is used.
+beyond a few scalars (and OpenCV's component statistics when several
+contacts are allowed). numpy and OpenCV only.
 """
 
 from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
-from .bundle import CalibrationBundle
+from .bundle import MAX_CONTACTS, CalibrationBundle, ContactOptions
+from .corrections import ContactCorrector
 from .contact import ContactEstimate
+from .dead_fill import dead_fill_matrix
 from .fiber_table import FiberSampler
 from .moments import MomentBasis, ellipse_from_moments, hu_from_central, log_hu
 from .surface import surface_from_fibers
+
+#: Most blobs measured per frame (the largest by area) before the strongest are kept.
+MAX_CANDIDATES = 8
 
 
 class Pipeline:
@@ -39,37 +54,64 @@ class Pipeline:
     ----------
     bundle : CalibrationBundle
         Frame size and pixel format, fiber table, interpolation matrix, grid,
-        thresholds and number of baseline frames.
+        thresholds, contact options and number of baseline frames.
+    options : ContactOptions, optional
+        Overrides ``bundle.options`` (e.g. ``ContactOptions.paper()`` or a
+        ``dataclasses.replace`` of the bundle's options with one switch flipped).
 
     Notes
     -----
     :meth:`process` returns the same :class:`ContactEstimate` object every
-    call (updated in place); use ``estimate.copy()`` to keep one.
+    call (updated in place; the primary, i.e. strongest, contact); use
+    ``estimate.copy()`` to keep one. All contacts of the frame are
+    ``pipeline.contacts[:estimate.n_contacts]`` (also reused).
     """
 
-    def __init__(self, bundle: CalibrationBundle) -> None:
+    def __init__(self, bundle: CalibrationBundle, options: ContactOptions | None = None) -> None:
         self.bundle = bundle
+        self.options = o = bundle.options if options is None else options
         table = bundle.fibers
         n_fibers = table.n_fibers
         grid = bundle.grid
+        n_cells = grid.n * grid.n
         self._pixel_format = table.pixel_format
         self._sampler = FiberSampler(table)
-        self._matrix = np.ascontiguousarray(bundle.interpolation, dtype=np.float32)
         self._dead = np.flatnonzero(table.dead)
         self._has_dead = self._dead.size > 0
-        self._threshold = np.float32(bundle.thresholds.threshold)
+        self._live = ~np.asarray(table.dead, dtype=bool)
+        matrix = np.asarray(bundle.interpolation)
+        if o.fill_dead and self._has_dead:
+            fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead)
+            matrix = matrix.astype(np.float64) @ fill
+        self._matrix = np.ascontiguousarray(matrix, dtype=np.float32)
         self._min_area = float(bundle.thresholds.min_area_mm2)
         self._cell_area = float(grid.cell_area_mm2)
         self._n_baseline = max(int(bundle.baseline_frames), 1)
+        self._multi = o.max_contacts > 1
+        self._max_contacts = o.max_contacts
+        self._frac = float(o.peak_fraction)
+        self._tau_ns = float(o.baseline_tau_s) * 1e9
+        self._holdoff_ns = float(o.holdoff_s) * 1e9
+        # levels (truncation, off, on) in signal units, set when the baseline is ready
+        self._trunc = self._off = self._on = np.float32(bundle.thresholds.threshold)
+        self._rest_level = 0.0
 
         self._means = np.zeros(n_fibers, dtype=np.float32)
         self._baseline_sum = np.zeros(n_fibers, dtype=np.float64)
         self._baseline = np.zeros(n_fibers, dtype=np.float32)
         self._baseline_count = 0
+        self._inv_denom = np.ones(n_fibers, dtype=np.float32)
         self._signal = np.zeros(n_fibers, dtype=np.float32)
-        self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
-        self._mask = np.zeros(grid.n * grid.n, dtype=bool)
-        self._below = np.zeros(grid.n * grid.n, dtype=bool)
+        self._work = np.zeros(n_fibers, dtype=np.float32)
+        self._mid = n_fibers // 2
+        self._surface = np.zeros(n_cells, dtype=np.float32)
+        self._mask = np.zeros(n_cells, dtype=bool)
+        self._below = np.zeros(n_cells, dtype=bool)
+        self._mask_u8 = np.zeros((grid.n, grid.n), dtype=np.uint8)
+        self._labels = np.zeros((grid.n, grid.n), dtype=np.int32)
+        self._blob = np.zeros(n_cells, dtype=bool)
+        self._sel = np.zeros(n_cells, dtype=bool)
+        self._weighted = np.zeros(n_cells, dtype=np.float32)
         self._basis = MomentBasis(grid, order=3)
         self._m = self._basis.new_moments()
         self._mu = self._basis.new_moments()
@@ -77,7 +119,18 @@ class Pipeline:
         self._mub = self._basis.new_moments()
         self._hu = np.zeros(7, dtype=np.float64)
         self._frame = 0
-        self._estimate = ContactEstimate()
+        self._in_contact = False
+        self._last_ns: int | None = None
+        self._contact_end_ns: int | None = None
+        #: All contacts of the last frame, valid ``[:n_contacts]``, strongest first.
+        self.contacts: list[ContactEstimate] = [ContactEstimate() for _ in range(MAX_CONTACTS)]
+        self._estimate = self.contacts[0]
+        self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
+        self._order = np.zeros(MAX_CANDIDATES, dtype=np.float64)
+        #: Per-contact corrections (centroid error map, width model, shape), or None.
+        #: Anything with ``apply(estimate)`` that corrects the estimate in place.
+        self._corrector: ContactCorrector | None = None
+        self.set_corrector(ContactCorrector(bundle))
 
     # -- state -----------------------------------------------------------------
 
@@ -92,23 +145,78 @@ class Pipeline:
 
     @property
     def surface(self) -> np.ndarray:
-        """The last truncated inverted surface, shape (n, n), float32, gray levels.
+        """The last truncated inverted surface, shape (n, n), float32, signal units.
 
-        A view into the pipeline's buffer (overwritten by the next frame).
+        Truncated at the truncation level (gray levels, or relative units with
+        ``options.relative``). A view into the pipeline's buffer (overwritten by
+        the next frame).
         """
         return self._surface.reshape(self.bundle.grid.n, self.bundle.grid.n)
 
     @property
     def signal(self) -> np.ndarray:
-        """The last inverted per-fiber signal ``baseline - mean``, shape (N,), float32."""
+        """The last inverted per-fiber signal, shape (N,), float32.
+
+        ``baseline - mean`` (gray levels), or divided by ``baseline - black_level``
+        with ``options.relative``; 0 for dead fibers.
+        """
         return self._signal
+
+    @property
+    def levels(self) -> tuple[float, float, float]:
+        """(truncation, off, on) levels in signal units (valid once the baseline is ready)."""
+        return float(self._trunc), float(self._off), float(self._on)
+
+    @property
+    def in_contact(self) -> bool:
+        return self._in_contact
 
     def reset_baseline(self) -> None:
         """Tare: re-baseline from the next ``baseline_frames`` frames."""
         self._baseline_sum.fill(0.0)
         self._baseline_count = 0
+        self._in_contact = False
+        self._contact_end_ns = None
+
+    def _baseline_updated(self) -> None:
+        """Relative-signal denominators after a baseline change (217 values)."""
+        if self.options.relative:
+            np.subtract(self._baseline, np.float32(self.options.black_level), out=self._inv_denom)
+            np.maximum(self._inv_denom, 1.0, out=self._inv_denom)
+            np.reciprocal(self._inv_denom, out=self._inv_denom)
+
+    def _set_levels(self) -> None:
+        """Truncation / off / on levels in signal units (when the baseline is first ready)."""
+        o = self.options
+        live = self._baseline[self._live] if self._live.any() else self._baseline
+        rest = float(np.median(live)) - o.black_level if live.size else 1.0
+        self._rest_level = rest = max(rest, 1.0)
+        unit = 1.0 if o.relative else rest  # signal units per relative unit
+        if o.noise_levels:
+            sigma = o.noise_rel if o.relative else o.noise_gray
+            trunc = max(o.k_trunc * sigma, o.floor_trunc * unit)
+            off = max(o.k_off * sigma, o.floor_off * unit, trunc)
+            on = max(o.k_on * sigma, o.floor_on * unit, off)
+        else:
+            thr = self.bundle.thresholds.threshold
+            trunc = off = on = thr / rest if o.relative else thr
+        if not o.hysteresis:
+            off = on
+        self._trunc, self._off, self._on = np.float32(trunc), np.float32(off), np.float32(on)
 
     # -- per frame -------------------------------------------------------------
+
+    def set_corrector(self, corrector: ContactCorrector | None) -> None:
+        """Apply ``corrector`` (the bundle's calibration models) to every contact; None: raw estimates.
+
+        By default the bundle's own models are applied (numpy shape evaluator).
+        """
+        self._corrector = corrector if corrector is not None and corrector.active else None
+
+    @property
+    def calibrated(self) -> bool:
+        """True when centroid and width calibrations are applied to the estimates."""
+        return self._corrector is not None and self._corrector.calibrated
 
     def process(self, frame: np.ndarray, now_ns: int) -> ContactEstimate:
         """Contact estimate of one frame.
@@ -119,12 +227,15 @@ class Pipeline:
             A C-contiguous frame of the bundle's size and pixel format
             (gray (H, W), rgb (H, W, 3) or yuv420 (H*3//2, W)).
         now_ns : int
-            Timestamp of the frame, ns (copied to ``t_ns``).
+            Timestamp of the frame, ns (copied to ``t_ns``; the baseline
+            tracking's clock).
 
         Returns
         -------
         ContactEstimate
-            The pipeline's reused estimate, updated in place.
+            The pipeline's reused estimate of the primary (strongest) contact,
+            updated in place; ``n_contacts`` tells how many of
+            :attr:`contacts` are valid.
 
         Raises
         ------
@@ -137,6 +248,8 @@ class Pipeline:
         est.frame = self._frame
         est.t_ns = now_ns
         self._frame += 1
+        dt_ns = 0 if self._last_ns is None else now_ns - self._last_ns
+        self._last_ns = now_ns
         means = self._sampler.means(frame, self._means)
 
         if self._baseline_count < self._n_baseline:
@@ -145,46 +258,133 @@ class Pipeline:
             if self._baseline_count == self._n_baseline:
                 np.multiply(self._baseline_sum, 1.0 / self._n_baseline, out=self._baseline,
                             casting="same_kind")
+                self._baseline_updated()
+                self._set_levels()
             est.baseline_ready = False
-            est.contact = False
-            est.strength = 0.0
-            est.area_mm2 = 0.0
-            est.clear_geometry()
+            self._no_contact(est, 0.0, 0.0)
             return est
         est.baseline_ready = True
 
         signal = np.subtract(self._baseline, means, out=self._signal)
+        if self.options.relative:
+            np.multiply(signal, self._inv_denom, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
         surface = surface_from_fibers(self._matrix, signal, self._surface)
-        np.greater(surface, self._threshold, out=self._mask)
+        n = self._find_contacts(surface, est)
+
+        if n > 0:
+            self._in_contact = True
+        elif self._in_contact:
+            self._in_contact = False
+            self._contact_end_ns = now_ns
+        if n == 0 and self.options.track_baseline and dt_ns > 0:
+            self._track(means, signal, now_ns, dt_ns)
+        return est
+
+    def _no_contact(self, est: ContactEstimate, strength: float, area: float) -> None:
+        est.contact = False
+        est.strength = strength
+        est.area_mm2 = area
+        est.n_contacts = 0
+        est.clear_geometry()
+
+    def _find_contacts(self, surface: np.ndarray, est: ContactEstimate) -> int:
+        """Truncate the surface, find and measure the contacts; returns their number."""
+        np.greater(surface, self._trunc, out=self._mask)
         np.logical_not(self._mask, out=self._below)
         np.copyto(surface, 0.0, where=self._below)
         cells = int(np.count_nonzero(self._mask))
-        area = cells * self._cell_area
-        est.area_mm2 = area
-
         if cells == 0:
-            est.strength = 0.0
-            est.contact = False
-            est.clear_geometry()
-            return est
-        m = self._basis.raw(surface, self._m)
-        est.strength = float(m[0, 0])
-        est.contact = bool(area >= self._min_area and m[0, 0] > 0.0)
-        if not est.contact:
-            est.clear_geometry()
-            return est
+            self._no_contact(est, 0.0, 0.0)
+            return 0
+        level = self._off if self._in_contact else self._on
+        n_cand = 0
+        if not self._multi:
+            n_cand = self._measure_blob(surface, self._mask, cells, level, self._cands[0])
+        else:
+            np.copyto(self._mask_u8.reshape(-1), self._mask)
+            n_labels, _, stats, _ = cv2.connectedComponentsWithStats(
+                self._mask_u8, labels=self._labels, connectivity=8, ltype=cv2.CV_32S)
+            areas = stats[1:n_labels, cv2.CC_STAT_AREA]
+            min_cells = self._min_area / self._cell_area
+            big = np.flatnonzero(areas >= min_cells - 1e-9)
+            if big.size > MAX_CANDIDATES:
+                big = big[np.argsort(areas[big])[::-1][:MAX_CANDIDATES]]
+            labels = self._labels.reshape(-1)
+            for k in big:
+                np.equal(labels, k + 1, out=self._blob)
+                n_cand += self._measure_blob(surface, self._blob, int(areas[k]), level,
+                                             self._cands[n_cand])
+        if n_cand == 0:
+            strength = float(np.sum(surface, dtype=np.float64)) * self._cell_area
+            self._no_contact(est, strength, cells * self._cell_area)
+            return 0
+        order = self._order[:n_cand]
+        for i in range(n_cand):
+            order[i] = -self._cands[i].strength
+        ranked = np.argsort(order, kind="stable")
+        n = min(n_cand, self._max_contacts)
+        frame, t_ns = est.frame, est.t_ns
+        for i in range(n):
+            c = self.contacts[i]
+            c.assign(self._cands[int(ranked[i])])
+            c.frame, c.t_ns, c.baseline_ready, c.n_contacts = frame, t_ns, True, n
+            if self._corrector is not None:
+                self._corrector.apply(c)
+        return n
 
+    def _measure_blob(self, surface: np.ndarray, blob: np.ndarray, cells: int, level: np.float32,
+                      out: ContactEstimate) -> int:
+        """Measure one blob (cells of ``blob``) into ``out``; 1 if it is a contact, else 0."""
+        peak = float(np.max(surface, where=blob, initial=0.0))
+        if not peak > level or cells * self._cell_area < self._min_area:
+            return 0
+        t = self._trunc
+        if self._frac > 0.0 and self._frac * peak > t:
+            t = np.float32(self._frac * peak)
+        if self._multi or t > self._trunc:
+            np.greater(surface, t, out=self._sel)
+            np.logical_and(self._sel, blob, out=self._sel)
+            sel = self._sel
+            weighted = np.multiply(surface, sel, out=self._weighted)
+            cells = int(np.count_nonzero(sel))
+        else:
+            sel, weighted = blob, surface
+        m = self._basis.raw(weighted, self._m)
+        if not m[0, 0] > 0.0:
+            return 0
+        out.contact = True
+        out.strength = float(m[0, 0])
+        out.area_mm2 = cells * self._cell_area
         mu = self._basis.central(m, self._mu)
         e = ellipse_from_moments(m, mu)
-        est.x_mm, est.y_mm = e.x_mm, e.y_mm
-        est.major_mm, est.minor_mm, est.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
-
-        mb = self._basis.raw(self._mask, self._mb)
+        out.x_mm, out.y_mm = e.x_mm, e.y_mm
+        out.major_mm, out.minor_mm, out.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
+        mb = self._basis.raw(sel, self._mb)
         mub = self._basis.central(mb, self._mub)
         hu_from_central(mub, out=self._hu)
-        log_hu(self._hu, out=est.hu)
-        est.shape = ""
-        est.confidence = math.nan
-        return est
+        log_hu(self._hu, out=out.hu)
+        out.shape = ""
+        out.confidence = math.nan
+        return 1
+
+    def _track(self, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
+        """Slow baseline tracking on quiet contact-free frames."""
+        if self._contact_end_ns is not None and now_ns - self._contact_end_ns < self._holdoff_ns:
+            return
+        # quiet: no fiber departs from the common level by the off level or more (a uniform
+        # brightness drift is what the tracking is for; a press is local)
+        work = self._work
+        np.copyto(work, signal)
+        work.partition(self._mid)
+        common = work[self._mid]
+        np.subtract(signal, common, out=work)
+        np.abs(work, out=work)
+        if float(work.max()) >= self._off:
+            return
+        alpha = np.float32(1.0 - math.exp(-min(float(dt_ns), self._tau_ns) / self._tau_ns))
+        diff = np.subtract(means, self._baseline, out=self._work)
+        diff *= alpha
+        self._baseline += diff
+        self._baseline_updated()

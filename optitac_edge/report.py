@@ -154,9 +154,10 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Width calibration", "width_fit.png"))
         lines.append(f"Width calibration: {bundle.extra_meta.get('width_fit')}")
     shapes_fit = bundle.extra_meta.get("shapes_fit")
-    if shapes_fit and "confusion" in shapes_fit:
-        classes = shapes_fit["classes"]
-        conf = np.asarray(shapes_fit["confusion"], dtype=float)
+    if shapes_fit:
+        chosen = shapes_fit[shapes_fit["kind"]]["holdout"]
+        classes = shapes_fit["class_names"]
+        conf = np.asarray(chosen["confusion"], dtype=float)
         conf = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)
         fig, ax = plt.subplots(figsize=(5.5, 4.8), constrained_layout=True)
         ax.imshow(conf, cmap="Blues", vmin=0, vmax=1)
@@ -168,12 +169,23 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         ax.set_yticks(range(len(classes)), classes)
         ax.set_xlabel("predicted")
         ax.set_ylabel("true")
-        ax.set_title(f"Held-out confusion ({shapes_fit.get('chosen', '')})")
+        ax.set_title(f"Held-out confusion ({shapes_fit['kind']} {shapes_fit['subset']})", fontsize=9)
         fig.savefig(out / "confusion.png", dpi=110)
         plt.close(fig)
         figures.append(("Shape classification (held-out presses)", "confusion.png"))
-        lines.append(f"Shape classifier: chosen {shapes_fit.get('chosen')}, held-out average diagonal "
-                     f"{shapes_fit.get('average_diagonal')}")
+        lines.append(f"Shape classifier: {shapes_fit['kind']} mixture on {shapes_fit['subset']}, held-out "
+                     f"average diagonal {chosen['average_diagonal']:.3f}; paper's unsupervised GMM "
+                     f"{shapes_fit['unsupervised']['holdout']['average_diagonal']:.3f} "
+                     f"({shapes_fit['unsupervised']['selected']}), supervised "
+                     f"{shapes_fit['supervised']['holdout']['average_diagonal']:.3f} "
+                     f"({shapes_fit['supervised']['selected']})")
+        lines.append("")
+        lines.append("| Hu subset | unsupervised held-out avg. diagonal | supervised |")
+        lines.append("|---|---|---|")
+        for name, res in shapes_fit["unsupervised"]["subsets"].items():
+            sup = shapes_fit["supervised"]["subsets"].get(name, {}).get("holdout", {})
+            lines.append(f"| {name} | {res['holdout']['average_diagonal']:.3f} | "
+                         f"{sup.get('average_diagonal', float('nan')):.3f} |")
     if "report/shape_hu" in arrays:
         hu, label = arrays["report/shape_hu"], arrays["report/shape_label"]
         fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)

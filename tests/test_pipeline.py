@@ -14,7 +14,7 @@ from functools import cache
 import numpy as np
 import pytest
 
-from optitac_edge.bundle import CalibrationBundle, ContactThresholds
+from optitac_edge.bundle import CalibrationBundle, ContactOptions, ContactThresholds
 from optitac_edge.errors import FrameMismatchError
 from optitac_edge.fiber_table import FiberTable
 from optitac_edge.grid import SurfaceGrid
@@ -42,8 +42,12 @@ def make_bundle(
     radius_px: int = 2,
     dead: tuple[int, ...] = (),
     thresholds: ContactThresholds | None = None,
+    options: ContactOptions | None = None,
 ) -> CalibrationBundle:
-    """A bundle whose fiber i owns a disc of pixels at its transformed position."""
+    """A bundle whose fiber i owns a disc of pixels at its transformed position.
+
+    The paper's method (all improvements off) unless ``options`` are given.
+    """
     scale = 0.45 * min(width, height) / LAYOUT.radius_mm
     transform = ImageTransform(rotation_deg=10.0, scale_px_per_mm=scale, cx=width / 2, cy=height / 2)
     centres = transform.layout_to_image(LAYOUT.xy_mm)
@@ -63,7 +67,8 @@ def make_bundle(
         dead=dead_mask, unmatched_px=np.zeros((0, 2)),
     )
     return CalibrationBundle(layout=LAYOUT, transform=transform, fibers=table, grid=GRID,
-                             interpolation=_matrix(), thresholds=thresholds or ContactThresholds())
+                             interpolation=_matrix(), thresholds=thresholds or ContactThresholds(),
+                             options=options or ContactOptions.paper())
 
 
 def rest_levels(seed: int = 0) -> np.ndarray:
@@ -299,7 +304,7 @@ def test_end_to_end_simulated_sensor() -> None:
     sensor = sim.SimulatedSensor(seed=1)
     rest = [sensor.frame() for _ in range(5)]
     bundle = calibration.calibrate_fibers(rest, "gray")
-    fast, ref = Pipeline(bundle), ReferencePipeline(bundle)
+    fast, ref = Pipeline(bundle, ContactOptions.paper()), ReferencePipeline(bundle)
     for f in rest:
         fast.process(f, 0)
         ref.process(f, 0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optitac_edge.bundle import load_bundle
+from optitac_edge.bundle import ContactOptions, load_bundle
 from optitac_edge.cli import main
 from optitac_edge.evaluation import centroid_accuracy, detection, read_contacts_csv
 from optitac_edge.pipeline import Pipeline
@@ -39,7 +39,7 @@ def test_raw_centroid_rmse_below_0_75_mm_per_axis(unseen_contacts, unseen_rec):
 def test_fast_pipeline_agrees_with_the_reference_on_every_frame(unseen_rec, bundle_path):
     rec = Recording(unseen_rec)
     bundle = load_bundle(bundle_path)
-    fast, ref = Pipeline(bundle), ReferencePipeline(bundle)
+    fast, ref = Pipeline(bundle, ContactOptions.paper()), ReferencePipeline(bundle)  # the paper's method
     compared = 0
     worst_centroid = worst_width = 0.0
     for i in range(len(rec)):
