@@ -103,13 +103,32 @@ class ContactOptions:
         contact, no contact ended in the last ``holdoff_s`` seconds and no
         fiber's signal departs from the median fiber signal by the off level
         or more (a uniform drift is tracked, a local press is not).
+    compensate_gain : bool
+        Common-mode LED gain compensation: every frame the fiber light above
+        the black level is divided by the frame's LED gain relative to the
+        baseline, ``g``, before the signal, so an LED dimming during a
+        recording is not a press. ``g`` is the median ratio ``(mean -
+        black_level) / (baseline - black_level)`` of the fibers within the off
+        level of the brightest-relative cluster (contacts only darken
+        fibers), limited to the gain of the last contact-free frame
+        ``+- (truncation level / 10 + gain_rate_per_s * seconds since)``: a
+        press covering the whole array cannot be taken for a dimming (its
+        gain is held), and a contact that drift started ends when the limit
+        has grown to the drift. The baseline tracking then follows the
+        gain-compensated means (per-fiber drift only).
+    gain_rate_per_s : float
+        Fastest LED gain change (relative, per second) followed during a contact.
     k_trunc, k_off, k_on : float
         Levels in units of the measured noise.
     floor_trunc, floor_off, floor_on : float
         Lower bounds of the levels, relative units (converted to gray levels
         with the median rest level when ``relative`` is off).
     baseline_tau_s, holdoff_s : float
-        See ``track_baseline``.
+        See ``track_baseline``. The holdoff defaults to 0: the quiet-frame check
+        already keeps a press's residue out of the baseline, and with presses in
+        quick succession (a rest frame or two between them) any holdoff stops
+        the tracking, so per-fiber drift accumulates (then, with the LED gain
+        compensated, it alone can hold a contact on through a rest frame).
     noise_rel, noise_gray : float
         Measured by calibration: the largest per-cell std of the surface
         interpolated from the rest frames' per-fiber temporal noise, relative
@@ -126,6 +145,7 @@ class ContactOptions:
     fill_dead: bool = True
     max_contacts: int = 4
     track_baseline: bool = True
+    compensate_gain: bool = True
     k_trunc: float = 4.0
     k_off: float = 6.0
     k_on: float = 10.0
@@ -133,25 +153,27 @@ class ContactOptions:
     floor_off: float = 0.006
     floor_on: float = 0.01
     baseline_tau_s: float = 1.0
-    holdoff_s: float = 0.5
+    holdoff_s: float = 0.0
+    gain_rate_per_s: float = 0.005
     noise_rel: float = 0.0
     noise_gray: float = 0.0
     black_level: float = 0.0
 
     #: Switches (``paper()`` turns them off).
     SWITCHES = ("relative", "noise_levels", "hysteresis", "peak_fraction", "fill_dead",
-                "max_contacts", "track_baseline")
+                "max_contacts", "track_baseline", "compensate_gain")
 
     def __post_init__(self) -> None:
-        for name in ("relative", "noise_levels", "hysteresis", "fill_dead", "track_baseline"):
+        for name in ("relative", "noise_levels", "hysteresis", "fill_dead", "track_baseline",
+                     "compensate_gain"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be true or false, got {getattr(self, name)!r}")
         mc = self.max_contacts
         if isinstance(mc, bool) or not isinstance(mc, int) or not 1 <= mc <= MAX_CONTACTS:
             raise ValueError(f"max_contacts must be an integer 1..{MAX_CONTACTS}, got {mc!r}")
         for name in ("peak_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
-                     "floor_on", "baseline_tau_s", "holdoff_s", "noise_rel", "noise_gray",
-                     "black_level"):
+                     "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
+                     "noise_gray", "black_level"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
@@ -164,7 +186,8 @@ class ContactOptions:
     def paper(cls, **measured: Any) -> ContactOptions:
         """All improvements off: the paper's method (measured values may be kept)."""
         return cls(relative=False, noise_levels=False, hysteresis=False, peak_fraction=0.0,
-                   fill_dead=False, max_contacts=1, track_baseline=False, **measured)
+                   fill_dead=False, max_contacts=1, track_baseline=False, compensate_gain=False,
+                   **measured)
 
     @property
     def is_paper(self) -> bool:
@@ -185,7 +208,8 @@ class ContactOptions:
                 raise ValueError(f"unknown contact option {key!r}")
         values = dict(d)
         for key in ("peak_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
-                    "floor_on", "baseline_tau_s", "holdoff_s", "noise_rel", "noise_gray", "black_level"):
+                    "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
+                    "noise_gray", "black_level"):
             if key in values and isinstance(values[key], int) and not isinstance(values[key], bool):
                 values[key] = float(values[key])
         return cls(**values)

@@ -63,8 +63,9 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "n
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": summary}), summary
 
 
-def calibrate_width(rec: Recording, bundle: CalibrationBundle) -> tuple[CalibrationBundle, dict[str, Any]]:
-    """Per-axis linear width model from circular presses of known diameter."""
+def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "monotone"
+                    ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Per-axis width model from circular presses of known diameter (``linear``: the paper's)."""
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
     rows = np.flatnonzero(detected_rows(m, truth) & (truth.shape == "circle"))
@@ -72,10 +73,10 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle) -> tuple[Calibrat
         raise RecordingError(f"{rec.path}: width calibration needs circles of at least two diameters")
     frames = truth.frame[rows]
     major, minor, true = m.major_mm[frames], m.minor_mm[frames], truth.size_mm[rows]
-    model = fit_width_model(major, minor, true)
+    model = fit_width_model(major, minor, true, kind=kind)
     fitted = np.array([model.correct(a, b) for a, b in zip(major, minor)])
     summary = {
-        "frames": int(rows.size), **model.to_bundle(),
+        "frames": int(rows.size), "kind": kind,
         "fitted_rmse_mm": np.sqrt(np.mean((fitted - true[:, None]) ** 2, axis=0)).round(4).tolist(),
     }
     bundle = with_width_model(bundle, model)
@@ -94,7 +95,7 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
     labels = truth.shape[rows]
     if np.unique(labels).size < 2:
         raise RecordingError(f"{rec.path}: shape calibration needs presses of at least two shapes")
-    features = m.hu[truth.frame[rows]]
+    features = m.features[truth.frame[rows]]
     report = fit_shape_model(features, labels, groups=press_ids(truth)[rows], seed=seed)
     bundle = with_shape_model(bundle, report.model)
     details = report.to_dict()
@@ -105,6 +106,6 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
            for kind in ("unsupervised", "supervised")},
         "train_presses_frames": details["n_train"], "holdout_frames": details["n_test"],
     }
-    bundle = _with_report_arrays(bundle, shape_hu=features,
+    bundle = _with_report_arrays(bundle, shape_hu=features[:, :7],
                                  shape_label=np.array([SHAPES.index(s) for s in labels], dtype=np.int64))
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": details}), summary

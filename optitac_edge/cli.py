@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--cal", type=Path, required=True, metavar="CAL", help="bundle to update in place")
         if step == "shapes":
             p.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the fits")
+        if step == "width":
+            p.add_argument("--model", choices=("monotone", "linear"), default="monotone",
+                           help="per-axis map: monotone piecewise-linear (default) or the paper's linear")
         if step == "centroid":
             p.add_argument("--fill", choices=("nearest", "linear"), default="nearest",
                            help="error between presses: the paper's nearest neighbour, or linear")
@@ -166,7 +169,7 @@ def _cmd_calibrate_model(args: argparse.Namespace) -> int:
     elif args.step == "centroid":
         bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill)
     else:
-        bundle, summary = calibrate_steps.calibrate_width(rec, bundle)
+        bundle, summary = calibrate_steps.calibrate_width(rec, bundle, kind=args.model)
     bundle = save_bundle(bundle, args.cal)
     print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: {summary}")
     return 0

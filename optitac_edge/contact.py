@@ -8,9 +8,16 @@ from typing import Any
 
 import numpy as np
 
+#: Width of :attr:`ContactEstimate.features`: the 7 log-Hu invariants and q4.
+N_FEATURES = 8
+
 
 def _nan_hu() -> np.ndarray:
     return np.full(7, np.nan, dtype=np.float64)
+
+
+def _nan_features() -> np.ndarray:
+    return np.full(N_FEATURES, np.nan, dtype=np.float64)
 
 
 @dataclass(slots=True)
@@ -46,6 +53,12 @@ class ContactEstimate:
     hu : ndarray, shape (7,), float64
         Log-scaled Hu invariants ``-sign(h) log10|h|`` of the binarised surface
         (shape features). NaN without contact.
+    features : ndarray, shape (8,), float64
+        The shape classifier's input: ``[hu[0] .. hu[6], q4]`` with ``q4 =
+        |c40| / mu00**3`` (raw, not log) the rotation- and scale-invariant
+        4-fold symmetry of the same binarised contact
+        (:func:`~optitac_edge.moments.q4_from_central`: 0 for a disc, 1/60 for
+        a square). NaN without contact.
     shape : str
         Classified contact shape; '' until a classifier exists.
     confidence : float
@@ -68,37 +81,42 @@ class ContactEstimate:
     strength: float = 0.0
     area_mm2: float = 0.0
     hu: np.ndarray = field(default_factory=_nan_hu)
+    features: np.ndarray = field(default_factory=_nan_features)
     shape: str = ""
     confidence: float = math.nan
     n_contacts: int = 0
 
     def clear_geometry(self) -> None:
-        """Set the geometric fields and Hu features to NaN (no contact), in place."""
+        """Set the geometric fields and shape features to NaN (no contact), in place."""
         self.x_mm = self.y_mm = math.nan
         self.major_mm = self.minor_mm = self.angle_deg = math.nan
         self.hu.fill(np.nan)
+        self.features.fill(np.nan)
         self.shape = ""
         self.confidence = math.nan
 
     def copy(self) -> ContactEstimate:
-        """An independent copy (``hu`` copied)."""
+        """An independent copy (``hu`` and ``features`` copied)."""
         return ContactEstimate(
-            self.frame, self.t_ns, self.baseline_ready, self.contact, self.x_mm, self.y_mm,
-            self.major_mm, self.minor_mm, self.angle_deg, self.strength, self.area_mm2,
-            self.hu.copy(), self.shape, self.confidence, self.n_contacts,
+            frame=self.frame, t_ns=self.t_ns, baseline_ready=self.baseline_ready,
+            contact=self.contact, x_mm=self.x_mm, y_mm=self.y_mm, major_mm=self.major_mm,
+            minor_mm=self.minor_mm, angle_deg=self.angle_deg, strength=self.strength,
+            area_mm2=self.area_mm2, hu=self.hu.copy(), features=self.features.copy(),
+            shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
         )
 
     def assign(self, other: ContactEstimate) -> None:
-        """Copy every field of ``other`` into this estimate, in place (``hu`` copied)."""
+        """Copy every field of ``other`` into this estimate, in place (arrays copied)."""
         self.frame, self.t_ns, self.baseline_ready = other.frame, other.t_ns, other.baseline_ready
         self.contact, self.x_mm, self.y_mm = other.contact, other.x_mm, other.y_mm
         self.major_mm, self.minor_mm, self.angle_deg = other.major_mm, other.minor_mm, other.angle_deg
         self.strength, self.area_mm2 = other.strength, other.area_mm2
         np.copyto(self.hu, other.hu)
+        np.copyto(self.features, other.features)
         self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict (NaN floats become None, ``hu`` a list)."""
+        """JSON-able dict (NaN floats become None, ``hu`` and ``features`` lists)."""
         def f(v: float) -> float | None:
             return None if math.isnan(v) else float(v)
 
@@ -109,6 +127,7 @@ class ContactEstimate:
             "major_mm": f(self.major_mm), "minor_mm": f(self.minor_mm),
             "angle_deg": f(self.angle_deg), "strength": f(self.strength),
             "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
+            "features": [f(v) for v in self.features],
             "shape": self.shape, "confidence": f(self.confidence),
             "n_contacts": int(self.n_contacts),
         }

@@ -11,7 +11,7 @@ from typing import IO, Any
 CONTACTS_HEADER = (
     "frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength",
     "shape", "confidence", "area_mm2", "hu1", "hu2", "hu3", "hu4", "hu5", "hu6", "hu7",
-    "n_contacts",
+    "n_contacts", "q4",
 )
 
 
@@ -36,13 +36,13 @@ class ContactsCsvWriter:
     def write(self, frame: int, est: Any) -> None:
         """Append the row of frame ``frame`` from a :class:`~optitac_edge.contact.ContactEstimate`."""
         if not est.contact:
-            self._csv.writerow([frame, 0, *([""] * (len(CONTACTS_HEADER) - 3)), 0])
+            self._csv.writerow([frame, 0, *([""] * (len(CONTACTS_HEADER) - 4)), 0, ""])
             return
         self._csv.writerow([
             frame, 1, _num(est.x_mm, 4), _num(est.y_mm, 4), _num(est.major_mm, 4), _num(est.minor_mm, 4),
             _num(est.angle_deg, 3), _num(est.strength, 3), est.shape or "", _num(est.confidence, 4),
             _num(est.area_mm2, 3), *(_num(float(h), 6) for h in est.hu),
-            int(getattr(est, "n_contacts", 1)),
+            est.n_contacts, _num(float(est.features[7]), 8),
         ])
 
     def close(self) -> None:

@@ -105,4 +105,5 @@ class ContactCorrector:
         if self.width is not None:
             est.major_mm, est.minor_mm = self.width.correct(est.major_mm, est.minor_mm)
         if self.shapes is not None:
-            est.shape, est.confidence = self.shapes.classify(est.hu)
+            features = est.features if self.shapes.n_inputs == est.features.size else est.hu
+            est.shape, est.confidence = self.shapes.classify(features)

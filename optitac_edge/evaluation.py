@@ -18,8 +18,8 @@ from .errors import RecordingError
 from .measure import Measurements
 from .recording import SHAPES, Truth
 
-#: Repeated presses closer than this (mm) count as one position.
-REPEAT_RADIUS_MM = 0.5
+#: Repeated presses of one indenter closer than this (mm) count as one position.
+REPEAT_RADIUS_MM = 0.2
 #: Widths are reported separately below and above this diameter (mm), as in the paper.
 WIDTH_SPLIT_MM = 10.0
 
@@ -38,6 +38,8 @@ def read_contacts_csv(path: str | Path) -> Measurements:
             x_mm=col("x_mm"), y_mm=col("y_mm"), major_mm=col("major_mm"), minor_mm=col("minor_mm"),
             angle_deg=col("angle_deg"), strength=col("strength"),
             hu=np.stack([col(f"hu{k}") for k in range(1, 8)], axis=1) if rows else np.zeros((0, 7)),
+            features=np.stack([col(f"hu{k}") for k in range(1, 8)] + [col("q4")], axis=1)
+            if rows else np.zeros((0, 8)),
             shape=np.array([r["shape"] for r in rows], dtype=str), confidence=col("confidence"),
         )
     except (OSError, KeyError, ValueError) as exc:
@@ -171,15 +173,17 @@ def press_ids(truth: Truth) -> np.ndarray:
     return ids
 
 
-def repeatability(m: Measurements, truth: Truth, min_presses: int = 3) -> list[RepeatPosition]:
+def repeatability(m: Measurements, truth: Truth, min_presses: int = 5) -> list[RepeatPosition]:
     """Per repeated position: mean centroid error and its range over the presses there.
 
-    Each press contributes the mean error of its detected frames; positions
-    are presses whose true centres lie within ``REPEAT_RADIUS_MM``.
+    Each press contributes the mean error of its detected frames; a position
+    is at least ``min_presses`` presses of the same indenter (shape and size)
+    whose true centres lie within ``REPEAT_RADIUS_MM`` of the first.
     """
     ids = press_ids(truth)
     both = detected_rows(m, truth)
-    presses = []
+    presses: list[tuple[float, float, float, float]] = []
+    indenters: list[tuple[str, float]] = []
     for p in range(ids.max() + 1):
         rows = np.flatnonzero((ids == p) & both)
         if rows.size == 0:
@@ -188,15 +192,18 @@ def repeatability(m: Measurements, truth: Truth, min_presses: int = 3) -> list[R
         presses.append((truth.x_mm[rows[0]], truth.y_mm[rows[0]],
                         float(np.mean(m.x_mm[frames] - truth.x_mm[rows])),
                         float(np.mean(m.y_mm[frames] - truth.y_mm[rows]))))
+        indenters.append((truth.shape[rows[0]], truth.size_mm[rows[0]]))
     if not presses:
         return []
     arr = np.array(presses)
+    kind = np.array([hash(k) for k in indenters])
     unassigned = np.ones(len(arr), dtype=bool)
     positions = []
     for k in range(len(arr)):
         if not unassigned[k]:
             continue
-        near = unassigned & (np.hypot(arr[:, 0] - arr[k, 0], arr[:, 1] - arr[k, 1]) < REPEAT_RADIUS_MM)
+        near = unassigned & (kind == kind[k]) & (
+            np.hypot(arr[:, 0] - arr[k, 0], arr[:, 1] - arr[k, 1]) < REPEAT_RADIUS_MM)
         unassigned &= ~near
         group = arr[near]
         if len(group) >= min_presses:

@@ -21,6 +21,8 @@ class Measurements:
     x_mm, y_mm, major_mm, minor_mm, angle_deg, strength : ndarray, shape (N,), float64
     hu : ndarray, shape (N, 7), float64
         Log-Hu features of the primary contact.
+    features : ndarray, shape (N, F), float64
+        The shape classifier's input of the primary contact (log-Hu and q4).
     shape : ndarray, shape (N,), str
     confidence : ndarray, shape (N,), float64
     """
@@ -33,6 +35,7 @@ class Measurements:
     angle_deg: np.ndarray
     strength: np.ndarray
     hu: np.ndarray
+    features: np.ndarray
     shape: np.ndarray
     confidence: np.ndarray
 
@@ -70,6 +73,7 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
                                             "strength", "confidence")}
     contact = np.zeros(n, dtype=bool)
     hu = np.full((n, 7), np.nan)
+    features = np.full((n, pipeline.contacts[0].features.size), np.nan)
     shape = np.full(n, "", dtype=object)
     period_ns = int(1e9 / rec.meta.fps)
     show = sys.stderr.isatty() if progress is None else progress
@@ -81,5 +85,6 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
         for k, col in cols.items():
             col[i] = getattr(est, k)
         hu[i] = est.hu
+        features[i] = est.features
         shape[i] = est.shape
-    return Measurements(contact=contact, hu=hu, shape=shape.astype(str), **cols)
+    return Measurements(contact=contact, hu=hu, features=features, shape=shape.astype(str), **cols)

@@ -9,8 +9,12 @@ switchable improvements beyond the paper noted in brackets):
 3. the first ``bundle.baseline_frames`` frames are averaged into the baseline
    (reported with ``baseline_ready=False``);
 4. inverted signal ``baseline - mean`` (contacts darken fibers, so a contact is
-   positive) [relative: divided by ``baseline - black_level``]; dead fibers get
-   0 [fill_dead: the mean of their neighbours, folded into the matrix];
+   positive) [relative: divided by ``baseline - black_level``;
+   compensate_gain: the fiber light above the black level first divided by
+   the frame's common-mode LED gain, measured from the brightest-relative
+   fibers and held near the last contact-free frame's gain during a contact];
+   dead fibers get 0 [fill_dead: the mean of their neighbours, folded into
+   the matrix];
 5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh);
 6. truncate: values <= threshold become 0, values above are kept
    [noise_levels: the truncation level is k * measured noise];
@@ -19,9 +23,11 @@ switchable improvements beyond the paper noted in brackets):
    max_contacts > 1: each 8-connected blob is a contact; peak_fraction: each
    contact truncated at ``max(level, fraction * its peak)``]; then the
    moments give centroid, FWHM widths, angle and strength, and Hu invariants
-   of the binarised surface give the shape features;
+   and the 4-fold symmetry q4 of the binarised surface give the shape
+   features (``estimate.features``);
 8. [track_baseline: without contact, on quiet frames, the baseline follows
-   the fiber means with a time constant of seconds (LED warm-up, drift)].
+   the fiber means with a time constant of seconds (LED warm-up, drift; with
+   compensate_gain the gain-compensated means: per-fiber drift)].
 
 All buffers are allocated at construction; a frame costs no array allocation
 beyond a few scalars (and OpenCV's component statistics when several
@@ -36,15 +42,18 @@ import cv2
 import numpy as np
 
 from .bundle import MAX_CONTACTS, CalibrationBundle, ContactOptions
-from .corrections import ContactCorrector
 from .contact import ContactEstimate
+from .corrections import ContactCorrector
 from .dead_fill import dead_fill_matrix
 from .fiber_table import FiberSampler
-from .moments import MomentBasis, ellipse_from_moments, hu_from_central, log_hu
+from .moments import MomentBasis, ellipse_from_moments, hu_from_central, log_hu, q4_from_central
 from .surface import surface_from_fibers
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
 MAX_CANDIDATES = 8
+#: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
+#: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
+GAIN_TOLERANCE = 0.1
 
 
 class Pipeline:
@@ -95,6 +104,23 @@ class Pipeline:
         # levels (truncation, off, on) in signal units, set when the baseline is ready
         self._trunc = self._off = self._on = np.float32(bundle.thresholds.threshold)
         self._rest_level = 0.0
+        # common-mode LED gain (compensate_gain): the last contact-free frame's gain, when
+        # it was measured, the frame's gain, its tolerance and the cluster width (relative)
+        self._gain_on = bool(o.compensate_gain)
+        self._gain_ref = 1.0
+        self._gain_ref_ns = 0
+        self._gain = 1.0
+        self._frame_gain_value = 1.0
+        self._gain_tol = 0.0
+        self._gain_delta = 0.0
+        self._gain_rate = float(o.gain_rate_per_s) * 1e-9  # per ns
+        self._black = np.float32(o.black_level)
+        self._live_idx = np.flatnonzero(self._live)
+        if self._live_idx.size == 0:
+            self._live_idx = np.arange(n_fibers)
+        self._live_ratio = np.zeros(self._live_idx.size, dtype=np.float32)
+        self._ratio = np.zeros(n_fibers, dtype=np.float32)
+        self._level = np.ones(n_fibers, dtype=np.float32)
 
         self._means = np.zeros(n_fibers, dtype=np.float32)
         self._baseline_sum = np.zeros(n_fibers, dtype=np.float64)
@@ -112,11 +138,13 @@ class Pipeline:
         self._blob = np.zeros(n_cells, dtype=bool)
         self._sel = np.zeros(n_cells, dtype=bool)
         self._weighted = np.zeros(n_cells, dtype=np.float32)
-        self._basis = MomentBasis(grid, order=3)
+        # weighted surface: centroid and ellipse (order 2); binarised blob: Hu (order 3) and q4 (4)
+        self._basis = MomentBasis(grid, order=2)
+        self._mask_basis = MomentBasis(grid, order=4)
         self._m = self._basis.new_moments()
         self._mu = self._basis.new_moments()
-        self._mb = self._basis.new_moments()
-        self._mub = self._basis.new_moments()
+        self._mb = self._mask_basis.new_moments()
+        self._mub = self._mask_basis.new_moments()
         self._hu = np.zeros(7, dtype=np.float64)
         self._frame = 0
         self._in_contact = False
@@ -158,7 +186,9 @@ class Pipeline:
         """The last inverted per-fiber signal, shape (N,), float32.
 
         ``baseline - mean`` (gray levels), or divided by ``baseline - black_level``
-        with ``options.relative``; 0 for dead fibers.
+        with ``options.relative``; with ``options.compensate_gain`` the mean's
+        light above the black level is divided by :attr:`gain` first; 0 for
+        dead fibers.
         """
         return self._signal
 
@@ -177,13 +207,14 @@ class Pipeline:
         self._baseline_count = 0
         self._in_contact = False
         self._contact_end_ns = None
+        self._gain_ref = self._gain = 1.0
 
     def _baseline_updated(self) -> None:
         """Relative-signal denominators after a baseline change (217 values)."""
-        if self.options.relative:
-            np.subtract(self._baseline, np.float32(self.options.black_level), out=self._inv_denom)
-            np.maximum(self._inv_denom, 1.0, out=self._inv_denom)
-            np.reciprocal(self._inv_denom, out=self._inv_denom)
+        if self.options.relative or self._gain_on:
+            np.subtract(self._baseline, self._black, out=self._level)
+            np.maximum(self._level, 1.0, out=self._level)
+            np.reciprocal(self._level, out=self._inv_denom)
 
     def _set_levels(self) -> None:
         """Truncation / off / on levels in signal units (when the baseline is first ready)."""
@@ -203,6 +234,11 @@ class Pipeline:
         if not o.hysteresis:
             off = on
         self._trunc, self._off, self._on = np.float32(trunc), np.float32(off), np.float32(on)
+        # gain compensation, relative units: a fiber darker than the brightest cluster by the
+        # off level is pressed; the gain may differ from the last contact-free frame's by
+        # GAIN_TOLERANCE truncation levels (plus the drift rate) without evidence
+        self._gain_delta = float(off) / unit
+        self._gain_tol = GAIN_TOLERANCE * float(trunc) / unit
 
     # -- per frame -------------------------------------------------------------
 
@@ -260,14 +296,18 @@ class Pipeline:
                             casting="same_kind")
                 self._baseline_updated()
                 self._set_levels()
+                self._gain_ref, self._gain, self._gain_ref_ns = 1.0, 1.0, now_ns
             est.baseline_ready = False
             self._no_contact(est, 0.0, 0.0)
             return est
         est.baseline_ready = True
 
-        signal = np.subtract(self._baseline, means, out=self._signal)
-        if self.options.relative:
-            np.multiply(signal, self._inv_denom, out=signal)
+        if self._gain_on:
+            signal = self._compensated_signal(means, now_ns)
+        else:
+            signal = np.subtract(self._baseline, means, out=self._signal)
+            if self.options.relative:
+                np.multiply(signal, self._inv_denom, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
         surface = surface_from_fibers(self._matrix, signal, self._surface)
@@ -278,9 +318,55 @@ class Pipeline:
         elif self._in_contact:
             self._in_contact = False
             self._contact_end_ns = now_ns
+        if n == 0 and self._gain_on:
+            # a contact-free frame: its own gain estimate is the reference from now on
+            self._gain_ref, self._gain_ref_ns = self._frame_gain_value, now_ns
         if n == 0 and self.options.track_baseline and dt_ns > 0:
+            if self._gain_on:  # follow the per-fiber drift, not the LED gain
+                means = np.multiply(self._ratio, self._level, out=self._ratio)
+                means /= np.float32(self._gain)
+                means += self._black
             self._track(means, signal, now_ns, dt_ns)
         return est
+
+    @property
+    def gain(self) -> float:
+        """The LED gain relative to the baseline the last frame was compensated with (1 if off)."""
+        return self._gain
+
+    def _compensated_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:
+        """The signal with the frame's common-mode LED gain divided out (``compensate_gain``).
+
+        ``ratio = (mean - black) / (baseline - black)`` per fiber is ``g (1 - d)``
+        with ``g`` the LED gain and ``d >= 0`` the darkening, so the brightest
+        fibers measure ``g``: the median of the ratios within ``delta`` (the off
+        level) of the cluster around the upper quartile, twice. Limited to the last
+        contact-free frame's gain +- ``tol + rate * elapsed``.
+        """
+        ratio = np.subtract(means, self._black, out=self._ratio)
+        ratio *= self._inv_denom
+        live = self._live_ratio
+        np.take(ratio, self._live_idx, out=live)
+        live.sort()
+        n = live.size
+        g = float(live[(3 * (n - 1)) // 4])
+        keep = 1.0 - self._gain_delta
+        for _ in range(2):
+            j = int(np.searchsorted(live, np.float32(g * keep)))
+            g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
+        self._frame_gain_value = g
+        band = self._gain_tol + self._gain_rate * float(now_ns - self._gain_ref_ns)
+        g = min(max(g, self._gain_ref - band), self._gain_ref + band)
+        self._gain = g = max(g, 1e-3)
+        signal = self._signal
+        if self.options.relative:  # 1 - ratio / g
+            np.multiply(ratio, np.float32(-1.0 / g), out=signal)
+            signal += 1.0
+        else:  # (baseline - black) - (mean - black) / g, gray levels
+            np.multiply(ratio, np.float32(-1.0 / g), out=signal)
+            signal += 1.0
+            signal *= self._level
+        return signal
 
     def _no_contact(self, est: ContactEstimate, strength: float, area: float) -> None:
         est.contact = False
@@ -361,10 +447,13 @@ class Pipeline:
         e = ellipse_from_moments(m, mu)
         out.x_mm, out.y_mm = e.x_mm, e.y_mm
         out.major_mm, out.minor_mm, out.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
-        mb = self._basis.raw(sel, self._mb)
-        mub = self._basis.central(mb, self._mub)
+        mb = self._mask_basis.raw(sel, self._mb)
+        mub = self._mask_basis.central(mb, self._mub)
         hu_from_central(mub, out=self._hu)
         log_hu(self._hu, out=out.hu)
+        feats = out.features
+        feats[:7] = out.hu
+        feats[7] = q4_from_central(mub)
         out.shape = ""
         out.confidence = math.nan
         return 1

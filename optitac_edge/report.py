@@ -136,16 +136,16 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         measured, true = arrays["report/width_measured"], arrays["report/width_true"]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
         w = corrector.width
-        for ax, k, axis, (off, sc) in zip(axes, (0, 1), ("major", "minor"),
-                                          ((w.major_offset_mm, w.major_scale), (w.minor_offset_mm, w.minor_scale))):
+        for ax, k, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
             ax.scatter(true, measured[:, k], s=10, label="measured FWHM")
-            t = np.linspace(0, true.max() * 1.05, 50)
-            ax.plot(t, t / sc + off, "r-", label=f"fit: true = {sc:.2f}·(measured − {off:.2f})")
-            fitted = np.maximum(sc * (measured[:, k] - off), 0)
+            grid = np.linspace(min(measured[:, k].min(), amap.knots_measured[0]) * 0.95,
+                               measured[:, k].max() * 1.05, 100)
+            ax.plot([amap(g) for g in grid], grid, "r-", label=f"{w.kind} width model")
+            fitted = np.array([amap(v) for v in measured[:, k]])
             ax.scatter(true, fitted, s=10, marker="x", c="k", label="calibrated")
-            ax.plot(t, t, "k:", lw=0.8)
+            ax.plot([0, true.max()], [0, true.max()], "k:", lw=0.8)
             rmse = float(np.sqrt(np.mean((fitted - true) ** 2)))
-            ax.set_title(f"{axis} axis: calibrated RMSE {rmse:.3f} mm")
+            ax.set_title(f"{axis} axis: calibrated RMSE {rmse:.3f} mm (calibration data)")
             ax.set_xlabel("true diameter (mm)")
             ax.set_ylabel("width (mm)")
             ax.legend(fontsize=7)
@@ -155,7 +155,8 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         lines.append(f"Width calibration: {bundle.extra_meta.get('width_fit')}")
     shapes_fit = bundle.extra_meta.get("shapes_fit")
     if shapes_fit:
-        chosen = shapes_fit[shapes_fit["kind"]]["holdout"]
+        chosen = next(shapes_fit[k] for k in ("unsupervised", "supervised")
+                      if shapes_fit[k]["kind"] == shapes_fit["kind"])["holdout"]
         classes = shapes_fit["class_names"]
         conf = np.asarray(chosen["confusion"], dtype=float)
         conf = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)

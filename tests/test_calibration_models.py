@@ -7,7 +7,7 @@ import pytest
 
 from optitac_edge.centroid_map import CentroidErrorMap, fit_centroid_map
 from optitac_edge.layout import hex_layout
-from optitac_edge.width_model import WidthModel, fit_axis, fit_width_model
+from optitac_edge.width_model import AxisMap, WidthModel, fit_axis, fit_monotone_axis, fit_width_model
 
 
 def test_constant_error_is_removed_everywhere():
@@ -56,19 +56,42 @@ def test_too_few_presses_is_an_error():
         fit_centroid_map(np.zeros((2, 2)), np.zeros((2, 2)), half_span_mm=1.0)
 
 
-def test_width_model_inverts_a_linear_response():
+def test_linear_width_model_inverts_a_linear_response():
     true = np.linspace(1.85, 20.09, 12)
     major = 3.43 + true / 2.35  # the paper's fitted numbers as a forward model
     minor = 2.47 + true / 2.51
-    model = fit_width_model(major, minor, true)
-    assert model.major_offset_mm == pytest.approx(3.43) and model.major_scale == pytest.approx(2.35)
-    assert model.minor_offset_mm == pytest.approx(2.47) and model.minor_scale == pytest.approx(2.51)
+    model = fit_width_model(major, minor, true, kind="linear")
+    assert fit_axis(major, true) == pytest.approx((3.43, 2.35))
+    assert fit_axis(minor, true) == pytest.approx((2.47, 2.51))
     for t, a, b in zip(true, major, minor):
         assert model.correct(a, b) == pytest.approx((t, t))
-    assert WidthModel.from_bundle(model.to_bundle()) == model
+    assert model.correct(3.43 + 30 / 2.35, 0.0)[0] == pytest.approx(30.0)  # extrapolated beyond the knots
+    back = WidthModel.from_bundle(model.to_bundle())
+    assert back.correct(7.0, 6.0) == model.correct(7.0, 6.0)
+
+
+def test_monotone_width_model_follows_a_curved_response():
+    true = np.repeat(np.linspace(1.85, 20.09, 12), 3)
+    measured = 2.5 + 4.0 * np.tanh(true / 12.0) + 0.1 * true  # saturating, like the skin
+    model = fit_width_model(measured, measured, true, kind="monotone")
+    lin = fit_width_model(measured, measured, true, kind="linear")
+    probe = np.linspace(2.0, 19.5, 40)
+    response = 2.5 + 4.0 * np.tanh(probe / 12.0) + 0.1 * probe
+    mono_err = np.abs([model.correct(r, r)[0] - t for r, t in zip(response, probe)]).max()
+    lin_err = np.abs([lin.correct(r, r)[0] - t for r, t in zip(response, probe)]).max()
+    assert mono_err < 0.1 < lin_err
+
+
+def test_monotone_fit_pools_non_increasing_means():
+    axis = fit_monotone_axis(np.array([3.0, 2.9, 4.0]), np.array([2.0, 3.0, 5.0]))
+    assert np.all(np.diff(axis.knots_measured) > 0) and axis.knots_measured.size == 2
+    assert axis(axis.knots_measured[0]) == pytest.approx(2.5)
 
 
 def test_width_fit_needs_two_sizes_and_clips_at_zero():
     with pytest.raises(ValueError):
         fit_axis(np.array([5.0, 5.0]), np.array([3.0, 3.0]))
-    assert WidthModel(3.0, 2.0, 3.0, 2.0).correct(1.0, 2.0) == (0.0, 0.0)
+    with pytest.raises(ValueError):
+        fit_width_model(np.array([5.0, 5.1]), np.array([5.0, 5.1]), np.array([3.0, 3.0]))
+    model = WidthModel("linear", AxisMap.linear(3.0, 2.0), AxisMap.linear(3.0, 2.0))
+    assert model.correct(1.0, 2.0) == (0.0, 0.0)

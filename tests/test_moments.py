@@ -19,6 +19,8 @@ from optitac_edge.moments import (
     hu_from_central,
     hu_moments,
     log_hu,
+    q4_from_central,
+    q4_moment,
     raw_moments,
 )
 
@@ -190,6 +192,76 @@ def test_log_hu_sign_zero_nan() -> None:
     assert log_hu(buf, out=buf) is buf
 
 
+# -- q4: the 4-fold symmetry magnitude |c40| / mu00**3 ------------------------------------
+
+FINE = SurfaceGrid(n=1201, x0_mm=-12.0, y0_mm=-12.0, step_mm=0.02)  # 0.02 mm cells
+FX, FY = np.meshgrid(FINE.x_mm, FINE.y_mm)
+
+
+def fine_rect(w: float, h: float, deg: float = 0.0, centre=(0.01, 0.01)) -> np.ndarray:
+    """A w x h rectangle; centred half a cell off the grid so that it is exactly w x h when aligned."""
+    t = math.radians(deg)
+    dx, dy = FX - centre[0], FY - centre[1]
+    u = math.cos(t) * dx + math.sin(t) * dy
+    v = -math.sin(t) * dx + math.cos(t) * dy
+    return (np.abs(u) <= w / 2) & (np.abs(v) <= h / 2)
+
+
+def test_q4_analytic_moments() -> None:
+    a = 3.7
+    mu = np.zeros((5, 5))
+    mu[0, 0] = a**2
+    mu[2, 0] = mu[0, 2] = a**4 / 12
+    mu[4, 0] = mu[0, 4] = a**6 / 80
+    mu[2, 2] = a**6 / 144
+    assert q4_from_central(mu) == pytest.approx(1.0 / 60.0, rel=1e-12)
+    # a square rotated by t: c40 -> c40 * exp(4it); the moments of a square at 22.5 degrees
+    # have mu40 - 6 mu22 + mu04 = 0 and mu31 - mu13 = +-a^6/240 (|c40| unchanged)
+    mu_r = np.zeros((5, 5))
+    mu_r[0, 0] = a**2
+    mu_r[3, 1], mu_r[1, 3] = a**6 / 480, -a**6 / 480
+    assert q4_from_central(mu_r) == pytest.approx(1.0 / 60.0, rel=1e-12)
+    # an r : 1 rectangle
+    w, h = 2.0 * a, a
+    mu_rect = np.zeros((5, 5))
+    mu_rect[0, 0] = w * h
+    mu_rect[4, 0], mu_rect[0, 4] = w**5 * h / 80, w * h**5 / 80
+    mu_rect[2, 2] = w**3 * h**3 / 144
+    assert q4_from_central(mu_rect) == pytest.approx(abs((4 + 1 / 4) / 80 - 1 / 24), rel=1e-12)
+    assert math.isnan(q4_from_central(np.zeros((5, 5))))
+
+
+def test_q4_of_disc_square_rectangle_on_a_fine_grid() -> None:
+    disc = np.hypot(FX - 0.7, FY + 1.3) <= 4.0
+    assert q4_moment(disc, FINE) < 1e-4  # 1/60 for a square
+    assert q4_moment(fine_rect(6.0, 6.0, centre=(1.11, -0.39)), FINE) == pytest.approx(1 / 60, rel=2e-3)
+    assert q4_moment(fine_rect(8.0, 4.0), FINE) == pytest.approx((4 + 1 / 4) / 80 - 1 / 24, rel=2e-3)
+    assert q4_moment(np.zeros_like(disc), FINE) != q4_moment(np.zeros_like(disc), FINE)  # NaN
+
+
+@pytest.mark.parametrize("deg", [0.0, 10.0, 22.5, 37.0, 45.0, 71.0])
+def test_q4_is_rotation_and_scale_invariant(deg: float) -> None:
+    for side in (3.0, 6.0, 12.0):
+        assert q4_moment(fine_rect(side, side, deg), FINE) == pytest.approx(1 / 60, rel=0.01), side
+    ratio = (9 + 1 / 9) / 80 - 1 / 24
+    assert q4_moment(fine_rect(9.0, 3.0, deg, centre=(-1.01, 2.01)), FINE) == pytest.approx(ratio, rel=0.01)
+    # an equilateral triangle (3-fold symmetry) has c40 = 0
+    tri = rotate(np.array([[0.0, 4.0], [-3.4641, -2.0], [3.4641, -2.0]]), deg)
+    inside = np.ones(FX.shape, dtype=bool)
+    for (x1, y1), (x2, y2) in zip(tri, np.roll(tri, -1, axis=0)):
+        inside &= (x2 - x1) * (FY - y1) - (y2 - y1) * (FX - x1) >= 0
+    assert q4_moment(inside, FINE) < 2e-4
+
+
+def test_q4_on_the_runtime_mesh_separates_disc_and_square() -> None:
+    for x0, y0 in ((0.0, 0.0), (3.3, -2.1)):
+        disc = (X - x0) ** 2 + (Y - y0) ** 2 <= 3.0**2
+        square = polygon_mask(rotate(np.array([[-2.6, -2.6], [2.6, -2.6], [2.6, 2.6], [-2.6, 2.6]]),
+                                     17.0) + (x0, y0))
+        assert q4_moment(disc, GRID) < 3e-3
+        assert q4_moment(square, GRID) == pytest.approx(1 / 60, rel=0.1)
+
+
 # -- the fast form ------------------------------------------------------------------------
 
 
@@ -209,3 +281,16 @@ def test_moment_basis_equals_plain_functions() -> None:
     mb = basis.raw(mask, basis.new_moments())
     hu = hu_from_central(basis.central(mb, basis.new_moments()))
     np.testing.assert_allclose(hu, hu_moments(mask, GRID), rtol=1e-8, atol=1e-14)
+
+
+def test_moment_basis_order_4_gives_q4() -> None:
+    basis = MomentBasis(GRID, order=4)
+    for x0, y0 in ((0.0, 0.0), (-7.5, 6.0)):  # far from the origin: raw -> central cancellation
+        mask = polygon_mask(rotate(np.array([[-2.0, -1.5], [2.0, -1.5], [2.0, 1.5], [-2.0, 1.5]]),
+                                   33.0) + (x0, y0))
+        mb = basis.raw(mask.ravel(), basis.new_moments())
+        mu = basis.central(mb, basis.new_moments())
+        mu_ref = central_moments(mask.astype(np.float64), GRID, order=4)
+        np.testing.assert_allclose(mu, mu_ref, rtol=1e-7, atol=1e-9 * np.abs(mu_ref).max())
+        assert q4_from_central(mu) == pytest.approx(q4_moment(mask, GRID), rel=1e-8)
+        np.testing.assert_allclose(hu_from_central(mu), hu_moments(mask, GRID), rtol=1e-8, atol=1e-14)

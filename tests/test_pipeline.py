@@ -169,6 +169,37 @@ def test_estimate_is_reused_and_copy_is_independent() -> None:
     assert e2.to_dict()["x_mm"] is None
 
 
+def test_shape_features_are_log_hu_and_q4_of_the_binarised_contact() -> None:
+    from optitac_edge.moments import q4_moment
+
+    bundle = make_bundle()
+    rest = rest_levels()
+    pipe = Pipeline(bundle)
+    warmup = run(pipe, warm(bundle, rest))
+    assert all(e.features.shape == (8,) and np.all(np.isnan(e.features)) for e in warmup)
+    q4 = {}
+    for name, levels in (("round", pressed_levels(rest, 1.0, -0.5, 60.0, 2.0, 2.0)),
+                         ("long", pressed_levels(rest, 1.0, -0.5, 60.0, 3.5, 1.2, 25.0))):
+        e = pipe.process(render(bundle, levels), 1)
+        assert e.contact and e.features.dtype == np.float64
+        np.testing.assert_array_equal(e.features[:7], e.hu)
+        # the paper's method: the binarised contact is the surface above the threshold
+        assert e.features[7] == pytest.approx(q4_moment(pipe.surface > 0, GRID), rel=1e-8, abs=1e-12)
+        q4[name] = e.features[7]
+        kept = e.copy()
+        assert kept.features is not e.features
+        np.testing.assert_array_equal(kept.features, e.features)
+        other = type(e)()
+        other.assign(e)
+        assert other.features is not e.features
+        np.testing.assert_array_equal(other.features, e.features)
+        assert kept.to_dict()["features"][7] == pytest.approx(e.features[7])
+    assert q4["round"] < 0.005 and q4["long"] > 0.02
+    e = pipe.process(render(bundle, rest), 2)
+    assert not e.contact and np.all(np.isnan(e.features)) and np.all(np.isfinite(kept.features))
+    assert e.to_dict()["features"] == [None] * 8
+
+
 def test_reset_baseline_tares() -> None:
     bundle = make_bundle()
     rest = rest_levels()

@@ -102,6 +102,8 @@ def test_two_presses_are_two_contacts_strongest_first() -> None:
     assert math.hypot(a.x_mm + 5.0, a.y_mm) < 0.2
     assert math.hypot(b.x_mm - 5.0, b.y_mm - 2.0) < 0.2
     assert np.all(np.isfinite(a.hu)) and np.all(np.isfinite(b.hu))
+    assert np.all(np.isfinite(a.features)) and np.all(np.isfinite(b.features))
+    np.testing.assert_array_equal(b.features[:7], b.hu)
     # one contact only: the whole surface is one contact, between the presses
     bundle, pipe = start(dataclasses.replace(LEVELS, max_contacts=1))
     e = pipe.process(render(bundle, levels), 10 * PERIOD)
@@ -144,9 +146,12 @@ def test_baseline_tracks_slow_led_drift_but_not_a_held_press() -> None:
             false += pipe.process(render(bundle, REST * gain), (5 + k) * PERIOD).contact
         return false
 
-    tight = dataclasses.replace(LEVELS, floor_trunc=0.01, floor_off=0.015, floor_on=0.025)
+    tight = dataclasses.replace(LEVELS, floor_trunc=0.01, floor_off=0.015, floor_on=0.025,
+                                compensate_gain=False)
     assert run(tight) == 0
     assert run(dataclasses.replace(tight, track_baseline=False)) > 100  # the test means something
+    # the gain compensation alone also removes it
+    assert run(dataclasses.replace(tight, track_baseline=False, compensate_gain=True)) == 0
     # a press held for 5 s is never absorbed, and released it is gone at once
     bundle, pipe = start(tight)
     pressed = render(bundle, pressed_levels(REST, -2.0, 3.0, depth=40.0))
@@ -220,16 +225,20 @@ def test_bundle_options_are_strictly_validated(tmp_path) -> None:
         ContactOptions(peak_fraction=1.5)
 
 
-def test_contacts_csv_has_n_contacts(tmp_path) -> None:
+def test_contacts_csv_has_n_contacts_and_q4(tmp_path) -> None:
     bundle, pipe = start(LEVELS)
     out = tmp_path / "c.csv"
     levels = pressed_levels(pressed_levels(REST, -5.0, 0.0, depth=60.0), 5.0, 2.0, depth=40.0)
     with ContactsCsvWriter(out) as w:
-        w.write(0, pipe.process(render(bundle, levels), 10 * PERIOD))
+        e = pipe.process(render(bundle, levels), 10 * PERIOD)
+        q4 = float(e.features[7])
+        w.write(0, e)
         w.write(1, pipe.process(render(bundle, REST), 11 * PERIOD))
-    rows = out.read_text().splitlines()
-    assert rows[0].split(",") == list(CONTACTS_HEADER) and CONTACTS_HEADER[-1] == "n_contacts"
-    assert rows[1].split(",")[-1] == "2" and rows[2].split(",")[-1] == "0"
+    rows = [r.split(",") for r in out.read_text().splitlines()]
+    assert rows[0] == list(CONTACTS_HEADER)
+    col = {name: k for k, name in enumerate(CONTACTS_HEADER)}
+    assert rows[1][col["n_contacts"]] == "2" and rows[2][col["n_contacts"]] == "0"
+    assert float(rows[1][col["q4"]]) == pytest.approx(q4, abs=1e-8) and rows[2][col["q4"]] == ""
 
 
 def test_calibration_measures_noise_and_black_level() -> None:
@@ -240,3 +249,89 @@ def test_calibration_measures_noise_and_black_level() -> None:
     o = bundle.options
     assert 0.0 < o.noise_rel < 0.02 and 0.0 < o.noise_gray < 3.0 and 0.0 < o.black_level < 40.0
     assert not o.is_paper
+
+
+# -- common-mode LED gain compensation ----------------------------------------------------------
+
+GAIN = dataclasses.replace(LEVELS, floor_trunc=0.01, floor_off=0.015, floor_on=0.025)
+
+
+def big_press(rest: np.ndarray, depth: float = 0.5) -> np.ndarray:
+    """A press darkening every fiber (>= 6 % at the rim, ``depth`` at the centre), like a 20 mm disc."""
+    r = np.hypot(*LAYOUT.xy_mm.T)
+    return rest * (1.0 - depth * (0.12 + 0.88 * np.clip(1.0 - r / 13.0, 0.0, 1.0) ** 1.5))
+
+
+def test_gain_compensation_quick_presses_while_the_led_dims() -> None:
+    """Press 2 frames, release 1 (no baseline tracking possible): the LED dims 3 % over 10 s."""
+    n = 600
+    results = {}
+    for comp in (False, True):
+        bundle, pipe = start(dataclasses.replace(GAIN, compensate_gain=comp, track_baseline=False))
+        false = missed = 0
+        for k in range(n):
+            gain = 1.0 - 0.03 * k / n
+            pressed = k % 3 != 2
+            x = -6.0 + 12.0 * (k % 47) / 46.0
+            levels = pressed_levels(REST, x, 1.0, depth=40.0) if pressed else REST
+            e = pipe.process(render(bundle, levels * gain), (5 + k) * PERIOD)
+            false += e.contact and not pressed
+            missed += pressed and not e.contact
+            if pressed and e.contact and comp:
+                assert abs(e.x_mm - x) < 0.3
+        results[comp] = false, missed
+    assert results[False][0] > 50  # the problem exists without it
+    assert results[True] == (0, 0)
+
+
+def test_gain_compensation_does_not_eat_a_press_covering_the_whole_array() -> None:
+    bundle, ref = start(dataclasses.replace(GAIN, compensate_gain=False))
+    press = big_press(REST)
+    expected = ref.process(render(bundle, press), 10 * PERIOD).copy()
+    assert expected.contact
+    bundle, pipe = start(GAIN)
+    e = pipe.process(render(bundle, press), 10 * PERIOD)
+    assert e.contact and pipe.gain == pytest.approx(1.0, abs=pipe.levels[0])
+    assert e.strength == pytest.approx(expected.strength, rel=0.03)
+    assert e.major_mm == pytest.approx(expected.major_mm, rel=0.02)
+    assert math.hypot(e.x_mm, e.y_mm) < 0.1
+    # held for 2 s while the LED dims by 0.4 %: the gain limit grows with the rate, the press stays
+    for k in range(120):
+        gain = 1.0 - 0.004 * k / 120
+        e = pipe.process(render(bundle, press * gain), (11 + k) * PERIOD)
+        assert e.contact and math.hypot(e.x_mm, e.y_mm) < 0.1
+    assert e.major_mm == pytest.approx(expected.major_mm, rel=0.03)
+    # released: no contact, and the gain is measured again at once
+    e = pipe.process(render(bundle, REST * 0.996), 200 * PERIOD)
+    assert not e.contact and pipe.gain == pytest.approx(0.996, abs=0.001)
+
+
+def test_gain_compensation_measures_the_gain_beside_a_small_press() -> None:
+    bundle, pipe = start(GAIN)
+    pipe.process(render(bundle, REST * 0.995), 10 * PERIOD)  # contact-free: gain 0.995
+    levels = pressed_levels(REST, 2.0, -1.0, depth=60.0) * 0.99
+    e = pipe.process(render(bundle, levels), 70 * PERIOD)  # 1 s later: within 0.5 %
+    assert e.contact and pipe.gain == pytest.approx(0.99, abs=0.0005)
+    assert math.hypot(e.x_mm - 2.0, e.y_mm + 1.0) < 0.15
+
+
+def test_a_contact_started_by_a_gain_step_ends() -> None:
+    """The LED drops 4 % at once (faster than gain_rate_per_s): a contact, which ends when the
+    gain limit has grown to within the off level of the step ((0.04 - 0.015) / 0.5 %/s = 5 s)."""
+    o = dataclasses.replace(GAIN, track_baseline=False)
+    bundle, pipe = start(o)
+    big = big_press(REST)  # make it a contact: a whole-array press, then the LED steps down
+    assert pipe.process(render(bundle, big), 10 * PERIOD).contact
+    dim = render(bundle, REST * 0.96)
+    got = [pipe.process(dim, (11 + k) * PERIOD).contact for k in range(int(10 / (PERIOD * 1e-9)))]
+    assert got[0]  # the first dimmed frame is still taken for the press (the gain is held)
+    end = got.index(False)
+    assert 4.0 < end * PERIOD * 1e-9 < 5.5 and not any(got[end:])
+
+
+def test_gain_compensation_off_in_the_paper_method() -> None:
+    p = ContactOptions.paper()
+    assert not p.compensate_gain and ContactOptions().compensate_gain
+    assert "compensate_gain" in ContactOptions.SWITCHES
+    with pytest.raises(ValueError, match="gain_rate_per_s"):
+        ContactOptions(gain_rate_per_s=-1.0)

@@ -1,4 +1,8 @@
-"""Shape classifier: feature transform, fitting, numpy / sklearn / ONNX agreement, bundle form."""
+"""Shape classifier: feature transform, fitting, numpy / sklearn / ONNX agreement, bundle form.
+
+Inputs are the pipeline's 8-wide shape features ``[log-Hu x 7, q4]``; q4-specific
+tests (the q4 generator, Hu-only vs Q4 accuracy, 7-wide models) are in test_shapes_q4.py.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +16,10 @@ import pytest
 from optitac_edge.moments import log_hu
 from optitac_edge.recording import SHAPES
 from optitac_edge.shapes import (
+    ALL_SUBSETS,
     LOG_HU_CAP,
-    PAPER_SUBSETS,
+    Q4_FLOOR,
+    Q4_SUBSETS,
     ShapeClassifier,
     ShapeModel,
     evaluate_model,
@@ -27,24 +33,26 @@ from optitac_edge.shapes.fit import (
     gmm_unsupervised,
     stratified_group_split,
 )
-from optitac_edge.shapes.synthetic import synthetic_hu
+from optitac_edge.shapes.synthetic import synthetic_features
 
 pytest.importorskip("sklearn")
 
 NAMES = tuple(sorted(SHAPES))
 EDGE_ROWS = np.array([
-    [np.nan] * 7, [0.0] * 7, [np.inf] * 7, [-np.inf] * 7, [1e300] * 7, [-1e300] * 7,
-    [0.8, 65.6, 33.5, 34.9, 69.6, -68.2, 69.2],  # centred circle: rounding-noise invariants
-    [0.8, 4.4, np.nan, 8.0, 1.0, 1.0, 1.0],
+    [np.nan] * 8, [0.0] * 8, [np.inf] * 8, [-np.inf] * 8, [1e300] * 8, [-1e300] * 8,
+    [0.8, 65.6, 33.5, 34.9, 69.6, -68.2, 69.2, 1e-18],  # centred circle: rounding noise
+    [0.8, 4.4, np.nan, 8.0, 1.0, 1.0, 1.0, 0.0167],
+    [0.8, 4.4, 6.0, 8.0, 1.0, 1.0, 1.0, np.nan],
 ])
 
 
 @pytest.fixture(scope="module")
 def data() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Log-Hu of 5 x 40 random shapes, 2 frames per press (the second perturbed by 0.002)."""
-    hu, labels = synthetic_hu(40, seed=3)
+    """Features of 5 x 40 random shapes, 2 frames per press (the second perturbed:
+    log-Hu by 0.002, q4 by 0.2 %)."""
+    hu, labels = synthetic_features(40, seed=3)
     rng = np.random.default_rng(4)
-    hu2 = hu + rng.normal(0.0, 0.002, hu.shape)
+    hu2 = hu + rng.normal(0.0, 0.002, hu.shape) * np.r_[np.ones(7), hu[:, 7:].mean()]
     groups = np.arange(hu.shape[0])
     return np.vstack([hu, hu2]), np.concatenate([labels, labels]), np.concatenate([groups, groups])
 
@@ -63,16 +71,19 @@ def _class_index(labels: np.ndarray) -> np.ndarray:
 
 def test_features_special_values() -> None:
     f = shape_features(EDGE_ROWS)
-    C = LOG_HU_CAP
+    C, lo, hi = LOG_HU_CAP, math.log(Q4_FLOOR), math.log(1e6 + Q4_FLOOR)
     assert np.isnan(f[0]).all()
-    np.testing.assert_array_equal(f[1], [0.0, C, C, C, 0.0, 0.0, 0.0])  # h == 0 (log_hu's 0)
-    np.testing.assert_array_equal(f[2], [C, C, C, C, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(f[3], [-C, -C, -C, -C, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(f[4], [C, C, C, C, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(f[5], [-C, -C, -C, -C, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(f[6], [0.8, C, C, C, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(f[1], [0.0, C, C, C, 0.0, 0.0, 0.0, lo])  # h == 0 (log_hu's 0)
+    np.testing.assert_array_equal(f[2], [C, C, C, C, 0.0, 0.0, 0.0, hi])
+    np.testing.assert_array_equal(f[3], [-C, -C, -C, -C, 0.0, 0.0, 0.0, lo])
+    np.testing.assert_array_equal(f[4], [C, C, C, C, 0.0, 0.0, 0.0, hi])
+    np.testing.assert_array_equal(f[5], [-C, -C, -C, -C, 0.0, 0.0, 0.0, lo])
+    np.testing.assert_allclose(f[6], [0.8, C, C, C, 0.0, 0.0, 0.0, lo], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(f[7, 7], math.log(0.0167 + Q4_FLOOR), rtol=1e-15)
     assert np.isnan(f[7, 2]) and np.isfinite(np.delete(f[7], 2)).all()
-    assert np.all(np.abs(f[np.isfinite(f)]) <= C)
+    assert np.isnan(f[8, 7]) and np.isfinite(f[8, :7]).all()
+    assert np.all(np.abs(f[:, :7][np.isfinite(f[:, :7])]) <= C)
+    np.testing.assert_array_equal(shape_features(EDGE_ROWS[:, :7]), f[:, :7])  # log-Hu only
 
 
 def test_features_from_raw_invariants() -> None:
@@ -92,13 +103,15 @@ def test_features_from_raw_invariants() -> None:
 def test_features_shape_checked() -> None:
     assert shape_features(np.zeros(7)).shape == (7,)
     assert shape_features(np.zeros((2, 3, 7))).shape == (2, 3, 7)
-    with pytest.raises(ValueError):
-        shape_features(np.zeros((4, 6)))
+    assert shape_features(np.zeros((2, 3, 8))).shape == (2, 3, 8)
+    for bad in (np.zeros((4, 6)), np.zeros((4, 9)), np.float64(1.0)):
+        with pytest.raises(ValueError):
+            shape_features(bad)
 
 
 # -- numpy evaluator vs scikit-learn -----------------------------------------------------------
 
-@pytest.mark.parametrize("subset", [(0, 1, 2), (0, 1), tuple(range(7))])
+@pytest.mark.parametrize("subset", [(0, 1, 2), (0, 1), tuple(range(7)), *Q4_SUBSETS])
 def test_unsupervised_matches_sklearn(data, subset) -> None:
     hu, labels, _ = data
     f = shape_features(hu)
@@ -111,7 +124,7 @@ def test_unsupervised_matches_sklearn(data, subset) -> None:
     np.testing.assert_allclose(ours.sum(axis=1), 1.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("subset", [(0, 1, 2), (0, 1, 3), tuple(range(7))])
+@pytest.mark.parametrize("subset", [(0, 1, 2), (0, 1, 3), tuple(range(7)), *Q4_SUBSETS])
 def test_supervised_matches_sklearn(data, subset) -> None:
     hu, labels, _ = data
     f = shape_features(hu)
@@ -172,7 +185,7 @@ def test_holdout_disjoint_and_train_only(report, data) -> None:
         again_metrics = evaluate_model(m, hu[te], y[te])
         np.testing.assert_array_equal(again_metrics.confusion, kind_report.holdout.confusion)
         assert kind_report.holdout.n == te.size
-        assert [r.subset for r in kind_report.subsets] == list(PAPER_SUBSETS)
+        assert [r.subset for r in kind_report.subsets] == list(ALL_SUBSETS)
 
 
 def test_report_choice_and_json(report) -> None:
@@ -180,8 +193,10 @@ def test_report_choice_and_json(report) -> None:
     assert report.model.kind == report.kind
     assert tuple(report.model.subset.tolist()) == report.chosen.selected
     d = json.loads(json.dumps(report.to_dict(), allow_nan=False))
-    assert set(d["unsupervised"]["subsets"]) == {
-        "M1M2", "M1M3", "M1M2M3", "M1M2M4", "M1M2M5", "M1M2M6", "M1M2M7", "M1-M7"}
+    assert set(d["unsupervised"]["subsets"]) == set(d["supervised"]["subsets"]) == {
+        "M1M2", "M1M3", "M1M2M3", "M1M2M4", "M1M2M5", "M1M2M6", "M1M2M7", "M1-M7",
+        "M1M2Q4", "M1M3Q4", "M1M2M3Q4", "M1-M7Q4"}
+    assert d["n_inputs"] == report.model.n_inputs == 8
     if report.supervised.cv_score <= report.unsupervised.cv_score:
         assert report.kind == "gmm_unsupervised"  # ties go to the paper's
 
@@ -199,7 +214,7 @@ def test_separable_blobs_both_kinds() -> None:
     centres = np.array([[0.2, 0.5, 3.0], [0.8, 4.5, 5.0], [0.78, 4.5, 9.0],
                         [0.74, 2.1, 6.0], [0.71, 3.5, 2.3]])
     hu = np.concatenate([c + rng.normal(0, [0.01, 0.2, 0.3], (60, 3)) for c in centres])
-    hu = np.hstack([hu, rng.normal(5.0, 1.0, (hu.shape[0], 4))])
+    hu = np.hstack([hu, rng.normal(5.0, 1.0, (hu.shape[0], 4)), rng.uniform(0, 1, (300, 1))])
     labels = np.repeat(np.array(["edge", "circle", "square", "ellipse", "triangle"]), 60)
     r = fit_shape_model(hu, labels, seed=0, subsets=((0, 1, 2), (0, 1)), cv_folds=2)
     assert r.unsupervised.holdout.average_diagonal >= 0.95
@@ -262,6 +277,10 @@ def test_model_validation(report) -> None:
     with pytest.raises(ValueError):
         ShapeModel.from_bundle(meta, {**arrays, "subset": np.array([0, 9])})
     with pytest.raises(ValueError):
+        ShapeModel.from_bundle(meta, {**arrays, "subset": np.array([0, 8])})
+    with pytest.raises(ValueError):
+        ShapeModel.from_bundle({**meta, "n_inputs": 6}, arrays)
+    with pytest.raises(ValueError):
         ShapeModel.from_bundle(meta, {**arrays, "component_class": arrays["component_class"] + 9})
     assert not report.model.means.flags.writeable
 
@@ -282,8 +301,13 @@ def test_onnx_matches_numpy(report, data, tmp_path) -> None:
         p_onnx, p_np = onnx_clf.predict_proba(hu), np_clf.predict_proba(hu)
         assert p_onnx.dtype == np.float64 and p_onnx.shape == (hu.shape[0], len(NAMES))
         np.testing.assert_array_equal(np.isnan(p_onnx), np.isnan(p_np))
-        assert np.nanmax(np.abs(p_onnx - p_np)) < 1e-6
+        assert np.nanmax(np.abs(p_onnx - p_np)) <= 1e-12
+        assert onnx_clf.n_inputs == 8
         for row in hu[::25]:
             a, b = onnx_clf.classify(row), np_clf.classify(row)
             assert a[0] == b[0]
-            assert (math.isnan(a[1]) and math.isnan(b[1])) or abs(a[1] - b[1]) < 1e-6
+            assert (math.isnan(a[1]) and math.isnan(b[1])) or abs(a[1] - b[1]) <= 1e-12
+        with pytest.raises(ValueError, match="8 features"):
+            onnx_clf.predict_proba(hu[:, :7])
+        with pytest.raises(ValueError, match="8 features"):
+            onnx_clf.classify(hu[0, :7])

@@ -45,16 +45,27 @@ PAPER = {"unseen_rmse": "0.4 / 0.4", "unseen_r2": "0.99 / 0.99", "seen_r2": "0.9
          "shape_diag": "0.96", "shape_f1_edge": "1.00", "shape_f1_min": "0.90"}
 
 
-def configs(measured: dict[str, float]) -> dict[str, ContactOptions]:
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """One way of calibrating: per-frame options, width model kind, error-map fill."""
+
+    options: ContactOptions
+    width_kind: str = "linear"
+    map_fill: str = "nearest"
+
+
+def configs(measured: dict[str, float]) -> dict[str, Config]:
     paper = ContactOptions.paper(**measured)
     best = ContactOptions(**measured)
     return {
-        "paper's method": paper,
-        "+ relative signal": dataclasses.replace(paper, relative=True),
-        "+ peak-relative truncation": dataclasses.replace(paper, peak_fraction=best.peak_fraction),
-        "+ noise levels, hysteresis": dataclasses.replace(paper, noise_levels=True, hysteresis=True),
-        "+ baseline tracking": dataclasses.replace(paper, track_baseline=True),
-        "all (default)": best,
+        "paper's method": Config(paper),
+        "+ relative signal": Config(dataclasses.replace(paper, relative=True)),
+        "+ peak-relative truncation": Config(dataclasses.replace(paper, peak_fraction=best.peak_fraction)),
+        "+ noise levels, hysteresis": Config(dataclasses.replace(paper, noise_levels=True, hysteresis=True)),
+        "+ baseline tracking": Config(dataclasses.replace(paper, track_baseline=True)),
+        "+ monotone width model": Config(paper, width_kind="monotone"),
+        "all (default)": Config(best, width_kind="monotone"),
+        "all + linear error-map fill": Config(best, width_kind="monotone", map_fill="linear"),
     }
 
 
@@ -65,14 +76,14 @@ def record(workdir: Path, variant: int, day: int, name: str, seed: int, **kw: An
     return Recording(path)
 
 
-def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], options: ContactOptions,
-                    hint: tuple[float, bool], map_fill: str = "nearest") -> dict[str, Any]:
+def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config: Config,
+                    hint: tuple[float, bool]) -> dict[str, Any]:
     rest = cal["rest"]
     bundle = calibrate_fibers(rest.rest_frames(), rest.pixel_format, rotation_hint_deg=hint[0], mirror=hint[1])
     measured = {k: getattr(bundle.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
-    bundle = bundle.with_updates(options=dataclasses.replace(options, **measured))
-    bundle, _ = calibrate_centroid(cal["seen"], bundle, fill=map_fill)
-    bundle, _ = calibrate_width(cal["widths"], bundle)
+    bundle = bundle.with_updates(options=dataclasses.replace(config.options, **measured))
+    bundle, _ = calibrate_centroid(cal["seen"], bundle, fill=config.map_fill)
+    bundle, _ = calibrate_width(cal["widths"], bundle, kind=config.width_kind)
     bundle, shapes_fit = calibrate_shapes(cal["shapes"], bundle)
     out: dict[str, Any] = {"shapes_fit": shapes_fit}
     missed = false = contact_frames = rest_frames = 0
@@ -159,12 +170,9 @@ def main() -> None:
         measured = {k: getattr(probe.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
         cfgs = configs(measured)
         if variant == args.ablation_variant:
-            for name, options in cfgs.items():
+            for name, config in cfgs.items():
                 print(f"variant {variant}: {name} ...", flush=True)
-                ablation[name] = evaluate_config(cal, ev, options, hint)
-            print(f"variant {variant}: all + linear map fill ...", flush=True)
-            ablation["all + linear error-map fill"] = evaluate_config(cal, ev, cfgs["all (default)"], hint,
-                                                                      map_fill="linear")
+                ablation[name] = evaluate_config(cal, ev, config, hint)
             results[f"sensor {variant}"] = ablation["all (default)"]
         else:
             print(f"variant {variant}: default ...", flush=True)

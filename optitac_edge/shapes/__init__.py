@@ -1,14 +1,15 @@
-"""Contact-shape classification from log-Hu invariants (edge, circle, square, ellipse, triangle).
+"""Contact-shape classification (edge, circle, square, ellipse, triangle) from log-Hu
+invariants and the 4-fold symmetry q4 (``ContactEstimate.features``, shape (8,)).
 
 Runtime (numpy only)::
 
     model = ShapeModel.from_calibration_extras(bundle.extra_meta, bundle.extra_arrays)
     clf = ShapeClassifier(model)
-    est.shape, est.confidence = clf.classify(est.hu)      # ~10 us per frame
+    est.shape, est.confidence = clf.classify(est.features)  # ~10 us per frame
 
 Offline (scikit-learn, the ``[calibrate]`` extra)::
 
-    report = fit_shape_model(hu_log, labels, groups=press_ids)
+    report = fit_shape_model(features, labels, groups=press_ids)  # features (n, 8)
     meta, arrays = report.model.to_calibration_extras()   # -> extra_meta / extra_arrays
 
 Modules: :mod:`.features` (the robust input transform), :mod:`.model` (the
@@ -19,15 +20,28 @@ synthetic features for tests).
 """
 
 from .evaluate import CompiledShapeModel, ShapeClassifier, class_proba_numpy
-from .features import LOG_HU_CAP, shape_features
-from .fit import PAPER_SUBSETS, ShapeFitReport, ShapeMetrics, evaluate_model, fit_shape_model
+from .features import LOG_HU_CAP, N_FEATURES, Q4_FLOOR, Q4_INDEX, shape_features
+from .fit import (
+    ALL_SUBSETS,
+    PAPER_SUBSETS,
+    Q4_SUBSETS,
+    ShapeFitReport,
+    ShapeMetrics,
+    evaluate_model,
+    fit_shape_model,
+)
 from .model import KINDS, ShapeModel, subset_name
 from .onnx_export import OnnxShapeClassifier, export_onnx
 
 __all__ = [
+    "ALL_SUBSETS",
     "KINDS",
     "LOG_HU_CAP",
+    "N_FEATURES",
     "PAPER_SUBSETS",
+    "Q4_FLOOR",
+    "Q4_INDEX",
+    "Q4_SUBSETS",
     "CompiledShapeModel",
     "OnnxShapeClassifier",
     "ShapeClassifier",

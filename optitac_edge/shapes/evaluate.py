@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .features import N_HU, SIGNED, ZERO_IS_NULL, shape_features
+from .features import Q4_INDEX, Q4_MAX, SIGNED, ZERO_IS_NULL, shape_features
 from .model import ShapeModel
 
 
@@ -71,8 +71,9 @@ def class_proba_numpy(compiled: CompiledShapeModel, features: np.ndarray) -> np.
     Parameters
     ----------
     compiled : CompiledShapeModel
-    features : ndarray, shape (n, 7), float64
-        Output of :func:`~optitac_edge.shapes.features.shape_features`.
+    features : ndarray, shape (n, 8) or (n, 7), float64
+        Output of :func:`~optitac_edge.shapes.features.shape_features` (the
+        model's input width).
 
     Returns
     -------
@@ -94,6 +95,12 @@ class ShapeClassifier:
     ----------
     model : ShapeModel
 
+    Attributes
+    ----------
+    n_inputs : int
+        Width of the feature vector accepted: 8 (``ContactEstimate.features``) or 7
+        (``ContactEstimate.hu``, log-Hu-only models); others raise ValueError.
+
     Notes
     -----
     :meth:`classify` reuses preallocated buffers (not thread-safe: one
@@ -109,8 +116,10 @@ class ShapeClassifier:
         self._c = CompiledShapeModel.from_model(model)
         c = self._c
         d, k = model.n_features, model.n_components
+        self.n_inputs = model.n_inputs
         self._sel = [int(i) for i in c.subset]
-        self._rule = [(bool(SIGNED[i]), bool(ZERO_IS_NULL[i])) for i in self._sel]
+        self._rule = [(bool(SIGNED[i]), bool(ZERO_IS_NULL[i]), i == Q4_INDEX) for i in self._sel]
+        self._q4_floor = model.q4_floor
         self._mean = [float(v) for v in c.mean]
         self._std = [float(v) for v in c.std]
         self._cap = model.log_hu_cap
@@ -125,56 +134,72 @@ class ShapeClassifier:
         self._p = np.empty((1, len(model.class_names) + 1))
         self._n_cls = len(model.class_names)
 
-    def predict_proba(self, hu_log: np.ndarray) -> np.ndarray:
+    def predict_proba(self, features: np.ndarray) -> np.ndarray:
         """Class probabilities of many contacts.
 
         Parameters
         ----------
-        hu_log : array_like, shape (n, 7) or (7,), float
-            Log-Hu invariants (``ContactEstimate.hu``).
+        features : array_like, shape (n, W) or (W,), float
+            ``W = model.n_inputs``: 8 for ``ContactEstimate.features``
+            (``[log-Hu x 7, q4]``), 7 for a log-Hu-only model (``ContactEstimate.hu``).
 
         Returns
         -------
         ndarray, shape (n, C), float64
             Columns in ``model.class_names`` order; NaN rows where a used
-            invariant is NaN (no contact).
+            feature is NaN (no contact).
+
+        Raises
+        ------
+        ValueError
+            If the width is not ``model.n_inputs``.
         """
-        L = np.asarray(hu_log, dtype=np.float64)
+        L = np.asarray(features, dtype=np.float64)
         if L.ndim == 1:
             L = L[None, :]
-        if L.ndim != 2 or L.shape[1] != N_HU:
-            raise ValueError(f"expected log-Hu features of shape (n, 7), got {np.shape(hu_log)}")
-        return class_proba_numpy(self._c, shape_features(L, self._cap))
+        if L.ndim != 2 or L.shape[1] != self.n_inputs:
+            raise width_error(np.shape(features), self.n_inputs)
+        return class_proba_numpy(self._c, shape_features(L, self._cap, self._q4_floor))
 
-    def predict(self, hu_log: np.ndarray) -> np.ndarray:
+    def predict(self, features: np.ndarray) -> np.ndarray:
         """Class names, shape (n,), str ('' where the probabilities are NaN)."""
-        p = self.predict_proba(hu_log)
+        p = self.predict_proba(features)
         ok = np.isfinite(p).all(axis=1)
         names = np.array(self.class_names)[np.argmax(np.where(ok[:, None], p, 0.0), axis=1)]
         return np.where(ok, names, "")
 
-    def classify(self, hu_log: np.ndarray) -> tuple[str, float]:
+    def classify(self, features: np.ndarray) -> tuple[str, float]:
         """Shape and confidence of one contact (the per-frame form).
 
         Parameters
         ----------
-        hu_log : ndarray, shape (7,), float64
-            Log-Hu invariants of the frame's contact.
+        features : ndarray, shape (W,), float64
+            ``ContactEstimate.features`` (``W = model.n_inputs`` = 8), or
+            ``ContactEstimate.hu`` for a log-Hu-only model (``W`` = 7).
 
         Returns
         -------
         shape : str
-            The most probable class name; '' if a used invariant is NaN.
+            The most probable class name; '' if a used feature is NaN.
         confidence : float
             Its posterior probability in [0, 1]; NaN with shape ''.
+
+        Raises
+        ------
+        ValueError
+            If ``len(features) != model.n_inputs``.
         """
+        if len(features) != self.n_inputs:
+            raise width_error(np.shape(features), self.n_inputs)
         cap, z = self._cap, self._z[0]
         for j, i in enumerate(self._sel):
-            x = float(hu_log[i])
-            signed, zero_null = self._rule[j]
+            x = float(features[i])
+            signed, zero_null, is_q4 = self._rule[j]
             if math.isnan(x):
                 return "", math.nan
-            if signed:
+            if is_q4:
+                f = math.log(min(max(x, 0.0), Q4_MAX) + self._q4_floor)
+            elif signed:
                 a = abs(x)
                 f = 0.0 if a >= cap else (cap - a if x > 0 else (a - cap if x < 0 else 0.0))
             elif x == 0.0 and zero_null:
@@ -193,3 +218,11 @@ class ShapeClassifier:
         vals = p[0].tolist()
         best = max(range(self._n_cls), key=vals.__getitem__)
         return self.class_names[best], vals[best] / vals[-1]
+
+
+def width_error(shape: tuple[int, ...], n_inputs: int) -> ValueError:
+    """The error for a feature array of the wrong shape given to an ``n_inputs``-wide model."""
+    what = ("ContactEstimate.features: [log-Hu x 7, q4]" if n_inputs == 8
+            else "ContactEstimate.hu: log-Hu only (a model fitted without q4)")
+    return ValueError(f"this shape model takes {n_inputs} features per contact ({what}), "
+                     f"got an array of shape {shape}")

@@ -2,14 +2,17 @@
 
 Protocol (:func:`fit_shape_model`)
 ----------------------------------
-1. Rows with a NaN invariant are dropped; features are
-   :func:`~optitac_edge.shapes.features.shape_features` of the log-Hu values.
+1. Input: the pipeline's shape features ``[log-Hu x 7, q4]`` (n, 8), or the
+   log-Hu invariants alone (n, 7). Rows with a NaN are dropped; the models see
+   :func:`~optitac_edge.shapes.features.shape_features` of them.
 2. **Held-out split**, stratified by class and grouped by press (``groups``:
    frames of one press are never on both sides): about ``holdout`` of each
    class's presses are held out. They are used only to report metrics.
-3. Two model kinds, each searched over the Hu subsets :data:`PAPER_SUBSETS`
-   (M1M2, M1M3, M1M2M3 ... M1M2M7, M1-M7), features standardised with the
-   training mean/std:
+3. Two model kinds, each searched over the paper's Hu subsets
+   :data:`PAPER_SUBSETS` (M1M2, M1M3, M1M2M3 ... M1M2M7, M1-M7) and, with an
+   8-wide input, the subsets with the 4-fold symmetry :data:`Q4_SUBSETS`
+   (M1M2Q4, M1M3Q4, M1M2M3Q4, M1-M7Q4); features standardised with the training
+   mean/std:
 
    * ``gmm_unsupervised`` -- the paper's: one 5-component full-covariance
      Gaussian mixture (``n_init`` restarts), clusters mapped to classes by a
@@ -39,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from .evaluate import ShapeClassifier
-from .features import N_HU, shape_features
+from .features import N_FEATURES, N_HU, Q4_FLOOR, Q4_INDEX, shape_features
 from .model import ShapeModel, subset_name
 
 logger = logging.getLogger(__name__)
@@ -48,6 +51,12 @@ logger = logging.getLogger(__name__)
 PAPER_SUBSETS: tuple[tuple[int, ...], ...] = (
     (0, 1), (0, 2), (0, 1, 2), (0, 1, 3), (0, 1, 4), (0, 1, 5), (0, 1, 6), tuple(range(N_HU)),
 )
+#: Extensions with the 4-fold symmetry q4 (index 7): M1M2Q4, M1M3Q4, M1M2M3Q4, M1-M7Q4.
+Q4_SUBSETS: tuple[tuple[int, ...], ...] = (
+    (0, 1, Q4_INDEX), (0, 2, Q4_INDEX), (0, 1, 2, Q4_INDEX), tuple(range(N_FEATURES)),
+)
+#: Searched by default with an 8-wide input (with a 7-wide one: :data:`PAPER_SUBSETS`).
+ALL_SUBSETS = PAPER_SUBSETS + Q4_SUBSETS
 #: The paper's best subset, M1M2M3: used when the selection cannot be cross-validated.
 DEFAULT_SUBSET: tuple[int, ...] = (0, 1, 2)
 
@@ -93,7 +102,7 @@ class ShapeMetrics:
 
 @dataclass(frozen=True)
 class SubsetResult:
-    """One Hu subset of one model kind: CV score on training presses, held-out metrics."""
+    """One feature subset of one model kind: CV score on training presses, held-out metrics."""
 
     subset: tuple[int, ...]
     cv_average_diagonal: float
@@ -112,7 +121,7 @@ class KindReport:
     ----------
     kind : str
     subsets : list of SubsetResult
-        In :data:`PAPER_SUBSETS` order.
+        In search order (:data:`PAPER_SUBSETS` then :data:`Q4_SUBSETS` by default).
     selected : tuple of int
         Chosen by CV on the training presses.
     holdout : ShapeMetrics
@@ -159,7 +168,7 @@ class ShapeFitReport:
     resubstitution_accuracy : float
         Accuracy of ``model`` on all frames it was fitted on (sanity check only).
     n_dropped : int
-        Input rows dropped for NaN invariants.
+        Input rows dropped for NaN features.
     """
 
     model: ShapeModel
@@ -182,6 +191,7 @@ class ShapeFitReport:
         """JSON-able summary (for a bundle's report)."""
         return {
             "kind": self.kind, "subset": self.model.subset_name,
+            "n_inputs": self.model.n_inputs,
             "holdout_average_diagonal": self.chosen.holdout.average_diagonal,
             "holdout_accuracy": self.chosen.holdout.accuracy,
             "class_names": list(self.class_names), "n_train": int(self.train_index.size),
@@ -263,29 +273,32 @@ def _standardise(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def fit_unsupervised(
     f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
-    seed: int = 0, n_init: int = 5, reg_covar: float = 1e-6,
+    seed: int = 0, n_init: int = 5, reg_covar: float = 1e-6, q4_floor: float = Q4_FLOOR,
 ) -> ShapeModel:
     """The paper's GMM; see :func:`gmm_unsupervised` (this drops the estimator)."""
     return gmm_unsupervised(f, y, class_names, subset, seed=seed, n_init=n_init,
-                            reg_covar=reg_covar)[0]
+                            reg_covar=reg_covar, q4_floor=q4_floor)[0]
 
 
 def gmm_unsupervised(
     f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
-    seed: int = 0, n_init: int = 5, reg_covar: float = 1e-6,
+    seed: int = 0, n_init: int = 5, reg_covar: float = 1e-6, q4_floor: float = Q4_FLOOR,
 ) -> tuple[ShapeModel, Any]:
     """The paper's GMM: ``C`` clusters on the standardised subset, mapped to classes.
 
     Parameters
     ----------
-    f : ndarray, shape (n, 7), float64
-        Transformed features (:func:`shape_features`).
+    f : ndarray, shape (n, W), float64
+        Transformed features (:func:`shape_features`), W = 8 (with q4) or 7;
+        the model's ``n_inputs`` is W.
     y : ndarray, shape (n,), int
         Class indices into ``class_names`` (used only to name the clusters).
     class_names : tuple of str
     subset : tuple of int
     seed, n_init, reg_covar
         scikit-learn ``GaussianMixture`` settings (``reg_covar`` in standardised units).
+    q4_floor : float
+        The q4 floor ``f`` was transformed with (stored in the model).
 
     Returns
     -------
@@ -310,22 +323,25 @@ def gmm_unsupervised(
     mapping[rows] = cols
     model = ShapeModel(kind="gmm_unsupervised", class_names=class_names, subset=np.array(subset),
                        mean=mean, std=std, weights=gm.weights_, means=gm.means_,
-                       precisions_cholesky=gm.precisions_cholesky_, component_class=mapping)
+                       precisions_cholesky=gm.precisions_cholesky_, component_class=mapping,
+                       n_inputs=f.shape[1], q4_floor=q4_floor)
     return model, gm
 
 
 def fit_supervised(
     f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
     seed: int = 0, max_components: int = 3, n_init: int = 2, reg_covar: float = 1e-4,
+    q4_floor: float = Q4_FLOOR,
 ) -> ShapeModel:
     """The per-class mixture; see :func:`gmm_per_class` (this drops the estimators)."""
     return gmm_per_class(f, y, class_names, subset, seed=seed, max_components=max_components,
-                         n_init=n_init, reg_covar=reg_covar)[0]
+                         n_init=n_init, reg_covar=reg_covar, q4_floor=q4_floor)[0]
 
 
 def gmm_per_class(
     f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
     seed: int = 0, max_components: int = 3, n_init: int = 2, reg_covar: float = 1e-4,
+    q4_floor: float = Q4_FLOOR,
 ) -> tuple[ShapeModel, list[Any], np.ndarray]:
     """Supervised: a full-covariance mixture per class, class priors = class frequencies.
 
@@ -355,7 +371,8 @@ def gmm_per_class(
         zc = z[y == ci]
         if zc.shape[0] < 2:
             raise ValueError(f"class {name!r} has {zc.shape[0]} training frames; need >= 2")
-        best, best_bic = None, np.inf
+        best: Any = None
+        best_bic = np.inf
         for k in range(1, max_components + 1):
             if k > 1 and zc.shape[0] < k * (d + 2):
                 break
@@ -376,23 +393,25 @@ def gmm_per_class(
     model = ShapeModel(kind="gmm_per_class", class_names=class_names, subset=np.array(subset),
                        mean=mean, std=std, weights=w / w.sum(), means=np.concatenate(means),
                        precisions_cholesky=np.concatenate(precs),
-                       component_class=np.concatenate(comp_class))
+                       component_class=np.concatenate(comp_class), n_inputs=f.shape[1],
+                       q4_floor=q4_floor)
     return model, ests, np.array(priors)
 
 
-def evaluate_model(model: ShapeModel, hu_log: np.ndarray, y: np.ndarray) -> ShapeMetrics:
+def evaluate_model(model: ShapeModel, features: np.ndarray, y: np.ndarray) -> ShapeMetrics:
     """Metrics of ``model`` (numpy runtime evaluator) on labelled frames.
 
     Parameters
     ----------
     model : ShapeModel
-    hu_log : ndarray, shape (n, 7), float64
-        Log-Hu invariants (untransformed).
+    features : ndarray, shape (n, model.n_inputs), float64
+        Untransformed shape features (``ContactEstimate.features``, or ``.hu``
+        for a 7-input model).
     y : ndarray, shape (n,), int
         True class indices.
     """
     c = len(model.class_names)
-    p = ShapeClassifier(model).predict_proba(hu_log)
+    p = ShapeClassifier(model).predict_proba(features)
     pred = np.argmax(np.nan_to_num(p, nan=-1.0), axis=1)
     conf = np.zeros((c, c), dtype=np.int64)
     np.add.at(conf, (y, pred), 1)
@@ -418,27 +437,30 @@ def _fit_kind(kind: str, f: np.ndarray, y: np.ndarray, names: tuple[str, ...],
 
 
 def fit_shape_model(
-    hu_log: np.ndarray,
+    features: np.ndarray,
     labels: np.ndarray,
     *,
     groups: np.ndarray | None = None,
     seed: int = 0,
     holdout: float = 0.3,
     cv_folds: int = 3,
-    subsets: tuple[tuple[int, ...], ...] = PAPER_SUBSETS,
+    subsets: tuple[tuple[int, ...], ...] | None = None,
     refit: bool = True,
     n_init: int = 5,
     max_components: int = 3,
     reg_covar_unsupervised: float = 1e-6,
     reg_covar_supervised: float = 1e-4,
     class_names: tuple[str, ...] | None = None,
+    q4_floor: float = Q4_FLOOR,
 ) -> ShapeFitReport:
     """Fit and evaluate both shape classifiers; keep the better (see the module docstring).
 
     Parameters
     ----------
-    hu_log : ndarray, shape (n, 7), float64
-        Log-Hu invariants of contact frames (``ContactEstimate.hu``).
+    features : ndarray, shape (n, 8) or (n, 7), float64
+        Shape features of contact frames: ``ContactEstimate.features``
+        (``[log-Hu x 7, q4]``), or ``ContactEstimate.hu`` (log-Hu only: the
+        q4 subsets are then not searched). The deployed model takes the same width.
     labels : ndarray, shape (n,), str
         True shape per frame.
     groups : ndarray, shape (n,), optional
@@ -449,8 +471,9 @@ def fit_shape_model(
         Fraction of each class's presses held out for the reported metrics.
     cv_folds : int
         Folds over the training presses for the subset / kind selection.
-    subsets : tuple of tuple of int
-        Hu subsets searched (0-based).
+    subsets : tuple of tuple of int, optional
+        Feature subsets searched (0-based indices into the input vector; 7 = q4).
+        Default :data:`ALL_SUBSETS` for an 8-wide input, :data:`PAPER_SUBSETS` for 7.
     refit : bool
         Refit the chosen configuration on all frames for deployment.
     n_init : int
@@ -461,6 +484,8 @@ def fit_shape_model(
         Covariance regularisation, standardised units.
     class_names : tuple of str, optional
         Class order; default the sorted unique labels.
+    q4_floor : float
+        The q4 transform's floor (:func:`~optitac_edge.shapes.features.q4_log`), kept in the model.
 
     Returns
     -------
@@ -471,42 +496,51 @@ def fit_shape_model(
     # Tiny problems: thread start-up dominates (about 20x slower with threads).
     with threadpool_limits(limits=1):
         return _fit_shape_model(
-            hu_log, labels, groups=groups, seed=seed, holdout=holdout, cv_folds=cv_folds,
+            features, labels, groups=groups, seed=seed, holdout=holdout, cv_folds=cv_folds,
             subsets=subsets, refit=refit, n_init=n_init, max_components=max_components,
             reg_covar_unsupervised=reg_covar_unsupervised,
-            reg_covar_supervised=reg_covar_supervised, class_names=class_names)
+            reg_covar_supervised=reg_covar_supervised, class_names=class_names,
+            q4_floor=q4_floor)
 
 
 def _fit_shape_model(
-    hu_log: np.ndarray, labels: np.ndarray, *, groups: np.ndarray | None, seed: int,
-    holdout: float, cv_folds: int, subsets: tuple[tuple[int, ...], ...], refit: bool,
+    features: np.ndarray, labels: np.ndarray, *, groups: np.ndarray | None, seed: int,
+    holdout: float, cv_folds: int, subsets: tuple[tuple[int, ...], ...] | None, refit: bool,
     n_init: int, max_components: int, reg_covar_unsupervised: float,
-    reg_covar_supervised: float, class_names: tuple[str, ...] | None,
+    reg_covar_supervised: float, class_names: tuple[str, ...] | None, q4_floor: float,
 ) -> ShapeFitReport:
-    hu = np.asarray(hu_log, dtype=np.float64)
+    x = np.asarray(features, dtype=np.float64)
     labels = np.asarray(labels).astype(str)
-    if hu.ndim != 2 or hu.shape[1] != N_HU or labels.shape != (hu.shape[0],):
-        raise ValueError(f"need hu_log (n, 7) and labels (n,), got {hu.shape} and {labels.shape}")
-    groups = np.arange(hu.shape[0]) if groups is None else np.asarray(groups)
-    keep = ~np.isnan(hu).any(axis=1)
+    if x.ndim != 2 or x.shape[1] not in (N_HU, N_FEATURES) or labels.shape != (x.shape[0],):
+        raise ValueError(f"need features (n, 8) [log-Hu x 7, q4] or (n, 7) [log-Hu] and "
+                         f"labels (n,), got {x.shape} and {labels.shape}")
+    if subsets is None:
+        subsets = ALL_SUBSETS if x.shape[1] == N_FEATURES else PAPER_SUBSETS
+    subsets = tuple(tuple(int(i) for i in s) for s in subsets)
+    if any(i < 0 or i >= x.shape[1] for s in subsets for i in s):
+        raise ValueError(f"subsets {[subset_name(s) for s in subsets]} need more than the "
+                         f"{x.shape[1]} input features (Q4 needs the 8-wide ContactEstimate.features)")
+    groups = np.arange(x.shape[0]) if groups is None else np.asarray(groups)
+    keep = ~np.isnan(x).any(axis=1)
     n_dropped = int((~keep).sum())
     if n_dropped:
-        logger.warning("shape fit: dropping %d frames with NaN invariants", n_dropped)
+        logger.warning("shape fit: dropping %d frames with NaN features", n_dropped)
     rows = np.flatnonzero(keep)
-    hu, labels, groups = hu[keep], labels[keep], groups[keep]
+    x, labels, groups = x[keep], labels[keep], groups[keep]
     names = tuple(class_names) if class_names is not None else tuple(np.unique(labels).tolist())
     lookup = {n: i for i, n in enumerate(names)}
     if set(labels.tolist()) - set(names):
         raise ValueError(f"labels not in class_names: {sorted(set(labels.tolist()) - set(names))}")
     y = np.array([lookup[s] for s in labels], dtype=np.int64)
-    f = shape_features(hu)
+    f = shape_features(x, q4_floor=q4_floor)
     rng = np.random.default_rng(seed)
     tr, te = stratified_group_split(y, groups, holdout, rng)
     folds = stratified_group_folds(y[tr], groups[tr], cv_folds, rng)
     opts = {
-        "gmm_unsupervised": {"seed": seed, "n_init": n_init, "reg_covar": reg_covar_unsupervised},
+        "gmm_unsupervised": {"seed": seed, "n_init": n_init, "reg_covar": reg_covar_unsupervised,
+                             "q4_floor": q4_floor},
         "gmm_per_class": {"seed": seed, "max_components": max_components,
-                          "reg_covar": reg_covar_supervised},
+                          "reg_covar": reg_covar_supervised, "q4_floor": q4_floor},
     }
     reports = {}
     for kind in ("gmm_unsupervised", "gmm_per_class"):
@@ -518,10 +552,10 @@ def _fit_shape_model(
                 if held.size == 0 or np.bincount(y[fit_rows], minlength=len(names)).min() < 2:
                     continue  # a class (nearly) absent from this fold's training presses
                 m = _fit_kind(kind, f[fit_rows], y[fit_rows], names, subset, opts)
-                scores.append(evaluate_model(m, hu[tr[held]], y[tr[held]]).average_diagonal)
+                scores.append(evaluate_model(m, x[tr[held]], y[tr[held]]).average_diagonal)
             fits[subset] = _fit_kind(kind, f[tr], y[tr], names, subset, opts)
             cv = float(np.mean(scores)) if scores else float("nan")
-            results.append(SubsetResult(subset, cv, evaluate_model(fits[subset], hu[te], y[te])))
+            results.append(SubsetResult(subset, cv, evaluate_model(fits[subset], x[te], y[te])))
             logger.info("shape fit %s %s: cv %.3f held-out %.3f", kind, results[-1].name,
                         results[-1].cv_average_diagonal, results[-1].holdout.average_diagonal)
         if all(np.isnan(r.cv_average_diagonal) for r in results):
@@ -539,7 +573,7 @@ def _fit_shape_model(
         model = _fit_kind(chosen.kind, f, y, names, chosen.selected, opts)
     else:
         model = chosen.holdout_model
-    resub = evaluate_model(model, hu, y) if refit else evaluate_model(model, hu[tr], y[tr])
+    resub = evaluate_model(model, x, y) if refit else evaluate_model(model, x[tr], y[tr])
     logger.info("shape fit: chose %s %s (held-out average diagonal %.3f)", chosen.kind,
                 subset_name(chosen.selected), chosen.holdout.average_diagonal)
     return ShapeFitReport(
@@ -548,6 +582,7 @@ def _fit_shape_model(
         resubstitution_accuracy=resub.accuracy, n_dropped=n_dropped,
         settings={"seed": seed, "holdout": holdout, "cv_folds": cv_folds, "n_init": n_init,
                   "max_components": max_components, "log_hu_cap": model.log_hu_cap,
+                  "q4_floor": model.q4_floor, "subsets": [subset_name(s) for s in subsets],
                   "reg_covar_unsupervised": reg_covar_unsupervised,
                   "reg_covar_supervised": reg_covar_supervised},
     )

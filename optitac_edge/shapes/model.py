@@ -14,17 +14,19 @@ from typing import Any
 
 import numpy as np
 
-from .features import LOG_HU_CAP, N_HU
+from .features import LOG_HU_CAP, N_FEATURES, N_HU, Q4_FLOOR, Q4_INDEX
 
 SHAPE_MODEL_FORMAT = "optitac-edge-shapes"
-SHAPE_MODEL_VERSION = 1
+#: Version 2: subsets index the 8-vector ``[log-Hu x 7, q4]`` (``n_inputs`` and
+#: ``q4_floor`` in the meta). Version-1 bundles load as 7-input (log-Hu only) models.
+SHAPE_MODEL_VERSION = 2
 #: Model kinds: the paper's unsupervised GMM, and one mixture per class.
 KINDS = ("gmm_unsupervised", "gmm_per_class")
 _ARRAYS = ("subset", "mean", "std", "weights", "means", "precisions_cholesky", "component_class")
 
 
 def _frozen(a: Any, dtype: type, ndim: int, name: str) -> np.ndarray:
-    arr = np.array(a, dtype=dtype, copy=True, order="C")
+    arr: np.ndarray = np.array(a, dtype=dtype, copy=True, order="C")
     if arr.ndim != ndim:
         raise ValueError(f"ShapeModel.{name} must have {ndim} dimensions, has shape {arr.shape}")
     arr.setflags(write=False)
@@ -42,7 +44,8 @@ class ShapeModel:
     class_names : tuple of str
         ``C`` class names, e.g. ``SHAPES``.
     subset : ndarray, shape (d,), int64
-        0-based indices of the Hu invariants used (e.g. ``[0, 1, 2]`` = M1M2M3).
+        0-based indices into the input vector ``[L1 .. L7, q4]`` of the
+        features used (e.g. ``[0, 1, 2]`` = M1M2M3, ``[0, 1, 7]`` = M1M2Q4).
     mean, std : ndarray, shape (d,), float64
         Standardisation of the selected features: ``z = (f - mean) / std``
         (``f`` from :func:`~optitac_edge.shapes.features.shape_features`).
@@ -58,6 +61,11 @@ class ShapeModel:
         Class index of each component, in ``[0, C)``.
     log_hu_cap : float
         The feature transform's cap ``C`` (``|h|`` floored at ``10**-C``).
+    n_inputs : int
+        Width of the input vector the model accepts: 8 (``ContactEstimate.features``)
+        or 7 (``ContactEstimate.hu``, models without q4). Other widths are refused.
+    q4_floor : float
+        The q4 transform's floor (:func:`~optitac_edge.shapes.features.q4_log`).
     """
 
     kind: str
@@ -70,6 +78,8 @@ class ShapeModel:
     precisions_cholesky: np.ndarray
     component_class: np.ndarray
     log_hu_cap: float = LOG_HU_CAP
+    n_inputs: int = N_FEATURES
+    q4_floor: float = Q4_FLOOR
 
     def __post_init__(self) -> None:
         s = object.__setattr__
@@ -82,12 +92,17 @@ class ShapeModel:
                                                "precisions_cholesky"))
         s(self, "component_class", _frozen(self.component_class, np.int64, 1, "component_class"))
         s(self, "log_hu_cap", float(self.log_hu_cap))
+        s(self, "n_inputs", int(self.n_inputs))
+        s(self, "q4_floor", float(self.q4_floor))
         d, k, c = self.subset.size, self.weights.size, len(self.class_names)
         if self.kind not in KINDS:
             raise ValueError(f"unknown shape model kind {self.kind!r}")
-        in_range = np.all((self.subset >= 0) & (self.subset < N_HU))
+        if self.n_inputs not in (N_HU, N_FEATURES) or not self.q4_floor > 0:
+            raise ValueError(f"n_inputs must be 7 or 8 (got {self.n_inputs}) and q4_floor > 0")
+        in_range = np.all((self.subset >= 0) & (self.subset < self.n_inputs))
         if d == 0 or len(set(self.subset.tolist())) != d or not in_range:
-            raise ValueError(f"bad Hu subset {self.subset.tolist()}")
+            raise ValueError(f"bad feature subset {self.subset.tolist()} "
+                             f"for {self.n_inputs} inputs")
         if self.mean.shape != (d,) or self.std.shape != (d,) or not np.all(self.std > 0):
             raise ValueError("mean/std must have shape (d,) and std > 0")
         if self.means.shape != (k, d) or self.precisions_cholesky.shape != (k, d, d):
@@ -105,7 +120,7 @@ class ShapeModel:
 
     @property
     def n_features(self) -> int:
-        """d, the number of Hu invariants used."""
+        """d, the number of features used."""
         return int(self.subset.size)
 
     @property
@@ -115,7 +130,7 @@ class ShapeModel:
 
     @property
     def subset_name(self) -> str:
-        """E.g. ``"M1M2M3"`` (1-based Hu indices)."""
+        """E.g. ``"M1M2M3"`` or ``"M1M2Q4"`` (1-based Hu indices, Q4 for q4)."""
         return subset_name(self.subset)
 
     def to_bundle(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -125,7 +140,7 @@ class ShapeModel:
         -------
         meta : dict
             ``format``, ``version``, ``kind``, ``class_names``, ``subset_name``,
-            ``log_hu_cap``. The lead stores it as ``extra_meta["shapes"]``.
+            ``log_hu_cap``, ``n_inputs``, ``q4_floor``. The lead stores it as ``extra_meta["shapes"]``.
         arrays : dict of str to ndarray
             ``subset`` (d,) int64, ``mean``/``std`` (d,), ``weights`` (K,),
             ``means`` (K, d), ``precisions_cholesky`` (K, d, d) float64,
@@ -134,7 +149,7 @@ class ShapeModel:
         meta = {
             "format": SHAPE_MODEL_FORMAT, "version": SHAPE_MODEL_VERSION, "kind": self.kind,
             "class_names": list(self.class_names), "subset_name": self.subset_name,
-            "log_hu_cap": self.log_hu_cap,
+            "log_hu_cap": self.log_hu_cap, "n_inputs": self.n_inputs, "q4_floor": self.q4_floor,
         }
         return meta, {name: np.array(getattr(self, name)) for name in _ARRAYS}
 
@@ -145,16 +160,21 @@ class ShapeModel:
         Raises
         ------
         ValueError
-            If the format or version is not this one, or arrays are missing or inconsistent.
+            If the format or version (1 or 2) is not this one's, or arrays are
+            missing or inconsistent. A version-1 model (log-Hu only) has ``n_inputs == 7``.
         """
-        if meta.get("format") != SHAPE_MODEL_FORMAT or meta.get("version") != SHAPE_MODEL_VERSION:
-            raise ValueError(f"not a version-{SHAPE_MODEL_VERSION} shape model: "
-                             f"{meta.get('format')!r} v{meta.get('version')!r}")
+        version = meta.get("version")
+        if meta.get("format") != SHAPE_MODEL_FORMAT or version not in (1, SHAPE_MODEL_VERSION):
+            raise ValueError(f"not a version-1/{SHAPE_MODEL_VERSION} shape model: "
+                             f"{meta.get('format')!r} v{version!r}")
         missing = [n for n in _ARRAYS if n not in arrays]
         if missing:
             raise ValueError(f"shape model arrays missing: {missing}")
         return cls(kind=str(meta["kind"]), class_names=tuple(meta["class_names"]),
-                   log_hu_cap=float(meta["log_hu_cap"]), **{n: arrays[n] for n in _ARRAYS})
+                   log_hu_cap=float(meta["log_hu_cap"]),
+                   n_inputs=N_HU if version == 1 else int(meta["n_inputs"]),
+                   q4_floor=Q4_FLOOR if version == 1 else float(meta["q4_floor"]),
+                   **{n: arrays[n] for n in _ARRAYS})
 
     def to_calibration_extras(
         self, key: str = "shapes"
@@ -177,8 +197,9 @@ class ShapeModel:
 
 
 def subset_name(subset: np.ndarray | tuple[int, ...]) -> str:
-    """``"M1M2M3"`` for 0-based indices ``(0, 1, 2)``; ``"M1-M7"`` for all seven."""
+    """``"M1M2M3"`` for 0-based indices ``(0, 1, 2)``, ``"M1-M7"`` for all seven Hu
+    invariants, ``Q4`` for index 7 (``"M1M2Q4"``, ``"M1-M7Q4"``)."""
     idx = [int(i) for i in subset]
-    if idx == list(range(N_HU)):
-        return "M1-M7"
-    return "".join(f"M{i + 1}" for i in idx)
+    hu = [i for i in idx if i != Q4_INDEX]
+    name = "M1-M7" if hu == list(range(N_HU)) else "".join(f"M{i + 1}" for i in hu)
+    return name + ("Q4" if Q4_INDEX in idx else "")

@@ -1,12 +1,14 @@
 """ONNX form of a :class:`~optitac_edge.shapes.model.ShapeModel` (needs ``onnx`` to export,
 ``onnxruntime`` to run: the ``[calibrate]`` / ``[onnx]`` extras).
 
-The graph takes ``hu_log`` (n, 7) float64 -- the pipeline's log-Hu invariants,
-untransformed -- and outputs ``probabilities`` (n, C) float64, doing the
+The graph takes ``features`` (n, W) float64 -- the pipeline's shape features
+``[log-Hu x 7, q4]`` (W = 8, ``ContactEstimate.features``) or log-Hu only
+(W = 7, a model fitted without q4), untransformed -- and outputs
+``probabilities`` (n, C) float64, doing the
 feature transform (:func:`~optitac_edge.shapes.features.shape_features`), the
 standardisation and the mixture posterior with the same constants and in the
 same order as :func:`~optitac_edge.shapes.evaluate.class_proba_numpy`. The
-class names are in the model's metadata (``class_names``, JSON).
+class names are in the model's metadata (``class_names``, JSON), W in ``n_inputs``.
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .evaluate import CompiledShapeModel
-from .features import N_HU, SIGNED, ZERO_IS_NULL
+from .evaluate import CompiledShapeModel, width_error
+from .features import IS_Q4, Q4_MAX, SIGNED, ZERO_IS_NULL
 from .model import ShapeModel
 
 if TYPE_CHECKING:
@@ -27,7 +29,7 @@ if TYPE_CHECKING:
 
 #: ONNX opset of the exported graph (onnxruntime >= 1.14 runs it).
 OPSET = 17
-INPUT_NAME = "hu_log"
+INPUT_NAME = "features"
 OUTPUT_NAME = "probabilities"
 
 
@@ -47,35 +49,46 @@ def build_onnx(model: ShapeModel) -> onnx.ModelProto:
 
     c = CompiledShapeModel.from_model(model)
     k, n_cls = model.n_components, len(model.class_names)
-    cap = model.log_hu_cap
+    cap, w = model.log_hu_cap, model.n_inputs
     consts = {
         "cap": np.array(cap), "neg_cap": np.array(-cap), "zero": np.array(0.0),
-        "signed": SIGNED.copy(), "zero_null": ZERO_IS_NULL.copy(),
+        "signed": SIGNED[:w].copy(), "zero_null": ZERO_IS_NULL[:w].copy(),
+        "is_q4": IS_Q4[:w].copy(), "q4_max": np.array(Q4_MAX),
+        "q4_floor": np.array(model.q4_floor),
         "subset": c.subset.astype(np.int64), "mean": c.mean, "std": c.std,
         "proj": c.proj, "offset": c.offset, "block_sum": c.block_sum,
         "neg_half": np.array(-0.5), "const": c.const, "class_map": c.class_map,
     }
     inits = [numpy_helper.from_array(np.asarray(v), name=n) for n, v in consts.items()]
     N = helper.make_node
+    x = INPUT_NAME
     nodes = [
         # h1..h4: clip(L, -C, C) with NaN passing through; exact 0 of h2..h4 -> C
-        N("Greater", ["hu_log", "cap"], ["gt"]),
-        N("Less", ["hu_log", "neg_cap"], ["lt"]),
-        N("Where", ["lt", "neg_cap", "hu_log"], ["lo"]),
+        N("Greater", [x, "cap"], ["gt"]),
+        N("Less", [x, "neg_cap"], ["lt"]),
+        N("Where", ["lt", "neg_cap", x], ["lo"]),
         N("Where", ["gt", "cap", "lo"], ["clipped"]),
-        N("Equal", ["hu_log", "zero"], ["is0"]),
+        N("Equal", [x, "zero"], ["is0"]),
         N("And", ["is0", "zero_null"], ["null"]),
         N("Where", ["null", "cap", "clipped"], ["nonneg"]),
         # h5..h7: sign(L) * (C - |L|), 0 where |L| >= C
-        N("Abs", ["hu_log"], ["a"]),
+        N("Abs", [x], ["a"]),
         N("Sub", ["cap", "a"], ["rest"]),
-        N("Sign", ["hu_log"], ["sgn"]),
+        N("Sign", [x], ["sgn"]),
         N("Mul", ["sgn", "rest"], ["symlog"]),
         N("GreaterOrEqual", ["a", "cap"], ["far"]),
         N("Where", ["far", "zero", "symlog"], ["signed_f"]),
-        N("Where", ["signed", "signed_f", "nonneg"], ["features"]),
+        N("Where", ["signed", "signed_f", "nonneg"], ["hu_f"]),
+        # q4: ln(clip(q4, 0, Q4_MAX) + floor), NaN passing through (computed on every column)
+        N("Greater", [x, "q4_max"], ["q_gt"]),
+        N("Less", [x, "zero"], ["q_lt"]),
+        N("Where", ["q_lt", "zero", x], ["q_lo"]),
+        N("Where", ["q_gt", "q4_max", "q_lo"], ["q_clipped"]),
+        N("Add", ["q_clipped", "q4_floor"], ["q_shifted"]),
+        N("Log", ["q_shifted"], ["q4_f"]),
+        N("Where", ["is_q4", "q4_f", "hu_f"], ["transformed"]),
         # standardised subset, Mahalanobis distances, log densities
-        N("Gather", ["features", "subset"], ["sel"], axis=1),
+        N("Gather", ["transformed", "subset"], ["sel"], axis=1),
         N("Sub", ["sel", "mean"], ["centred"]),
         N("Div", ["centred", "std"], ["z"]),
         N("MatMul", ["z", "proj"], ["zp"]),
@@ -95,7 +108,7 @@ def build_onnx(model: ShapeModel) -> onnx.ModelProto:
     inits.append(numpy_helper.from_array(np.array([1], dtype=np.int64), name="axis1"))
     graph = helper.make_graph(
         nodes, "optitac_edge_shapes",
-        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.DOUBLE, ["n", N_HU])],
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.DOUBLE, ["n", w])],
         [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.DOUBLE, ["n", n_cls])], inits,
     )
     onnx_model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
@@ -103,7 +116,8 @@ def build_onnx(model: ShapeModel) -> onnx.ModelProto:
     onnx_model.ir_version = min(onnx_model.ir_version, 8)
     meta, _ = model.to_bundle()
     for key, value in {"class_names": json.dumps(list(model.class_names)),
-                       "shape_model": json.dumps(meta), "n_components": str(k)}.items():
+                       "shape_model": json.dumps(meta), "n_components": str(k),
+                       "n_inputs": str(w)}.items():
         onnx_model.metadata_props.add(key=key, value=value)
     onnx.checker.check_model(onnx_model)
     return onnx_model
@@ -160,21 +174,35 @@ class OnnxShapeClassifier:
                                              providers=["CPUExecutionProvider"])
         props = self._session.get_modelmeta().custom_metadata_map
         self.class_names: tuple[str, ...] = tuple(json.loads(props["class_names"]))
-        self._one = np.empty((1, N_HU), dtype=np.float64)
+        # the graph's input: "features" (n, W); "hu_log" (n, 7) in files written before q4
+        inp = self._session.get_inputs()[0]
+        self._input: str = inp.name
+        #: Input width W: 8 (``ContactEstimate.features``) or 7 (log-Hu only).
+        self.n_inputs = int(inp.shape[1])
+        self._one = np.empty((1, self.n_inputs), dtype=np.float64)
 
-    def predict_proba(self, hu_log: np.ndarray) -> np.ndarray:
-        """Class probabilities, shape (n, C), float64 (as :meth:`ShapeClassifier.predict_proba`)."""
-        L = np.ascontiguousarray(hu_log, dtype=np.float64)
+    def predict_proba(self, features: np.ndarray) -> np.ndarray:
+        """Class probabilities, shape (n, C), float64 (as :meth:`ShapeClassifier.predict_proba`).
+
+        Parameters
+        ----------
+        features : array_like, shape (n, W) or (W,), float
+            W = :attr:`n_inputs`; another width raises ValueError.
+        """
+        L = np.ascontiguousarray(features, dtype=np.float64)
         if L.ndim == 1:
             L = L[None, :]
-        if L.ndim != 2 or L.shape[1] != N_HU:
-            raise ValueError(f"expected log-Hu features of shape (n, 7), got {np.shape(hu_log)}")
-        return self._session.run([OUTPUT_NAME], {INPUT_NAME: L})[0]
+        if L.ndim != 2 or L.shape[1] != self.n_inputs:
+            raise width_error(np.shape(features), self.n_inputs)
+        return self._session.run([OUTPUT_NAME], {self._input: L})[0]
 
-    def classify(self, hu_log: np.ndarray) -> tuple[str, float]:
-        """Shape and confidence of one contact; ``('', nan)`` if a used invariant is NaN."""
-        self._one[0] = hu_log
-        p = self._session.run([OUTPUT_NAME], {INPUT_NAME: self._one})[0][0]
+    def classify(self, features: np.ndarray) -> tuple[str, float]:
+        """Shape and confidence of one contact, ``features`` shape (W,); ``('', nan)`` if a
+        used feature is NaN."""
+        if np.shape(features) != (self.n_inputs,):
+            raise width_error(np.shape(features), self.n_inputs)
+        self._one[0] = features
+        p = self._session.run([OUTPUT_NAME], {self._input: self._one})[0][0]
         best = int(np.argmax(p))
         if not math.isfinite(float(p[best])) or np.isnan(p).any():
             return "", math.nan

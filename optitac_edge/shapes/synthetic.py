@@ -1,12 +1,15 @@
-"""Synthetic labelled log-Hu features: binary shapes rasterised on the surface mesh.
+"""Synthetic labelled shape features: binary shapes rasterised on the surface mesh.
 
 For tests and demos of the shape classifier without a sensor. Each sample is
 the five-shape set of the simulator (edge bar 12 mm long, 1.5-2 mm wide;
-circle, square, ellipse (ratio 0.6) and equilateral triangle 4-8 mm) at a
-random position and angle, with rounded corners and a wobbly outline (the
-binarised contact surface is smooth), rasterised on a 100 x 100
-:class:`~optitac_edge.grid.SurfaceGrid`; features are
-:func:`~optitac_edge.moments.log_hu` of :func:`~optitac_edge.moments.hu_moments`.
+circle, square, ellipse (ratio 0.6) and equilateral triangle, 4-8 mm by
+default) at a random position and angle, with rounded corners and a wobbly
+outline (the binarised contact surface is smooth), rasterised on a 100 x 100
+:class:`~optitac_edge.grid.SurfaceGrid`, optionally blurred by a Gaussian
+(the skin) and binarised again at a fraction of its peak. Features are
+``[log-Hu x 7, q4]`` as ``ContactEstimate.features``:
+:func:`~optitac_edge.moments.log_hu` of :func:`~optitac_edge.moments.hu_moments`
+and :func:`binary_q4`.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from ..grid import SurfaceGrid
-from ..moments import hu_moments, log_hu
+from ..moments import central_moments, hu_moments, log_hu
 from ..recording import SHAPES
 
 #: The default mesh: 100 x 100 cells spanning +-12 mm (the default layout's).
@@ -77,11 +80,55 @@ def shape_mask(
     return sdf < 0.0
 
 
+def binary_q4(binary: np.ndarray, grid: SurfaceGrid) -> float:
+    """4-fold symmetry magnitude ``|c40| / mu00**3`` of a binary shape.
+
+    ``c40 = (mu40 - 6 mu22 + mu04) + 4i (mu31 - mu13)`` (central moments, x
+    power first) is multiplied by ``exp(4i theta)`` by a rotation, so its
+    modulus over ``mu00**3`` is rotation and scale invariant: 0 for a disc or an
+    equilateral triangle, 1/60 for a square, ``(r - 1/r)**2 / (8 pi**2)`` for an
+    ellipse of axis ratio ``r``.
+
+    Parameters
+    ----------
+    binary : ndarray, shape (n, n), bool or real
+        Nonzero cells count as 1.
+    grid : SurfaceGrid
+
+    Returns
+    -------
+    float
+        Dimensionless; NaN for an empty shape.
+    """
+    img = (np.asarray(binary) != 0).astype(np.float64)
+    if not img.any():
+        return math.nan
+    mu = central_moments(img, grid, order=4)
+    c40 = complex(mu[4, 0] - 6.0 * mu[2, 2] + mu[0, 4], 4.0 * (mu[3, 1] - mu[1, 3]))
+    return abs(c40) / float(mu[0, 0]) ** 3
+
+
 def synthetic_hu(
     n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
     shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Labelled log-Hu features of random shapes.
+    """Labelled log-Hu features of random shapes: :func:`synthetic_features` without q4.
+
+    Returns
+    -------
+    hu_log : ndarray, shape (n_per_class * len(shapes), 7), float64
+    labels : ndarray, shape (n_per_class * len(shapes),), str
+    """
+    f, labels = synthetic_features(n_per_class, seed, grid, shapes, wobble_mm, hu_noise)
+    return f[:, :7], labels
+
+
+def synthetic_features(
+    n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
+    shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
+    size_mm: tuple[float, float] = (4.0, 8.0), blur_mm: float = 0.0, level: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Labelled shape features ``[log-Hu x 7, q4]`` of random shapes.
 
     Parameters
     ----------
@@ -92,11 +139,18 @@ def synthetic_hu(
     wobble_mm : float
         Standard deviation of the outline roughness, mm (0: clean rasterisation).
     hu_noise : float
-        Gaussian noise added to the log-Hu values (dimensionless; 0: none).
+        Gaussian noise added to the log-Hu values (dimensionless; 0: none; q4 is left as is).
+    size_mm : (float, float)
+        Size range of all shapes but the edge (diameter, side, major axis), mm.
+    blur_mm : float
+        Standard deviation of the Gaussian blur, mm (0: none).
+    level : float
+        The blurred mask is binarised at ``level`` times its peak.
 
     Returns
     -------
-    hu_log : ndarray, shape (n_per_class * len(shapes), 7), float64
+    features : ndarray, shape (n_per_class * len(shapes), 8), float64
+        As ``ContactEstimate.features``: 7 log-Hu values then q4.
     labels : ndarray, shape (n_per_class * len(shapes),), str
         Class-sorted order.
     """
@@ -105,7 +159,7 @@ def synthetic_hu(
     out, labels = [], []
     for shape in shapes:
         for _ in range(n_per_class):
-            size = rng.uniform(1.5, 2.0) if shape == "edge" else rng.uniform(4.0, 8.0)
+            size = rng.uniform(1.5, 2.0) if shape == "edge" else rng.uniform(*size_mm)
             reach = 6.5 if shape == "edge" else size / 1.7
             room = max(11.0 - reach, 0.0)
             x, y = rng.uniform(-room, room, 2) / math.sqrt(2)
@@ -116,9 +170,12 @@ def synthetic_hu(
             mask = shape_mask(shape, float(x), float(y), float(rng.uniform(0, period[shape])),
                               float(size), grid, round_mm=float(rng.uniform(0.0, 0.4)) * size / 4,
                               wobble=wobble)
-            out.append(log_hu(hu_moments(mask, grid)))
+            if blur_mm > 0:
+                soft = gaussian_filter(mask.astype(np.float64), blur_mm / grid.step_mm)
+                mask = soft > level * soft.max()
+            out.append(np.append(log_hu(hu_moments(mask, grid)), binary_q4(mask, grid)))
             labels.append(shape)
-    hu = np.array(out)
+    f = np.array(out)
     if hu_noise > 0:
-        hu = hu + rng.normal(0.0, hu_noise, hu.shape)
-    return hu, np.array(labels)
+        f[:, :7] += rng.normal(0.0, hu_noise, (f.shape[0], 7))
+    return f, np.array(labels)
