@@ -90,6 +90,10 @@ class ContactOptions:
         Each contact is truncated at ``max(truncation level, peak_fraction *
         its peak)``: widths and centroid then do not depend on the signal
         amplitude. 0 switches it off (truncation level only).
+    shape_fraction : float
+        The shape features (Hu, q4) are taken from the contact binarized at
+        ``max(truncation level, shape_fraction * its peak)``. 0: the same
+        cells as the moments (the paper: the truncated surface).
     fill_dead : bool
         Dead fibers take the (harmonic) mean of their neighbours, folded into
         the interpolation matrix (``A' = A F``, no per-frame cost). Off: 0.
@@ -142,6 +146,7 @@ class ContactOptions:
     noise_levels: bool = True
     hysteresis: bool = True
     peak_fraction: float = 0.4
+    shape_fraction: float = 0.3
     fill_dead: bool = True
     max_contacts: int = 4
     track_baseline: bool = True
@@ -160,7 +165,7 @@ class ContactOptions:
     black_level: float = 0.0
 
     #: Switches (``paper()`` turns them off).
-    SWITCHES = ("relative", "noise_levels", "hysteresis", "peak_fraction", "fill_dead",
+    SWITCHES = ("relative", "noise_levels", "hysteresis", "peak_fraction", "shape_fraction", "fill_dead",
                 "max_contacts", "track_baseline", "compensate_gain")
 
     def __post_init__(self) -> None:
@@ -171,21 +176,22 @@ class ContactOptions:
         mc = self.max_contacts
         if isinstance(mc, bool) or not isinstance(mc, int) or not 1 <= mc <= MAX_CONTACTS:
             raise ValueError(f"max_contacts must be an integer 1..{MAX_CONTACTS}, got {mc!r}")
-        for name in ("peak_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
+        for name in ("peak_fraction", "shape_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
                      "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
                      "noise_gray", "black_level"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        if not self.peak_fraction < 1.0:
-            raise ValueError(f"peak_fraction must be < 1, got {self.peak_fraction!r}")
+        for name in ("peak_fraction", "shape_fraction"):
+            if not getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be < 1, got {getattr(self, name)!r}")
         if self.baseline_tau_s <= 0:
             raise ValueError(f"baseline_tau_s must be > 0, got {self.baseline_tau_s!r}")
 
     @classmethod
     def paper(cls, **measured: Any) -> ContactOptions:
         """All improvements off: the paper's method (measured values may be kept)."""
-        return cls(relative=False, noise_levels=False, hysteresis=False, peak_fraction=0.0,
+        return cls(relative=False, noise_levels=False, hysteresis=False, peak_fraction=0.0, shape_fraction=0.0,
                    fill_dead=False, max_contacts=1, track_baseline=False, compensate_gain=False,
                    **measured)
 
@@ -207,7 +213,7 @@ class ContactOptions:
             if key not in known:
                 raise ValueError(f"unknown contact option {key!r}")
         values = dict(d)
-        for key in ("peak_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
+        for key in ("peak_fraction", "shape_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
                     "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
                     "noise_gray", "black_level"):
             if key in values and isinstance(values[key], int) and not isinstance(values[key], bool):

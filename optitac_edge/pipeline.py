@@ -99,6 +99,7 @@ class Pipeline:
         self._multi = o.max_contacts > 1
         self._max_contacts = o.max_contacts
         self._frac = float(o.peak_fraction)
+        self._shape_frac = float(o.shape_fraction)
         self._tau_ns = float(o.baseline_tau_s) * 1e9
         self._holdoff_ns = float(o.holdoff_s) * 1e9
         # levels (truncation, off, on) in signal units, set when the baseline is ready
@@ -137,6 +138,7 @@ class Pipeline:
         self._labels = np.zeros((grid.n, grid.n), dtype=np.int32)
         self._blob = np.zeros(n_cells, dtype=bool)
         self._sel = np.zeros(n_cells, dtype=bool)
+        self._shape_sel = np.zeros(n_cells, dtype=bool)
         self._weighted = np.zeros(n_cells, dtype=np.float32)
         # weighted surface: centroid and ellipse (order 2); binarised blob: Hu (order 3) and q4 (4)
         self._basis = MomentBasis(grid, order=2)
@@ -447,6 +449,10 @@ class Pipeline:
         e = ellipse_from_moments(m, mu)
         out.x_mm, out.y_mm = e.x_mm, e.y_mm
         out.major_mm, out.minor_mm, out.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
+        if self._shape_frac > 0.0:  # shape features from their own binarization level
+            level = max(float(self._trunc), self._shape_frac * peak)
+            np.greater(surface, np.float32(level), out=self._shape_sel)
+            sel = np.logical_and(self._shape_sel, blob, out=self._shape_sel)
         mb = self._mask_basis.raw(sel, self._mb)
         mub = self._mask_basis.central(mb, self._mub)
         hu_from_central(mub, out=self._hu)

@@ -125,6 +125,20 @@ def test_peak_fraction_makes_widths_amplitude_invariant() -> None:
     assert abs(widths[0.0, 40.0][0] / widths[0.0, 80.0][0] - 1) > 0.05
 
 
+@pytest.mark.parametrize("shape_fraction", [0.0, 0.3, 0.6])
+def test_shape_features_come_from_their_own_binarization_level(shape_fraction) -> None:
+    from optitac_edge.moments import hu_moments, log_hu, q4_moment
+
+    bundle, pipe = start(dataclasses.replace(LEVELS, peak_fraction=0.5, shape_fraction=shape_fraction))
+    e = pipe.process(render(bundle, pressed_levels(REST, 0.7, -0.3, 60.0, 2.6, 1.4, 30.0)), 10 * PERIOD)
+    assert e.contact
+    surface = pipe.surface  # truncated at the noise level only; the moments' own cut is inside
+    level = max(float(pipe.levels[0]), (shape_fraction or 0.5) * float(surface.max()))
+    mask = surface > level
+    np.testing.assert_allclose(e.hu, log_hu(hu_moments(mask, bundle.grid)), rtol=1e-6, atol=1e-9)
+    assert e.features[7] == pytest.approx(q4_moment(mask, bundle.grid), rel=1e-6, abs=1e-9)
+
+
 def test_relative_signal_removes_transmission_spread() -> None:
     rest = rest_levels(3)
     bundle, pipe = start(LEVELS, rest=rest)
