@@ -119,3 +119,32 @@ def test_steps_refuse_recordings_without_truth_or_models(calibrated, capsys, tmp
     capsys.readouterr()
     assert main(["export-onnx", str(plain), "-o", str(tmp_path / "x.onnx")]) == 2
     assert "no shape model" in capsys.readouterr().err
+
+
+def test_numpy_and_onnx_mixtures_match_sklearn_on_simulated_calibration_presses(calibrated, tmp_path):
+    """The runtime evaluators agree with scikit-learn's predict_proba to 1e-6 on real calibration data."""
+    from optitac_edge.evaluation import detected_rows
+    from optitac_edge.shapes import OnnxShapeClassifier, ShapeClassifier, export_onnx, shape_features
+    from optitac_edge.shapes.fit import gmm_per_class, gmm_unsupervised
+
+    d, cal = calibrated
+    rec = Recording(d / "cal_shapes")
+    m = measure_recording(rec, load_bundle(cal), corrected=False, progress=False)
+    rows = np.flatnonzero(detected_rows(m, rec.truth))
+    raw = m.features[rec.truth.frame[rows]]
+    names = tuple(sorted(set(rec.truth.shape[rows])))
+    y = np.array([names.index(s) for s in rec.truth.shape[rows]])
+    f = shape_features(raw)
+    model, gm = gmm_unsupervised(f, y, names, (0, 1, 2), seed=0)
+    z = (f[:, [0, 1, 2]] - model.mean) / model.std
+    reference = gm.predict_proba(z) @ np.eye(len(names))[model.component_class]
+    np.testing.assert_allclose(ShapeClassifier(model).predict_proba(raw), reference, atol=1e-6)
+    model, estimators, priors = gmm_per_class(f, y, names, (0, 1, 2, 7), seed=0)
+    z = (f[:, [0, 1, 2, 7]] - model.mean) / model.std
+    logp = np.stack([e.score_samples(z) for e in estimators], axis=1) + np.log(priors)
+    reference = np.exp(logp - logp.max(axis=1, keepdims=True))
+    reference /= reference.sum(axis=1, keepdims=True)
+    ours = ShapeClassifier(model).predict_proba(raw)
+    np.testing.assert_allclose(ours, reference, atol=1e-6)
+    export_onnx(model, tmp_path / "m.onnx")
+    np.testing.assert_allclose(OnnxShapeClassifier(tmp_path / "m.onnx").predict_proba(raw), ours, atol=1e-6)
