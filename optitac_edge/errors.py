@@ -33,3 +33,7 @@ class FiberMapError(OptiTacError):
 
 class CameraError(OptiTacError):
     """A camera backend failed to open or deliver a frame."""
+
+
+class TransportError(OptiTacError):
+    """A link to the MCU (serial, CAN) cannot be opened or is misconfigured."""
