@@ -98,9 +98,13 @@ class ContactOptions:
         Dead fibers take the (harmonic) mean of their neighbours, folded into
         the interpolation matrix (``A' = A F``, no per-frame cost). Off: 0.
     max_contacts : int
-        1..4. More than 1: separate blobs (8-connected) of the truncated surface
-        are separate contacts, strongest ``m00`` first. 1: the whole surface
+        1..4. More than 1: separate blobs (8-connected) of the surface above
+        ``max(truncation level, split_fraction * the strongest peak)`` are
+        separate contacts, strongest ``m00`` first. 1: the whole surface
         above the truncation level is one contact (the paper).
+    split_fraction : float
+        See ``max_contacts`` (the skin's spread joins nearby presses at the
+        noise level, so blobs are separated higher up).
     track_baseline : bool
         Exponential moving average of the fiber means (time constant
         ``baseline_tau_s`` from the frame timestamps) while there is no
@@ -147,6 +151,7 @@ class ContactOptions:
     hysteresis: bool = True
     peak_fraction: float = 0.4
     shape_fraction: float = 0.3
+    split_fraction: float = 0.5
     fill_dead: bool = True
     max_contacts: int = 4
     track_baseline: bool = True
@@ -176,13 +181,13 @@ class ContactOptions:
         mc = self.max_contacts
         if isinstance(mc, bool) or not isinstance(mc, int) or not 1 <= mc <= MAX_CONTACTS:
             raise ValueError(f"max_contacts must be an integer 1..{MAX_CONTACTS}, got {mc!r}")
-        for name in ("peak_fraction", "shape_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
+        for name in ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
                      "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
                      "noise_gray", "black_level"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        for name in ("peak_fraction", "shape_fraction"):
+        for name in ("peak_fraction", "shape_fraction", "split_fraction"):
             if not getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be < 1, got {getattr(self, name)!r}")
         if self.baseline_tau_s <= 0:
@@ -213,7 +218,7 @@ class ContactOptions:
             if key not in known:
                 raise ValueError(f"unknown contact option {key!r}")
         values = dict(d)
-        for key in ("peak_fraction", "shape_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
+        for key in ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
                     "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
                     "noise_gray", "black_level"):
             if key in values and isinstance(values[key], int) and not isinstance(values[key], bool):

@@ -100,6 +100,7 @@ class Pipeline:
         self._max_contacts = o.max_contacts
         self._frac = float(o.peak_fraction)
         self._shape_frac = float(o.shape_fraction)
+        self._split_frac = float(o.split_fraction)
         self._tau_ns = float(o.baseline_tau_s) * 1e9
         self._holdoff_ns = float(o.holdoff_s) * 1e9
         # levels (truncation, off, on) in signal units, set when the baseline is ready
@@ -139,6 +140,7 @@ class Pipeline:
         self._blob = np.zeros(n_cells, dtype=bool)
         self._sel = np.zeros(n_cells, dtype=bool)
         self._shape_sel = np.zeros(n_cells, dtype=bool)
+        self._split_mask = np.zeros(n_cells, dtype=bool)
         self._weighted = np.zeros(n_cells, dtype=np.float32)
         # weighted surface: centroid and ellipse (order 2); binarised blob: Hu (order 3) and q4 (4)
         self._basis = MomentBasis(grid, order=2)
@@ -391,19 +393,11 @@ class Pipeline:
         if not self._multi:
             n_cand = self._measure_blob(surface, self._mask, cells, level, self._cands[0])
         else:
-            np.copyto(self._mask_u8.reshape(-1), self._mask)
-            n_labels, _, stats, _ = cv2.connectedComponentsWithStats(
-                self._mask_u8, labels=self._labels, connectivity=8, ltype=cv2.CV_32S)
-            areas = stats[1:n_labels, cv2.CC_STAT_AREA]
-            min_cells = self._min_area / self._cell_area
-            big = np.flatnonzero(areas >= min_cells - 1e-9)
-            if big.size > MAX_CANDIDATES:
-                big = big[np.argsort(areas[big])[::-1][:MAX_CANDIDATES]]
-            labels = self._labels.reshape(-1)
-            for k in big:
-                np.equal(labels, k + 1, out=self._blob)
-                n_cand += self._measure_blob(surface, self._blob, int(areas[k]), level,
+            for k, blob_cells in self._partition(surface):
+                n_cand += self._measure_blob(surface, self._blob_of(k), blob_cells, level,
                                              self._cands[n_cand])
+                if n_cand == MAX_CANDIDATES:
+                    break
         if n_cand == 0:
             strength = float(np.sum(surface, dtype=np.float64)) * self._cell_area
             self._no_contact(est, strength, cells * self._cell_area)
@@ -421,6 +415,41 @@ class Pipeline:
             if self._corrector is not None:
                 self._corrector.apply(c)
         return n
+
+    def _partition(self, surface: np.ndarray) -> list[tuple[int, int]]:
+        """Split the truncated surface into contacts; ``(label, cells)`` of each, largest first.
+
+        The skin's spread joins neighbouring presses at the (low) noise level,
+        so contacts are seeded by the blobs above ``split_fraction`` of the
+        strongest peak, plus any blob of the truncated surface that holds no
+        such seed (a weaker, separate press); every cell above the truncation
+        level then belongs to its nearest seed.
+        """
+        split = max(float(self._trunc), self._split_frac * float(surface.max()))
+        np.greater(surface, np.float32(split), out=self._split_mask)
+        mask_u8 = self._mask_u8.reshape(-1)
+        np.copyto(mask_u8, self._mask)
+        n_parts = cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8,
+                                          ltype=cv2.CV_32S)[0]
+        parts = self._labels.reshape(-1)
+        seeded = np.zeros(n_parts, dtype=bool)
+        seeded[parts[self._split_mask]] = True
+        # seeds: the strong blobs, and the truncated blobs without one
+        np.logical_or(self._split_mask, np.logical_and(self._mask, ~seeded[parts]), out=self._blob)
+        np.logical_not(self._blob, out=self._below)
+        np.copyto(mask_u8, self._below)
+        _, self._nearest = cv2.distanceTransformWithLabels(
+            self._mask_u8, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)
+        nearest = self._nearest.reshape(-1)
+        counts = np.bincount(nearest[self._mask], minlength=1)
+        min_cells = self._min_area / self._cell_area
+        order = np.argsort(counts)[::-1]
+        return [(int(k), int(counts[k])) for k in order if k > 0 and counts[k] >= min_cells - 1e-9]
+
+    def _blob_of(self, label: int) -> np.ndarray:
+        """Cells above the truncation level that belong to contact ``label`` (see _partition)."""
+        np.equal(self._nearest.reshape(-1), label, out=self._blob)
+        return np.logical_and(self._blob, self._mask, out=self._blob)
 
     def _measure_blob(self, surface: np.ndarray, blob: np.ndarray, cells: int, level: np.float32,
                       out: ContactEstimate) -> int:

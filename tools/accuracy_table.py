@@ -111,6 +111,90 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
     return out
 
 
+def dead_fiber_experiment(workdir: Path) -> list[str]:
+    """Five dark fibers on the unseen path: calibrated accuracy with and without the neighbour fill."""
+    from optitac_edge.layout import hex_layout
+
+    xy = hex_layout().xy_mm
+    dark = tuple(sorted({int(np.argmin(np.hypot(*(xy - p).T))) for p in
+                         ((0, 0), (3, 0), (-4.5, 0), (0, 2.6), (0, -5.2))}))
+    kw = {"dark_fibers": dark}
+    cal = {n: record(workdir / "dead", 0, CAL_DAY, n, seed=300 + k, **kw) for k, n in enumerate(CAL_SCENARIOS)}
+    ev = {"unseen": record(workdir / "dead", 0, EVAL_DAY, "unseen", seed=400, **kw)}
+    lines = [f"Dark fibers {list(dark)} (the centre and four on the unseen path), sensor 0:", "",
+             "| configuration | unseen RMSE raw (mm) | unseen RMSE cal (mm) | missed / false |", "|---|---|---|---|"]
+    probe = calibrate_fibers(cal["rest"].rest_frames(), "gray")
+    measured = {k: getattr(probe.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    for name, fill in (("all (default, fill on)", True), ("all, dead-fiber fill off", False)):
+        options = dataclasses.replace(ContactOptions(**measured), fill_dead=fill)
+        r = evaluate_config(cal, ev, Config(options, width_kind="monotone"), (0.0, False))
+        ur, uc = r["unseen_raw"], r["unseen_cal"]
+        missed, contacts, false, rests = r["detection"]
+        lines.append(f"| {name} | {ur.rmse_x:.3f} / {ur.rmse_y:.3f} | {uc.rmse_x:.3f} / {uc.rmse_y:.3f} | "
+                     f"{missed}/{contacts} / {false}/{rests} |")
+    return lines
+
+
+def two_contact_experiment(workdir: Path) -> list[str]:
+    """Two 5 mm circles pressed at once, 9–14 mm apart: separate contacts or one merged contact."""
+    from optitac_edge.pipeline import Pipeline
+    from optitac_edge.sim import Indenter, SimulatedSensor, SessionDrift
+
+    cal_rest = record(workdir, 0, CAL_DAY, "rest", seed=100)
+    base = calibrate_fibers(cal_rest.rest_frames(), "gray")
+    measured = {k: getattr(base.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    sensor = SimulatedSensor(seed=500, drift=SessionDrift.for_day(EVAL_DAY))
+    rng = np.random.default_rng(500)
+    pairs = []
+    while len(pairs) < 100:
+        a, b = rng.uniform(-6.5, 6.5, (2, 2))
+        if 9.0 <= np.hypot(*(a - b)) <= 14.0:
+            pairs.append((a, b))
+    rest = [sensor.frame() for _ in range(10)]
+    frames = [sensor.frame((Indenter("circle", *a, 0, 5.0, 3.0), Indenter("circle", *b, 0, 5.0, 3.0)))
+              for a, b in pairs]
+    lines = ["Two 5 mm circles, 3 mm deep, 9–14 mm apart, 100 frames (sensor 0, raw centroids):", "",
+             "| configuration | frames with 2 contacts | centroid error of each press, RMS (mm) |", "|---|---|---|"]
+    for name, n in (("up to 4 contacts (default)", 4), ("one contact (the paper)", 1)):
+        pipe = Pipeline(base.with_updates(options=ContactOptions(**measured, max_contacts=n)))
+        pipe.set_corrector(None)
+        for k, f in enumerate(rest):
+            pipe.process(f, k * 16_666_667)
+        two, errors = 0, []
+        for k, (f, (a, b)) in enumerate(zip(frames, pairs)):
+            e = pipe.process(f, (10 + k) * 16_666_667)
+            found = [(c.x_mm, c.y_mm) for c in pipe.contacts[: e.n_contacts]] if e.contact else []
+            two += len(found) == 2
+            for true in (a, b):
+                errors.append(min((np.hypot(x - true[0], y - true[1]) for x, y in found), default=np.nan))
+        lines.append(f"| {name} | {two}/100 | {np.sqrt(np.nanmean(np.square(errors))):.3f} |")
+    return lines
+
+
+def drift_experiment(workdir: Path) -> list[str]:
+    """The `drift` scenario (LED −5 % over 20 s, per-fiber drift, presses every 2 s) on day 3."""
+    from optitac_edge.sim import write_scenario as ws
+
+    path = workdir / "drift" / "day3-warm-5"
+    if not (path / "meta.json").exists():
+        ws(path, "drift", seed=600, day=3, warmup=-0.05)
+    rec = Recording(path)
+    base = calibrate_fibers(rec.rest_frames(), "gray")
+    measured = {k: getattr(base.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    paper = ContactOptions.paper(**measured)
+    lines = ["LED dimming 5 % during a 20 s recording with presses every 2 s (`drift` scenario, day 3):", "",
+             "| configuration | missed contact frames | false contacts (rest frames) |", "|---|---|---|"]
+    for name, options in (("paper's method", paper),
+                          ("+ baseline tracking", dataclasses.replace(paper, track_baseline=True)),
+                          ("+ LED gain compensation", dataclasses.replace(paper, compensate_gain=True)),
+                          ("all (default)", ContactOptions(**measured))):
+        m = measure_recording(rec, base.with_updates(options=options), corrected=False, progress=False)
+        d = detection(m, rec.truth)
+        lines.append(f"| {name} | {d.contact_frames - d.detected}/{d.contact_frames} | "
+                     f"{d.false_contacts}/{d.rest_frames} |")
+    return lines
+
+
 def summary_row(r: dict[str, Any]) -> dict[str, str]:
     u, ur, s = r["unseen_cal"], r["unseen_raw"], r["seen_cal"]
     sr = r["seen_raw"]
@@ -179,11 +263,15 @@ def main() -> None:
         else:
             print(f"variant {variant}: default ...", flush=True)
             results[f"sensor {variant}"] = evaluate_config(cal, ev, cfgs["all (default)"], hint)
-    write_markdown(args.output, results, ablation, variants, time.time() - t0, args)
+    print("dead fibers, two contacts, LED drift ...", flush=True)
+    extra = ["", "## Dead fibers, simultaneous contacts, LED drift", ""]
+    for experiment in (dead_fiber_experiment, two_contact_experiment, drift_experiment):
+        extra += experiment(args.workdir) + [""]
+    write_markdown(args.output, results, ablation, variants, time.time() - t0, args, extra)
 
 
 def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any], variants: list[int],
-                   seconds: float, args: argparse.Namespace) -> None:
+                   seconds: float, args: argparse.Namespace, extra: list[str]) -> None:
     rows = {name: summary_row(r) for name, r in results.items()}
     keys = list(next(iter(rows.values())))
     lines = [
@@ -221,6 +309,7 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
         lines += ["", "Shape classifier chosen at calibration (held-out presses of the calibration day):", ""]
         for name, r in ablation.items():
             lines.append(f"* {name}: {json.dumps(r['shapes_fit'])}")
+    lines += extra
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")
