@@ -1,0 +1,253 @@
+"""Board configs: the packaged files load, precedence, and one-line errors naming file and key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from optitac_edge.board_config import (
+    BoardConfig,
+    available_boards,
+    describe_schema,
+    load_board_config,
+    resolve_board_config,
+)
+from optitac_edge.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGED = ["sim", "rpi5-gs", "rpi4-cm3", "jetson-orin-nano-usb", "jetson-csi"]
+
+
+@pytest.mark.parametrize("name", PACKAGED)
+def test_packaged_boards_load(name):
+    cfg = load_board_config(name, env={})
+    assert isinstance(cfg, BoardConfig)
+    assert Path(cfg.source).name == f"{name}.toml"
+    assert cfg.warnings() == []
+    assert set(cfg.as_dict()) == {"sensor", "camera", "calibration", "link", "led", "status", "watchdog"}
+
+
+def test_available_boards_and_repo_dir():
+    assert set(PACKAGED) <= set(available_boards())
+    assert resolve_board_config("sim") == REPO / "board_configs" / "sim.toml"
+
+
+def test_sim_is_the_default_and_needs_no_hardware():
+    cfg = load_board_config(env={})
+    assert cfg.camera.backend == "sim"
+    assert cfg.link.transport == "none" and cfg.link.transport_name == "null"
+    assert not cfg.led.enabled
+    assert cfg.calibration.bundle_path is None
+
+
+def test_packaged_details():
+    gs = load_board_config("rpi5-gs", env={})
+    assert gs.camera.backend == "picamera2" and gs.camera.pixel_format == "yuv420"
+    assert gs.led.address == 0x40 and gs.led.channels == (0, 1, 2, 3)
+    assert gs.link.serial_url == "/dev/optitac-mcu"
+    assert gs.calibration.bundle_path == Path("/var/lib/optitac-edge/calibration.npz")
+    usb = load_board_config("jetson-orin-nano-usb", env={})
+    assert usb.camera.device.startswith("/dev/v4l/by-id/")
+    assert usb.link.transport == "can" and usb.link.can_channel == "can0"
+    assert dict(usb.camera.options) == {"fourcc": "YUYV"}
+    csi = load_board_config("jetson-csi", env={})
+    assert "nvarguscamerasrc" in csi.camera.pipeline and csi.camera.device == ""
+
+
+def test_empty_file_gives_defaults(tmp_path):
+    path = tmp_path / "empty.toml"
+    path.write_text("")
+    cfg = load_board_config(path, env={})
+    assert cfg == BoardConfig(source=cfg.source)
+    assert cfg.camera.fps == 60.0 and cfg.status.period_s == 1.0
+
+
+def test_state_directory_sets_default_bundle(tmp_path):
+    path = tmp_path / "b.toml"
+    path.write_text("")
+    cfg = load_board_config(path, env={"STATE_DIRECTORY": "/var/lib/x:/var/lib/y"})
+    assert cfg.calibration.bundle == "/var/lib/x/calibration.npz"
+
+
+def test_relative_paths_resolve_against_the_file(tmp_path):
+    path = tmp_path / "b.toml"
+    path.write_text('[calibration]\nbundle = "cal/bundle.npz"\nlayout = "layout.csv"\n')
+    cfg = load_board_config(path, env={})
+    assert cfg.calibration.bundle_path == tmp_path / "cal" / "bundle.npz"
+    assert cfg.calibration.layout_path == tmp_path / "layout.csv"
+
+
+def test_precedence_file_env_command_line(tmp_path):
+    path = tmp_path / "b.toml"
+    path.write_text('[camera]\nfps = 30\nwidth = 320\n[link]\ntransport = "serial"\nserial_url = "/dev/ttyACM0"\n')
+    env = {"OPTITAC_CAMERA_FPS": "45", "OPTITAC_LINK_SERIAL_URL": "loop://", "OPTITAC_LED_ADDRESS": "0x41",
+           "OPTITAC_LED_CHANNELS": "0, 1,2", "OPTITAC_LED_ENABLED": "yes", "OPTITAC_CAMERA_OPTIONS_HDR": "true",
+           "OPTITAC_UNRELATED_THING": "ignored", "PATH": "/usr/bin"}
+    cfg = load_board_config(path, env=env, overrides={"camera.fps": 90, "sensor.id": "7"})
+    assert cfg.camera.fps == 90.0  # command line beats environment
+    assert cfg.camera.width == 320  # file
+    assert cfg.link.serial_url == "loop://"  # environment beats file
+    assert cfg.led.address == 0x41 and cfg.led.channels == (0, 1, 2) and cfg.led.enabled
+    assert cfg.sensor.id == 7
+    assert cfg.camera.options["hdr"] is True
+    assert cfg.origins["camera.fps"] == "command line"
+    assert cfg.origins["link.serial_url"] == "environment OPTITAC_LINK_SERIAL_URL"
+    assert cfg.origins["camera.width"].endswith("b.toml")
+
+
+def test_configs_are_frozen():
+    cfg = load_board_config("sim", env={})
+    with pytest.raises(AttributeError):
+        cfg.camera.fps = 1  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        cfg.camera.options["x"] = 1  # type: ignore[index]
+
+
+def test_schema_text_lists_every_section():
+    text = describe_schema()
+    for section in ("[sensor]", "[camera]", "[calibration]", "[link]", "[led]", "[status]", "[watchdog]"):
+        assert section in text
+
+
+# ---------------------------------------------------------------- malformed corpus: (toml, key, words)
+BAD_FILES = [
+    ('[camera]\nfps = "fast"\n', "camera.fps", "must be a number in 1..1000, got 'fast'"),
+    ("[camera]\nfps = 0\n", "camera.fps", "must be a number in 1..1000"),
+    ("[camera]\nfps = 1e9\n", "camera.fps", "1..1000"),
+    ("[camera]\nfps = nan\n", "camera.fps", "must be a number"),
+    ("[camera]\nfps = true\n", "camera.fps", "boolean"),
+    ("[camera]\nwidth = 640.5\n", "camera.width", "must be an integer"),
+    ("[camera]\nwidth = 8\n", "camera.width", "16..8192"),
+    ('[camera]\nbackend = "webcam"\n', "camera.backend", "must be one of"),
+    ('[camera]\npixel_format = "bgr"\n', "camera.pixel_format", "'gray', 'rgb', 'yuv420'"),
+    ("[camera]\nexposure_us = -1\n", "camera.exposure_us", "0..10000000"),
+    ("[camera]\ntimeout_s = 0\n", "camera.timeout_s", "0 < x <= 60"),
+    ("[camera]\nframerate = 30\n", "camera.framerate", "unknown key"),
+    ("[camera]\nFPS = 30\n", "camera.FPS", "did you mean fps"),
+    ("[camera.options]\nnested = { a = 1 }\n", "camera.options.nested", "must be a scalar"),
+    ("[camera.options]\nlist = [1, 2]\n", "camera.options.list", "must be a scalar"),
+    ("[camera]\noptions = 3\n", "camera.options", "must be a table"),
+    ('[camera]\nbackend = "v4l2"\n', "camera.device", "exactly one of camera.device and camera.pipeline"),
+    ('[camera]\nbackend = "v4l2"\ndevice = "/dev/video0"\npipeline = "x ! appsink"\n', "camera.pipeline",
+     "exactly one of"),
+    ('[camera]\nbackend = "v4l2"\npipeline = "videotestsrc ! fakesink"\n', "camera.pipeline", "appsink"),
+    ('[camera]\nbackend = "recording"\n', "camera.recording", "needs camera.recording"),
+    ('[camera]\npipeline = "a ! appsink"\n', "camera.pipeline", "only the v4l2 backend"),
+    ('[camera]\npixel_format = "yuv420"\nwidth = 641\n', "camera.pixel_format", "even width"),
+    ("[sensor]\nid = 256\n", "sensor.id", "must be an integer in 0..255, got 256"),
+    ('[sensor]\nid = "1"\n', "sensor.id", "got '1'"),
+    ('[sensor]\nname = "left gripper"\n', "sensor.name", "must match"),
+    ('[sensor]\nname = ""\n', "sensor.name", "must not be empty"),
+    ("[calibration]\nbundle = 3\n", "calibration.bundle", "must be a string"),
+    ('[calibration]\nif_missing = "ignore"\n', "calibration.if_missing", "'calibrate', 'fail'"),
+    ('[calibration]\nmirror = "yes"\n', "calibration.mirror", "must be true or false"),
+    ("[calibration]\nrotation_deg = 400\n", "calibration.rotation_deg", "-360..360"),
+    ('[link]\ntransport = "usb"\n', "link.transport", "'serial', 'can', 'none'"),
+    ('[link]\ntransport = "serial"\n', "link.serial_url", "required when link.transport is 'serial'"),
+    ('[link]\ntransport = "can"\ncan_channel = ""\n', "link.can_channel", "required"),
+    ("[link]\nbaudrate = 300\n", "link.baudrate", "1200..12000000"),
+    ("[link]\ncan_bitrate = 2000000\n", "link.can_bitrate", "10000..1000000"),
+    ("[link]\nrate_divider = 0\n", "link.rate_divider", "1..1000"),
+    ('[link]\ncan_interface = "Socket CAN"\n', "link.can_interface", "must match"),
+    ("[led]\nbrightness = 1.5\n", "led.brightness", "must be a number in 0..1, got 1.5"),
+    ("[led]\naddress = 0x80\n", "led.address", "7-bit I2C address"),
+    ("[led]\nchannels = [0, 16]\n", "led.channels", "0..15"),
+    ("[led]\nchannels = [1, 1]\n", "led.channels", "unique"),
+    ("[led]\nchannels = []\n", "led.channels", "non-empty"),
+    ('[led]\ndriver = "tlc5947"\n', "led.driver", "'pca9685'"),
+    ("[led]\npwm_frequency_hz = 5000\n", "led.pwm_frequency_hz", "24..1526"),
+    ("[led]\nmax_peak = 300\n", "led.max_peak", "1..255"),
+    ("[status]\nperiod_s = 0\n", "status.period_s", "0.05..3600"),
+    ("[watchdog]\nmax_frame_gap_s = -1\n", "watchdog.max_frame_gap_s", "0.1..600"),
+    ("[cameras]\nfps = 30\n", "cameras", "unknown section"),
+    ("fps = 30\n", "fps", "unknown key"),
+    ("camera = 3\n", "camera", "must be a table"),
+    ("config_version = 2\n", "config_version", "must be 1"),
+    ("description = 5\n", "description", "must be a string"),
+]
+
+
+@pytest.mark.parametrize(("text", "key", "words"), BAD_FILES, ids=[k for _, k, _ in BAD_FILES])
+def test_malformed_file_gives_one_line_naming_file_and_key(tmp_path, text, key, words):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_board_config(path, env={})
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: {key}: "), message
+    assert words in message, message
+
+
+def test_unparseable_toml(tmp_path):
+    path = tmp_path / "broken.toml"
+    path.write_text("[camera\nfps = 30\n")
+    with pytest.raises(ConfigError, match=r"broken\.toml: not valid TOML") as info:
+        load_board_config(path, env={})
+    assert "\n" not in str(info.value)
+
+
+def test_binary_file(tmp_path):
+    path = tmp_path / "bin.toml"
+    path.write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(ConfigError, match=r"bin\.toml: "):
+        load_board_config(path, env={})
+
+
+@pytest.mark.parametrize("name", ["nope", "missing/board.toml", "missing.toml"])
+def test_missing_file_or_board(name):
+    with pytest.raises(ConfigError) as info:
+        load_board_config(name, env={})
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(name)
+    assert "not found" in message or "no such board" in message
+
+
+def test_unknown_board_lists_known():
+    with pytest.raises(ConfigError, match="known: .*sim"):
+        load_board_config("nope", env={})
+
+
+BAD_ENV = [
+    ("OPTITAC_CAMERA_FPS", "fast", "camera.fps", "must be a number in 1..1000, got 'fast'"),
+    ("OPTITAC_CAMERA_FRAMERATE", "30", "camera.framerate", "unknown key"),
+    ("OPTITAC_LED_ADDRESS", "sixty-four", "led.address", "7-bit"),
+    ("OPTITAC_LED_CHANNELS", "0,x", "led.channels", "channel numbers"),
+    ("OPTITAC_LED_ENABLED", "maybe", "led.enabled", "true or false"),
+    ("OPTITAC_SENSOR_ID", "-1", "sensor.id", "0..255"),
+    ("OPTITAC_LINK_TRANSPORT", "serial", "link.serial_url", "required"),
+]
+
+
+@pytest.mark.parametrize(("var", "value", "key", "words"), BAD_ENV, ids=[v for v, *_ in BAD_ENV])
+def test_bad_environment_names_the_variable(var, value, key, words):
+    with pytest.raises(ConfigError) as info:
+        load_board_config("sim", env={var: value})
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"environment {var}: {key}: "), message
+    assert words in message
+
+
+@pytest.mark.parametrize(("overrides", "key", "words"), [
+    ({"camera.fps": "fast"}, "camera.fps", "got 'fast'"),
+    ({"camera.fps": None}, "camera.fps", "must be a number"),
+    ({"led.brightness": 2}, "led.brightness", "0..1"),
+    ({"nosuch.key": 1}, "nosuch", "unknown section"),
+    ({"fps": 1}, "fps", "section.key=value"),
+])
+def test_bad_command_line_override(overrides, key, words):
+    with pytest.raises(ConfigError) as info:
+        load_board_config("sim", env={}, overrides=overrides)
+    message = str(info.value)
+    assert message.startswith(f"command line: {key}: ") and words in message, message
+
+
+def test_warnings_for_led_flicker(tmp_path):
+    path = tmp_path / "b.toml"
+    path.write_text("[camera]\nexposure_us = 1500\nfps = 60\n[led]\nenabled = true\npwm_frequency_hz = 1000\n")
+    warnings = load_board_config(path, env={}).warnings()
+    assert len(warnings) == 1 and "flicker" in warnings[0]
+    path.write_text("[camera]\nexposure_us = 30000\nfps = 60\n")
+    assert "longer than a frame" in load_board_config(path, env={}).warnings()[0]

@@ -1,0 +1,169 @@
+"""The systemd unit, its drop-in and the udev rule: required directives, and systemd-analyze's score."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+UNIT = REPO / "systemd" / "optitac-edge.service"
+MAX_EXPOSURE = 2.5
+
+
+def parse_unit(path: Path) -> dict[str, dict[str, list[str]]]:
+    """{section: {key: [values in order]}} of a systemd unit file (comments, blanks skipped)."""
+    out: dict[str, dict[str, list[str]]] = {}
+    section = None
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line or line[0] in "#;":
+            continue
+        if line.startswith("["):
+            section = line.strip("[]")
+            out.setdefault(section, {})
+            continue
+        assert section is not None, f"{path}: directive outside a section: {line}"
+        key, sep, value = line.partition("=")
+        assert sep, f"{path}: not key=value: {line}"
+        out[section].setdefault(key.strip(), []).append(value.strip())
+    return out
+
+
+@pytest.fixture(scope="module")
+def unit():
+    return parse_unit(UNIT)
+
+
+def one(unit, key, section="Service"):
+    values = unit[section][key]
+    assert len(values) == 1, f"{key} given {len(values)} times"
+    return values[0]
+
+
+def test_service_type_watchdog_restart(unit):
+    assert one(unit, "Type") == "notify"
+    assert one(unit, "NotifyAccess") == "main"
+    assert re.fullmatch(r"\d+s?", one(unit, "WatchdogSec"))
+    assert one(unit, "Restart") == "on-failure"
+    assert one(unit, "RestartSec")
+    exec_start = one(unit, "ExecStart").split()
+    assert exec_start[:4] == ["/opt/optitac-edge/venv/bin/optitac-edge", "run", "--board",
+                              "/etc/optitac-edge/board.toml"]
+    assert one(unit, "WantedBy", "Install") == "multi-user.target"
+
+
+def test_unprivileged_user_and_state_directory(unit):
+    assert one(unit, "User") == "optitac" and one(unit, "Group") == "optitac"
+    assert set(one(unit, "SupplementaryGroups").split()) == {"video", "dialout", "i2c"}
+    assert one(unit, "StateDirectory") == "optitac-edge"
+    assert one(unit, "StateDirectoryMode") == "0750"
+    assert one(unit, "CapabilityBoundingSet") == ""
+    assert one(unit, "NoNewPrivileges") == "yes"
+
+
+def test_sandbox(unit):
+    svc = unit["Service"]
+    for key, value in {"ProtectSystem": "strict", "ProtectHome": "yes", "PrivateTmp": "yes",
+                       "DevicePolicy": "closed", "IPAddressDeny": "any", "RestrictNamespaces": "yes",
+                       "ProtectKernelTunables": "yes", "ProtectKernelModules": "yes",
+                       "ProtectControlGroups": "yes", "LockPersonality": "yes",
+                       "SystemCallArchitectures": "native"}.items():
+        assert svc[key] == [value], key
+    assert one(unit, "RestrictAddressFamilies").split() == ["AF_UNIX", "AF_CAN", "AF_NETLINK"]
+    assert "@system-service" in svc["SystemCallFilter"]
+    assert "PrivateNetwork" not in svc  # SocketCAN interfaces are in the host's namespace
+    assert "PrivateDevices" not in svc  # the camera, serial port and I2C are devices
+
+
+def test_device_allow_covers_camera_serial_i2c(unit):
+    allowed = {v.split()[0] for v in unit["Service"]["DeviceAllow"]}
+    for needed in ("char-video4linux", "char-media", "char-dma_heap", "char-ttyACM", "char-ttyUSB",
+                   "char-ttyAMA", "char-i2c"):
+        assert needed in allowed
+
+
+def test_jetson_drop_in_only_relaxes_what_argus_needs():
+    drop_in = parse_unit(REPO / "systemd" / "jetson-csi.conf")
+    assert set(drop_in) == {"Service"}
+    assert set(drop_in["Service"]) == {"PrivateTmp", "DevicePolicy", "MemoryDenyWriteExecute"}
+
+
+def test_udev_rule_names_the_mcu_port():
+    rules = [line for line in (REPO / "systemd" / "99-optitac-edge.rules").read_text().splitlines()
+             if line.strip() and not line.lstrip().startswith("#")]
+    mcu = [r for r in rules if 'SYMLINK+="optitac-mcu"' in r]
+    assert len(mcu) == 1
+    assert 'SUBSYSTEM=="tty"' in mcu[0] and 'ATTRS{idVendor}==' in mcu[0] and 'GROUP="dialout"' in mcu[0]
+    for rule in rules:
+        for part in rule.split(", "):
+            assert re.fullmatch(r'[A-Z_]+(\{[A-Za-z_]+\})?(==|\+=|=|!=)"[^"]*"', part.strip()), part
+
+
+def analyze_exposure(unit_path: Path) -> float:
+    tool = shutil.which("systemd-analyze")
+    assert tool
+    proc = subprocess.run(check=False, args=[tool, "security", "--offline=yes", "--no-pager", unit_path.name],
+                          cwd=unit_path.parent, capture_output=True, text=True, timeout=120)
+    match = re.search(r"Overall exposure level for \S+: (\d+(?:\.\d+)?)", proc.stdout + proc.stderr)
+    assert match, f"unexpected output (rc {proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+    return float(match.group(1))
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_systemd_analyze_security_exposure(tmp_path):
+    copy = tmp_path / UNIT.name
+    copy.write_text(UNIT.read_text())
+    exposure = analyze_exposure(copy)
+    assert exposure <= MAX_EXPOSURE, f"exposure {exposure} > {MAX_EXPOSURE}"
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_systemd_analyze_verify_has_no_syntax_errors(tmp_path):
+    copy = tmp_path / UNIT.name
+    copy.write_text(UNIT.read_text())
+    proc = subprocess.run(check=False, args=["systemd-analyze", "verify", "--man=no", str(copy)], capture_output=True,
+                          text=True, timeout=120)
+    # The only acceptable complaint off a board: the venv's executable does not exist here.
+    problems = [line for line in (proc.stdout + proc.stderr).splitlines()
+                if line.strip() and "is not executable" not in line and "No such file" not in line]
+    assert not problems, "\n".join(problems)
+
+
+# ---------------------------------------------------------------- tools/install.sh
+
+INSTALL = REPO / "tools" / "install.sh"
+
+
+def test_install_script_is_strict_and_executable():
+    text = INSTALL.read_text()
+    assert text.startswith("#!/usr/bin/env bash\n") and "set -euo pipefail" in text
+    assert INSTALL.stat().st_mode & 0o111
+
+
+@pytest.mark.parametrize("board", ["rpi5-gs", "jetson-csi", "sim"])
+def test_install_dry_run(board):
+    proc = subprocess.run(check=False, args=["bash", str(INSTALL), "--dry-run", board], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    assert f"board_configs/{board}.toml /etc/optitac-edge/board.toml" in out or "board.toml" in out
+    assert "/etc/systemd/system/optitac-edge.service" in out
+    assert "/etc/udev/rules.d/99-optitac-edge.rules" in out
+    assert "systemctl enable optitac-edge.service" in out
+    assert ("jetson-csi.conf" in out) == (board == "jetson-csi")
+
+
+def test_install_unknown_board_fails_in_one_line():
+    proc = subprocess.run(check=False, args=["bash", str(INSTALL), "--dry-run", "nope"], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2 and "no board config" in proc.stderr and "rpi5-gs" in proc.stderr
+
+
+@pytest.mark.skipif(shutil.which("shellcheck") is None, reason="shellcheck not installed")
+def test_install_script_is_shellcheck_clean():
+    proc = subprocess.run(check=False, args=["shellcheck", str(INSTALL)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout

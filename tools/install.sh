@@ -1,0 +1,199 @@
+#!/usr/bin/env bash
+# Install optitac-edge as a systemd service on a Raspberry Pi (Raspberry Pi OS) or a Jetson (JetPack).
+#
+#   sudo tools/install.sh BOARD [--start] [--dry-run]
+#
+# BOARD is a packaged board name (see board_configs/: rpi5-gs, rpi4-cm3, jetson-orin-nano-usb,
+# jetson-csi, sim) or the path of your own board TOML. Safe to run again (after a git pull, or to
+# switch boards): every step checks before it changes anything. See docs/deploy.md.
+#
+#   --start     (re)start the service at the end (default: enable only)
+#   --dry-run   print what would be done, change nothing (needs no root)
+set -euo pipefail
+
+PREFIX=/opt/optitac-edge
+VENV="$PREFIX/venv"
+ETC=/etc/optitac-edge
+SERVICE=optitac-edge.service
+UNIT_DIR=/etc/systemd/system
+RULES_DIR=/etc/udev/rules.d
+USER_NAME=optitac
+SYS_PY=/usr/bin/python3
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+
+usage() {
+    sed -n '2,12p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    exit "${1:-2}"
+}
+
+BOARD=""
+START=0
+DRY_RUN=0
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --start) START=1 ;;
+        --dry-run) DRY_RUN=1 ;;
+        -h|--help) usage 0 ;;
+        -*) echo "install.sh: unknown option $1" >&2; usage 2 ;;
+        *)
+            if [ -n "$BOARD" ]; then echo "install.sh: one BOARD only" >&2; usage 2; fi
+            BOARD="$1" ;;
+    esac
+    shift
+done
+[ -n "$BOARD" ] || usage 2
+
+log() { printf 'install.sh: %s\n' "$*"; }
+
+# run CMD...: run it, or only print it with --dry-run.
+run() {
+    if [ "$DRY_RUN" -eq 1 ]; then
+        printf '+ %s\n' "$*"
+    else
+        "$@"
+    fi
+}
+
+if [ "$DRY_RUN" -eq 0 ] && [ "$(id -u)" -ne 0 ]; then
+    echo "install.sh: run as root (sudo $0 $BOARD)" >&2
+    exit 1
+fi
+
+# --- the board config file ------------------------------------------------------------------
+case "$BOARD" in
+    */*|*.toml) BOARD_FILE="$BOARD" ;;
+    *) BOARD_FILE="$REPO/board_configs/$BOARD.toml" ;;
+esac
+if [ ! -f "$BOARD_FILE" ]; then
+    known=""
+    for f in "$REPO"/board_configs/*.toml; do known="$known $(basename "$f" .toml)"; done
+    echo "install.sh: no board config $BOARD_FILE (packaged:$known)" >&2
+    exit 2
+fi
+
+# --- platform ---------------------------------------------------------------------------------
+PLATFORM=generic
+if [ -r /proc/device-tree/model ] && tr -d '\0' < /proc/device-tree/model | grep -q "Raspberry Pi"; then
+    PLATFORM=raspberrypi
+elif [ -e /etc/nv_tegra_release ]; then
+    PLATFORM=jetson
+fi
+log "board $BOARD_FILE on a $PLATFORM system"
+
+# --- system packages --------------------------------------------------------------------------
+PACKAGES=(python3 python3-venv python3-pip python3-numpy i2c-tools can-utils)
+case "$PLATFORM" in
+    raspberrypi) PACKAGES+=(python3-picamera2 python3-libcamera) ;;
+    jetson) PACKAGES+=(python3-opencv python3-tomli) ;;  # JetPack's OpenCV has GStreamer; Python 3.10
+esac
+missing=()
+for pkg in "${PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if [ "${#missing[@]}" -gt 0 ]; then
+    log "installing ${missing[*]}"
+    run apt-get update
+    run env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends "${missing[@]}"
+fi
+
+# --- user and groups --------------------------------------------------------------------------
+for group in video dialout i2c "$USER_NAME"; do
+    getent group "$group" > /dev/null || run groupadd --system "$group"
+done
+if ! getent passwd "$USER_NAME" > /dev/null; then
+    run useradd --system --gid "$USER_NAME" --groups video,dialout,i2c --home-dir /var/lib/optitac-edge \
+        --no-create-home --shell /usr/sbin/nologin --comment "optitac-edge service" "$USER_NAME"
+else
+    run usermod --append --groups video,dialout,i2c "$USER_NAME"
+fi
+
+# --- virtual environment and the package ------------------------------------------------------
+if [ ! -x "$VENV/bin/python" ]; then
+    run install -d -m 0755 "$PREFIX"
+    # System site packages: picamera2/libcamera (Pi) and GStreamer-enabled OpenCV (Jetson) come from apt.
+    run "$SYS_PY" -m venv --system-site-packages "$VENV"
+fi
+# Keep the system's numpy: apt's picamera2/simplejpeg are built against it, and a newer numpy in
+# the venv would shadow it and break them.
+CONSTRAINTS="$PREFIX/constraints.txt"
+if sys_numpy="$("$SYS_PY" -c 'import numpy; print(numpy.__version__)' 2> /dev/null)"; then
+    if [ "$DRY_RUN" -eq 1 ]; then
+        printf '+ echo numpy==%s > %s\n' "$sys_numpy" "$CONSTRAINTS"
+    else
+        printf 'numpy==%s\n' "$sys_numpy" > "$CONSTRAINTS"
+    fi
+else
+    run rm -f "$CONSTRAINTS"
+    CONSTRAINTS=""
+fi
+run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CONSTRAINTS:+--constraint "$CONSTRAINTS"} \
+    "$REPO" smbus2 pyserial python-can
+
+# Check the board config with the installed package before it goes live.
+PY="$VENV/bin/python"
+[ -x "$PY" ] || PY=python3  # dry run before the venv exists
+CHECK='import sys; from optitac_edge.board_config import load_board_config as load
+c = load(sys.argv[1], env={})
+print("pipeline" if c.camera.pipeline else "device")'
+if ! camera_kind="$(cd / && "$PY" -c "$CHECK" "$BOARD_FILE" 2>&1)"; then
+    if [ "$DRY_RUN" -eq 1 ]; then
+        log "(dry run: could not check the config yet: $camera_kind)"
+        camera_kind=device
+    else
+        echo "install.sh: $camera_kind" >&2
+        exit 2
+    fi
+fi
+
+if [ "$camera_kind" = pipeline ] && [ "$PLATFORM" = jetson ]; then
+    # pip's opencv-python-headless has no GStreamer: let JetPack's cv2 (system site packages) through.
+    if "$PY" -m pip show opencv-python-headless > /dev/null 2>&1; then
+        run "$VENV/bin/python" -m pip uninstall -y opencv-python-headless
+    fi
+fi
+
+# --- configuration ----------------------------------------------------------------------------
+run install -d -m 0755 "$ETC"
+if [ -f "$ETC/board.toml" ] && ! cmp -s "$BOARD_FILE" "$ETC/board.toml"; then
+    backup="$ETC/board.toml.$(date +%Y%m%d-%H%M%S).bak"
+    log "keeping the previous $ETC/board.toml as $backup"
+    run cp -p "$ETC/board.toml" "$backup"
+fi
+cmp -s "$BOARD_FILE" "$ETC/board.toml" 2> /dev/null || run install -m 0644 "$BOARD_FILE" "$ETC/board.toml"
+if [ ! -f "$ETC/environment" ]; then
+    if [ "$DRY_RUN" -eq 1 ]; then
+        printf '+ write %s\n' "$ETC/environment"
+    else
+        printf '%s\n' "# OPTITAC_<SECTION>_<KEY>=value overrides $ETC/board.toml, e.g." \
+            "# OPTITAC_LINK_SERIAL_URL=/dev/ttyACM1" > "$ETC/environment"
+        chmod 0644 "$ETC/environment"
+    fi
+fi
+
+# --- systemd unit, drop-in, udev rule ---------------------------------------------------------
+run install -m 0644 "$REPO/systemd/$SERVICE" "$UNIT_DIR/$SERVICE"
+DROP_IN_DIR="$UNIT_DIR/$SERVICE.d"
+if [ "$camera_kind" = pipeline ] && [ "$PLATFORM" != raspberrypi ]; then
+    run install -d -m 0755 "$DROP_IN_DIR"
+    run install -m 0644 "$REPO/systemd/jetson-csi.conf" "$DROP_IN_DIR/jetson-csi.conf"
+elif [ -f "$DROP_IN_DIR/jetson-csi.conf" ]; then
+    run rm -f "$DROP_IN_DIR/jetson-csi.conf"
+fi
+run install -m 0644 "$REPO/systemd/99-optitac-edge.rules" "$RULES_DIR/99-optitac-edge.rules"
+if command -v udevadm > /dev/null; then
+    run udevadm control --reload-rules
+    run udevadm trigger --subsystem-match=tty --subsystem-match=i2c-dev
+fi
+
+if [ "$PLATFORM" = raspberrypi ] && command -v raspi-config > /dev/null; then
+    run raspi-config nonint do_i2c 0  # enable I2C for the LED driver (idempotent)
+fi
+
+run systemctl daemon-reload
+run systemctl enable "$SERVICE"
+if [ "$START" -eq 1 ]; then
+    run systemctl restart "$SERVICE"
+    log "started; follow it with: journalctl -fu $SERVICE"
+else
+    log "enabled; start it with: systemctl start $SERVICE (then: journalctl -fu $SERVICE)"
+fi
