@@ -107,12 +107,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cal", type=Path, required=True, metavar="CAL")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="CONTACTS.csv")
 
-    p = sub.add_parser("run", help="the live loop (default: the built-in simulated sensor)")
-    p.add_argument("--cal", type=Path, default=None, help="use this bundle instead of calibrating at start")
-    p.add_argument("--fps", type=float, default=60.0)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: until Ctrl-C)")
+    p = sub.add_parser("run", help="capture -> process -> transmit (default: the built-in simulated sensor)")
+    _add_board(p)
+    p.add_argument("--cal", type=Path, default=None, help="use this bundle (default: the board's)")
+    p.add_argument("--serial", default=None, metavar="PORT", help="serial device or pyserial URL (overrides the board)")
+    p.add_argument("--can", default=None, metavar="CHANNEL", help="CAN channel (overrides the board)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument("--frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--fps", type=float, default=None, help="camera frame rate (overrides the board)")
+
+    p = sub.add_parser("record", help="save frames of a live source as a recording")
+    _add_board(p)
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--rest-frames", type=int, default=10, help="leading contact-free frames (meta.json)")
     return parser
+
+
+def _add_board(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", default="sim", metavar="NAME|PATH",
+                   help="board config: a name in board_configs/ or a TOML file (default: sim)")
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
@@ -251,51 +265,92 @@ def _status_line(est: Any, fps: float) -> str:
             f"strength {est.strength:7.1f}{shape}")
 
 
+def _board(args: argparse.Namespace, **overrides: Any) -> Any:
+    from .board_config import load_board_config
+
+    return load_board_config(args.board, env=os.environ,
+                             overrides={k: v for k, v in overrides.items() if v is not None})
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    if args.duration is not None and not args.duration > 0:
+        raise OptiTacError("--duration must be positive")
+    link = {}
+    if args.serial is not None:
+        link = {"link.transport": "serial", "link.serial_url": args.serial}
+    elif args.can is not None:
+        link = {"link.transport": "can", "link.can_channel": args.can}
+    config = _board(args, **link, **{"camera.fps": args.fps})
     stop = threading.Event()
     previous = {signum: signal.signal(signum, lambda *_: stop.set())  # Ctrl-C / systemd stop: clean end
                 for signum in (signal.SIGTERM, signal.SIGINT)}
     try:
-        stats = _run_live(args, stop)
+        stats = _run_service(args, config, stop)
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    print(f"processed {stats.frames} frames, {stats.contacts} with contact")
+    print(f"processed {stats.frames} frames, {stats.contacts} with contact, sent {stats.sent}, "
+          f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}", flush=True)
     return 0
 
 
-def _run_live(args: argparse.Namespace, stop: threading.Event) -> Any:
-    from .bundle import load_bundle
-    from .cameras import open_camera
-    from .live import run_loop, self_calibrate
+def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -> Any:
+    from .led import open_led
+    from .sdnotify import Notifier
+    from .service import Service, load_or_calibrate, open_board_camera, open_board_transport
 
     tty = sys.stdout.isatty()
     last = [0.0]
+    max_frames = args.frames
 
     def show(est: Any, stats: Any) -> None:
+        if max_frames is not None and stats.frames >= max_frames:
+            stop.set()
         now = time.monotonic()
-        if now - last[0] < (0.1 if tty else 1.0):
+        if now - last[0] < (0.1 if tty else config.status.period_s):
             return
         last[0] = now
         line = _status_line(est, stats.fps(time.monotonic_ns()))
-        if tty:
-            sys.stdout.write("\r\x1b[2K" + line)
-        else:
-            sys.stdout.write(line + "\n")
+        sys.stdout.write(("\r\x1b[2K" + line) if tty else (line + "\n"))
         sys.stdout.flush()
 
-    with open_camera("sim", fps=args.fps, seed=args.seed) as camera:
-        if args.cal is not None:
-            bundle = load_bundle(args.cal)
-        else:
+    notifier = Notifier()
+    with open_led(config.led) as led, open_board_camera(config) as camera, \
+            open_board_transport(config) as transport:
+        led.set_brightness(config.led.brightness)
+        if args.cal is None and config.calibration.bundle_path is None:
             print("calibrating fibers from the first rest frames...", flush=True)
-            bundle = self_calibrate(camera)
-            print(f"found {int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; "
-                  "running (Ctrl-C to stop)", flush=True)
-        stats = run_loop(camera, bundle, show, stop, max_frames=args.frames)
+        bundle = load_or_calibrate(config, camera, args.cal)
+        print(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
+              f"({config.camera.backend} camera, {config.link.transport} link; Ctrl-C to stop)", flush=True)
+        service = Service(config, bundle, camera, transport, notifier)
+        stats = service.run(stop, duration_s=args.duration, on_result=show)
+    notifier.close()
     if tty:
         sys.stdout.write("\n")
     return stats
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from .recording import RecordingMeta, RecordingWriter
+    from .service import open_board_camera
+
+    if args.frames < args.rest_frames or args.rest_frames < 5:
+        raise OptiTacError("--frames must be >= --rest-frames >= 5")
+    config = _board(args)
+    with open_board_camera(config) as camera:
+        if camera.pixel_format == "yuv420":
+            raise OptiTacError("recordings hold gray or RGB frames: set camera.pixel_format = 'gray'")
+        meta = RecordingMeta(rest_frames=args.rest_frames, fps=camera.fps,
+                             extra={"board": config.source, "camera": config.camera.backend})
+        with RecordingWriter(args.output, args.frames, camera.frame_shape, meta) as writer:
+            for i in range(args.frames):
+                captured = camera.read(config.camera.timeout_s)
+                if captured is None:
+                    raise OptiTacError(f"the camera ended after {i} frames")
+                writer.write(i, captured.frame)
+    print(f"wrote {args.output}: {args.frames} frames of {camera.width}x{camera.height} {camera.pixel_format}")
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -306,9 +361,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.environ.setdefault(var, "1")
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+    verbose = args.verbose or args.command == "run"  # the service logs its life to journald
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    handlers = {"sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run, "evaluate": _cmd_evaluate,
+    handlers = {"sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run, "record": _cmd_record,
+                "evaluate": _cmd_evaluate,
                 "export-onnx": _cmd_export_onnx, "report": _cmd_report,
                 "calibrate": {"fibers": _cmd_calibrate_fibers, "centroid": _cmd_calibrate_model,
                               "width": _cmd_calibrate_model, "shapes": _cmd_calibrate_model}}

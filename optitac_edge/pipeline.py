@@ -105,6 +105,7 @@ class Pipeline:
         self._holdoff_ns = float(o.holdoff_s) * 1e9
         # levels (truncation, off, on) in signal units, set when the baseline is ready
         self._trunc = self._off = self._on = np.float32(bundle.thresholds.threshold)
+        self._on_override: float | None = None
         self._rest_level = 0.0
         # common-mode LED gain (compensate_gain): the last contact-free frame's gain, when
         # it was measured, the frame's gain, its tolerance and the cluster width (relative)
@@ -205,6 +206,18 @@ class Pipeline:
     def in_contact(self) -> bool:
         return self._in_contact
 
+    def set_contact_level(self, on_relative: float | None) -> None:
+        """Set the contact-on level, in relative units of the rest light (None: the calibrated one).
+
+        The off and truncation levels are lowered to it if they were higher.
+        Kept across a tare.
+        """
+        if on_relative is not None and not on_relative > 0:
+            raise ValueError(f"contact level must be > 0, got {on_relative!r}")
+        self._on_override = on_relative
+        if self.baseline_ready:
+            self._set_levels()
+
     def reset_baseline(self) -> None:
         """Tare: re-baseline from the next ``baseline_frames`` frames."""
         self._baseline_sum.fill(0.0)
@@ -235,6 +248,9 @@ class Pipeline:
         else:
             thr = self.bundle.thresholds.threshold
             trunc = off = on = thr / rest if o.relative else thr
+        if self._on_override is not None:  # the MCU's SET_THRESHOLD
+            on = self._on_override * unit
+            off, trunc = min(off, on), min(trunc, on)
         if not o.hysteresis:
             off = on
         self._trunc, self._off, self._on = np.float32(trunc), np.float32(off), np.float32(on)
