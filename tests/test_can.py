@@ -8,11 +8,9 @@ import math
 import time
 import uuid
 
+import can
+import cantools
 import pytest
-
-can = pytest.importorskip("can")
-cantools = pytest.importorskip("cantools")
-
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -184,9 +182,8 @@ def test_contact_saturates_instead_of_raising():
 
 
 def test_rounding_matches_serial_protocol():
-    wire = pytest.importorskip("optitac_edge.protocol.wire")
-    if not hasattr(wire, "contact_payload") or not hasattr(wire, "CONTACT"):
-        pytest.skip("serial protocol module without contact_payload/CONTACT")
+    from optitac_edge.protocol import wire
+
     codec = CanCodec()
     db = _db()
     values = [0.0, 0.005, 0.015, 0.125, -0.125, -0.005, 1.2345, -12.3449, 40.95, -40.95, 40.944999]

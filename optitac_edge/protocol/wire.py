@@ -100,6 +100,7 @@ STATE_BASELINE_READY = 0x02
 STATE_DEGRADED = 0x04
 STATE_CAMERA_FAULT = 0x08
 CONTACT_FLAGS_MASK = 0x1F  # bits 5-7 reserved, sent as 0
+STATE_MASK = 0x0F  # STATUS state bits 4-7 reserved, sent as 0
 TEMP_UNKNOWN = -32768
 
 U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFFFFFF
@@ -147,6 +148,10 @@ def _q(value: float, lsb: float, lo: int, hi: int) -> int:
     if math.isinf(v):
         return hi if v > 0 else lo
     x = v / lsb
+    if x >= hi:
+        return hi
+    if x <= lo:
+        return lo
     n = math.floor(abs(x) + 0.5)
     n = n if x >= 0 else -n
     return lo if n < lo else hi if n > hi else int(n)
@@ -159,7 +164,7 @@ def _clamp_int(value: float, lo: int, hi: int) -> int:
     if math.isinf(v):
         return hi if v > 0 else lo
     n = int(v)
-    return lo if n < lo else hi if n > hi else n
+    return lo if n < lo else min(n, hi)
 
 
 def _wrap_angle(deg: float) -> float:
@@ -177,10 +182,11 @@ def _shape(shape: int) -> int:
         return int(ShapeCode.UNKNOWN)
 
 
-def contact_payload(msg: ContactMessage) -> bytes:
-    """The 18-byte CONTACT payload of ``msg`` (quantised with rounding and saturation)."""
+def contact_payload(msg: ContactMessage, sensor_id: int | None = None) -> bytes:
+    """The 18-byte CONTACT payload of ``msg`` (quantised with rounding and saturation);
+    ``sensor_id`` overrides the message's."""
     return CONTACT.pack(
-        _clamp_int(msg.sensor_id, 0, U8),
+        _clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
         int(msg.flags) & CONTACT_FLAGS_MASK,
         _q(msg.x_mm, MM_LSB, -32768, 32767),
         _q(msg.y_mm, MM_LSB, -32768, 32767),
@@ -194,11 +200,12 @@ def contact_payload(msg: ContactMessage) -> bytes:
     )
 
 
-def status_payload(msg: StatusMessage) -> bytes:
-    """The 22-byte STATUS payload of ``msg`` (counters saturate at 2^32-1)."""
+def status_payload(msg: StatusMessage, sensor_id: int | None = None) -> bytes:
+    """The 22-byte STATUS payload of ``msg`` (counters saturate at 2^32-1); ``sensor_id``
+    overrides the message's."""
     return STATUS.pack(
-        _clamp_int(msg.sensor_id, 0, U8),
-        int(msg.state) & U8,
+        _clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
+        int(msg.state) & STATE_MASK,
         _clamp_int(msg.fps_x10, 0, U16),
         _clamp_int(msg.frames_dropped, 0, U32),
         _clamp_int(msg.camera_errors, 0, U32),
