@@ -289,8 +289,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+    commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
     print(f"processed {stats.frames} frames, {stats.contacts} with contact, sent {stats.sent}, "
-          f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}", flush=True)
+          f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}, commands {commands}",
+          flush=True)
     return 0
 
 

@@ -1,0 +1,137 @@
+"""The service end to end: simulated camera -> pipeline -> serial over a pty -> the C reference decoder."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from optitac_edge.messages import CommandType, ShapeCode
+from optitac_edge.protocol import encode_command
+
+MCU = Path(__file__).resolve().parents[1] / "tools" / "mcu"
+
+
+@pytest.fixture(scope="module")
+def optitac_rx(tmp_path_factory) -> Path:
+    exe = tmp_path_factory.mktemp("rx") / "optitac_rx"
+    subprocess.run(["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-O2", "-I", str(MCU),
+                    str(MCU / "optitac_rx.c"), str(MCU / "optitac_proto.c"), "-o", str(exe)], check=True)
+    return exe
+
+
+def _summary(stderr: str) -> dict[str, int]:
+    return {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", stderr)}
+
+
+def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
+    """`optitac-edge run` at 120 fps for 10 s over a pty; TARE and STREAM are acknowledged."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    rx = subprocess.Popen([str(optitac_rx), "-t", "20", "-"], stdin=master, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--serial", path, "--fps", "120",
+                            "--duration", "10"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    try:
+        time.sleep(5)  # start-up, calibration, then streaming
+        os.close(slave)  # the service holds it open now; the decoder sees EOF when the service ends
+        slave = -1
+        os.write(master, encode_command(CommandType.TARE, 1))
+        os.write(master, encode_command(CommandType.STREAM, 2, stream_on=True, rate_divider=1))
+        out, err = run.communicate(timeout=120)
+        assert run.returncode == 0, err
+        rx_out, rx_err = rx.communicate(timeout=30)  # EOF (EIO) once the sensor side closed the pty
+    finally:
+        for proc in (run, rx):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        os.close(master)
+        if slave >= 0:
+            os.close(slave)
+    sent = int(re.search(r"sent (\d+)", out).group(1))
+    assert "commands STREAM=1 TARE=1" in out, out
+    rows = [r.split(",") for r in rx_out.splitlines()[1:]]
+    summary = _summary(rx_err)
+    print(f"sent {sent}, received {len(rows)} CONTACT frames; decoder {summary}")
+    assert sent >= 1100  # 10 s at 120 fps
+    assert len(rows) >= 0.999 * sent
+    assert summary["crc"] == summary["cobs"] == summary["length"] == summary["overflow"] == 0
+    assert summary["ack"] == 2 and summary["status"] >= 8
+    seqs = [int(r[0]) for r in rows]
+    total = summary["contact"] + summary["status"] + summary["ack"]
+    assert seqs[-1] - seqs[0] + 1 <= total  # continuous: no sequence number missing in between
+    assert all(b > a for a, b in zip(seqs, seqs[1:]))
+
+
+def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac_rx):
+    from optitac_edge.board_config import load_board_config
+    from optitac_edge.service import Service, load_or_calibrate, open_board_camera, open_board_transport
+
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    rx = subprocess.Popen([str(optitac_rx), "-q", "-t", "20", "-"], stdin=master, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True)
+    config = load_board_config("sim", env={}, overrides={"link.transport": "serial", "link.serial_url": path,
+                                                         "camera.fps": 120})
+    sent: dict[int, object] = {}
+
+    def keep(est, stats):
+        sent[(est.t_ns // 1000) % 2**32] = est.copy()
+
+    try:
+        with open_board_camera(config) as camera, open_board_transport(config) as transport:
+            bundle = load_or_calibrate(config, camera, None)
+            Service(config, bundle, camera, transport).run(threading.Event(), duration_s=3.0, on_result=keep)
+            transport.wait_idle()
+        os.close(slave)
+        out, err = rx.communicate(timeout=30)
+    finally:
+        if rx.poll() is None:
+            rx.kill()
+            rx.wait()
+        os.close(master)
+    rows = [list(map(int, r.split(","))) for r in out.splitlines()]
+    assert len(rows) >= 0.999 * len(sent) and len(sent) > 300
+    contacts = 0
+    for seq, t_us, flags, x, y, major, minor, angle, strength, shape, confidence, age in rows:
+        est = sent[t_us]
+        assert bool(flags & 1) == est.contact
+        if not est.contact:
+            assert (x, y, major, minor, shape) == (0, 0, 0, 0, ShapeCode.NONE)
+            continue
+        contacts += 1
+        assert abs(x - est.x_mm * 100) <= 0.5 + 1e-6 and abs(y - est.y_mm * 100) <= 0.5 + 1e-6
+        assert abs(major - est.major_mm * 100) <= 0.5 + 1e-6 and abs(minor - est.minor_mm * 100) <= 0.5 + 1e-6
+        assert abs(angle - est.angle_deg * 100) <= 0.5 + 1e-6
+        assert abs(strength - min(est.strength * 100, 65535)) <= 0.5 + 1e-6
+        assert 0 <= age <= 65535
+    assert contacts > 50
+
+
+def test_sigterm_stops_the_service_within_a_second():
+    run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "running" not in (run.stdout.readline() or ""):
+            pass
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        run.send_signal(signal.SIGTERM)
+        out, err = run.communicate(timeout=10)
+        elapsed = time.monotonic() - t0
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, err
+    assert elapsed < 1.0, elapsed
+    assert "processed" in out and "Traceback" not in err
