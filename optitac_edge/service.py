@@ -46,12 +46,13 @@ def camera_kwargs(config: BoardConfig) -> dict[str, Any]:
         return {"path": cam.recording, "realtime": True, **dict(cam.options)}
     if cam.backend == "picamera2":
         return {"width": cam.width, "height": cam.height, "fps": cam.fps, "camera_num": cam.index,
-                "exposure_us": cam.exposure_us or None, "analogue_gain": cam.gain or None,
-                "warmup_frames": cam.warmup_frames, "timeout_s": cam.timeout_s, **dict(cam.options)}
-    if cam.backend == "v4l2":
+                "pixel_format": cam.pixel_format, "exposure_us": cam.exposure_us or None,
+                "analogue_gain": cam.gain or None, "warmup_frames": cam.warmup_frames,
+                "timeout_s": cam.timeout_s, **dict(cam.options)}
+    if cam.backend == "v4l2":  # exposure in driver units goes in camera.options.exposure
         source = {"pipeline": cam.pipeline} if cam.pipeline else {"device": cam.device}
         return {**source, "width": cam.width, "height": cam.height, "fps": cam.fps,
-                "exposure_us": cam.exposure_us or None, "timeout_s": cam.timeout_s, **dict(cam.options)}
+                "gain": cam.gain or None, **dict(cam.options)}
     return dict(cam.options)
 
 

@@ -15,6 +15,8 @@ from .base import Camera, CapturedFrame
 BACKENDS: dict[str, str] = {
     "sim": "optitac_edge.cameras.sim:SimCamera",
     "recording": "optitac_edge.cameras.recording:RecordingCamera",
+    "picamera2": "optitac_edge.cameras.picamera2:Picamera2Camera",
+    "v4l2": "optitac_edge.cameras.v4l2:V4L2Camera",
 }
 
 

@@ -18,11 +18,18 @@ class CapturedFrame(NamedTuple):
     Attributes
     ----------
     frame : ndarray, uint8
-        In the camera's ``pixel_format`` (see :mod:`optitac_edge.frames`).
+        In the camera's ``pixel_format`` (see :mod:`optitac_edge.frames`),
+        C-contiguous, shape ``Camera.frame_shape``. Valid until the next
+        :meth:`Camera.read` or :meth:`Camera.close`: hardware backends reuse
+        one preallocated buffer (``Camera.reuses_buffer``) and deliver it
+        read-only. Callers that keep a frame copy it.
     t_ns : int
-        Exposure timestamp, CLOCK_MONOTONIC nanoseconds.
+        Frame timestamp, CLOCK_MONOTONIC nanoseconds (which instant of the
+        exposure depends on the backend; see docs/cameras.md). Strictly
+        increasing.
     seq : int
-        Frame sequence number from the source; gaps mean dropped frames.
+        Frame sequence number from the source, strictly increasing; gaps mean
+        dropped frames (counted in ``Camera.frames_dropped``).
     """
 
     frame: np.ndarray
@@ -40,11 +47,17 @@ class Camera(ABC):
     height: int
     width: int
     fps: float
+    #: True when every frame is written into the same buffer, so a frame is
+    #: only valid until the next read (the hardware backends).
+    reuses_buffer: bool = False
 
     def __init__(self) -> None:
         self._closed = False
         self._close_lock = threading.Lock()
         self.frames_read = 0
+        #: Frames the source lost, from gaps in ``seq``.
+        self.frames_dropped = 0
+        self._last_seq: int | None = None
 
     @abstractmethod
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
@@ -66,6 +79,9 @@ class Camera(ABC):
         captured = self._read_internal(timeout_s)
         if captured is not None:
             self.frames_read += 1
+            if self._last_seq is not None and captured.seq > self._last_seq + 1:
+                self.frames_dropped += captured.seq - self._last_seq - 1
+            self._last_seq = captured.seq
         return captured
 
     @property
