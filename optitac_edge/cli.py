@@ -322,7 +322,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -
         led.set_brightness(config.led.brightness)
         if args.cal is None and config.calibration.bundle_path is None:
             print("calibrating fibers from the first rest frames...", flush=True)
-        bundle = load_or_calibrate(config, camera, args.cal)
+        bundle = load_or_calibrate(config, camera, args.cal, led)
         print(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
               f"({config.camera.backend} camera, {config.link.transport} link; Ctrl-C to stop)", flush=True)
         service = Service(config, bundle, camera, transport, notifier)

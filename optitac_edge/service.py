@@ -213,8 +213,38 @@ class Service:
         return st
 
 
-def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None) -> CalibrationBundle:
-    """The calibration bundle: loaded if it exists, else calibrated from the camera's rest frames."""
+def adjust_led(config: BoardConfig, camera: Camera, led: Any) -> float:
+    """Lower the LED ring until the brightest fibers stay below saturation; returns the brightness.
+
+    Each trial sets the brightness, lets two frames expose, and takes the
+    ``led.peak_percentile`` of the third frame's gray levels.
+    """
+    from .frames import to_gray
+    from .led import adjust_brightness_for_saturation, fiber_peak
+
+    def read_peak(brightness: float) -> float:
+        led.set_brightness(brightness)
+        for _ in range(2):
+            camera.read(config.camera.timeout_s)
+        captured = camera.read(config.camera.timeout_s)
+        if captured is None:
+            raise CameraError("camera ended while adjusting the LED brightness")
+        return fiber_peak(to_gray(captured.frame, camera.pixel_format), None, config.led.peak_percentile)
+
+    result = adjust_brightness_for_saturation(read_peak, max_peak=config.led.max_peak,
+                                              start=config.led.brightness)
+    log.info("LED brightness %.3f (peak %.0f after %d trials%s)", result.brightness, result.peak,
+             result.measurements, "" if result.ok else ", still saturated at the lowest setting")
+    return result.brightness
+
+
+def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None,
+                      led: Any = None) -> CalibrationBundle:
+    """The calibration bundle: loaded if it exists, else calibrated from the camera's rest frames.
+
+    With an LED ring (``led``) and ``led.adjust_at_calibration``, its brightness
+    is first lowered until no fiber saturates.
+    """
     from .bundle import load_bundle, save_bundle
     from .calibration import calibrate_fibers
     from .layout import load_layout_csv
@@ -228,6 +258,8 @@ def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None
         raise BundleError(f"{path}: calibration bundle not found")
     if config.calibration.if_missing == "fail":
         raise OptiTacError(f"no calibration bundle at {path} and calibration.if_missing = 'fail'")
+    if led is not None and config.led.enabled and config.led.adjust_at_calibration:
+        adjust_led(config, camera, led)
     n = config.calibration.rest_frames
     log.info("calibrating the fiber map from %d rest frames", n)
     frames = []

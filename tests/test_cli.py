@@ -137,3 +137,19 @@ def test_run_with_frame_limit_reports_contacts(tmp_path, capsys):
     assert main(["run", "--fps", "1000", "--frames", "400"]) == 0
     out = capsys.readouterr().out
     assert "processed 400 frames" in out
+
+
+def test_record_saves_a_live_source_as_a_recording(tmp_path, capsys):
+    out = tmp_path / "rec"
+    assert main(["record", "--board", "sim", "-o", str(out), "--frames", "30"]) == 0
+    rec = Recording(out)
+    assert len(rec) == 30 and rec.meta.rest_frames == 10 and rec.pixel_format == "gray"
+    assert main(["calibrate", "fibers", str(out), "-o", str(tmp_path / "cal.npz")]) == 0
+    assert "217/217 fibers found" in capsys.readouterr().out
+
+
+def test_bad_board_config_is_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("config_version = 1\n[camera]\nfps = 'fast'\n")
+    _one_line_error(capsys, ["run", "--board", str(bad), "--duration", "1"], "camera.fps", str(bad))
+    _one_line_error(capsys, ["run", "--board", "no-such-board"], "no such board")

@@ -25,3 +25,62 @@ def test_cli_and_environment_override_the_file():
     assert config.camera.fps == 90 and config.link.rate_divider == 3
     config = load_board_config("sim", env={"OPTITAC_CAMERA_FPS": "90"}, overrides={"camera.fps": 30})
     assert config.camera.fps == 30
+
+
+def test_led_is_lowered_at_calibration_until_no_fiber_saturates():
+    """A camera whose image scales with the LED: calibration ends below the saturation limit."""
+    import numpy as np
+
+    from optitac_edge.cameras import CapturedFrame
+    from optitac_edge.cameras.base import Camera
+    from optitac_edge.service import adjust_led
+
+    class LitCamera(Camera):
+        pixel_format, height, width, fps = "gray", 8, 8, 30.0
+
+        def __init__(self, led):
+            super().__init__()
+            self.led, self.seq = led, 0
+
+        def _read_internal(self, timeout_s):
+            self.seq += 1
+            level = min(400.0 * self.led.brightness, 255.0)
+            return CapturedFrame(np.full((8, 8), level, np.uint8), self.seq * 1000, self.seq)
+
+    class FakeLed:
+        brightness = 1.0
+
+        def set_brightness(self, b):
+            self.brightness = b
+
+    led = FakeLed()
+    config = load_board_config("sim", env={}, overrides={"led.enabled": True, "led.brightness": 1.0,
+                                                         "led.max_peak": 230})
+    with LitCamera(led) as cam:
+        b = adjust_led(config, cam, led)
+    assert led.brightness == b and 400 * b <= 230 and 400 * b > 230 - 30
+
+
+def test_service_over_can_decodes_with_the_dbc():
+    """The service with the CAN link on python-can's virtual bus; frames decode with cantools."""
+    import threading
+
+    import can
+
+    from optitac_edge.can import decode_frame
+    from optitac_edge.service import Service, load_or_calibrate, open_board_camera, open_board_transport
+
+    config = load_board_config("sim", env={}, overrides={
+        "link.transport": "can", "link.can_interface": "virtual", "link.can_channel": "svc-test",
+        "camera.fps": 200, "status.period_s": 0.2})
+    with can.Bus(interface="virtual", channel="svc-test") as mcu:
+        with open_board_camera(config) as camera, open_board_transport(config) as transport:
+            bundle = load_or_calibrate(config, camera, None)
+            stats = Service(config, bundle, camera, transport).run(threading.Event(), duration_s=1.0)
+        names = []
+        while (msg := mcu.recv(timeout=0.2)) is not None:
+            sensor, name, signals = decode_frame(msg.arbitration_id, msg.data)
+            assert sensor == 0
+            names.append(name)
+    assert names.count("CONTACT_A") == names.count("CONTACT_B") == stats.sent > 50
+    assert names.count("STATUS") >= 3
