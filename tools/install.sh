@@ -127,7 +127,7 @@ else
     CONSTRAINTS=""
 fi
 run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CONSTRAINTS:+--constraint "$CONSTRAINTS"} \
-    "$REPO[board]"
+    "${REPO}[board]"
 
 # Check the board config with the installed package before it goes live.
 PY="$VENV/bin/python"
