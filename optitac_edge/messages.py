@@ -35,10 +35,26 @@ class ShapeCode(IntEnum):
     UNKNOWN = 255
 
     @classmethod
+    def coerce(cls, value: object) -> int:
+        """``value`` as a shape code on the wire; anything that is not one becomes UNKNOWN."""
+        try:
+            return int(cls(int(value)))  # type: ignore[call-overload]
+        except (ValueError, TypeError, OverflowError):
+            return int(cls.UNKNOWN)
+
+    @classmethod
     def from_name(cls, name: str, contact: bool) -> ShapeCode:
         if not contact:
             return cls.NONE
         return cls.__members__.get(name.upper(), cls.UNKNOWN) if name else cls.UNKNOWN
+
+
+def fold_angle_deg(deg: float) -> float:
+    """An axis angle folded into [−90, 90] degrees (kept as it is when already there; NaN stays NaN)."""
+    d = float(deg)
+    if math.isfinite(d) and not -90.0 <= d <= 90.0:
+        d = (d + 90.0) % 180.0 - 90.0
+    return d
 
 
 class CommandType(IntEnum):

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
 from .base import Camera, CapturedFrame
@@ -28,15 +27,10 @@ def open_camera(name: str, **kwargs: Any) -> Camera:
     CameraError
         If no backend has that name or the backend cannot be opened.
     """
+    from ..device import load_backend
     from ..errors import CameraError
 
-    try:
-        target = BACKENDS[name]
-    except KeyError:
-        raise CameraError(f"unknown camera backend {name!r} (known: {', '.join(sorted(BACKENDS))})") from None
-    module_name, class_name = target.split(":")
-    cls = getattr(importlib.import_module(module_name), class_name)
-    return cls(**kwargs)
+    return load_backend(BACKENDS, name, "camera backend", CameraError)(**kwargs)
 
 
 __all__ = ["BACKENDS", "Camera", "CapturedFrame", "open_camera"]

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import threading
 from abc import ABC, abstractmethod
 from typing import NamedTuple
 
 import numpy as np
 
+from ..device import Device
 from ..errors import CameraError
 from ..frames import frame_geometry
 
@@ -37,7 +37,7 @@ class CapturedFrame(NamedTuple):
     seq: int
 
 
-class Camera(ABC):
+class Camera(Device, ABC):
     """A frame source. Subclasses implement :meth:`_read_internal` and :meth:`_close_internal`.
 
     Use as a context manager; :meth:`close` is idempotent and thread-safe.
@@ -52,8 +52,7 @@ class Camera(ABC):
     reuses_buffer: bool = False
 
     def __init__(self) -> None:
-        self._closed = False
-        self._close_lock = threading.Lock()
+        Device.__init__(self)
         self.frames_read = 0
         #: Frames the source lost, from gaps in ``seq``.
         self.frames_dropped = 0
@@ -62,9 +61,6 @@ class Camera(ABC):
     @abstractmethod
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
         """Return the next frame, ``None`` at the end of a finite source."""
-
-    def _close_internal(self) -> None:
-        """Release the device; called once."""
 
     def read(self, timeout_s: float = 1.0) -> CapturedFrame | None:
         """Next frame, or ``None`` when a finite source (a recording) is exhausted.
@@ -97,20 +93,3 @@ class Camera(ABC):
         """Raise :class:`CameraError` if ``frame`` is not what this camera announced."""
         if frame.dtype != np.uint8 or frame_geometry(frame.shape, self.pixel_format) != (self.height, self.width):
             raise CameraError(f"camera delivered {frame.dtype} {frame.shape}, expected uint8 {self.frame_shape}")
-
-    def close(self) -> None:
-        with self._close_lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._close_internal()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def __enter__(self) -> Camera:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -18,7 +18,7 @@ from typing import Any
 import cantools
 
 from ..errors import TransportError
-from ..messages import ContactMessage, ShapeCode, StatusMessage
+from ..messages import ContactMessage, ShapeCode, StatusMessage, fold_angle_deg
 
 #: The packaged database (a regular file next to this module).
 DBC_PATH = Path(__file__).with_name("optitac.dbc")
@@ -109,21 +109,6 @@ def _int_or_zero(value: float) -> int | float:
     return value if math.isinf(value) else int(value)
 
 
-def _fold_angle(deg: float) -> float:
-    """An axis angle folded into [-90, 90] (as the serial protocol does); NaN -> 0."""
-    d = _finite(deg)
-    if math.isfinite(d) and not -90.0 <= d <= 90.0:
-        d = (d + 90.0) % 180.0 - 90.0
-    return d
-
-
-def _shape(shape: int) -> int:
-    try:
-        return int(ShapeCode(int(shape)))
-    except (ValueError, TypeError, OverflowError):
-        return int(ShapeCode.UNKNOWN)
-
-
 class CanCodec:
     """Payloads of one sensor's frames, encoded with cantools from the DBC.
 
@@ -203,9 +188,9 @@ class CanCodec:
             "COUNTER": counter,
         })
         b = self._encode("CONTACT_B", {
-            "ANGLE": _fold_angle(msg.angle_deg),
+            "ANGLE": fold_angle_deg(_finite(msg.angle_deg)),
             "STRENGTH": _finite(msg.strength),
-            "SHAPE": _shape(msg.shape),
+            "SHAPE": ShapeCode.coerce(msg.shape),
             "FLAGS": int(msg.flags) & 0x1F,
             "AGE": _int_or_zero(msg.age_us),
             "COUNTER": counter,

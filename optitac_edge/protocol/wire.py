@@ -27,6 +27,7 @@ from ..messages import (
     ResultCode,
     ShapeCode,
     StatusMessage,
+    fold_angle_deg,
 )
 
 VERSION = 1
@@ -167,21 +168,6 @@ def _clamp_int(value: float, lo: int, hi: int) -> int:
     return lo if n < lo else min(n, hi)
 
 
-def _wrap_angle(deg: float) -> float:
-    """An axis angle folded into [-90, 90] (kept as it is when already there)."""
-    d = float(deg)
-    if math.isfinite(d) and not -90.0 <= d <= 90.0:
-        d = (d + 90.0) % 180.0 - 90.0
-    return d
-
-
-def _shape(shape: int) -> int:
-    try:
-        return int(ShapeCode(int(shape)))
-    except (ValueError, TypeError):
-        return int(ShapeCode.UNKNOWN)
-
-
 def contact_payload(msg: ContactMessage, sensor_id: int | None = None) -> bytes:
     """The 18-byte CONTACT payload of ``msg`` (quantised with rounding and saturation);
     ``sensor_id`` overrides the message's."""
@@ -192,9 +178,9 @@ def contact_payload(msg: ContactMessage, sensor_id: int | None = None) -> bytes:
         _q(msg.y_mm, MM_LSB, -32768, 32767),
         _q(msg.major_mm, MM_LSB, 0, U16),
         _q(msg.minor_mm, MM_LSB, 0, U16),
-        _q(_wrap_angle(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
+        _q(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
         _q(msg.strength, STRENGTH_LSB, 0, U16),
-        _shape(msg.shape),
+        ShapeCode.coerce(msg.shape),
         _q(msg.confidence, 1.0 / CONFIDENCE_MAX, 0, CONFIDENCE_MAX),
         _clamp_int(msg.age_us, 0, U16),
     )

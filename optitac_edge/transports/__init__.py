@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
 from .base import Transport, TransportCounters
@@ -17,15 +16,10 @@ TRANSPORTS: dict[str, str] = {
 
 def open_transport(name: str, **kwargs: Any) -> Transport:
     """Open the transport called ``name`` (``serial``, ``can`` or ``null``)."""
+    from ..device import load_backend
     from ..errors import TransportError
 
-    try:
-        target = TRANSPORTS[name]
-    except KeyError:
-        raise TransportError(f"unknown transport {name!r} (known: {', '.join(sorted(TRANSPORTS))})") from None
-    module_name, class_name = target.split(":")
-    cls = getattr(importlib.import_module(module_name), class_name)
-    return cls(**kwargs)
+    return load_backend(TRANSPORTS, name, "transport", TransportError)(**kwargs)
 
 
 __all__ = ["TRANSPORTS", "Transport", "TransportCounters", "open_transport"]

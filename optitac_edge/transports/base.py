@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
+from ..device import Device
 from ..messages import Command, ContactMessage, StatusMessage
 
 
@@ -20,7 +20,7 @@ class TransportCounters:
     reconnects: int = 0
 
 
-class Transport(ABC):
+class Transport(Device, ABC):
     """A link to the gripper MCU. Never raises on a send: failures are counted.
 
     Use as a context manager; :meth:`close` is idempotent.
@@ -28,8 +28,7 @@ class Transport(ABC):
 
     def __init__(self) -> None:
         self.counters = TransportCounters()
-        self._closed = False
-        self._close_lock = threading.Lock()
+        Device.__init__(self)
 
     @abstractmethod
     def send_contact(self, message: ContactMessage) -> None:
@@ -42,26 +41,6 @@ class Transport(ABC):
     def poll_commands(self) -> list[Command]:
         """Commands received since the last call (validated; bad ones already answered and counted)."""
         return []
-
-    def _close_internal(self) -> None:  # noqa: B027 - optional hook
-        """Release the device; called once."""
-
-    def close(self) -> None:
-        with self._close_lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._close_internal()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def __enter__(self) -> Transport:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class NullTransport(Transport):
