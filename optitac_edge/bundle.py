@@ -328,6 +328,23 @@ def _digest(meta_bytes: bytes, arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+def _remove_stale_temporaries(path: Path) -> None:
+    """Delete temporary files of saves that were killed (their process no longer exists)."""
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            pid = int(tmp.name[len(path.name) + 2:-4])
+        except ValueError:
+            continue
+        if pid == os.getpid():
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except OSError:  # alive but not ours: leave it
+            continue
+
+
 def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundle:
     """Write ``bundle`` to ``path`` atomically; returns it with its id and time set.
 
@@ -342,6 +359,7 @@ def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundl
     members = {**arrays, "meta": np.frombuffer(meta_bytes, dtype=np.uint8),
                "digest": np.frombuffer(digest.encode(), dtype=np.uint8)}
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with tmp.open("wb") as f:

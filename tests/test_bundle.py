@@ -115,3 +115,18 @@ def test_frame_of_another_size_or_format_is_refused():
                        (np.zeros((40, 50), np.float32), "gray"), (np.zeros((40, 50, 2), np.uint8), "gray")]:
         with pytest.raises(FrameMismatchError, match="built for"):
             table.check_frame(frame, fmt)
+
+
+def test_temporaries_of_killed_saves_are_removed_by_the_next_save(tmp_path):
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    stale = tmp_path / f".cal.npz.{dead}.tmp"
+    stale.write_bytes(b"half a bundle")
+    unrelated = tmp_path / ".other.npz.1.tmp"
+    unrelated.write_bytes(b"x")
+    save_bundle(small_bundle(), tmp_path / "cal.npz")
+    assert not stale.exists() and unrelated.exists()
+    load_bundle(tmp_path / "cal.npz")
