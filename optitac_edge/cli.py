@@ -121,6 +121,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--rest-frames", type=int, default=10, help="leading contact-free frames (meta.json)")
+
+    p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
+    p.add_argument("--minutes", type=float, required=True, metavar="M")
+    p.add_argument("--fault-rate", type=float, default=0.01, metavar="R", help="probability of a fault per read")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fps", type=float, default=60.0)
+
+    p = sub.add_parser("bench", help="measure the per-frame loop: stages, reference, memory, end to end, startup")
+    p.add_argument("--frames", type=int, default=20000, help="frames timed per stage (default 20000)")
+    p.add_argument("--source", default="sim", metavar="sim|REC",
+                   help="the simulated camera (default) or a recording directory")
+    p.add_argument("--fps", type=float, default=240.0, help="frame rate of the end-to-end run (default 240)")
+    p.add_argument("--cal", type=Path, default=None,
+                   help="bundle to use (default: built once for the simulator with all calibration models)")
+    p.add_argument("--rgb", action="store_true", help="simulated camera: RGB frames instead of gray")
+    p.add_argument("--json", type=Path, default=Path("bench.json"), metavar="PATH",
+                   help="write the results here (default bench.json)")
+    p.add_argument("--workdir", type=Path, default=None, help="cache of the simulator bundle (default: a temp dir)")
+    p.add_argument("--reference-frames", type=int, default=300, help="frames the reference runs on (0: skip)")
+    p.add_argument("--memory-frames", type=int, default=2000, help="frames traced with tracemalloc (0: skip)")
+    p.add_argument("--e2e-seconds", type=float, default=60.0, help="end-to-end run length (0: skip)")
+    p.add_argument("--no-startup", action="store_true", help="skip the start-to-first-packet run")
     return parser
 
 
@@ -325,7 +347,8 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -
         bundle = load_or_calibrate(config, camera, args.cal, led)
         print(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
               f"({config.camera.backend} camera, {config.link.transport} link; Ctrl-C to stop)", flush=True)
-        service = Service(config, bundle, camera, transport, notifier)
+        service = Service(config, bundle, camera, transport, notifier,
+                          camera_factory=lambda: open_board_camera(config))
         stats = service.run(stop, duration_s=args.duration, on_result=show)
     notifier.close()
     if tty:
@@ -355,6 +378,106 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_soak(args: argparse.Namespace) -> int:
+    """The service loop on the simulated sensor with injected camera faults, a serial link
+    that is unplugged and plugged back, for ``--minutes``; prints one summary line and
+    exits 1 if any fault was not recovered, an exception escaped or memory grew."""
+    import resource
+    import tracemalloc
+
+    from .cameras.sim import SimCamera
+    from .faults import FaultInjector
+    from .service import Service, load_or_calibrate
+    from .transports.serial import SerialTransport
+
+    if not args.minutes > 0 or not 0 <= args.fault_rate <= 1:
+        raise OptiTacError("--minutes must be positive and --fault-rate in 0..1")
+    from .board_config import load_board_config
+
+    config = load_board_config("sim", env={}, overrides={"camera.fps": args.fps, "status.period_s": 0.5,
+                                                         "camera.timeout_s": 0.5})
+    inj = FaultInjector(rate=args.fault_rate, seed=args.seed, gone_s=0.5, max_wait_s=0.1)
+    seeds = iter(range(args.seed + 1, 1 << 30))
+    open_sim = (lambda: SimCamera(fps=args.fps, realtime=True, seed=next(seeds), rest_frames=10))  # noqa: E731
+    with open_sim() as cam:
+        bundle = load_or_calibrate(config, cam, None)
+    # the serial link: a loop:// port that is "unplugged" every ~7 s for 1 s
+    transport = SerialTransport("loop://", sensor_id=config.sensor.id)
+    stop = threading.Event()
+    unplugs = [0]
+    rss: list[tuple[float, int]] = []
+    t0 = time.monotonic()
+
+    def unplugger() -> None:
+        while not stop.wait(7.0):
+            port = getattr(transport, "_port", None)
+            if port is not None:
+                try:
+                    port.close()  # the next write fails as if the adapter vanished
+                    unplugs[0] += 1
+                except Exception:  # noqa: BLE001
+                    pass
+
+    def sample(est: Any, stats: Any) -> None:
+        now = time.monotonic()
+        if not rss or now - rss[-1][0] >= 5.0:
+            rss.append((now, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+
+    tracemalloc.start()
+    th = threading.Thread(target=unplugger, daemon=True)
+    th.start()
+    unhandled = 0
+    stats = None
+    service = Service(config, bundle, None, transport, camera_factory=inj.factory(open_sim))
+    try:
+        stats = service.run(stop, duration_s=args.minutes * 60, on_result=sample)
+    except Exception as exc:  # noqa: BLE001 - counted: the soak's verdict
+        unhandled += 1
+        log.error("unhandled exception: %s: %s", type(exc).__name__, exc)
+        stats = service.stats
+    finally:
+        stop.set()
+        th.join(10)
+        link = transport.counters
+        transport.close()
+    current, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    injected = sum(inj.injected.values())
+    first_rss = rss[min(1, len(rss) - 1)][1] if rss else 0  # after warm-up
+    last_rss = rss[-1][1] if rss else 0
+    growth_kb = last_rss - first_rss
+    recovered = stats.camera_errors == injected and stats.frames > 0
+    ok = recovered and unhandled == 0 and growth_kb < 20_000
+    kinds = " ".join(f"{k}={v}" for k, v in sorted(inj.injected.items()))
+    print(f"soak {time.monotonic() - t0:.0f} s: frames {stats.frames}, faults injected {injected} ({kinds}), "
+          f"camera faults counted {stats.camera_errors}, reopens {stats.reopens} "
+          f"(failed {stats.reopen_failures}), serial unplugs {unplugs[0]}, reconnects "
+          f"{getattr(link, 'reconnects', 0)}, link errors {link.send_errors + link.rx_errors}, "
+          f"unhandled exceptions {unhandled}, max RSS {first_rss} -> {last_rss} kB, "
+          f"python heap {current // 1024} kB (peak {peak // 1024} kB): {'OK' if ok else 'FAILED'}",
+          flush=True)
+    return 0 if ok else 1
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import json
+
+    from .bench import format_table, run_bench
+
+    if args.frames < 1:
+        raise OptiTacError("--frames must be >= 1")
+    if not args.fps > 0:
+        raise OptiTacError("--fps must be positive")
+    res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
+                    workdir=args.workdir, reference_frames=args.reference_frames,
+                    memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
+                    startup=not args.no_startup)
+    print(format_table(res))
+    args.json.write_text(json.dumps(res, indent=1) + "\n")
+    print(f"wrote {args.json}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``optitac-edge`` console script."""
     # One BLAS thread: the per-frame matrix-vector product is small, and worker
@@ -366,7 +489,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     verbose = args.verbose or args.command == "run"  # the service logs its life to journald
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    handlers = {"sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run, "record": _cmd_record,
+    handlers = {"bench": _cmd_bench, "sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak,
                 "evaluate": _cmd_evaluate,
                 "export-onnx": _cmd_export_onnx, "report": _cmd_report,
                 "calibrate": {"fibers": _cmd_calibrate_fibers, "centroid": _cmd_calibrate_model,

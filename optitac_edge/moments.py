@@ -392,22 +392,28 @@ class MomentBasis:
         k = self.order + 1
         return np.zeros((k, k), dtype=np.float64)
 
-    def raw(self, surface: np.ndarray, out: np.ndarray) -> np.ndarray:
+    def raw(self, surface: np.ndarray, out: np.ndarray, rows: tuple[int, int] | None = None) -> np.ndarray:
         """Raw moments ``m[p, q]`` of ``surface``.
 
         Parameters
         ----------
         surface : ndarray, shape (n, n) or (n*n,), float32, float64 or bool
         out : ndarray, shape (order + 1, order + 1), float64
+        rows : (int, int), optional
+            Only mesh rows ``rows[0]:rows[1]`` are read (the caller knows the
+            surface is 0 elsewhere, e.g. a contact's bounding rows).
 
         Returns
         -------
         ndarray
             ``out``, value * mm^(2+p+q).
         """
-        np.copyto(self._img, surface.reshape(self.grid.n, self.grid.n))
-        np.matmul(self._img, self._xp, out=self._tmp)
-        np.matmul(self._tmp.T, self._yq, out=out)
+        n = self.grid.n
+        r0, r1 = rows if rows is not None else (0, n)
+        img, tmp = self._img[r0:r1], self._tmp[r0:r1]
+        np.copyto(img, surface.reshape(n, n)[r0:r1])
+        np.matmul(img, self._xp, out=tmp)
+        np.matmul(tmp.T, self._yq[r0:r1], out=out)
         return out
 
     def central(self, m: np.ndarray, out: np.ndarray) -> np.ndarray:

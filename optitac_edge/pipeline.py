@@ -15,7 +15,10 @@ switchable improvements beyond the paper noted in brackets):
    fibers and held near the last contact-free frame's gain during a contact];
    dead fibers get 0 [fill_dead: the mean of their neighbours, folded into
    the matrix];
-5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh);
+5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh),
+   computed only on the mesh tiles whose bound can exceed the truncation level
+   (:class:`~optitac_edge.surface.TiledSurface`; the others are truncated to 0
+   anyway, so the result is that of the full product);
 6. truncate: values <= threshold become 0, values above are kept
    [noise_levels: the truncation level is k * measured noise];
 7. contact if the area above the threshold >= ``min_area_mm2`` [and the peak
@@ -29,9 +32,12 @@ switchable improvements beyond the paper noted in brackets):
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)].
 
-All buffers are allocated at construction; a frame costs no array allocation
-beyond a few scalars (and OpenCV's component statistics when several
-contacts are allowed). numpy and OpenCV only.
+All buffers are allocated at construction; a frame allocates nothing that
+outlives it (net 0 bytes per frame after warm-up, measured by
+``optitac-edge bench``), only a few small temporaries: scalars, the list of
+active surface tiles, and OpenCV's labels and the partition's counts when
+several contacts are allowed and a frame has more than one blob or seed.
+numpy and OpenCV only; see docs/performance.md.
 """
 
 from __future__ import annotations
@@ -47,13 +53,15 @@ from .corrections import ContactCorrector
 from .dead_fill import dead_fill_matrix
 from .fiber_table import FiberSampler
 from .moments import MomentBasis, ellipse_from_moments, hu_from_central, log_hu, q4_from_central
-from .surface import surface_from_fibers
+from .surface import TiledSurface
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
 MAX_CANDIDATES = 8
 #: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
 #: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
 GAIN_TOLERANCE = 0.1
+#: _partition's label for "all cells above the truncation level" (one blob, one seed).
+WHOLE_MASK = -1
 
 
 class Pipeline:
@@ -92,7 +100,9 @@ class Pipeline:
         if o.fill_dead and self._has_dead:
             fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead)
             matrix = matrix.astype(np.float64) @ fill
-        self._matrix = np.ascontiguousarray(matrix, dtype=np.float32)
+        # the surface only on mesh tiles that can exceed the truncation level (exact, see
+        # TiledSurface); it keeps the matrix rows inside the fibers' hull, tile by tile
+        self._tiled = TiledSurface(np.asarray(matrix, dtype=np.float32), grid.n, tile=6)
         self._min_area = float(bundle.thresholds.min_area_mm2)
         self._cell_area = float(grid.cell_area_mm2)
         self._n_baseline = max(int(bundle.baseline_frames), 1)
@@ -143,6 +153,9 @@ class Pipeline:
         self._shape_sel = np.zeros(n_cells, dtype=bool)
         self._split_mask = np.zeros(n_cells, dtype=bool)
         self._weighted = np.zeros(n_cells, dtype=np.float32)
+        self._n = grid.n
+        self._rowany = np.zeros(grid.n, dtype=bool)
+        self._rows_used = (0, grid.n)
         # weighted surface: centroid and ellipse (order 2); binarised blob: Hu (order 3) and q4 (4)
         self._basis = MomentBasis(grid, order=2)
         self._mask_basis = MomentBasis(grid, order=4)
@@ -330,7 +343,7 @@ class Pipeline:
                 np.multiply(signal, self._inv_denom, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
-        surface = surface_from_fibers(self._matrix, signal, self._surface)
+        surface = self._tiled.compute(signal, self._trunc, self._surface)
         n = self._find_contacts(surface, est)
 
         if n > 0:
@@ -405,6 +418,10 @@ class Pipeline:
             self._no_contact(est, 0.0, 0.0)
             return 0
         level = self._off if self._in_contact else self._on
+        # mesh rows holding cells above the truncation level: the moments read only those
+        rowany = np.any(self._mask.reshape(self._n, self._n), axis=1, out=self._rowany)
+        r0 = int(np.argmax(rowany))
+        self._rows_used = (r0, self._n - int(np.argmax(rowany[::-1])))
         n_cand = 0
         if not self._multi:
             n_cand = self._measure_blob(surface, self._mask, cells, level, self._cands[0])
@@ -448,6 +465,16 @@ class Pipeline:
         n_parts = cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8,
                                           ltype=cv2.CV_32S)[0]
         parts = self._labels.reshape(-1)
+        if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
+            np.copyto(mask_u8, self._split_mask)
+            n_seeds = cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8,
+                                              ltype=cv2.CV_32S)[0]
+            if n_seeds == 2:
+                cells = int(np.count_nonzero(self._mask))
+                min_cells = self._min_area / self._cell_area
+                return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
+            np.copyto(mask_u8, self._mask)
+            cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8, ltype=cv2.CV_32S)
         seeded = np.zeros(n_parts, dtype=bool)
         seeded[parts[self._split_mask]] = True
         # seeds: the strong blobs, and the truncated blobs without one
@@ -464,6 +491,8 @@ class Pipeline:
 
     def _blob_of(self, label: int) -> np.ndarray:
         """Cells above the truncation level that belong to contact ``label`` (see _partition)."""
+        if label == WHOLE_MASK:
+            return self._mask
         np.equal(self._nearest.reshape(-1), label, out=self._blob)
         return np.logical_and(self._blob, self._mask, out=self._blob)
 
@@ -484,7 +513,7 @@ class Pipeline:
             cells = int(np.count_nonzero(sel))
         else:
             sel, weighted = blob, surface
-        m = self._basis.raw(weighted, self._m)
+        m = self._basis.raw(weighted, self._m, self._rows_used)
         if not m[0, 0] > 0.0:
             return 0
         out.contact = True
@@ -498,7 +527,7 @@ class Pipeline:
             level = max(float(self._trunc), self._shape_frac * peak)
             np.greater(surface, np.float32(level), out=self._shape_sel)
             sel = np.logical_and(self._shape_sel, blob, out=self._shape_sel)
-        mb = self._mask_basis.raw(sel, self._mb)
+        mb = self._mask_basis.raw(sel, self._mb, self._rows_used)
         mub = self._mask_basis.central(mb, self._mub)
         hu_from_central(mub, out=self._hu)
         log_hu(self._hu, out=out.hu)

@@ -78,3 +78,91 @@ def surface_from_fibers(matrix: np.ndarray, values: np.ndarray, out: np.ndarray)
         ``out``.
     """
     return np.matmul(matrix, values, out=out)
+
+
+class TiledSurface:
+    """``matrix @ values`` truncated at a level, computed only on tiles that can exceed it.
+
+    The mesh is cut into square tiles of ``tile`` x ``tile`` cells. For each tile
+    ``t`` and fiber ``j``, ``bound[t, j]`` is the largest ``|matrix[c, j]|`` over
+    the tile's cells ``c``, so ``|surface[c]| <= bound[t] @ |values|`` for every
+    cell of the tile. Tiles whose bound is at or below the truncation level are
+    entirely truncated to 0 and are not computed; the others are computed
+    exactly (their matrix rows are stored tile by tile, contiguous, and runs of
+    consecutive active tiles are one mat-vec each). The result equals
+    ``where(matrix @ values > level, matrix @ values, 0)`` up to float32 rounding
+    of the row dot products. Rows of mesh points outside the fibers' hull
+    (all-zero rows) are dropped.
+
+    Parameters
+    ----------
+    matrix : ndarray, shape (n*n, N), float32
+    n : int
+        Mesh size (``grid.n``).
+    tile : int
+        Tile side, cells.
+    """
+
+    #: Inactive tiles between two active ones that are computed rather than split into two calls.
+    merge_gap = 4
+
+    def __init__(self, matrix: np.ndarray, n: int, tile: int = 6) -> None:
+        matrix = np.asarray(matrix, dtype=np.float32)
+        n_cells, n_fibers = matrix.shape
+        if n_cells != n * n:
+            raise ValueError(f"matrix has {n_cells} rows, expected {n * n}")
+        rows, cols = np.divmod(np.arange(n_cells), n)
+        tile_of = (rows // tile) * (-(-n // tile)) + cols // tile
+        live = np.any(matrix != 0.0, axis=1)
+        order = np.lexsort((np.arange(n_cells), tile_of))
+        order = order[live[order]]
+        tiles, starts = np.unique(tile_of[order], return_index=True)
+        self.n_cells = n_cells
+        self.n_tiles = int(tiles.size)
+        #: cell index (flat, row-major) of each stored row, tile by tile
+        self.cells = order.astype(np.intp)
+        self.starts = np.append(starts, order.size).astype(np.intp)
+        self._starts = [int(v) for v in self.starts]
+        self.matrix = np.ascontiguousarray(matrix[order])
+        # per tile: the mean row, and the largest deviation of a row from it, per fiber
+        m64 = self.matrix.astype(np.float64)
+        counts = np.diff(self.starts)[:, None]
+        mean = np.add.reduceat(m64, starts, axis=0) / counts if order.size else np.zeros((0, n_fibers))
+        dev = np.abs(m64 - np.repeat(mean, counts[:, 0], axis=0))
+        dev = np.maximum.reduceat(dev, starts, axis=0) if order.size else mean
+        # rounding margin: the float32 products of the compute and of the bound differ by < 1e-5
+        dev += 1e-5 * np.abs(m64).max(initial=0.0)
+        self._mean = np.ascontiguousarray(mean, dtype=np.float32)
+        self._dev = np.ascontiguousarray(dev, dtype=np.float32)
+        self._abs = np.zeros(n_fibers, dtype=np.float32)
+        self._tile_bound = np.zeros(self.n_tiles, dtype=np.float32)
+        self._tile_dev = np.zeros(self.n_tiles, dtype=np.float32)
+        self._active = np.zeros(self.n_tiles, dtype=bool)
+        self._buf = np.zeros(order.size, dtype=np.float32)
+        #: tiles computed in the last call
+        self.tiles_computed = 0
+
+    def compute(self, values: np.ndarray, level: float, out: np.ndarray) -> np.ndarray:
+        """``out`` (shape (n*n,), float32) = the surface, 0 wherever it is <= ``level``."""
+        np.abs(values, out=self._abs)
+        np.matmul(self._mean, values, out=self._tile_bound)
+        np.matmul(self._dev, self._abs, out=self._tile_dev)
+        self._tile_bound += self._tile_dev
+        np.greater(self._tile_bound, np.float32(level), out=self._active)
+        out.fill(0.0)
+        active = np.flatnonzero(self._active)
+        computed = 0
+        if active.size:
+            # runs of active tiles, joined across gaps of up to ``merge_gap`` tiles (computing
+            # a tile that is truncated anyway costs less than another call)
+            cut = np.flatnonzero(np.diff(active) > self.merge_gap + 1)
+            first = [int(active[0])] + (active[cut + 1]).tolist()
+            last = (active[cut]).tolist() + [int(active[-1])]
+            starts, buf, cells, mat = self._starts, self._buf, self.cells, self.matrix
+            for t, u in zip(first, last):
+                a, b = starts[t], starts[u + 1]
+                np.matmul(mat[a:b], values, out=buf[a:b])
+                out.put(cells[a:b], buf[a:b])
+                computed += u + 1 - t
+        self.tiles_computed = computed
+        return out

@@ -11,6 +11,7 @@ systematic error of about 0.3 mm that the monotone map removes.
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,17 +37,23 @@ class AxisMap:
         km, kt = self.knots_measured, self.knots_true
         if km.ndim != 1 or km.shape != kt.shape or km.size < 2 or np.any(np.diff(km) <= 0):
             raise ValueError("width knots must be two increasing arrays of one length >= 2")
+        object.__setattr__(self, "_km", [float(v) for v in km])
+        object.__setattr__(self, "_kt", [float(v) for v in kt])
 
     def __call__(self, measured: float) -> float:
-        km, kt = self.knots_measured, self.knots_true
+        # per frame: plain floats and bisect (np.interp on one scalar costs microseconds)
+        km, kt = self._km, self._kt
+        measured = float(measured)
         if measured <= km[0]:
             k = 0
         elif measured >= km[-1]:
-            k = km.size - 2
+            k = len(km) - 2
         else:
-            return max(float(np.interp(measured, km, kt)), 0.0)
+            k = bisect_right(km, measured) - 1
+            if measured == km[k]:
+                return max(kt[k], 0.0)
         slope = (kt[k + 1] - kt[k]) / (km[k + 1] - km[k])
-        return max(float(kt[k] + slope * (measured - km[k])), 0.0)
+        return max(kt[k] + slope * (measured - km[k]), 0.0)
 
     @classmethod
     def linear(cls, offset_mm: float, scale: float) -> AxisMap:

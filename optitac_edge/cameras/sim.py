@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections import deque
 
 import numpy as np
 
+from ..errors import CameraError
 from .base import Camera, CapturedFrame
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
@@ -75,7 +78,10 @@ class SimCamera(Camera):
     rest_frames : int
         Contact-free frames at the start (for calibration and baseline).
     realtime : bool
-        Sleep to keep ``fps``; otherwise frames come as fast as rendered.
+        Deliver frame ``k`` at ``k / fps`` after the start, stamped with that time,
+        rendered ahead by a thread (the simulator's rendering, ~1 ms a frame, is
+        the sensor's exposure and readout, not part of the loop being measured);
+        otherwise frames come as fast as rendered, stamped when rendered.
     """
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
@@ -95,24 +101,89 @@ class SimCamera(Camera):
         self._program = PressProgram(self.fps, rest_frames, seed, self.sensor.layout.radius_mm)
         self._realtime = realtime
         self._seq = 0
+        # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)
+        self._ahead = 3
+        self._ready: deque[tuple[int, np.ndarray, dict[str, float] | None]] = deque()
+        self._cond = threading.Condition()
+        self._stop_render = threading.Event()
+        self._render_thread: threading.Thread | None = None
         self._t0_ns = time.monotonic_ns()
         #: Ground truth of the last frame delivered (None when no contact).
         self.truth: dict[str, float] | None = None
 
-    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
-        frame_ns = self._t0_ns + int(self._seq * 1e9 / self.fps)
-        if self._realtime:
-            now = time.monotonic_ns()
-            if frame_ns > now:
-                time.sleep((frame_ns - now) / 1e9)
-            elif now - frame_ns > 1_000_000_000:  # fell far behind (e.g. suspended): resynchronise
-                self._t0_ns = now - int(self._seq * 1e9 / self.fps)
-                frame_ns = now
-        press = self._program.at(self._seq)
+    def _render(self, seq: int) -> tuple[np.ndarray, dict[str, float] | None]:
+        press = self._program.at(seq)
         indenters = () if press is None else (self._indenter_cls(
             shape=press["shape"], x_mm=press["x"], y_mm=press["y"], angle_deg=press["angle"],
             size_mm=press["size"], depth_mm=press["depth"]),)
-        frame = self.sensor.frame(indenters)
+        return self.sensor.frame(indenters), press
+
+    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
+        if self._realtime:
+            return self._read_paced(timeout_s)
+        frame, press = self._render(self._seq)
         self.truth = press
         self._seq += 1
-        return CapturedFrame(frame, frame_ns if self._realtime else time.monotonic_ns(), self._seq)
+        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+
+    # -- realtime: a render thread works ahead, frames are delivered at their time -----------
+
+    def _render_loop(self) -> None:
+        seq = 0
+        while not self._stop_render.is_set():
+            with self._cond:
+                while len(self._ready) >= self._ahead and not self._stop_render.is_set():
+                    self._cond.wait(0.1)
+                if self._stop_render.is_set():
+                    return
+            frame, press = self._render(seq)
+            with self._cond:
+                self._ready.append((seq, frame, press))
+                self._cond.notify_all()
+            seq += 1
+
+    def _read_paced(self, timeout_s: float) -> CapturedFrame:
+        """The next frame at its time, like a camera: rendered ahead by a thread.
+
+        Frame ``k`` is due at ``t0 + k / fps`` and stamped with that time. When
+        the reader falls behind by more than a frame, the late frames are
+        skipped (the gap in ``seq`` counts them as dropped); after a second
+        behind (e.g. suspended) the clock resynchronises.
+        """
+        if self._render_thread is None:
+            self._render_thread = threading.Thread(target=self._render_loop, name="optitac-sim-render",
+                                                   daemon=True)
+            self._render_thread.start()
+        period = 1e9 / self.fps
+        deadline = time.monotonic() + max(timeout_s, 0.0)
+        while True:
+            with self._cond:
+                while not self._ready:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise CameraError(f"simulated camera: no frame within {timeout_s:.3f} s")
+                    self._cond.wait(min(left, 0.1))
+                seq, frame, press = self._ready[0]
+                now = time.monotonic_ns()
+                frame_ns = self._t0_ns + int(seq * period)
+                if now - frame_ns > 1_000_000_000:  # fell far behind: resynchronise
+                    self._t0_ns = now - int(seq * period)
+                    frame_ns = now
+                elif now - frame_ns > period and len(self._ready) > 1:  # late: the newer one
+                    self._ready.popleft()
+                    self._cond.notify_all()
+                    continue
+                self._ready.popleft()
+                self._cond.notify_all()
+            if frame_ns > now:
+                time.sleep((frame_ns - now) / 1e9)
+            self.truth = press
+            self._seq = seq + 1
+            return CapturedFrame(frame, frame_ns, seq + 1)
+
+    def _close_internal(self) -> None:
+        self._stop_render.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._render_thread is not None and self._render_thread is not threading.current_thread():
+            self._render_thread.join(timeout=2.0)

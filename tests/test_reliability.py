@@ -1,0 +1,248 @@
+"""Reliability of the service loop: camera faults, the watchdog, dead fibers and LED drift.
+
+Each test names the fault of docs/reliability.md it shows.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+from optitac_edge.board_config import load_board_config
+from optitac_edge.cameras.base import Camera, CapturedFrame
+from optitac_edge.cameras.sim import SimCamera
+from optitac_edge.errors import CameraError
+from optitac_edge.faults import FAULT_KINDS, FaultInjector, FaultyCamera
+from optitac_edge.sdnotify import Notifier
+from optitac_edge.service import Service, ServiceStalled, load_or_calibrate
+from optitac_edge.transports.base import NullTransport
+
+
+class RecordingTransport(NullTransport):
+    """Keeps every STATUS and counts CONTACTs (and their flags)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.status: list[tuple[int, int, int]] = []  # (state, camera_errors, t_us)
+        self.contacts = 0
+        self.saturated_flags = 0
+
+    def send_contact(self, message):
+        super().send_contact(message)
+        self.contacts += 1
+        self.saturated_flags += bool(message.flags & 4)
+
+    def send_status(self, message):
+        super().send_status(message)
+        self.status.append((message.state, message.camera_errors, message.t_us))
+
+
+def _config(**overrides):
+    return load_board_config("sim", env={}, overrides={"camera.fps": 300, "status.period_s": 0.1,
+                                                       "camera.timeout_s": 0.2, **overrides})
+
+
+def _sim(seed: int = 0, **kw) -> SimCamera:
+    return SimCamera(fps=300, realtime=False, seed=seed, rest_frames=10, **kw)
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    config = _config()
+    with _sim() as cam:
+        return load_or_calibrate(config, cam, None)
+
+
+@pytest.mark.parametrize("kind", FAULT_KINDS)
+def test_each_camera_fault_is_skipped_counted_flagged_and_recovered(bundle, kind):
+    """Camera: timeout, exception, wrong shape/dtype, black, saturated, gone -> skipped, counted,
+    STATUS bit3, camera reopened; the service keeps processing frames and never raises."""
+    config = _config()
+    inj = FaultInjector(rate=0.1, seed=1, kinds=(kind,), gone_s=0.2, max_wait_s=0.05)
+    factory = inj.factory(lambda: _sim(seed=2))
+    transport = RecordingTransport()
+    service = Service(config, bundle, None, transport, camera_factory=factory)
+    stats = service.run(threading.Event(), duration_s=2.0)
+    n = inj.injected[kind]
+    assert n >= 3, inj.injected
+    assert stats.frames > 50
+    if kind in ("shape", "dtype"):
+        assert stats.bad_frames == n and stats.reopens == 0
+    elif kind == "black":
+        assert stats.dark_frames == n
+    elif kind == "saturated":
+        assert stats.saturated_frames == n
+    elif kind == "crash":
+        assert stats.unexpected_errors == n and n - 1 <= stats.reopens <= n  # the last may fall after the end
+    elif kind == "gone":
+        # one failed read per disappearance; reopen fails until the device is back
+        assert stats.read_errors == n and n - 1 <= stats.reopens <= n and stats.reopen_failures >= n - 1
+    else:
+        assert stats.read_errors == n and n - 1 <= stats.reopens <= n
+    assert stats.camera_errors == n
+    assert transport.contacts == stats.sent == stats.frames
+    assert any(state & 8 for state, _, _ in transport.status)  # STATUS flags the camera fault
+    assert transport.status[-1][1] == n  # camera_errors on the wire
+    assert service.camera is None  # the service closed the camera it opened
+
+
+def test_all_faults_mixed_never_crash_and_status_clears_after_recovery(bundle):
+    config = _config()
+    inj = FaultInjector(rate=0.05, seed=7, gone_s=0.3, max_wait_s=0.05)
+    transport = RecordingTransport()
+    stop = threading.Event()
+    service = Service(config, bundle, None, transport, camera_factory=inj.factory(lambda: _sim(seed=3)))
+    seen = []
+
+    def on_result(est, st):
+        seen.append(st.frames)
+        if st.frames == 400:
+            inj.rate = 0.0  # faults end: the fault bit must clear
+
+    stats = service.run(stop, duration_s=3.0, on_result=on_result)
+    assert sum(inj.injected.values()) >= 10 and stats.frames > 400
+    assert stats.camera_errors == (stats.read_errors + stats.unexpected_errors + stats.bad_frames
+                                   + stats.dark_frames + stats.saturated_frames)
+    assert sum(inj.injected.values()) == stats.camera_errors
+    assert transport.status[-1][0] & 8 == 0  # no fault in the last status period
+
+
+def test_camera_failing_without_factory_is_retried_not_fatal(bundle):
+    """The old constructor (a camera, no factory) still works: errors are counted and the read retried."""
+    config = _config()
+    inj = FaultInjector(rate=0.1, seed=4, kinds=("exception",))
+    with FaultyCamera(_sim(seed=5), inj) as cam:
+        stats = Service(config, bundle, cam, NullTransport()).run(threading.Event(), duration_s=1.0)
+        assert not cam.closed  # the caller's camera stays the caller's
+    assert stats.read_errors == inj.injected["exception"] >= 3 and stats.frames > 50
+
+
+class DeadCamera(Camera):
+    pixel_format, height, width, fps = "gray", 480, 640, 60.0
+
+    def _read_internal(self, timeout_s):
+        time.sleep(0.01)
+        raise CameraError("VIDIOC_DQBUF: No such device")
+
+
+def _notify_socket(tmp_path):
+    path = tmp_path / "notify"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.settimeout(0.01)
+    return sock, {"NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "200000"}
+
+
+def _drain(sock) -> list[tuple[float, str]]:
+    out = []
+    while True:
+        try:
+            out.append((time.monotonic(), sock.recv(4096).decode()))
+        except (TimeoutError, BlockingIOError):
+            return out
+
+
+def test_no_good_frame_for_the_frame_gap_stops_kicking_and_raises(bundle, tmp_path):
+    """Watchdog: a camera that never comes back -> after watchdog.max_frame_gap_s the loop stops
+    kicking WATCHDOG=1 and run() raises ServiceStalled (the CLI exits 2; systemd restarts)."""
+    config = _config(**{"watchdog.max_frame_gap_s": 0.5})
+    sock, env = _notify_socket(tmp_path)
+    t0 = time.monotonic()
+    with pytest.raises(ServiceStalled, match="no good camera frame"):
+        Service(config, bundle, None, NullTransport(), Notifier(env=env),
+                camera_factory=lambda: DeadCamera()).run(threading.Event(), duration_s=10)
+    elapsed = time.monotonic() - t0
+    msgs = _drain(sock)
+    assert 0.5 <= elapsed < 5.0
+    kicks = [t for t, m in msgs if m == "WATCHDOG=1"]
+    # kicked (every 0.05 s at most) while recovering within the 0.5 s gap, never after it
+    assert 1 <= len(kicks) <= 0.5 / 0.05 + 2
+    assert msgs[-1][1] == "STOPPING=1"
+
+
+class HangingCamera(Camera):
+    """Delivers frames, then blocks inside read() (a driver stuck in an ioctl)."""
+
+    pixel_format, height, width, fps = "gray", 480, 640, 300.0
+
+    def __init__(self, inner, hang_after, release):
+        super().__init__()
+        self.inner, self.hang_after, self.release = inner, hang_after, release
+
+    def _read_internal(self, timeout_s):
+        if self.inner.frames_read >= self.hang_after:
+            self.release.wait()
+            return None
+        return self.inner.read(timeout_s)
+
+
+def test_a_stalled_loop_stops_kicking_the_watchdog(bundle, tmp_path):
+    """Watchdog: the kick comes from the frame loop only, so a loop stuck in a driver call stops
+    kicking and systemd's WatchdogSec restarts the service (no side thread keeps it alive)."""
+    config = _config()
+    sock, env = _notify_socket(tmp_path)
+    release = threading.Event()
+    cam = HangingCamera(_sim(seed=6), 100, release)
+    service = Service(config, bundle, cam, NullTransport(), Notifier(env=env))
+    th = threading.Thread(target=service.run, args=(threading.Event(),), kwargs={"duration_s": 30})
+    th.start()
+    try:
+        deadline = time.monotonic() + 20
+        while cam.inner.frames_read < 100 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)
+        _drain(sock)
+        time.sleep(0.6)  # three watchdog periods of 0.2 s
+        assert [m for _, m in _drain(sock) if m == "WATCHDOG=1"] == []
+    finally:
+        release.set()
+        th.join(10)
+    assert threading.active_count() >= 1 and not th.is_alive()
+
+
+def test_partially_saturated_frames_are_processed_with_the_saturated_flag(bundle):
+    """A few fibers at full scale: the frame is processed and CONTACT carries SATURATED (bit2)."""
+    config = _config()
+
+    class HotSpot(Camera):
+        pixel_format, height, width, fps = "gray", 480, 640, 300.0
+
+        def __init__(self):
+            super().__init__()
+            self.inner = _sim(seed=8)
+            t = bundle.fibers
+            self.idx = t.pixel_index[t.pixel_start[0]:t.pixel_start[3]]
+
+        def _read_internal(self, timeout_s):
+            c = self.inner.read(timeout_s)
+            f = c.frame.copy()
+            f.reshape(-1)[self.idx] = 255
+            return CapturedFrame(f, c.t_ns, c.seq)
+
+    transport = RecordingTransport()
+    stats = Service(config, bundle, HotSpot(), transport).run(threading.Event(), duration_s=0.5)
+    assert stats.frames > 20 and stats.saturated_frames == 0
+    assert transport.saturated_flags == transport.contacts == stats.saturated_sent
+
+
+def test_led_drifting_10_percent_over_a_run_gives_no_false_contact():
+    """Sensor degradation: the LED dims, then brightens, by 10 % over a run -> no false contact
+    (gain compensation and baseline tracking of the default ContactOptions)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "_pipeline_options", Path(__file__).with_name("test_pipeline_options.py"))
+    po = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(po)
+    n = 1200  # 20 s at 60 fps
+    for direction in (-1, 1):
+        bundle, pipe = po.start(po.LEVELS)
+        false = 0
+        for k in range(n):
+            gain = 1.0 + direction * 0.10 * k / n
+            false += bool(pipe.process(po.render(bundle, po.REST * gain), (5 + k) * po.PERIOD).contact)
+        assert false == 0, (direction, false)
