@@ -19,6 +19,7 @@ driver call stops kicking too: systemd's watchdog (``WatchdogSec``) restarts it.
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -49,6 +50,8 @@ DARK_LEVEL = 8
 SATURATED_LEVEL = 255
 #: More than this fraction of the live fibers' centres saturated: the frame is skipped.
 SATURATED_FRACTION = 0.5
+#: GIL switch interval while the service runs, s (the interpreter's default is 5 ms).
+SWITCH_INTERVAL_S = 0.0005
 #: SET_THRESHOLD unit: the contact-on level in 1e-4 of the rest light (relative signal).
 THRESHOLD_UNIT = 1e-4
 
@@ -285,6 +288,17 @@ class Service:
         ServiceStalled
             No good frame for ``watchdog.max_frame_gap_s`` (the watchdog is no longer kicked).
         """
+        # The camera and link threads hand frames and packets to this loop; with the
+        # interpreter's default 5 ms switch interval a packet can wait that long for the GIL.
+        switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        try:
+            return self._run(stop, duration_s, on_result)
+        finally:
+            sys.setswitchinterval(switch_interval)
+
+    def _run(self, stop: threading.Event, duration_s: float | None,
+             on_result: Callable[[ContactEstimate, ServiceStats], None] | None) -> ServiceStats:
         st = self.stats
         st.started_ns = time.monotonic_ns()
         end_ns = None if duration_s is None else st.started_ns + int(duration_s * 1e9)
