@@ -47,7 +47,8 @@ import math
 import cv2
 import numpy as np
 
-from .bundle import MAX_CONTACTS, CalibrationBundle, ContactOptions
+from .bundle import CalibrationBundle
+from .contact_options import MAX_CONTACTS, ContactOptions
 from .contact import ContactEstimate
 from .corrections import ContactCorrector
 from .dead_fill import dead_fill_matrix
