@@ -70,13 +70,13 @@ def _scatter(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, m
     return path.name
 
 
-def _measure_truth(rec_path: Path, bundle: CalibrationBundle) -> tuple[Any, Any]:
+def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = False) -> tuple[Any, Any]:
     from .measure import measure_recording
 
     rec = Recording(rec_path)
     if rec.truth is None:
         raise OptiTacError(f"{rec_path}: the report needs a recording with truth.csv")
-    return measure_recording(rec, bundle, corrected=False), rec.truth
+    return measure_recording(rec, bundle, corrected=corrected), rec.truth
 
 
 def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,
@@ -112,12 +112,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
             plt, bundle, corrector, np.stack([m.x_mm[f], m.y_mm[f]], 1),
             np.stack([truth.x_mm[rows], truth.y_mm[rows]], 1), "unseen", out / "unseen_scatter.png")))
     if repeat is not None:
-        from .measure import measure_recording
-
-        rec = Recording(repeat)
-        if rec.truth is None:
-            raise OptiTacError(f"{repeat}: the report needs a recording with truth.csv")
-        positions = repeatability(measure_recording(rec, bundle), rec.truth)
+        positions = repeatability(*_measure_truth(repeat, bundle, corrected=True))
         fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
         k = np.arange(len(positions))
         for off, axis, colour in ((-0.12, "x", "tab:blue"), (0.12, "y", "tab:orange")):

@@ -45,6 +45,11 @@ PAPER = {"unseen_rmse": "0.4 / 0.4", "unseen_r2": "0.99 / 0.99", "seen_r2": "0.9
          "shape_diag": "0.96", "shape_f1_edge": "1.00", "shape_f1_min": "0.90"}
 
 
+def measured_noise(bundle: Any) -> dict[str, float]:
+    """The rest-frame measurements fiber calibration stored in the bundle's options."""
+    return {k: getattr(bundle.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """One way of calibrating: per-frame options, width model kind, error-map fill."""
@@ -82,7 +87,7 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
                     hint: tuple[float, bool]) -> dict[str, Any]:
     rest = cal["rest"]
     bundle = calibrate_fibers(rest.rest_frames(), rest.pixel_format, rotation_hint_deg=hint[0], mirror=hint[1])
-    measured = {k: getattr(bundle.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    measured = measured_noise(bundle)
     bundle = bundle.with_updates(options=dataclasses.replace(config.options, **measured))
     bundle, _ = calibrate_centroid(cal["seen"], bundle, fill=config.map_fill)
     bundle, _ = calibrate_width(cal["widths"], bundle, kind=config.width_kind)
@@ -130,7 +135,7 @@ def dead_fiber_experiment(workdir: Path, ten_percent: bool = False) -> list[str]
     lines = [f"{what}, sensor 0 (no dead fibers: see the first table):", "",
              "| configuration | unseen RMSE raw (mm) | unseen RMSE cal (mm) | missed / false |", "|---|---|---|---|"]
     probe = calibrate_fibers(cal["rest"].rest_frames(), "gray")
-    measured = {k: getattr(probe.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    measured = measured_noise(probe)
     for name, fill in (("all (default, fill on)", True), ("all, dead-fiber fill off", False)):
         options = dataclasses.replace(ContactOptions(**measured), fill_dead=fill)
         r = evaluate_config(cal, ev, Config(options, width_kind="monotone"), (0.0, False))
@@ -148,7 +153,7 @@ def two_contact_experiment(workdir: Path) -> list[str]:
 
     cal_rest = record(workdir, 0, CAL_DAY, "rest", seed=100)
     base = calibrate_fibers(cal_rest.rest_frames(), "gray")
-    measured = {k: getattr(base.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    measured = measured_noise(base)
     sensor = SimulatedSensor(seed=500, drift=SessionDrift.for_day(EVAL_DAY))
     rng = np.random.default_rng(500)
     pairs = []
@@ -186,7 +191,7 @@ def drift_experiment(workdir: Path) -> list[str]:
         ws(path, "drift", seed=600, day=3, warmup=-0.05)
     rec = Recording(path)
     base = calibrate_fibers(rec.rest_frames(), "gray")
-    measured = {k: getattr(base.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+    measured = measured_noise(base)
     paper = ContactOptions.paper(**measured)
     lines = ["LED dimming 5 % during a 20 s recording with presses every 2 s (`drift` scenario, day 3):", "",
              "| configuration | missed contact frames | false contacts (rest frames) |", "|---|---|---|"]
@@ -259,7 +264,7 @@ def main() -> None:
         sim = cal["rest"].meta.extra["simulator"]["optics"]
         hint = (round(sim["rotation_deg"] / 5) * 5.0, bool(sim["mirror"]))  # a hint, not the truth
         probe = calibrate_fibers(cal["rest"].rest_frames(), "gray", rotation_hint_deg=hint[0], mirror=hint[1])
-        measured = {k: getattr(probe.options, k) for k in ("noise_rel", "noise_gray", "black_level")}
+        measured = measured_noise(probe)
         cfgs = configs(measured)
         if variant == args.ablation_variant:
             for name, config in cfgs.items():
