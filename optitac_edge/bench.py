@@ -201,6 +201,7 @@ class StageTimer:
     """Times one pipeline's frames and re-runs each stage in isolation right after each frame."""
 
     def __init__(self, pipe: Any, n: int) -> None:
+        from .contact import ContactEstimate
         from .messages import ContactMessage
         from .protocol.wire import encode_contact
 
@@ -209,6 +210,7 @@ class StageTimer:
         self.samples = {k: _Samples(n) for k in STAGES}
         self._surface = np.zeros_like(pipe._surface)
         self._msg = ContactMessage()
+        self._scratch = ContactEstimate()
         self._encode = encode_contact
         c = pipe._corrector
         self._shapes = c.shapes if c is not None else None
@@ -230,11 +232,12 @@ class StageTimer:
             s["baseline"].append(_t(p._compensated_signal, p._means, t_ns))
         else:
             s["baseline"].append(_t(np.subtract, p._baseline, p._means, p._signal))
-        s["surface"].append(_t(p._tiled.compute, p._signal, p._trunc, self._surface))
+        s["surface"].append(_t(p._surface_op.compute, p._signal, self._surface))
         s["segment"].append(_t(self._segment))
         if est.contact:
-            s["moments"].append(_t(self._moments))
-            s["hu"].append(_t(self._hu))
+            img, x, y, peak = self._box()
+            s["moments"].append(_t(self._moments, img, x, y))
+            s["hu"].append(_t(self._hu, img, peak))
             if self._shapes is not None:
                 s["shape"].append(_t(self._shapes.classify, est.features))
             if self._centroid is not None or self._width is not None:
@@ -243,31 +246,33 @@ class StageTimer:
         return est
 
     def _segment(self) -> None:
-        p = self.pipe
-        surface = self._surface
-        np.greater(surface, p._trunc, out=p._mask)
-        np.logical_not(p._mask, out=p._below)
-        np.copyto(surface, 0.0, where=p._below)
-        if p._multi and np.count_nonzero(p._mask):
-            p._partition(surface)
-
-    def _moments(self) -> None:
-        p = self.pipe
-        m = p._basis.raw(p._surface, p._m, p._rows_used)
-        if m[0, 0] > 0:
-            from .moments import ellipse_from_moments
-
-            ellipse_from_moments(m, p._basis.central(m, p._mu))
-
-    def _hu(self) -> None:
-        from .moments import hu_from_central, log_hu, q4_from_central
+        """Truncation, the bounding box and (several contacts allowed) the partition."""
+        import cv2
 
         p = self.pipe
-        mb = p._mask_basis.raw(p._mask, p._mb, p._rows_used)
-        if mb[0, 0] > 0:
-            mub = p._mask_basis.central(mb, p._mub)
-            log_hu(hu_from_central(mub, out=p._hu), out=p._hu)
-            q4_from_central(mub)
+        cells = p._truncate(self._surface)
+        if cells:
+            x, y, w, h = cv2.boundingRect(p._mask_u8)
+            img = self._surface.reshape(p._n, p._n)[y:y + h, x:x + w]
+            peak = cv2.minMaxLoc(img)[1]
+            if p._multi:
+                p._partition(img, peak, p._mask2d[y:y + h, x:x + w], cells)
+
+    def _box(self) -> tuple[np.ndarray, int, int, float]:
+        """The pipeline's truncated surface in its bounding box, the box origin and peak (not timed)."""
+        import cv2
+
+        p = self.pipe
+        x, y, w, h = cv2.boundingRect(p._mask_u8)
+        img = p._surface.reshape(p._n, p._n)[y:y + h, x:x + w]
+        return img, x, y, float(cv2.minMaxLoc(img)[1])
+
+    def _moments(self, img: np.ndarray, x: int, y: int) -> None:
+        self.pipe._ellipse(img, x, y, self._scratch)
+
+    def _hu(self, img: np.ndarray, peak: float) -> None:
+        p = self.pipe
+        p._shape_features(img, max(float(p._trunc), p._shape_frac * peak), self._scratch)
 
     def _lookup(self, est: Any) -> None:
         if self._centroid is not None:
@@ -314,7 +319,7 @@ def measure_stages(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
     return {"frames": n, "contact_fraction": round(contacts[0] / max(n, 1), 3),
             "stages": {k: _summary(v.values) for k, v in timer.samples.items()},
             "rss_growth_bytes": rss1 - rss0, "rss_bytes": rss1,
-            "surface_tiles": {"total": pipe._tiled.n_tiles}}
+            "surface": type(pipe._surface_op).__name__}
 
 
 def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps: float) -> dict[str, Any]:
@@ -618,21 +623,24 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
                            "fibers": bundle.fibers.n_fibers, "fiber_pixels": int(bundle.fibers.pixel_index.size),
                            "mesh": bundle.grid.n}
     log(f"bench: {described}; {fmt} {w}x{h}; {frames} frames")
-    res["pipeline"] = measure_stages(bundle, frame_list, rest, frames, fps)
-    whole = res["pipeline"]["stages"]["whole_frame"]
-    log(f"  whole frame: median {whole['median_us']} µs, p99 {whole['p99_us']} µs, max {whole['max_us']} µs")
-    if reference_frames > 0:
-        res["reference"] = measure_reference(bundle, frame_list, rest, reference_frames, fps,
-                                             whole["median_us"])
-        r = res["reference"]
-        log(f"  reference: median {r['reference']['median_us']} µs; "
-            f"x{r['ratio_reference_to_fast_paper_mode']} (paper mode)")
-    if memory_frames > 0:
-        res["memory"] = measure_memory(bundle, frame_list, rest, memory_frames, fps)
-        res["memory"]["rss_growth_bytes"] = res["pipeline"]["rss_growth_bytes"]
-        res["memory"]["rss_frames"] = frames
-        log(f"  memory: {res['memory']['net_bytes_per_frame']:.1f} net bytes/frame, "
-            f"RSS +{res['memory']['rss_growth_bytes']} B over {frames} frames")
+    from .pipeline import single_threaded_opencv
+
+    with single_threaded_opencv():  # as the service runs the loop
+        res["pipeline"] = measure_stages(bundle, frame_list, rest, frames, fps)
+        whole = res["pipeline"]["stages"]["whole_frame"]
+        log(f"  whole frame: median {whole['median_us']} µs, p99 {whole['p99_us']} µs, max {whole['max_us']} µs")
+        if reference_frames > 0:
+            res["reference"] = measure_reference(bundle, frame_list, rest, reference_frames, fps,
+                                                 whole["median_us"])
+            r = res["reference"]
+            log(f"  reference: median {r['reference']['median_us']} µs; "
+                f"x{r['ratio_reference_to_fast_paper_mode']} (paper mode)")
+        if memory_frames > 0:
+            res["memory"] = measure_memory(bundle, frame_list, rest, memory_frames, fps)
+            res["memory"]["rss_growth_bytes"] = res["pipeline"]["rss_growth_bytes"]
+            res["memory"]["rss_frames"] = frames
+            log(f"  memory: {res['memory']['net_bytes_per_frame']:.1f} net bytes/frame, "
+                f"RSS +{res['memory']['rss_growth_bytes']} B over {frames} frames")
     if e2e_seconds > 0:
         if source != "sim":
             res["end_to_end"] = {"skipped": "needs --source sim"}

@@ -4,7 +4,9 @@ Format (a contract, see docs/formats.md): an uncompressed NumPy ``.npz``
 archive, loaded with ``allow_pickle=False``. Member ``meta`` is UTF-8 JSON (as
 a uint8 array) with ``format``, ``version``, the frame size and pixel format
 the bundle was built for, the image transform, surface grid, thresholds and
-reports; the other members are plain numeric arrays. Member ``digest`` is the
+reports; the other members are plain numeric arrays (the three
+``interpolation_*`` members of the surface factors are optional: all or none,
+see :class:`~optitac_edge.surface.SurfaceFactors`). Member ``digest`` is the
 SHA-256 over ``meta`` and every array (name, dtype, shape, bytes), so a
 bit-flipped or truncated file is refused. Written atomically: temporary file
 in the same directory, fsync, rename, fsync of the directory.
@@ -30,11 +32,21 @@ from .fiber_table import FiberTable
 from .grid import SurfaceGrid
 from .image_transform import ImageTransform
 from .layout import FiberLayout
+from .surface import SurfaceFactors
 
 BUNDLE_FORMAT = "optitac-edge-calibration"
 BUNDLE_VERSION = 1
 #: Leading contact-free frames averaged into the baseline (the paper's 5).
 BASELINE_FRAMES = 5
+#: Bundle members holding :class:`SurfaceFactors` (all three or none), by field name.
+FACTOR_MEMBERS = {
+    "vertex_operator": "interpolation_vertex_operator",
+    "cell_columns": "interpolation_cell_columns",
+    "cell_weights": "interpolation_cell_weights",
+}
+#: Largest difference between the factored and the dense surface of a test vector accepted
+#: by :class:`CalibrationBundle`, relative to the largest ``|A| @ |v|`` (float32 rounding: ~1e-7).
+FACTOR_CHECK_TOL = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,6 +76,16 @@ class CalibrationBundle:
         Later calibration models (numeric arrays only).
     extra_meta : dict
         JSON-able parameters of later calibration models.
+    surface_factors : SurfaceFactors or None
+        Exact factorisation of ``interpolation`` (fast runtime surface, see
+        :class:`~optitac_edge.surface.PatchSurface`); None for bundles written
+        without it (the runtime then uses the dense matrix).
+
+    Raises
+    ------
+    ValueError
+        If the arrays disagree on the number of fibers or mesh cells, or the
+        surface factors do not reproduce ``interpolation``.
     """
 
     layout: FiberLayout
@@ -79,6 +101,7 @@ class CalibrationBundle:
     extra_meta: dict[str, Any] = field(default_factory=dict)
     created_utc: str = ""
     calibration_id: str = ""
+    surface_factors: SurfaceFactors | None = None
 
     def __post_init__(self) -> None:
         n = self.layout.n_fibers
@@ -86,10 +109,43 @@ class CalibrationBundle:
             raise ValueError(f"fiber table has {self.fibers.n_fibers} fibers, layout {n}")
         if self.interpolation.shape != (self.grid.n * self.grid.n, n):
             raise ValueError(f"interpolation matrix has shape {self.interpolation.shape}")
+        if self.surface_factors is not None:
+            _check_factors(self.surface_factors, self.interpolation)
 
     def with_updates(self, **changes: Any) -> CalibrationBundle:
         """A copy with some fields replaced (e.g. a new calibration model)."""
         return replace(self, **changes)
+
+
+def _check_factors(factors: SurfaceFactors, matrix: np.ndarray) -> None:
+    """Raise ValueError unless ``factors`` has ``matrix``'s shape and reproduces it on a test vector."""
+    if (factors.n_cells, factors.n_fibers) != matrix.shape:
+        raise ValueError(f"surface factors are for {factors.n_cells} mesh cells and {factors.n_fibers} "
+                         f"fibers, the interpolation matrix has shape {matrix.shape}")
+    v = np.cos(0.7 * np.arange(matrix.shape[1])).astype(np.float32)  # deterministic, all fibers
+    w = factors.vertex_operator @ v
+    factored = np.einsum("ck,ck->c", factors.cell_weights, w[factors.cell_columns])
+    matrix = np.asarray(matrix, dtype=np.float32)
+    scale = float((np.abs(matrix) @ np.abs(v)).max(initial=0.0))
+    err = float(np.abs(factored - matrix @ v).max(initial=0.0))
+    if not err <= FACTOR_CHECK_TOL * max(scale, float(np.finfo(np.float32).tiny)):
+        raise ValueError(f"surface factors do not reproduce the interpolation matrix "
+                         f"(difference {err:.3g}, scale {scale:.3g})")
+
+
+def _load_factors(path: Path, members: Mapping[str, np.ndarray]) -> SurfaceFactors | None:
+    """The surface factors of a loaded bundle, None if it has none; BundleError if incomplete or invalid."""
+    present = [m for m in FACTOR_MEMBERS.values() if m in members]
+    if not present:
+        return None
+    if len(present) != len(FACTOR_MEMBERS):
+        missing = sorted(set(FACTOR_MEMBERS.values()) - set(present))
+        raise BundleError(f"{path}: incomplete surface factors in calibration bundle "
+                          f"(missing {', '.join(missing)})")
+    try:
+        return SurfaceFactors(**{f: members[m] for f, m in FACTOR_MEMBERS.items()})
+    except ValueError as exc:
+        raise BundleError(f"{path}: invalid surface factors in calibration bundle: {exc}") from None
 
 
 def _arrays(bundle: CalibrationBundle) -> dict[str, np.ndarray]:
@@ -104,6 +160,9 @@ def _arrays(bundle: CalibrationBundle) -> dict[str, np.ndarray]:
         "fiber_unmatched_px": t.unmatched_px.astype(np.float64).reshape(-1, 2),
         "interpolation": np.ascontiguousarray(bundle.interpolation, dtype=np.float32),
     }
+    if bundle.surface_factors is not None:
+        for f, m in FACTOR_MEMBERS.items():
+            arrays[m] = np.ascontiguousarray(getattr(bundle.surface_factors, f))
     for name, value in bundle.extra_arrays.items():
         arr = np.asarray(value)
         if arr.dtype.kind not in "biuf":
@@ -204,7 +263,8 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
     ------
     BundleError
         If the file is missing, not a bundle, truncated, corrupted (digest
-        mismatch) or of another format version.
+        mismatch), of another format version, or has incomplete or invalid
+        surface factors.
     """
     path = Path(path)
     try:
@@ -232,6 +292,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
         )
     if _digest(meta_bytes, members) != stored:
         raise BundleError(f"{path}: calibration bundle is corrupted (checksum mismatch)")
+    factors = _load_factors(path, members)
     try:
         frame = meta["frame"]
         fibers = FiberTable(
@@ -254,6 +315,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
             extra_meta=meta["extra"],
             created_utc=meta["created_utc"],
             calibration_id=stored[:16],
+            surface_factors=factors,
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise BundleError(f"{path}: inconsistent calibration bundle ({exc})") from None

@@ -70,7 +70,7 @@ def calibrate_fibers(
         If the fibers cannot be found reliably.
     """
     from .fiber_map import build_fiber_map
-    from .surface import build_interpolation_matrix
+    from .surface import build_interpolation
 
     layout = hex_layout() if layout is None else layout
     if len(rest_frames) == 0:
@@ -80,7 +80,7 @@ def calibrate_fibers(
     result = build_fiber_map(gray, layout, rotation_hint_deg=rotation_hint_deg, mirror=mirror,
                              pixel_format=pixel_format)
     grid = SurfaceGrid.over_layout(layout)
-    matrix = build_interpolation_matrix(layout, grid)
+    matrix, factors = build_interpolation(layout, grid)
     report = _jsonable(result.report)
     log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, report)
     noise = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
@@ -89,7 +89,7 @@ def calibrate_fibers(
     return CalibrationBundle(
         layout=layout, transform=result.transform, fibers=result.table, grid=grid,
         interpolation=matrix, thresholds=thresholds or ContactThresholds(), options=options,
-        fiber_map_report=report,
+        fiber_map_report=report, surface_factors=factors,
     )
 
 

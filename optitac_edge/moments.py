@@ -18,15 +18,20 @@ OpenCV computes in pixel units for the same array.
 
 The plain functions (:func:`raw_moments`, :func:`central_moments`,
 :func:`contact_ellipse`, :func:`hu_moments`) allocate and are meant for
-analysis and tests; :class:`MomentBasis` is the allocation-free form the
-runtime pipeline uses.
+analysis, calibration and tests. The runtime pipeline takes OpenCV's moments
+of the contact's bounding box (``cv2.moments``, float64 accumulation) and
+finishes them with the plain-number forms :func:`ellipse_from_central`,
+:func:`hu_from_normalized`, :func:`log_hu_value` and
+:class:`FourFoldSymmetry`; the tests check those against the functions here.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from .grid import SurfaceGrid
@@ -174,9 +179,31 @@ def ellipse_from_moments(m: np.ndarray, mu: np.ndarray) -> ContactEllipse:
     m00 = float(m[0, 0])
     if not m00 > 0.0:
         return _NAN_ELLIPSE._replace(strength=m00 if math.isfinite(m00) else 0.0)
-    a = float(mu[2, 0]) / m00
-    b = float(mu[1, 1]) / m00
-    c = float(mu[0, 2]) / m00
+    return ellipse_from_central(m00, float(m[1, 0]) / m00, float(m[0, 1]) / m00,
+                                float(mu[2, 0]), float(mu[1, 1]), float(mu[0, 2]))
+
+
+def ellipse_from_central(m00: float, x: float, y: float, mu20: float, mu11: float,
+                         mu02: float) -> ContactEllipse:
+    """:func:`ellipse_from_moments` from plain numbers (the runtime form, no arrays).
+
+    Parameters
+    ----------
+    m00 : float
+        Zeroth moment (strength), > 0, value * length^2.
+    x, y : float
+        Centroid, length units.
+    mu20, mu11, mu02 : float
+        Second central moments, value * length^4 (same value and length
+        units as ``m00``).
+
+    Returns
+    -------
+    ContactEllipse
+    """
+    a = mu20 / m00
+    b = mu11 / m00
+    c = mu02 / m00
     half_trace = 0.5 * (a + c)
     half_root = 0.5 * math.sqrt(4.0 * b * b + (a - c) ** 2)
     lam1 = half_trace + half_root
@@ -185,8 +212,8 @@ def ellipse_from_moments(m: np.ndarray, mu: np.ndarray) -> ContactEllipse:
     if angle <= -90.0:
         angle += 180.0
     return ContactEllipse(
-        x_mm=float(m[1, 0]) / m00,
-        y_mm=float(m[0, 1]) / m00,
+        x_mm=x,
+        y_mm=y,
         lambda1=lam1,
         lambda2=lam2,
         major_mm=FWHM_PER_SIGMA * math.sqrt(max(lam1, 0.0)),
@@ -241,19 +268,45 @@ def hu_from_central(mu: np.ndarray, out: np.ndarray | None = None) -> np.ndarray
         out.fill(np.nan)
         return out
     s2, s3 = m00 ** 2.0, m00 ** 2.5
-    n20, n11, n02 = float(mu[2, 0]) / s2, float(mu[1, 1]) / s2, float(mu[0, 2]) / s2
-    n30, n21 = float(mu[3, 0]) / s3, float(mu[2, 1]) / s3
-    n12, n03 = float(mu[1, 2]) / s3, float(mu[0, 3]) / s3
+    out[:] = hu_from_normalized(
+        float(mu[2, 0]) / s2, float(mu[1, 1]) / s2, float(mu[0, 2]) / s2,
+        float(mu[3, 0]) / s3, float(mu[2, 1]) / s3, float(mu[1, 2]) / s3, float(mu[0, 3]) / s3)
+    return out
+
+
+def hu_from_normalized(n20: float, n11: float, n02: float, n30: float, n21: float, n12: float,
+                       n03: float) -> tuple[float, float, float, float, float, float, float]:
+    """Hu's seven invariants from the scale-normalised central moments (plain numbers).
+
+    Parameters
+    ----------
+    n20, n11, n02, n30, n21, n12, n03 : float
+        ``eta_pq = mu_pq / mu_00 ** (1 + (p + q) / 2)``, dimensionless (OpenCV's
+        ``nu20`` .. ``nu03``).
+
+    Returns
+    -------
+    tuple of 7 float
+        ``h1 .. h7``.
+    """
     t0, t1 = n30 + n12, n21 + n03
     q0, q1 = n30 - 3.0 * n12, 3.0 * n21 - n03
-    out[0] = n20 + n02
-    out[1] = (n20 - n02) ** 2 + 4.0 * n11 * n11
-    out[2] = q0 * q0 + q1 * q1
-    out[3] = t0 * t0 + t1 * t1
-    out[4] = q0 * t0 * (t0 * t0 - 3.0 * t1 * t1) + q1 * t1 * (3.0 * t0 * t0 - t1 * t1)
-    out[5] = (n20 - n02) * (t0 * t0 - t1 * t1) + 4.0 * n11 * t0 * t1
-    out[6] = q1 * t0 * (t0 * t0 - 3.0 * t1 * t1) - q0 * t1 * (3.0 * t0 * t0 - t1 * t1)
-    return out
+    return (n20 + n02,
+            (n20 - n02) ** 2 + 4.0 * n11 * n11,
+            q0 * q0 + q1 * q1,
+            t0 * t0 + t1 * t1,
+            q0 * t0 * (t0 * t0 - 3.0 * t1 * t1) + q1 * t1 * (3.0 * t0 * t0 - t1 * t1),
+            (n20 - n02) * (t0 * t0 - t1 * t1) + 4.0 * n11 * t0 * t1,
+            q1 * t0 * (t0 * t0 - 3.0 * t1 * t1) - q0 * t1 * (3.0 * t0 * t0 - t1 * t1))
+
+
+def log_hu_value(h: float) -> float:
+    """One log-scaled Hu invariant, ``-sign(h) * log10(|h|)`` (0 for 0, NaN for NaN); see :func:`log_hu`."""
+    if h == 0.0:
+        return 0.0
+    if h != h:
+        return math.nan
+    return -math.copysign(1.0, h) * math.log10(abs(h))
 
 
 def hu_moments(binary: np.ndarray, grid: SurfaceGrid) -> np.ndarray:
@@ -354,85 +407,64 @@ def log_hu(h: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
-class MomentBasis:
-    """Allocation-free raw and central moments on one grid (the runtime form).
+class FourFoldSymmetry:
+    """Allocation-free :func:`q4_from_central` of a binary image from OpenCV moments (runtime form).
 
-    Raw moments are two small matrix products with precomputed coordinate
-    powers: ``tmp = S @ Xp`` (row-wise x-power sums, shape (n, P)) then
-    ``m = tmp.T @ Yq`` (shape (P, Q)), with the cell area folded into ``Yq``.
-    Computed in float64 (the float32 surface is copied into a float64 buffer)
-    so the raw -> central conversion does not lose precision.
+    With ``z = x + i y`` (pixel coordinates of the image), ``c`` the centroid
+    and ``S_k = sum z**k`` over the shape, ``c40 = sum (z - c)**4 = S_4 - 4 c
+    S_3 + 6 c**2 S_2 - 3 c**4 S_0`` (``S_1 = c S_0``). ``S_2`` and ``S_3``
+    are combinations of the shape's own raw moments (orders 2 and 3, from
+    ``cv2.moments``); ``S_4 = sum z**2 z**2`` is the order-2 ``S_2`` of the
+    shape weighted by ``z**2``, i.e. of the two real images ``binary * (x**2 -
+    y**2)`` and ``binary * 2 x y`` (two products with precomputed tables and
+    two more ``cv2.moments`` calls, accumulated in float64). Both tables are
+    offset by ``size**2`` so that the weighted images have a positive sum
+    (OpenCV 5.0 returns doubled raw moments for an image summing to exactly 0,
+    which a symmetric shape weighted by ``x**2 - y**2`` does); the offset's
+    share, ``size**2 * S_2`` each, is subtracted again.
 
     Parameters
     ----------
-    grid : SurfaceGrid
-    order : int
-        Highest power of x and of y (3 for Hu invariants, 4 for q4).
+    size : int
+        Largest image side.
     """
 
-    def __init__(self, grid: SurfaceGrid, order: int = 3) -> None:
-        self.grid = grid
-        self.order = order
-        k = order + 1
-        self._xp = np.ascontiguousarray(_powers(grid.x_mm, order))  # (n, k)
-        self._yq = np.ascontiguousarray(_powers(grid.y_mm, order) * grid.cell_area_mm2)
-        self._img = np.empty((grid.n, grid.n), dtype=np.float64)
-        self._tmp = np.empty((grid.n, k), dtype=np.float64)
-        p = np.arange(k)
-        self._binom = np.array(
-            [[math.comb(a, b) for b in range(k)] for a in range(k)], dtype=np.float64
-        )
-        self._expo = np.clip(p[:, None] - p[None, :], 0, None).astype(np.float64)
-        self._bx = np.empty((k, k), dtype=np.float64)
-        self._by = np.empty((k, k), dtype=np.float64)
-        self._bm = np.empty((k, k), dtype=np.float64)
+    def __init__(self, size: int) -> None:
+        c = np.arange(size, dtype=np.float32)
+        x, y = c[None, :], c[:, None]
+        self._offset = float(size * size)
+        # integers below 3 size**2: exact in float32 for any mesh size up to ~2000
+        self._re_z2 = np.ascontiguousarray(x * x - y * y + self._offset)
+        self._im_z2 = np.ascontiguousarray(2.0 * x * y + self._offset)
+        self._work = np.empty(size * size, dtype=np.float32)
 
-    def new_moments(self) -> np.ndarray:
-        """A moment buffer, shape (order + 1, order + 1), float64."""
-        k = self.order + 1
-        return np.zeros((k, k), dtype=np.float64)
-
-    def raw(self, surface: np.ndarray, out: np.ndarray, rows: tuple[int, int] | None = None) -> np.ndarray:
-        """Raw moments ``m[p, q]`` of ``surface``.
+    def q4(self, binary: np.ndarray, m: Mapping[str, float]) -> float:
+        """q4 of ``binary``.
 
         Parameters
         ----------
-        surface : ndarray, shape (n, n) or (n*n,), float32, float64 or bool
-        out : ndarray, shape (order + 1, order + 1), float64
-        rows : (int, int), optional
-            Only mesh rows ``rows[0]:rows[1]`` are read (the caller knows the
-            surface is 0 elsewhere, e.g. a contact's bounding rows).
+        binary : ndarray, shape (h, w), float32, 0 or 1
+            The shape (h, w <= size).
+        m : mapping
+            ``cv2.moments(binary)`` (``m00`` > 0).
 
         Returns
         -------
-        ndarray
-            ``out``, value * mm^(2+p+q).
+        float
+            ``|c40| / m00**3``, dimensionless.
         """
-        n = self.grid.n
-        r0, r1 = rows if rows is not None else (0, n)
-        img, tmp = self._img[r0:r1], self._tmp[r0:r1]
-        np.copyto(img, surface.reshape(n, n)[r0:r1])
-        np.matmul(img, self._xp, out=tmp)
-        np.matmul(tmp.T, self._yq[r0:r1], out=out)
-        return out
-
-    def central(self, m: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """Central moments from raw moments ``m`` (``m[0, 0] > 0``).
-
-        Parameters
-        ----------
-        m, out : ndarray, shape (order + 1, order + 1), float64
-
-        Returns
-        -------
-        ndarray
-            ``out``.
-        """
-        cx, cy = m[1, 0] / m[0, 0], m[0, 1] / m[0, 0]
-        np.power(-cx, self._expo, out=self._bx)
-        np.multiply(self._bx, self._binom, out=self._bx)
-        np.power(-cy, self._expo, out=self._by)
-        np.multiply(self._by, self._binom, out=self._by)
-        np.matmul(self._bx, m, out=self._bm)
-        np.matmul(self._bm, self._by.T, out=out)
-        return out
+        h, w = binary.shape
+        work = self._work[:h * w].reshape(h, w)
+        np.multiply(binary, self._re_z2[:h, :w], out=work)
+        a = cv2.moments(work)
+        np.multiply(binary, self._im_z2[:h, :w], out=work)
+        b = cv2.moments(work)
+        m00 = m["m00"]
+        c = complex(m["m10"] / m00, m["m01"] / m00)
+        s2 = complex(m["m20"] - m["m02"], 2.0 * m["m11"])
+        s3 = complex(m["m30"] - 3.0 * m["m12"], 3.0 * m["m21"] - m["m03"])
+        s4 = (complex(a["m20"] - a["m02"] - 2.0 * b["m11"], 2.0 * a["m11"] + b["m20"] - b["m02"])
+              - self._offset * complex(1.0, 1.0) * s2)
+        c2 = c * c
+        c40 = s4 - 4.0 * c * s3 + 6.0 * c2 * s2 - 3.0 * c2 * c2 * m00
+        return abs(c40) / (m00 * m00 * m00)

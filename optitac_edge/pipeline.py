@@ -16,9 +16,9 @@ switchable improvements beyond the paper noted in brackets):
    dead fibers get 0 [fill_dead: the mean of their neighbours, folded into
    the matrix];
 5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh),
-   computed only on the mesh tiles whose bound can exceed the truncation level
-   (:class:`~optitac_edge.surface.TiledSurface`; the others are truncated to 0
-   anyway, so the result is that of the full product);
+   the whole mesh every frame, exactly, in the factored form
+   (:class:`~optitac_edge.surface.PatchSurface`: the values and estimated
+   gradients at the fibers, then 9 of them per mesh cell, tile by tile);
 6. truncate: values <= threshold become 0, values above are kept
    [noise_levels: the truncation level is k * measured noise];
 7. contact if the area above the threshold >= ``min_area_mm2`` [and the peak
@@ -27,22 +27,26 @@ switchable improvements beyond the paper noted in brackets):
    contact truncated at ``max(level, fraction * its peak)``]; then the
    moments give centroid, FWHM widths, angle and strength, and Hu invariants
    and the 4-fold symmetry q4 of the binarised surface give the shape
-   features (``estimate.features``);
+   features (``estimate.features``); everything after the truncation reads
+   only the bounding box of the cells above the level (OpenCV's moments,
+   threshold and labelling on views of it);
 8. [track_baseline: without contact, on quiet frames, the baseline follows
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)].
 
 All buffers are allocated at construction; a frame allocates nothing that
 outlives it (net 0 bytes per frame after warm-up, measured by
-``optitac-edge bench``), only a few small temporaries: scalars, the list of
-active surface tiles, and OpenCV's labels and the partition's counts when
-several contacts are allowed and a frame has more than one blob or seed.
+``optitac-edge bench``), only small temporaries: scalars, OpenCV's moment
+dictionaries, and the partition's labels and counts when several contacts
+are allowed and a frame has more than one blob or seed.
 numpy and OpenCV only; see docs/performance.md.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
@@ -53,8 +57,8 @@ from .contact import ContactEstimate
 from .corrections import ContactCorrector
 from .dead_fill import dead_fill_matrix
 from .fiber_table import FiberSampler
-from .moments import MomentBasis, ellipse_from_moments, hu_from_central, log_hu, q4_from_central
-from .surface import TiledSurface
+from .moments import FourFoldSymmetry, ellipse_from_central, hu_from_normalized, log_hu_value
+from .surface import DenseSurface, PatchSurface
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
 MAX_CANDIDATES = 8
@@ -63,6 +67,24 @@ MAX_CANDIDATES = 8
 GAIN_TOLERANCE = 0.1
 #: _partition's label for "all cells above the truncation level" (one blob, one seed).
 WHOLE_MASK = -1
+
+
+@contextmanager
+def single_threaded_opencv() -> Iterator[None]:
+    """OpenCV on the calling thread only, for the duration (restored after).
+
+    The per-frame calls (labelling, moments, thresholds on a bounding box of a
+    100 x 100 mesh) are far too small for OpenCV's thread pool: handing them to
+    it costs more (thread wake-ups, ~10 µs a frame here) than it saves, and the
+    pool's threads compete with the camera and link threads for the cores.
+    The service and ``optitac-edge bench`` run the loop inside this.
+    """
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
 
 
 class Pipeline:
@@ -97,13 +119,13 @@ class Pipeline:
         self._dead = np.flatnonzero(table.dead)
         self._has_dead = self._dead.size > 0
         self._live = ~np.asarray(table.dead, dtype=bool)
-        matrix = np.asarray(bundle.interpolation)
-        if o.fill_dead and self._has_dead:
-            fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead)
-            matrix = matrix.astype(np.float64) @ fill
-        # the surface only on mesh tiles that can exceed the truncation level (exact, see
-        # TiledSurface); it keeps the matrix rows inside the fibers' hull, tile by tile
-        self._tiled = TiledSurface(np.asarray(matrix, dtype=np.float32), grid.n, tile=6)
+        fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead) if o.fill_dead and self._has_dead else None
+        # the whole surface every frame, exactly: the factored Clough-Tocher form when the bundle
+        # has it (PatchSurface, ~4x less memory traffic), else the dense matrix
+        factors = bundle.surface_factors
+        self._surface_op: PatchSurface | DenseSurface = (
+            PatchSurface(factors, grid.n, fill=fill) if factors is not None
+            else DenseSurface(np.asarray(bundle.interpolation), fill=fill))
         self._min_area = float(bundle.thresholds.min_area_mm2)
         self._cell_area = float(grid.cell_area_mm2)
         self._n_baseline = max(int(bundle.baseline_frames), 1)
@@ -145,26 +167,23 @@ class Pipeline:
         self._work = np.zeros(n_fibers, dtype=np.float32)
         self._mid = n_fibers // 2
         self._surface = np.zeros(n_cells, dtype=np.float32)
-        self._mask = np.zeros(n_cells, dtype=bool)
-        self._below = np.zeros(n_cells, dtype=bool)
-        self._mask_u8 = np.zeros((grid.n, grid.n), dtype=np.uint8)
-        self._labels = np.zeros((grid.n, grid.n), dtype=np.int32)
-        self._blob = np.zeros(n_cells, dtype=bool)
-        self._sel = np.zeros(n_cells, dtype=bool)
-        self._shape_sel = np.zeros(n_cells, dtype=bool)
-        self._split_mask = np.zeros(n_cells, dtype=bool)
-        self._weighted = np.zeros(n_cells, dtype=np.float32)
         self._n = grid.n
-        self._rowany = np.zeros(grid.n, dtype=bool)
-        self._rows_used = (0, grid.n)
-        # weighted surface: centroid and ellipse (order 2); binarised blob: Hu (order 3) and q4 (4)
-        self._basis = MomentBasis(grid, order=2)
-        self._mask_basis = MomentBasis(grid, order=4)
-        self._m = self._basis.new_moments()
-        self._mu = self._basis.new_moments()
-        self._mb = self._mask_basis.new_moments()
-        self._mub = self._mask_basis.new_moments()
-        self._hu = np.zeros(7, dtype=np.float64)
+        self._mask2d = np.zeros((grid.n, grid.n), dtype=bool)
+        self._mask_u8 = self._mask2d.view(np.uint8)
+        # bounding-box sized scratch (contiguous (h, w) views at the start, see _roi)
+        self._weighted = np.zeros(n_cells, dtype=np.float32)
+        self._binary = np.zeros(n_cells, dtype=np.float32)
+        self._blob_img = np.zeros(n_cells, dtype=np.float32)
+        self._split_mask = np.zeros(n_cells, dtype=bool)
+        self._blob = np.zeros(n_cells, dtype=bool)
+        self._below = np.zeros(n_cells, dtype=bool)
+        self._labels = np.zeros(n_cells, dtype=np.int32)
+        self._seed_labels = np.zeros(n_cells, dtype=np.int32)
+        self._nearest = np.zeros((grid.n, grid.n), dtype=np.int32)
+        # moments in mesh cells -> mm: x = x0 + step * col; second moments * step^2 * cell area
+        self._x0, self._y0, self._step = float(grid.x0_mm), float(grid.y0_mm), float(grid.step_mm)
+        self._mu2_scale = self._step * self._step * self._cell_area
+        self._q4 = FourFoldSymmetry(grid.n)
         self._frame = 0
         self._in_contact = False
         self._last_ns: int | None = None
@@ -344,7 +363,7 @@ class Pipeline:
                 np.multiply(signal, self._inv_denom, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
-        surface = self._tiled.compute(signal, self._trunc, self._surface)
+        surface = self._surface_op.compute(signal, self._surface)
         n = self._find_contacts(surface, est)
 
         if n > 0:
@@ -380,13 +399,13 @@ class Pipeline:
         ratio = np.subtract(means, self._black, out=self._ratio)
         ratio *= self._inv_denom
         live = self._live_ratio
-        np.take(ratio, self._live_idx, out=live)
+        ratio.take(self._live_idx, out=live)
         live.sort()
         n = live.size
         g = float(live[(3 * (n - 1)) // 4])
         keep = 1.0 - self._gain_delta
         for _ in range(2):
-            j = int(np.searchsorted(live, np.float32(g * keep)))
+            j = int(live.searchsorted(np.float32(g * keep)))
             g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
         self._frame_gain_value = g
         band = self._gain_tol + self._gain_rate * float(now_ns - self._gain_ref_ns)
@@ -411,35 +430,36 @@ class Pipeline:
 
     def _find_contacts(self, surface: np.ndarray, est: ContactEstimate) -> int:
         """Truncate the surface, find and measure the contacts; returns their number."""
-        np.greater(surface, self._trunc, out=self._mask)
-        np.logical_not(self._mask, out=self._below)
-        np.copyto(surface, 0.0, where=self._below)
-        cells = int(np.count_nonzero(self._mask))
+        cells = self._truncate(surface)
         if cells == 0:
             self._no_contact(est, 0.0, 0.0)
             return 0
         level = self._off if self._in_contact else self._on
-        # mesh rows holding cells above the truncation level: the moments read only those
-        rowany = np.any(self._mask.reshape(self._n, self._n), axis=1, out=self._rowany)
-        r0 = int(np.argmax(rowany))
-        self._rows_used = (r0, self._n - int(np.argmax(rowany[::-1])))
+        # everything below reads only the bounding box of the cells above the truncation level
+        x, y, w, h = cv2.boundingRect(self._mask_u8)
+        img = surface.reshape(self._n, self._n)[y:y + h, x:x + w]
+        peak = cv2.minMaxLoc(img)[1]
         n_cand = 0
         if not self._multi:
-            n_cand = self._measure_blob(surface, self._mask, cells, level, self._cands[0])
+            n_cand = self._measure_blob(img, peak, cells, level, self._cands[0], x, y)
         else:
-            for k, blob_cells in self._partition(surface):
-                n_cand += self._measure_blob(surface, self._blob_of(k), blob_cells, level,
-                                             self._cands[n_cand])
+            mask = self._mask2d[y:y + h, x:x + w]
+            for k, blob_cells in self._partition(img, peak, mask, cells):
+                blob = self._blob_surface(img, mask, k)
+                n_cand += self._measure_blob(blob, peak if blob is img else cv2.minMaxLoc(blob)[1],
+                                             blob_cells, level, self._cands[n_cand], x, y)
                 if n_cand == MAX_CANDIDATES:
                     break
         if n_cand == 0:
-            strength = float(np.sum(surface, dtype=np.float64)) * self._cell_area
+            strength = float(cv2.sumElems(img)[0]) * self._cell_area
             self._no_contact(est, strength, cells * self._cell_area)
             return 0
-        order = self._order[:n_cand]
-        for i in range(n_cand):
-            order[i] = -self._cands[i].strength
-        ranked = np.argsort(order, kind="stable")
+        ranked: np.ndarray | range = range(1)
+        if n_cand > 1:
+            order = self._order[:n_cand]
+            for i in range(n_cand):
+                order[i] = -self._cands[i].strength
+            ranked = np.argsort(order, kind="stable")
         n = min(n_cand, self._max_contacts)
         frame, t_ns = est.frame, est.t_ns
         for i in range(n):
@@ -450,94 +470,126 @@ class Pipeline:
                 self._corrector.apply(c)
         return n
 
-    def _partition(self, surface: np.ndarray) -> list[tuple[int, int]]:
+    def _truncate(self, surface: np.ndarray) -> int:
+        """Values <= the truncation level become 0, in place; the mask of the others; their count."""
+        img = surface.reshape(self._n, self._n)
+        cv2.threshold(img, float(self._trunc), 0.0, cv2.THRESH_TOZERO, dst=img)
+        cells = cv2.countNonZero(img)
+        if cells:  # the levels are > 0, so "above the level" is "not truncated to 0"
+            np.greater(img, 0.0, out=self._mask2d)
+        return cells
+
+    def _roi(self, buffer: np.ndarray, h: int, w: int) -> np.ndarray:
+        """A contiguous (h, w) view at the start of a flat (n*n,) buffer."""
+        return buffer[:h * w].reshape(h, w)
+
+    def _partition(self, img: np.ndarray, peak: float, mask: np.ndarray,
+                   cells: int) -> list[tuple[int, int]]:
         """Split the truncated surface into contacts; ``(label, cells)`` of each, largest first.
 
-        The skin's spread joins neighbouring presses at the (low) noise level,
-        so contacts are seeded by the blobs above ``split_fraction`` of the
-        strongest peak, plus any blob of the truncated surface that holds no
-        such seed (a weaker, separate press); every cell above the truncation
-        level then belongs to its nearest seed.
+        ``img`` and ``mask`` are the bounding box of the cells above the
+        truncation level, ``peak`` the largest value of ``img``. The skin's spread joins neighbouring presses at the
+        (low) noise level, so contacts are seeded by the blobs above
+        ``split_fraction`` of the strongest peak, plus any blob of the
+        truncated surface that holds no such seed (a weaker, separate press);
+        every cell above the truncation level then belongs to its nearest seed.
         """
-        split = max(float(self._trunc), self._split_frac * float(surface.max()))
-        np.greater(surface, np.float32(split), out=self._split_mask)
-        mask_u8 = self._mask_u8.reshape(-1)
-        np.copyto(mask_u8, self._mask)
-        n_parts = cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8,
+        h, w = img.shape
+        split = max(float(self._trunc), self._split_frac * peak)
+        seeds = self._roi(self._split_mask, h, w)
+        np.greater(img, np.float32(split), out=seeds)
+        labels = self._roi(self._labels, h, w)
+        n_parts = cv2.connectedComponents(mask.view(np.uint8), labels=labels, connectivity=8,
                                           ltype=cv2.CV_32S)[0]
-        parts = self._labels.reshape(-1)
-        if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
-            np.copyto(mask_u8, self._split_mask)
-            n_seeds = cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8,
-                                              ltype=cv2.CV_32S)[0]
-            if n_seeds == 2:
-                cells = int(np.count_nonzero(self._mask))
-                min_cells = self._min_area / self._cell_area
-                return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
-            np.copyto(mask_u8, self._mask)
-            cv2.connectedComponents(self._mask_u8, labels=self._labels, connectivity=8, ltype=cv2.CV_32S)
-        seeded = np.zeros(n_parts, dtype=bool)
-        seeded[parts[self._split_mask]] = True
-        # seeds: the strong blobs, and the truncated blobs without one
-        np.logical_or(self._split_mask, np.logical_and(self._mask, ~seeded[parts]), out=self._blob)
-        np.logical_not(self._blob, out=self._below)
-        np.copyto(mask_u8, self._below)
-        _, self._nearest = cv2.distanceTransformWithLabels(
-            self._mask_u8, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)
-        nearest = self._nearest.reshape(-1)
-        counts = np.bincount(nearest[self._mask], minlength=1)
         min_cells = self._min_area / self._cell_area
+        if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
+            n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self._roi(self._seed_labels, h, w),
+                                              connectivity=8, ltype=cv2.CV_32S)[0]
+            if n_seeds == 2:
+                return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
+        seeded = np.zeros(n_parts, dtype=bool)
+        seeded[labels[seeds]] = True
+        # seeds: the strong blobs, and the truncated blobs without one
+        blob = self._roi(self._blob, h, w)
+        np.logical_or(seeds, np.logical_and(mask, ~seeded[labels]), out=blob)
+        below = self._roi(self._below, h, w)
+        np.logical_not(blob, out=below)
+        _, self._nearest = cv2.distanceTransformWithLabels(
+            below.view(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)
+        counts = np.bincount(self._nearest[mask], minlength=1)
         order = np.argsort(counts)[::-1]
         return [(int(k), int(counts[k])) for k in order if k > 0 and counts[k] >= min_cells - 1e-9]
 
-    def _blob_of(self, label: int) -> np.ndarray:
-        """Cells above the truncation level that belong to contact ``label`` (see _partition)."""
+    def _blob_surface(self, img: np.ndarray, mask: np.ndarray, label: int) -> np.ndarray:
+        """The truncated surface of contact ``label`` alone (see _partition), bounding-box sized."""
         if label == WHOLE_MASK:
-            return self._mask
-        np.equal(self._nearest.reshape(-1), label, out=self._blob)
-        return np.logical_and(self._blob, self._mask, out=self._blob)
+            return img
+        h, w = img.shape
+        blob = self._roi(self._blob, h, w)
+        np.equal(self._nearest, label, out=blob)
+        np.logical_and(blob, mask, out=blob)
+        out = self._roi(self._blob_img, h, w)
+        np.multiply(img, blob, out=out)
+        return out
 
-    def _measure_blob(self, surface: np.ndarray, blob: np.ndarray, cells: int, level: np.float32,
-                      out: ContactEstimate) -> int:
-        """Measure one blob (cells of ``blob``) into ``out``; 1 if it is a contact, else 0."""
-        peak = float(np.max(surface, where=blob, initial=0.0))
+    def _measure_blob(self, img: np.ndarray, peak: float, cells: int, level: np.float32,
+                      out: ContactEstimate, x0: int, y0: int) -> int:
+        """Measure one blob into ``out``; 1 if it is a contact, else 0.
+
+        ``img``: the blob's truncated surface (0 elsewhere), a box whose first
+        cell is mesh column ``x0``, row ``y0``; ``peak``: its largest value.
+        """
         if not peak > level or cells * self._cell_area < self._min_area:
             return 0
-        t = self._trunc
+        t = float(self._trunc)
         if self._frac > 0.0 and self._frac * peak > t:
-            t = np.float32(self._frac * peak)
-        if self._multi or t > self._trunc:
-            np.greater(surface, t, out=self._sel)
-            np.logical_and(self._sel, blob, out=self._sel)
-            sel = self._sel
-            weighted = np.multiply(surface, sel, out=self._weighted)
-            cells = int(np.count_nonzero(sel))
-        else:
-            sel, weighted = blob, surface
-        m = self._basis.raw(weighted, self._m, self._rows_used)
-        if not m[0, 0] > 0.0:
+            t = float(np.float32(self._frac * peak))
+        weighted = img
+        if t > self._trunc:
+            weighted = self._roi(self._weighted, *img.shape)
+            cv2.threshold(img, t, 0.0, cv2.THRESH_TOZERO, dst=weighted)
+            cells = cv2.countNonZero(weighted)
+        if not self._ellipse(weighted, x0, y0, out):
             return 0
-        out.contact = True
-        out.strength = float(m[0, 0])
         out.area_mm2 = cells * self._cell_area
-        mu = self._basis.central(m, self._mu)
-        e = ellipse_from_moments(m, mu)
-        out.x_mm, out.y_mm = e.x_mm, e.y_mm
-        out.major_mm, out.minor_mm, out.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
-        if self._shape_frac > 0.0:  # shape features from their own binarization level
-            level = max(float(self._trunc), self._shape_frac * peak)
-            np.greater(surface, np.float32(level), out=self._shape_sel)
-            sel = np.logical_and(self._shape_sel, blob, out=self._shape_sel)
-        mb = self._mask_basis.raw(sel, self._mb, self._rows_used)
-        mub = self._mask_basis.central(mb, self._mub)
-        hu_from_central(mub, out=self._hu)
-        log_hu(self._hu, out=out.hu)
-        feats = out.features
-        feats[:7] = out.hu
-        feats[7] = q4_from_central(mub)
+        # shape features from their own binarization level
+        shape_level = max(float(self._trunc), self._shape_frac * peak) if self._shape_frac > 0.0 else t
+        self._shape_features(img, shape_level, out)
         out.shape = ""
         out.confidence = math.nan
         return 1
+
+    def _ellipse(self, weighted: np.ndarray, x0: int, y0: int, out: ContactEstimate) -> bool:
+        """Centroid, FWHM widths, angle and strength of a (box of the) truncated surface into ``out``."""
+        m = cv2.moments(weighted)
+        m00 = m["m00"]
+        if not m00 > 0.0:
+            return False
+        step, area = self._step, self._cell_area
+        e = ellipse_from_central(
+            m00 * area, self._x0 + step * (x0 + m["m10"] / m00), self._y0 + step * (y0 + m["m01"] / m00),
+            m["mu20"] * self._mu2_scale, m["mu11"] * self._mu2_scale, m["mu02"] * self._mu2_scale)
+        out.contact = True
+        out.strength = e.strength
+        out.x_mm, out.y_mm = e.x_mm, e.y_mm
+        out.major_mm, out.minor_mm, out.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
+        return True
+
+    def _shape_features(self, img: np.ndarray, level: float, out: ContactEstimate) -> None:
+        """Log-Hu invariants and q4 of ``img > level`` into ``out.hu`` / ``out.features``."""
+        binary = self._roi(self._binary, *img.shape)
+        cv2.threshold(img, level, 1.0, cv2.THRESH_BINARY, dst=binary)
+        m = cv2.moments(binary)
+        m00 = m["m00"]
+        hu, feats = out.hu, out.features
+        if not m00 > 0.0:
+            hu.fill(np.nan)
+            feats.fill(np.nan)
+            return
+        h = hu_from_normalized(m["nu20"], m["nu11"], m["nu02"], m["nu30"], m["nu21"], m["nu12"], m["nu03"])
+        for i in range(7):
+            hu[i] = feats[i] = log_hu_value(h[i])
+        feats[7] = self._q4.q4(binary, m)
 
     def _track(self, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
         """Slow baseline tracking on quiet contact-free frames."""

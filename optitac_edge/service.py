@@ -44,8 +44,9 @@ log = logging.getLogger(__name__)
 REOPEN_BACKOFF_S = 0.05
 #: Longest wait between camera reopen attempts, s (also capped at a quarter of the frame gap).
 REOPEN_BACKOFF_MAX_S = 1.0
-#: Sampled fiber centres at or below this gray level (90th percentile): the frame is dark.
+#: Fewer than DARK_FRACTION of the sampled fiber centres above this gray level: the frame is dark.
 DARK_LEVEL = 8
+DARK_FRACTION = 0.1
 #: Gray level counted as saturated (full scale).
 SATURATED_LEVEL = 255
 #: More than this fraction of the live fibers' centres saturated: the frame is skipped.
@@ -182,6 +183,11 @@ class Service:
         row = np.clip(np.rint(t.centroid_px[:, 1]), 0, t.height - 1).astype(np.intp)
         live = ~t.dead if (~t.dead).any() else np.ones_like(t.dead)
         self._probe = (row * t.width + col)[live]
+        if t.pixel_format == "rgb":  # the three bytes of each probed pixel
+            self._probe = (self._probe[:, None] * 3 + np.arange(3)).ravel()
+        self._probed = np.zeros(self._probe.size, dtype=np.uint8)
+        self._probe_flags = np.zeros(self._probe.size, dtype=bool)
+        self._n_probes = int(live.sum())
         self._pixel_format = t.pixel_format
         self._frame_shape = camera.frame_shape
 
@@ -190,20 +196,24 @@ class Service:
     def check_frame(self, frame: Any) -> str | None:
         """Why ``frame`` must be skipped (``"bad"``, ``"dark"``, ``"saturated"``), or None.
 
-        Also sets ``self.saturated`` when some live fiber centre is at full scale.
-        Costs one gather of a pixel per fiber.
+        Also sets ``self.saturated`` when some live fiber centre is at full scale
+        (any channel for RGB). Costs one gather of a pixel per fiber into a
+        preallocated buffer and two counts.
         """
         self.saturated = False
         if (not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self._frame_shape):
             return "bad"
-        flat = frame.reshape(-1, 3) if self._pixel_format == "rgb" else frame.reshape(-1)
-        values = flat[self._probe]
-        if values.ndim == 2:
-            values = values.max(axis=1)
-        n_sat = int(np.count_nonzero(values >= SATURATED_LEVEL))
-        if n_sat > SATURATED_FRACTION * values.size:
+        values, flags = self._probed, self._probe_flags
+        frame.reshape(-1).take(self._probe, out=values, mode="clip")
+        rgb = self._pixel_format == "rgb"
+        # a pixel is saturated if any of its channels is; bright if its largest channel is
+        np.greater_equal(values, SATURATED_LEVEL, out=flags)
+        n_sat = int(np.count_nonzero(flags.reshape(-1, 3).any(axis=1))) if rgb else int(np.count_nonzero(flags))
+        if n_sat > SATURATED_FRACTION * self._n_probes:
             return "saturated"
-        if np.percentile(values, 90) <= DARK_LEVEL:
+        np.greater(values, DARK_LEVEL, out=flags)
+        n_lit = int(np.count_nonzero(flags.reshape(-1, 3).any(axis=1))) if rgb else int(np.count_nonzero(flags))
+        if n_lit < DARK_FRACTION * self._n_probes:
             return "dark"
         self.saturated = n_sat > 0
         return None
@@ -290,10 +300,13 @@ class Service:
         """
         # The camera and link threads hand frames and packets to this loop; with the
         # interpreter's default 5 ms switch interval a packet can wait that long for the GIL.
+        from .pipeline import single_threaded_opencv
+
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
-            return self._run(stop, duration_s, on_result)
+            with single_threaded_opencv():
+                return self._run(stop, duration_s, on_result)
         finally:
             sys.setswitchinterval(switch_interval)
 

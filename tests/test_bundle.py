@@ -130,3 +130,106 @@ def test_temporaries_of_killed_saves_are_removed_by_the_next_save(tmp_path):
     save_bundle(small_bundle(), tmp_path / "cal.npz")
     assert not stale.exists() and unrelated.exists()
     load_bundle(tmp_path / "cal.npz")
+
+
+def factored_bundle():
+    """small_bundle with the real interpolation matrix and its surface factors."""
+    from optitac_edge.surface import build_interpolation
+
+    bundle = small_bundle()
+    matrix, factors = build_interpolation(bundle.layout, bundle.grid)
+    return bundle.with_updates(interpolation=matrix, surface_factors=factors)
+
+
+def _resave(path, change):
+    """Rewrite a saved bundle's members with ``change(members)`` applied and a valid digest."""
+    from optitac_edge.bundle import _digest
+
+    with np.load(path, allow_pickle=False) as npz:
+        members = {name: npz[name] for name in npz.files}
+    meta = members.pop("meta")
+    members.pop("digest")
+    change(members)
+    digest = _digest(meta.tobytes(), members)
+    np.savez(path, **members, meta=meta, digest=np.frombuffer(digest.encode(), dtype=np.uint8))
+
+
+FACTOR_NAMES = ("interpolation_vertex_operator", "interpolation_cell_columns", "interpolation_cell_weights")
+
+
+def test_round_trip_with_surface_factors(tmp_path):
+    original = factored_bundle()
+    save_bundle(original, tmp_path / "cal.npz")
+    with zipfile.ZipFile(tmp_path / "cal.npz") as z:
+        assert {f"{name}.npy" for name in FACTOR_NAMES} <= set(z.namelist())
+    loaded = load_bundle(tmp_path / "cal.npz")
+    for name in ("vertex_operator", "cell_columns", "cell_weights"):
+        got, want = getattr(loaded.surface_factors, name), getattr(original.surface_factors, name)
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(loaded.interpolation, original.interpolation)
+
+
+def test_round_trip_without_surface_factors(tmp_path):
+    save_bundle(small_bundle(), tmp_path / "cal.npz")
+    with zipfile.ZipFile(tmp_path / "cal.npz") as z:
+        assert not any(name.startswith("interpolation_") for name in z.namelist())
+    assert load_bundle(tmp_path / "cal.npz").surface_factors is None
+
+
+@pytest.mark.parametrize("keep", [(0,), (1,), (2,), (0, 1), (1, 2)])
+def test_bundle_with_some_factor_members_is_refused(tmp_path, keep):
+    path = tmp_path / "cal.npz"
+    save_bundle(factored_bundle(), path)
+
+    def drop(members):
+        for i, name in enumerate(FACTOR_NAMES):
+            if i not in keep:
+                del members[name]
+
+    _resave(path, drop)
+    with pytest.raises(BundleError, match="incomplete surface factors") as err:
+        load_bundle(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("value", [-1, 10**6])
+def test_tampered_cell_columns_are_refused(tmp_path, value):
+    path = tmp_path / "cal.npz"
+    save_bundle(factored_bundle(), path)
+
+    def tamper(members):
+        members["interpolation_cell_columns"][3, 2] = value
+
+    _resave(path, tamper)
+    with pytest.raises(BundleError, match="cell_columns outside") as err:
+        load_bundle(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_tampered_factor_dtype_or_weights_are_refused(tmp_path):
+    path = tmp_path / "cal.npz"
+    save_bundle(factored_bundle(), path)
+    _resave(path, lambda m: m.update(interpolation_cell_columns=m["interpolation_cell_columns"].astype(np.int64)))
+    with pytest.raises(BundleError, match="int32"):
+        load_bundle(path)
+    save_bundle(factored_bundle(), path)
+    _resave(path, lambda m: m["interpolation_cell_weights"].__imul__(np.float32(1.5)))
+    with pytest.raises(BundleError, match=f"{path}.*do not reproduce"):
+        load_bundle(path)
+
+
+def test_bundle_checks_factors_against_grid_layout_and_matrix():
+    from optitac_edge.surface import build_interpolation
+
+    bundle = factored_bundle()
+    other_grid = SurfaceGrid.over_layout(bundle.layout, n=12)
+    _, factors12 = build_interpolation(bundle.layout, other_grid)
+    with pytest.raises(ValueError, match="mesh cells"):
+        bundle.with_updates(surface_factors=factors12)
+    bigger = hex_layout(rings=3)
+    _, factors_big = build_interpolation(bigger, SurfaceGrid.over_layout(bigger, n=10))
+    with pytest.raises(ValueError, match="fibers"):
+        bundle.with_updates(surface_factors=factors_big)
+    with pytest.raises(ValueError, match="reproduce"):  # a new matrix needs new factors
+        bundle.with_updates(interpolation=bundle.interpolation * np.float32(2.0))

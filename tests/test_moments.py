@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -11,14 +12,17 @@ from optitac_edge.grid import SurfaceGrid
 from optitac_edge.layout import hex_layout
 from optitac_edge.moments import (
     FWHM_PER_SIGMA,
-    MomentBasis,
+    FourFoldSymmetry,
     central_from_raw,
     central_moments,
     contact_ellipse,
+    ellipse_from_central,
     ellipse_from_moments,
     hu_from_central,
+    hu_from_normalized,
     hu_moments,
     log_hu,
+    log_hu_value,
     q4_from_central,
     q4_moment,
     raw_moments,
@@ -265,32 +269,71 @@ def test_q4_on_the_runtime_mesh_separates_disc_and_square() -> None:
 # -- the fast form ------------------------------------------------------------------------
 
 
-def test_moment_basis_equals_plain_functions() -> None:
-    basis = MomentBasis(GRID, order=3)
+def _box(mask: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """The mask's bounding box (float32 0/1) and its first column / row, as the pipeline reads it."""
+    rows, cols = np.nonzero(mask)
+    r0, c0 = int(rows.min()), int(cols.min())
+    return mask[r0:rows.max() + 1, c0:cols.max() + 1].astype(np.float32), c0, r0
+
+
+def test_opencv_moments_of_a_box_give_the_ellipse_in_mm() -> None:
+    """The pipeline's form: cv2.moments of the bounding box, cells -> mm, equals contact_ellipse."""
     surface = (gaussian(5.0, -3.0, 2.5, 0.8, 70.0) + 3.0 * gaussian(-4, 6, 1.0, 1.0, 0.0))
-    surface = surface.astype(np.float32)
-    m = basis.raw(surface.ravel(), basis.new_moments())
-    m_ref = raw_moments(surface, GRID, order=3)
-    np.testing.assert_allclose(m, m_ref, rtol=1e-10, atol=1e-10 * np.abs(m_ref).max())
-    mu = basis.central(m, basis.new_moments())
-    mu_ref = central_moments(surface, GRID, order=3)
-    np.testing.assert_allclose(mu, mu_ref, rtol=1e-8, atol=1e-9 * np.abs(m_ref).max())
-    e, e_ref = ellipse_from_moments(m, mu), contact_ellipse(surface, GRID)
-    np.testing.assert_allclose(e, e_ref, rtol=1e-9, atol=1e-9)
-    mask = surface > 5.0
-    mb = basis.raw(mask, basis.new_moments())
-    hu = hu_from_central(basis.central(mb, basis.new_moments()))
-    np.testing.assert_allclose(hu, hu_moments(mask, GRID), rtol=1e-8, atol=1e-14)
+    surface = np.where(surface > 2.0, surface, 0.0).astype(np.float32)
+    box, c0, r0 = _box(surface > 0)
+    img = surface[r0:r0 + box.shape[0], c0:c0 + box.shape[1]]
+    m = cv2.moments(img)
+    step, area = GRID.step_mm, GRID.cell_area_mm2
+    e = ellipse_from_central(m["m00"] * area, GRID.x0_mm + step * (c0 + m["m10"] / m["m00"]),
+                             GRID.y0_mm + step * (r0 + m["m01"] / m["m00"]), m["mu20"] * step ** 2 * area,
+                             m["mu11"] * step ** 2 * area, m["mu02"] * step ** 2 * area)
+    np.testing.assert_allclose(e, contact_ellipse(surface, GRID), rtol=1e-9, atol=1e-9)
 
 
-def test_moment_basis_order_4_gives_q4() -> None:
-    basis = MomentBasis(GRID, order=4)
-    for x0, y0 in ((0.0, 0.0), (-7.5, 6.0)):  # far from the origin: raw -> central cancellation
-        mask = polygon_mask(rotate(np.array([[-2.0, -1.5], [2.0, -1.5], [2.0, 1.5], [-2.0, 1.5]]),
-                                   33.0) + (x0, y0))
-        mb = basis.raw(mask.ravel(), basis.new_moments())
-        mu = basis.central(mb, basis.new_moments())
-        mu_ref = central_moments(mask.astype(np.float64), GRID, order=4)
-        np.testing.assert_allclose(mu, mu_ref, rtol=1e-7, atol=1e-9 * np.abs(mu_ref).max())
-        assert q4_from_central(mu) == pytest.approx(q4_moment(mask, GRID), rel=1e-8)
-        np.testing.assert_allclose(hu_from_central(mu), hu_moments(mask, GRID), rtol=1e-8, atol=1e-14)
+@pytest.mark.parametrize("name", ["ellipse", "triangle", "rectangle"])
+def test_hu_from_opencv_nu_and_log_hu_value_equal_the_array_forms(name: str) -> None:
+    mask = _shapes()[name]
+    box, _, _ = _box(mask)
+    m = cv2.moments(box)
+    hu = hu_from_normalized(m["nu20"], m["nu11"], m["nu02"], m["nu30"], m["nu21"], m["nu12"], m["nu03"])
+    ref = hu_moments(mask, GRID)
+    np.testing.assert_allclose(hu, ref, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose([log_hu_value(h) for h in ref], log_hu(ref), rtol=1e-15)
+
+
+def test_log_hu_value_sign_zero_nan() -> None:
+    assert log_hu_value(1e-3) == pytest.approx(3.0)
+    assert log_hu_value(-1e-3) == pytest.approx(-3.0)
+    assert log_hu_value(0.0) == 0.0
+    assert math.isnan(log_hu_value(math.nan))
+
+
+@pytest.mark.parametrize("x0, y0, deg", [(0.0, 0.0, 33.0), (-7.5, 6.0, 10.0), (8.0, 8.0, 71.0)])
+def test_four_fold_symmetry_from_opencv_moments_equals_q4_moment(x0: float, y0: float, deg: float) -> None:
+    """Far from the box origin too (raw -> central cancellation), rectangles and a triangle."""
+    q4 = FourFoldSymmetry(GRID.n)
+    rect = polygon_mask(rotate(np.array([[-2.0, -1.5], [2.0, -1.5], [2.0, 1.5], [-2.0, 1.5]]), deg) + (x0, y0))
+    tri = polygon_mask(rotate(np.array([[-3.0, -2.0], [3.0, -2.0], [0.0, 3.0]]), deg) + (x0, y0))
+    for mask in (rect, tri):
+        box, _, _ = _box(mask)
+        assert q4.q4(box, cv2.moments(box)) == pytest.approx(q4_moment(mask, GRID), rel=1e-9, abs=1e-15)
+    square, _, _ = _box(polygon_mask(np.array([[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]])))
+    assert q4.q4(square, cv2.moments(square)) == pytest.approx(1 / 60, rel=0.05)
+
+
+def test_four_fold_symmetry_allocates_nothing_that_outlives_a_call() -> None:
+    import tracemalloc
+
+    q4 = FourFoldSymmetry(GRID.n)
+    box, _, _ = _box(polygon_mask(np.array([[-3.0, -2.0], [3.0, -2.0], [0.0, 3.0]])))
+    m = cv2.moments(box)
+    for _ in range(10):
+        q4.q4(box, m)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(200):
+            q4.q4(box, m)
+        assert tracemalloc.get_traced_memory()[0] - before < 200  # < 1 byte per call: nothing kept
+    finally:
+        tracemalloc.stop()

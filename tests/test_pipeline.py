@@ -355,3 +355,46 @@ def test_end_to_end_simulated_sensor() -> None:
             assert abs((a.angle_deg - ind.angle_deg + 90) % 180 - 90) < 3.0, ind
     for _ in range(3):
         assert not fast.process(sensor.frame(), 0).contact
+
+
+@pytest.mark.parametrize("options", [ContactOptions.paper(), ContactOptions()], ids=["paper", "default"])
+def test_shape_features_equal_the_plain_moments_of_the_binarised_contact(options: ContactOptions) -> None:
+    """The runtime's OpenCV-moment route to log-Hu and q4 against the plain numpy functions.
+
+    The reference method has no q4, so this is the oracle for ``features[7]``.
+    """
+    from optitac_edge.moments import hu_moments, log_hu, q4_moment
+
+    bundle = make_bundle("gray", options=options)
+    rest = rest_levels(7)
+    presses = [pressed_levels(rest, -4.0, 2.5, 40.0, 2.6, 1.3, 35.0),
+               pressed_levels(rest, 3.0, -2.0, 55.0, 1.5, 1.5)]
+    pipe = Pipeline(bundle)
+    run(pipe, warm(bundle, rest))
+    for levels in presses:
+        est = pipe.process(render(bundle, levels, seed=9), 10**9)
+        assert est.contact
+        surface = pipe.surface
+        trunc = np.float32(pipe.levels[0])
+        if options.shape_fraction > 0:
+            level = np.float32(max(float(trunc), options.shape_fraction * float(surface.max())))
+        else:  # the paper: the cells above the truncation level
+            level = trunc
+        binary = surface > level
+        np.testing.assert_allclose(est.hu, log_hu(hu_moments(binary, bundle.grid)), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(est.features[:7], est.hu)
+        assert est.features[7] == pytest.approx(q4_moment(binary, bundle.grid), rel=1e-8, abs=1e-14)
+
+
+def test_single_threaded_opencv_restores_the_thread_count() -> None:
+    import cv2
+
+    from optitac_edge.pipeline import single_threaded_opencv
+
+    before = cv2.getNumThreads()
+    with single_threaded_opencv():
+        assert cv2.getNumThreads() == 1
+    assert cv2.getNumThreads() == before
+    with pytest.raises(RuntimeError), single_threaded_opencv():
+        raise RuntimeError("boom")
+    assert cv2.getNumThreads() == before
