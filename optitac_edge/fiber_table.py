@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from .errors import FrameMismatchError
-from .frames import LUMA_WEIGHTS, frame_geometry
+from .frames import frame_geometry
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,15 +108,15 @@ class FiberSampler:
         self._starts = table.pixel_start[:-1].astype(np.intp)
         self._inv_count = (1.0 / table.pixel_count).astype(np.float32)
         p = table.pixel_index.size
-        self._rgb = np.empty((p, 3), dtype=np.uint8) if table.pixel_format == "rgb" else None
-        # RGB: the gathered channels as float32 (the dot product's own cast would allocate)
-        self._rgb_f = np.empty((p, 3), dtype=np.float32) if self._rgb is not None else None
-        # RGB: one flat gather of the three bytes of every fiber pixel (faster than rows of 3)
-        self._index3 = ((self._index[:, None] * 3 + np.arange(3)).ravel()
-                        if self._rgb is not None else None)
-        # gray/Y: gather uint8 and sum in float32 (exact: sums stay below 2**24);
-        # RGB: gather the three channels and weight them into float luma.
-        self._gathered = np.empty(p, dtype=np.float32 if self._rgb is not None else np.uint8)
+        rgb = table.pixel_format == "rgb"
+        # RGB: one flat gather of the three bytes of every fiber pixel (faster than rows of 3),
+        # then OpenCV's RGB -> gray on them as one row of pixels: the same rounded BT.601 gray
+        # as cv2.cvtColor of the whole frame (fiber calibration, the reference method)
+        self._index3 = (self._index[:, None] * 3 + np.arange(3)).ravel() if rgb else None
+        self._rgb = np.empty((1, p, 3), dtype=np.uint8) if rgb else None
+        # the fiber pixels' gray levels, uint8; summed in float32 (exact: sums stay below 2**24)
+        self._gathered = np.empty(p, dtype=np.uint8)
+        self._gathered_row = self._gathered.reshape(1, p)
 
     def means(self, frame: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Mean gray level of each fiber.
@@ -137,8 +138,7 @@ class FiberSampler:
         # faster than "clip" here
         if self._rgb is not None:
             frame.reshape(-1).take(self._index3, out=self._rgb.reshape(-1))
-            np.copyto(self._rgb_f, self._rgb)
-            np.matmul(self._rgb_f, LUMA_WEIGHTS, out=self._gathered)
+            cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY, dst=self._gathered_row)
         else:
             frame.reshape(-1).take(self._index, out=self._gathered)
         return self._gathered

@@ -21,10 +21,8 @@ def test_means_equal_labelled_means_of_the_gray_image(pixel_format):
     shape = {"gray": (30, 40), "yuv420": (45, 40), "rgb": (30, 40, 3)}[pixel_format]
     frame = rng.integers(0, 256, shape, dtype=np.uint8)
     out = FiberSampler(table).means(frame, np.empty(table.n_fibers, np.float32))
-    if pixel_format == "rgb":  # float luma, not rounded to uint8 as cv2 does
-        gray = frame.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
-    else:
-        gray = to_gray(frame, pixel_format).astype(np.float64)
+    # RGB: exactly cv2.cvtColor's rounded gray of the whole frame (as calibration and the reference)
+    gray = to_gray(frame, pixel_format).astype(np.float64)
     labels = table.label_image()
     expected = ndimage.mean(gray, labels, np.arange(1, table.n_fibers + 1))
     np.testing.assert_allclose(out, expected, rtol=1e-5)
