@@ -319,7 +319,15 @@ class PatchSurface:
             raise ValueError(f"tile must be >= 1, got {tile}")
         self.n, self.tile = n, tile
         self.n_cells, self.n_fibers = n * n, factors.n_fibers
-        self._op = _fold_fill(factors.vertex_operator, fill)
+        op = _fold_fill(factors.vertex_operator, fill)
+        n_f = self.n_fibers
+        # the value rows of W are the identity (with a dead-fiber fill: except the dead fibers'
+        # rows): w[:N] is a copy of the values plus those few rows, not an N x N product
+        eye = np.eye(n_f, dtype=np.float32)
+        self._value_rows = np.flatnonzero(np.any(op[:n_f] != eye, axis=1)).astype(np.intp)
+        self._value_op = np.ascontiguousarray(op[self._value_rows])
+        self._value_buf = np.zeros(self._value_rows.size, dtype=np.float32)
+        self._grad_op = np.ascontiguousarray(op[n_f:])
         cols, wts = factors.cell_columns, factors.cell_weights
         per_tile = tile * tile
         rows, cs = np.divmod(np.arange(n * n), n)
@@ -346,7 +354,8 @@ class PatchSurface:
             np.add.at(b[t], (cell_slot[nz], np.searchsorted(u, cols[cells][nz])), wts[cells][nz])
         self._b = b
         self._inv = np.where(tile_pos >= 0, tile_pos * per_tile + slot, n_tiles * per_tile).astype(np.intp)
-        self._w = np.zeros(self._op.shape[0], dtype=np.float32)
+        self._w = np.zeros(op.shape[0], dtype=np.float32)
+        self._w_values, self._w_grads = self._w[:n_f], self._w[n_f:]
         self._gathered = np.zeros((n_tiles, width), dtype=np.float32)
         self._gathered3 = self._gathered[:, :, None]
         self._flat = np.zeros(n_tiles * per_tile + 1, dtype=np.float32)  # last slot: always 0
@@ -354,7 +363,11 @@ class PatchSurface:
 
     def compute(self, values: np.ndarray, out: np.ndarray) -> np.ndarray:
         """``out`` (shape (n*n,), float32) = the surface of ``values`` (shape (N,), float32)."""
-        np.matmul(self._op, values, out=self._w)
+        np.copyto(self._w_values, values)
+        if self._value_rows.size:
+            np.matmul(self._value_op, values, out=self._value_buf)
+            self._w_values.put(self._value_rows, self._value_buf)
+        np.matmul(self._grad_op, values, out=self._w_grads)
         # ndarray.take, not np.take: no keyword dict per call; "wrap": the indices were
         # checked at construction (in range, so nothing wraps), "raise" would buffer ``out``,
         # and "wrap" measures faster than "clip" (1.8 / 3.4 µs against 2.8 / 5.2 µs here)
