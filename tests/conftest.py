@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -33,3 +35,24 @@ def bundle_path(sim_dir, rest_rec) -> Path:
     path = sim_dir / "cal.npz"
     assert main(["calibrate", "fibers", str(rest_rec), "-o", str(path)]) == 0
     return path
+
+
+def _traced_bytes(fn: Callable[[], object], calls: int, warmup: int = 10) -> tuple[int, int]:
+    """(net bytes still allocated after ``calls`` calls of ``fn``, largest transient above the start)."""
+    for _ in range(warmup):
+        fn()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(calls):
+            fn()
+        after, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return after - before, peak - before
+
+
+@pytest.fixture
+def traced_bytes() -> Callable[..., tuple[int, int]]:
+    """``traced_bytes(fn, calls)``: tracemalloc's net and peak bytes over ``calls`` calls of ``fn``."""
+    return _traced_bytes

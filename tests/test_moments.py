@@ -321,19 +321,9 @@ def test_four_fold_symmetry_from_opencv_moments_equals_q4_moment(x0: float, y0: 
     assert q4.q4(square, cv2.moments(square)) == pytest.approx(1 / 60, rel=0.05)
 
 
-def test_four_fold_symmetry_allocates_nothing_that_outlives_a_call() -> None:
-    import tracemalloc
-
+def test_four_fold_symmetry_allocates_nothing_that_outlives_a_call(traced_bytes) -> None:
     q4 = FourFoldSymmetry(GRID.n)
     box, _, _ = _box(polygon_mask(np.array([[-3.0, -2.0], [3.0, -2.0], [0.0, 3.0]])))
     m = cv2.moments(box)
-    for _ in range(10):
-        q4.q4(box, m)
-    tracemalloc.start()
-    try:
-        before = tracemalloc.get_traced_memory()[0]
-        for _ in range(200):
-            q4.q4(box, m)
-        assert tracemalloc.get_traced_memory()[0] - before < 200  # < 1 byte per call: nothing kept
-    finally:
-        tracemalloc.stop()
+    net, _ = traced_bytes(lambda: q4.q4(box, m), 200)
+    assert net < 200  # < 1 byte per call: nothing kept
