@@ -30,6 +30,12 @@ class ContactThresholds:
     threshold: float = 6.0
     min_area_mm2: float = 1.0
 
+    def __post_init__(self) -> None:
+        for name in ("threshold", "min_area_mm2"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+
 
 @dataclass(frozen=True)
 class ContactOptions:

@@ -233,3 +233,12 @@ def test_bundle_checks_factors_against_grid_layout_and_matrix():
         bundle.with_updates(surface_factors=factors_big)
     with pytest.raises(ValueError, match="reproduce"):  # a new matrix needs new factors
         bundle.with_updates(interpolation=bundle.interpolation * np.float32(2.0))
+
+
+@pytest.mark.parametrize("bad", [{"threshold": -1.0}, {"threshold": float("nan")}, {"min_area_mm2": -0.5},
+                                 {"threshold": True}])
+def test_contact_thresholds_must_be_finite_and_not_negative(bad) -> None:
+    from optitac_edge.contact_options import ContactThresholds
+
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        ContactThresholds(**bad)
