@@ -112,7 +112,14 @@ def build_sim_bundle(workdir: Path, rgb: bool = False) -> Path:
     workdir.mkdir(parents=True, exist_ok=True)
     cal = workdir / ("cal-rgb.npz" if rgb else "cal-gray.npz")
     if cal.exists():
-        return cal
+        from .bundle import load_bundle
+        from .errors import BundleError
+
+        try:  # a bundle cached by an older optitac-edge (no surface factors) is rebuilt
+            if load_bundle(cal).surface_factors is not None:
+                return cal
+        except BundleError:
+            pass
     fmt = ["--rgb"] if rgb else []
     tag = "rgb" if rgb else "gray"
     steps = [(["sim", str(workdir / f"rest-{tag}"), "--scenario", "rest", "--seed", "2", *fmt],
