@@ -58,8 +58,14 @@ import numpy as np
 
 STAGES = ("whole_frame", "gray", "fiber_means", "baseline", "surface", "segment", "moments", "hu",
           "shape", "calibration", "encode")
-#: Frames (after the baseline) the pipeline runs before anything is measured.
+#: Frames (after the baseline) the pipeline runs before anything is measured; at least every
+#: distinct frame once, so that the allocator's high-water mark for the largest contact (OpenCV's
+#: temporaries, ~1.5 MB of heap once) is reached before RSS growth is counted.
 WARMUP_FRAMES = 200
+
+
+def _warmup(frames: list[np.ndarray], rest: int) -> int:
+    return max(WARMUP_FRAMES, len(frames) - rest)
 
 
 def _summary(samples_ns: list[int] | np.ndarray) -> dict[str, Any]:
@@ -313,7 +319,7 @@ def measure_stages(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
     period = int(1e9 / fps)
     pipe = Pipeline(bundle)
     t = _feed(pipe, frames[:rest], 0, rest, 0, period) if rest else 0
-    t = _feed(pipe, frames, rest, WARMUP_FRAMES, t, period)
+    t = _feed(pipe, frames, rest, _warmup(frames, rest), t, period)
     timer = StageTimer(pipe, n)
     contacts = [0]
 
@@ -336,7 +342,7 @@ def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
     period = int(1e9 / fps)
     pipe = Pipeline(bundle)
     t = _feed(pipe, frames[:rest], 0, rest, 0, period) if rest else 0
-    t = _feed(pipe, frames, rest, WARMUP_FRAMES, t, period)
+    t = _feed(pipe, frames, rest, _warmup(frames, rest), t, period)
     tracemalloc.start()
     try:
         t = _feed(pipe, frames, rest, 50, t, period)  # tracemalloc's own first allocations
@@ -475,6 +481,12 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
             self.pixel_format, self.fps = pixel_format, fps
             self.height, self.width = (h * 2 // 3, w) if pixel_format == "yuv420" else (h, w)
             self._slot: CapturedFrame | None = None
+            #: (seq, stalled) of each frame overwritten in the slot (the loop had not taken it when
+            #: the next came), stalled when the capture thread published that next frame a period
+            #: or more late itself (the whole process was not running), else the loop's own drop
+            self.overwritten: list[tuple[int, bool]] = []
+            #: (seq, ns late) of each frame the capture thread published a period or more late
+            self.stalls: list[tuple[int, int]] = []
             self._cond = threading.Condition()
             self._stop = threading.Event()
             self._thread = threading.Thread(target=self._capture, name="bench-capture", daemon=True)
@@ -491,7 +503,13 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
                     time.sleep((due - now) / 1e9)
                 i = seq if seq < len(frames) else rest + (seq - rest) % k
                 with self._cond:
-                    self._slot = CapturedFrame(frames[i], time.monotonic_ns(), seq + 1)
+                    now = time.monotonic_ns()
+                    stalled = now - due >= period
+                    if stalled:
+                        self.stalls.append((seq + 1, now - due))
+                    if self._slot is not None:
+                        self.overwritten.append((self._slot.seq, stalled))
+                    self._slot = CapturedFrame(frames[i], now, seq + 1)
                     self._cond.notify_all()
                 seq += 1
 
@@ -511,6 +529,37 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
             self._thread.join(timeout=1.0)
 
     return PacedReplayCamera()
+
+
+def _steal_jiffies() -> int:
+    """CPU time the hypervisor gave to others while this VM wanted it (/proc/stat), jiffies."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) if fields[0] == "cpu" and len(fields) > 8 else 0
+    except (OSError, ValueError):
+        return 0
+
+
+def _drop_causes(camera: Any, fps: float, steal_jiffies: int) -> dict[str, Any]:
+    """Why frames were dropped: the loop too slow with the camera on time, or whole-process stalls.
+
+    Only frames between the first and the last one the loop read count: the capture
+    thread publishes from its start (while the service is still being built) until
+    the camera is closed after the run.
+    """
+    if not hasattr(camera, "overwritten") or camera._last_seq is None:  # live sim camera: not classified
+        return {}
+    last = camera._last_seq
+    first = last - (camera.frames_read + camera.frames_dropped) + 1
+    lost = [stalled for seq, stalled in list(camera.overwritten) if first < seq < last]
+    stalls = np.asarray([ns for seq, ns in list(camera.stalls) if first < seq <= last], dtype=np.float64) / 1e6
+    return {"frames_dropped_by_pipeline": lost.count(False),
+            "frames_dropped_in_process_stalls": lost.count(True),
+            "process_stalls": {"count": int(stalls.size),
+                               "max_ms": round(float(stalls.max()), 2) if stalls.size else 0.0,
+                               "threshold_ms": round(1e3 / fps, 2)},
+            "cpu_steal_ms": steal_jiffies * 1000 // os.sysconf("SC_CLK_TCK")}
 
 
 def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
@@ -538,10 +587,12 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     else:
         camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11)
     transport = open_transport("serial", url=path, baudrate=921600, sensor_id=config.sensor.id)
+    steal0 = _steal_jiffies()
     try:
         service = Service(config, bundle, camera, transport)
         stop = threading.Event()
         stats = service.run(stop, duration_s=seconds)
+        steal = _steal_jiffies() - steal0
         transport.wait_idle(1.0)
         t_stats = dict(transport.stats())
     finally:
@@ -557,12 +608,13 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     a = _summary([r[3] * 1000 for r in data["rows"] if r[3] >= 0])
     return {"camera": "replayed pre-rendered frames" if frames is not None else "live simulated camera",
             "fps": fps, "seconds": seconds, "frames": stats.frames, "sent": stats.sent,
-            "received": len(data["rows"]), "frames_dropped": stats.frames_dropped + camera.frames_dropped,
+            "received": len(data["rows"]), "frames_dropped": stats.frames_dropped,  # sequence gaps read
             # written but not read (sequence gaps and a missing tail), plus never written
             "packets_lost": (max(t_stats.get("sent", 0) - len(data["seqs"]), missing)
                              + t_stats.get("dropped", 0) + t_stats.get("dropped_disconnected", 0)
                              + t_stats.get("send_errors", 0)),
             "sequence_gaps": missing,
+            **_drop_causes(camera, fps, steal),
             "achieved_fps": round(stats.frames / seconds, 1),
             "latency_us": {"p50": s["median_us"], "p99": s["p99_us"], "max": s["max_us"]},
             # the part before the message was filled (camera delivery + processing), from its age field
@@ -653,8 +705,14 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
             res["end_to_end"] = {"skipped": "needs --source sim"}
         else:
             res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb, frame_list, rest)
+            why = ""
+            if "frames_dropped_by_pipeline" in e:
+                st = e["process_stalls"]
+                why = (f" (by the pipeline {e['frames_dropped_by_pipeline']}, in process stalls "
+                       f"{e['frames_dropped_in_process_stalls']}: {st['count']} stalls >= {st['threshold_ms']} ms, "
+                       f"max {st['max_ms']} ms; CPU steal {e['cpu_steal_ms']} ms)")
             log(f"  end to end @ {fps} fps, {e2e_seconds} s: {e['frames']} frames, dropped "
-                f"{e['frames_dropped']}, lost {e['packets_lost']}, latency p50/p99/max "
+                f"{e['frames_dropped']}{why}, lost {e['packets_lost']}, latency p50/p99/max "
                 f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs")
     if startup:
         if source != "sim" or fmt != "gray":
