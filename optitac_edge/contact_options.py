@@ -14,6 +14,14 @@ from typing import Any
 MAX_CONTACTS = 4
 
 
+def _require_non_negative(obj: Any, names: tuple[str, ...]) -> None:
+    """Raise ValueError naming the first of ``obj``'s fields ``names`` that is not a finite number >= 0."""
+    for name in names:
+        v = getattr(obj, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
 @dataclass(frozen=True)
 class ContactThresholds:
     """When the surface counts as a contact.
@@ -31,10 +39,7 @@ class ContactThresholds:
     min_area_mm2: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("threshold", "min_area_mm2"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        _require_non_negative(self, ("threshold", "min_area_mm2"))
 
 
 @dataclass(frozen=True)
@@ -162,12 +167,10 @@ class ContactOptions:
         mc = self.max_contacts
         if isinstance(mc, bool) or not isinstance(mc, int) or not 1 <= mc <= MAX_CONTACTS:
             raise ValueError(f"max_contacts must be an integer 1..{MAX_CONTACTS}, got {mc!r}")
-        for name in ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
-                     "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
-                     "noise_gray", "black_level"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        _require_non_negative(self, ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off",
+                                     "k_on", "floor_trunc", "floor_off", "floor_on", "baseline_tau_s",
+                                     "holdoff_s", "gain_rate_per_s", "noise_rel", "noise_gray",
+                                     "black_level"))
         for name in ("peak_fraction", "shape_fraction", "split_fraction"):
             if not getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be < 1, got {getattr(self, name)!r}")
