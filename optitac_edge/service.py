@@ -330,7 +330,6 @@ class Service:
         backoff = REOPEN_BACKOFF_S
         reopen_at = 0
         last_good_ns = st.started_ns
-        last_seq: int | None = None
         ready = False
         try:
             while not stop.is_set():
@@ -344,15 +343,16 @@ class Service:
                 if self.camera is None:  # reopening after a failure
                     if now_ns >= reopen_at and self._try_reopen():
                         backoff = REOPEN_BACKOFF_S
-                        last_seq = None
                     else:
                         if now_ns >= reopen_at:
                             reopen_at = now_ns + int(backoff * 1e9)
                             backoff = min(backoff * 2, backoff_max)
                         stop.wait(min(max(reopen_at - now_ns, 0) / 1e9, 0.05))
                 else:
+                    camera = self.camera
+                    dropped = camera.frames_dropped  # the camera counts its sequence gaps
                     try:
-                        captured = self.camera.read(timeout)
+                        captured = camera.read(timeout)
                     except Exception as exc:  # noqa: BLE001 - one bad read never ends the service
                         st.camera_errors += 1
                         if isinstance(exc, CameraError):
@@ -372,9 +372,7 @@ class Service:
                     if captured is None:
                         break
                     if captured is not False:
-                        if last_seq is not None and captured.seq > last_seq + 1:
-                            st.frames_dropped += captured.seq - last_seq - 1
-                        last_seq = captured.seq
+                        st.frames_dropped += camera.frames_dropped - dropped
                         est = self._process(captured)
                         if est is not None or not self._device_fault:
                             last_good_ns = time.monotonic_ns()

@@ -246,3 +246,40 @@ def test_led_drifting_10_percent_over_a_run_gives_no_false_contact():
             gain = 1.0 + direction * 0.10 * k / n
             false += bool(pipe.process(po.render(bundle, po.REST * gain), (5 + k) * po.PERIOD).contact)
         assert false == 0, (direction, false)
+
+
+class GappyCamera(Camera):
+    """The simulator with a sequence gap of one frame every 5th frame; fails once after ``fail_after``."""
+
+    pixel_format, height, width, fps = "gray", 480, 640, 300.0
+
+    def __init__(self, fail_after: int | None = None) -> None:
+        super().__init__()
+        self._sim, self._seq, self._reads, self._fail_after = _sim(seed=8), 0, 0, fail_after
+
+    def _read_internal(self, timeout_s):
+        self._reads += 1
+        if self._reads == self._fail_after:
+            raise CameraError("unplugged")
+        frame = self._sim.read(timeout_s).frame
+        self._seq += 2 if self._reads % 5 == 0 else 1
+        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+
+    def _close_internal(self) -> None:
+        self._sim.close()
+
+
+def test_frames_dropped_counts_the_sequence_gaps_and_not_a_reopened_cameras_restart(bundle):
+    """Each camera's gaps are counted once; a reopened camera starting again at seq 1 is no drop."""
+    cams: list[GappyCamera] = []
+
+    def factory() -> GappyCamera:
+        cams.append(GappyCamera(fail_after=40 if not cams else None))
+        return cams[-1]
+
+    service = Service(_config(), bundle, None, NullTransport(), camera_factory=factory)
+    stats = service.run(threading.Event(), duration_s=1.0)
+    assert len(cams) == 2 and stats.reopens == 1 and stats.read_errors == 1
+    assert stats.frames_dropped == sum(c.frames_dropped for c in cams) > 10
+    # every 5th read of each camera skipped one number; the first camera failed on its 40th read
+    assert cams[0].frames_dropped == 7
