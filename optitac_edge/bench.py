@@ -249,7 +249,7 @@ class StageTimer:
         s["surface"].append(_t(p._surface_op.compute, p._signal, self._surface))
         s["segment"].append(_t(self._segment))
         if est.contact:
-            img, x, y, peak = self._box()
+            img, _, x, y, peak = p._box(p._surface)  # the pipeline's truncated surface (not timed)
             s["moments"].append(_t(self._moments, img, x, y))
             s["hu"].append(_t(self._hu, img, peak))
             if self._shapes is not None:
@@ -261,32 +261,19 @@ class StageTimer:
 
     def _segment(self) -> None:
         """Truncation, the bounding box and (several contacts allowed) the partition."""
-        import cv2
-
         p = self.pipe
         cells = p._truncate(self._surface)
         if cells:
-            x, y, w, h = cv2.boundingRect(p._mask_u8)
-            img = self._surface.reshape(p._n, p._n)[y:y + h, x:x + w]
-            peak = cv2.minMaxLoc(img)[1]
+            img, mask, _, _, peak = p._box(self._surface)
             if p._multi:
-                p._partition(img, peak, p._mask2d[y:y + h, x:x + w], cells)
-
-    def _box(self) -> tuple[np.ndarray, int, int, float]:
-        """The pipeline's truncated surface in its bounding box, the box origin and peak (not timed)."""
-        import cv2
-
-        p = self.pipe
-        x, y, w, h = cv2.boundingRect(p._mask_u8)
-        img = p._surface.reshape(p._n, p._n)[y:y + h, x:x + w]
-        return img, x, y, float(cv2.minMaxLoc(img)[1])
+                p._partition(img, peak, mask, cells)
 
     def _moments(self, img: np.ndarray, x: int, y: int) -> None:
         self.pipe._ellipse(img, x, y, self._scratch)
 
     def _hu(self, img: np.ndarray, peak: float) -> None:
         p = self.pipe
-        p._shape_features(img, max(float(p._trunc), p._shape_frac * peak), self._scratch)
+        p._shape_features(img, p._blob_levels(peak)[1], self._scratch)
 
     def _lookup(self, est: Any) -> None:
         if self._centroid is not None:

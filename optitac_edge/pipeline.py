@@ -436,14 +436,11 @@ class Pipeline:
             return 0
         level = self._off if self._in_contact else self._on
         # everything below reads only the bounding box of the cells above the truncation level
-        x, y, w, h = cv2.boundingRect(self._mask_u8)
-        img = surface.reshape(self._n, self._n)[y:y + h, x:x + w]
-        peak = cv2.minMaxLoc(img)[1]
+        img, mask, x, y, peak = self._box(surface)
         n_cand = 0
         if not self._multi:
             n_cand = self._measure_blob(img, peak, cells, level, self._cands[0], x, y)
         else:
-            mask = self._mask2d[y:y + h, x:x + w]
             for k, blob_cells in self._partition(img, peak, mask, cells):
                 blob = self._blob_surface(img, mask, k)
                 n_cand += self._measure_blob(blob, peak if blob is img else cv2.minMaxLoc(blob)[1],
@@ -478,6 +475,29 @@ class Pipeline:
         if cells:  # the levels are > 0, so "above the level" is "not truncated to 0"
             np.greater(img, 0.0, out=self._mask2d)
         return cells
+
+    def _box(self, surface: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int, float]:
+        """The truncated surface and the mask in the bounding box of the cells above the level.
+
+        Returns views ``(img, mask)`` of the box, its first mesh column and row, and the
+        largest value of ``img`` (after :meth:`_truncate`, with at least one cell above).
+        """
+        x, y, w, h = cv2.boundingRect(self._mask_u8)
+        img = surface.reshape(self._n, self._n)[y:y + h, x:x + w]
+        return img, self._mask2d[y:y + h, x:x + w], x, y, float(cv2.minMaxLoc(img)[1])
+
+    def _blob_levels(self, peak: float) -> tuple[float, float]:
+        """(weighting level, shape binarization level) of a blob whose largest value is ``peak``.
+
+        The moments weigh the cells above ``max(truncation, peak_fraction * peak)``;
+        the shape features binarize at ``max(truncation, shape_fraction * peak)``,
+        or at the weighting level when ``shape_fraction`` is 0.
+        """
+        t = float(self._trunc)
+        if self._frac > 0.0 and self._frac * peak > t:
+            t = float(np.float32(self._frac * peak))
+        shape = max(float(self._trunc), self._shape_frac * peak) if self._shape_frac > 0.0 else t
+        return t, shape
 
     def _roi(self, buffer: np.ndarray, h: int, w: int) -> np.ndarray:
         """A contiguous (h, w) view at the start of a flat (n*n,) buffer."""
@@ -541,9 +561,7 @@ class Pipeline:
         """
         if not peak > level or cells * self._cell_area < self._min_area:
             return 0
-        t = float(self._trunc)
-        if self._frac > 0.0 and self._frac * peak > t:
-            t = float(np.float32(self._frac * peak))
+        t, shape_level = self._blob_levels(peak)
         weighted = img
         if t > self._trunc:
             weighted = self._roi(self._weighted, *img.shape)
@@ -552,8 +570,6 @@ class Pipeline:
         if not self._ellipse(weighted, x0, y0, out):
             return 0
         out.area_mm2 = cells * self._cell_area
-        # shape features from their own binarization level
-        shape_level = max(float(self._trunc), self._shape_frac * peak) if self._shape_frac > 0.0 else t
         self._shape_features(img, shape_level, out)
         out.shape = ""
         out.confidence = math.nan
