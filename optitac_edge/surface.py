@@ -232,27 +232,6 @@ def build_interpolation(layout: FiberLayout, grid: SurfaceGrid) -> tuple[np.ndar
     return np.ascontiguousarray(a64, dtype=np.float32), factors
 
 
-def surface_from_fibers(matrix: np.ndarray, values: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Interpolate fiber values onto the mesh: ``out = matrix @ values``.
-
-    Parameters
-    ----------
-    matrix : ndarray, shape (n*n, N), float32
-        From :func:`build_interpolation_matrix` (``CalibrationBundle.interpolation``).
-    values : ndarray, shape (N,), float32
-        Fiber values (e.g. baseline-subtracted gray levels).
-    out : ndarray, shape (n*n,), float32
-        Receives the surface in row-major mesh order; reshape to (n, n) for
-        ``surface[row, col]`` = value at ``(x_mm[col], y_mm[row])``.
-
-    Returns
-    -------
-    ndarray
-        ``out``.
-    """
-    return np.matmul(matrix, values, out=out)
-
-
 def _fold_fill(operator: np.ndarray, fill: np.ndarray | None) -> np.ndarray:
     """``operator @ fill`` (float64 product) as a C-contiguous float32 array."""
     if fill is None:

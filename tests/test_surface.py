@@ -9,7 +9,7 @@ from scipy.spatial import Delaunay
 
 from optitac_edge.grid import SurfaceGrid
 from optitac_edge.layout import hex_layout
-from optitac_edge.surface import build_interpolation_matrix, surface_from_fibers
+from optitac_edge.surface import DenseSurface, build_interpolation_matrix
 
 LAYOUT = hex_layout()
 GRID = SurfaceGrid.over_layout(LAYOUT)
@@ -42,17 +42,18 @@ def test_unit_vectors_match_griddata(matrix: np.ndarray) -> None:
 def test_random_and_realistic_values_match_griddata(matrix: np.ndarray) -> None:
     rng = np.random.default_rng(3)
     out = np.empty(GRID.n**2, dtype=np.float32)
+    dense = DenseSurface(matrix)
     xy = LAYOUT.xy_mm
     for _ in range(4):
         c = rng.uniform(-7, 7, 2)
         v = -60.0 * np.exp(-((xy - c) ** 2).sum(1) / (2 * 1.8**2)) + rng.normal(0, 1.0, len(xy))
         v = v.astype(np.float32)
-        surf = surface_from_fibers(matrix, v, out)
+        surf = dense.compute(v, out)
         assert surf is out
         ref = _griddata(v.astype(np.float64))
         assert np.abs(surf - ref).max() < 1e-3  # gray levels; values span ~60
     v = rng.normal(0, 10.0, len(xy)).astype(np.float32)
-    assert np.abs(surface_from_fibers(matrix, v, out) - _griddata(v.astype(np.float64))).max() < 1e-3
+    assert np.abs(dense.compute(v, out) - _griddata(v.astype(np.float64))).max() < 1e-3
 
 
 def test_constant_and_linear_reproduced_inside_hull(matrix: np.ndarray) -> None:
