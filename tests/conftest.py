@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
 import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -56,3 +58,14 @@ def _traced_bytes(fn: Callable[[], object], calls: int, warmup: int = 10) -> tup
 def traced_bytes() -> Callable[..., tuple[int, int]]:
     """``traced_bytes(fn, calls)``: tracemalloc's net and peak bytes over ``calls`` calls of ``fn``."""
     return _traced_bytes
+
+
+@pytest.fixture(scope="session")
+def fuzz_tool() -> ModuleType:
+    """``tools/fuzz_decoder.py`` (the decoder's independent oracle), imported from its file."""
+    path = Path(__file__).resolve().parents[1] / "tools" / "fuzz_decoder.py"
+    spec = importlib.util.spec_from_file_location("fuzz_decoder", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -169,16 +169,6 @@ def cobs_decode_body(frame: bytes) -> bytes:
     return wire.cobs.decode(frame[:-1])
 
 
-def _crc_bitwise(data: bytes) -> int:
-    """An independent CRC-16/CCITT-FALSE (not binascii) for the false-accept oracle."""
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
-    return crc
-
-
 def _typed(f) -> str:
     dec = {wire.MsgType.CONTACT: decode_contact, wire.MsgType.STATUS: decode_status,
            wire.MsgType.ACK: decode_ack}.get(f.type)
@@ -205,7 +195,7 @@ def _counters_line(dec: FrameDecoder, prefix: str) -> str:
 FIGURES: dict[str, object] = {}
 
 
-def test_c_and_python_decoders_agree_on_10000_inputs(cbin, tmp_path):
+def test_c_and_python_decoders_agree_on_10000_inputs(cbin, tmp_path, fuzz_tool):
     records = _make_records(seed=20240611, n=10_000)
     blob = b"".join(struct.pack("<I", len(d)) + d for d, _ in records)
     (tmp_path / "records.bin").write_bytes(blob)
@@ -228,7 +218,7 @@ def test_c_and_python_decoders_agree_on_10000_inputs(cbin, tmp_path):
             accepted += 1
             body = wire.HEADER.pack(1, f.type, f.seq, f.t_us) + f.payload
             # never a false accept: the CRC genuinely matches (independent CRC) ...
-            raw = body + wire.CRC.pack(_crc_bitwise(body))
+            raw = body + wire.CRC.pack(fuzz_tool.crc16_ccitt_bitwise(body))
             assert raw == body + wire.CRC.pack(wire.crc16(body))
             # ... and, from mutated valid frames, it is one of the originals unless CRC-16 collided
             if originals:

@@ -9,40 +9,27 @@ get a non-zero result code.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "fuzz_decoder.py"
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("fuzz_decoder", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.mark.slow
-def test_200k_random_and_mutated_frames_match_the_oracle():
-    out = _tool().run(200_000, seed=11)
+def test_200k_random_and_mutated_frames_match_the_oracle(fuzz_tool):
+    out = fuzz_tool.run(200_000, seed=11)
     assert out["frames"] > 10_000 and out["crc"] > 5_000 and out["cobs"] > 100_000 and out["overflow"] > 1_000
     assert out["cmd_OUT_OF_RANGE"] > 100 and out["cmd_accepted"] > 10_000
 
 
-def test_the_oracle_rejects_a_frame_the_decoder_would_accept_if_it_were_wrong():
+def test_the_oracle_rejects_a_frame_the_decoder_would_accept_if_it_were_wrong(fuzz_tool):
     """The oracle is not vacuous: a single bit flip in a valid frame is rejected by both."""
     from optitac_edge.messages import CommandType
     from optitac_edge.protocol import FrameDecoder, encode_command
 
-    tool = _tool()
     good = encode_command(CommandType.SET_THRESHOLD, 5, 0, threshold=100)
-    assert tool.oracle(good[:-1])[0] == "frames"
+    assert fuzz_tool.oracle(good[:-1])[0] == "frames"
     for i in range(len(good) - 1):
         for bit in range(8):
             bad = bytearray(good)
             bad[i] ^= 1 << bit
             dec = FrameDecoder()
             frames = [f for part in bytes(bad).split(b"\x00") if part for f in dec.feed(part + b"\x00")]
-            assert frames == [] and all(tool.oracle(p)[0] != "frames" for p in bytes(bad).split(b"\x00") if p)
+            assert frames == [] and all(fuzz_tool.oracle(p)[0] != "frames" for p in bytes(bad).split(b"\x00") if p)

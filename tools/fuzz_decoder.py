@@ -31,8 +31,8 @@ from optitac_edge.protocol import FrameDecoder, encode_command, encode_frame
 from optitac_edge.protocol.wire import parse_command
 
 
-def _crc16_ccitt(data: bytes) -> int:
-    """CRC-16/CCITT-FALSE written out bit by bit (independent of wire.crc16)."""
+def crc16_ccitt_bitwise(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE written out bit by bit (independent of wire.crc16; also the C tests' oracle)."""
     crc = 0xFFFF
     for b in data:
         crc ^= b << 8
@@ -52,7 +52,7 @@ def oracle(segment: bytes) -> tuple[str, tuple | None]:
     if len(raw) < 10:
         return "length", None
     body, (crc,) = raw[:-2], struct.unpack("<H", raw[-2:])
-    if _crc16_ccitt(body) != crc:
+    if crc16_ccitt_bitwise(body) != crc:
         return "crc", None
     version, msg_type, seq, t_us = struct.unpack_from("<BBHI", body)
     if version != 1:
