@@ -398,7 +398,7 @@ def _cmd_soak(args: argparse.Namespace) -> int:
                                                          "camera.timeout_s": 0.5})
     inj = FaultInjector(rate=args.fault_rate, seed=args.seed, gone_s=0.5, max_wait_s=0.1)
     seeds = iter(range(args.seed + 1, 1 << 30))
-    open_sim = (lambda: SimCamera(fps=args.fps, realtime=True, seed=next(seeds), rest_frames=10))  # noqa: E731
+    open_sim = (lambda: SimCamera(fps=args.fps, realtime=True, seed=next(seeds), rest_frames=10))
     with open_sim() as cam:
         bundle = load_or_calibrate(config, cam, None)
     # the serial link: a loop:// port that is "unplugged" every ~7 s for 1 s

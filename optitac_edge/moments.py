@@ -304,7 +304,7 @@ def log_hu_value(h: float) -> float:
     """One log-scaled Hu invariant, ``-sign(h) * log10(|h|)`` (0 for 0, NaN for NaN); see :func:`log_hu`."""
     if h == 0.0:
         return 0.0
-    if h != h:
+    if math.isnan(h):
         return math.nan
     return -math.copysign(1.0, h) * math.log10(abs(h))
 

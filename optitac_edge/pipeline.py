@@ -52,8 +52,8 @@ import cv2
 import numpy as np
 
 from .bundle import CalibrationBundle
-from .contact_options import MAX_CONTACTS, ContactOptions
 from .contact import ContactEstimate
+from .contact_options import MAX_CONTACTS, ContactOptions
 from .corrections import ContactCorrector
 from .dead_fill import dead_fill_matrix
 from .fiber_table import FiberSampler
