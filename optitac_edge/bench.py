@@ -49,6 +49,7 @@ import threading
 import time
 import tracemalloc
 import tty
+from collections import deque
 from contextlib import redirect_stdout
 from io import StringIO
 from pathlib import Path
@@ -451,7 +452,8 @@ def _latencies(rows: list[list[int]], seqs: list[int]) -> tuple[np.ndarray, int]
     return np.asarray(lat, dtype=np.float64), missing
 
 
-def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format: str) -> Any:
+def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format: str,
+                   queue_frames: int) -> Any:
     """A camera delivering pre-rendered frames at ``fps`` from a capture thread (see PacedReplayCamera)."""
     from .cameras.base import Camera, CapturedFrame
     from .errors import CameraError
@@ -459,10 +461,11 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
     class PacedReplayCamera(Camera):
         """Frames (rest first, then the rest cycled) published at ``k / fps`` by a capture thread.
 
-        The thread puts each frame in a one-frame slot, stamped when published; a
-        frame still in the slot when the next one comes is dropped (a gap in
-        ``seq``, counted as dropped). Like a camera whose driver delivers by DMA:
-        the source costs the loop nothing, so the loop itself is measured.
+        The thread queues each frame, stamped when published, as the hardware
+        backends' frame ring does: up to ``queue_frames`` wait, and when one more
+        comes the oldest is dropped (a gap in ``seq``, counted as dropped). Like a
+        camera whose driver delivers by DMA: the source costs the loop nothing, so
+        the loop itself is measured.
         """
 
         def __init__(self) -> None:
@@ -470,10 +473,11 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
             h, w = frames[0].shape[:2]
             self.pixel_format, self.fps = pixel_format, fps
             self.height, self.width = (h * 2 // 3, w) if pixel_format == "yuv420" else (h, w)
-            self._slot: CapturedFrame | None = None
-            #: (seq, stalled) of each frame overwritten in the slot (the loop had not taken it when
-            #: the next came), stalled when the capture thread published that next frame a period
-            #: or more late itself (the whole process was not running), else the loop's own drop
+            self._waiting: deque[CapturedFrame] = deque()
+            #: (seq, stalled) of each frame dropped from the queue (the loop had not taken it when
+            #: ``queue_frames`` newer ones came), stalled when the capture thread published the one
+            #: that pushed it out a period or more late itself (the whole process was not running),
+            #: else the loop's own drop
             self.overwritten: list[tuple[int, bool]] = []
             #: (seq, ns late) of each frame the capture thread published a period or more late
             self.stalls: list[tuple[int, int]] = []
@@ -497,22 +501,21 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
                     stalled = now - due >= period
                     if stalled:
                         self.stalls.append((seq + 1, now - due))
-                    if self._slot is not None:
-                        self.overwritten.append((self._slot.seq, stalled))
-                    self._slot = CapturedFrame(frames[i], now, seq + 1)
+                    if len(self._waiting) == queue_frames:
+                        self.overwritten.append((self._waiting.popleft().seq, stalled))
+                    self._waiting.append(CapturedFrame(frames[i], now, seq + 1))
                     self._cond.notify_all()
                 seq += 1
 
         def _read_internal(self, timeout_s: float) -> CapturedFrame:
             deadline = time.monotonic() + timeout_s
             with self._cond:
-                while self._slot is None:
+                while not self._waiting:
                     left = deadline - time.monotonic()
                     if left <= 0:
                         raise CameraError("replay camera: no frame in time")
                     self._cond.wait(left)
-                captured, self._slot = self._slot, None
-            return captured
+                return self._waiting.popleft()
 
         def _close_internal(self) -> None:
             self._stop.set()
@@ -553,11 +556,13 @@ def _drop_causes(camera: Any, fps: float, steal_jiffies: int) -> dict[str, Any]:
 
 
 def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
-                       frames: list[np.ndarray] | None = None, rest: int = 10) -> dict[str, Any]:
+                       frames: list[np.ndarray] | None = None, rest: int = 10,
+                       queue_frames: int | None = None) -> dict[str, Any]:
     """The service loop paced at ``fps`` into a pty, read by a separate process.
 
     With ``frames``, the camera replays them (pre-rendered, see ``_replay_camera``);
     otherwise it is the live simulated camera (rendering ~1 ms a frame in its own thread).
+    ``queue_frames`` overrides the sim board's ``camera.queue_frames``.
     """
     from .board_config import load_board_config
     from .bundle import load_bundle
@@ -568,14 +573,17 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     master, slave, path = _open_pty()
     out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "e2e.json"
     bundle = load_bundle(cal)
-    config = load_board_config("sim", env={}, overrides={"camera.fps": fps, "link.transport": "serial",
-                                                         "link.serial_url": path})
+    overrides: dict[str, Any] = {"camera.fps": fps, "link.transport": "serial", "link.serial_url": path}
+    if queue_frames is not None:
+        overrides["camera.queue_frames"] = queue_frames
+    config = load_board_config("sim", env={}, overrides=overrides)
     reader = _start_reader(master, seconds + 3.0, str(out))
     time.sleep(0.5)  # reader up
     if frames is not None:
-        camera = _replay_camera(frames, rest, fps, bundle.fibers.pixel_format)
+        camera = _replay_camera(frames, rest, fps, bundle.fibers.pixel_format, config.camera.queue_frames)
     else:
-        camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11)
+        camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11,
+                           queue_frames=config.camera.queue_frames)
     transport = open_transport("serial", url=path, baudrate=921600, sensor_id=config.sensor.id)
     steal0 = _steal_jiffies()
     try:
@@ -597,7 +605,8 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     s = _summary(lat)
     a = _summary([r[3] * 1000 for r in data["rows"] if r[3] >= 0])
     return {"camera": "replayed pre-rendered frames" if frames is not None else "live simulated camera",
-            "fps": fps, "seconds": seconds, "frames": stats.frames, "sent": stats.sent,
+            "fps": fps, "seconds": seconds, "queue_frames": config.camera.queue_frames,
+            "frames": stats.frames, "sent": stats.sent,
             "received": len(data["rows"]), "frames_dropped": stats.frames_dropped,  # sequence gaps read
             # written but not read (sequence gaps and a missing tail), plus never written
             "packets_lost": (max(t_stats.get("sent", 0) - len(data["seqs"]), missing)
@@ -653,7 +662,8 @@ def measure_startup(cal: Path, fps: float) -> dict[str, Any]:
 def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,
               rgb: bool = False, workdir: Path | None = None, reference_frames: int = 300,
               memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
-              unique_frames: int = 600, log: Any = print) -> dict[str, Any]:
+              unique_frames: int = 600, queue_frames: int | None = None,
+              log: Any = print) -> dict[str, Any]:
     """Run every section; returns the results (see the module docstring)."""
     workdir = workdir or Path(tempfile.gettempdir()) / "optitac-bench"
     t_start = time.time()
@@ -694,14 +704,15 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
         if source != "sim":
             res["end_to_end"] = {"skipped": "needs --source sim"}
         else:
-            res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb, frame_list, rest)
+            res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb, frame_list, rest,
+                                                                queue_frames)
             why = ""
             if "frames_dropped_by_pipeline" in e:
                 st = e["process_stalls"]
                 why = (f" (by the pipeline {e['frames_dropped_by_pipeline']}, in process stalls "
                        f"{e['frames_dropped_in_process_stalls']}: {st['count']} stalls >= {st['threshold_ms']} ms, "
                        f"max {st['max_ms']} ms; CPU steal {e['cpu_steal_ms']} ms)")
-            log(f"  end to end @ {fps} fps, {e2e_seconds} s: {e['frames']} frames, dropped "
+            log(f"  end to end @ {fps} fps, {e2e_seconds} s, queue {e['queue_frames']}: {e['frames']} frames, dropped "
                 f"{e['frames_dropped']}{why}, lost {e['packets_lost']}, latency p50/p99/max "
                 f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs")
     if startup:

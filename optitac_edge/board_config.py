@@ -214,6 +214,8 @@ class CameraConfig:
     recording: str = _opt(_path, "", "recording: the recording directory to replay")
     warmup_frames: int = _opt(_int(0, 1000), 5, "frames discarded after opening (auto exposure settles)")
     timeout_s: float = _opt(_num(0, 60, lo_open=True), 1.0, "longest wait for one frame, s")
+    queue_frames: int = _opt(_int(1, 16), 4, "frames that may wait for the loop; when full the oldest "
+                             "is dropped (1 = latest frame only)")
     #: Backend-specific options (free names, scalar values), validated by the backend.
     options: Mapping[str, Scalar] = field(default_factory=lambda: MappingProxyType({}),
                                           metadata={"doc": "backend-specific options (scalars)"})

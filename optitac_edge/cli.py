@@ -143,6 +143,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--memory-frames", type=int, default=2000, help="frames traced with tracemalloc (0: skip)")
     p.add_argument("--e2e-seconds", type=float, default=60.0, help="end-to-end run length (0: skip)")
     p.add_argument("--no-startup", action="store_true", help="skip the start-to-first-packet run")
+    p.add_argument("--queue-frames", type=int, default=None, metavar="N",
+                   help="end to end: frames the camera queues for the loop (default: the sim board's "
+                        "camera.queue_frames; 1 = latest frame only)")
     return parser
 
 
@@ -468,10 +471,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise OptiTacError("--frames must be >= 1")
     if not args.fps > 0:
         raise OptiTacError("--fps must be positive")
+    if args.queue_frames is not None and not 1 <= args.queue_frames <= 16:
+        raise OptiTacError("--queue-frames must be 1..16")
     res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
                     workdir=args.workdir, reference_frames=args.reference_frames,
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
-                    startup=not args.no_startup)
+                    startup=not args.no_startup, queue_frames=args.queue_frames)
     print(format_table(res))
     args.json.write_text(json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")

@@ -63,18 +63,19 @@ def camera_kwargs(config: BoardConfig) -> dict[str, Any]:
     cam = config.camera
     if cam.backend == "sim":
         return {"fps": cam.fps, "width": cam.width, "height": cam.height, "rgb": cam.pixel_format == "rgb",
-                "rest_frames": max(config.calibration.rest_frames, 10), **dict(cam.options)}
+                "rest_frames": max(config.calibration.rest_frames, 10), "queue_frames": cam.queue_frames,
+                **dict(cam.options)}
     if cam.backend == "recording":
         return {"path": cam.recording, "realtime": True, **dict(cam.options)}
     if cam.backend == "picamera2":
         return {"width": cam.width, "height": cam.height, "fps": cam.fps, "camera_num": cam.index,
                 "pixel_format": cam.pixel_format, "exposure_us": cam.exposure_us or None,
                 "analogue_gain": cam.gain or None, "warmup_frames": cam.warmup_frames,
-                "timeout_s": cam.timeout_s, **dict(cam.options)}
+                "timeout_s": cam.timeout_s, "queue_frames": cam.queue_frames, **dict(cam.options)}
     if cam.backend == "v4l2":  # exposure in driver units goes in camera.options.exposure
         source = {"pipeline": cam.pipeline} if cam.pipeline else {"device": cam.device}
         return {**source, "width": cam.width, "height": cam.height, "fps": cam.fps,
-                "gain": cam.gain or None, **dict(cam.options)}
+                "gain": cam.gain or None, "queue_frames": cam.queue_frames, **dict(cam.options)}
     return dict(cam.options)
 
 

@@ -18,7 +18,7 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys) -> None:
     out = tmp_path / "bench.json"
     assert main(["bench", "--frames", "40", "--cal", str(bundle_path), "--fps", "120",
                  "--reference-frames", "3", "--memory-frames", "20", "--e2e-seconds", "1",
-                 "--json", str(out)]) == 0
+                 "--queue-frames", "2", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| whole_frame |" in text
     res = json.loads(out.read_text())
@@ -33,7 +33,7 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys) -> None:
     mem = res["memory"]
     assert {"net_bytes_per_frame", "max_transient_bytes_in_frame", "rss_growth_bytes"} <= set(mem)
     e2e = res["end_to_end"]
-    assert e2e["frames"] > 0 and e2e["received"] > 0
+    assert e2e["frames"] > 0 and e2e["received"] > 0 and e2e["queue_frames"] == 2
     assert {"p50", "p99", "max"} == set(e2e["latency_us"])
     assert e2e["frames_dropped"] >= 0 and e2e["packets_lost"] >= 0
     st = res["startup"]
@@ -53,3 +53,30 @@ def test_bench_recording_source(tmp_path, unseen_rec, bundle_path) -> None:
 
 def test_bench_rejects_bad_arguments(capsys) -> None:
     assert main(["bench", "--frames", "0"]) != 0
+    assert main(["bench", "--queue-frames", "0"]) != 0
+
+
+def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
+    """A loop that pauses for fewer periods than the queue holds loses nothing; a longer one
+    loses the oldest frames, counted."""
+    import time
+
+    import numpy as np
+
+    from optitac_edge.bench import _replay_camera
+
+    frames = [np.full((8, 8), i, np.uint8) for i in range(20)]
+    fps = 50.0
+    for depth, pause, lossless in ((6, 3.5, True), (1, 3.5, False)):
+        cam = _replay_camera(frames, rest=2, fps=fps, pixel_format="gray", queue_frames=depth)
+        try:
+            first = cam.read(2.0).seq
+            time.sleep(pause / fps)
+            seqs = [cam.read(2.0).seq for _ in range(depth)]
+        finally:
+            cam.close()
+        if lossless:
+            assert seqs == list(range(first + 1, first + 1 + depth)) and cam.frames_dropped == 0
+        else:
+            assert cam.frames_dropped >= 2
+            assert [seq for seq, _ in cam.overwritten if seq > first][:2] == [first + 1, first + 2]

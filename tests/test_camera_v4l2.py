@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -14,6 +17,66 @@ from optitac_edge.cameras.v4l2 import argus_pipeline, fourcc_code
 from optitac_edge.errors import CameraError
 
 FAST = {"width": 96, "height": 64, "fps": 200.0}
+
+
+def wait_until(cond: Callable[[], bool], timeout_s: float = 20.0) -> None:
+    """Poll ``cond`` until it holds (a generous bound: CI machines can be slow)."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.001)
+
+
+class FrameGate:
+    """Lets the fake device deliver a frame only when the test allows one.
+
+    ``VideoCapture.grab()`` first waits for a credit (:meth:`allow`), so the test
+    decides how many frames the grab thread publishes while the reader sleeps,
+    however slow the machine. Their driver timestamps follow the device's frame
+    period, so ``seq`` counts them one by one. :meth:`run_free` ends the gating.
+    """
+
+    def __init__(self, monkeypatch) -> None:
+        import fake_cv2
+
+        self._credits = threading.Semaphore(0)
+        self._free = threading.Event()
+        grab = fake_cv2.VideoCapture.grab
+
+        def gated_grab(cap) -> bool:
+            while not self._free.is_set():
+                if self._credits.acquire(timeout=0.005):
+                    break
+            return grab(cap)
+
+        monkeypatch.setattr(fake_cv2.VideoCapture, "grab", gated_grab)
+
+    def allow(self, frames: int) -> None:
+        for _ in range(frames):
+            self._credits.release()
+
+    def run_free(self) -> None:
+        self._free.set()
+
+
+@contextmanager
+def gated_camera(monkeypatch, **kwargs) -> Iterator[tuple[object, FrameGate, object]]:
+    """(camera, gate, device): a v4l2 camera over the fake whose first frame is published, the
+    second not yet allowed."""
+    dev = install_cv2(monkeypatch)
+    gate = FrameGate(monkeypatch)
+    gate.allow(1)  # the frame the camera waits for when it opens
+    cam = open_camera("v4l2", **FAST, timestamps="driver", **kwargs)
+    try:
+        wait_until(lambda: cam._ring.published == 1)
+        yield cam, gate, dev
+    finally:
+        gate.run_free()  # the grab thread must get out of grab() for close()
+        cam.close()
+
+
+def published(cam) -> int:
+    return cam._ring.published
 
 
 def test_device_set_up_raw_manual_exposure_in_order(monkeypatch):
@@ -62,16 +125,81 @@ def test_stable_by_id_path(monkeypatch, tmp_path):
         assert dev.opened[0].source == os.path.realpath(node)
 
 
-def test_slow_reader_gets_latest_frame_and_counts_drops(monkeypatch):
-    dev = install_cv2(monkeypatch)
-    with open_camera("v4l2", **FAST) as cam:
+@pytest.mark.parametrize("queue_frames", [None, 1, 2, 16])
+def test_slow_reader_loses_no_frames_within_the_queue(monkeypatch, queue_frames):
+    depth = 4 if queue_frames is None else queue_frames  # 4 is the default
+    kwargs = {} if queue_frames is None else {"queue_frames": queue_frames}
+    with gated_camera(monkeypatch, **kwargs) as (cam, gate, dev):
+        first = cam.read()
+        gate.allow(depth)  # the reader "sleeps" while the grab thread publishes depth frames
+        wait_until(lambda: published(cam) == 1 + depth)
+        for k in range(1, depth + 1):
+            c = cam.read(timeout_s=5.0)
+            assert c.seq == first.seq + k
+            np.testing.assert_array_equal(c.frame, dev.produced[c.t_ns])
+        assert cam.frames_dropped == 0 and cam.overwritten == 0
+        assert cam.frames_read == depth + 1
+        with pytest.raises(CameraError, match=r"no frame from v4l2 0 within 0\.05 s"):
+            cam.read(timeout_s=0.05)  # all taken: nothing is delivered twice
+
+
+def test_latest_frame_slot_drops_and_counts_older_frames(monkeypatch):
+    with gated_camera(monkeypatch, queue_frames=1) as (cam, gate, dev):
         a = cam.read()
-        time.sleep(0.05)  # ~10 frames at 200 fps
-        b = cam.read()
-        assert b.seq - a.seq >= 5
-        assert cam.frames_dropped == b.seq - a.seq - 1
-        assert cam.overwritten >= 4
+        gate.allow(5)
+        wait_until(lambda: published(cam) == 6)
+        b = cam.read(timeout_s=5.0)
+        assert b.seq == a.seq + 5  # the latest; the 4 before it were dropped
+        assert cam.frames_dropped == 4 and cam.overwritten == 4
         np.testing.assert_array_equal(b.frame, dev.produced[b.t_ns])
+
+
+def test_reader_further_behind_than_the_queue_gets_the_newest_frames(monkeypatch):
+    with gated_camera(monkeypatch, queue_frames=3) as (cam, gate, _dev):
+        a = cam.read()
+        gate.allow(10)
+        wait_until(lambda: published(cam) == 11)
+        seqs = [cam.read(timeout_s=5.0).seq for _ in range(3)]
+        assert seqs == [a.seq + 8, a.seq + 9, a.seq + 10]  # the oldest 7 were dropped
+        assert cam.frames_dropped == 7 and cam.overwritten == 7
+
+
+@pytest.mark.parametrize("fourcc", ["GREY", "YUYV"])
+@pytest.mark.parametrize("queue_frames", [1, 2, 4])
+def test_held_frame_is_not_overwritten_while_grab_thread_runs_ahead(monkeypatch, queue_frames, fourcc):
+    with gated_camera(monkeypatch, queue_frames=queue_frames, fourcc=fourcc) as (cam, gate, dev):
+        held = cam.read()
+        kept = held.frame.copy()
+        np.testing.assert_array_equal(kept, dev.produced[held.t_ns])
+        ahead = 3 * (queue_frames + 2)  # every other buffer of the ring is written several times
+        gate.allow(ahead)
+        wait_until(lambda: published(cam) == 1 + ahead)
+        assert not held.frame.flags.writeable
+        np.testing.assert_array_equal(held.frame, kept)  # untouched until the next read
+        nxt = cam.read(timeout_s=5.0)
+        assert nxt.seq == held.seq + ahead - queue_frames + 1
+        np.testing.assert_array_equal(nxt.frame, dev.produced[nxt.t_ns])
+        assert cam.overwritten == ahead - queue_frames
+
+
+def test_frames_waiting_when_the_device_fails_are_still_delivered(monkeypatch):
+    with gated_camera(monkeypatch, queue_frames=4) as (cam, gate, dev):
+        a = cam.read()
+        gate.allow(3)
+        wait_until(lambda: published(cam) == 4)
+        dev.unplugged = True
+        gate.run_free()
+        assert [cam.read(timeout_s=5.0).seq for _ in range(3)] == [a.seq + 1, a.seq + 2, a.seq + 3]
+        with pytest.raises(CameraError, match="stopped delivering"):
+            cam.read(timeout_s=20.0)
+
+
+@pytest.mark.parametrize("queue_frames", [0, 17, -1, 2.0, True])
+def test_queue_frames_out_of_range_is_refused(monkeypatch, queue_frames):
+    dev = install_cv2(monkeypatch)
+    with pytest.raises(CameraError, match="queue_frames"):
+        open_camera("v4l2", **FAST, queue_frames=queue_frames)
+    assert dev.opened == []  # refused before the device was touched
 
 
 def test_driver_timestamps_and_sensor_drops(monkeypatch):
@@ -98,12 +226,13 @@ def test_foreign_driver_clock_falls_back_to_grab_time(monkeypatch):
 
 def test_unplugged_device_fails_fast(monkeypatch):
     dev = install_cv2(monkeypatch)
-    with open_camera("v4l2", **FAST) as cam:
+    with open_camera("v4l2", **FAST, queue_frames=1) as cam:
         cam.read()
         dev.unplugged = True
         t0 = time.monotonic()
         with pytest.raises(CameraError, match="stopped delivering"):
-            cam.read(timeout_s=5.0)
+            for _ in range(2):  # a frame may still be waiting; the one after it fails
+                cam.read(timeout_s=5.0)
         assert time.monotonic() - t0 < 1.0
     assert dev.opened[0].release_calls == 1
 

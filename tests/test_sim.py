@@ -278,3 +278,37 @@ def test_scenario_rejects_bad_arguments(tmp_path) -> None:
         write_scenario(tmp_path / "x", "nope")
     with pytest.raises(ValueError):
         schedule("rest", frames=3)
+
+
+def _read_after_pause(queue_frames: int, pause_periods: float) -> tuple[list[int], int]:
+    """Read one frame, pause the reader, then read until caught up: (seqs after the pause, dropped)."""
+    import time
+
+    from optitac_edge.cameras.sim import SimCamera
+
+    fps = 50.0
+    with SimCamera(fps=fps, width=160, height=120, realtime=True, queue_frames=queue_frames, seed=2) as cam:
+        cam.read(2.0)
+        time.sleep(pause_periods / fps)
+        seqs = []
+        for _ in range(queue_frames):
+            seqs.append(cam.read(2.0).seq)
+        return seqs, cam.frames_dropped
+
+
+def test_realtime_sim_keeps_frames_while_the_reader_is_at_most_queue_frames_behind() -> None:
+    seqs, dropped = _read_after_pause(queue_frames=8, pause_periods=3.5)  # 3-4 frames due meanwhile
+    assert seqs == list(range(2, 10)) and dropped == 0
+
+
+def test_realtime_sim_with_a_one_frame_queue_drops_the_frames_it_could_not_hold() -> None:
+    seqs, dropped = _read_after_pause(queue_frames=1, pause_periods=3.5)
+    assert dropped >= 2 and seqs[0] == 2 + dropped
+
+
+def test_sim_refuses_a_queue_out_of_range() -> None:
+    from optitac_edge.cameras.sim import SimCamera
+    from optitac_edge.errors import CameraError
+
+    with pytest.raises(CameraError, match="queue_frames"):
+        SimCamera(queue_frames=0)

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import CameraError
 from .base import Camera, CapturedFrame
+from .frame_ring import MAX_DEPTH
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 
@@ -77,6 +78,10 @@ class SimCamera(Camera):
         Seed of the noise and of the press program.
     rest_frames : int
         Contact-free frames at the start (for calibration and baseline).
+    queue_frames : int
+        Realtime: frames that may wait for the reader, as in a camera's frame
+        ring (:mod:`optitac_edge.cameras.frame_ring`); a frame is dropped once
+        ``queue_frames`` newer ones are due. 1 = the latest frame only.
     realtime : bool
         Deliver frame ``k`` at ``k / fps`` after the start, stamped with that time,
         rendered ahead by a thread (the simulator's rendering, ~1 ms a frame, is
@@ -86,8 +91,11 @@ class SimCamera(Camera):
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
-                 realtime: bool = True) -> None:
+                 realtime: bool = True, queue_frames: int = 4) -> None:
         super().__init__()
+        if not isinstance(queue_frames, int) or isinstance(queue_frames, bool) \
+                or not 1 <= queue_frames <= MAX_DEPTH:
+            raise CameraError(f"queue_frames must be an integer 1..{MAX_DEPTH}, not {queue_frames!r}")
         from ..sim import CameraOptics, Indenter, SimulatedSensor
 
         self._indenter_cls = Indenter
@@ -102,7 +110,8 @@ class SimCamera(Camera):
         self._realtime = realtime
         self._seq = 0
         # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)
-        self._ahead = 3
+        self._queue_frames = queue_frames
+        self._ahead = max(3, queue_frames + 1)
         self._ready: deque[tuple[int, np.ndarray, dict[str, float] | None]] = deque()
         self._cond = threading.Condition()
         self._stop_render = threading.Event()
@@ -145,10 +154,10 @@ class SimCamera(Camera):
     def _read_paced(self, timeout_s: float) -> CapturedFrame:
         """The next frame at its time, like a camera: rendered ahead by a thread.
 
-        Frame ``k`` is due at ``t0 + k / fps`` and stamped with that time. When
-        the reader falls behind by more than a frame, the late frames are
-        skipped (the gap in ``seq`` counts them as dropped); after a second
-        behind (e.g. suspended) the clock resynchronises.
+        Frame ``k`` is due at ``t0 + k / fps`` and stamped with that time. A
+        frame is skipped once ``queue_frames`` newer ones are due, as a camera's
+        ring drops its oldest frame (the gap in ``seq`` counts it as dropped);
+        after a second behind (e.g. suspended) the clock resynchronises.
         """
         if self._render_thread is None:
             self._render_thread = threading.Thread(target=self._render_loop, name="optitac-sim-render",
@@ -169,7 +178,7 @@ class SimCamera(Camera):
                 if now - frame_ns > 1_000_000_000:  # fell far behind: resynchronise
                     self._t0_ns = now - int(seq * period)
                     frame_ns = now
-                elif now - frame_ns > period and len(self._ready) > 1:  # late: the newer one
+                elif now - frame_ns >= self._queue_frames * period and len(self._ready) > 1:  # overrun
                     self._ready.popleft()
                     self._cond.notify_all()
                     continue

@@ -1,11 +1,13 @@
 """V4L2 cameras (USB/UVC, Jetson) and Jetson CSI cameras (GStreamer), through OpenCV.
 
 A grab thread owns the ``cv2.VideoCapture``: it grabs continuously, so the
-driver's queue never fills, and keeps only the latest frame (its timestamp and
-sequence number). :meth:`read` waits for a frame newer than the last one
-delivered; a frame overwritten before it was read is a drop (a gap in
-``seq``). Three preallocated buffers rotate between the thread and the
-caller, so the frame a caller holds is never written until its next read.
+driver's queue never fills, and publishes each frame (with its timestamp and
+sequence number) into a :class:`~.frame_ring.FrameRing`. Up to
+``queue_frames`` frames wait for :meth:`read`, which returns the oldest; when
+one more comes the oldest waiting frame is dropped (counted in
+:attr:`V4L2Camera.overwritten`, and a gap in ``seq``). The ring's
+``queue_frames + 2`` buffers are preallocated, and the frame a caller holds is
+never written until its next read.
 
 Frames are gray (H, W): a ``GREY`` device delivers them as they are, a
 ``YUYV`` device is read raw (``CAP_PROP_CONVERT_RGB`` = 0, (H, W, 2)) and its
@@ -28,6 +30,7 @@ import numpy as np
 
 from ..errors import CameraError
 from .base import Camera, CapturedFrame
+from .frame_ring import FrameRing
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +126,9 @@ class V4L2Camera(Camera):
         Fixed exposure for the CSI pipeline, nanoseconds.
     open_timeout_s : float
         Time the first frame may take after opening.
+    queue_frames : int
+        Frames that may wait for :meth:`read` (1..16); when one more comes the
+        oldest is dropped. 1 keeps only the latest frame.
     """
 
     reuses_buffer = True
@@ -143,6 +149,7 @@ class V4L2Camera(Camera):
         sensor_id: int = 0,
         exposure_ns: int | None = None,
         open_timeout_s: float = 3.0,
+        queue_frames: int = 4,
     ) -> None:
         super().__init__()
         if fourcc not in ("GREY", "YUYV"):
@@ -153,6 +160,8 @@ class V4L2Camera(Camera):
             raise CameraError(f"v4l2: bad size or rate {width}x{height} at {fps} fps")
         self.pixel_format = "gray"
         self.width, self.height, self.fps = int(width), int(height), float(fps)
+        # before the device is opened: a bad queue_frames raises without touching it
+        self._ring = FrameRing((self.height, self.width), queue_frames)
         self.fourcc = fourcc
         self._timestamps = timestamps
         if csi and pipeline is None:
@@ -165,36 +174,24 @@ class V4L2Camera(Camera):
         else:
             self._cap = self._open_v4l2(_resolve_device(device), fourcc, exposure, gain, buffers)
 
-        shape = (self.height, self.width)
-        self._bufs = [np.empty(shape, np.uint8) for _ in range(3)]
-        self._views = []
-        for b in self._bufs:
-            v = b.view()
-            v.flags.writeable = False
-            self._views.append(v)
         self._raw = np.empty((self.height, self.width, 2), np.uint8) if fourcc == "YUYV" and pipeline is None \
             else None
-        self._back, self._ready, self._front = 0, 1, 2  # indices into _bufs
-        self._cond = threading.Condition()
-        self._ready_seq = 0  # seq of the frame in _ready (0: none yet)
-        self._ready_t = 0
-        self._delivered_seq = 0
-        self._error: str | None = None
         self._stop = threading.Event()
-        #: Frames the grab thread overwrote before they were read.
-        self.overwritten = 0
         self._thread = threading.Thread(target=self._grab_loop, name="v4l2-grab", daemon=True)
         self._thread.start()
         try:  # the first frame proves the device streams in the promised format
-            with self._cond:
-                if not self._cond.wait_for(lambda: self._ready_seq > 0 or self._error is not None,
-                                           timeout=open_timeout_s):
-                    raise CameraError(f"v4l2: {self.source!r} delivered no frame within {open_timeout_s:g} s")
-                if self._error is not None:
-                    raise CameraError(self._error)
+            if not self._ring.wait_first(open_timeout_s):
+                raise CameraError(f"v4l2: {self.source!r} delivered no frame within {open_timeout_s:g} s")
+            if self._ring.error is not None:
+                raise CameraError(self._ring.error)
         except BaseException:
             self._close_internal()
             raise
+
+    @property
+    def overwritten(self) -> int:
+        """Frames dropped from the queue because ``queue_frames`` newer ones were waiting."""
+        return self._ring.overwritten
 
     # -- opening -------------------------------------------------------------
 
@@ -266,7 +263,7 @@ class V4L2Camera(Camera):
     # -- grab thread ---------------------------------------------------------
 
     def _grab_loop(self) -> None:
-        cap, period_ns = self._cap, 1e9 / self.fps
+        cap, ring, period_ns = self._cap, self._ring, 1e9 / self.fps
         failures, seq, last_t = 0, 0, None
         use_driver: bool | None = {"driver": True, "grab": False}.get(self._timestamps)
         try:
@@ -278,11 +275,11 @@ class V4L2Camera(Camera):
                 if not ok:
                     failures += 1
                     if failures >= _FAIL_LIMIT:
-                        self._fail(f"v4l2: {self.source!r} stopped delivering frames (unplugged?)")
+                        ring.fail(f"v4l2: {self.source!r} stopped delivering frames (unplugged?)")
                         return
                     time.sleep(0.005)
                     continue
-                back = self._bufs[self._back]
+                back = ring.back
                 if self._raw is not None:
                     ok, img = cap.retrieve(self._raw)
                 else:
@@ -295,8 +292,8 @@ class V4L2Camera(Camera):
                     img = img[:, :, 0]
                 src = img[:, :, 0] if self._raw is not None else img
                 if src.shape != back.shape or src.dtype != np.uint8:
-                    self._fail(f"v4l2: {self.source!r} delivered {src.dtype} {img.shape}, "
-                               f"expected {self.fourcc} {self.width}x{self.height}")
+                    ring.fail(f"v4l2: {self.source!r} delivered {src.dtype} {img.shape}, "
+                              f"expected {self.fourcc} {self.width}x{self.height}")
                     return
                 if not np.shares_memory(src, back):
                     np.copyto(back, src)
@@ -312,37 +309,17 @@ class V4L2Camera(Camera):
                     t = last_t + 1
                 seq += 1 if last_t is None or not use_driver else max(1, round((t - last_t) / period_ns))
                 last_t = t
-                with self._cond:
-                    if self._ready_seq > self._delivered_seq:
-                        self.overwritten += 1
-                    self._back, self._ready = self._ready, self._back
-                    self._ready_seq, self._ready_t = seq, t
-                    self._cond.notify_all()
-        except Exception as exc:  # OpenCV errors must not kill the thread silently
-            self._fail(f"v4l2: grab thread failed: {exc}")
+                ring.publish(t, seq)
+        except Exception as exc:  # noqa: BLE001 - OpenCV errors must not kill the thread silently
+            ring.fail(f"v4l2: grab thread failed: {exc}")
         finally:
             cap.release()
-
-    def _fail(self, message: str) -> None:
-        with self._cond:
-            self._error = message
-            self._cond.notify_all()
 
     # -- camera interface ----------------------------------------------------
 
     def _read_internal(self, timeout_s: float) -> CapturedFrame:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._ready_seq <= self._delivered_seq:
-                if self._error is not None:
-                    raise CameraError(self._error)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise CameraError(f"v4l2: no frame from {self.source!r} within {timeout_s:.3g} s")
-                self._cond.wait(remaining)
-            self._front, self._ready = self._ready, self._front
-            self._delivered_seq = self._ready_seq
-            return CapturedFrame(self._views[self._front], self._ready_t, self._ready_seq)
+        frame, t_ns, seq = self._ring.take(timeout_s, f"v4l2 {self.source!r}")
+        return CapturedFrame(frame, t_ns, seq)
 
     def _close_internal(self) -> None:
         self._stop.set()
