@@ -1,11 +1,18 @@
 """Raspberry Pi cameras through picamera2 (libcamera).
 
 The camera is configured once with a small ``lores`` YUV420 stream of the
-requested size; its Y plane is the grayscale image of the fiber array. Each
-:meth:`read` takes the next completed request, copies the stream (one copy,
-into a preallocated buffer, cropping any row padding) and hands the request
-back to libcamera at once, so the camera never runs out of buffers while the
-pipeline works on the frame.
+requested size; its Y plane is the grayscale image of the fiber array.
+
+After the start-up (configure, start, exposure lock) a grab thread takes every
+completed request, copies the stream (one copy, cropping any row padding) into
+the back buffer of a :class:`~.frame_ring.FrameRing`, hands the request back to
+libcamera at once, so the camera never runs out of buffers, and publishes the
+frame. picamera2 keeps only the newest completed request, so a frame loop that
+read the camera directly lost every frame that came while it paused for more
+than one frame period; the ring holds up to ``queue_frames`` frames instead,
+and :meth:`read` returns the oldest. When one more comes, the oldest waiting
+frame is dropped (counted in :attr:`Picamera2Camera.overwritten`, and a gap in
+``seq``).
 
 Exposure, analogue gain and colour gains are locked after a warm-up (the
 values AE/AWB converged to, or the ones given), because the pipeline's
@@ -19,6 +26,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import threading
 import time
 from typing import Any
 
@@ -26,11 +34,15 @@ import numpy as np
 
 from ..errors import CameraError
 from .base import Camera, CapturedFrame
+from .frame_ring import FrameRing
 
 log = logging.getLogger(__name__)
 
 _TIMEOUTS = (TimeoutError, concurrent.futures.TimeoutError)
 _MANUAL = 1  # libcamera ExposureTimeModeEnum.Manual / AnalogueGainModeEnum.Manual
+#: After cancel_all_and_flush(), how long to wait for the job's fate: a job the event loop
+#: already ran is signalled just after it releases its lock, a cancelled one at once.
+_LATE_S = 1.0
 
 
 def _import_picamera2() -> Any:
@@ -86,7 +98,12 @@ class Picamera2Camera(Camera):
     tuning : str or dict, optional
         Tuning file passed to ``Picamera2``.
     timeout_s : float
-        Timeout of each capture during start-up.
+        Timeout of each capture, during start-up and in the grab thread: a
+        camera that delivers nothing for this long has failed (every later
+        :meth:`read` raises; close and reopen it).
+    queue_frames : int
+        Frames that may wait for :meth:`read`, 1..16; when one more comes the
+        oldest is dropped. 1 keeps only the latest frame.
     """
 
     reuses_buffer = True
@@ -110,6 +127,7 @@ class Picamera2Camera(Camera):
         controls: dict[str, Any] | None = None,
         tuning: str | dict[str, Any] | None = None,
         timeout_s: float = 2.0,
+        queue_frames: int = 4,
     ) -> None:
         super().__init__()
         if pixel_format not in ("gray", "yuv420"):
@@ -120,29 +138,46 @@ class Picamera2Camera(Camera):
             raise CameraError(f"picamera2: fps must be > 0, not {fps}")
         if buffer_count < 3:
             raise CameraError(f"picamera2: buffer_count must be >= 3, not {buffer_count}")
+        if not timeout_s > 0:
+            raise CameraError(f"picamera2: timeout_s must be > 0, not {timeout_s}")
         self.pixel_format = pixel_format
         self.width, self.height, self.fps = int(width), int(height), float(fps)
         self._period_ns = 1e9 / self.fps
+        self._timeout_s = float(timeout_s)
         self._seq = 0
         self._last_t: int | None = None
         #: Controls locked after the warm-up (empty when ``lock`` is False).
         self.locked_controls: dict[str, Any] = {}
+        try:  # before the camera is opened: a bad queue_frames raises without touching it
+            self._ring = FrameRing(self.frame_shape, queue_frames)
+        except CameraError as exc:
+            raise CameraError(f"picamera2: {exc}") from None
+        self._planes: dict[int, tuple[np.ndarray, ...]] = {}  # I420 plane views per ring buffer
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
 
         module = _import_picamera2()
         self._mapped_array = module.MappedArray
         try:
             self._picam2 = module.Picamera2(camera_num, tuning=tuning) if tuning is not None \
                 else module.Picamera2(camera_num)
-        except Exception as exc:  # picamera2 raises RuntimeError / IndexError for a missing camera
+        except Exception as exc:  # noqa: BLE001 - picamera2 raises RuntimeError / IndexError for a missing camera
             raise CameraError(f"picamera2: cannot open camera {camera_num!r}: {exc}") from None
         try:
             self._configure(main_size, sensor, buffer_count, controls or {})
-            self._allocate()
             self._picam2.start()
             if lock:
                 self._lock_controls(exposure_us, analogue_gain, colour_gains, warmup_frames,
                                     settle_frames, timeout_s)
+            self._thread = threading.Thread(target=self._grab_loop, name="picamera2-grab", daemon=True)
+            self._thread.start()
+            # the first frame proves the grab thread runs (with lock=False nothing captured yet)
+            if not self._ring.wait_first(self._timeout_s):
+                raise CameraError(f"picamera2: no frame from the camera within {self._timeout_s:.3g} s")
+            if self._ring.published == 0:
+                raise CameraError(self._ring.error or "picamera2: the grab thread ended")
         except BaseException:
+            self._stop_thread()
             self._shutdown()
             raise
 
@@ -152,7 +187,7 @@ class Picamera2Camera(Camera):
                    buffer_count: int, controls: dict[str, Any]) -> None:
         picam2 = self._picam2
         size = (self.width, self.height)
-        period_us = int(round(1e6 / self.fps))
+        period_us = round(1e6 / self.fps)
         kwargs: dict[str, Any] = {
             "main": {"size": tuple(main_size) if main_size else size, "format": "YUV420"},
             "lores": {"size": size, "format": "YUV420"},
@@ -166,7 +201,7 @@ class Picamera2Camera(Camera):
         try:
             picam2.configure(picam2.create_video_configuration(**kwargs))
             stream = picam2.camera_configuration()["lores"]
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - libcamera's errors, whatever their type, mean "cannot"
             raise CameraError(f"picamera2: cannot configure {self.width}x{self.height} "
                               f"YUV420 at {self.fps:g} fps: {exc}") from None
         got = tuple(int(v) for v in stream["size"])
@@ -176,18 +211,6 @@ class Picamera2Camera(Camera):
         self._stride = int(stream["stride"])
         if self._stride < self.width or self._stride % 2:
             raise CameraError(f"picamera2: unexpected lores stride {self._stride}")
-
-    def _allocate(self) -> None:
-        h, w = self.height, self.width
-        self._buf = np.empty(self.frame_shape, dtype=np.uint8)
-        self._frame = self._buf.view()
-        self._frame.flags.writeable = False
-        if self.pixel_format == "yuv420":  # I420 plane views into the buffer
-            flat = self._buf.reshape(-1)
-            ch, cw = h // 2, w // 2
-            self._y_dst = self._buf[:h]
-            self._u_dst = flat[h * w:h * w + ch * cw].reshape(ch, cw)
-            self._v_dst = flat[h * w + ch * cw:].reshape(ch, cw)
 
     def _lock_controls(self, exposure_us: int | None, analogue_gain: float | None,
                        colour_gains: tuple[float, float] | None, warmup_frames: int,
@@ -213,7 +236,7 @@ class Picamera2Camera(Camera):
                 lock["AwbEnable"] = False
         try:
             picam2.set_controls(lock)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - RuntimeError for an unadvertised control, or libcamera's
             raise CameraError(f"picamera2: cannot lock exposure/gain ({exc})") from None
         self.locked_controls = lock
         for _ in range(settle_frames):
@@ -231,59 +254,93 @@ class Picamera2Camera(Camera):
 
     def _wait(self, job: Any, timeout_s: float, what: str) -> Any:
         """Result of a picamera2 job, or CameraError after ``timeout_s`` (the job cancelled)."""
-        picam2 = self._picam2
         try:
-            return picam2.wait(job, timeout=timeout_s)
+            return self._picam2.wait(job, timeout=timeout_s)
         except _TIMEOUTS:
             pass
-        except Exception as exc:
-            raise CameraError(f"picamera2: capture failed: {exc}") from None
+        except Exception as exc:  # noqa: BLE001 - the job's own error, or CancelledError: close() flushed it
+            raise CameraError(f"picamera2: capture failed: {exc or type(exc).__name__}") from None
         # Timed out: drop the pending job so it cannot grab (and leak) a request later.
+        self._cancel(job)
+        raise CameraError(f"picamera2: no {what} from the camera within {timeout_s:.3g} s")
+
+    def _cancel(self, job: Any) -> None:
+        """Cancel the pending jobs; release the request if ``job`` got one all the same."""
+        picam2 = self._picam2
         try:
             picam2.cancel_all_and_flush()
-            late = picam2.wait(job, timeout=0)  # completed between the timeout and the cancel
-        except Exception:
+        except Exception as exc:  # noqa: BLE001 - failing anyway; keep going
+            log.warning("picamera2: cancel_all_and_flush failed: %s", exc)
+        try:  # the event loop may have run the job just before the cancel
+            late = picam2.wait(job, timeout=_LATE_S)
+        except Exception:  # noqa: BLE001 - cancelled (or never finished)
             late = None
         if late is not None and hasattr(late, "release"):
             late.release()
-        raise CameraError(f"picamera2: no {what} from the camera within {timeout_s:.3g} s")
 
     def _capture_metadata(self, timeout_s: float) -> dict[str, Any]:
         return self._wait(self._picam2.capture_metadata(wait=False), timeout_s, "frame metadata")
 
-    def _read_internal(self, timeout_s: float) -> CapturedFrame:
-        request = self._wait(self._picam2.capture_request(wait=False), timeout_s, "frame")
-        try:
-            md = request.get_metadata()
-            with self._mapped_array(request, "lores", write=False) as mapped:
-                self._copy(mapped.array)
-        except CameraError:
-            raise
-        except Exception as exc:
-            raise CameraError(f"picamera2: cannot read the frame: {exc}") from None
-        finally:
-            request.release()
-        t_ns = int(md.get("SensorTimestamp") or time.monotonic_ns())
-        self._seq = self._next_seq(md, t_ns)
-        self._last_t = t_ns
-        return CapturedFrame(self._frame, t_ns, self._seq)
+    # -- grab thread ---------------------------------------------------------
 
-    def _copy(self, array: np.ndarray) -> None:
-        """Copy the (H*3/2, stride) lores buffer into the frame buffer, without padding."""
+    def _grab_loop(self) -> None:
+        picam2, ring, stop = self._picam2, self._ring, self._stop
+        try:
+            while not stop.is_set():
+                job = picam2.capture_request(wait=False)
+                if stop.is_set():  # close() may have flushed before this job existed
+                    self._cancel(job)
+                    return
+                try:
+                    request = self._wait(job, self._timeout_s, "frame")
+                except CameraError as exc:
+                    if not stop.is_set():
+                        ring.fail(str(exc))
+                    return
+                try:
+                    md = request.get_metadata()
+                    with self._mapped_array(request, "lores", write=False) as mapped:
+                        self._copy(mapped.array, ring.back)
+                finally:
+                    request.release()  # back to libcamera before the frame is published
+                t_ns = int(md.get("SensorTimestamp") or time.monotonic_ns())
+                self._seq = self._next_seq(md, t_ns)
+                self._last_t = t_ns
+                ring.publish(t_ns, self._seq)
+        except CameraError as exc:
+            ring.fail(str(exc))
+        except Exception as exc:  # noqa: BLE001 - picamera2 errors must not end the thread silently
+            ring.fail(f"picamera2: cannot read the frame: {exc}")
+
+    def _copy(self, array: np.ndarray, dst: np.ndarray) -> None:
+        """Copy the (H*3/2, stride) lores buffer into ``dst`` (a ring buffer), without padding."""
         h, w, stride = self.height, self.width, self._stride
         if array.shape != (h * 3 // 2, stride):
             raise CameraError(f"picamera2: lores buffer is {array.shape}, expected {(h * 3 // 2, stride)}")
         if self.pixel_format == "gray":
-            np.copyto(self._buf, array[:h, :w])
+            np.copyto(dst, array[:h, :w])
         elif stride == w:
-            np.copyto(self._buf, array)
+            np.copyto(dst, array)
         else:  # chroma planes have stride / 2: copy plane by plane
+            y_dst, u_dst, v_dst = self._plane_views(dst)
             flat = array.reshape(-1)
             ch, cs, cw = h // 2, stride // 2, w // 2
             u0, v0 = h * stride, h * stride + ch * cs
-            np.copyto(self._y_dst, array[:h, :w])
-            np.copyto(self._u_dst, flat[u0:u0 + ch * cs].reshape(ch, cs)[:, :cw])
-            np.copyto(self._v_dst, flat[v0:v0 + ch * cs].reshape(ch, cs)[:, :cw])
+            np.copyto(y_dst, array[:h, :w])
+            np.copyto(u_dst, flat[u0:u0 + ch * cs].reshape(ch, cs)[:, :cw])
+            np.copyto(v_dst, flat[v0:v0 + ch * cs].reshape(ch, cs)[:, :cw])
+
+    def _plane_views(self, dst: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The Y, U, V planes of an I420 ring buffer, made once per buffer."""
+        planes = self._planes.get(id(dst))
+        if planes is None or planes[0] is not dst:
+            h, w = self.height, self.width
+            ch, cw = h // 2, w // 2
+            flat = dst.reshape(-1)
+            planes = (dst, dst[:h], flat[h * w:h * w + ch * cw].reshape(ch, cw),
+                      flat[h * w + ch * cw:].reshape(ch, cw))
+            self._planes[id(dst)] = planes  # keeps dst alive, so its id stays unique
+        return planes[1:]
 
     def _next_seq(self, md: dict[str, Any], t_ns: int) -> int:
         """Sequence number: the sensor's if reported, else counted from the frame period."""
@@ -292,17 +349,50 @@ class Picamera2Camera(Camera):
         if self._last_t is None:
             return self._seq + 1
         period = float(md.get("FrameDuration") or 0) * 1000.0 or self._period_ns
-        return self._seq + max(1, int(round((t_ns - self._last_t) / period)))
+        return self._seq + max(1, round((t_ns - self._last_t) / period))
+
+    # -- camera interface ----------------------------------------------------
+
+    @property
+    def overwritten(self) -> int:
+        """Frames dropped from the ring because ``queue_frames`` newer ones were waiting."""
+        return self._ring.overwritten
+
+    def _read_internal(self, timeout_s: float) -> CapturedFrame:
+        try:
+            frame, t_ns, seq = self._ring.take(timeout_s, "the camera")
+        except CameraError as exc:
+            message = str(exc)
+            if not message.startswith("picamera2:"):
+                message = f"picamera2: {message}"
+            raise CameraError(message) from None
+        return CapturedFrame(frame, t_ns, seq)
 
     # -- teardown ------------------------------------------------------------
+
+    def _stop_thread(self) -> None:
+        """End the grab thread; it releases any request it holds before it returns."""
+        self._stop.set()
+        thread = self._thread
+        if thread is None:
+            return
+        try:  # ends a wait for the next frame at once
+            self._picam2.cancel_all_and_flush()
+        except Exception as exc:  # noqa: BLE001 - closing anyway
+            log.warning("picamera2: cancel_all_and_flush failed: %s", exc)
+        thread.join(timeout=self._timeout_s + _LATE_S + 1.0)
+        if thread.is_alive():
+            log.warning("picamera2: grab thread did not end; stopping the camera anyway")
 
     def _shutdown(self) -> None:
         picam2 = self._picam2
         for step in ("cancel_all_and_flush", "stop", "close"):
             try:
                 getattr(picam2, step)()
-            except Exception as exc:  # keep tearing down
+            except Exception as exc:  # noqa: BLE001 - keep tearing down
                 log.warning("picamera2: %s failed: %s", step, exc)
 
     def _close_internal(self) -> None:
+        self._stop_thread()
         self._shutdown()
+        self._ring.fail("picamera2: camera is closed")  # wakes a read() blocked in another thread

@@ -15,8 +15,12 @@ buffer as (H*3/2, stride).
 
 A background thread plays the sensor: one frame per ``FrameDurationLimits``
 period, AE/AWB converging while enabled, controls taking effect two frames
-after ``set_controls`` (as on the real pipeline). Tests steer it through the
-module-level :data:`HARDWARE`.
+after ``set_controls`` (as on the real pipeline). As in picamera2 with
+``queue=True``, only the newest completed request waits for the application
+(older ones go back to the camera); jobs run in the sensor thread under the
+camera lock and are signalled after it is released. Tests steer it through the
+module-level :data:`HARDWARE`; ``paced`` and ``budget`` make frame delivery
+deterministic for tests, the rest is what real hardware does.
 """
 
 from __future__ import annotations
@@ -41,12 +45,21 @@ class FakeHardware:
     stride_align: int = 64  # lores row stride alignment in bytes
     stall: bool = False  # no frames complete while True
     drop_next: int = 0  # frames the sensor loses (the timestamp jumps)
+    #: Test knob: frames complete only while a job waits for one (an application that
+    #: never falls behind the sensor), and the sensor clock advances one period per
+    #: frame, so pauses leave no gap in the timestamps. Not something hardware does.
+    paced: bool = False
+    #: Test knob: frames that may still complete (None: unlimited); at 0 the sensor
+    #: delivers nothing, like ``stall``. Change it under ``Picamera2._lock`` for an exact count.
+    budget: int | None = None
     ae_target_us: int = 8000
     ae_target_gain: float = 2.5
     awb_target: tuple[float, float] = (1.8, 1.5)
     opened: list[Picamera2] = field(default_factory=list)
     #: (SensorTimestamp, Y plane) of every frame produced, for checking copies.
     produced: dict[int, np.ndarray] = field(default_factory=dict)
+    #: Misuse seen by the fake (a request released twice, used after release); tests assert it stays empty.
+    errors: list[str] = field(default_factory=list)
 
 
 HARDWARE = FakeHardware()
@@ -83,7 +96,7 @@ class Job:
                 self._functions.pop(0)
             if not self._functions:
                 self._result = result
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - as picamera2.job.Job: the error goes to the future
             self._future.set_exception(exc)
             self._functions = []
         return not self._functions
@@ -105,13 +118,18 @@ class CompletedRequest:
     def __init__(self, picam2: Picamera2, buffer: np.ndarray, metadata: dict[str, Any]) -> None:
         self.picam2 = picam2
         self.ref_count = 1
+        picam2.requests_created += 1
         self.config = {k: dict(v) if isinstance(v, dict) else v for k, v in picam2.camera_config.items()}
         self._buffer = buffer
         self._metadata = metadata
 
+    def _misuse(self, message: str) -> None:
+        self.picam2.hw.errors.append(message)
+
     def acquire(self) -> None:
         with self.picam2._lock:
             if self.ref_count == 0:
+                self._misuse("acquire with ref_count 0")
                 raise RuntimeError("CompletedRequest: acquiring lock with ref_count 0")
             self.ref_count += 1
 
@@ -119,14 +137,18 @@ class CompletedRequest:
         with self.picam2._lock:
             self.ref_count -= 1
             if self.ref_count < 0:
+                self._misuse("release with ref_count 0")
                 raise RuntimeError("CompletedRequest: lock now has negative ref_count")
             if self.ref_count == 0:
                 self._buffer[:] = 0xEE  # the camera writes the next frame into it
                 self.picam2._free.append(self._buffer)
+                self.picam2.requests_freed += 1
                 self._buffer = None  # type: ignore[assignment]
                 self._metadata = None  # type: ignore[assignment]
 
     def get_metadata(self) -> dict[str, Any]:
+        if self._metadata is None:
+            self._misuse("get_metadata after release")
         assert self._metadata is not None, "request used after release"
         return dict(self._metadata)
 
@@ -140,8 +162,10 @@ class MappedArray:
         self._request, self._stream, self._reshape = request, stream, reshape
         self._array = None
 
-    def __enter__(self) -> MappedArray:
+    def __enter__(self) -> MappedArray:  # noqa: PYI034 - Self needs Python 3.11
         buf = self._request._buffer
+        if buf is None:
+            self._request._misuse("MappedArray on a released request")
         assert buf is not None, "MappedArray on a released request"
         if self._reshape:
             cfg = self._request.config[self._stream]
@@ -202,15 +226,18 @@ class Picamera2:
         self.frames = 0
         self.outstanding_peak = 0
         self.handed_out: list[CompletedRequest] = []  # requests given to the application
+        self.requests_created = 0  # completed requests made (each holds a buffer) ...
+        self.requests_freed = 0  # ... and given back (ref_count down to 0): equal once all are released
         names = _NEW_CONTROLS if self.hw.new_libcamera else _OLD_CONTROLS
         self.camera_controls = {n: (None, None, None) for n in names}
         self._exposure, self._gain, self._cg = 1000, 1.0, (1.0, 1.0)
         self.hw.opened.append(self)
 
     # configuration
-    def create_video_configuration(self, main={}, lores=None, raw={}, transform=None, colour_space=None,
-                                   buffer_count=6, controls={}, display="main", encode="main",
-                                   queue=True, sensor={}, use_case="video") -> dict[str, Any]:
+    def create_video_configuration(self, main={}, lores=None, raw={}, transform=None,  # noqa: B006 - picamera2's
+                                   colour_space=None, buffer_count=6, controls={},  # noqa: B006 - signature
+                                   display="main", encode="main", queue=True, sensor={},  # noqa: B006
+                                   use_case="video") -> dict[str, Any]:
         cfg = {"use_case": use_case, "main": {"format": "XBGR8888", "size": (1280, 720), **main},
                "lores": None if lores is None else {"format": "YUV420", "size": (320, 240), **lores},
                "buffer_count": buffer_count, "queue": queue, "display": display, "encode": encode,
@@ -306,6 +333,7 @@ class Picamera2:
         lo = self.camera_config["lores"]  # type: ignore[index]
         (w, h), stride = lo["size"], lo["stride"]
         next_ns = time.monotonic_ns() + period_ns
+        last_t = time.monotonic_ns()  # the sensor clock of paced mode
         while not self._stop.is_set():
             delay = (next_ns - time.monotonic_ns()) / 1e9
             if delay > 0:
@@ -314,11 +342,19 @@ class Picamera2:
             next_ns += period_ns
             if self.hw.stall:
                 continue
-            if self.hw.drop_next > 0:
-                self.hw.drop_next -= 1
-                self.frames += 1
-                continue
             with self._lock:
+                if self.hw.budget == 0 or (self.hw.paced and not self._job_list):
+                    continue
+                if self.hw.paced:  # timestamps one period apart, however long the pause
+                    t = last_t + period_ns
+                if self.hw.drop_next > 0:
+                    self.hw.drop_next -= 1
+                    self.frames += 1
+                    last_t = t
+                    continue
+                last_t = t
+                if self.hw.budget is not None:
+                    self.hw.budget -= 1
                 while self._pending and self._pending[0][0] <= self.frames:
                     self._controls.update(self._pending.pop(0)[1])
                 if not self._free:  # every buffer held by the application: frame lost
