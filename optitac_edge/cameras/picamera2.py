@@ -152,7 +152,6 @@ class Picamera2Camera(Camera):
             self._ring = FrameRing(self.frame_shape, queue_frames)
         except CameraError as exc:
             raise CameraError(f"picamera2: {exc}") from None
-        self._planes: dict[int, tuple[np.ndarray, ...]] = {}  # I420 plane views per ring buffer
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -321,26 +320,13 @@ class Picamera2Camera(Camera):
             np.copyto(dst, array[:h, :w])
         elif stride == w:
             np.copyto(dst, array)
-        else:  # chroma planes have stride / 2: copy plane by plane
-            y_dst, u_dst, v_dst = self._plane_views(dst)
-            flat = array.reshape(-1)
+        else:  # chroma planes have stride / 2: copy plane by plane, into the I420 planes of dst
+            flat, dst_flat = array.reshape(-1), dst.reshape(-1)
             ch, cs, cw = h // 2, stride // 2, w // 2
             u0, v0 = h * stride, h * stride + ch * cs
-            np.copyto(y_dst, array[:h, :w])
-            np.copyto(u_dst, flat[u0:u0 + ch * cs].reshape(ch, cs)[:, :cw])
-            np.copyto(v_dst, flat[v0:v0 + ch * cs].reshape(ch, cs)[:, :cw])
-
-    def _plane_views(self, dst: np.ndarray) -> tuple[np.ndarray, ...]:
-        """The Y, U, V planes of an I420 ring buffer, made once per buffer."""
-        planes = self._planes.get(id(dst))
-        if planes is None or planes[0] is not dst:
-            h, w = self.height, self.width
-            ch, cw = h // 2, w // 2
-            flat = dst.reshape(-1)
-            planes = (dst, dst[:h], flat[h * w:h * w + ch * cw].reshape(ch, cw),
-                      flat[h * w + ch * cw:].reshape(ch, cw))
-            self._planes[id(dst)] = planes  # keeps dst alive, so its id stays unique
-        return planes[1:]
+            np.copyto(dst[:h], array[:h, :w])
+            np.copyto(dst_flat[h * w:h * w + ch * cw].reshape(ch, cw), flat[u0:u0 + ch * cs].reshape(ch, cs)[:, :cw])
+            np.copyto(dst_flat[h * w + ch * cw:].reshape(ch, cw), flat[v0:v0 + ch * cs].reshape(ch, cs)[:, :cw])
 
     def _next_seq(self, md: dict[str, Any], t_ns: int) -> int:
         """Sequence number: the sensor's if reported, else counted from the frame period."""
