@@ -33,6 +33,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
     import tomli as tomllib  # type: ignore[no-redef]
 
+from .cameras.frame_ring import MAX_DEPTH
 from .errors import ConfigError
 
 #: Where systemd's ``StateDirectory=optitac-edge`` lives (the calibration bundle's home).
@@ -214,7 +215,7 @@ class CameraConfig:
     recording: str = _opt(_path, "", "recording: the recording directory to replay")
     warmup_frames: int = _opt(_int(0, 1000), 5, "frames discarded after opening (auto exposure settles)")
     timeout_s: float = _opt(_num(0, 60, lo_open=True), 1.0, "longest wait for one frame, s")
-    queue_frames: int = _opt(_int(1, 16), 4, "frames that may wait for the loop; when full the oldest "
+    queue_frames: int = _opt(_int(1, MAX_DEPTH), 4, "frames that may wait for the loop; when full the oldest "
                              "is dropped (1 = latest frame only)")
     #: Backend-specific options (free names, scalar values), validated by the backend.
     options: Mapping[str, Scalar] = field(default_factory=lambda: MappingProxyType({}),

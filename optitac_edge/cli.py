@@ -471,8 +471,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise OptiTacError("--frames must be >= 1")
     if not args.fps > 0:
         raise OptiTacError("--fps must be positive")
-    if args.queue_frames is not None and not 1 <= args.queue_frames <= 16:
-        raise OptiTacError("--queue-frames must be 1..16")
+    from .cameras.frame_ring import MAX_DEPTH
+
+    if args.queue_frames is not None and not 1 <= args.queue_frames <= MAX_DEPTH:
+        raise OptiTacError(f"--queue-frames must be 1..{MAX_DEPTH}")
     res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
                     workdir=args.workdir, reference_frames=args.reference_frames,
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,

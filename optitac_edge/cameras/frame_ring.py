@@ -26,6 +26,13 @@ from ..errors import CameraError
 MAX_DEPTH = 16
 
 
+def check_queue_frames(depth: object) -> int:
+    """``depth`` if it is a valid ``queue_frames`` (an integer 1..``MAX_DEPTH``), else CameraError."""
+    if not isinstance(depth, int) or isinstance(depth, bool) or not 1 <= depth <= MAX_DEPTH:
+        raise CameraError(f"queue_frames must be an integer 1..{MAX_DEPTH}, not {depth!r}")
+    return depth
+
+
 class FrameRing:
     """A bounded queue of preallocated frame buffers between one writer and one reader.
 
@@ -38,9 +45,7 @@ class FrameRing:
     """
 
     def __init__(self, shape: tuple[int, ...], depth: int) -> None:
-        if not isinstance(depth, int) or isinstance(depth, bool) or not 1 <= depth <= MAX_DEPTH:
-            raise CameraError(f"queue_frames must be an integer 1..{MAX_DEPTH}, not {depth!r}")
-        self.depth = depth
+        self.depth = check_queue_frames(depth)
         self._bufs = [np.empty(shape, np.uint8) for _ in range(depth + 2)]
         self._views = []
         for b in self._bufs:

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import CameraError
 from .base import Camera, CapturedFrame
-from .frame_ring import MAX_DEPTH
+from .frame_ring import check_queue_frames
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 
@@ -93,9 +93,7 @@ class SimCamera(Camera):
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
                  realtime: bool = True, queue_frames: int = 4) -> None:
         super().__init__()
-        if not isinstance(queue_frames, int) or isinstance(queue_frames, bool) \
-                or not 1 <= queue_frames <= MAX_DEPTH:
-            raise CameraError(f"queue_frames must be an integer 1..{MAX_DEPTH}, not {queue_frames!r}")
+        check_queue_frames(queue_frames)
         from ..sim import CameraOptics, Indenter, SimulatedSensor
 
         self._indenter_cls = Indenter
