@@ -41,3 +41,21 @@ def test_a_table_needs_pixels_inside_the_image():
         FiberTable(height=2, width=2, pixel_format="gray", pixel_index=np.array([0, 9], np.int32),
                    pixel_start=np.array([0, 1, 2]), centroid_px=np.zeros((2, 2)), dead=np.zeros(2, bool),
                    unmatched_px=np.zeros((0, 2)))
+
+
+@pytest.mark.parametrize("pixels", [257, 258, 600])
+def test_means_are_exact_for_large_fibers_on_a_saturated_frame(pixels):
+    """255 * 257 = 65535 is the most a 16-bit sum holds: larger fibers need wider sums."""
+    h, w = 40, 40
+    sizes = np.array([pixels, 3, pixels - 1])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    table = FiberTable(height=h, width=w, pixel_format="gray",
+                       pixel_index=np.random.default_rng(2).permutation(h * w)[:starts[-1]].astype(np.int32),
+                       pixel_start=starts, centroid_px=np.zeros((3, 2)), dead=np.zeros(3, bool),
+                       unmatched_px=np.zeros((0, 2)))
+    sampler = FiberSampler(table)
+    out = np.empty(3, np.float32)
+    np.testing.assert_array_equal(sampler.means(np.full((h, w), 255, np.uint8), out), [255.0] * 3)
+    frame = np.random.default_rng(3).integers(200, 256, (h, w), dtype=np.uint8)
+    expected = ndimage.mean(frame.astype(np.float64), table.label_image(), np.arange(1, 4))
+    np.testing.assert_allclose(sampler.means(frame, out), expected, rtol=1e-6)
