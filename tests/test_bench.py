@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from optitac_edge.bench import STAGES
+from optitac_edge.bench import FAST_PASSES, STAGES
 from optitac_edge.cli import main
 
 
@@ -30,6 +30,7 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys) -> None:
         _check_stats(d)
     ref = res["reference"]
     assert ref["frames"] == 3 and ref["ratio_reference_to_fast_paper_mode"] > 0
+    assert ref["reference"]["n"] == 3 and ref["fast_paper_mode"]["n"] == 3 * FAST_PASSES
     mem = res["memory"]
     assert {"net_bytes_per_frame", "max_transient_bytes_in_frame", "rss_growth_bytes"} <= set(mem)
     e2e = res["end_to_end"]
