@@ -19,19 +19,18 @@ OpenCV computes in pixel units for the same array.
 The plain functions (:func:`raw_moments`, :func:`central_moments`,
 :func:`contact_ellipse`, :func:`hu_moments`) allocate and are meant for
 analysis, calibration and tests. The runtime pipeline takes OpenCV's moments
-of the contact's bounding box (``cv2.moments``, float64 accumulation) and
-finishes them with the plain-number forms :func:`ellipse_from_central`,
-:func:`hu_from_normalized`, :func:`log_hu_value` and
-:class:`FourFoldSymmetry`; the tests check those against the functions here.
+of the contact's bounding box (``cv2.moments``, float64 accumulation) for the
+ellipse, :class:`BinaryShapeMoments` for the shape features, and finishes them
+with the plain-number forms :func:`ellipse_from_central`,
+:func:`hu_from_normalized` and :func:`log_hu_value`; the tests check those
+against the functions here.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 
 from .grid import SurfaceGrid
@@ -407,64 +406,77 @@ def log_hu(h: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
-class FourFoldSymmetry:
-    """Allocation-free :func:`q4_from_central` of a binary image from OpenCV moments (runtime form).
+class BinaryShapeMoments:
+    """Allocation-free Hu invariants and q4 of a binarised contact (runtime form).
 
-    With ``z = x + i y`` (pixel coordinates of the image), ``c`` the centroid
-    and ``S_k = sum z**k`` over the shape, ``c40 = sum (z - c)**4 = S_4 - 4 c
-    S_3 + 6 c**2 S_2 - 3 c**4 S_0`` (``S_1 = c S_0``). ``S_2`` and ``S_3``
-    are combinations of the shape's own raw moments (orders 2 and 3, from
-    ``cv2.moments``); ``S_4 = sum z**2 z**2`` is the order-2 ``S_2`` of the
-    shape weighted by ``z**2``, i.e. of the two real images ``binary * (x**2 -
-    y**2)`` and ``binary * 2 x y`` (two products with precomputed tables and
-    two more ``cv2.moments`` calls, accumulated in float64). Both tables are
-    offset by ``size**2`` so that the weighted images have a positive sum
-    (OpenCV 5.0 returns doubled raw moments for an image summing to exactly 0,
-    which a symmetric shape weighted by ``x**2 - y**2`` does); the offset's
-    share, ``size**2 * S_2`` each, is subtracted again.
+    Every raw moment up to order 4 of the shape ``B = img > level`` comes from
+    two small matrix products, ``M = Y.T @ (B @ X)`` with ``X[x, p] = x**p``
+    and ``Y[y, q] = y**q`` (pixel coordinates of the box, float64):
+    ``M[q, p] = sum y**q x**p B``, exact integers (below 2**53 for boxes up to
+    ~500 cells a side). The central moments follow with OpenCV's formulas,
+    then Hu's invariants (:func:`hu_from_normalized`) and, with ``z = x + i y``,
+    ``c`` the centroid and ``S_k = sum z**k B``, ``c40 = S_4 - 4 c S_3 + 6 c**2
+    S_2 - 3 c**4 S_0`` for q4 (:func:`q4_from_central`). One pass replaces the
+    binarisation, ``cv2.moments`` of it and two weighted ``cv2.moments`` for
+    q4 (8 against 14.5 us for a ~1,900-cell box here).
 
     Parameters
     ----------
     size : int
-        Largest image side.
+        Largest box side, cells.
     """
 
     def __init__(self, size: int) -> None:
-        c = np.arange(size, dtype=np.float32)
-        x, y = c[None, :], c[:, None]
-        self._offset = float(size * size)
-        # integers below 3 size**2: exact in float32 for any mesh size up to ~2000
-        self._re_z2 = np.ascontiguousarray(x * x - y * y + self._offset)
-        self._im_z2 = np.ascontiguousarray(2.0 * x * y + self._offset)
-        self._work = np.empty(size * size, dtype=np.float32)
+        c = np.arange(size, dtype=np.float64)
+        self._x_powers = np.ascontiguousarray(c[:, None] ** np.arange(5.0))  # (size, 5)
+        self._y_powers_t = np.ascontiguousarray(self._x_powers.T)  # (5, size)
+        self._binary = np.zeros(size * size, dtype=np.float64)
+        self._rows = np.zeros((size, 5), dtype=np.float64)
+        self._raw = np.zeros((5, 5), dtype=np.float64)
 
-    def q4(self, binary: np.ndarray, m: Mapping[str, float]) -> float:
-        """q4 of ``binary``.
+    def raw(self, img: np.ndarray, level: float) -> np.ndarray:
+        """Raw moments of ``img > level``.
 
         Parameters
         ----------
-        binary : ndarray, shape (h, w), float32, 0 or 1
-            The shape (h, w <= size).
-        m : mapping
-            ``cv2.moments(binary)`` (``m00`` > 0).
+        img : ndarray, shape (h, w), float32
+            The box (h, w <= size).
+        level : float
+            Binarisation level (compared in float32, as ``cv2.threshold``).
 
         Returns
         -------
-        float
-            ``|c40| / m00**3``, dimensionless.
+        ndarray, shape (5, 5), float64
+            ``M[q, p] = sum y**q x**p`` over the cells above ``level`` (y power
+            ``q``, x power ``p``, pixel coordinates of the box; only ``p + q <=
+            4`` is used). An internal buffer, overwritten by the next call.
         """
-        h, w = binary.shape
-        work = self._work[:h * w].reshape(h, w)
-        np.multiply(binary, self._re_z2[:h, :w], out=work)
-        a = cv2.moments(work)
-        np.multiply(binary, self._im_z2[:h, :w], out=work)
-        b = cv2.moments(work)
-        m00 = m["m00"]
-        c = complex(m["m10"] / m00, m["m01"] / m00)
-        s2 = complex(m["m20"] - m["m02"], 2.0 * m["m11"])
-        s3 = complex(m["m30"] - 3.0 * m["m12"], 3.0 * m["m21"] - m["m03"])
-        s4 = (complex(a["m20"] - a["m02"] - 2.0 * b["m11"], 2.0 * a["m11"] + b["m20"] - b["m02"])
-              - self._offset * complex(1.0, 1.0) * s2)
+        h, w = img.shape
+        binary = self._binary[:h * w].reshape(h, w)
+        np.greater(img, np.float32(level), out=binary)
+        rows = self._rows[:h]
+        np.matmul(binary, self._x_powers[:w], out=rows)
+        return np.matmul(self._y_powers_t[:, :h], rows, out=self._raw)
+
+    def hu_q4(self, img: np.ndarray, level: float) -> tuple[tuple[float, ...], float] | None:
+        """Hu's seven invariants and q4 of ``img > level`` (see :meth:`raw`); None if no cell is above."""
+        (m00, m10, m20, m30, m40), (m01, m11, m21, m31, _), (m02, m12, m22, _, _), \
+            (m03, m13, _, _, _), (m04, _, _, _, _) = self.raw(img, level).tolist()
+        if not m00 > 0.0:
+            return None
+        cx, cy = m10 / m00, m01 / m00
+        mu20, mu11, mu02 = m20 - cx * m10, m11 - cx * m01, m02 - cy * m01
+        mu30 = m30 - cx * (3.0 * m20 - 2.0 * cx * m10)
+        mu21 = m21 - 2.0 * cx * m11 - cy * m20 + 2.0 * cx * cx * m01
+        mu12 = m12 - 2.0 * cy * m11 - cx * m02 + 2.0 * cy * cy * m10
+        mu03 = m03 - cy * (3.0 * m02 - 2.0 * cy * m01)
+        s2 = m00 * m00
+        s3 = s2 * math.sqrt(m00)
+        hu = hu_from_normalized(mu20 / s2, mu11 / s2, mu02 / s2, mu30 / s3, mu21 / s3, mu12 / s3, mu03 / s3)
+        c = complex(cx, cy)
+        z2 = complex(m20 - m02, 2.0 * m11)
+        z3 = complex(m30 - 3.0 * m12, 3.0 * m21 - m03)
+        z4 = complex(m40 - 6.0 * m22 + m04, 4.0 * (m31 - m13))
         c2 = c * c
-        c40 = s4 - 4.0 * c * s3 + 6.0 * c2 * s2 - 3.0 * c2 * c2 * m00
-        return abs(c40) / (m00 * m00 * m00)
+        c40 = z4 - 4.0 * c * z3 + 6.0 * c2 * z2 - 3.0 * c2 * c2 * m00
+        return hu, abs(c40) / (s2 * m00)

@@ -29,7 +29,8 @@ switchable improvements beyond the paper noted in brackets):
    and the 4-fold symmetry q4 of the binarised surface give the shape
    features (``estimate.features``); everything after the truncation reads
    only the bounding box of the cells above the level (OpenCV's moments,
-   threshold and labelling on views of it);
+   threshold and labelling on views of it; the shape features from two small
+   matrix products, :class:`~optitac_edge.moments.BinaryShapeMoments`);
 8. [track_baseline: without contact, on quiet frames, the baseline follows
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)].
@@ -57,7 +58,7 @@ from .contact_options import MAX_CONTACTS, ContactOptions
 from .corrections import ContactCorrector
 from .dead_fill import dead_fill_matrix
 from .fiber_table import FiberSampler
-from .moments import FourFoldSymmetry, ellipse_from_central, hu_from_normalized, log_hu_value
+from .moments import BinaryShapeMoments, ellipse_from_central, log_hu_value
 from .surface import DenseSurface, PatchSurface
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
@@ -172,7 +173,6 @@ class Pipeline:
         self._mask_u8 = self._mask2d.view(np.uint8)
         # bounding-box sized scratch (contiguous (h, w) views at the start, see _roi)
         self._weighted = np.zeros(n_cells, dtype=np.float32)
-        self._binary = np.zeros(n_cells, dtype=np.float32)
         self._blob_img = np.zeros(n_cells, dtype=np.float32)
         self._split_mask = np.zeros(n_cells, dtype=bool)
         self._blob = np.zeros(n_cells, dtype=bool)
@@ -183,7 +183,7 @@ class Pipeline:
         # moments in mesh cells -> mm: x = x0 + step * col; second moments * step^2 * cell area
         self._x0, self._y0, self._step = float(grid.x0_mm), float(grid.y0_mm), float(grid.step_mm)
         self._mu2_scale = self._step * self._step * self._cell_area
-        self._q4 = FourFoldSymmetry(grid.n)
+        self._shape_moments = BinaryShapeMoments(grid.n)
         self._frame = 0
         self._in_contact = False
         self._last_ns: int | None = None
@@ -593,19 +593,15 @@ class Pipeline:
 
     def _shape_features(self, img: np.ndarray, level: float, out: ContactEstimate) -> None:
         """Log-Hu invariants and q4 of ``img > level`` into ``out.hu`` / ``out.features``."""
-        binary = self._roi(self._binary, *img.shape)
-        cv2.threshold(img, level, 1.0, cv2.THRESH_BINARY, dst=binary)
-        m = cv2.moments(binary)
-        m00 = m["m00"]
         hu, feats = out.hu, out.features
-        if not m00 > 0.0:
+        got = self._shape_moments.hu_q4(img, level)
+        if got is None:
             hu.fill(np.nan)
             feats.fill(np.nan)
             return
-        h = hu_from_normalized(m["nu20"], m["nu11"], m["nu02"], m["nu30"], m["nu21"], m["nu12"], m["nu03"])
+        h, feats[7] = got
         for i in range(7):
             hu[i] = feats[i] = log_hu_value(h[i])
-        feats[7] = self._q4.q4(binary, m)
 
     def _track(self, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
         """Slow baseline tracking on quiet contact-free frames."""

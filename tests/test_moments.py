@@ -12,13 +12,11 @@ from optitac_edge.grid import SurfaceGrid
 from optitac_edge.layout import hex_layout
 from optitac_edge.moments import (
     FWHM_PER_SIGMA,
-    FourFoldSymmetry,
+    BinaryShapeMoments,
     central_from_raw,
     central_moments,
     contact_ellipse,
     ellipse_from_central,
-    ellipse_from_moments,
-    hu_from_central,
     hu_from_normalized,
     hu_moments,
     log_hu,
@@ -308,22 +306,58 @@ def test_log_hu_value_sign_zero_nan() -> None:
     assert math.isnan(log_hu_value(math.nan))
 
 
+def _surface_box(mask: np.ndarray, seed: int) -> tuple[np.ndarray, float]:
+    """A float32 bounding box of noisy values, above ``level`` exactly on ``mask``."""
+    box, c0, r0 = _box(mask)
+    inside = mask[r0:r0 + box.shape[0], c0:c0 + box.shape[1]]
+    values = np.random.default_rng(seed).uniform(0.0, 10.0, box.shape).astype(np.float32)
+    return np.where(inside, values + np.float32(3.0), values * np.float32(0.25)).astype(np.float32), 2.75
+
+
+@pytest.mark.parametrize("name", ["ellipse", "triangle", "rectangle"])
+def test_binary_shape_moments_raw_equal_opencv_and_the_explicit_sums(name: str) -> None:
+    mask = _shapes()[name]
+    img, level = _surface_box(mask, 1)
+    raw = BinaryShapeMoments(GRID.n).raw(img, level)
+    binary = (img > level).astype(np.float64)
+    y, x = np.mgrid[:img.shape[0], :img.shape[1]].astype(np.float64)
+    for q in range(5):
+        for p in range(5 - q):
+            assert raw[q, p] == np.sum(binary * x ** p * y ** q)  # exact: integers in float64
+    m = cv2.moments((img > level).astype(np.float32))
+    assert (raw[0, 0], raw[0, 1], raw[1, 0], raw[1, 1], raw[0, 3]) == pytest.approx(
+        (m["m00"], m["m10"], m["m01"], m["m11"], m["m30"]), rel=1e-12)
+
+
 @pytest.mark.parametrize("x0, y0, deg", [(0.0, 0.0, 33.0), (-7.5, 6.0, 10.0), (8.0, 8.0, 71.0)])
-def test_four_fold_symmetry_from_opencv_moments_equals_q4_moment(x0: float, y0: float, deg: float) -> None:
+def test_binary_shape_moments_hu_and_q4_equal_the_array_forms(x0: float, y0: float, deg: float) -> None:
     """Far from the box origin too (raw -> central cancellation), rectangles and a triangle."""
-    q4 = FourFoldSymmetry(GRID.n)
+    shapes = BinaryShapeMoments(GRID.n)
     rect = polygon_mask(rotate(np.array([[-2.0, -1.5], [2.0, -1.5], [2.0, 1.5], [-2.0, 1.5]]), deg) + (x0, y0))
     tri = polygon_mask(rotate(np.array([[-3.0, -2.0], [3.0, -2.0], [0.0, 3.0]]), deg) + (x0, y0))
-    for mask in (rect, tri):
-        box, _, _ = _box(mask)
-        assert q4.q4(box, cv2.moments(box)) == pytest.approx(q4_moment(mask, GRID), rel=1e-9, abs=1e-15)
-    square, _, _ = _box(polygon_mask(np.array([[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]])))
-    assert q4.q4(square, cv2.moments(square)) == pytest.approx(1 / 60, rel=0.05)
+    for seed, mask in enumerate((rect, tri, ellipse_mask(x0, y0, 3.0, 1.2, deg))):
+        img, level = _surface_box(mask, seed)
+        got = shapes.hu_q4(img, level)
+        assert got is not None
+        hu, q4 = got
+        np.testing.assert_allclose(hu, hu_moments(mask, GRID), rtol=1e-8, atol=1e-14)
+        assert q4 == pytest.approx(q4_moment(mask, GRID), rel=1e-9, abs=1e-15)
+    square, level = _surface_box(polygon_mask(np.array([[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]])), 5)
+    got = shapes.hu_q4(square, level)
+    assert got is not None and got[1] == pytest.approx(1 / 60, rel=0.05)
 
 
-def test_four_fold_symmetry_allocates_nothing_that_outlives_a_call(traced_bytes) -> None:
-    q4 = FourFoldSymmetry(GRID.n)
-    box, _, _ = _box(polygon_mask(np.array([[-3.0, -2.0], [3.0, -2.0], [0.0, 3.0]])))
-    m = cv2.moments(box)
-    net, _ = traced_bytes(lambda: q4.q4(box, m), 200)
+def test_binary_shape_moments_of_nothing_above_the_level_is_none() -> None:
+    shapes = BinaryShapeMoments(GRID.n)
+    img = np.full((7, 5), 2.0, np.float32)
+    assert shapes.hu_q4(img, 2.0) is None  # strictly above, as cv2.THRESH_BINARY
+    img[3, 2] = np.nextafter(np.float32(2.0), np.float32(3.0))
+    got = shapes.hu_q4(img, 2.0)
+    assert got is not None and got[0][0] == 0.0 and got[1] == 0.0  # one cell: no spread
+
+
+def test_binary_shape_moments_allocate_nothing_that_outlives_a_call(traced_bytes) -> None:
+    shapes = BinaryShapeMoments(GRID.n)
+    img, level = _surface_box(polygon_mask(np.array([[-3.0, -2.0], [3.0, -2.0], [0.0, 3.0]])), 3)
+    net, _ = traced_bytes(lambda: shapes.hu_q4(img, level), 200)
     assert net < 200  # < 1 byte per call: nothing kept
