@@ -456,6 +456,19 @@ def _latencies(rows: list[list[int]], seqs: list[int]) -> tuple[np.ndarray, int]
     return np.asarray(lat, dtype=np.float64), missing
 
 
+def _dropped_in_stall(now_ns: int, due_ns: float, dropped_published_ns: int, period_ns: float) -> bool:
+    """Whether a frame pushed out of the replay camera's queue at ``now_ns`` was lost to a process stall.
+
+    Yes when the frame pushing it out is published a period or more after it was due
+    (nothing in the process ran, the capture thread included), or when the dropped
+    frame itself had waited less than half a period: it came in the burst of late
+    frames the capture thread publishes right after such a stall, and the loop, back
+    from the same stall, had no time to take it. Otherwise the capture thread was on
+    time and the frame waited its ``queue_frames`` periods: the loop's own drop.
+    """
+    return now_ns - due_ns >= period_ns or now_ns - dropped_published_ns < period_ns / 2
+
+
 def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format: str,
                    queue_frames: int) -> Any:
     """A camera delivering pre-rendered frames at ``fps`` from a capture thread (see PacedReplayCamera)."""
@@ -479,9 +492,7 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
             self.height, self.width = (h * 2 // 3, w) if pixel_format == "yuv420" else (h, w)
             self._waiting: deque[CapturedFrame] = deque()
             #: (seq, stalled) of each frame dropped from the queue (the loop had not taken it when
-            #: ``queue_frames`` newer ones came), stalled when the capture thread published the one
-            #: that pushed it out a period or more late itself (the whole process was not running),
-            #: else the loop's own drop
+            #: ``queue_frames`` newer ones came), see :func:`_dropped_in_stall`
             self.overwritten: list[tuple[int, bool]] = []
             #: (seq, ns late) of each frame the capture thread published a period or more late
             self.stalls: list[tuple[int, int]] = []
@@ -502,11 +513,11 @@ def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format
                 i = seq if seq < len(frames) else rest + (seq - rest) % k
                 with self._cond:
                     now = time.monotonic_ns()
-                    stalled = now - due >= period
-                    if stalled:
+                    if now - due >= period:
                         self.stalls.append((seq + 1, now - due))
                     if len(self._waiting) == queue_frames:
-                        self.overwritten.append((self._waiting.popleft().seq, stalled))
+                        old = self._waiting.popleft()
+                        self.overwritten.append((old.seq, _dropped_in_stall(now, due, old.t_ns, period)))
                     self._waiting.append(CapturedFrame(frames[i], now, seq + 1))
                     self._cond.notify_all()
                 seq += 1

@@ -81,3 +81,15 @@ def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
         else:
             assert cam.frames_dropped >= 2
             assert [seq for seq, _ in cam.overwritten if seq > first][:2] == [first + 1, first + 2]
+
+
+def test_drops_are_blamed_on_the_loop_only_when_the_capture_thread_was_on_time() -> None:
+    from optitac_edge.bench import _dropped_in_stall
+
+    period = 4_166_667.0
+    # on time, the dropped frame waited its 4 periods: the loop's drop
+    assert not _dropped_in_stall(10 * period + 1e5, 10 * period, int(6 * period), period)
+    # the pushing frame came a period or more late: a stall
+    assert _dropped_in_stall(11.2 * period, 10 * period, int(6 * period), period)
+    # catch-up after a stall: on time by now, but the dropped frame was published 50 µs earlier
+    assert _dropped_in_stall(10 * period + 2e5, 10 * period, int(10 * period + 1.5e5), period)
