@@ -456,7 +456,7 @@ def _latencies(rows: list[list[int]], seqs: list[int]) -> tuple[np.ndarray, int]
     return np.asarray(lat, dtype=np.float64), missing
 
 
-def _dropped_in_stall(now_ns: int, due_ns: float, dropped_published_ns: int, period_ns: float) -> bool:
+def _dropped_in_stall(now_ns: int, due_ns: int, dropped_published_ns: int, period_ns: float) -> bool:
     """Whether a frame pushed out of the replay camera's queue at ``now_ns`` was lost to a process stall.
 
     Yes when the frame pushing it out is published a period or more after it was due
