@@ -17,8 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from . import __version__
-from .errors import OptiTacError
+from optitac_edge import __version__
+from optitac_edge.errors import OptiTacError
 
 EXIT_ERROR = 2
 log = logging.getLogger("optitac_edge")
@@ -38,7 +38,7 @@ def _add_orientation(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .sim.scenarios import SCENARIOS
+    from optitac_edge.sim.scenarios import SCENARIOS
 
     parser = _Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -155,8 +155,8 @@ def _add_board(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from .sim import CameraOptics
-    from .sim.scenarios import write_scenario
+    from optitac_edge.sim import CameraOptics
+    from optitac_edge.sim.scenarios import write_scenario
 
     try:
         dark = tuple(int(s) for s in args.dark_fibers.split(",") if s.strip())
@@ -168,7 +168,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                           rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
     path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
                           day=args.day, variant=args.variant, warmup=args.warmup)
-    from .recording import read_meta
+    from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
     mirror = " --mirror" if sim_optics["mirror"] else ""
@@ -177,10 +177,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
-    from .bundle import save_bundle
-    from .calibration import calibrate_fibers
-    from .layout import load_layout_csv
-    from .recording import Recording
+    from optitac_edge.core.bundle import save_bundle
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.core.layout import load_layout_csv
+    from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
     layout = load_layout_csv(args.layout) if args.layout else None
@@ -197,9 +197,9 @@ def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate_model(args: argparse.Namespace) -> int:
-    from . import calibrate_steps
-    from .bundle import load_bundle, save_bundle
-    from .recording import Recording
+    from optitac_edge.calibration import steps as calibrate_steps
+    from optitac_edge.core.bundle import load_bundle, save_bundle
+    from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
     bundle = load_bundle(args.cal)
@@ -215,11 +215,11 @@ def _cmd_calibrate_model(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .bundle import load_bundle
-    from .errors import RecordingError
-    from .evaluation import format_evaluation
-    from .measure import measure_recording
-    from .recording import Recording
+    from optitac_edge.core.bundle import load_bundle
+    from optitac_edge.errors import RecordingError
+    from optitac_edge.calibration.evaluation import format_evaluation
+    from optitac_edge.calibration.measure import measure_recording
+    from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
     if rec.truth is None:
@@ -234,14 +234,14 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
-    from .bundle import load_bundle
-    from .corrections import load_shape_model
-    from .errors import BundleError
+    from optitac_edge.core.bundle import load_bundle
+    from optitac_edge.core.corrections import load_shape_model
+    from optitac_edge.errors import BundleError
 
     model = load_shape_model(load_bundle(args.cal))
     if model is None:
         raise BundleError(f"{args.cal}: no shape model (run 'calibrate shapes' first)")
-    from .shapes.onnx_export import export_onnx
+    from optitac_edge.calibration.onnx_export import export_onnx
 
     export_onnx(model, args.output)
     print(f"wrote {args.output}")
@@ -249,7 +249,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from .report import write_report
+    from optitac_edge.calibration.report import write_report
 
     index = write_report(args.cal, args.output, unseen=args.unseen, repeat=args.repeat)
     print(f"wrote {index}")
@@ -259,10 +259,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .bundle import load_bundle
-    from .contacts_csv import ContactsCsvWriter
-    from .pipeline import Pipeline
-    from .recording import Recording
+    from optitac_edge.core.bundle import load_bundle
+    from optitac_edge.io.contacts_csv import ContactsCsvWriter
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
     bundle = load_bundle(args.cal)
@@ -291,7 +291,7 @@ def _status_line(est: Any, fps: float) -> str:
 
 
 def _board(args: argparse.Namespace, **overrides: Any) -> Any:
-    from .board_config import load_board_config
+    from optitac_edge.service.board_config import load_board_config
 
     return load_board_config(args.board, env=os.environ,
                              overrides={k: v for k, v in overrides.items() if v is not None})
@@ -322,9 +322,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -> Any:
-    from .led import open_led
-    from .sdnotify import Notifier
-    from .service import Service, load_or_calibrate, open_board_camera, open_board_transport
+    from optitac_edge.io.led import open_led
+    from optitac_edge.io.sdnotify import Notifier
+    from optitac_edge.service.loop import Service, load_or_calibrate, open_board_camera, open_board_transport
 
     tty = sys.stdout.isatty()
     last = [0.0]
@@ -360,8 +360,8 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from .recording import RecordingMeta, RecordingWriter
-    from .service import open_board_camera
+    from optitac_edge.io.recording import RecordingMeta, RecordingWriter
+    from optitac_edge.service.loop import open_board_camera
 
     if args.frames < args.rest_frames or args.rest_frames < 5:
         raise OptiTacError("--frames must be >= --rest-frames >= 5")
@@ -388,14 +388,14 @@ def _cmd_soak(args: argparse.Namespace) -> int:
     import resource
     import tracemalloc
 
-    from .cameras.sim import SimCamera
-    from .faults import FaultInjector
-    from .service import Service, load_or_calibrate
-    from .transports.serial import SerialTransport
+    from optitac_edge.sim.camera import SimCamera
+    from optitac_edge.sim.faults import FaultInjector
+    from optitac_edge.service.loop import Service, load_or_calibrate
+    from optitac_edge.io.transports.serial import SerialTransport
 
     if not args.minutes > 0 or not 0 <= args.fault_rate <= 1:
         raise OptiTacError("--minutes must be positive and --fault-rate in 0..1")
-    from .board_config import load_board_config
+    from optitac_edge.service.board_config import load_board_config
 
     config = load_board_config("sim", env={}, overrides={"camera.fps": args.fps, "status.period_s": 0.5,
                                                          "camera.timeout_s": 0.5})
@@ -465,13 +465,13 @@ def _cmd_soak(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import json
 
-    from .bench import format_table, run_bench
+    from optitac_edge.devtools.bench import format_table, run_bench
 
     if args.frames < 1:
         raise OptiTacError("--frames must be >= 1")
     if not args.fps > 0:
         raise OptiTacError("--fps must be positive")
-    from .cameras.frame_ring import MAX_DEPTH
+    from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
 
     if args.queue_frames is not None and not 1 <= args.queue_frames <= MAX_DEPTH:
         raise OptiTacError(f"--queue-frames must be 1..{MAX_DEPTH}")

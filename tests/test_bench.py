@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from optitac_edge.bench import FAST_PASSES, STAGES
+from optitac_edge.devtools.bench import FAST_PASSES, STAGES
 from optitac_edge.cli import main
 
 
@@ -64,7 +64,7 @@ def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
 
     import numpy as np
 
-    from optitac_edge.bench import _replay_camera
+    from optitac_edge.devtools.bench import _replay_camera
 
     frames = [np.full((8, 8), i, np.uint8) for i in range(20)]
     fps = 50.0
@@ -84,7 +84,7 @@ def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
 
 
 def test_drops_are_blamed_on_the_loop_only_when_the_capture_thread_was_on_time() -> None:
-    from optitac_edge.bench import _dropped_in_stall
+    from optitac_edge.devtools.bench import _dropped_in_stall
 
     period = 4_166_667.0
     # on time, the dropped frame waited its 4 periods: the loop's drop

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from optitac_edge.board_config import (
+from optitac_edge.service.board_config import (
     BoardConfig,
     available_boards,
     describe_schema,

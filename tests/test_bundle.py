@@ -3,7 +3,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from optitac_edge.bundle import (
+from optitac_edge.core.bundle import (
     BUNDLE_VERSION,
     CalibrationBundle,
     ContactThresholds,
@@ -11,10 +11,10 @@ from optitac_edge.bundle import (
     save_bundle,
 )
 from optitac_edge.errors import BundleError, FrameMismatchError
-from optitac_edge.fiber_table import FiberTable
-from optitac_edge.grid import SurfaceGrid
-from optitac_edge.image_transform import ImageTransform
-from optitac_edge.layout import hex_layout
+from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.image_transform import ImageTransform
+from optitac_edge.core.layout import hex_layout
 
 
 def small_bundle(height=40, width=50, pixel_format="gray"):
@@ -93,7 +93,7 @@ def test_a_bit_flip_never_loads_a_different_bundle(tmp_path):
 
 
 def test_other_version_and_non_bundles_are_refused(tmp_path, monkeypatch):
-    import optitac_edge.bundle as bundle_mod
+    import optitac_edge.core.bundle as bundle_mod
 
     path = tmp_path / "cal.npz"
     monkeypatch.setattr(bundle_mod, "BUNDLE_VERSION", BUNDLE_VERSION + 1)
@@ -134,7 +134,7 @@ def test_temporaries_of_killed_saves_are_removed_by_the_next_save(tmp_path):
 
 def factored_bundle():
     """small_bundle with the real interpolation matrix and its surface factors."""
-    from optitac_edge.surface import build_interpolation
+    from optitac_edge.core.surface import build_interpolation
 
     bundle = small_bundle()
     matrix, factors = build_interpolation(bundle.layout, bundle.grid)
@@ -143,7 +143,7 @@ def factored_bundle():
 
 def _resave(path, change):
     """Rewrite a saved bundle's members with ``change(members)`` applied and a valid digest."""
-    from optitac_edge.bundle import _digest
+    from optitac_edge.core.bundle import _digest
 
     with np.load(path, allow_pickle=False) as npz:
         members = {name: npz[name] for name in npz.files}
@@ -220,7 +220,7 @@ def test_tampered_factor_dtype_or_weights_are_refused(tmp_path):
 
 
 def test_bundle_checks_factors_against_grid_layout_and_matrix():
-    from optitac_edge.surface import build_interpolation
+    from optitac_edge.core.surface import build_interpolation
 
     bundle = factored_bundle()
     other_grid = SurfaceGrid.over_layout(bundle.layout, n=12)
@@ -238,7 +238,7 @@ def test_bundle_checks_factors_against_grid_layout_and_matrix():
 @pytest.mark.parametrize("bad", [{"threshold": -1.0}, {"threshold": float("nan")}, {"min_area_mm2": -0.5},
                                  {"threshold": True}])
 def test_contact_thresholds_must_be_finite_and_not_negative(bad) -> None:
-    from optitac_edge.contact_options import ContactThresholds
+    from optitac_edge.core.options import ContactThresholds
 
     with pytest.raises(ValueError, match=next(iter(bad))):
         ContactThresholds(**bad)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optitac_edge.centroid_map import CentroidErrorMap, fit_centroid_map
-from optitac_edge.layout import hex_layout
-from optitac_edge.width_model import AxisMap, WidthModel, fit_axis, fit_monotone_axis, fit_width_model
+from optitac_edge.core.centroid_map import CentroidErrorMap, fit_centroid_map
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.width_model import AxisMap, WidthModel, fit_axis, fit_monotone_axis, fit_width_model
 
 
 def test_constant_error_is_removed_everywhere():

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from fakes.install import install_picamera2
 
-from optitac_edge.cameras import open_camera
-from optitac_edge.cameras.frame_ring import FrameRing
+from optitac_edge.io.cameras import open_camera
+from optitac_edge.io.cameras.frame_ring import FrameRing
 from optitac_edge.errors import CameraError
 
 FAST = {"width": 96, "height": 64, "fps": 200.0, "warmup_frames": 4}
@@ -53,7 +53,7 @@ def _quiesce(cam, picam2, hw) -> None:
 
 
 def test_package_import_does_not_import_picamera2():
-    code = ("import sys, optitac_edge, optitac_edge.cameras; "
+    code = ("import sys, optitac_edge, optitac_edge.io.cameras; "
             "assert 'picamera2' not in sys.modules and 'libcamera' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -415,8 +415,8 @@ def test_open_failure_after_the_thread_started_tears_down(monkeypatch):
 
 
 def test_the_service_passes_camera_queue_frames_from_the_board_config(monkeypatch):
-    from optitac_edge.board_config import load_board_config
-    from optitac_edge.service import camera_kwargs
+    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.service.loop import camera_kwargs
 
     hw = install_picamera2(monkeypatch)
     cfg = load_board_config("rpi5-gs", env={}, overrides={

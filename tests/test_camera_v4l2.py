@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from fakes.install import install_cv2
 
-from optitac_edge.cameras import open_camera
-from optitac_edge.cameras.v4l2 import argus_pipeline, fourcc_code
+from optitac_edge.io.cameras import open_camera
+from optitac_edge.io.cameras.v4l2 import argus_pipeline, fourcc_code
 from optitac_edge.errors import CameraError
 
 FAST = {"width": 96, "height": 64, "fps": 200.0}
@@ -268,6 +268,6 @@ def test_argus_pipeline_string():
 
 
 def test_real_opencv_reports_gstreamer_support_honestly():
-    from optitac_edge.cameras.v4l2 import has_gstreamer
+    from optitac_edge.io.cameras.v4l2 import has_gstreamer
 
     assert isinstance(has_gstreamer(), bool)

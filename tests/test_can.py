@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from optitac_edge.can import (
+from optitac_edge.io.protocol.can_codec import (
     BASE_ID,
     DBC_PATH,
     CanCodec,
@@ -25,9 +25,9 @@ from optitac_edge.can import (
     split_id,
 )
 from optitac_edge.errors import TransportError
-from optitac_edge.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
-from optitac_edge.transports import open_transport
-from optitac_edge.transports.can import CanTransport
+from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
+from optitac_edge.io.transports import open_transport
+from optitac_edge.io.transports.can import CanTransport
 
 MM = 0.01
 DEG = 0.01
@@ -182,7 +182,7 @@ def test_contact_saturates_instead_of_raising():
 
 
 def test_rounding_matches_serial_protocol():
-    from optitac_edge.protocol import wire
+    from optitac_edge.io.protocol import wire
 
     codec = CanCodec()
     db = _db()

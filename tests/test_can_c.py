@@ -14,8 +14,8 @@ from pathlib import Path
 import cantools
 import pytest
 
-from optitac_edge.can import DBC_PATH, CanCodec
-from optitac_edge.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
+from optitac_edge.io.protocol.can_codec import DBC_PATH, CanCodec
+from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
 
 CFLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2"]
 

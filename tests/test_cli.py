@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from optitac_edge.cli import main
-from optitac_edge.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
 
 
 def _one_line_error(capsys, argv, *needles):

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from optitac_edge.messages import CommandType, ShapeCode
-from optitac_edge.protocol import encode_command
+from optitac_edge.io.protocol.messages import CommandType, ShapeCode
+from optitac_edge.io.protocol import encode_command
 
 MCU = Path(__file__).resolve().parents[1] / "tools" / "mcu"
 
@@ -73,8 +73,8 @@ def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
 
 
 def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac_rx):
-    from optitac_edge.board_config import load_board_config
-    from optitac_edge.service import Service, load_or_calibrate, open_board_camera, open_board_transport
+    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.service.loop import Service, load_or_calibrate, open_board_camera, open_board_transport
 
     master, slave = os.openpty()
     path = os.ttyname(slave)

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 from test_fiber_synth import Synth, render, true_centres
 
-from optitac_edge.fiber_detect import (
+from optitac_edge.calibration.fiber_detect import (
     DetectParams,
     detect_fiber_blobs,
     estimate_blob_radius,

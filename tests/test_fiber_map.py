@@ -14,10 +14,10 @@ import pytest
 from test_fiber_synth import Synth, render, true_centres
 
 from optitac_edge.errors import FiberMapError
-from optitac_edge.fiber_map import FiberMapResult, build_fiber_map
-from optitac_edge.fiber_table import FiberSampler
-from optitac_edge.frames import to_gray
-from optitac_edge.layout import hex_layout
+from optitac_edge.calibration.fiber_map import FiberMapResult, build_fiber_map
+from optitac_edge.core.fiber_table import FiberSampler
+from optitac_edge.core.frames import to_gray
+from optitac_edge.core.layout import hex_layout
 from optitac_edge.sim import CameraOptics, SimulatedSensor
 
 LAYOUT = hex_layout()
@@ -118,7 +118,7 @@ def test_build_time(width: int, height: int) -> None:
 
 def test_synthetic_renderer_with_dead_fibers_and_logging(caplog: pytest.LogCaptureFixture) -> None:
     s = Synth(rotation_deg=123.0, mirror=True, dark_fibers=(3, 108, 200))
-    with caplog.at_level(logging.INFO, logger="optitac_edge.fiber_map"):
+    with caplog.at_level(logging.INFO, logger="optitac_edge.calibration.fiber_map"):
         res = build_fiber_map(render(s, n_frames=3), LAYOUT, rotation_hint_deg=140.0, mirror=True)
     _check_assignment(res, true_centres(s)[0], (3, 108, 200))
     assert len(caplog.records) == 1 and "214/217 fibers found" in caplog.records[0].getMessage()

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from optitac_edge.layout import FiberLayout, hex_layout
+from optitac_edge.core.layout import FiberLayout, hex_layout
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from optitac_edge.fiber_table import FiberSampler, FiberTable
-from optitac_edge.frames import to_gray
+from optitac_edge.core.fiber_table import FiberSampler, FiberTable
+from optitac_edge.core.frames import to_gray
 
 
 def _table(pixel_format: str, h: int = 30, w: int = 40, n: int = 9) -> FiberTable:

@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from optitac_edge.cameras.frame_ring import MAX_DEPTH, FrameRing
+from optitac_edge.io.cameras.frame_ring import MAX_DEPTH, FrameRing
 from optitac_edge.errors import CameraError
 
 

@@ -7,9 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from optitac_edge import led as led_mod
-from optitac_edge.board_config import LedConfig
-from optitac_edge.led import (
+from optitac_edge.io import led as led_mod
+from optitac_edge.service.board_config import LedConfig
+from optitac_edge.io.led import (
     LedError,
     LedRing,
     NoLed,

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from optitac_edge.grid import SurfaceGrid
-from optitac_edge.layout import hex_layout
-from optitac_edge.moments import (
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.moments import (
     FWHM_PER_SIGMA,
     BinaryShapeMoments,
     central_from_raw,

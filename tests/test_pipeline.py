@@ -14,15 +14,15 @@ from functools import cache
 import numpy as np
 import pytest
 
-from optitac_edge.bundle import CalibrationBundle, ContactOptions, ContactThresholds
+from optitac_edge.core.bundle import CalibrationBundle, ContactOptions, ContactThresholds
 from optitac_edge.errors import FrameMismatchError
-from optitac_edge.fiber_table import FiberTable
-from optitac_edge.grid import SurfaceGrid
-from optitac_edge.image_transform import ImageTransform
-from optitac_edge.layout import hex_layout
-from optitac_edge.pipeline import Pipeline
-from optitac_edge.reference import ReferencePipeline
-from optitac_edge.surface import build_interpolation_matrix
+from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.image_transform import ImageTransform
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.devtools.reference import ReferencePipeline
+from optitac_edge.core.surface import build_interpolation_matrix
 
 LAYOUT = hex_layout()
 GRID = SurfaceGrid.over_layout(LAYOUT)
@@ -170,7 +170,7 @@ def test_estimate_is_reused_and_copy_is_independent() -> None:
 
 
 def test_shape_features_are_log_hu_and_q4_of_the_binarised_contact() -> None:
-    from optitac_edge.moments import q4_moment
+    from optitac_edge.core.moments import q4_moment
 
     bundle = make_bundle()
     rest = rest_levels()
@@ -330,7 +330,8 @@ def test_fast_agrees_with_reference(fmt: str) -> None:
 
 
 def test_end_to_end_simulated_sensor() -> None:
-    from optitac_edge import calibration, sim
+    from optitac_edge import sim
+    from optitac_edge.calibration import fibers as calibration
 
     sensor = sim.SimulatedSensor(seed=1)
     rest = [sensor.frame() for _ in range(5)]
@@ -363,7 +364,7 @@ def test_shape_features_equal_the_plain_moments_of_the_binarised_contact(options
 
     The reference method has no q4, so this is the oracle for ``features[7]``.
     """
-    from optitac_edge.moments import hu_moments, log_hu, q4_moment
+    from optitac_edge.core.moments import hu_moments, log_hu, q4_moment
 
     bundle = make_bundle("gray", options=options)
     rest = rest_levels(7)
@@ -389,7 +390,7 @@ def test_shape_features_equal_the_plain_moments_of_the_binarised_contact(options
 def test_single_threaded_opencv_restores_the_thread_count() -> None:
     import cv2
 
-    from optitac_edge.pipeline import single_threaded_opencv
+    from optitac_edge.core.pipeline import single_threaded_opencv
 
     before = cv2.getNumThreads()
     with single_threaded_opencv():

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from test_pipeline import LAYOUT, make_bundle, pressed_levels, render, rest_levels, warm
 
-from optitac_edge.bundle import ContactOptions, load_bundle, save_bundle
-from optitac_edge.contacts_csv import CONTACTS_HEADER, ContactsCsvWriter
+from optitac_edge.core.bundle import ContactOptions, load_bundle, save_bundle
+from optitac_edge.io.contacts_csv import CONTACTS_HEADER, ContactsCsvWriter
 from optitac_edge.errors import BundleError
-from optitac_edge.pipeline import Pipeline
+from optitac_edge.core.pipeline import Pipeline
 
 PERIOD = 16_666_667  # 60 fps, ns
 REST = np.full(LAYOUT.n_fibers, 200.0)
@@ -127,7 +127,7 @@ def test_peak_fraction_makes_widths_amplitude_invariant() -> None:
 
 @pytest.mark.parametrize("shape_fraction", [0.0, 0.3, 0.6])
 def test_shape_features_come_from_their_own_binarization_level(shape_fraction) -> None:
-    from optitac_edge.moments import hu_moments, log_hu, q4_moment
+    from optitac_edge.core.moments import hu_moments, log_hu, q4_moment
 
     bundle, pipe = start(dataclasses.replace(LEVELS, peak_fraction=0.5, shape_fraction=shape_fraction))
     e = pipe.process(render(bundle, pressed_levels(REST, 0.7, -0.3, 60.0, 2.6, 1.4, 30.0)), 10 * PERIOD)
@@ -204,7 +204,7 @@ def test_options_round_trip_through_the_bundle(tmp_path) -> None:
 
 
 def _rewrite_meta(path, edit) -> None:
-    from optitac_edge.bundle import _digest
+    from optitac_edge.core.bundle import _digest
 
     with np.load(path, allow_pickle=False) as npz:
         members = {k: npz[k] for k in npz.files}
@@ -256,7 +256,8 @@ def test_contacts_csv_has_n_contacts_and_q4(tmp_path) -> None:
 
 
 def test_calibration_measures_noise_and_black_level() -> None:
-    from optitac_edge import calibration, sim
+    from optitac_edge import sim
+    from optitac_edge.calibration import fibers as calibration
 
     sensor = sim.SimulatedSensor(seed=3)
     bundle = calibration.calibrate_fibers([sensor.frame() for _ in range(8)], "gray")

@@ -1,4 +1,4 @@
-"""Serial protocol v1 (optitac_edge.protocol): golden vectors, quantisation, decoder, commands."""
+"""Serial protocol v1 (optitac_edge.io.protocol): golden vectors, quantisation, decoder, commands."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from optitac_edge.messages import (
+from optitac_edge.io.protocol.messages import (
     Command,
     CommandType,
     ContactFlags,
@@ -19,7 +19,7 @@ from optitac_edge.messages import (
     ShapeCode,
     StatusMessage,
 )
-from optitac_edge.protocol import (
+from optitac_edge.io.protocol import (
     CSV_HEADER,
     Frame,
     FrameDecoder,

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from optitac_edge.messages import ContactFlags, ContactMessage, ResultCode, ShapeCode, StatusMessage
-from optitac_edge.protocol import (
+from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ResultCode, ShapeCode, StatusMessage
+from optitac_edge.io.protocol import (
     CSV_HEADER,
     FrameDecoder,
     ProtocolError,
@@ -324,7 +324,7 @@ def test_optitac_rx_idle_timeout(cbin):
 
 def test_serial_transport_to_optitac_rx_over_pty(cbin):
     """The end-to-end path: SerialTransport on a pty slave, optitac_rx on the master."""
-    from optitac_edge.transports.serial import SerialTransport
+    from optitac_edge.io.transports.serial import SerialTransport
 
     master, slave = os.openpty()
     path = os.ttyname(slave)

@@ -7,8 +7,8 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from optitac_edge.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
-from optitac_edge.protocol import (
+from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
+from optitac_edge.io.protocol import (
     FrameDecoder,
     contact_fields,
     decode_contact,

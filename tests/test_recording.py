@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from optitac_edge.errors import RecordingError
-from optitac_edge.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
 
 
 def _write(path, n=8, shape=(12, 16), rest=5, truth=True):

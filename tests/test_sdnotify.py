@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 
-from optitac_edge.sdnotify import Notifier, notify, watchdog_period
+from optitac_edge.io.sdnotify import Notifier, notify, watchdog_period
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from optitac_edge.errors import TransportError
-from optitac_edge.messages import (
+from optitac_edge.io.protocol.messages import (
     Command,
     CommandType,
     ContactFlags,
@@ -18,7 +18,7 @@ from optitac_edge.messages import (
     ShapeCode,
     StatusMessage,
 )
-from optitac_edge.protocol import (
+from optitac_edge.io.protocol import (
     FrameDecoder,
     MsgType,
     decode_ack,
@@ -27,8 +27,8 @@ from optitac_edge.protocol import (
     encode_command,
     encode_frame,
 )
-from optitac_edge.transports import open_transport
-from optitac_edge.transports.serial import SerialTransport
+from optitac_edge.io.transports import open_transport
+from optitac_edge.io.transports.serial import SerialTransport
 
 
 def wait_for(cond, timeout=3.0):

@@ -7,18 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from optitac_edge.shapes import (
-    PAPER_SUBSETS,
-    Q4_SUBSETS,
-    ShapeClassifier,
-    ShapeModel,
-    evaluate_model,
-    fit_shape_model,
-    shape_features,
-    subset_name,
-)
-from optitac_edge.shapes.fit import gmm_per_class, gmm_unsupervised
-from optitac_edge.shapes.synthetic import DEFAULT_GRID, binary_q4, shape_mask, synthetic_features
+from optitac_edge.core.shapes import ShapeClassifier, ShapeModel, shape_features, subset_name
+from optitac_edge.calibration.shape_fit import PAPER_SUBSETS, Q4_SUBSETS, evaluate_model, fit_shape_model
+from optitac_edge.calibration.shape_fit import gmm_per_class, gmm_unsupervised
+from optitac_edge.sim.synthetic_shapes import DEFAULT_GRID, binary_q4, shape_mask, synthetic_features
 
 pytest.importorskip("sklearn")
 
@@ -49,11 +41,11 @@ def test_binary_q4_closed_forms() -> None:
 
 def test_binary_q4_matches_pipeline_moments() -> None:
     """The generator's q4 is the pipeline's (``moments.q4_moment``, when present)."""
-    from optitac_edge import moments
+    from optitac_edge.core import moments
 
     q4_moment = getattr(moments, "q4_moment", None)
     if q4_moment is None:
-        pytest.skip("optitac_edge.moments.q4_moment not available")
+        pytest.skip("optitac_edge.core.moments.q4_moment not available")
     for shape in ("circle", "square", "ellipse", "triangle", "edge"):
         mask = shape_mask(shape, 1.1, 0.4, 23.0, 2.0 if shape == "edge" else 6.0)
         assert binary_q4(mask, DEFAULT_GRID) == pytest.approx(q4_moment(mask, DEFAULT_GRID),
@@ -91,7 +83,8 @@ def test_q4_models_classify_and_onnx(blurred, subset, tmp_path) -> None:
             assert shape == NAMES[int(np.argmax(pr))] and abs(conf - pr.max()) <= 1e-12
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
-    from optitac_edge.shapes import OnnxShapeClassifier, export_onnx
+    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
+    from optitac_edge.calibration.onnx_export import export_onnx
 
     onnx_p = OnnxShapeClassifier(export_onnx(model, tmp_path / "m.onnx")).predict_proba(rows)
     np.testing.assert_array_equal(np.isnan(onnx_p), np.isnan(p))

@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from optitac_edge.layout import hex_layout
-from optitac_edge.recording import Recording
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.io.recording import Recording
 from optitac_edge.sim import (
     SCENARIOS,
     CameraOptics,
@@ -284,7 +284,7 @@ def _read_after_pause(queue_frames: int, pause_periods: float) -> tuple[list[int
     """Read one frame, pause the reader, then read until caught up: (seqs after the pause, dropped)."""
     import time
 
-    from optitac_edge.cameras.sim import SimCamera
+    from optitac_edge.sim.camera import SimCamera
 
     fps = 50.0
     with SimCamera(fps=fps, width=160, height=120, realtime=True, queue_frames=queue_frames, seed=2) as cam:
@@ -307,7 +307,7 @@ def test_realtime_sim_with_a_one_frame_queue_drops_the_frames_it_could_not_hold(
 
 
 def test_sim_refuses_a_queue_out_of_range() -> None:
-    from optitac_edge.cameras.sim import SimCamera
+    from optitac_edge.sim.camera import SimCamera
     from optitac_edge.errors import CameraError
 
     with pytest.raises(CameraError, match="queue_frames"):

@@ -8,8 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from optitac_edge.layout import hex_layout
-from optitac_edge.recording import Recording
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.io.recording import Recording
 from optitac_edge.sim import (
     CameraOptics,
     Indenter,

@@ -7,9 +7,9 @@ import pytest
 from scipy.interpolate import griddata
 from scipy.spatial import Delaunay
 
-from optitac_edge.grid import SurfaceGrid
-from optitac_edge.layout import hex_layout
-from optitac_edge.surface import DenseSurface, build_interpolation_matrix
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.surface import DenseSurface, build_interpolation_matrix
 
 LAYOUT = hex_layout()
 GRID = SurfaceGrid.over_layout(LAYOUT)

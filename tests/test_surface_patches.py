@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-import optitac_edge.surface as surface_mod
-from optitac_edge.dead_fill import dead_fill_matrix
-from optitac_edge.grid import SurfaceGrid
-from optitac_edge.layout import FiberLayout, hex_layout
-from optitac_edge.surface import (
+import optitac_edge.core.surface as surface_mod
+from optitac_edge.core.dead_fill import dead_fill_matrix
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.core.surface import (
     DenseSurface,
     PatchSurface,
     SurfaceFactors,

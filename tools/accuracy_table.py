@@ -26,13 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.bundle import ContactOptions
-from optitac_edge.calibrate_steps import calibrate_centroid, calibrate_shapes, calibrate_width
-from optitac_edge.calibration import calibrate_fibers
-from optitac_edge.evaluation import (centroid_accuracy, detection, repeatability, shape_accuracy,
+from optitac_edge.core.bundle import ContactOptions
+from optitac_edge.calibration.steps import calibrate_centroid, calibrate_shapes, calibrate_width
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.evaluation import (centroid_accuracy, detection, repeatability, shape_accuracy,
                                      width_accuracy)
-from optitac_edge.measure import measure_recording
-from optitac_edge.recording import Recording
+from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.io.recording import Recording
 from optitac_edge.sim import CameraOptics, write_scenario
 
 CAL_DAY, EVAL_DAY = 1, 2
@@ -118,7 +118,7 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
 
 def dead_fiber_experiment(workdir: Path, ten_percent: bool = False) -> list[str]:
     """Dark fibers (five on the unseen path, or a random 10 %): accuracy with and without the neighbour fill."""
-    from optitac_edge.layout import hex_layout
+    from optitac_edge.core.layout import hex_layout
 
     xy = hex_layout().xy_mm
     if ten_percent:
@@ -148,7 +148,7 @@ def dead_fiber_experiment(workdir: Path, ten_percent: bool = False) -> list[str]
 
 def two_contact_experiment(workdir: Path) -> list[str]:
     """Two 5 mm circles pressed at once, 9–14 mm apart: separate contacts or one merged contact."""
-    from optitac_edge.pipeline import Pipeline
+    from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.sim import Indenter, SimulatedSensor, SessionDrift
 
     cal_rest = record(workdir, 0, CAL_DAY, "rest", seed=100)

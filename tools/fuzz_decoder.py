@@ -3,7 +3,7 @@
 
 Feeds N inputs (half random byte strings, half mutated valid frames: bit flips,
 byte replacements, insertions, deletions, truncations, splices, stray
-delimiters) into :class:`~optitac_edge.protocol.FrameDecoder` in random chunks
+delimiters) into :class:`~optitac_edge.io.protocol.FrameDecoder` in random chunks
 and checks against an independent oracle written from docs/protocol.md:
 
 * no exception escapes the decoder or :func:`parse_command`;
@@ -26,9 +26,9 @@ from collections import Counter
 import numpy as np
 from cobs import cobs
 
-from optitac_edge.messages import Command, CommandType, ResultCode
-from optitac_edge.protocol import FrameDecoder, encode_command, encode_frame
-from optitac_edge.protocol.wire import parse_command
+from optitac_edge.io.protocol.messages import Command, CommandType, ResultCode
+from optitac_edge.io.protocol import FrameDecoder, encode_command, encode_frame
+from optitac_edge.io.protocol.wire import parse_command
 
 
 def crc16_ccitt_bitwise(data: bytes) -> int:

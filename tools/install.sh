@@ -132,7 +132,7 @@ run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CO
 # Check the board config with the installed package before it goes live.
 PY="$VENV/bin/python"
 [ -x "$PY" ] || PY=python3  # dry run before the venv exists
-CHECK='import sys; from optitac_edge.board_config import load_board_config as load
+CHECK='import sys; from optitac_edge.service.board_config import load_board_config as load
 c = load(sys.argv[1], env={})
 print("pipeline" if c.camera.pipeline else "device")'
 if ! camera_kind="$(cd / && "$PY" -c "$CHECK" "$BOARD_FILE" 2>&1)"; then

@@ -9,12 +9,12 @@
                (other simulated sensors).
 """
 
-from .drift import NO_DRIFT, SessionDrift, sensor_variant, variant_optics, variant_sensor_seed
-from .optics import CameraOptics, Projection
-from .render import SENSOR_SEED, FrameRenderer, fiber_rest_peak
-from .scenarios import SCENARIOS, schedule, write_scenario
-from .sensor import SimulatedSensor
-from .skin import Indenter, SkinModel, fiber_darkening, signed_distance
+from optitac_edge.sim.drift import NO_DRIFT, SessionDrift, sensor_variant, variant_optics, variant_sensor_seed
+from optitac_edge.sim.optics import CameraOptics, Projection
+from optitac_edge.sim.render import SENSOR_SEED, FrameRenderer, fiber_rest_peak
+from optitac_edge.sim.scenarios import SCENARIOS, schedule, write_scenario
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter, SkinModel, fiber_darkening, signed_distance
 
 __all__ = [
     "NO_DRIFT",

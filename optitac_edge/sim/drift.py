@@ -18,10 +18,10 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from ..layout import FiberLayout, hex_layout
-from .optics import CameraOptics
-from .render import SENSOR_SEED, fiber_rest_peak
-from .skin import SkinModel
+from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.render import SENSOR_SEED, fiber_rest_peak
+from optitac_edge.sim.skin import SkinModel
 
 
 @dataclass(frozen=True)

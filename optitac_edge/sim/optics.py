@@ -11,7 +11,7 @@ Geometry, layout (mm) -> image (px), the project's orientation contract:
 
 With rotation 0 and no mirror the layout's +x points to increasing column and
 +y to decreasing row. This distortion model is the simulator's own and on
-purpose not the pipeline's one-parameter model (``optitac_edge.image_transform``).
+purpose not the pipeline's one-parameter model (``optitac_edge.core.image_transform``).
 Pixel ``[row, col]`` has its centre at image point ``(col, row)``.
 """
 

@@ -17,8 +17,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import erfc
 
-from ..layout import FiberLayout
-from .optics import DEFAULT_OPTICS, CameraOptics, Projection
+from optitac_edge.core.layout import FiberLayout
+from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics, Projection
 
 log = logging.getLogger(__name__)
 

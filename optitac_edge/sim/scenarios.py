@@ -47,12 +47,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from ..layout import FiberLayout, hex_layout
-from ..recording import SHAPES, RecordingMeta, RecordingWriter
-from .drift import SessionDrift, sensor_variant, variant_sensor_seed
-from .optics import DEFAULT_OPTICS, CameraOptics
-from .sensor import SimulatedSensor
-from .skin import DEFAULT_SKIN, Indenter, SkinModel, bounding_radius
+from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.io.recording import SHAPES, RecordingMeta, RecordingWriter
+from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
+from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, bounding_radius
 
 log = logging.getLogger(__name__)
 

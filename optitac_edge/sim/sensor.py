@@ -7,11 +7,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..layout import FiberLayout, hex_layout
-from .drift import NO_DRIFT, SessionDrift
-from .optics import DEFAULT_OPTICS, CameraOptics
-from .render import SENSOR_SEED, FrameRenderer
-from .skin import DEFAULT_SKIN, Indenter, SkinModel, fiber_darkening
+from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.sim.drift import NO_DRIFT, SessionDrift
+from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
+from optitac_edge.sim.render import SENSOR_SEED, FrameRenderer
+from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, fiber_darkening
 
 
 class SimulatedSensor:
@@ -20,7 +20,7 @@ class SimulatedSensor:
     Parameters
     ----------
     layout : FiberLayout or None
-        Fiber layout; None (default): :func:`optitac_edge.layout.hex_layout` (217 fibers).
+        Fiber layout; None (default): :func:`optitac_edge.core.layout.hex_layout` (217 fibers).
     optics : CameraOptics
         Camera, lens and illumination (default ``CameraOptics()``).
     skin : SkinModel

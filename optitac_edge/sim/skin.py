@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates
 
-from ..recording import SHAPES
+from optitac_edge.io.recording import SHAPES
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ def install_cv2(monkeypatch, **device):
     """Point the v4l2 backend at the fake OpenCV with one device; returns the device."""
     monkeypatch.syspath_prepend(str(FAKES))
     fake_cv2 = importlib.import_module("fake_cv2")
-    from optitac_edge.cameras import v4l2
+    from optitac_edge.io.cameras import v4l2
 
     monkeypatch.setattr(v4l2, "cv2", fake_cv2)
     monkeypatch.setattr(fake_cv2, "DEVICES", {})

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from cobs import cobs
 
-from optitac_edge.messages import (
+from optitac_edge.io.protocol.messages import (
     CommandType,
     ContactFlags,
     ContactMessage,
@@ -31,8 +31,8 @@ from optitac_edge.messages import (
     ShapeCode,
     StatusMessage,
 )
-from optitac_edge.protocol import wire
-from optitac_edge.protocol.wire import (
+from optitac_edge.io.protocol import wire
+from optitac_edge.io.protocol.wire import (
     contact_fields,
     contact_payload,
     crc16,

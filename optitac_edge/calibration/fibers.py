@@ -1,0 +1,150 @@
+"""Fiber calibration: rest frames in, a complete calibration bundle out."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.bundle import BASELINE_FRAMES, CalibrationBundle, ContactOptions, ContactThresholds
+from optitac_edge.errors import FiberMapError
+from optitac_edge.core.frames import frame_geometry, to_gray
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.layout import FiberLayout, hex_layout
+
+log = logging.getLogger(__name__)
+
+#: Percentile of the per-cell surface noise std reported as the noise level.
+NOISE_PERCENTILE = 95.0
+
+
+def _jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        obj = dataclasses.asdict(obj)
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def calibrate_fibers(
+    rest_frames: Sequence[np.ndarray] | np.ndarray,
+    pixel_format: str,
+    layout: FiberLayout | None = None,
+    rotation_hint_deg: float = 0.0,
+    mirror: bool = False,
+    thresholds: ContactThresholds | None = None,
+    options: ContactOptions | None = None,
+) -> CalibrationBundle:
+    """Build a calibration bundle from contact-free frames.
+
+    Parameters
+    ----------
+    rest_frames : sequence of ndarray, uint8
+        At least one contact-free frame in ``pixel_format``; all the same size.
+    pixel_format : str
+        ``gray``, ``rgb`` or ``yuv420``.
+    layout : FiberLayout, optional
+        The sensor's CAD layout; the default 217-fiber hexagonal layout if None.
+    rotation_hint_deg, mirror
+        Orientation hint (see docs/formats.md); the hint must be within 20 degrees.
+    thresholds : ContactThresholds, optional
+        Contact thresholds to store.
+    options : ContactOptions, optional
+        Contact options to store (default: ``ContactOptions()``); their
+        measured fields (``noise_rel``, ``noise_gray``, ``black_level``) are
+        replaced by what the rest frames show (see :func:`measure_rest_noise`).
+
+    Raises
+    ------
+    FiberMapError
+        If the fibers cannot be found reliably.
+    """
+    from optitac_edge.calibration.fiber_map import build_fiber_map
+    from optitac_edge.core.surface import build_interpolation
+
+    layout = hex_layout() if layout is None else layout
+    if len(rest_frames) == 0:
+        raise FiberMapError("no rest frames to calibrate from")
+    h, w = frame_geometry(rest_frames[0].shape, pixel_format)
+    gray = np.stack([to_gray(np.asarray(f), pixel_format) for f in rest_frames])
+    result = build_fiber_map(gray, layout, rotation_hint_deg=rotation_hint_deg, mirror=mirror,
+                             pixel_format=pixel_format)
+    grid = SurfaceGrid.over_layout(layout)
+    matrix, factors = build_interpolation(layout, grid)
+    report = _jsonable(result.report)
+    log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, report)
+    noise = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
+    log.info("rest noise: %s", noise)
+    options = dataclasses.replace(options or ContactOptions(), **noise)
+    return CalibrationBundle(
+        layout=layout, transform=result.transform, fibers=result.table, grid=grid,
+        interpolation=matrix, thresholds=thresholds or ContactThresholds(), options=options,
+        fiber_map_report=report, surface_factors=factors,
+    )
+
+
+def measure_rest_noise(
+    rest_frames: Sequence[np.ndarray] | np.ndarray,
+    table: Any,
+    matrix: np.ndarray,
+    mean_gray: np.ndarray,
+    baseline_frames: int = BASELINE_FRAMES,
+) -> dict[str, float]:
+    """Noise of the contact surface and black level, from contact-free frames.
+
+    Per-fiber temporal std from frame-to-frame differences (``std(diff) /
+    sqrt(2)``: insensitive to slow drift such as LED warm-up), propagated
+    through the interpolation matrix (``var_k = sum_j A_kj^2 sigma_j^2``) and
+    scaled by ``sqrt(1 + 1/baseline_frames)`` for the noise of the averaged
+    baseline; the :data:`NOISE_PERCENTILE` percentile over the mesh cells
+    inside the array is reported (robust to the few fibers whose std estimate
+    from a handful of frames is high by chance). Dead fibers are left out.
+
+    Parameters
+    ----------
+    rest_frames : sequence of ndarray, uint8
+        Contact-free frames in the table's pixel format.
+    table : FiberTable
+    matrix : ndarray, shape (n*n, N)
+        Interpolation matrix.
+    mean_gray : ndarray, shape (H, W)
+        Mean gray image of the rest frames (for the black level).
+
+    Returns
+    -------
+    dict
+        ``noise_gray`` (gray levels), ``noise_rel`` (relative units), both 0
+        with fewer than 3 frames; ``black_level`` (median gray level of the
+        pixels that belong to no fiber).
+    """
+    from optitac_edge.core.fiber_table import FiberSampler
+
+    labels = table.label_image()
+    background = mean_gray[labels == 0]
+    black = float(np.median(background)) if background.size else 0.0
+    if len(rest_frames) < 3:
+        return {"noise_gray": 0.0, "noise_rel": 0.0, "black_level": black}
+    sampler = FiberSampler(table)
+    buf = np.zeros(table.n_fibers, dtype=np.float32)
+    means = np.stack([sampler.means(np.ascontiguousarray(f), buf).astype(np.float64)
+                      for f in rest_frames])
+    sigma = np.std(np.diff(means, axis=0), axis=0, ddof=1) / math.sqrt(2.0)
+    sigma[table.dead] = 0.0
+    level = np.maximum(means.mean(axis=0) - black, 1.0)
+    a2 = np.square(np.asarray(matrix, dtype=np.float64))
+    factor = math.sqrt(1.0 + 1.0 / max(baseline_frames, 1))
+    inside = a2.sum(axis=1) > 0
+    noise_gray = factor * math.sqrt(float(np.percentile((a2 @ sigma**2)[inside], NOISE_PERCENTILE)))
+    noise_rel = factor * math.sqrt(float(np.percentile((a2 @ (sigma / level) ** 2)[inside],
+                                                       NOISE_PERCENTILE)))
+    return {"noise_gray": noise_gray, "noise_rel": noise_rel, "black_level": black}

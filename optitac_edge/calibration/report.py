@@ -1,0 +1,205 @@
+"""The calibration report: PNG figures like the paper's and a Markdown summary."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.bundle import CalibrationBundle, load_bundle
+from optitac_edge.core.corrections import ContactCorrector
+from optitac_edge.errors import OptiTacError
+from optitac_edge.io.recording import SHAPES, Recording
+
+_COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",
+            "triangle": "tab:purple"}
+
+
+def _plt() -> Any:
+    try:
+        import matplotlib
+    except ImportError:
+        raise OptiTacError("the report needs matplotlib (pip install 'optitac-edge[calibrate]')") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _fibers(ax: Any, bundle: CalibrationBundle) -> None:
+    xy = bundle.layout.xy_mm
+    ax.scatter(xy[:, 0], xy[:, 1], s=6, c="lightgray", zorder=0, label="fibers")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+
+
+def _error_maps(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, out: Path) -> str | None:
+    cm = corrector.centroid
+    if cm is None:
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), constrained_layout=True)
+    extent = [cm.x0_mm, cm.x0_mm + cm.step_mm * (cm.n - 1), cm.y0_mm, cm.y0_mm + cm.step_mm * (cm.n - 1)]
+    for ax, data, name in zip(axes, (cm.error_x, cm.error_y), ("x", "y")):
+        lim = float(np.abs(data).max()) or 1.0
+        im = ax.imshow(data, origin="lower", extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        _fibers(ax, bundle)
+        ax.set_title(f"{name} error map (measured − true)")
+        fig.colorbar(im, ax=ax, label="mm")
+    path = out / "error_maps.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def _scatter(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, measured: np.ndarray,
+             true: np.ndarray, title: str, path: Path) -> str:
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True)
+    corrected = (np.array([corrector.centroid.correct(x, y) for x, y in measured])
+                 if corrector.centroid is not None else measured)
+    for ax, pts, name in zip(axes, (measured, corrected), ("raw", "calibrated")):
+        _fibers(ax, bundle)
+        ax.scatter(true[:, 0], true[:, 1], s=14, facecolors="none", edgecolors="k", label="true")
+        ax.scatter(pts[:, 0], pts[:, 1], s=8, c="tab:red", label="measured")
+        rmse = np.sqrt(np.mean((pts - true) ** 2, axis=0))
+        ax.set_title(f"{title}, {name}: RMSE x {rmse[0]:.3f}, y {rmse[1]:.3f} mm")
+        ax.legend(loc="upper right", fontsize=7)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = False) -> tuple[Any, Any]:
+    from optitac_edge.calibration.measure import measure_recording
+
+    rec = Recording(rec_path)
+    if rec.truth is None:
+        raise OptiTacError(f"{rec_path}: the report needs a recording with truth.csv")
+    return measure_recording(rec, bundle, corrected=corrected), rec.truth
+
+
+def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,
+                 repeat: Path | None = None) -> Path:
+    """Write the figures and ``index.md`` into ``out_dir``; returns the index path."""
+    from optitac_edge.calibration.evaluation import detected_rows, repeatability
+
+    plt = _plt()
+    bundle = load_bundle(cal)
+    corrector = ContactCorrector(bundle)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    arrays = bundle.extra_arrays
+    figures: list[tuple[str, str]] = []
+    lines = [f"# Calibration report: `{Path(cal).name}` (id {bundle.calibration_id})", "",
+             f"Built {bundle.created_utc} for {bundle.fibers.width}×{bundle.fibers.height} "
+             f"{bundle.fibers.pixel_format} frames; {int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} "
+             f"fibers found, dead: {np.flatnonzero(bundle.fibers.dead).tolist() or 'none'}.", ""]
+
+    name = _error_maps(plt, bundle, corrector, out)
+    if name:
+        figures.append(("Centroid error maps", name))
+    if "report/centroid_measured" in arrays:
+        figures.append(("Seen presses (calibration data)", _scatter(
+            plt, bundle, corrector, arrays["report/centroid_measured"], arrays["report/centroid_true"],
+            "seen", out / "seen_scatter.png")))
+        lines.append(f"Centroid calibration: {bundle.extra_meta.get('centroid_fit')}")
+    if unseen is not None:
+        m, truth = _measure_truth(unseen, bundle)
+        rows = np.flatnonzero(detected_rows(m, truth))
+        f = truth.frame[rows]
+        figures.append(("Unseen presses", _scatter(
+            plt, bundle, corrector, np.stack([m.x_mm[f], m.y_mm[f]], 1),
+            np.stack([truth.x_mm[rows], truth.y_mm[rows]], 1), "unseen", out / "unseen_scatter.png")))
+    if repeat is not None:
+        positions = repeatability(*_measure_truth(repeat, bundle, corrected=True))
+        fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+        k = np.arange(len(positions))
+        for off, axis, colour in ((-0.12, "x", "tab:blue"), (0.12, "y", "tab:orange")):
+            mean = np.array([getattr(p, f"mean_error_{axis}") for p in positions])
+            rng = np.array([getattr(p, f"range_{axis}") for p in positions])
+            ax.errorbar(k + off, mean, yerr=rng / 2, fmt="o", capsize=4, color=colour, label=f"{axis} error ± range/2")
+        ax.axhline(0, color="gray", lw=0.5)
+        ax.set_xticks(k, [f"({p.x_mm:.1f}, {p.y_mm:.1f})" for p in positions], fontsize=8)
+        ax.set_ylabel("calibrated centroid error (mm)")
+        ax.set_title("Repeatability: 10 presses per position")
+        ax.legend()
+        fig.savefig(out / "repeatability.png", dpi=110)
+        plt.close(fig)
+        figures.append(("Repeatability", "repeatability.png"))
+    if "report/width_measured" in arrays and corrector.width is not None:
+        measured, true = arrays["report/width_measured"], arrays["report/width_true"]
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
+        w = corrector.width
+        for ax, k, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
+            ax.scatter(true, measured[:, k], s=10, label="measured FWHM")
+            grid = np.linspace(min(measured[:, k].min(), amap.knots_measured[0]) * 0.95,
+                               measured[:, k].max() * 1.05, 100)
+            ax.plot([amap(g) for g in grid], grid, "r-", label=f"{w.kind} width model")
+            fitted = np.array([amap(v) for v in measured[:, k]])
+            ax.scatter(true, fitted, s=10, marker="x", c="k", label="calibrated")
+            ax.plot([0, true.max()], [0, true.max()], "k:", lw=0.8)
+            rmse = float(np.sqrt(np.mean((fitted - true) ** 2)))
+            ax.set_title(f"{axis} axis: calibrated RMSE {rmse:.3f} mm (calibration data)")
+            ax.set_xlabel("true diameter (mm)")
+            ax.set_ylabel("width (mm)")
+            ax.legend(fontsize=7)
+        fig.savefig(out / "width_fit.png", dpi=110)
+        plt.close(fig)
+        figures.append(("Width calibration", "width_fit.png"))
+        lines.append(f"Width calibration: {bundle.extra_meta.get('width_fit')}")
+    shapes_fit = bundle.extra_meta.get("shapes_fit")
+    if shapes_fit:
+        chosen = next(shapes_fit[k] for k in ("unsupervised", "supervised")
+                      if shapes_fit[k]["kind"] == shapes_fit["kind"])["holdout"]
+        classes = shapes_fit["class_names"]
+        conf = np.asarray(chosen["confusion"], dtype=float)
+        conf = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)
+        fig, ax = plt.subplots(figsize=(5.5, 4.8), constrained_layout=True)
+        ax.imshow(conf, cmap="Blues", vmin=0, vmax=1)
+        for i in range(len(classes)):
+            for j in range(len(classes)):
+                ax.text(j, i, f"{conf[i, j]:.2f}", ha="center", va="center",
+                        color="white" if conf[i, j] > 0.5 else "black")
+        ax.set_xticks(range(len(classes)), classes, rotation=30)
+        ax.set_yticks(range(len(classes)), classes)
+        ax.set_xlabel("predicted")
+        ax.set_ylabel("true")
+        ax.set_title(f"Held-out confusion ({shapes_fit['kind']} {shapes_fit['subset']})", fontsize=9)
+        fig.savefig(out / "confusion.png", dpi=110)
+        plt.close(fig)
+        figures.append(("Shape classification (held-out presses)", "confusion.png"))
+        lines.append(f"Shape classifier: {shapes_fit['kind']} mixture on {shapes_fit['subset']}, held-out "
+                     f"average diagonal {chosen['average_diagonal']:.3f}; paper's unsupervised GMM "
+                     f"{shapes_fit['unsupervised']['holdout']['average_diagonal']:.3f} "
+                     f"({shapes_fit['unsupervised']['selected']}), supervised "
+                     f"{shapes_fit['supervised']['holdout']['average_diagonal']:.3f} "
+                     f"({shapes_fit['supervised']['selected']})")
+        lines.append("")
+        lines.append("| Hu subset | unsupervised held-out avg. diagonal | supervised |")
+        lines.append("|---|---|---|")
+        for name, res in shapes_fit["unsupervised"]["subsets"].items():
+            sup = shapes_fit["supervised"]["subsets"].get(name, {}).get("holdout", {})
+            lines.append(f"| {name} | {res['holdout']['average_diagonal']:.3f} | "
+                         f"{sup.get('average_diagonal', float('nan')):.3f} |")
+    if "report/shape_hu" in arrays:
+        hu, label = arrays["report/shape_hu"], arrays["report/shape_label"]
+        fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)
+        for ax, (a, b) in zip(axes, ((0, 1), (0, 2), (1, 2))):
+            for k, s in enumerate(SHAPES):
+                sel = label == k
+                if sel.any():
+                    ax.scatter(hu[sel, a], hu[sel, b], s=8, c=_COLOURS[s], label=s)
+            ax.set_xlabel(f"M{a + 1} (log)")
+            ax.set_ylabel(f"M{b + 1} (log)")
+        axes[0].legend(fontsize=7)
+        fig.suptitle("Hu moments M1–M3 of the calibration presses")
+        fig.savefig(out / "hu_scatter.png", dpi=110)
+        plt.close(fig)
+        figures.append(("Hu features", "hu_scatter.png"))
+    lines.append("")
+    for title, file in figures:
+        lines += [f"## {title}", "", f"![{title}]({file})", ""]
+    index = out / "index.md"
+    index.write_text("\n".join(lines))
+    return index

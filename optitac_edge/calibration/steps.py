@@ -1,0 +1,111 @@
+"""The calibration steps after ``calibrate fibers``: centroid, width, shapes.
+
+Each step replays a recording with known truth through the raw pipeline
+(baseline from its rest frames), fits its model, and returns an updated
+bundle; the CLI saves it atomically. The fitted data are kept in the bundle
+(``report/*`` arrays) so ``optitac-edge report`` can draw them later.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.centroid_map import fit_centroid_map
+from optitac_edge.core.corrections import with_centroid_map, with_shape_model, with_width_model
+from optitac_edge.errors import RecordingError
+from optitac_edge.calibration.evaluation import detected_rows, press_ids
+from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.io.recording import SHAPES, Recording
+from optitac_edge.core.width_model import fit_width_model
+
+log = logging.getLogger(__name__)
+#: The centroid maps reach this far beyond the outermost fiber, mm.
+MAP_MARGIN_MM = 3.0
+
+
+def _truth(rec: Recording) -> Any:
+    if rec.truth is None:
+        raise RecordingError(f"{rec.path}: calibration needs truth.csv")
+    return rec.truth
+
+
+def _with_report_arrays(bundle: CalibrationBundle, **arrays: np.ndarray) -> CalibrationBundle:
+    extra = dict(bundle.extra_arrays)
+    extra.update({f"report/{k}": np.asarray(v) for k, v in arrays.items()})
+    return bundle.with_updates(extra_arrays=extra)
+
+
+def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "nearest"
+                       ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map)."""
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth))
+    if rows.size < 3:
+        raise RecordingError(f"{rec.path}: only {rows.size} detected presses to calibrate the centroid")
+    frames = truth.frame[rows]
+    measured = np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1)
+    true = np.stack([truth.x_mm[rows], truth.y_mm[rows]], axis=1)
+    error_map = fit_centroid_map(measured, true, half_span_mm=bundle.layout.radius_mm + MAP_MARGIN_MM,
+                                 fill=fill)
+    corrected = np.array([error_map.correct(x, y) for x, y in measured])
+    summary = {
+        "frames": int(rows.size), "fill": fill,
+        "raw_rmse_mm": np.sqrt(np.mean((measured - true) ** 2, axis=0)).round(4).tolist(),
+        "fitted_rmse_mm": np.sqrt(np.mean((corrected - true) ** 2, axis=0)).round(4).tolist(),
+    }
+    bundle = with_centroid_map(bundle, error_map)
+    bundle = _with_report_arrays(bundle, centroid_measured=measured, centroid_true=true)
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": summary}), summary
+
+
+def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "monotone"
+                    ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Per-axis width model from circular presses of known diameter (``linear``: the paper's)."""
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth) & (truth.shape == "circle"))
+    if rows.size < 2 or np.unique(truth.size_mm[rows]).size < 2:
+        raise RecordingError(f"{rec.path}: width calibration needs circles of at least two diameters")
+    frames = truth.frame[rows]
+    major, minor, true = m.major_mm[frames], m.minor_mm[frames], truth.size_mm[rows]
+    model = fit_width_model(major, minor, true, kind=kind)
+    fitted = np.array([model.correct(a, b) for a, b in zip(major, minor)])
+    summary = {
+        "frames": int(rows.size), "kind": kind,
+        "fitted_rmse_mm": np.sqrt(np.mean((fitted - true[:, None]) ** 2, axis=0)).round(4).tolist(),
+    }
+    bundle = with_width_model(bundle, model)
+    bundle = _with_report_arrays(bundle, width_measured=np.stack([major, minor], axis=1), width_true=true)
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": summary}), summary
+
+
+def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
+                     ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Shape classifier from labelled presses (the paper's GMM search and a supervised alternative)."""
+    from optitac_edge.calibration.shape_fit import fit_shape_model
+
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth))
+    labels = truth.shape[rows]
+    if np.unique(labels).size < 2:
+        raise RecordingError(f"{rec.path}: shape calibration needs presses of at least two shapes")
+    features = m.features[truth.frame[rows]]
+    report = fit_shape_model(features, labels, groups=press_ids(truth)[rows], seed=seed)
+    bundle = with_shape_model(bundle, report.model)
+    details = report.to_dict()
+    summary = {
+        "chosen": f"{report.kind} {details['subset']}",
+        "holdout_average_diagonal": round(details["holdout_average_diagonal"], 4),
+        **{f"{kind}_holdout_average_diagonal": round(details[kind]["holdout"]["average_diagonal"] or 0.0, 4)
+           for kind in ("unsupervised", "supervised")},
+        "train_presses_frames": details["n_train"], "holdout_frames": details["n_test"],
+    }
+    bundle = _with_report_arrays(bundle, shape_hu=features[:, :7],
+                                 shape_label=np.array([SHAPES.index(s) for s in labels], dtype=np.int64))
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": details}), summary

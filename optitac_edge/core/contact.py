@@ -1,0 +1,133 @@
+"""The per-frame result of the pipeline."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+#: Width of :attr:`ContactEstimate.features`: the 7 log-Hu invariants and q4.
+N_FEATURES = 8
+
+
+def _nan_hu() -> np.ndarray:
+    return np.full(7, np.nan, dtype=np.float64)
+
+
+def _nan_features() -> np.ndarray:
+    return np.full(N_FEATURES, np.nan, dtype=np.float64)
+
+
+@dataclass(slots=True)
+class ContactEstimate:
+    """Contact estimate of one frame.
+
+    The runtime :class:`~optitac_edge.core.pipeline.Pipeline` reuses one instance
+    for every frame (no allocation per frame); call :meth:`copy` to keep one.
+
+    Attributes
+    ----------
+    frame : int
+        Index of the frame among those given to the pipeline, from 0.
+    t_ns : int
+        Timestamp passed with the frame, ns.
+    baseline_ready : bool
+        False while the first ``baseline_frames`` frames are averaged into the
+        baseline (then ``contact`` is False and everything else NaN/0).
+    contact : bool
+        Area above the threshold >= ``ContactThresholds.min_area_mm2``.
+    x_mm, y_mm : float
+        Contact centroid in the sensor (layout) frame, mm. NaN without contact.
+    major_mm, minor_mm : float
+        FWHM widths along the major / minor axis of the second-moment ellipse,
+        mm. NaN without contact.
+    angle_deg : float
+        Major-axis angle from +x towards +y, degrees, (-90, 90]. NaN without contact.
+    strength : float
+        ``m00`` of the truncated inverted surface, gray level * mm^2 (0 if
+        nothing is above the threshold).
+    area_mm2 : float
+        Area of the surface above the threshold, mm^2.
+    hu : ndarray, shape (7,), float64
+        Log-scaled Hu invariants ``-sign(h) log10|h|`` of the binarised surface
+        (shape features). NaN without contact.
+    features : ndarray, shape (8,), float64
+        The shape classifier's input: ``[hu[0] .. hu[6], q4]`` with ``q4 =
+        |c40| / mu00**3`` (raw, not log) the rotation- and scale-invariant
+        4-fold symmetry of the same binarised contact
+        (:func:`~optitac_edge.core.moments.q4_from_central`: 0 for a disc, 1/60 for
+        a square). NaN without contact.
+    shape : str
+        Classified contact shape; '' until a classifier exists.
+    confidence : float
+        Classifier confidence; NaN until a classifier exists.
+    n_contacts : int
+        Number of simultaneous contacts in the frame (0 without contact); the
+        same in every contact of the frame. The pipeline's primary estimate is
+        the strongest (largest ``strength``).
+    """
+
+    frame: int = -1
+    t_ns: int = 0
+    baseline_ready: bool = False
+    contact: bool = False
+    x_mm: float = math.nan
+    y_mm: float = math.nan
+    major_mm: float = math.nan
+    minor_mm: float = math.nan
+    angle_deg: float = math.nan
+    strength: float = 0.0
+    area_mm2: float = 0.0
+    hu: np.ndarray = field(default_factory=_nan_hu)
+    features: np.ndarray = field(default_factory=_nan_features)
+    shape: str = ""
+    confidence: float = math.nan
+    n_contacts: int = 0
+
+    def clear_geometry(self) -> None:
+        """Set the geometric fields and shape features to NaN (no contact), in place."""
+        self.x_mm = self.y_mm = math.nan
+        self.major_mm = self.minor_mm = self.angle_deg = math.nan
+        self.hu.fill(np.nan)
+        self.features.fill(np.nan)
+        self.shape = ""
+        self.confidence = math.nan
+
+    def copy(self) -> ContactEstimate:
+        """An independent copy (``hu`` and ``features`` copied)."""
+        return ContactEstimate(
+            frame=self.frame, t_ns=self.t_ns, baseline_ready=self.baseline_ready,
+            contact=self.contact, x_mm=self.x_mm, y_mm=self.y_mm, major_mm=self.major_mm,
+            minor_mm=self.minor_mm, angle_deg=self.angle_deg, strength=self.strength,
+            area_mm2=self.area_mm2, hu=self.hu.copy(), features=self.features.copy(),
+            shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
+        )
+
+    def assign(self, other: ContactEstimate) -> None:
+        """Copy every field of ``other`` into this estimate, in place (arrays copied)."""
+        self.frame, self.t_ns, self.baseline_ready = other.frame, other.t_ns, other.baseline_ready
+        self.contact, self.x_mm, self.y_mm = other.contact, other.x_mm, other.y_mm
+        self.major_mm, self.minor_mm, self.angle_deg = other.major_mm, other.minor_mm, other.angle_deg
+        self.strength, self.area_mm2 = other.strength, other.area_mm2
+        np.copyto(self.hu, other.hu)
+        np.copyto(self.features, other.features)
+        self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (NaN floats become None, ``hu`` and ``features`` lists)."""
+        def f(v: float) -> float | None:
+            return None if math.isnan(v) else float(v)
+
+        return {
+            "frame": int(self.frame), "t_ns": int(self.t_ns),
+            "baseline_ready": bool(self.baseline_ready), "contact": bool(self.contact),
+            "x_mm": f(self.x_mm), "y_mm": f(self.y_mm),
+            "major_mm": f(self.major_mm), "minor_mm": f(self.minor_mm),
+            "angle_deg": f(self.angle_deg), "strength": f(self.strength),
+            "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
+            "features": [f(v) for v in self.features],
+            "shape": self.shape, "confidence": f(self.confidence),
+            "n_contacts": int(self.n_contacts),
+        }

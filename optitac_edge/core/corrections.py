@@ -1,0 +1,109 @@
+"""Calibration models applied to each reported contact: centroid error map, width model, shape.
+
+The models live in the bundle (``extra_meta`` / ``extra_arrays``, see
+docs/formats.md) and are added by ``optitac-edge calibrate centroid|width|shapes``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.centroid_map import CentroidErrorMap
+from optitac_edge.errors import BundleError
+from optitac_edge.core.width_model import WidthModel
+
+CENTROID_KEY, WIDTH_KEY, SHAPES_KEY = "centroid", "width", "shapes"
+
+
+def _arrays_with_prefix(bundle: CalibrationBundle, prefix: str) -> dict[str, Any]:
+    return {k: v for k, v in bundle.extra_arrays.items() if k.startswith(prefix + "/")}
+
+
+def with_centroid_map(bundle: CalibrationBundle, error_map: CentroidErrorMap) -> CalibrationBundle:
+    meta, arrays = error_map.to_bundle()
+    kept = {k: v for k, v in bundle.extra_arrays.items() if not k.startswith(CENTROID_KEY + "/")}
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, CENTROID_KEY: meta},
+                               extra_arrays={**kept, **arrays})
+
+
+def with_width_model(bundle: CalibrationBundle, model: WidthModel) -> CalibrationBundle:
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, WIDTH_KEY: model.to_bundle()})
+
+
+def with_shape_model(bundle: CalibrationBundle, model: Any) -> CalibrationBundle:
+    """``model``: a :class:`optitac_edge.core.shapes.ShapeModel`."""
+    meta, arrays = model.to_bundle()
+    kept = {k: v for k, v in bundle.extra_arrays.items() if not k.startswith(SHAPES_KEY + "/")}
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, SHAPES_KEY: meta},
+                               extra_arrays={**kept, **{f"{SHAPES_KEY}/{k}": v for k, v in arrays.items()}})
+
+
+def load_shape_model(bundle: CalibrationBundle) -> Any:
+    """The bundle's shape model, or None."""
+    if SHAPES_KEY not in bundle.extra_meta:
+        return None
+    from optitac_edge.core.shapes import ShapeModel
+
+    arrays = {k[len(SHAPES_KEY) + 1:]: v for k, v in _arrays_with_prefix(bundle, SHAPES_KEY).items()}
+    try:
+        return ShapeModel.from_bundle(bundle.extra_meta[SHAPES_KEY], arrays)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise BundleError(f"bundle has an invalid shape model ({exc})") from None
+
+
+class ContactCorrector:
+    """Applies the bundle's calibration models to a contact estimate, in place.
+
+    Parameters
+    ----------
+    bundle : CalibrationBundle
+    shape_backend : {"numpy", "onnx"}
+        Evaluate the shape model in closed form (numpy) or with onnxruntime.
+    onnx_path : path-like, optional
+        The exported model for ``shape_backend="onnx"``.
+    """
+
+    def __init__(self, bundle: CalibrationBundle, shape_backend: str = "numpy",
+                 onnx_path: str | None = None) -> None:
+        meta = bundle.extra_meta
+        try:
+            self.centroid = (CentroidErrorMap.from_bundle(meta[CENTROID_KEY], dict(bundle.extra_arrays))
+                             if CENTROID_KEY in meta else None)
+            self.width = WidthModel.from_bundle(meta[WIDTH_KEY]) if WIDTH_KEY in meta else None
+        except (KeyError, ValueError, TypeError) as exc:
+            raise BundleError(f"bundle has an invalid calibration model ({exc})") from None
+        shape_model = load_shape_model(bundle)
+        self.shapes: Any = None
+        if shape_model is not None:
+            if shape_backend == "onnx":
+                from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
+
+                if onnx_path is None:
+                    raise BundleError("the onnx shape backend needs the exported model (export-onnx)")
+                self.shapes = OnnxShapeClassifier(onnx_path)
+            elif shape_backend == "numpy":
+                from optitac_edge.core.shapes import ShapeClassifier
+
+                self.shapes = ShapeClassifier(shape_model)
+            else:
+                raise BundleError(f"unknown shape backend {shape_backend!r} (numpy or onnx)")
+
+    @property
+    def active(self) -> bool:
+        return self.centroid is not None or self.width is not None or self.shapes is not None
+
+    @property
+    def calibrated(self) -> bool:
+        """Centroid and width both calibrated."""
+        return self.centroid is not None and self.width is not None
+
+    def apply(self, est: Any) -> None:
+        """Correct one contact (a :class:`~optitac_edge.core.contact.ContactEstimate` with contact)."""
+        if self.centroid is not None:
+            est.x_mm, est.y_mm = self.centroid.correct(est.x_mm, est.y_mm)
+        if self.width is not None:
+            est.major_mm, est.minor_mm = self.width.correct(est.major_mm, est.minor_mm)
+        if self.shapes is not None:
+            features = est.features if self.shapes.n_inputs == est.features.size else est.hu
+            est.shape, est.confidence = self.shapes.classify(features)

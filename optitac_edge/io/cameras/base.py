@@ -1,0 +1,95 @@
+"""The camera interface every backend implements (cf. python-can's ``BusABC``)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import NamedTuple
+
+import numpy as np
+
+from optitac_edge.io.device import Device
+from optitac_edge.errors import CameraError
+from optitac_edge.core.frames import frame_geometry
+
+
+class CapturedFrame(NamedTuple):
+    """One frame as delivered by a camera.
+
+    Attributes
+    ----------
+    frame : ndarray, uint8
+        In the camera's ``pixel_format`` (see :mod:`optitac_edge.core.frames`),
+        C-contiguous, shape ``Camera.frame_shape``. Valid until the next
+        :meth:`Camera.read` or :meth:`Camera.close`: hardware backends reuse
+        one preallocated buffer (``Camera.reuses_buffer``) and deliver it
+        read-only. Callers that keep a frame copy it.
+    t_ns : int
+        Frame timestamp, CLOCK_MONOTONIC nanoseconds (which instant of the
+        exposure depends on the backend; see docs/cameras.md). Strictly
+        increasing.
+    seq : int
+        Frame sequence number from the source, strictly increasing; gaps mean
+        dropped frames (counted in ``Camera.frames_dropped``).
+    """
+
+    frame: np.ndarray
+    t_ns: int
+    seq: int
+
+
+class Camera(Device, ABC):
+    """A frame source. Subclasses implement :meth:`_read_internal` and :meth:`_close_internal`.
+
+    Use as a context manager; :meth:`close` is idempotent and thread-safe.
+    """
+
+    pixel_format: str
+    height: int
+    width: int
+    fps: float
+    #: True when every frame is written into the same buffer, so a frame is
+    #: only valid until the next read (the hardware backends).
+    reuses_buffer: bool = False
+
+    def __init__(self) -> None:
+        Device.__init__(self)
+        self.frames_read = 0
+        #: Frames the source lost, from gaps in ``seq``.
+        self.frames_dropped = 0
+        self._last_seq: int | None = None
+
+    @abstractmethod
+    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
+        """Return the next frame, ``None`` at the end of a finite source."""
+
+    def read(self, timeout_s: float = 1.0) -> CapturedFrame | None:
+        """Next frame, or ``None`` when a finite source (a recording) is exhausted.
+
+        Raises
+        ------
+        CameraError
+            If the camera is closed or fails to deliver within ``timeout_s``.
+        """
+        if self._closed:
+            raise CameraError("camera is closed")
+        captured = self._read_internal(timeout_s)
+        if captured is not None:
+            self.frames_read += 1
+            if self._last_seq is not None and captured.seq > self._last_seq + 1:
+                self.frames_dropped += captured.seq - self._last_seq - 1
+            self._last_seq = captured.seq
+        return captured
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        """Array shape of the frames this camera delivers."""
+        if self.pixel_format == "rgb":
+            return (self.height, self.width, 3)
+        if self.pixel_format == "yuv420":
+            return (self.height * 3 // 2, self.width)
+        return (self.height, self.width)
+
+    def check_geometry(self, frame: np.ndarray) -> None:
+        """Raise :class:`CameraError` if ``frame`` is not what this camera announced."""
+        if frame.dtype != np.uint8 or frame_geometry(frame.shape, self.pixel_format) != (self.height, self.width):
+            raise CameraError(f"camera delivered {frame.dtype} {frame.shape}, expected uint8 {self.frame_shape}")

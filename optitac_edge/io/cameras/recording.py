@@ -1,0 +1,54 @@
+"""Replay a recording as a camera, at its recorded frame rate or as fast as possible."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from optitac_edge.io.recording import Recording
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
+
+
+class RecordingCamera(Camera):
+    """Frames of a recording directory, streamed from its memory map.
+
+    Parameters
+    ----------
+    path : path-like
+        Recording directory.
+    realtime : bool
+        Pace frames at the recording's ``fps`` (True) or deliver them as fast
+        as they are read (False).
+    loop : bool
+        Start again after the last frame instead of ending.
+    """
+
+    def __init__(self, path: str | Path, realtime: bool = False, loop: bool = False) -> None:
+        super().__init__()
+        self.recording = Recording(path)
+        self.pixel_format = self.recording.pixel_format
+        self.height, self.width = self.recording.height, self.recording.width
+        self.fps = self.recording.meta.fps
+        self._realtime = realtime
+        self._loop = loop
+        self._index = 0
+        self._seq = 0
+        self._next_ns = time.monotonic_ns()
+
+    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
+        if self._index >= len(self.recording):
+            if not self._loop:
+                return None
+            self._index = 0
+        if self._realtime:
+            delay = (self._next_ns - time.monotonic_ns()) / 1e9
+            if delay > 0:
+                time.sleep(delay)
+            self._next_ns = max(self._next_ns, time.monotonic_ns() - 1_000_000_000) + int(1e9 / self.fps)
+        frame = self.recording.frame(self._index)
+        self._index += 1
+        self._seq += 1
+        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+
+    def _close_internal(self) -> None:
+        self.recording = None  # type: ignore[assignment]  # drop the memory map

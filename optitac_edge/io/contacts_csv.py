@@ -1,0 +1,71 @@
+"""The contacts CSV written by ``optitac-edge replay`` (a contract, see docs/formats.md)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+from typing import IO, Any
+
+CONTACTS_HEADER = (
+    "frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength",
+    "shape", "confidence", "area_mm2", "hu1", "hu2", "hu3", "hu4", "hu5", "hu6", "hu7",
+    "n_contacts", "q4",
+)
+
+
+def _num(value: float, digits: int) -> str:
+    return "" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+class ContactsCsvWriter:
+    """Writes one row per processed frame; the file appears only when complete.
+
+    Rows go to ``PATH.tmp`` and are renamed to ``PATH`` on a clean :meth:`close`;
+    :meth:`abort` removes the partial file.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        self._file: IO[str] | None = self._tmp.open("w", newline="")
+        self._csv = csv.writer(self._file)
+        self._csv.writerow(CONTACTS_HEADER)
+
+    def write(self, frame: int, est: Any) -> None:
+        """Append the row of frame ``frame`` from a :class:`~optitac_edge.core.contact.ContactEstimate`."""
+        if not est.contact:
+            self._csv.writerow([frame, 0, *([""] * (len(CONTACTS_HEADER) - 4)), 0, ""])
+            return
+        self._csv.writerow([
+            frame, 1, _num(est.x_mm, 4), _num(est.y_mm, 4), _num(est.major_mm, 4), _num(est.minor_mm, 4),
+            _num(est.angle_deg, 3), _num(est.strength, 3), est.shape or "", _num(est.confidence, 4),
+            _num(est.area_mm2, 3), *(_num(float(h), 6) for h in est.hu),
+            est.n_contacts, _num(float(est.features[7]), 8),
+        ])
+
+    def close(self) -> None:
+        if self._file is None:
+            return
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        self._file = None
+        os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        if self._file is None:
+            return
+        self._file.close()
+        self._file = None
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> ContactsCsvWriter:
+        return self
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

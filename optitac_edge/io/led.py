@@ -1,0 +1,330 @@
+"""The sensor's LED ring, driven by a PCA9685 16-channel 12-bit PWM chip over I2C.
+
+smbus2 is imported only when a ring is opened by bus number; anything with
+``write_byte_data(addr, reg, value)`` and ``write_i2c_block_data(addr, reg, data)``
+(an ``smbus2.SMBus``, or a fake in tests) can be passed instead.
+
+The LEDs stay at the set brightness while the ring is open and are switched off by
+:meth:`LedRing.close` (idempotent; also on leaving a ``with`` block). The chip's
+oscillator keeps running so other channels, if any, are not disturbed.
+
+:func:`adjust_brightness_for_saturation` is pure: it lowers the brightness by
+bisection until the brightest fibers stay below saturation, through a callback
+that sets a brightness and returns the measured peak (the live loop passes one
+that sets the LEDs, grabs a frame and takes :func:`fiber_peak`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+from optitac_edge.errors import OptiTacError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from optitac_edge.service.board_config import LedConfig
+
+log = logging.getLogger(__name__)
+
+# PCA9685 registers and bits (NXP datasheet, rev. 4, section 7.3)
+MODE1 = 0x00
+MODE2 = 0x01
+LED0_ON_L = 0x06  # channel n: LED0_ON_L + 4 * n .. + 3 = ON_L, ON_H, OFF_L, OFF_H
+ALL_LED_ON_L = 0xFA
+ALL_LED_OFF_H = 0xFD
+PRE_SCALE = 0xFE
+
+MODE1_RESTART = 0x80
+MODE1_AI = 0x20  # register auto-increment (needed for the 4-byte block writes)
+MODE1_SLEEP = 0x10  # oscillator off; PRE_SCALE can only be written while asleep
+MODE1_ALLCALL = 0x01
+MODE2_INVRT = 0x10
+MODE2_OUTDRV = 0x04  # totem-pole outputs (open-drain when clear)
+FULL = 0x10  # bit 4 of ON_H (full on) / OFF_H (full off; wins over full on)
+
+OSC_HZ = 25_000_000
+COUNTS = 4096
+
+
+class LedError(OptiTacError):
+    """The LED driver cannot be opened or does not answer."""
+
+
+class I2CBus(Protocol):
+    def write_byte_data(self, i2c_addr: int, register: int, value: int) -> None: ...
+
+    def write_i2c_block_data(self, i2c_addr: int, register: int, data: list[int]) -> None: ...
+
+
+def prescale_for(frequency_hz: float) -> int:
+    """PRE_SCALE value for a PWM frequency (datasheet eq. 1), clamped to the chip's 3..255."""
+    return max(3, min(255, round(OSC_HZ / (COUNTS * frequency_hz)) - 1))
+
+
+def pwm_period_us(frequency_hz: float) -> float:
+    """The real PWM period the chip produces for a requested frequency, µs."""
+    return (prescale_for(frequency_hz) + 1) * COUNTS / OSC_HZ * 1e6
+
+
+def channel_registers(brightness: float) -> list[int]:
+    """The four bytes ON_L, ON_H, OFF_L, OFF_H for a brightness in 0..1.
+
+    0 is full off, 1 is full on (no PWM edges at all), anything between is a
+    duty cycle of ``round(brightness * 4096)`` counts starting at count 0.
+    """
+    if not 0.0 <= brightness <= 1.0:
+        raise ValueError(f"brightness must be in 0..1, got {brightness!r}")
+    counts = round(brightness * COUNTS)
+    if counts <= 0:
+        return [0, 0, 0, FULL]
+    if counts >= COUNTS:
+        return [0, FULL, 0, 0]
+    return [0, 0, counts & 0xFF, counts >> 8]
+
+
+class LedRing:
+    """LEDs on one or more PCA9685 channels, all at the same brightness.
+
+    Parameters
+    ----------
+    bus : int or I2CBus
+        I2C bus number (opens ``smbus2.SMBus(bus)``, closed again by :meth:`close`)
+        or an open bus object (left open).
+    address : int
+        7-bit I2C address of the chip (0x40 by default on most boards).
+    channels : iterable of int
+        PWM channels 0..15 the LEDs are on.
+    brightness : float
+        Initial brightness, 0..1.
+    pwm_frequency_hz : float
+        PWM frequency (24..1526 Hz; the chip rounds it, see :func:`pwm_period_us`).
+    invert, open_drain : bool
+        Output configuration (MODE2 INVRT, OUTDRV cleared).
+
+    Raises
+    ------
+    LedError
+        If smbus2 is missing or the chip does not answer.
+    """
+
+    def __init__(self, bus: int | I2CBus, address: int = 0x40, channels: Iterable[int] = (0,),
+                 brightness: float = 0.5, *, pwm_frequency_hz: float = 1000.0, invert: bool = False,
+                 open_drain: bool = False) -> None:
+        self.address = int(address)
+        self.channels = tuple(int(c) for c in channels)
+        if not self.channels or any(not 0 <= c <= 15 for c in self.channels):
+            raise ValueError(f"channels must be a non-empty list of 0..15, got {self.channels!r}")
+        if not 0x03 <= self.address <= 0x77:
+            raise ValueError(f"address must be a 7-bit I2C address, got {address!r}")
+        self._lock = threading.Lock()
+        self._closed = False
+        self._owns_bus = isinstance(bus, int)
+        self._bus: Any = self._open_bus(bus) if isinstance(bus, int) else bus
+        self.brightness = 0.0
+        self.prescale = prescale_for(pwm_frequency_hz)
+        mode2 = (0 if open_drain else MODE2_OUTDRV) | (MODE2_INVRT if invert else 0)
+        try:
+            self._bus.write_byte_data(self.address, MODE1, MODE1_SLEEP | MODE1_AI)
+            self._bus.write_byte_data(self.address, PRE_SCALE, self.prescale)
+            self._bus.write_byte_data(self.address, MODE2, mode2)
+            for ch in self.channels:  # dark before the oscillator starts
+                self._write_channel(ch, [0, 0, 0, FULL])
+            self._bus.write_byte_data(self.address, MODE1, MODE1_AI)
+            time.sleep(0.0005)  # oscillator start-up, 500 µs
+        except OSError as exc:
+            self._close_bus()
+            self._closed = True
+            raise LedError(f"LED driver at I2C 0x{self.address:02x}: no answer ({exc.strerror or exc})") from None
+        self.set_brightness(brightness)
+
+    @staticmethod
+    def _open_bus(number: int) -> Any:
+        try:
+            from smbus2 import SMBus
+        except ImportError:
+            raise LedError("the LED ring needs smbus2 (pip install smbus2)") from None
+        try:
+            return SMBus(number)
+        except OSError as exc:
+            raise LedError(f"cannot open /dev/i2c-{number} ({exc.strerror or exc})") from None
+
+    @classmethod
+    def from_config(cls, config: LedConfig, bus: I2CBus | None = None) -> LedRing:
+        """Open the ring a board config's ``[led]`` section describes (``bus`` overrides ``i2c_bus``)."""
+        return cls(config.i2c_bus if bus is None else bus, config.address, config.channels,
+                   config.brightness, pwm_frequency_hz=config.pwm_frequency_hz, invert=config.invert,
+                   open_drain=config.open_drain)
+
+    @property
+    def frequency_hz(self) -> float:
+        """The PWM frequency the chip really runs at."""
+        return OSC_HZ / (COUNTS * (self.prescale + 1))
+
+    def _write_channel(self, channel: int, data: list[int]) -> None:
+        self._bus.write_i2c_block_data(self.address, LED0_ON_L + 4 * channel, data)
+
+    def set_brightness(self, brightness: float) -> None:
+        """Set every channel to ``brightness`` (0..1; clamped).
+
+        Raises
+        ------
+        LedError
+            If the ring is closed or the chip does not answer.
+        """
+        b = min(max(float(brightness), 0.0), 1.0)
+        data = channel_registers(b)
+        with self._lock:
+            if self._closed:
+                raise LedError("LED ring is closed")
+            try:
+                for ch in self.channels:
+                    self._write_channel(ch, data)
+            except OSError as exc:
+                raise LedError(f"LED driver at I2C 0x{self.address:02x}: write failed "
+                               f"({exc.strerror or exc})") from None
+            self.brightness = b
+
+    def close(self) -> None:
+        """Switch the LEDs off and release the bus (idempotent; never raises)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                for ch in self.channels:
+                    self._write_channel(ch, [0, 0, 0, FULL])
+            except OSError as exc:
+                log.warning("LED ring: could not switch off (%s)", exc)
+            self.brightness = 0.0
+            self._close_bus()
+
+    def _close_bus(self) -> None:
+        if self._owns_bus:
+            try:
+                self._bus.close()
+            except OSError:
+                pass
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> LedRing:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class NoLed:
+    """Stands in for :class:`LedRing` on boards without one (``[led] enabled = false``)."""
+
+    brightness = 1.0
+    closed = False
+
+    def set_brightness(self, brightness: float) -> None:
+        self.brightness = min(max(float(brightness), 0.0), 1.0)
+
+    def close(self) -> None:
+        self.closed = True
+
+    def __enter__(self) -> NoLed:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_led(config: LedConfig, bus: I2CBus | None = None) -> LedRing | NoLed:
+    """The board's LED ring, or a :class:`NoLed` when ``config.enabled`` is false."""
+    return LedRing.from_config(config, bus) if config.enabled else NoLed()
+
+
+# --------------------------------------------------------------------------- brightness vs. saturation
+
+
+def fiber_peak(gray: np.ndarray, mask: np.ndarray | None = None, percentile: float = 99.9) -> float:
+    """The ``percentile`` of the gray levels (of the fiber pixels where ``mask`` is true)."""
+    import numpy as np
+
+    pixels = gray[mask] if mask is not None else gray.ravel()
+    if pixels.size == 0:
+        return 0.0
+    return float(np.percentile(pixels, percentile))
+
+
+@dataclass(frozen=True)
+class BrightnessAdjustment:
+    """Result of :func:`adjust_brightness_for_saturation`.
+
+    ``ok`` is false when even ``low`` saturates (then ``brightness`` is ``low``).
+    """
+
+    brightness: float
+    peak: float
+    measurements: int
+    ok: bool
+
+
+def adjust_brightness_for_saturation(
+    read_peak: Callable[[float], float],
+    *,
+    max_peak: float = 230.0,
+    start: float = 1.0,
+    low: float = 0.0,
+    steps: int = 6,
+    tolerance: float = 8.0,
+) -> BrightnessAdjustment:
+    """Find the brightest setting in ``[low, start]`` whose peak stays at or below ``max_peak``.
+
+    ``read_peak(b)`` must set the LEDs to ``b``, let a frame expose at that level
+    and return its peak (e.g. :func:`fiber_peak` at the 99.9th percentile).
+    If ``start`` does not exceed ``max_peak`` it is kept (one measurement).
+    Otherwise bisection runs between ``low`` and ``start`` for at most ``steps``
+    measurements, stopping early once a peak lands within ``tolerance`` below
+    ``max_peak``. On return the LEDs are at the returned brightness (the last
+    call to ``read_peak`` was with it).
+    """
+    if not 0.0 <= low <= start <= 1.0:
+        raise ValueError(f"need 0 <= low <= start <= 1, got low={low!r} start={start!r}")
+    n = 1
+    peak = float(read_peak(start))
+    if peak <= max_peak:
+        return BrightnessAdjustment(start, peak, n, True)
+    good: tuple[float, float] | None = None  # (brightness, peak) known not to saturate
+    lo, hi = low, start
+    last = start
+    for _ in range(max(steps, 0)):
+        mid = (lo + hi) / 2.0
+        peak = float(read_peak(mid))
+        n += 1
+        last = mid
+        if peak <= max_peak:
+            good = (mid, peak)
+            lo = mid
+            if peak >= max_peak - tolerance:
+                break
+        else:
+            hi = mid
+    if good is None:  # nothing measured was below saturation: try the floor itself
+        if last != low:
+            peak = float(read_peak(low))
+            n += 1
+            last = low
+        return BrightnessAdjustment(low, peak, n, peak <= max_peak)
+    if last != good[0]:
+        read_peak(good[0])  # leave the LEDs at the chosen level
+        n += 1
+    return BrightnessAdjustment(good[0], good[1], n, True)
+
+
+__all__ = [
+    "BrightnessAdjustment", "LedError", "LedRing", "NoLed", "adjust_brightness_for_saturation",
+    "channel_registers", "fiber_peak", "open_led", "prescale_for", "pwm_period_us",
+]

@@ -1,0 +1,167 @@
+"""What the sensor tells the gripper MCU and what the MCU asks, independent of the wire.
+
+The serial protocol (docs/protocol.md) and the CAN database (optitac.dbc) each
+encode these messages in their own layout; the service loop fills them from
+the pipeline's estimates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+from typing import Any
+
+
+class ContactFlags(IntFlag):
+    """Bits of the CONTACT message's ``flags``."""
+
+    CONTACT = 0x01
+    CALIBRATED = 0x02
+    SATURATED = 0x04
+    DEGRADED = 0x08
+    MORE_CONTACTS = 0x10
+
+
+class ShapeCode(IntEnum):
+    """Contact shape on the wire."""
+
+    NONE = 0
+    EDGE = 1
+    CIRCLE = 2
+    SQUARE = 3
+    ELLIPSE = 4
+    TRIANGLE = 5
+    UNKNOWN = 255
+
+    @classmethod
+    def coerce(cls, value: object) -> int:
+        """``value`` as a shape code on the wire; anything that is not one becomes UNKNOWN."""
+        try:
+            return int(cls(int(value)))  # type: ignore[call-overload]
+        except (ValueError, TypeError, OverflowError):
+            return int(cls.UNKNOWN)
+
+    @classmethod
+    def from_name(cls, name: str, contact: bool) -> ShapeCode:
+        if not contact:
+            return cls.NONE
+        return cls.__members__.get(name.upper(), cls.UNKNOWN) if name else cls.UNKNOWN
+
+
+def fold_angle_deg(deg: float) -> float:
+    """An axis angle folded into [−90, 90] degrees (kept as it is when already there; NaN stays NaN)."""
+    d = float(deg)
+    if math.isfinite(d) and not -90.0 <= d <= 90.0:
+        d = (d + 90.0) % 180.0 - 90.0
+    return d
+
+
+class CommandType(IntEnum):
+    """Message types sent by the MCU."""
+
+    PING = 0x10
+    TARE = 0x11
+    STREAM = 0x12
+    SET_THRESHOLD = 0x13
+
+
+class ResultCode(IntEnum):
+    """ACK result codes (0 = ok)."""
+
+    OK = 0
+    UNKNOWN_COMMAND = 1
+    BAD_LENGTH = 2
+    OUT_OF_RANGE = 3
+    BUSY = 4
+
+
+@dataclass(slots=True)
+class ContactMessage:
+    """One processed frame's primary contact, in physical units (the encoders quantise).
+
+    Attributes
+    ----------
+    sensor_id : int
+        0..255, from the board config.
+    flags : ContactFlags
+    t_us : int
+        The frame's sensor timestamp, CLOCK_MONOTONIC µs (wraps on the wire).
+    x_mm, y_mm, major_mm, minor_mm : float
+        Centroid and widths, mm (0 without contact).
+    angle_deg : float
+        Major axis, −90…90 degrees.
+    strength : float
+        Contact strength as the pipeline reports it (m00); quantised by the encoder.
+    shape : ShapeCode
+    confidence : float
+        0..1 (0 when unknown).
+    age_us : int
+        From exposure to send, µs.
+    """
+
+    sensor_id: int = 0
+    flags: ContactFlags = ContactFlags(0)
+    t_us: int = 0
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    major_mm: float = 0.0
+    minor_mm: float = 0.0
+    angle_deg: float = 0.0
+    strength: float = 0.0
+    shape: ShapeCode = ShapeCode.NONE
+    confidence: float = 0.0
+    age_us: int = 0
+
+    def fill(self, est: Any, t_ns: int, now_ns: int, calibrated: bool, saturated: bool = False,
+             degraded: bool = False) -> ContactMessage:
+        """Update in place from a :class:`~optitac_edge.core.contact.ContactEstimate`; returns self."""
+        contact = bool(est.contact)
+        flags = ContactFlags(0)
+        if contact:
+            flags |= ContactFlags.CONTACT
+            if getattr(est, "n_contacts", 1) > 1:
+                flags |= ContactFlags.MORE_CONTACTS
+        if calibrated:
+            flags |= ContactFlags.CALIBRATED
+        if saturated:
+            flags |= ContactFlags.SATURATED
+        if degraded:
+            flags |= ContactFlags.DEGRADED
+        self.flags = flags
+        self.t_us = t_ns // 1000
+        finite = (lambda v: float(v) if contact and math.isfinite(v) else 0.0)  # noqa: E731
+        self.x_mm, self.y_mm = finite(est.x_mm), finite(est.y_mm)
+        self.major_mm, self.minor_mm = finite(est.major_mm), finite(est.minor_mm)
+        self.angle_deg = finite(est.angle_deg)
+        self.strength = finite(est.strength)
+        self.shape = ShapeCode.from_name(est.shape, contact)
+        self.confidence = finite(est.confidence)
+        self.age_us = max((now_ns - t_ns) // 1000, 0)
+        return self
+
+
+@dataclass(slots=True)
+class StatusMessage:
+    """About once a second: the health of the sensor service."""
+
+    sensor_id: int = 0
+    t_us: int = 0
+    fps_x10: int = 0  # frames per second × 10
+    frames_dropped: int = 0
+    camera_errors: int = 0
+    link_errors: int = 0  # serial/CAN send errors and bad incoming frames
+    cpu_temp_c_x10: int = -32768  # °C × 10, −32768 unknown
+    calibration_id: int = 0  # first 32 bits of the bundle's id
+    state: int = 0  # bit0 streaming, bit1 baseline ready, bit2 degraded, bit3 camera fault
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A validated command from the MCU."""
+
+    type: CommandType
+    seq: int
+    stream_on: bool = True
+    rate_divider: int = 1
+    threshold: int = 0

@@ -1,0 +1,315 @@
+"""Serial protocol v1: frame layout, CRC, COBS framing and message (de)serialisation.
+
+Pure logic, no I/O (the transport in :mod:`optitac_edge.io.transports.serial` does the I/O).
+The interface control document is ``docs/protocol.md``; keep the two in step.
+
+A wire frame is ``COBS(header | payload | crc) 0x00`` with, little-endian::
+
+    header  u8 version (=1) | u8 type | u16 seq | u32 t_us     (8 bytes)
+    crc     u16 CRC-16/CCITT-FALSE over header and payload    (2 bytes)
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import struct
+from enum import IntEnum
+from typing import NamedTuple
+
+from cobs import cobs
+
+from optitac_edge.io.protocol.messages import (
+    Command,
+    CommandType,
+    ContactFlags,
+    ContactMessage,
+    ResultCode,
+    ShapeCode,
+    StatusMessage,
+    fold_angle_deg,
+)
+
+VERSION = 1
+HEADER = struct.Struct("<BBHI")
+CRC = struct.Struct("<H")
+HEADER_SIZE = HEADER.size  # 8
+CRC_SIZE = CRC.size  # 2
+MIN_FRAME = HEADER_SIZE + CRC_SIZE  # 10 decoded bytes: an empty payload
+#: Longest COBS-encoded frame accepted, delimiter excluded (decoded <= 63 bytes, payload <= 53).
+MAX_ENCODED = 64
+MAX_DECODED = MAX_ENCODED - 1
+MAX_PAYLOAD = MAX_DECODED - MIN_FRAME
+DELIMITER = b"\x00"
+
+
+class MsgType(IntEnum):
+    """Message types on the wire (sensor -> MCU: 0x00-0x0F and 0x70-0x7F; MCU -> sensor: 0x10-0x6F)."""
+
+    CONTACT = 0x01
+    STATUS = 0x02
+    PING = 0x10
+    TARE = 0x11
+    STREAM = 0x12
+    SET_THRESHOLD = 0x13
+    ACK = 0x7F
+
+
+def is_sensor_type(msg_type: int) -> bool:
+    """True for types only the sensor sends (never answered when received: no ACK storms)."""
+    return msg_type < 0x10 or msg_type >= 0x70
+
+
+# -- payload layouts ---------------------------------------------------------------------------
+
+#: sensor_id, flags, x, y, major, minor, angle, strength, shape, confidence, age_us
+CONTACT = struct.Struct("<BBhhHHhHBBH")
+#: sensor_id, state, fps_x10, frames_dropped, camera_errors, link_errors, cpu_temp_c_x10, calibration_id
+STATUS = struct.Struct("<BBHIIIhI")
+#: seq acknowledged, result code
+ACK = struct.Struct("<HB")
+STREAM = struct.Struct("<BB")  # on (0/1), rate divider (1..255)
+SET_THRESHOLD = struct.Struct("<H")  # contact-on level, 0.0001 relative units
+
+COMMAND_LENGTHS = {
+    CommandType.PING: 0,
+    CommandType.TARE: 0,
+    CommandType.STREAM: STREAM.size,
+    CommandType.SET_THRESHOLD: SET_THRESHOLD.size,
+}
+PAYLOAD_LENGTHS = {
+    MsgType.CONTACT: CONTACT.size,
+    MsgType.STATUS: STATUS.size,
+    MsgType.ACK: ACK.size,
+    **{MsgType(t): n for t, n in COMMAND_LENGTHS.items()},
+}
+
+# -- scaling (wire LSB in physical units) ----------------------------------------------------
+
+MM_LSB = 0.01  # x, y, major, minor
+ANGLE_LSB = 0.01  # degrees
+ANGLE_MAX = 9000  # ±90.00°
+STRENGTH_LSB = 0.01  # pipeline strength (m00, relative units · mm²) per LSB
+CONFIDENCE_MAX = 255
+THRESHOLD_LSB = 1e-4  # SET_THRESHOLD: relative units per LSB
+THRESHOLD_MIN = 10  # 0.0010 relative units
+THRESHOLD_MAX = 5000  # 0.5000 relative units
+RATE_DIVIDER_MIN = 1
+RATE_DIVIDER_MAX = 255
+STATE_STREAMING = 0x01
+STATE_BASELINE_READY = 0x02
+STATE_DEGRADED = 0x04
+STATE_CAMERA_FAULT = 0x08
+CONTACT_FLAGS_MASK = 0x1F  # bits 5-7 reserved, sent as 0
+STATE_MASK = 0x0F  # STATUS state bits 4-7 reserved, sent as 0
+TEMP_UNKNOWN = -32768
+
+U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFFFFFF
+
+
+class ProtocolError(ValueError):
+    """A payload does not fit its type (wrong length or type); never raised by the decoder itself."""
+
+
+class Frame(NamedTuple):
+    """A frame that passed COBS, length, CRC and version checks."""
+
+    type: int
+    seq: int
+    t_us: int
+    payload: bytes
+
+
+class Ack(NamedTuple):
+    seq_acked: int
+    result: int
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no final xor)."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def encode_frame(msg_type: int, seq: int, t_us: int, payload: bytes = b"") -> bytes:
+    """The full wire frame: COBS(header | payload | crc) + 0x00. seq and t_us wrap."""
+    if len(payload) > MAX_PAYLOAD:
+        raise ProtocolError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    body = HEADER.pack(VERSION, msg_type & U8, seq & U16, t_us & U32) + payload
+    return cobs.encode(body + CRC.pack(crc16(body))) + DELIMITER
+
+
+# -- quantisation ------------------------------------------------------------------------------
+
+
+def _q(value: float, lsb: float, lo: int, hi: int) -> int:
+    """value/lsb rounded half away from zero, saturated to [lo, hi]; NaN -> 0."""
+    v = float(value)
+    if math.isnan(v):
+        return 0
+    if math.isinf(v):
+        return hi if v > 0 else lo
+    x = v / lsb
+    if x >= hi:
+        return hi
+    if x <= lo:
+        return lo
+    n = math.floor(abs(x) + 0.5)
+    n = n if x >= 0 else -n
+    return lo if n < lo else hi if n > hi else int(n)
+
+
+def _clamp_int(value: float, lo: int, hi: int) -> int:
+    v = float(value)
+    if math.isnan(v):
+        return lo
+    if math.isinf(v):
+        return hi if v > 0 else lo
+    n = int(v)
+    return lo if n < lo else min(n, hi)
+
+
+def contact_payload(msg: ContactMessage, sensor_id: int | None = None) -> bytes:
+    """The 18-byte CONTACT payload of ``msg`` (quantised with rounding and saturation);
+    ``sensor_id`` overrides the message's."""
+    return CONTACT.pack(
+        _clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
+        int(msg.flags) & CONTACT_FLAGS_MASK,
+        _q(msg.x_mm, MM_LSB, -32768, 32767),
+        _q(msg.y_mm, MM_LSB, -32768, 32767),
+        _q(msg.major_mm, MM_LSB, 0, U16),
+        _q(msg.minor_mm, MM_LSB, 0, U16),
+        _q(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
+        _q(msg.strength, STRENGTH_LSB, 0, U16),
+        ShapeCode.coerce(msg.shape),
+        _q(msg.confidence, 1.0 / CONFIDENCE_MAX, 0, CONFIDENCE_MAX),
+        _clamp_int(msg.age_us, 0, U16),
+    )
+
+
+def status_payload(msg: StatusMessage, sensor_id: int | None = None) -> bytes:
+    """The 22-byte STATUS payload of ``msg`` (counters saturate at 2^32-1); ``sensor_id``
+    overrides the message's."""
+    return STATUS.pack(
+        _clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
+        int(msg.state) & STATE_MASK,
+        _clamp_int(msg.fps_x10, 0, U16),
+        _clamp_int(msg.frames_dropped, 0, U32),
+        _clamp_int(msg.camera_errors, 0, U32),
+        _clamp_int(msg.link_errors, 0, U32),
+        _clamp_int(msg.cpu_temp_c_x10, -32768, 32767),
+        int(msg.calibration_id) & U32,
+    )
+
+
+def encode_contact(msg: ContactMessage, seq: int) -> bytes:
+    """CONTACT wire frame (t_us from the message)."""
+    return encode_frame(MsgType.CONTACT, seq, int(msg.t_us), contact_payload(msg))
+
+
+def encode_status(msg: StatusMessage, seq: int) -> bytes:
+    """STATUS wire frame (t_us from the message)."""
+    return encode_frame(MsgType.STATUS, seq, int(msg.t_us), status_payload(msg))
+
+
+def encode_ack(seq_acked: int, result: int, seq: int, t_us: int) -> bytes:
+    """ACK wire frame answering the command whose seq is ``seq_acked``."""
+    return encode_frame(MsgType.ACK, seq, t_us, ACK.pack(seq_acked & U16, int(result) & U8))
+
+
+def encode_command(cmd_type: int, seq: int, t_us: int = 0, *, stream_on: bool = True,
+                   rate_divider: int = 1, threshold: int = 0) -> bytes:
+    """A command frame as the MCU sends it (for tests, tools and MCU simulation).
+
+    Values are packed as given (masked to their width), not range-checked, so tests can
+    build out-of-range commands; ``cmd_type`` may be any byte.
+    """
+    if cmd_type == CommandType.STREAM:
+        payload = STREAM.pack(int(stream_on) & U8, rate_divider & U8)
+    elif cmd_type == CommandType.SET_THRESHOLD:
+        payload = SET_THRESHOLD.pack(threshold & U16)
+    else:
+        payload = b""
+    return encode_frame(cmd_type, seq, t_us, payload)
+
+
+# -- decoding ----------------------------------------------------------------------------------
+
+
+def _expect(payload: bytes, st: struct.Struct, name: str) -> tuple:
+    if len(payload) != st.size:
+        raise ProtocolError(f"{name} payload of {len(payload)} bytes, expected {st.size}")
+    return st.unpack(payload)
+
+
+def contact_fields(payload: bytes) -> tuple[int, ...]:
+    """The raw wire integers of a CONTACT payload (sensor_id, flags, x, y, major, minor, angle,
+    strength, shape, confidence, age_us)."""
+    return _expect(payload, CONTACT, "CONTACT")
+
+
+def decode_contact(payload: bytes, t_us: int = 0) -> ContactMessage:
+    """A CONTACT payload back in physical units (``t_us`` from the header)."""
+    sid, flags, x, y, major, minor, angle, strength, shape, conf, age = contact_fields(payload)
+    try:
+        shape_code = ShapeCode(shape)
+    except ValueError:
+        shape_code = ShapeCode.UNKNOWN
+    return ContactMessage(
+        sensor_id=sid, flags=ContactFlags(flags & CONTACT_FLAGS_MASK), t_us=t_us,
+        x_mm=x * MM_LSB, y_mm=y * MM_LSB, major_mm=major * MM_LSB, minor_mm=minor * MM_LSB,
+        angle_deg=angle * ANGLE_LSB, strength=strength * STRENGTH_LSB, shape=shape_code,
+        confidence=conf / CONFIDENCE_MAX, age_us=age,
+    )
+
+
+def decode_status(payload: bytes, t_us: int = 0) -> StatusMessage:
+    sid, state, fps, dropped, cam, link, temp, cal = _expect(payload, STATUS, "STATUS")
+    return StatusMessage(sensor_id=sid, t_us=t_us, fps_x10=fps, frames_dropped=dropped,
+                         camera_errors=cam, link_errors=link, cpu_temp_c_x10=temp,
+                         calibration_id=cal, state=state)
+
+
+def decode_ack(payload: bytes) -> Ack:
+    return Ack(*_expect(payload, ACK, "ACK"))
+
+
+def parse_command(msg_type: int, seq: int, payload: bytes) -> Command | tuple[int, ResultCode]:
+    """A validated :class:`Command`, or ``(seq, result)`` to answer with a non-zero ACK.
+
+    Unknown type -> UNKNOWN_COMMAND, wrong payload length -> BAD_LENGTH, a value out of its
+    range (STREAM on not 0/1, divider 0, threshold outside 10..5000) -> OUT_OF_RANGE.
+    Callers should not answer sensor-side types at all (:func:`is_sensor_type`).
+    """
+    try:
+        ctype = CommandType(msg_type)
+    except ValueError:
+        return seq, ResultCode.UNKNOWN_COMMAND
+    if len(payload) != COMMAND_LENGTHS[ctype]:
+        return seq, ResultCode.BAD_LENGTH
+    if ctype == CommandType.STREAM:
+        on, div = STREAM.unpack(payload)
+        if on > 1 or not RATE_DIVIDER_MIN <= div <= RATE_DIVIDER_MAX:
+            return seq, ResultCode.OUT_OF_RANGE
+        return Command(ctype, seq, stream_on=bool(on), rate_divider=div)
+    if ctype == CommandType.SET_THRESHOLD:
+        (thr,) = SET_THRESHOLD.unpack(payload)
+        if not THRESHOLD_MIN <= thr <= THRESHOLD_MAX:
+            return seq, ResultCode.OUT_OF_RANGE
+        return Command(ctype, seq, threshold=thr)
+    return Command(ctype, seq)
+
+
+def threshold_relative(cmd: Command) -> float:
+    """A SET_THRESHOLD command's contact-on level in relative units (0.001..0.5)."""
+    return cmd.threshold * THRESHOLD_LSB
+
+
+def contact_csv_row(frame: Frame) -> str:
+    """The line ``optitac_rx`` prints for a CONTACT frame (wire integers):
+    ``seq,t_us,flags,x,y,major,minor,angle,strength,shape,confidence,age``."""
+    _sid, flags, x, y, major, minor, angle, strength, shape, conf, age = contact_fields(frame.payload)
+    return ",".join(str(v) for v in (frame.seq, frame.t_us, flags, x, y, major, minor, angle,
+                                     strength, shape, conf, age))
+
+
+CSV_HEADER = "seq,t_us,flags,x,y,major,minor,angle,strength,shape,confidence,age"

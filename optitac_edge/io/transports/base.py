@@ -1,0 +1,53 @@
+"""The transport interface every link to the MCU implements."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+from optitac_edge.io.device import Device
+from optitac_edge.io.protocol.messages import Command, ContactMessage, StatusMessage
+
+
+@dataclass
+class TransportCounters:
+    """What a link counts; bad data is counted, never trusted."""
+
+    sent: int = 0
+    send_errors: int = 0  # write failures, bus-off, ENOBUFS, queue overflow drops
+    received: int = 0  # valid incoming frames
+    rx_errors: int = 0  # bad COBS, CRC, length, version, unknown or out-of-range commands
+    reconnects: int = 0
+
+
+class Transport(Device, ABC):
+    """A link to the gripper MCU. Never raises on a send: failures are counted.
+
+    Use as a context manager; :meth:`close` is idempotent.
+    """
+
+    def __init__(self) -> None:
+        self.counters = TransportCounters()
+        Device.__init__(self)
+
+    @abstractmethod
+    def send_contact(self, message: ContactMessage) -> None:
+        """Queue one CONTACT (non-blocking)."""
+
+    @abstractmethod
+    def send_status(self, message: StatusMessage) -> None:
+        """Queue one STATUS (non-blocking)."""
+
+    def poll_commands(self) -> list[Command]:
+        """Commands received since the last call (validated; bad ones already answered and counted)."""
+        return []
+
+
+class NullTransport(Transport):
+    """Discards everything (``run`` without a link)."""
+
+    def send_contact(self, message: ContactMessage) -> None:
+        self.counters.sent += 1
+
+    def send_status(self, message: StatusMessage) -> None:
+        self.counters.sent += 1

@@ -1,0 +1,239 @@
+"""CAN link to the gripper MCU: frames of ``optitac.dbc`` sent with python-can.
+
+Every processed frame becomes two 8-byte frames, CONTACT_A and CONTACT_B, with
+the same 4-bit rolling counter; STATUS has a counter of its own. Identifiers are
+``base_id + 0x10 * sensor_id`` (+0 A, +1 B, +2 STATUS). See docs/can.md.
+
+A send never blocks and never raises: ``bus.send(..., timeout=0)``; a full
+transmit queue (ENOBUFS), bus-off or any other CAN/OS error is counted in
+``counters.send_errors`` and the frame dropped. Errors saying the interface is
+gone (ENETDOWN, ENODEV, ...) or a long run of failures close the bus, and a
+background thread reopens it with exponential backoff (``counters.reconnects``);
+frames offered meanwhile are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
+from optitac_edge.errors import TransportError
+from optitac_edge.io.protocol.messages import ContactMessage, StatusMessage
+from optitac_edge.io.transports.base import Transport
+
+log = logging.getLogger(__name__)
+
+#: errnos meaning the interface is down or gone: close and reopen the bus.
+LINK_DOWN_ERRNOS = frozenset({errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.EBADF, errno.EIO,
+                              errno.ENETUNREACH})
+#: errnos of a full transmit queue (also what bus-off looks like on socketcan after a while).
+QUEUE_FULL_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
+
+
+@dataclass
+class CanStats:
+    """CAN-specific detail behind ``counters.send_errors`` / ``counters.reconnects``."""
+
+    queue_full: int = 0  # ENOBUFS / EAGAIN / "Transmit buffer full"
+    other_errors: int = 0  # any other CanError / OSError on send
+    link_down: int = 0  # times the bus was declared down and closed
+    dropped_link_down: int = 0  # frames dropped while the bus was closed
+    open_failures: int = 0  # failed reopen attempts
+
+
+def _errno_of(exc: BaseException) -> int | None:
+    """The errno behind an OSError or a python-can error (``error_code``), if any."""
+    code = getattr(exc, "errno", None)
+    if code is None:
+        code = getattr(exc, "error_code", None)
+    if code is None and isinstance(exc.__cause__, OSError):
+        code = exc.__cause__.errno
+    return code if isinstance(code, int) else None
+
+
+class CanTransport(Transport):
+    """Sends CONTACT_A/B and STATUS frames on a python-can bus.
+
+    Parameters
+    ----------
+    channel : str
+        python-can channel (``can0``; any name for ``virtual``).
+    interface : str
+        python-can interface (``socketcan``, ``virtual``, ...).
+    sensor_id : int
+        Selects the identifiers; 0..79 with the default base id.
+    bitrate : int, optional
+        Passed to python-can when given (socketcan ignores it: set it with ``ip link``).
+    dbc_path : str or Path, optional
+        Database with the same message/signal names (default: the packaged ``optitac.dbc``).
+    base_id : int
+        Identifier of sensor 0's CONTACT_A (multiple of 0x10).
+    backoff_s : tuple of float
+        First and longest wait between reopen attempts, seconds.
+    down_after : int
+        This many failed sends in a row (e.g. bus-off filling the queue) also count as the
+        link being down and make the transport reopen the bus.
+    bus_kwargs : dict, optional
+        Extra keyword arguments for ``can.Bus``.
+
+    Raises
+    ------
+    TransportError
+        A bad configuration or a bus that cannot be opened at construction.
+    """
+
+    def __init__(self, channel: str = "can0", interface: str = "socketcan", sensor_id: int = 0,
+                 bitrate: int | None = None, dbc_path: str | Path | None = None, *,
+                 base_id: int = BASE_ID, backoff_s: tuple[float, float] = (0.1, 5.0),
+                 down_after: int = 100, bus_kwargs: dict[str, Any] | None = None) -> None:
+        super().__init__()
+        self.codec = CanCodec(sensor_id, dbc_path, base_id)
+        self.ids = self.codec.ids
+        self.channel, self.interface, self.bitrate = channel, interface, bitrate
+        self.stats = CanStats()
+        self._bus_kwargs = dict(bus_kwargs or {})
+        self._backoff_min, self._backoff_max = float(backoff_s[0]), float(backoff_s[1])
+        self._backoff = self._backoff_min
+        self._down_after = max(int(down_after), 1)
+        self._consecutive_errors = 0
+        self._contact_counter = 0
+        self._status_counter = 0
+        self._lock = threading.Lock()  # guards _bus swaps and the reconnect thread
+        self._stop = threading.Event()
+        self._reconnector: threading.Thread | None = None
+        try:
+            self._bus: Any = self._open_bus()
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise TransportError(f"cannot open CAN {interface} channel {channel!r}: {exc}") from exc
+        log.info("CAN %s/%s open: sensor %d, ids %s", interface, channel, self.codec.sensor_id,
+                 ", ".join(f"{k}={v:#x}" for k, v in self.ids.items()))
+
+    # -- bus handling -------------------------------------------------------------------------
+
+    def _open_bus(self) -> Any:
+        kwargs = dict(self._bus_kwargs)
+        if self.bitrate is not None:
+            kwargs["bitrate"] = self.bitrate
+        return can.Bus(channel=self.channel, interface=self.interface, **kwargs)
+
+    @property
+    def connected(self) -> bool:
+        """True while a bus is open (False between a link failure and the reopen)."""
+        return self._bus is not None
+
+    def _link_down(self, bus: Any, reason: BaseException) -> None:
+        """Close ``bus`` (if still current) and start reopening it in the background."""
+        with self._lock:
+            if self._bus is not bus or self._closed:
+                return
+            self._bus = None
+            self.stats.link_down += 1
+            self._consecutive_errors = 0
+            if self._reconnector is None:
+                self._reconnector = threading.Thread(target=self._reconnect_loop,
+                                                     name="optitac-can-reconnect", daemon=True)
+                self._reconnector.start()
+        log.warning("CAN %s/%s down (%s); reopening in the background", self.interface, self.channel,
+                    reason)
+        self._shutdown_quietly(bus)
+
+    def _reconnect_loop(self) -> None:
+        while not self._stop.wait(self._backoff):
+            self._backoff = min(self._backoff * 2.0, self._backoff_max)
+            try:
+                bus = self._open_bus()
+            except Exception as exc:  # noqa: BLE001 - any driver failure means "try later"
+                self.stats.open_failures += 1
+                log.debug("CAN reopen failed: %s", exc)
+                continue
+            with self._lock:
+                self._reconnector = None
+                if not self._closed:
+                    self._bus = bus
+                    self.counters.reconnects += 1
+                    bus = None
+            if bus is not None:  # closed meanwhile
+                self._shutdown_quietly(bus)
+            else:
+                log.info("CAN %s/%s reopened", self.interface, self.channel)
+            return
+
+    @staticmethod
+    def _shutdown_quietly(bus: Any) -> None:
+        try:
+            bus.shutdown()
+        except Exception as exc:  # noqa: BLE001 - a dying driver must not take the loop with it
+            log.debug("CAN bus shutdown failed: %s", exc)
+
+    # -- sending ------------------------------------------------------------------------------
+
+    def _send(self, arbitration_id: int, payload: bytes) -> bool:
+        """Send one frame without blocking; count and drop on any failure."""
+        bus = self._bus
+        if bus is None or self._closed:
+            self.counters.send_errors += 1
+            self.stats.dropped_link_down += 1
+            return False
+        frame = can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        try:
+            bus.send(frame, timeout=0)
+        except (can.CanError, OSError) as exc:
+            self.counters.send_errors += 1
+            self._consecutive_errors += 1
+            code = _errno_of(exc)
+            queue_full = code in QUEUE_FULL_ERRNOS or (code is None and "buffer full" in str(exc).lower())
+            if queue_full:
+                self.stats.queue_full += 1
+            else:
+                self.stats.other_errors += 1
+            if self._consecutive_errors == 1:
+                log.warning("CAN send failed (%s); dropping frames, counting", exc)
+            if code in LINK_DOWN_ERRNOS or self._consecutive_errors >= self._down_after:
+                self._link_down(bus, exc)
+            return False
+        self.counters.sent += 1
+        if self._consecutive_errors:
+            log.info("CAN sends recovered after %d failures", self._consecutive_errors)
+        self._consecutive_errors = 0
+        self._backoff = self._backoff_min
+        return True
+
+    def send_contact(self, message: ContactMessage) -> None:
+        """Send CONTACT_A then CONTACT_B with the same rolling counter.
+
+        If CONTACT_A fails, CONTACT_B is not attempted (an unpaired half is useless) and
+        both count as send errors. The counter advances even for dropped frames, so the
+        MCU sees the gap.
+        """
+        counter = self._contact_counter
+        self._contact_counter = (counter + 1) % COUNTER_MODULO
+        payload_a, payload_b = self.codec.contact_payloads(message, counter)
+        if self._send(self.ids["CONTACT_A"], payload_a):
+            self._send(self.ids["CONTACT_B"], payload_b)
+        else:
+            self.counters.send_errors += 1  # CONTACT_B, not attempted
+
+    def send_status(self, message: StatusMessage) -> None:
+        counter = self._status_counter
+        self._status_counter = (counter + 1) % COUNTER_MODULO
+        self._send(self.ids["STATUS"], self.codec.status_payload(message, counter))
+
+    def _close_internal(self) -> None:
+        self._stop.set()
+        thread = self._reconnector
+        if thread is not None and thread.is_alive() and thread is not threading.current_thread():
+            thread.join(timeout=2.0)
+        with self._lock:
+            bus, self._bus = self._bus, None
+        if bus is not None:
+            self._shutdown_quietly(bus)
+
+
+__all__ = ["LINK_DOWN_ERRNOS", "QUEUE_FULL_ERRNOS", "CanStats", "CanTransport"]

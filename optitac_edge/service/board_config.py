@@ -1,0 +1,613 @@
+"""Board configuration: which camera, link, LED ring and calibration one board uses.
+
+A board config is a TOML file (see ``board_configs/`` and docs/deploy.md). It is
+read with :func:`load_board_config`, which layers three sources, later ones
+winning:
+
+1. the file (a path, or a NAME such as ``sim`` that resolves to the packaged
+   ``board_configs/NAME.toml``);
+2. environment variables ``OPTITAC_<SECTION>_<KEY>`` (e.g. ``OPTITAC_LINK_SERIAL_URL``,
+   ``OPTITAC_CAMERA_OPTIONS_<NAME>`` for a camera option);
+3. ``overrides`` from the command line, ``{"section.key": value}``.
+
+Every value is validated strictly: an unknown section or key, a wrong type or an
+out-of-range value raises :class:`~optitac_edge.errors.ConfigError` with one line
+naming the source (file path, environment variable or "command line") and the key.
+Nothing here touches hardware.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import sys
+from collections.abc import Callable, Mapping
+from dataclasses import MISSING, dataclass, field, fields, replace
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
+    import tomli as tomllib  # type: ignore[no-redef]
+
+from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
+from optitac_edge.errors import ConfigError
+
+#: Where systemd's ``StateDirectory=optitac-edge`` lives (the calibration bundle's home).
+DEFAULT_STATE_DIR = "/var/lib/optitac-edge"
+#: Prefix of the environment variables that override file values.
+ENV_PREFIX = "OPTITAC_"
+#: Camera backends a board config may name (the registry in optitac_edge.io.cameras may add more).
+KNOWN_CAMERA_BACKENDS = ("sim", "recording", "picamera2", "v4l2")
+#: The only schema version there is.
+CONFIG_VERSION = 1
+
+Scalar = str | int | float | bool
+
+
+class _Bad(Exception):
+    """A value failed validation; the message says why (no source/key yet)."""
+
+
+# --------------------------------------------------------------------------- value checkers
+# A checker takes (value, from_text) and returns the converted value or raises _Bad.
+# ``from_text`` is True for environment variables and string command-line overrides.
+
+Checker = Callable[[Any, bool], Any]
+
+
+def _show(value: Any) -> str:
+    return repr(value) if isinstance(value, str) else f"{value!r} ({_type_name(value)})"
+
+
+def _type_name(value: Any) -> str:
+    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
+            dict: "table"}.get(type(value), type(value).__name__)
+
+
+def _int(lo: int, hi: int, what: str = "an integer") -> Checker:
+    def check(value: Any, from_text: bool) -> int:
+        if from_text and isinstance(value, str):
+            try:
+                value = int(value.strip(), 0)
+            except ValueError:
+                raise _Bad(f"must be {what} in {lo}..{hi}, got {value!r}") from None
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise _Bad(f"must be {what} in {lo}..{hi}, got {_show(value)}")
+        return value
+    return check
+
+
+def _num(lo: float, hi: float, *, lo_open: bool = False) -> Checker:
+    rng = f"{lo:g} < x <= {hi:g}" if lo_open else f"{lo:g}..{hi:g}"
+
+    def check(value: Any, from_text: bool) -> float:
+        if from_text and isinstance(value, str):
+            try:
+                value = float(value.strip())
+            except ValueError:
+                raise _Bad(f"must be a number in {rng}, got {value!r}") from None
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if ok:
+            ok = (lo < value if lo_open else lo <= value) and value <= hi
+        if not ok:
+            raise _Bad(f"must be a number in {rng}, got {_show(value)}")
+        return float(value)
+    return check
+
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+def _bool(value: Any, from_text: bool) -> bool:
+    if from_text and isinstance(value, str):
+        text = value.strip().lower()
+        if text in _TRUE:
+            return True
+        if text in _FALSE:
+            return False
+        raise _Bad(f"must be true or false, got {value!r}")
+    if not isinstance(value, bool):
+        raise _Bad(f"must be true or false, got {_show(value)}")
+    return value
+
+
+def _str(max_len: int = 1024, *, pattern: str | None = None, empty: bool = True) -> Checker:
+    def check(value: Any, from_text: bool) -> str:
+        if not isinstance(value, str):
+            raise _Bad(f"must be a string, got {_show(value)}")
+        if not empty and not value:
+            raise _Bad("must not be empty")
+        if len(value) > max_len:
+            raise _Bad(f"must be at most {max_len} characters, got {len(value)}")
+        if "\x00" in value:
+            raise _Bad("must not contain NUL")
+        if pattern is not None and value and not re.fullmatch(pattern, value):
+            raise _Bad(f"must match {pattern}, got {value!r}")
+        return value
+    return check
+
+
+def _choice(*choices: str) -> Checker:
+    def check(value: Any, from_text: bool) -> str:
+        if not isinstance(value, str) or value not in choices:
+            raise _Bad(f"must be one of {', '.join(repr(c) for c in choices)}, got {_show(value)}")
+        return value
+    return check
+
+
+def _camera_backend(value: Any, from_text: bool) -> str:
+    from optitac_edge.io.cameras import BACKENDS
+
+    return _choice(*sorted(set(KNOWN_CAMERA_BACKENDS) | set(BACKENDS)))(value, from_text)
+
+
+def _path(value: Any, from_text: bool) -> str:
+    # Kept as text here; resolved against the file's directory by the loader. "" means "none".
+    return _str(4096)(value, from_text)
+
+
+def _channels(value: Any, from_text: bool) -> tuple[int, ...]:
+    if from_text and isinstance(value, str):
+        try:
+            value = [int(part.strip(), 0) for part in value.split(",") if part.strip()]
+        except ValueError:
+            raise _Bad(f"must be a list of channel numbers 0..15 (e.g. '0,1,2'), got {value!r}") from None
+    if isinstance(value, tuple):
+        value = list(value)
+    if isinstance(value, (bool, int)):
+        value = [value]
+    if not isinstance(value, list) or not value:
+        raise _Bad(f"must be a non-empty array of channel numbers 0..15, got {_show(value)}")
+    for item in value:
+        if isinstance(item, bool) or not isinstance(item, int) or not 0 <= item <= 15:
+            raise _Bad(f"channels must be integers in 0..15, got {_show(item)}")
+    if len(set(value)) != len(value):
+        raise _Bad(f"channels must be unique, got {value!r}")
+    return tuple(value)
+
+
+def _scalar(value: Any, from_text: bool) -> Scalar:
+    if from_text and isinstance(value, str):
+        try:  # a TOML literal (number, boolean, quoted string), else the text itself
+            value = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            return value
+    if not isinstance(value, (str, int, float, bool)):
+        raise _Bad(f"must be a scalar (string, number or boolean), got {_type_name(value)}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise _Bad(f"must be finite, got {value!r}")
+    return value
+
+
+def _opt(check: Checker, default: Any, doc: str) -> Any:
+    return field(default=default, metadata={"check": check, "doc": doc})
+
+
+# --------------------------------------------------------------------------- sections
+# Each section is a frozen dataclass; each field's metadata holds its checker and a one-line doc.
+# Defaults are what an empty file gives (the simulated sensor, no link, no LED).
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    id: int = _opt(_int(0, 255), 0, "sensor number sent to the MCU in every message")
+    name: str = _opt(_str(64, pattern=r"[A-Za-z0-9_.-]+", empty=False), "optitac",
+                     "short name for logs (letters, digits, _ . -)")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    backend: str = _opt(_camera_backend, "sim", "camera backend: sim, recording, picamera2, v4l2")
+    width: int = _opt(_int(16, 8192), 640, "image width, px")
+    height: int = _opt(_int(16, 8192), 480, "image height, px")
+    fps: float = _opt(_num(1, 1000), 60.0, "frame rate, frames/s")
+    pixel_format: str = _opt(_choice("gray", "rgb", "yuv420"), "gray", "pixel format delivered")
+    exposure_us: int = _opt(_int(0, 10_000_000), 0, "exposure time, µs (0 = automatic)")
+    gain: float = _opt(_num(0, 64), 0.0, "analogue gain (0 = automatic)")
+    index: int = _opt(_int(0, 15), 0, "picamera2: camera number")
+    device: str = _opt(_path, "", "v4l2: device node, best a /dev/v4l/by-id/... path")
+    pipeline: str = _opt(_str(4096), "", "v4l2: a GStreamer pipeline ending in appsink (instead of device)")
+    recording: str = _opt(_path, "", "recording: the recording directory to replay")
+    warmup_frames: int = _opt(_int(0, 1000), 5, "frames discarded after opening (auto exposure settles)")
+    timeout_s: float = _opt(_num(0, 60, lo_open=True), 1.0, "longest wait for one frame, s")
+    queue_frames: int = _opt(_int(1, MAX_DEPTH), 4, "frames that may wait for the loop; when full the oldest "
+                             "is dropped (1 = latest frame only)")
+    #: Backend-specific options (free names, scalar values), validated by the backend.
+    options: Mapping[str, Scalar] = field(default_factory=lambda: MappingProxyType({}),
+                                          metadata={"doc": "backend-specific options (scalars)"})
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    bundle: str = _opt(_path, f"{DEFAULT_STATE_DIR}/calibration.npz",
+                       "calibration bundle ('' = calibrate at every start, keep nothing)")
+    if_missing: str = _opt(_choice("calibrate", "fail"), "calibrate",
+                           "no bundle: calibrate fibers from rest frames and save, or fail")
+    rest_frames: int = _opt(_int(1, 10_000), 10, "contact-free frames used to calibrate at start")
+    rotation_deg: float = _opt(_num(-360, 360), 0.0, "orientation hint (docs/formats.md)")
+    mirror: bool = _opt(_bool, False, "orientation hint: the array appears mirrored")
+    layout: str = _opt(_path, "", "custom layout CSV ('' = the default hexagonal array)")
+
+    @property
+    def bundle_path(self) -> Path | None:
+        return Path(self.bundle) if self.bundle else None
+
+    @property
+    def layout_path(self) -> Path | None:
+        return Path(self.layout) if self.layout else None
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    transport: str = _opt(_choice("serial", "can", "none"), "none", "link to the MCU")
+    serial_url: str = _opt(_str(4096), "", "serial: pyserial URL or device, e.g. /dev/optitac-mcu")
+    baudrate: int = _opt(_int(1200, 12_000_000), 115_200, "serial: baud rate (ignored by USB CDC)")
+    can_channel: str = _opt(_str(64), "can0", "can: python-can channel (socketcan: interface name)")
+    can_interface: str = _opt(_str(64, pattern=r"[a-z0-9_]+", empty=False), "socketcan",
+                              "can: python-can interface")
+    can_bitrate: int = _opt(_int(10_000, 1_000_000), 500_000,
+                            "can: bit rate (socketcan: set on the interface, docs/deploy.md)")
+    rate_divider: int = _opt(_int(1, 1000), 1, "send the contact of every Nth frame")
+
+    @property
+    def transport_name(self) -> str:
+        """Name for :func:`optitac_edge.io.transports.open_transport` (``none`` is ``null``)."""
+        return "null" if self.transport == "none" else self.transport
+
+
+@dataclass(frozen=True)
+class LedConfig:
+    enabled: bool = _opt(_bool, False, "drive an LED ring through an I2C PWM chip")
+    driver: str = _opt(_choice("pca9685"), "pca9685", "LED driver chip")
+    i2c_bus: int = _opt(_int(0, 255), 1, "I2C bus number (/dev/i2c-N)")
+    address: int = _opt(_int(0x03, 0x77, "a 7-bit I2C address"), 0x40, "I2C address of the chip")
+    channels: tuple[int, ...] = _opt(_channels, (0,), "PWM channels the LEDs are on")
+    brightness: float = _opt(_num(0, 1), 0.5, "LED brightness, 0..1 (duty cycle)")
+    pwm_frequency_hz: int = _opt(_int(24, 1526), 1000, "PWM frequency, Hz")
+    invert: bool = _opt(_bool, False, "invert outputs (LEDs wired to V+ without a driver)")
+    open_drain: bool = _opt(_bool, False, "open-drain outputs instead of totem pole")
+    adjust_at_calibration: bool = _opt(_bool, True, "lower brightness at calibration until no fiber saturates")
+    max_peak: int = _opt(_int(1, 255), 230, "highest allowed fiber peak, gray level")
+    peak_percentile: float = _opt(_num(50, 100), 99.9, "percentile of fiber pixels taken as the peak")
+
+
+@dataclass(frozen=True)
+class StatusConfig:
+    period_s: float = _opt(_num(0.05, 3600), 1.0, "period of STATUS messages and log lines, s")
+
+
+@dataclass(frozen=True)
+class WatchdogConfig:
+    enabled: bool = _opt(_bool, True, "kick systemd's watchdog from the frame loop (if WatchdogSec set)")
+    max_frame_gap_s: float = _opt(_num(0.1, 600), 2.0, "no frame for this long: stop kicking, exit with failure")
+
+
+_SECTIONS: dict[str, type] = {
+    "sensor": SensorConfig,
+    "camera": CameraConfig,
+    "calibration": CalibrationConfig,
+    "link": LinkConfig,
+    "led": LedConfig,
+    "status": StatusConfig,
+    "watchdog": WatchdogConfig,
+}
+#: Keys holding paths, resolved against the directory of the file that set them.
+_PATH_KEYS = {("camera", "device"), ("camera", "recording"), ("calibration", "bundle"),
+              ("calibration", "layout")}
+_TOP_LEVEL = {"config_version", "description"}
+
+
+@dataclass(frozen=True)
+class BoardConfig:
+    """A validated board configuration (all sections, defaults filled in)."""
+
+    source: str = "(defaults)"
+    description: str = ""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    link: LinkConfig = field(default_factory=LinkConfig)
+    led: LedConfig = field(default_factory=LedConfig)
+    status: StatusConfig = field(default_factory=StatusConfig)
+    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
+    #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
+    origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain ``{section: {key: value}}`` (for ``--print-config`` and logs)."""
+        out: dict[str, dict[str, Any]] = {}
+        for name in _SECTIONS:
+            section = getattr(self, name)
+            out[name] = {}
+            for f in fields(section):
+                value = getattr(section, f.name)
+                if isinstance(value, Mapping):
+                    value = dict(value)
+                elif isinstance(value, tuple):
+                    value = list(value)
+                out[name][f.name] = value
+        return out
+
+    def warnings(self) -> list[str]:
+        """Legal but suspicious combinations, one line each (for the log)."""
+        out = []
+        if self.led.enabled and self.camera.exposure_us > 0:
+            from optitac_edge.io.led import pwm_period_us
+
+            period = pwm_period_us(self.led.pwm_frequency_hz)
+            rem = self.camera.exposure_us % period
+            if self.camera.exposure_us < 10 * period and min(rem, period - rem) > 0.02 * period:
+                out.append(f"camera.exposure_us {self.camera.exposure_us} is neither >= 10 LED PWM periods "
+                           f"nor a multiple of one ({period:.2f} us): frame brightness will flicker")
+        if self.camera.exposure_us > 1e6 / self.camera.fps:
+            out.append(f"camera.exposure_us {self.camera.exposure_us} is longer than a frame at "
+                       f"{self.camera.fps:g} fps: the camera will run slower")
+        return out
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def packaged_config_dirs() -> list[Path]:
+    """Directories searched for a board NAME, in order.
+
+    The checkout's ``board_configs/`` (next to the package), then the installed
+    copy (``<prefix>/share/optitac-edge/board_configs``, from the wheel's data files).
+    """
+    checkout = Path(__file__).resolve().parents[2]  # optitac_edge/service/board_config.py
+    dirs = [checkout / "board_configs"]
+    for prefix in dict.fromkeys((sys.prefix, sys.base_prefix, "/usr/local", "/usr")):
+        dirs.append(Path(prefix) / "share" / "optitac-edge" / "board_configs")
+    return dirs
+
+
+def available_boards() -> list[str]:
+    """Names of the packaged board configs."""
+    names: set[str] = set()
+    for d in packaged_config_dirs():
+        if d.is_dir():
+            names.update(p.stem for p in d.glob("*.toml"))
+    return sorted(names)
+
+
+def resolve_board_config(name_or_path: str | os.PathLike[str]) -> Path:
+    """The file a board NAME (``sim``) or a path (anything with a ``/`` or ``.toml``) stands for."""
+    text = os.fspath(name_or_path)
+    if not text:
+        raise ConfigError("board config: empty name")
+    if "/" in text or text.endswith(".toml") or os.sep in text:
+        path = Path(text)
+        if not path.is_file():
+            raise ConfigError(f"{text}: board config not found")
+        return path
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", text):
+        raise ConfigError(f"{text!r}: not a board name (known: {', '.join(available_boards())})")
+    for d in packaged_config_dirs():
+        candidate = d / f"{text}.toml"
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(f"{text}: no such board (known: {', '.join(available_boards()) or 'none'})")
+
+
+def _display(path: Path) -> str:
+    try:
+        rel = path.resolve().relative_to(Path.cwd().resolve())
+    except ValueError:
+        return str(path)
+    return str(rel)
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    shown = _display(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{shown}: board config not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{shown}: cannot read board config ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{shown}: not UTF-8 text") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{shown}: not valid TOML ({str(exc).splitlines()[0]})") from None
+
+
+class _Layers:
+    """Values of every section/key with their source, applied in precedence order."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, dict[str, Any]] = {name: {} for name in _SECTIONS}
+        self.options: dict[str, Scalar] = {}
+        self.origins: dict[str, str] = {}
+
+    def set(self, source: str, section: str, key: str, value: Any, *, from_text: bool,
+            base_dir: Path | None) -> None:
+        where = f"{section}.{key}"
+        if section not in _SECTIONS:
+            raise ConfigError(f"{source}: {section}: unknown section (known: {', '.join(_SECTIONS)})")
+        cls = _SECTIONS[section]
+        spec = {f.name: f for f in fields(cls)}
+        if section == "camera" and key.startswith("options."):
+            name = key[len("options."):]
+            if not re.fullmatch(r"[a-z][a-z0-9_]*", name):
+                raise ConfigError(f"{source}: {where}: option names are lower-case identifiers")
+            try:
+                self.options[name] = _scalar(value, from_text)
+            except _Bad as exc:
+                raise ConfigError(f"{source}: {where}: {exc}") from None
+            self.origins[where] = source
+            return
+        if key not in spec:
+            close = [k for k in spec if k.replace("_", "") == key.replace("_", "").lower()]
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise ConfigError(f"{source}: {where}: unknown key{hint} (known: {', '.join(spec)})")
+        if key == "options":  # a whole table from a file
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: {where}: must be a table, got {_type_name(value)}")
+            for name, item in value.items():
+                self.set(source, section, f"options.{name}", item, from_text=from_text, base_dir=base_dir)
+            return
+        try:
+            converted = spec[key].metadata["check"](value, from_text)
+        except _Bad as exc:
+            raise ConfigError(f"{source}: {where}: {exc}") from None
+        if (section, key) in _PATH_KEYS and converted and base_dir is not None:
+            expanded = Path(os.path.expanduser(converted))
+            converted = str(expanded if expanded.is_absolute() else base_dir / expanded)
+        self.values[section][key] = converted
+        self.origins[where] = source
+
+
+def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Path) -> str:
+    description = ""
+    for name, value in data.items():
+        if name in _SECTIONS:
+            if not isinstance(value, dict):
+                raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {_type_name(value)}")
+            for key, item in value.items():
+                layers.set(shown, name, key, item, from_text=False, base_dir=base_dir)
+        elif name == "config_version":
+            if isinstance(value, bool) or value != CONFIG_VERSION:
+                raise ConfigError(f"{shown}: config_version: must be {CONFIG_VERSION}, got {value!r}")
+        elif name == "description":
+            try:
+                description = _str(400)(value, False)
+            except _Bad as exc:
+                raise ConfigError(f"{shown}: description: {exc}") from None
+        else:
+            kind = "section" if isinstance(value, dict) else "key"
+            raise ConfigError(f"{shown}: {name}: unknown {kind} (known sections: {', '.join(_SECTIONS)})")
+    return description
+
+
+def _env_key(var: str) -> tuple[str, str] | None:
+    """``OPTITAC_LINK_SERIAL_URL`` -> ("link", "serial_url"); None if no section matches."""
+    rest = var[len(ENV_PREFIX):].lower()
+    section, _, key = rest.partition("_")
+    if section not in _SECTIONS:
+        return None
+    if section == "camera" and key.startswith("options_"):
+        return section, "options." + key[len("options_"):]
+    return section, key
+
+
+def _split_override(key: str) -> tuple[str, str]:
+    section, dot, rest = key.partition(".")
+    if not dot or not rest:
+        raise ConfigError(f"command line: {key}: overrides are written section.key=value")
+    return section, rest
+
+
+def load_board_config(
+    name_or_path: str | os.PathLike[str] = "sim",
+    env: Mapping[str, str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> BoardConfig:
+    """Read, layer and validate a board config.
+
+    Parameters
+    ----------
+    name_or_path
+        A packaged board NAME (``sim``, ``rpi5-gs``, ... see :func:`available_boards`)
+        or the path of a TOML file.
+    env
+        Environment (default ``os.environ``): ``OPTITAC_<SECTION>_<KEY>`` variables
+        override file values (text parsed to the key's type: ``0x40``, ``true``,
+        ``0,1,2`` for channels). Variables whose SECTION is not a config section are ignored.
+    overrides
+        From the command line, ``{"section.key": value}`` (e.g. ``{"camera.fps": 30}``);
+        values may be typed or text. They override the environment.
+
+    Relative paths are resolved against the file's directory when set in the file,
+    against the working directory when set by the environment or command line.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file (or variable, or "command line") and the key.
+    """
+    env = os.environ if env is None else env
+    path = resolve_board_config(name_or_path)
+    shown = _display(path)
+    layers = _Layers()
+    data = _read_toml(path)
+    description = _apply_file(layers, data, shown, path.resolve().parent)
+
+    state_dir = env.get("STATE_DIRECTORY", "").split(":")[0]
+    if state_dir and "calibration.bundle" not in layers.origins:
+        layers.values["calibration"]["bundle"] = str(Path(state_dir) / "calibration.npz")
+
+    cwd = Path.cwd()
+    for var in sorted(env):
+        if not var.startswith(ENV_PREFIX):
+            continue
+        target = _env_key(var)
+        if target is None:
+            continue
+        section, key = target
+        layers.set(f"environment {var}", section, key, env[var], from_text=True, base_dir=cwd)
+
+    for dotted, value in (overrides or {}).items():
+        section, key = _split_override(dotted)
+        layers.set("command line", section, key, value, from_text=isinstance(value, str), base_dir=cwd)
+
+    sections = {name: cls(**layers.values[name]) for name, cls in _SECTIONS.items()}
+    sections["camera"] = replace(sections["camera"], options=MappingProxyType(dict(layers.options)))
+    config = BoardConfig(source=shown, description=description, origins=MappingProxyType(layers.origins),
+                         **sections)
+    _check_consistency(config, shown)
+    return config
+
+
+def _check_consistency(config: BoardConfig, shown: str) -> None:
+    """Rules between keys; the error names the source of the offending key."""
+
+    def rank(source: str) -> int:
+        return 2 if source == "command line" else 1 if source.startswith("environment ") else 0
+
+    def fail(key: str, message: str, *involved: str) -> None:
+        # Name the source that set the offending combination last (command line > env > file).
+        sources = [config.origins.get(k, shown) for k in (key, *involved)]
+        raise ConfigError(f"{max(sources, key=rank)}: {key}: {message}")
+
+    cam, link = config.camera, config.link
+    if cam.backend == "v4l2" and bool(cam.device) == bool(cam.pipeline):
+        fail("camera.device" if not cam.pipeline else "camera.pipeline",
+             "backend 'v4l2' needs exactly one of camera.device and camera.pipeline", "camera.backend")
+    if cam.backend == "recording" and not cam.recording:
+        fail("camera.recording", "backend 'recording' needs camera.recording (a recording directory)", "camera.backend")
+    if cam.pipeline and cam.backend != "v4l2":
+        fail("camera.pipeline", f"only the v4l2 backend takes a pipeline, not {cam.backend!r}", "camera.backend")
+    if cam.pipeline and "appsink" not in cam.pipeline:
+        fail("camera.pipeline", "a GStreamer pipeline must end in an appsink")
+    if cam.pixel_format == "yuv420" and (cam.width % 2 or cam.height % 2):
+        fail("camera.pixel_format", "yuv420 needs an even width and height", "camera.width", "camera.height")
+    if link.transport == "serial" and not link.serial_url:
+        fail("link.serial_url", "required when link.transport is 'serial'", "link.transport")
+    if link.transport == "can" and not link.can_channel:
+        fail("link.can_channel", "required when link.transport is 'can'", "link.transport")
+
+
+def describe_schema() -> str:
+    """The schema as text: one line per key with its default and doc (for docs and --help)."""
+    lines = []
+    for name, cls in _SECTIONS.items():
+        lines.append(f"[{name}]")
+        for f in fields(cls):
+            default = f.default_factory() if f.default_factory is not MISSING else f.default
+            if isinstance(default, Mapping):
+                default = dict(default)
+            lines.append(f"  {f.name} = {default!r}  # {f.metadata.get('doc', '')}")
+    return "\n".join(lines)
+
+
+__all__ = [
+    "BoardConfig", "CalibrationConfig", "CameraConfig", "LedConfig", "LinkConfig", "SensorConfig",
+    "StatusConfig", "WatchdogConfig", "available_boards", "describe_schema", "load_board_config",
+    "packaged_config_dirs", "resolve_board_config",
+]

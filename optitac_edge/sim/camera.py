@@ -1,0 +1,196 @@
+"""The built-in simulated sensor as a live camera: rest, then random presses."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from optitac_edge.errors import CameraError
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
+from optitac_edge.io.cameras.frame_ring import check_queue_frames
+
+_SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
+
+
+class PressProgram:
+    """A random sequence of presses over time, as a pure function of the frame number.
+
+    After ``rest_frames`` contact-free frames, repeats: a gap, a ramp down to
+    depth, a hold, a ramp back up. Positions keep the indenter on the array.
+    """
+
+    def __init__(self, fps: float, rest_frames: int, seed: int, array_radius_mm: float) -> None:
+        self._rng = np.random.default_rng(seed)
+        self._fps = fps
+        self._rest = rest_frames
+        self._radius = array_radius_mm
+        self._press: dict[str, float] | None = None
+        self._start = self._end = rest_frames
+
+    def _new_press(self, start: int) -> None:
+        rng, fps = self._rng, self._fps
+        shape = str(rng.choice(_SHAPES))
+        size = float(rng.uniform(1.5, 2.5) if shape == "edge" else rng.uniform(3.0, 9.0))
+        reach = max(self._radius * 0.8 - (6.0 if shape == "edge" else size / 2.0) - 1.0, 0.0)
+        r, phi = reach * math.sqrt(rng.uniform()), rng.uniform(0, 2 * math.pi)
+        gap, ramp, hold = (int(rng.uniform(a, b) * fps) + 1 for a, b in ((0.3, 1.0), (0.1, 0.25), (0.4, 1.5)))
+        self._press = {"shape": shape, "x": r * math.cos(phi), "y": r * math.sin(phi),
+                       "angle": float(rng.uniform(-90, 90)), "size": size,
+                       "depth": float(rng.uniform(1.5, 3.5)), "ramp": ramp, "hold": hold,
+                       "t0": start + gap}
+        self._start = start
+        self._end = start + gap + 2 * ramp + hold
+
+    def at(self, frame: int) -> dict[str, float] | None:
+        """The press at ``frame`` (shape, pose, size, current depth), or None."""
+        if frame < self._rest:
+            return None
+        if self._press is None or frame >= self._end:
+            self._new_press(max(frame, self._end))
+        p = self._press
+        assert p is not None
+        t = frame - p["t0"]
+        ramp, hold = p["ramp"], p["hold"]
+        if t < 0 or t >= 2 * ramp + hold:
+            return None
+        frac = min(t / ramp, 1.0, (2 * ramp + hold - t) / ramp)
+        return {**p, "depth": p["depth"] * frac} if frac > 0.05 else None
+
+
+class SimCamera(Camera):
+    """The built-in simulated sensor (the default camera).
+
+    Parameters
+    ----------
+    fps : float
+        Frame rate; frames are paced in real time when ``realtime``.
+    width, height : int
+        Image size.
+    rgb : bool
+        Deliver (H, W, 3) RGB frames instead of gray.
+    rotation_deg, mirror
+        How the array appears in the image (see docs/formats.md).
+    seed : int
+        Seed of the noise and of the press program.
+    rest_frames : int
+        Contact-free frames at the start (for calibration and baseline).
+    queue_frames : int
+        Realtime: frames that may wait for the reader, as in a camera's frame
+        ring (:mod:`optitac_edge.io.cameras.frame_ring`); a frame is dropped once
+        ``queue_frames`` newer ones are due. 1 = the latest frame only.
+    realtime : bool
+        Deliver frame ``k`` at ``k / fps`` after the start, stamped with that time,
+        rendered ahead by a thread (the simulator's rendering, ~1 ms a frame, is
+        the sensor's exposure and readout, not part of the loop being measured);
+        otherwise frames come as fast as rendered, stamped when rendered.
+    """
+
+    def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
+                 rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
+                 realtime: bool = True, queue_frames: int = 4) -> None:
+        super().__init__()
+        check_queue_frames(queue_frames)
+        from optitac_edge.sim import CameraOptics, Indenter, SimulatedSensor
+
+        self._indenter_cls = Indenter
+        self.sensor = SimulatedSensor(
+            optics=CameraOptics(width=width, height=height, rgb=rgb, rotation_deg=rotation_deg, mirror=mirror),
+            seed=seed,
+        )
+        self.pixel_format = "rgb" if rgb else "gray"
+        self.height, self.width, self.fps = height, width, float(fps)
+        self.rest_frames = rest_frames
+        self._program = PressProgram(self.fps, rest_frames, seed, self.sensor.layout.radius_mm)
+        self._realtime = realtime
+        self._seq = 0
+        # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)
+        self._queue_frames = queue_frames
+        self._ahead = max(3, queue_frames + 1)
+        self._ready: deque[tuple[int, np.ndarray, dict[str, float] | None]] = deque()
+        self._cond = threading.Condition()
+        self._stop_render = threading.Event()
+        self._render_thread: threading.Thread | None = None
+        self._t0_ns = time.monotonic_ns()
+        #: Ground truth of the last frame delivered (None when no contact).
+        self.truth: dict[str, float] | None = None
+
+    def _render(self, seq: int) -> tuple[np.ndarray, dict[str, float] | None]:
+        press = self._program.at(seq)
+        indenters = () if press is None else (self._indenter_cls(
+            shape=press["shape"], x_mm=press["x"], y_mm=press["y"], angle_deg=press["angle"],
+            size_mm=press["size"], depth_mm=press["depth"]),)
+        return self.sensor.frame(indenters), press
+
+    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
+        if self._realtime:
+            return self._read_paced(timeout_s)
+        frame, press = self._render(self._seq)
+        self.truth = press
+        self._seq += 1
+        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+
+    # -- realtime: a render thread works ahead, frames are delivered at their time -----------
+
+    def _render_loop(self) -> None:
+        seq = 0
+        while not self._stop_render.is_set():
+            with self._cond:
+                while len(self._ready) >= self._ahead and not self._stop_render.is_set():
+                    self._cond.wait(0.1)
+                if self._stop_render.is_set():
+                    return
+            frame, press = self._render(seq)
+            with self._cond:
+                self._ready.append((seq, frame, press))
+                self._cond.notify_all()
+            seq += 1
+
+    def _read_paced(self, timeout_s: float) -> CapturedFrame:
+        """The next frame at its time, like a camera: rendered ahead by a thread.
+
+        Frame ``k`` is due at ``t0 + k / fps`` and stamped with that time. A
+        frame is skipped once ``queue_frames`` newer ones are due, as a camera's
+        ring drops its oldest frame (the gap in ``seq`` counts it as dropped);
+        after a second behind (e.g. suspended) the clock resynchronises.
+        """
+        if self._render_thread is None:
+            self._render_thread = threading.Thread(target=self._render_loop, name="optitac-sim-render",
+                                                   daemon=True)
+            self._render_thread.start()
+        period = 1e9 / self.fps
+        deadline = time.monotonic() + max(timeout_s, 0.0)
+        while True:
+            with self._cond:
+                while not self._ready:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise CameraError(f"simulated camera: no frame within {timeout_s:.3f} s")
+                    self._cond.wait(min(left, 0.1))
+                seq, frame, press = self._ready[0]
+                now = time.monotonic_ns()
+                frame_ns = self._t0_ns + int(seq * period)
+                if now - frame_ns > 1_000_000_000:  # fell far behind: resynchronise
+                    self._t0_ns = now - int(seq * period)
+                    frame_ns = now
+                elif now - frame_ns >= self._queue_frames * period and len(self._ready) > 1:  # overrun
+                    self._ready.popleft()
+                    self._cond.notify_all()
+                    continue
+                self._ready.popleft()
+                self._cond.notify_all()
+            if frame_ns > now:
+                time.sleep((frame_ns - now) / 1e9)
+            self.truth = press
+            self._seq = seq + 1
+            return CapturedFrame(frame, frame_ns, seq + 1)
+
+    def _close_internal(self) -> None:
+        self._stop_render.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._render_thread is not None and self._render_thread is not threading.current_thread():
+            self._render_thread.join(timeout=2.0)
