@@ -155,7 +155,7 @@ def _add_board(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from optitac_edge.sim import CameraOptics
+    from optitac_edge.sim.optics import CameraOptics
     from optitac_edge.sim.scenarios import write_scenario
 
     try:
@@ -177,9 +177,9 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
-    from optitac_edge.core.bundle import save_bundle
     from optitac_edge.calibration.fibers import calibrate_fibers
     from optitac_edge.core.layout import load_layout_csv
+    from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
@@ -198,7 +198,7 @@ def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
 
 def _cmd_calibrate_model(args: argparse.Namespace) -> int:
     from optitac_edge.calibration import steps as calibrate_steps
-    from optitac_edge.core.bundle import load_bundle, save_bundle
+    from optitac_edge.io.bundle_file import load_bundle, save_bundle
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
@@ -215,10 +215,10 @@ def _cmd_calibrate_model(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from optitac_edge.core.bundle import load_bundle
-    from optitac_edge.errors import RecordingError
     from optitac_edge.calibration.evaluation import format_evaluation
     from optitac_edge.calibration.measure import measure_recording
+    from optitac_edge.errors import RecordingError
+    from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
@@ -234,9 +234,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
-    from optitac_edge.core.bundle import load_bundle
     from optitac_edge.core.corrections import load_shape_model
     from optitac_edge.errors import BundleError
+    from optitac_edge.io.bundle_file import load_bundle
 
     model = load_shape_model(load_bundle(args.cal))
     if model is None:
@@ -259,9 +259,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from optitac_edge.core.bundle import load_bundle
-    from optitac_edge.io.contacts_csv import ContactsCsvWriter
     from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.io.contacts_csv import ContactsCsvWriter
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
@@ -388,10 +388,10 @@ def _cmd_soak(args: argparse.Namespace) -> int:
     import resource
     import tracemalloc
 
+    from optitac_edge.io.transports.serial import SerialTransport
+    from optitac_edge.service.loop import Service, load_or_calibrate
     from optitac_edge.sim.camera import SimCamera
     from optitac_edge.sim.faults import FaultInjector
-    from optitac_edge.service.loop import Service, load_or_calibrate
-    from optitac_edge.io.transports.serial import SerialTransport
 
     if not args.minutes > 0 or not 0 <= args.fault_rate <= 1:
         raise OptiTacError("--minutes must be positive and --fault-rate in 0..1")

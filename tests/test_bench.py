@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from optitac_edge.devtools.bench import FAST_PASSES, STAGES
 from optitac_edge.cli import main
+from optitac_edge.devtools.bench import FAST_PASSES, STAGES
 
 
 def _check_stats(d: dict) -> None:

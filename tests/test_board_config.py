@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from optitac_edge.errors import ConfigError
 from optitac_edge.service.board_config import (
     BoardConfig,
     available_boards,
@@ -13,7 +14,6 @@ from optitac_edge.service.board_config import (
     load_board_config,
     resolve_board_config,
 )
-from optitac_edge.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGED = ["sim", "rpi5-gs", "rpi4-cm3", "jetson-orin-nano-usb", "jetson-csi"]

@@ -3,18 +3,14 @@ import zipfile
 import numpy as np
 import pytest
 
-from optitac_edge.core.bundle import (
-    BUNDLE_VERSION,
-    CalibrationBundle,
-    ContactThresholds,
-    load_bundle,
-    save_bundle,
-)
-from optitac_edge.errors import BundleError, FrameMismatchError
+from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.options import ContactThresholds
+from optitac_edge.errors import BundleError, FrameMismatchError
+from optitac_edge.io.bundle_file import BUNDLE_VERSION, load_bundle, save_bundle
 
 
 def small_bundle(height=40, width=50, pixel_format="gray"):
@@ -93,7 +89,7 @@ def test_a_bit_flip_never_loads_a_different_bundle(tmp_path):
 
 
 def test_other_version_and_non_bundles_are_refused(tmp_path, monkeypatch):
-    import optitac_edge.core.bundle as bundle_mod
+    import optitac_edge.io.bundle_file as bundle_mod
 
     path = tmp_path / "cal.npz"
     monkeypatch.setattr(bundle_mod, "BUNDLE_VERSION", BUNDLE_VERSION + 1)
@@ -134,7 +130,7 @@ def test_temporaries_of_killed_saves_are_removed_by_the_next_save(tmp_path):
 
 def factored_bundle():
     """small_bundle with the real interpolation matrix and its surface factors."""
-    from optitac_edge.core.surface import build_interpolation
+    from optitac_edge.calibration.interpolation import build_interpolation
 
     bundle = small_bundle()
     matrix, factors = build_interpolation(bundle.layout, bundle.grid)
@@ -143,7 +139,7 @@ def factored_bundle():
 
 def _resave(path, change):
     """Rewrite a saved bundle's members with ``change(members)`` applied and a valid digest."""
-    from optitac_edge.core.bundle import _digest
+    from optitac_edge.io.bundle_file import _digest
 
     with np.load(path, allow_pickle=False) as npz:
         members = {name: npz[name] for name in npz.files}
@@ -220,7 +216,7 @@ def test_tampered_factor_dtype_or_weights_are_refused(tmp_path):
 
 
 def test_bundle_checks_factors_against_grid_layout_and_matrix():
-    from optitac_edge.core.surface import build_interpolation
+    from optitac_edge.calibration.interpolation import build_interpolation
 
     bundle = factored_bundle()
     other_grid = SurfaceGrid.over_layout(bundle.layout, n=12)

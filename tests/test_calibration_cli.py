@@ -8,10 +8,10 @@ import shutil
 import numpy as np
 import pytest
 
-from optitac_edge.core.bundle import load_bundle
+from optitac_edge.calibration.measure import measure_recording
 from optitac_edge.cli import main
 from optitac_edge.core.corrections import ContactCorrector
-from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.recording import Recording
 
 SIZE = ["--width", "320", "--height", "240"]
@@ -124,10 +124,11 @@ def test_steps_refuse_recordings_without_truth_or_models(calibrated, capsys, tmp
 def test_numpy_and_onnx_mixtures_match_sklearn_on_simulated_calibration_presses(calibrated, tmp_path):
     """The runtime evaluators agree with scikit-learn's predict_proba to 1e-6 on real calibration data."""
     from optitac_edge.calibration.evaluation import detected_rows
-    from optitac_edge.core.shapes import ShapeClassifier, shape_features
-    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
     from optitac_edge.calibration.onnx_export import export_onnx
     from optitac_edge.calibration.shape_fit import gmm_per_class, gmm_unsupervised
+    from optitac_edge.core.shapes.evaluate import ShapeClassifier
+    from optitac_edge.core.shapes.features import shape_features
+    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
 
     d, cal = calibrated
     rec = Recording(d / "cal_shapes")

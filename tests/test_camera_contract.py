@@ -25,10 +25,11 @@ import numpy as np
 import pytest
 from fakes.install import install_cv2, install_picamera2
 
-from optitac_edge.io.cameras import BACKENDS, Camera, CapturedFrame, open_camera
-from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
-from optitac_edge.errors import CameraError
 from optitac_edge.core.frames import frame_geometry
+from optitac_edge.errors import CameraError
+from optitac_edge.io.cameras import BACKENDS, open_camera
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
+from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
 from optitac_edge.io.recording import RecordingMeta, RecordingWriter
 
 

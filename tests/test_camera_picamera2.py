@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from fakes.install import install_picamera2
 
+from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras import open_camera
 from optitac_edge.io.cameras.frame_ring import FrameRing
-from optitac_edge.errors import CameraError
 
 FAST = {"width": 96, "height": 64, "fps": 200.0, "warmup_frames": 4}
 PATIENCE_S = 10.0  # generous: a loaded 2-core CI machine

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from fakes.install import install_cv2
 
+from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras import open_camera
 from optitac_edge.io.cameras.v4l2 import argus_pipeline, fourcc_code
-from optitac_edge.errors import CameraError
 
 FAST = {"width": 96, "height": 64, "fps": 200.0}
 

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.can_codec import (
     BASE_ID,
     DBC_PATH,
@@ -24,7 +25,6 @@ from optitac_edge.io.protocol.can_codec import (
     message_ids,
     split_id,
 )
-from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
 from optitac_edge.io.transports import open_transport
 from optitac_edge.io.transports.can import CanTransport

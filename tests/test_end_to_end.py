@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from optitac_edge.io.protocol.messages import CommandType, ShapeCode
-from optitac_edge.io.protocol import encode_command
+from optitac_edge.io.protocol.wire import encode_command
 
 MCU = Path(__file__).resolve().parents[1] / "tools" / "mcu"
 

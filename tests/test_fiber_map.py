@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 from test_fiber_synth import Synth, render, true_centres
 
-from optitac_edge.errors import FiberMapError
 from optitac_edge.calibration.fiber_map import FiberMapResult, build_fiber_map
 from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.frames import to_gray
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.sim import CameraOptics, SimulatedSensor
+from optitac_edge.errors import FiberMapError
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.sensor import SimulatedSensor
 
 LAYOUT = hex_layout()
 DARK = (0, 37, 108, 150, 216)  # rim corners 0 and 216, the central fiber 108

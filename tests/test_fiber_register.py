@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from test_fiber_synth import Synth, true_centres
 
-from optitac_edge.errors import FiberMapError
 from optitac_edge.calibration.fiber_register import lattice_angle_deg, register_blobs
 from optitac_edge.core.layout import hex_layout
+from optitac_edge.errors import FiberMapError
 
 LAYOUT = hex_layout()
 

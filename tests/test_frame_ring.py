@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from optitac_edge.io.cameras.frame_ring import MAX_DEPTH, FrameRing
 from optitac_edge.errors import CameraError
+from optitac_edge.io.cameras.frame_ring import MAX_DEPTH, FrameRing
 
 
 def _publish(ring: FrameRing, seq: int) -> None:

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from optitac_edge.io import led as led_mod
-from optitac_edge.service.board_config import LedConfig
 from optitac_edge.io.led import (
     LedError,
     LedRing,
@@ -20,6 +19,7 @@ from optitac_edge.io.led import (
     prescale_for,
     pwm_period_us,
 )
+from optitac_edge.service.board_config import LedConfig
 
 
 class FakeBus:

@@ -14,15 +14,16 @@ from functools import cache
 import numpy as np
 import pytest
 
-from optitac_edge.core.bundle import CalibrationBundle, ContactOptions, ContactThresholds
-from optitac_edge.errors import FrameMismatchError
+from optitac_edge.calibration.interpolation import build_interpolation_matrix
+from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.options import ContactOptions, ContactThresholds
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.devtools.reference import ReferencePipeline
-from optitac_edge.core.surface import build_interpolation_matrix
+from optitac_edge.errors import FrameMismatchError
 
 LAYOUT = hex_layout()
 GRID = SurfaceGrid.over_layout(LAYOUT)

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from test_pipeline import LAYOUT, make_bundle, pressed_levels, render, rest_levels, warm
 
-from optitac_edge.core.bundle import ContactOptions, load_bundle, save_bundle
-from optitac_edge.io.contacts_csv import CONTACTS_HEADER, ContactsCsvWriter
-from optitac_edge.errors import BundleError
+from optitac_edge.core.options import ContactOptions
 from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.errors import BundleError
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
+from optitac_edge.io.contacts_csv import CONTACTS_HEADER, ContactsCsvWriter
 
 PERIOD = 16_666_667  # 60 fps, ns
 REST = np.full(LAYOUT.n_fibers, 200.0)
@@ -204,7 +205,7 @@ def test_options_round_trip_through_the_bundle(tmp_path) -> None:
 
 
 def _rewrite_meta(path, edit) -> None:
-    from optitac_edge.core.bundle import _digest
+    from optitac_edge.io.bundle_file import _digest
 
     with np.load(path, allow_pickle=False) as npz:
         members = {k: npz[k] for k in npz.files}

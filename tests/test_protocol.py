@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from optitac_edge.io.protocol import Frame, wire
+from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import (
     Command,
     CommandType,
@@ -19,10 +21,8 @@ from optitac_edge.io.protocol.messages import (
     ShapeCode,
     StatusMessage,
 )
-from optitac_edge.io.protocol import (
+from optitac_edge.io.protocol.wire import (
     CSV_HEADER,
-    Frame,
-    FrameDecoder,
     MsgType,
     ProtocolError,
     contact_csv_row,
@@ -39,7 +39,6 @@ from optitac_edge.io.protocol import (
     is_sensor_type,
     parse_command,
     threshold_relative,
-    wire,
 )
 
 ROOT = Path(__file__).resolve().parents[1]

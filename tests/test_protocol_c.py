@@ -15,10 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from optitac_edge.io.protocol import wire
+from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ResultCode, ShapeCode, StatusMessage
-from optitac_edge.io.protocol import (
+from optitac_edge.io.protocol.wire import (
     CSV_HEADER,
-    FrameDecoder,
     ProtocolError,
     contact_csv_row,
     decode_ack,
@@ -29,7 +30,6 @@ from optitac_edge.io.protocol import (
     encode_contact,
     encode_frame,
     encode_status,
-    wire,
 )
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,9 +7,10 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from optitac_edge.io.protocol import wire
+from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import ContactFlags, ContactMessage, ShapeCode, StatusMessage
-from optitac_edge.io.protocol import (
-    FrameDecoder,
+from optitac_edge.io.protocol.wire import (
     contact_fields,
     decode_contact,
     decode_status,
@@ -17,7 +18,6 @@ from optitac_edge.io.protocol import (
     encode_frame,
     encode_status,
     parse_command,
-    wire,
 )
 
 i16 = st.integers(-32768, 32767)

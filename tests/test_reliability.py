@@ -11,14 +11,14 @@ import time
 
 import pytest
 
-from optitac_edge.service.board_config import load_board_config
-from optitac_edge.io.cameras.base import Camera, CapturedFrame
-from optitac_edge.sim.camera import SimCamera
 from optitac_edge.errors import CameraError
-from optitac_edge.sim.faults import FAULT_KINDS, FaultInjector, FaultyCamera
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.sdnotify import Notifier
-from optitac_edge.service.loop import Service, ServiceStalled, load_or_calibrate
 from optitac_edge.io.transports.base import NullTransport
+from optitac_edge.service.board_config import load_board_config
+from optitac_edge.service.loop import Service, ServiceStalled, load_or_calibrate
+from optitac_edge.sim.camera import SimCamera
+from optitac_edge.sim.faults import FAULT_KINDS, FaultInjector, FaultyCamera
 
 
 class RecordingTransport(NullTransport):

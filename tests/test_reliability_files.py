@@ -17,14 +17,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from optitac_edge.core.bundle import load_bundle, save_bundle
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "optitac_edge"
 
 SAVER = r"""
 import sys
-from optitac_edge.core.bundle import load_bundle, save_bundle
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
 a = load_bundle(sys.argv[1]); b = load_bundle(sys.argv[2]); target = sys.argv[3]
 print("ready", flush=True)
 i = 0
@@ -37,8 +37,8 @@ while True:
 @pytest.fixture(scope="module")
 def two_bundles(tmp_path_factory):
     from optitac_edge.service.board_config import load_board_config
-    from optitac_edge.sim.camera import SimCamera
     from optitac_edge.service.loop import load_or_calibrate
+    from optitac_edge.sim.camera import SimCamera
 
     d = tmp_path_factory.mktemp("bundles")
     with SimCamera(realtime=False, seed=0, rest_frames=10) as cam:

@@ -21,8 +21,9 @@ def test_200k_random_and_mutated_frames_match_the_oracle(fuzz_tool):
 
 def test_the_oracle_rejects_a_frame_the_decoder_would_accept_if_it_were_wrong(fuzz_tool):
     """The oracle is not vacuous: a single bit flip in a valid frame is rejected by both."""
+    from optitac_edge.io.protocol.decoder import FrameDecoder
     from optitac_edge.io.protocol.messages import CommandType
-    from optitac_edge.io.protocol import FrameDecoder, encode_command
+    from optitac_edge.io.protocol.wire import encode_command
 
     good = encode_command(CommandType.SET_THRESHOLD, 5, 0, threshold=100)
     assert fuzz_tool.oracle(good[:-1])[0] == "frames"

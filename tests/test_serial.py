@@ -9,6 +9,7 @@ import time
 import pytest
 
 from optitac_edge.errors import TransportError
+from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import (
     Command,
     CommandType,
@@ -18,8 +19,7 @@ from optitac_edge.io.protocol.messages import (
     ShapeCode,
     StatusMessage,
 )
-from optitac_edge.io.protocol import (
-    FrameDecoder,
+from optitac_edge.io.protocol.wire import (
     MsgType,
     decode_ack,
     decode_contact,

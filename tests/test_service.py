@@ -7,8 +7,8 @@ import inspect
 
 import pytest
 
-from optitac_edge.service.board_config import available_boards, load_board_config
 from optitac_edge.io.cameras import BACKENDS
+from optitac_edge.service.board_config import available_boards, load_board_config
 from optitac_edge.service.loop import camera_kwargs
 
 
@@ -31,8 +31,7 @@ def test_led_is_lowered_at_calibration_until_no_fiber_saturates():
     """A camera whose image scales with the LED: calibration ends below the saturation limit."""
     import numpy as np
 
-    from optitac_edge.io.cameras import CapturedFrame
-    from optitac_edge.io.cameras.base import Camera
+    from optitac_edge.io.cameras.base import Camera, CapturedFrame
     from optitac_edge.service.loop import adjust_led
 
     class LitCamera(Camera):

@@ -13,17 +13,22 @@ import time
 import numpy as np
 import pytest
 
-from optitac_edge.core.moments import log_hu
-from optitac_edge.io.recording import SHAPES
-from optitac_edge.core.shapes import LOG_HU_CAP, Q4_FLOOR, ShapeClassifier, ShapeModel, shape_features
-from optitac_edge.calibration.shape_fit import ALL_SUBSETS, Q4_SUBSETS, evaluate_model, fit_shape_model
 from optitac_edge.calibration.shape_fit import (
+    ALL_SUBSETS,
+    Q4_SUBSETS,
+    evaluate_model,
+    fit_shape_model,
     fit_supervised,
     fit_unsupervised,
     gmm_per_class,
     gmm_unsupervised,
     stratified_group_split,
 )
+from optitac_edge.core.moments import log_hu
+from optitac_edge.core.shapes.evaluate import ShapeClassifier
+from optitac_edge.core.shapes.features import LOG_HU_CAP, Q4_FLOOR, shape_features
+from optitac_edge.core.shapes.model import ShapeModel
+from optitac_edge.io.recording import SHAPES
 from optitac_edge.sim.synthetic_shapes import synthetic_features
 
 pytest.importorskip("sklearn")
@@ -281,8 +286,8 @@ def test_model_validation(report) -> None:
 def test_onnx_matches_numpy(report, data, tmp_path) -> None:
     pytest.importorskip("onnx")
     pytest.importorskip("onnxruntime")
-    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
     from optitac_edge.calibration.onnx_export import export_onnx
+    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
 
     hu = np.vstack([data[0], EDGE_ROWS])
     for i, model in enumerate((report.unsupervised.holdout_model,

@@ -7,9 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from optitac_edge.core.shapes import ShapeClassifier, ShapeModel, shape_features, subset_name
-from optitac_edge.calibration.shape_fit import PAPER_SUBSETS, Q4_SUBSETS, evaluate_model, fit_shape_model
-from optitac_edge.calibration.shape_fit import gmm_per_class, gmm_unsupervised
+from optitac_edge.calibration.shape_fit import (
+    PAPER_SUBSETS,
+    Q4_SUBSETS,
+    evaluate_model,
+    fit_shape_model,
+    gmm_per_class,
+    gmm_unsupervised,
+)
+from optitac_edge.core.shapes.evaluate import ShapeClassifier
+from optitac_edge.core.shapes.features import shape_features
+from optitac_edge.core.shapes.model import ShapeModel, subset_name
 from optitac_edge.sim.synthetic_shapes import DEFAULT_GRID, binary_q4, shape_mask, synthetic_features
 
 pytest.importorskip("sklearn")
@@ -83,8 +91,8 @@ def test_q4_models_classify_and_onnx(blurred, subset, tmp_path) -> None:
             assert shape == NAMES[int(np.argmax(pr))] and abs(conf - pr.max()) <= 1e-12
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
-    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
     from optitac_edge.calibration.onnx_export import export_onnx
+    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
 
     onnx_p = OnnxShapeClassifier(export_onnx(model, tmp_path / "m.onnx")).predict_proba(rows)
     np.testing.assert_array_equal(np.isnan(onnx_p), np.isnan(p))

@@ -10,20 +10,11 @@ import pytest
 
 from optitac_edge.core.layout import hex_layout
 from optitac_edge.io.recording import Recording
-from optitac_edge.sim import (
-    SCENARIOS,
-    CameraOptics,
-    FrameRenderer,
-    Indenter,
-    SimulatedSensor,
-    SkinModel,
-    fiber_darkening,
-    schedule,
-    signed_distance,
-    write_scenario,
-)
-from optitac_edge.sim.scenarios import HOLD_FRAMES, REST_FRAMES, inscribed_radius
-from optitac_edge.sim.skin import bounding_radius
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.render import FrameRenderer
+from optitac_edge.sim.scenarios import HOLD_FRAMES, REST_FRAMES, SCENARIOS, inscribed_radius, schedule, write_scenario
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter, SkinModel, bounding_radius, fiber_darkening, signed_distance
 
 LAYOUT = hex_layout()
 CENTRE = int(np.flatnonzero(np.all(LAYOUT.xy_mm == 0, axis=1))[0])
@@ -307,8 +298,8 @@ def test_realtime_sim_with_a_one_frame_queue_drops_the_frames_it_could_not_hold(
 
 
 def test_sim_refuses_a_queue_out_of_range() -> None:
-    from optitac_edge.sim.camera import SimCamera
     from optitac_edge.errors import CameraError
+    from optitac_edge.sim.camera import SimCamera
 
     with pytest.raises(CameraError, match="queue_frames"):
         SimCamera(queue_frames=0)

@@ -10,19 +10,11 @@ import pytest
 
 from optitac_edge.core.layout import hex_layout
 from optitac_edge.io.recording import Recording
-from optitac_edge.sim import (
-    CameraOptics,
-    Indenter,
-    SessionDrift,
-    SimulatedSensor,
-    SkinModel,
-    fiber_darkening,
-    sensor_variant,
-    variant_sensor_seed,
-    write_scenario,
-)
-from optitac_edge.sim.drift import MAX_REST_LEVEL
-from optitac_edge.sim.scenarios import DRIFT_GAP, DRIFT_HOLD, DRIFT_WARMUP, FPS, REST_FRAMES
+from optitac_edge.sim.drift import MAX_REST_LEVEL, SessionDrift, sensor_variant, variant_sensor_seed
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.scenarios import DRIFT_GAP, DRIFT_HOLD, DRIFT_WARMUP, FPS, REST_FRAMES, write_scenario
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter, SkinModel, fiber_darkening
 
 LAYOUT = hex_layout()
 PRESS = Indenter("circle", 1.0, -0.5, 0.0, 5.0, 3.0)

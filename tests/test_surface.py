@@ -7,9 +7,10 @@ import pytest
 from scipy.interpolate import griddata
 from scipy.spatial import Delaunay
 
+from optitac_edge.calibration.interpolation import build_interpolation_matrix
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.core.surface import DenseSurface, build_interpolation_matrix
+from optitac_edge.core.surface import DenseSurface
 
 LAYOUT = hex_layout()
 GRID = SurfaceGrid.over_layout(LAYOUT)

@@ -6,17 +6,12 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-import optitac_edge.core.surface as surface_mod
+import optitac_edge.calibration.interpolation as interpolation_mod
+from optitac_edge.calibration.interpolation import build_interpolation, build_interpolation_matrix
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
-from optitac_edge.core.surface import (
-    DenseSurface,
-    PatchSurface,
-    SurfaceFactors,
-    build_interpolation,
-    build_interpolation_matrix,
-)
+from optitac_edge.core.surface import DenseSurface, PatchSurface, SurfaceFactors
 
 HEX = hex_layout()
 HEX_GRID = SurfaceGrid.over_layout(HEX)
@@ -75,7 +70,7 @@ def test_factors_reproduce_the_matrix_irregular(make_layout, n: int) -> None:
 
 def test_build_refuses_factors_that_do_not_reproduce_the_matrix(monkeypatch) -> None:
     layout = hex_layout(rings=2)
-    monkeypatch.setattr(surface_mod, "FACTOR_TOL", 0.0)  # float32 rounding alone now fails the check
+    monkeypatch.setattr(interpolation_mod, "FACTOR_TOL", 0.0)  # float32 rounding alone now fails the check
     with pytest.raises(RuntimeError, match="reproduce"):
         build_interpolation(layout, SurfaceGrid.over_layout(layout, n=20))
 
@@ -84,14 +79,14 @@ def test_build_refuses_an_interpolator_without_gradients(monkeypatch) -> None:
     """A scipy whose interpolant keeps no gradients in ``grad``, or in another shape."""
     from types import SimpleNamespace
 
-    real = surface_mod._clough_tocher
+    real = interpolation_mod._clough_tocher
     layout = hex_layout(rings=2)
     for grad in (None, np.zeros((layout.n_fibers, layout.n_fibers))):
         def fake(*args, grad=grad):
             tri, _, matrix = real(*args)
             return tri, SimpleNamespace(grad=grad) if grad is not None else object(), matrix
 
-        monkeypatch.setattr(surface_mod, "_clough_tocher", fake)
+        monkeypatch.setattr(interpolation_mod, "_clough_tocher", fake)
         with pytest.raises(RuntimeError, match="grad"):
             build_interpolation(layout, SurfaceGrid.over_layout(layout, n=20))
 

@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optitac_edge.core.bundle import ContactOptions, load_bundle
-from optitac_edge.cli import main
 from optitac_edge.calibration.evaluation import centroid_accuracy, detection, read_contacts_csv
+from optitac_edge.cli import main
+from optitac_edge.core.options import ContactOptions
 from optitac_edge.core.pipeline import Pipeline
-from optitac_edge.io.recording import Recording
 from optitac_edge.devtools.reference import ReferencePipeline
+from optitac_edge.io.bundle_file import load_bundle
+from optitac_edge.io.recording import Recording
 
 
 @pytest.fixture(scope="module")

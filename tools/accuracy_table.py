@@ -26,14 +26,20 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.core.bundle import ContactOptions
-from optitac_edge.calibration.steps import calibrate_centroid, calibrate_shapes, calibrate_width
+from optitac_edge.calibration.evaluation import (
+    centroid_accuracy,
+    detection,
+    repeatability,
+    shape_accuracy,
+    width_accuracy,
+)
 from optitac_edge.calibration.fibers import calibrate_fibers
-from optitac_edge.calibration.evaluation import (centroid_accuracy, detection, repeatability, shape_accuracy,
-                                     width_accuracy)
 from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.calibration.steps import calibrate_centroid, calibrate_shapes, calibrate_width
+from optitac_edge.core.options import ContactOptions
 from optitac_edge.io.recording import Recording
-from optitac_edge.sim import CameraOptics, write_scenario
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.scenarios import write_scenario
 
 CAL_DAY, EVAL_DAY = 1, 2
 CAL_SCENARIOS = ("rest", "seen", "widths", "shapes")
@@ -149,7 +155,9 @@ def dead_fiber_experiment(workdir: Path, ten_percent: bool = False) -> list[str]
 def two_contact_experiment(workdir: Path) -> list[str]:
     """Two 5 mm circles pressed at once, 9–14 mm apart: separate contacts or one merged contact."""
     from optitac_edge.core.pipeline import Pipeline
-    from optitac_edge.sim import Indenter, SimulatedSensor, SessionDrift
+    from optitac_edge.sim.drift import SessionDrift
+    from optitac_edge.sim.sensor import SimulatedSensor
+    from optitac_edge.sim.skin import Indenter
 
     cal_rest = record(workdir, 0, CAL_DAY, "rest", seed=100)
     base = calibrate_fibers(cal_rest.rest_frames(), "gray")
@@ -184,7 +192,7 @@ def two_contact_experiment(workdir: Path) -> list[str]:
 
 def drift_experiment(workdir: Path) -> list[str]:
     """The `drift` scenario (LED −5 % over 20 s, per-fiber drift, presses every 2 s) on day 3."""
-    from optitac_edge.sim import write_scenario as ws
+    from optitac_edge.sim.scenarios import write_scenario as ws
 
     path = workdir / "drift" / "day3-warm-5"
     if not (path / "meta.json").exists():

@@ -16,9 +16,10 @@ import time
 import numpy as np
 
 from optitac_edge.calibration.fibers import calibrate_fibers
-from optitac_edge.errors import FiberMapError
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.sim import CameraOptics, SimulatedSensor
+from optitac_edge.errors import FiberMapError
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.sensor import SimulatedSensor
 
 DARK = (0, 37, 108, 150, 216)
 

@@ -26,9 +26,9 @@ from collections import Counter
 import numpy as np
 from cobs import cobs
 
+from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import Command, CommandType, ResultCode
-from optitac_edge.io.protocol import FrameDecoder, encode_command, encode_frame
-from optitac_edge.io.protocol.wire import parse_command
+from optitac_edge.io.protocol.wire import encode_command, encode_frame, parse_command
 
 
 def crc16_ccitt_bitwise(data: bytes) -> int:

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from optitac_edge.errors import RecordingError
 from optitac_edge.calibration.measure import Measurements
+from optitac_edge.errors import RecordingError
 from optitac_edge.io.recording import SHAPES, Truth
 
 #: Repeated presses of one indenter closer than this (mm) count as one position.

@@ -21,13 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from optitac_edge.errors import FiberMapError
 from optitac_edge.calibration.fiber_detect import Blobs, DetectParams, detect_fiber_blobs
 from optitac_edge.calibration.fiber_register import RegisterParams, Registration, register_blobs
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.frames import PIXEL_FORMATS
 from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import FiberLayout
+from optitac_edge.errors import FiberMapError
 
 log = logging.getLogger(__name__)
 

@@ -28,9 +28,9 @@ import numpy as np
 from scipy.optimize import least_squares, linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from optitac_edge.errors import FiberMapError
 from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import FiberLayout
+from optitac_edge.errors import FiberMapError
 
 
 @dataclass(frozen=True)

@@ -10,11 +10,12 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.core.bundle import BASELINE_FRAMES, CalibrationBundle, ContactOptions, ContactThresholds
-from optitac_edge.errors import FiberMapError
+from optitac_edge.core.bundle import BASELINE_FRAMES, CalibrationBundle
 from optitac_edge.core.frames import frame_geometry, to_gray
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.core.options import ContactOptions, ContactThresholds
+from optitac_edge.errors import FiberMapError
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,7 @@ def calibrate_fibers(
         If the fibers cannot be found reliably.
     """
     from optitac_edge.calibration.fiber_map import build_fiber_map
-    from optitac_edge.core.surface import build_interpolation
+    from optitac_edge.calibration.interpolation import build_interpolation
 
     layout = hex_layout() if layout is None else layout
     if len(rest_frames) == 0:

@@ -14,13 +14,12 @@ class names are in the model's metadata (``class_names``, JSON), W in ``n_inputs
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from optitac_edge.core.shapes.evaluate import CompiledShapeModel, width_error
+from optitac_edge.core.shapes.evaluate import CompiledShapeModel
 from optitac_edge.core.shapes.features import IS_Q4, Q4_MAX, SIGNED, ZERO_IS_NULL
 from optitac_edge.core.shapes.model import ShapeModel
 from optitac_edge.core.shapes.onnx_runtime import OUTPUT_NAME

@@ -7,9 +7,10 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.core.bundle import CalibrationBundle, load_bundle
+from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.errors import OptiTacError
+from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.recording import SHAPES, Recording
 
 _COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",

@@ -10,8 +10,8 @@ from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.centroid_map import CentroidErrorMap
-from optitac_edge.errors import BundleError
 from optitac_edge.core.width_model import WidthModel
+from optitac_edge.errors import BundleError
 
 CENTROID_KEY, WIDTH_KEY, SHAPES_KEY = "centroid", "width", "shapes"
 
@@ -43,7 +43,7 @@ def load_shape_model(bundle: CalibrationBundle) -> Any:
     """The bundle's shape model, or None."""
     if SHAPES_KEY not in bundle.extra_meta:
         return None
-    from optitac_edge.core.shapes import ShapeModel
+    from optitac_edge.core.shapes.model import ShapeModel
 
     arrays = {k[len(SHAPES_KEY) + 1:]: v for k, v in _arrays_with_prefix(bundle, SHAPES_KEY).items()}
     try:
@@ -83,7 +83,7 @@ class ContactCorrector:
                     raise BundleError("the onnx shape backend needs the exported model (export-onnx)")
                 self.shapes = OnnxShapeClassifier(onnx_path)
             elif shape_backend == "numpy":
-                from optitac_edge.core.shapes import ShapeClassifier
+                from optitac_edge.core.shapes.evaluate import ShapeClassifier
 
                 self.shapes = ShapeClassifier(shape_model)
             else:

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from optitac_edge.errors import FrameMismatchError
 from optitac_edge.core.frames import frame_geometry
+from optitac_edge.errors import FrameMismatchError
 
 #: Bytes per CPU cache line (x86-64, Cortex-A72/A76), for the gather's probe of a new frame.
 CACHE_LINE = 64

@@ -54,11 +54,11 @@ import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
-from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.moments import BinaryShapeMoments, ellipse_from_central, log_hu_value
+from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.surface import DenseSurface, PatchSurface
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.

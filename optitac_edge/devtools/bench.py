@@ -123,8 +123,8 @@ def build_sim_bundle(workdir: Path, rgb: bool = False) -> Path:
     workdir.mkdir(parents=True, exist_ok=True)
     cal = workdir / ("cal-rgb.npz" if rgb else "cal-gray.npz")
     if cal.exists():
-        from optitac_edge.core.bundle import load_bundle
         from optitac_edge.errors import BundleError
+        from optitac_edge.io.bundle_file import load_bundle
 
         try:  # a bundle cached by an older optitac-edge (no surface factors) is rebuilt
             if load_bundle(cal).surface_factors is not None:
@@ -163,7 +163,7 @@ def sim_frames(n: int, rgb: bool, fps: float, rest: int, seed: int = 7) -> list[
 def load_inputs(source: str, cal: Path | None, rgb: bool, workdir: Path, n_unique: int,
                 fps: float) -> tuple[Any, Path, list[np.ndarray], str]:
     """(bundle, bundle path, frames, description)."""
-    from optitac_edge.core.bundle import load_bundle, save_bundle
+    from optitac_edge.io.bundle_file import load_bundle, save_bundle
 
     if source == "sim":
         path = cal if cal is not None else build_sim_bundle(workdir, rgb)
@@ -361,7 +361,7 @@ def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
 def measure_reference(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps: float,
                       fast_median_us: float | None) -> dict[str, Any]:
     """The paper's method done literally vs the fast pipeline in paper mode, same frames."""
-    from optitac_edge.core.bundle import ContactOptions
+    from optitac_edge.core.options import ContactOptions
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.devtools.reference import ReferencePipeline
 
@@ -472,8 +472,8 @@ def _dropped_in_stall(now_ns: int, due_ns: int, dropped_published_ns: int, perio
 def _replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format: str,
                    queue_frames: int) -> Any:
     """A camera delivering pre-rendered frames at ``fps`` from a capture thread (see PacedReplayCamera)."""
-    from optitac_edge.io.cameras.base import Camera, CapturedFrame
     from optitac_edge.errors import CameraError
+    from optitac_edge.io.cameras.base import Camera, CapturedFrame
 
     class PacedReplayCamera(Camera):
         """Frames (rest first, then the rest cycled) published at ``k / fps`` by a capture thread.
@@ -579,11 +579,11 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     otherwise it is the live simulated camera (rendering ~1 ms a frame in its own thread).
     ``queue_frames`` overrides the sim board's ``camera.queue_frames``.
     """
-    from optitac_edge.service.board_config import load_board_config
-    from optitac_edge.core.bundle import load_bundle
-    from optitac_edge.sim.camera import SimCamera
-    from optitac_edge.service.loop import Service
+    from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports import open_transport
+    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.service.loop import Service
+    from optitac_edge.sim.camera import SimCamera
 
     master, slave, path = _open_pty()
     out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "e2e.json"
@@ -657,7 +657,7 @@ def measure_startup(cal: Path, fps: float) -> dict[str, Any]:
     probe = ("import time, sys; t0 = time.perf_counter(); "
              "import optitac_edge.service.loop, optitac_edge.core.pipeline, optitac_edge.io.transports.serial, "
              "optitac_edge.sim.camera; t1 = time.perf_counter(); "
-             "from optitac_edge.core.bundle import load_bundle; from optitac_edge.core.pipeline import Pipeline; "
+             "from optitac_edge.io.bundle_file import load_bundle; from optitac_edge.core.pipeline import Pipeline; "
              "p = Pipeline(load_bundle(sys.argv[1])); t2 = time.perf_counter(); "
              "heavy = sorted(m for m in ('scipy', 'sklearn', 'matplotlib', 'onnxruntime', 'pandas') "
              "if m in sys.modules); "

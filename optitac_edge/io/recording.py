@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.errors import FrameMismatchError, RecordingError
 from optitac_edge.core.frames import infer_pixel_format
+from optitac_edge.errors import FrameMismatchError, RecordingError
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
 SHAPES = ("edge", "circle", "square", "ellipse", "triangle")

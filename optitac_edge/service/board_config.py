@@ -33,8 +33,8 @@ try:
 except ModuleNotFoundError:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
     import tomli as tomllib  # type: ignore[no-redef]
 
-from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
 from optitac_edge.errors import ConfigError
+from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
 
 #: Where systemd's ``StateDirectory=optitac-edge`` lives (the calibration bundle's home).
 DEFAULT_STATE_DIR = "/var/lib/optitac-edge"

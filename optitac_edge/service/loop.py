@@ -30,14 +30,15 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.io.cameras import Camera, open_camera
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
+from optitac_edge.io.cameras import open_camera
+from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.protocol.messages import Command, CommandType, ContactMessage, StatusMessage
 from optitac_edge.io.sdnotify import Notifier
-from optitac_edge.io.transports import Transport
+from optitac_edge.io.transports.base import Transport
+from optitac_edge.service.board_config import BoardConfig
 
 log = logging.getLogger(__name__)
 
@@ -467,9 +468,9 @@ def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None
     With an LED ring (``led``) and ``led.adjust_at_calibration``, its brightness
     is first lowered until no fiber saturates.
     """
-    from optitac_edge.core.bundle import load_bundle, save_bundle
     from optitac_edge.calibration.fibers import calibrate_fibers
     from optitac_edge.core.layout import load_layout_csv
+    from optitac_edge.io.bundle_file import load_bundle, save_bundle
 
     path = cal_path if cal_path is not None else config.calibration.bundle_path
     if path is not None and Path(path).exists():

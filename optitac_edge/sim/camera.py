@@ -94,7 +94,9 @@ class SimCamera(Camera):
                  realtime: bool = True, queue_frames: int = 4) -> None:
         super().__init__()
         check_queue_frames(queue_frames)
-        from optitac_edge.sim import CameraOptics, Indenter, SimulatedSensor
+        from optitac_edge.sim.optics import CameraOptics
+        from optitac_edge.sim.sensor import SimulatedSensor
+        from optitac_edge.sim.skin import Indenter
 
         self._indenter_cls = Indenter
         self.sensor = SimulatedSensor(

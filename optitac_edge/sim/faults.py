@@ -26,8 +26,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.errors import CameraError
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
 
 FAULT_KINDS: tuple[str, ...] = ("timeout", "exception", "crash", "shape", "dtype", "black", "saturated", "gone")
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from cobs import cobs
 
+from optitac_edge.io.protocol import wire
 from optitac_edge.io.protocol.messages import (
     CommandType,
     ContactFlags,
@@ -31,7 +32,6 @@ from optitac_edge.io.protocol.messages import (
     ShapeCode,
     StatusMessage,
 )
-from optitac_edge.io.protocol import wire
 from optitac_edge.io.protocol.wire import (
     contact_fields,
     contact_payload,

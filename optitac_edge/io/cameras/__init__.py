@@ -27,8 +27,8 @@ def open_camera(name: str, **kwargs: Any) -> Camera:
     CameraError
         If no backend has that name or the backend cannot be opened.
     """
-    from optitac_edge.io.device import load_backend
     from optitac_edge.errors import CameraError
+    from optitac_edge.io.device import load_backend
 
     return load_backend(BACKENDS, name, "camera backend", CameraError)(**kwargs)
 

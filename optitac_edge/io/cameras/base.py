@@ -7,9 +7,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from optitac_edge.io.device import Device
-from optitac_edge.errors import CameraError
 from optitac_edge.core.frames import frame_geometry
+from optitac_edge.errors import CameraError
+from optitac_edge.io.device import Device
 
 
 class CapturedFrame(NamedTuple):

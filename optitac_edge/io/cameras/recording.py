@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from optitac_edge.io.recording import Recording
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
+from optitac_edge.io.recording import Recording
 
 
 class RecordingCamera(Camera):

@@ -16,8 +16,8 @@ TRANSPORTS: dict[str, str] = {
 
 def open_transport(name: str, **kwargs: Any) -> Transport:
     """Open the transport called ``name`` (``serial``, ``can`` or ``null``)."""
-    from optitac_edge.io.device import load_backend
     from optitac_edge.errors import TransportError
+    from optitac_edge.io.device import load_backend
 
     return load_backend(TRANSPORTS, name, "transport", TransportError)(**kwargs)
 

@@ -23,8 +23,8 @@ from typing import Any
 
 import can
 
-from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
 from optitac_edge.errors import TransportError
+from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
 from optitac_edge.io.protocol.messages import ContactMessage, StatusMessage
 from optitac_edge.io.transports.base import Transport
 

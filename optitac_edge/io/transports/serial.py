@@ -24,9 +24,9 @@ from collections.abc import Callable
 from typing import Any
 
 from optitac_edge.errors import TransportError
-from optitac_edge.io.protocol.messages import Command, ContactMessage, ResultCode, StatusMessage
 from optitac_edge.io.protocol import wire
 from optitac_edge.io.protocol.decoder import FrameDecoder
+from optitac_edge.io.protocol.messages import Command, ContactMessage, ResultCode, StatusMessage
 from optitac_edge.io.protocol.wire import Frame, MsgType
 from optitac_edge.io.transports.base import Transport
 

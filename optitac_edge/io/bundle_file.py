@@ -1,0 +1,233 @@
+"""The calibration bundle's file: one versioned ``.npz`` holding everything the runtime needs.
+
+Format (a contract, see docs/formats.md): an uncompressed NumPy ``.npz``
+archive, loaded with ``allow_pickle=False``. Member ``meta`` is UTF-8 JSON (as
+a uint8 array) with ``format``, ``version``, the frame size and pixel format
+the bundle was built for, the image transform, surface grid, thresholds and
+reports; the other members are plain numeric arrays (the three
+``interpolation_*`` members of the surface factors are optional: all or none,
+see :class:`~optitac_edge.core.surface.SurfaceFactors`). Member ``digest`` is the
+SHA-256 over ``meta`` and every array (name, dtype, shape, bytes), so a
+bit-flipped or truncated file is refused. Written atomically: temporary file
+in the same directory, fsync, rename, fsync of the directory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from collections.abc import Mapping
+from dataclasses import asdict, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.image_transform import ImageTransform
+from optitac_edge.core.layout import FiberLayout
+from optitac_edge.core.options import ContactOptions, ContactThresholds
+from optitac_edge.core.surface import SurfaceFactors
+from optitac_edge.errors import BundleError
+
+BUNDLE_FORMAT = "optitac-edge-calibration"
+BUNDLE_VERSION = 1
+#: Bundle members holding :class:`SurfaceFactors` (all three or none), by field name.
+FACTOR_MEMBERS = {
+    "vertex_operator": "interpolation_vertex_operator",
+    "cell_columns": "interpolation_cell_columns",
+    "cell_weights": "interpolation_cell_weights",
+}
+
+
+def _load_factors(path: Path, members: Mapping[str, np.ndarray]) -> SurfaceFactors | None:
+    """The surface factors of a loaded bundle, None if it has none; BundleError if incomplete or invalid."""
+    present = [m for m in FACTOR_MEMBERS.values() if m in members]
+    if not present:
+        return None
+    if len(present) != len(FACTOR_MEMBERS):
+        missing = sorted(set(FACTOR_MEMBERS.values()) - set(present))
+        raise BundleError(f"{path}: incomplete surface factors in calibration bundle "
+                          f"(missing {', '.join(missing)})")
+    try:
+        return SurfaceFactors(**{f: members[m] for f, m in FACTOR_MEMBERS.items()})
+    except ValueError as exc:
+        raise BundleError(f"{path}: invalid surface factors in calibration bundle: {exc}") from None
+
+
+def _arrays(bundle: CalibrationBundle) -> dict[str, np.ndarray]:
+    t = bundle.fibers
+    arrays = {
+        "layout_ids": bundle.layout.ids.astype(np.int64),
+        "layout_xy_mm": bundle.layout.xy_mm.astype(np.float64),
+        "fiber_pixel_index": t.pixel_index.astype(np.int32),
+        "fiber_pixel_start": t.pixel_start.astype(np.int64),
+        "fiber_centroid_px": t.centroid_px.astype(np.float64),
+        "fiber_dead": t.dead.astype(np.uint8),
+        "fiber_unmatched_px": t.unmatched_px.astype(np.float64).reshape(-1, 2),
+        "interpolation": np.ascontiguousarray(bundle.interpolation, dtype=np.float32),
+    }
+    if bundle.surface_factors is not None:
+        for f, m in FACTOR_MEMBERS.items():
+            arrays[m] = np.ascontiguousarray(getattr(bundle.surface_factors, f))
+    for name, value in bundle.extra_arrays.items():
+        arr = np.asarray(value)
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"extra array {name!r} is not numeric")
+        arrays[f"extra/{name}"] = arr
+    return arrays
+
+
+def _meta(bundle: CalibrationBundle) -> dict[str, Any]:
+    return {
+        "format": BUNDLE_FORMAT,
+        "version": BUNDLE_VERSION,
+        "created_utc": bundle.created_utc,
+        "frame": {"height": bundle.fibers.height, "width": bundle.fibers.width,
+                  "pixel_format": bundle.fibers.pixel_format},
+        "transform": bundle.transform.to_dict(),
+        "grid": asdict(bundle.grid),
+        "thresholds": asdict(bundle.thresholds),
+        "contact_options": bundle.options.to_dict(),
+        "baseline_frames": bundle.baseline_frames,
+        "fiber_map_report": bundle.fiber_map_report,
+        "extra": bundle.extra_meta,
+    }
+
+
+def _digest(meta_bytes: bytes, arrays: Mapping[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    h.update(meta_bytes)
+    for name in sorted(arrays):
+        arr = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{arr.dtype.str}|{arr.shape}".encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Delete temporary files of saves that were killed (their process no longer exists)."""
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            pid = int(tmp.name[len(path.name) + 2:-4])
+        except ValueError:
+            continue
+        if pid == os.getpid():
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except OSError:  # alive but not ours: leave it
+            continue
+
+
+def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundle:
+    """Write ``bundle`` to ``path`` atomically; returns it with its id and time set.
+
+    The calibration id is the first 16 hex digits of the content digest.
+    """
+    path = Path(path)
+    created = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    bundle = replace(bundle, created_utc=created)
+    arrays = _arrays(bundle)
+    meta_bytes = json.dumps(_meta(bundle), sort_keys=True).encode()
+    digest = _digest(meta_bytes, arrays)
+    members = {**arrays, "meta": np.frombuffer(meta_bytes, dtype=np.uint8),
+               "digest": np.frombuffer(digest.encode(), dtype=np.uint8)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with tmp.open("wb") as f:
+            np.savez(f, **members)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    return replace(bundle, calibration_id=digest[:16])
+
+
+def _load_options(path: Path, meta: Mapping[str, Any]) -> ContactOptions:
+    if "contact_options" not in meta:  # written before the options existed: the paper's method
+        return ContactOptions.paper()
+    try:
+        return ContactOptions.from_dict(meta["contact_options"])
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{path}: bad contact_options in calibration bundle: {exc}") from None
+
+
+def load_bundle(path: str | Path) -> CalibrationBundle:
+    """Read and verify a bundle written by :func:`save_bundle`.
+
+    Raises
+    ------
+    BundleError
+        If the file is missing, not a bundle, truncated, corrupted (digest
+        mismatch), of another format version, or has incomplete or invalid
+        surface factors.
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            members = {name: npz[name] for name in npz.files}
+    except FileNotFoundError:
+        raise BundleError(f"{path}: calibration bundle not found") from None
+    except IsADirectoryError:
+        raise BundleError(f"{path}: is a directory, not a calibration bundle") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as exc:
+        raise BundleError(f"{path}: not a readable calibration bundle (corrupted or truncated: {exc})") from None
+    except Exception as exc:  # zipfile/zlib raise assorted errors on damaged data
+        raise BundleError(f"{path}: corrupted calibration bundle ({type(exc).__name__})") from None
+    try:
+        meta_bytes = members.pop("meta").tobytes()
+        stored = members.pop("digest").tobytes().decode("ascii")
+        meta = json.loads(meta_bytes)
+    except (KeyError, UnicodeDecodeError, json.JSONDecodeError):
+        raise BundleError(f"{path}: not a calibration bundle (no valid meta)") from None
+    if not isinstance(meta, dict) or meta.get("format") != BUNDLE_FORMAT:
+        raise BundleError(f"{path}: not an optitac-edge calibration bundle")
+    if meta.get("version") != BUNDLE_VERSION:
+        raise BundleError(
+            f"{path}: bundle version {meta.get('version')!r}, this optitac-edge reads version {BUNDLE_VERSION}"
+        )
+    if _digest(meta_bytes, members) != stored:
+        raise BundleError(f"{path}: calibration bundle is corrupted (checksum mismatch)")
+    factors = _load_factors(path, members)
+    try:
+        frame = meta["frame"]
+        fibers = FiberTable(
+            height=int(frame["height"]), width=int(frame["width"]), pixel_format=str(frame["pixel_format"]),
+            pixel_index=members["fiber_pixel_index"], pixel_start=members["fiber_pixel_start"],
+            centroid_px=members["fiber_centroid_px"], dead=members["fiber_dead"].astype(bool),
+            unmatched_px=members["fiber_unmatched_px"],
+        )
+        return CalibrationBundle(
+            layout=FiberLayout(ids=members["layout_ids"], xy_mm=members["layout_xy_mm"]),
+            transform=ImageTransform(**meta["transform"]),
+            fibers=fibers,
+            grid=SurfaceGrid(**meta["grid"]),
+            interpolation=members["interpolation"],
+            thresholds=ContactThresholds(**meta["thresholds"]),
+            options=_load_options(path, meta),
+            baseline_frames=int(meta["baseline_frames"]),
+            fiber_map_report=meta["fiber_map_report"],
+            extra_arrays={k[len("extra/"):]: v for k, v in members.items() if k.startswith("extra/")},
+            extra_meta=meta["extra"],
+            created_utc=meta["created_utc"],
+            calibration_id=stored[:16],
+            surface_factors=factors,
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BundleError(f"{path}: inconsistent calibration bundle ({exc})") from None
