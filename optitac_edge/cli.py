@@ -178,8 +178,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
     from optitac_edge.calibration.fibers import calibrate_fibers
-    from optitac_edge.core.layout import load_layout_csv
     from optitac_edge.io.bundle_file import save_bundle
+    from optitac_edge.io.layout_csv import load_layout_csv
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
@@ -322,9 +322,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -> Any:
-    from optitac_edge.io.led import open_led
     from optitac_edge.io.sdnotify import Notifier
-    from optitac_edge.service.loop import Service, load_or_calibrate, open_board_camera, open_board_transport
+    from optitac_edge.service.loop import Service
+    from optitac_edge.service.wiring import (
+        load_or_calibrate,
+        log_config_warnings,
+        open_board_camera,
+        open_board_transport,
+        open_led,
+    )
 
     tty = sys.stdout.isatty()
     last = [0.0]
@@ -341,6 +347,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -
         sys.stdout.write(("\r\x1b[2K" + line) if tty else (line + "\n"))
         sys.stdout.flush()
 
+    log_config_warnings(config)
     notifier = Notifier()
     with open_led(config.led) as led, open_board_camera(config) as camera, \
             open_board_transport(config) as transport:
@@ -361,7 +368,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from optitac_edge.io.recording import RecordingMeta, RecordingWriter
-    from optitac_edge.service.loop import open_board_camera
+    from optitac_edge.service.wiring import open_board_camera
 
     if args.frames < args.rest_frames or args.rest_frames < 5:
         raise OptiTacError("--frames must be >= --rest-frames >= 5")
@@ -389,7 +396,8 @@ def _cmd_soak(args: argparse.Namespace) -> int:
     import tracemalloc
 
     from optitac_edge.io.transports.serial import SerialTransport
-    from optitac_edge.service.loop import Service, load_or_calibrate
+    from optitac_edge.service.loop import Service
+    from optitac_edge.service.wiring import load_or_calibrate
     from optitac_edge.sim.camera import SimCamera
     from optitac_edge.sim.faults import FaultInjector
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from optitac_edge.errors import ConfigError
+from optitac_edge.service.wiring import config_warnings
 from optitac_edge.service.board_config import (
     BoardConfig,
     available_boards,
@@ -24,7 +25,7 @@ def test_packaged_boards_load(name):
     cfg = load_board_config(name, env={})
     assert isinstance(cfg, BoardConfig)
     assert Path(cfg.source).name == f"{name}.toml"
-    assert cfg.warnings() == []
+    assert config_warnings(cfg) == []
     assert set(cfg.as_dict()) == {"sensor", "camera", "calibration", "link", "led", "status", "watchdog"}
 
 
@@ -247,7 +248,7 @@ def test_bad_command_line_override(overrides, key, words):
 def test_warnings_for_led_flicker(tmp_path):
     path = tmp_path / "b.toml"
     path.write_text("[camera]\nexposure_us = 1500\nfps = 60\n[led]\nenabled = true\npwm_frequency_hz = 1000\n")
-    warnings = load_board_config(path, env={}).warnings()
+    warnings = config_warnings(load_board_config(path, env={}))
     assert len(warnings) == 1 and "flicker" in warnings[0]
     path.write_text("[camera]\nexposure_us = 30000\nfps = 60\n")
-    assert "longer than a frame" in load_board_config(path, env={}).warnings()[0]
+    assert "longer than a frame" in config_warnings(load_board_config(path, env={}))[0]

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optitac_edge.core.centroid_map import CentroidErrorMap, fit_centroid_map
+from optitac_edge.calibration.centroid_fit import fit_centroid_map
+from optitac_edge.calibration.width_fit import fit_axis, fit_monotone_axis, fit_width_model
+from optitac_edge.core.centroid_map import CentroidErrorMap
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.core.width_model import AxisMap, WidthModel, fit_axis, fit_monotone_axis, fit_width_model
+from optitac_edge.core.width_model import AxisMap, WidthModel
 
 
 def test_constant_error_is_removed_everywhere():

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from optitac_edge.core.layout import hex_layout, load_layout_csv, save_layout_csv
+from optitac_edge.core.layout import hex_layout
 from optitac_edge.errors import ConfigError
+from optitac_edge.io.layout_csv import load_layout_csv, save_layout_csv
 
 
 def test_default_layout_is_217_fiber_hexagon():

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from optitac_edge.io.protocol import Frame, wire
+from optitac_edge.io.protocol import wire
 from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import (
     Command,
@@ -23,6 +23,7 @@ from optitac_edge.io.protocol.messages import (
 )
 from optitac_edge.io.protocol.wire import (
     CSV_HEADER,
+    Frame,
     MsgType,
     ProtocolError,
     contact_csv_row,

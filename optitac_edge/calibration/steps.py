@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.calibration.bundle_models import with_centroid_map, with_shape_model, with_width_model
+from optitac_edge.calibration.centroid_fit import fit_centroid_map
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.calibration.width_fit import fit_width_model
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.centroid_map import fit_centroid_map
-from optitac_edge.core.corrections import with_centroid_map, with_shape_model, with_width_model
-from optitac_edge.core.width_model import fit_width_model
 from optitac_edge.errors import RecordingError
 from optitac_edge.io.recording import SHAPES, Recording
 

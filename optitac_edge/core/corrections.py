@@ -20,25 +20,6 @@ def _arrays_with_prefix(bundle: CalibrationBundle, prefix: str) -> dict[str, Any
     return {k: v for k, v in bundle.extra_arrays.items() if k.startswith(prefix + "/")}
 
 
-def with_centroid_map(bundle: CalibrationBundle, error_map: CentroidErrorMap) -> CalibrationBundle:
-    meta, arrays = error_map.to_bundle()
-    kept = {k: v for k, v in bundle.extra_arrays.items() if not k.startswith(CENTROID_KEY + "/")}
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, CENTROID_KEY: meta},
-                               extra_arrays={**kept, **arrays})
-
-
-def with_width_model(bundle: CalibrationBundle, model: WidthModel) -> CalibrationBundle:
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, WIDTH_KEY: model.to_bundle()})
-
-
-def with_shape_model(bundle: CalibrationBundle, model: Any) -> CalibrationBundle:
-    """``model``: a :class:`optitac_edge.core.shapes.ShapeModel`."""
-    meta, arrays = model.to_bundle()
-    kept = {k: v for k, v in bundle.extra_arrays.items() if not k.startswith(SHAPES_KEY + "/")}
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, SHAPES_KEY: meta},
-                               extra_arrays={**kept, **{f"{SHAPES_KEY}/{k}": v for k, v in arrays.items()}})
-
-
 def load_shape_model(bundle: CalibrationBundle) -> Any:
     """The bundle's shape model, or None."""
     if SHAPES_KEY not in bundle.extra_meta:

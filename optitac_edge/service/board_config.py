@@ -333,22 +333,6 @@ class BoardConfig:
                 out[name][f.name] = value
         return out
 
-    def warnings(self) -> list[str]:
-        """Legal but suspicious combinations, one line each (for the log)."""
-        out = []
-        if self.led.enabled and self.camera.exposure_us > 0:
-            from optitac_edge.io.led import pwm_period_us
-
-            period = pwm_period_us(self.led.pwm_frequency_hz)
-            rem = self.camera.exposure_us % period
-            if self.camera.exposure_us < 10 * period and min(rem, period - rem) > 0.02 * period:
-                out.append(f"camera.exposure_us {self.camera.exposure_us} is neither >= 10 LED PWM periods "
-                           f"nor a multiple of one ({period:.2f} us): frame brightness will flicker")
-        if self.camera.exposure_us > 1e6 / self.camera.fps:
-            out.append(f"camera.exposure_us {self.camera.exposure_us} is longer than a frame at "
-                       f"{self.camera.fps:g} fps: the camera will run slower")
-        return out
-
 
 # --------------------------------------------------------------------------- loading
 

@@ -25,7 +25,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,10 +32,10 @@ import numpy as np
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
-from optitac_edge.io.cameras import open_camera
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.protocol.messages import Command, CommandType, ContactMessage, StatusMessage
 from optitac_edge.io.sdnotify import Notifier
+from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig
 
@@ -57,54 +56,6 @@ SATURATED_FRACTION = 0.5
 SWITCH_INTERVAL_S = 0.0005
 #: SET_THRESHOLD unit: the contact-on level in 1e-4 of the rest light (relative signal).
 THRESHOLD_UNIT = 1e-4
-
-
-def camera_kwargs(config: BoardConfig) -> dict[str, Any]:
-    """Constructor arguments of the configured camera backend."""
-    cam = config.camera
-    if cam.backend == "sim":
-        return {"fps": cam.fps, "width": cam.width, "height": cam.height, "rgb": cam.pixel_format == "rgb",
-                "rest_frames": max(config.calibration.rest_frames, 10), "queue_frames": cam.queue_frames,
-                **dict(cam.options)}
-    if cam.backend == "recording":
-        return {"path": cam.recording, "realtime": True, **dict(cam.options)}
-    if cam.backend == "picamera2":
-        return {"width": cam.width, "height": cam.height, "fps": cam.fps, "camera_num": cam.index,
-                "pixel_format": cam.pixel_format, "exposure_us": cam.exposure_us or None,
-                "analogue_gain": cam.gain or None, "warmup_frames": cam.warmup_frames,
-                "timeout_s": cam.timeout_s, "queue_frames": cam.queue_frames, **dict(cam.options)}
-    if cam.backend == "v4l2":  # exposure in driver units goes in camera.options.exposure
-        source = {"pipeline": cam.pipeline} if cam.pipeline else {"device": cam.device}
-        return {**source, "width": cam.width, "height": cam.height, "fps": cam.fps,
-                "gain": cam.gain or None, "queue_frames": cam.queue_frames, **dict(cam.options)}
-    return dict(cam.options)
-
-
-def open_board_camera(config: BoardConfig) -> Camera:
-    return open_camera(config.camera.backend, **camera_kwargs(config))
-
-
-def open_board_transport(config: BoardConfig) -> Transport:
-    from optitac_edge.io.transports import open_transport
-
-    link = config.link
-    if link.transport == "serial":
-        return open_transport("serial", url=link.serial_url, baudrate=link.baudrate, sensor_id=config.sensor.id)
-    if link.transport == "can":
-        return open_transport("can", channel=link.can_channel, interface=link.can_interface,
-                              sensor_id=config.sensor.id,
-                              bitrate=link.can_bitrate if link.can_interface == "socketcan" else None)
-    return open_transport("null")
-
-
-def cpu_temperature_c() -> float | None:
-    """SoC temperature from sysfs (Pi and Jetson), °C, or None."""
-    for zone in sorted(Path("/sys/class/thermal").glob("thermal_zone*/temp")):
-        try:
-            return int(zone.read_text().strip()) / 1000.0
-        except (OSError, ValueError):
-            continue
-    return None
 
 
 class ServiceStalled(OptiTacError):
@@ -436,65 +387,3 @@ class Service:
         return est
 
 
-def adjust_led(config: BoardConfig, camera: Camera, led: Any) -> float:
-    """Lower the LED ring until the brightest fibers stay below saturation; returns the brightness.
-
-    Each trial sets the brightness, lets two frames expose, and takes the
-    ``led.peak_percentile`` of the third frame's gray levels.
-    """
-    from optitac_edge.core.frames import to_gray
-    from optitac_edge.io.led import adjust_brightness_for_saturation, fiber_peak
-
-    def read_peak(brightness: float) -> float:
-        led.set_brightness(brightness)
-        for _ in range(2):
-            camera.read(config.camera.timeout_s)
-        captured = camera.read(config.camera.timeout_s)
-        if captured is None:
-            raise CameraError("camera ended while adjusting the LED brightness")
-        return fiber_peak(to_gray(captured.frame, camera.pixel_format), None, config.led.peak_percentile)
-
-    result = adjust_brightness_for_saturation(read_peak, max_peak=config.led.max_peak,
-                                              start=config.led.brightness)
-    log.info("LED brightness %.3f (peak %.0f after %d trials%s)", result.brightness, result.peak,
-             result.measurements, "" if result.ok else ", still saturated at the lowest setting")
-    return result.brightness
-
-
-def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None,
-                      led: Any = None) -> CalibrationBundle:
-    """The calibration bundle: loaded if it exists, else calibrated from the camera's rest frames.
-
-    With an LED ring (``led``) and ``led.adjust_at_calibration``, its brightness
-    is first lowered until no fiber saturates.
-    """
-    from optitac_edge.calibration.fibers import calibrate_fibers
-    from optitac_edge.core.layout import load_layout_csv
-    from optitac_edge.io.bundle_file import load_bundle, save_bundle
-
-    path = cal_path if cal_path is not None else config.calibration.bundle_path
-    if path is not None and Path(path).exists():
-        return load_bundle(path)
-    if path is not None and cal_path is not None:
-        from optitac_edge.errors import BundleError
-
-        raise BundleError(f"{path}: calibration bundle not found")
-    if config.calibration.if_missing == "fail":
-        raise OptiTacError(f"no calibration bundle at {path} and calibration.if_missing = 'fail'")
-    if led is not None and config.led.enabled and config.led.adjust_at_calibration:
-        adjust_led(config, camera, led)
-    n = config.calibration.rest_frames
-    log.info("calibrating the fiber map from %d rest frames", n)
-    frames = []
-    while len(frames) < n:
-        captured = camera.read(config.camera.timeout_s)
-        if captured is None:
-            raise CameraError("camera ended before the rest frames were captured")
-        frames.append(captured.frame.copy())
-    layout = load_layout_csv(config.calibration.layout_path) if config.calibration.layout else None
-    bundle = calibrate_fibers(frames, camera.pixel_format, layout=layout,
-                              rotation_hint_deg=config.calibration.rotation_deg, mirror=config.calibration.mirror)
-    if path is not None:
-        bundle = save_bundle(bundle, path)
-        log.info("saved the calibration bundle to %s", path)
-    return bundle
