@@ -10,7 +10,10 @@ from types import ModuleType
 
 import pytest
 
-from optitac_edge.cli import main
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.io.bundle_file import save_bundle
+from optitac_edge.io.recording import Recording
+from optitac_edge.sim.scenarios import write_scenario
 
 
 @pytest.fixture(scope="session")
@@ -20,22 +23,20 @@ def sim_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def unseen_rec(sim_dir) -> Path:
-    path = sim_dir / "unseen"
-    assert main(["sim", str(path), "--scenario", "unseen", "--seed", "1"]) == 0
-    return path
+    return write_scenario(sim_dir / "unseen", "unseen", seed=1)
 
 
 @pytest.fixture(scope="session")
 def rest_rec(sim_dir) -> Path:
-    path = sim_dir / "rest"
-    assert main(["sim", str(path), "--scenario", "rest", "--seed", "2"]) == 0
-    return path
+    return write_scenario(sim_dir / "rest", "rest", seed=2)
 
 
 @pytest.fixture(scope="session")
 def bundle_path(sim_dir, rest_rec) -> Path:
+    """The fiber map of the rest recording (no calibration models), as ``calibrate fibers`` writes it."""
+    rec = Recording(rest_rec)
     path = sim_dir / "cal.npz"
-    assert main(["calibrate", "fibers", str(rest_rec), "-o", str(path)]) == 0
+    save_bundle(calibrate_fibers(rec.rest_frames(), rec.pixel_format), path)
     return path
 
 

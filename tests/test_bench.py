@@ -36,10 +36,10 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys) -> None:
     e2e = res["end_to_end"]
     assert e2e["frames"] > 0 and e2e["received"] > 0 and e2e["queue_frames"] == 2
     assert {"p50", "p99", "max"} == set(e2e["latency_us"])
-    assert e2e["frames_dropped"] >= 0 and e2e["packets_lost"] >= 0
+    assert e2e["received"] <= e2e["sent"] <= e2e["frames"]
     st = res["startup"]
     assert st["start_to_first_packet_s"] is not None and st["start_to_first_packet_s"] > 0
-    assert st["heavy_modules_imported"] == [] or isinstance(st["heavy_modules_imported"], list)
+    assert st["heavy_modules_imported"] == []  # the runtime imports neither scipy nor scikit-learn
 
 
 def test_bench_recording_source(tmp_path, unseen_rec, bundle_path) -> None:
@@ -50,6 +50,15 @@ def test_bench_recording_source(tmp_path, unseen_rec, bundle_path) -> None:
     assert res["pipeline"]["stages"]["whole_frame"]["n"] == 15
     assert "skipped" in res["end_to_end"] and "skipped" in res["startup"]
     assert "reference" not in res
+
+
+def test_bench_recording_source_without_a_bundle_calibrates_from_its_rest_frames(tmp_path, unseen_rec) -> None:
+    out = tmp_path / "b.json"
+    assert main(["bench", "--frames", "10", "--source", str(unseen_rec), "--workdir", str(tmp_path / "w"),
+                 "--reference-frames", "0", "--memory-frames", "0", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["pipeline"]["stages"]["whole_frame"]["n"] == 10
+    assert res["bundle"] == str(tmp_path / "w" / "cal-recording.npz") and res["fibers"] == 217
 
 
 def test_bench_rejects_bad_arguments(capsys) -> None:

@@ -34,7 +34,8 @@ Sections (all on the same frames, one process unless noted; see docs/performance
 ``startup``
     ``optitac-edge run --cal BUNDLE`` started as a new process, time from the
     spawn to the first packet read from the pty; and, separately, the time to
-    import the runtime and whether scipy / scikit-learn got imported.
+    import the runtime of a board with a real camera (service, pipeline, serial link, v4l2 camera;
+    no simulator) and whether scipy / scikit-learn got imported.
 
 Runtime code must not import this module (it imports the reference, which uses scipy).
 """
@@ -52,8 +53,6 @@ import time
 import tracemalloc
 import tty
 from collections import deque
-from contextlib import redirect_stdout
-from io import StringIO
 from pathlib import Path
 from typing import Any
 
@@ -112,40 +111,6 @@ def machine() -> dict[str, Any]:
 # -- inputs --------------------------------------------------------------------------------------
 
 
-def build_sim_bundle(workdir: Path, rgb: bool = False) -> Path:
-    """A bundle of the built-in simulated sensor with all calibration models (cached in ``workdir``).
-
-    Made with the ``optitac-edge sim`` / ``calibrate`` commands: fibers from a
-    rest recording, centroid map, width model and shape model from their scenarios.
-    """
-    from optitac_edge.cli import main
-
-    workdir.mkdir(parents=True, exist_ok=True)
-    cal = workdir / ("cal-rgb.npz" if rgb else "cal-gray.npz")
-    if cal.exists():
-        from optitac_edge.errors import BundleError
-        from optitac_edge.io.bundle_file import load_bundle
-
-        try:  # a bundle cached by an older optitac-edge (no surface factors) is rebuilt
-            if load_bundle(cal).surface_factors is not None:
-                return cal
-        except BundleError:
-            pass
-    fmt = ["--rgb"] if rgb else []
-    tag = "rgb" if rgb else "gray"
-    steps = [(["sim", str(workdir / f"rest-{tag}"), "--scenario", "rest", "--seed", "2", *fmt],
-              ["calibrate", "fibers", str(workdir / f"rest-{tag}"), "-o", str(cal)])]
-    for scenario, step, seed in (("seen", "centroid", 3), ("widths", "width", 4), ("shapes", "shapes", 5)):
-        rec = str(workdir / f"{scenario}-{tag}")
-        steps.append((["sim", rec, "--scenario", scenario, "--seed", str(seed), *fmt],
-                      ["calibrate", step, rec, "--cal", str(cal)]))
-    with redirect_stdout(StringIO()):
-        for sim_args, cal_args in steps:
-            if main(sim_args) != 0 or main(cal_args) != 0:
-                raise RuntimeError(f"building the bench bundle failed at {cal_args}")
-    return cal
-
-
 def sim_frames(n: int, rgb: bool, fps: float, rest: int, seed: int = 7) -> list[np.ndarray]:
     """``n`` frames of the live simulated camera (``rest`` contact-free, then random presses)."""
     from optitac_edge.sim.camera import SimCamera
@@ -166,7 +131,9 @@ def load_inputs(source: str, cal: Path | None, rgb: bool, workdir: Path, n_uniqu
     from optitac_edge.io.bundle_file import load_bundle, save_bundle
 
     if source == "sim":
-        path = cal if cal is not None else build_sim_bundle(workdir, rgb)
+        from optitac_edge.sim.bundles import cached_sim_bundle
+
+        path = cal if cal is not None else cached_sim_bundle(workdir, rgb=rgb)
         bundle = load_bundle(path)
         rest = max(int(bundle.baseline_frames), 10)
         frames = sim_frames(n_unique, bundle.fibers.pixel_format == "rgb", fps, rest)
@@ -178,8 +145,7 @@ def load_inputs(source: str, cal: Path | None, rgb: bool, workdir: Path, n_uniqu
     if cal is None:
         from optitac_edge.calibration.fibers import calibrate_fibers
 
-        fmt = "rgb" if frames[0].ndim == 3 else "gray"
-        bundle = calibrate_fibers(list(rec.rest_frames), fmt)
+        bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format)
         workdir.mkdir(parents=True, exist_ok=True)
         path = workdir / "cal-recording.npz"
         bundle = save_bundle(bundle, path)
@@ -655,8 +621,8 @@ def measure_startup(cal: Path, fps: float) -> dict[str, Any]:
     data = json.loads(out.read_text())
     first = data["first_ns"]
     probe = ("import time, sys; t0 = time.perf_counter(); "
-             "import optitac_edge.service.loop, optitac_edge.core.pipeline, optitac_edge.io.transports.serial, "
-             "optitac_edge.sim.camera; t1 = time.perf_counter(); "
+             "import optitac_edge.service.loop, optitac_edge.service.wiring, optitac_edge.core.pipeline, "
+             "optitac_edge.io.transports.serial, optitac_edge.io.cameras.v4l2; t1 = time.perf_counter(); "
              "from optitac_edge.io.bundle_file import load_bundle; from optitac_edge.core.pipeline import Pipeline; "
              "p = Pipeline(load_bundle(sys.argv[1])); t2 = time.perf_counter(); "
              "heavy = sorted(m for m in ('scipy', 'sklearn', 'matplotlib', 'onnxruntime', 'pandas') "
