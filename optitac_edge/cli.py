@@ -13,7 +13,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -37,9 +37,23 @@ def _add_orientation(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from optitac_edge.sim.scenarios import SCENARIOS
+class _Scenarios:
+    """The simulator's scenario names as argparse choices, imported only when ``sim`` is parsed
+    (or its help shown): every other command starts without the simulator and scipy."""
 
+    def _names(self) -> tuple[str, ...]:
+        from optitac_edge.sim.scenarios import SCENARIOS
+
+        return SCENARIOS
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._names()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names())
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -47,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sim", help="write a recording from the built-in simulator")
     p.add_argument("out_dir", type=Path)
-    p.add_argument("--scenario", required=True, choices=SCENARIOS)
+    p.add_argument("--scenario", required=True, choices=_Scenarios(), metavar="NAME", help="%(choices)s")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--frames", type=int, default=None, help="number of frames (scenario default if omitted)")
     p.add_argument("--width", type=int, default=640)

@@ -15,9 +15,11 @@ from pathlib import Path
 from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.errors import CameraError, OptiTacError
+from optitac_edge.errors import BundleError, CameraError, OptiTacError
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.io.cameras import open_camera
 from optitac_edge.io.cameras.base import Camera
+from optitac_edge.io.layout_csv import load_layout_csv
 from optitac_edge.io.led import I2CBus, LedRing, NoLed, pwm_period_us
 from optitac_edge.io.transports import open_transport
 from optitac_edge.io.transports.base import Transport
@@ -94,7 +96,7 @@ def open_board_transport(config: BoardConfig) -> Transport:
     return open_transport("null")
 
 
-def adjust_led(config: BoardConfig, camera: Camera, led: Any) -> float:
+def adjust_led(config: BoardConfig, camera: Camera, led: LedRing | NoLed) -> float:
     """Lower the LED ring until the brightest fibers stay below saturation; returns the brightness.
 
     Each trial sets the brightness, lets two frames expose, and takes the
@@ -120,25 +122,36 @@ def adjust_led(config: BoardConfig, camera: Camera, led: Any) -> float:
 
 
 def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None,
-                      led: Any = None) -> CalibrationBundle:
+                      led: LedRing | NoLed | None = None) -> CalibrationBundle:
     """The calibration bundle: loaded if it exists, else calibrated from the camera's rest frames.
+
+    ``cal_path`` (the command line's ``--cal``) must exist; the board's
+    ``calibration.bundle`` is calibrated and saved when missing, unless
+    ``calibration.if_missing = "fail"``. Only calibrating imports the offline code.
+    """
+    path = cal_path if cal_path is not None else config.calibration.bundle_path
+    if path is not None and Path(path).exists():
+        return load_bundle(path)
+    if path is not None and cal_path is not None:
+        raise BundleError(f"{path}: calibration bundle not found")
+    if config.calibration.if_missing == "fail":
+        raise OptiTacError(f"no calibration bundle at {path} and calibration.if_missing = 'fail'")
+    bundle = calibrate_from_camera(config, camera, led)
+    if path is not None:
+        bundle = save_bundle(bundle, path)
+        log.info("saved the calibration bundle to %s", path)
+    return bundle
+
+
+def calibrate_from_camera(config: BoardConfig, camera: Camera,
+                          led: LedRing | NoLed | None = None) -> CalibrationBundle:
+    """The fiber map from ``calibration.rest_frames`` frames of ``camera`` (nothing may touch the skin).
 
     With an LED ring (``led``) and ``led.adjust_at_calibration``, its brightness
     is first lowered until no fiber saturates.
     """
     from optitac_edge.calibration.fibers import calibrate_fibers
-    from optitac_edge.io.bundle_file import load_bundle, save_bundle
-    from optitac_edge.io.layout_csv import load_layout_csv
 
-    path = cal_path if cal_path is not None else config.calibration.bundle_path
-    if path is not None and Path(path).exists():
-        return load_bundle(path)
-    if path is not None and cal_path is not None:
-        from optitac_edge.errors import BundleError
-
-        raise BundleError(f"{path}: calibration bundle not found")
-    if config.calibration.if_missing == "fail":
-        raise OptiTacError(f"no calibration bundle at {path} and calibration.if_missing = 'fail'")
     if led is not None and config.led.enabled and config.led.adjust_at_calibration:
         adjust_led(config, camera, led)
     n = config.calibration.rest_frames
@@ -150,9 +163,5 @@ def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None
             raise CameraError("camera ended before the rest frames were captured")
         frames.append(captured.frame.copy())
     layout = load_layout_csv(config.calibration.layout_path) if config.calibration.layout else None
-    bundle = calibrate_fibers(frames, camera.pixel_format, layout=layout,
-                              rotation_hint_deg=config.calibration.rotation_deg, mirror=config.calibration.mirror)
-    if path is not None:
-        bundle = save_bundle(bundle, path)
-        log.info("saved the calibration bundle to %s", path)
-    return bundle
+    return calibrate_fibers(frames, camera.pixel_format, layout=layout,
+                            rotation_hint_deg=config.calibration.rotation_deg, mirror=config.calibration.mirror)

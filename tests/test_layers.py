@@ -1,0 +1,61 @@
+"""The package's layers (docs/architecture.md): imports only downward, and a lean runtime."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Never imported by ``optitac-edge run`` with an existing bundle and a real camera or a recording.
+OFFLINE = ("scipy", "sklearn", "matplotlib", "onnx", "onnxruntime", "tqdm", "optitac_edge.sim",
+           "optitac_edge.calibration", "optitac_edge.devtools")
+
+
+def test_the_layer_contract_holds() -> None:
+    """cli > devtools > service | sim > calibration > io > core > errors (pyproject.toml)."""
+    exe = shutil.which("lint-imports", path=str(Path(sys.executable).parent)) or shutil.which("lint-imports")
+    assert exe, "import-linter is a test dependency"
+    out = subprocess.run([exe, "--config", str(ROOT / "pyproject.toml"), "--no-cache"], cwd=ROOT,
+                         capture_output=True, text=True, check=False)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    assert "1 kept, 0 broken" in out.stdout.replace("Contracts: ", "")
+
+
+PROBE = """
+import json, sys
+from optitac_edge.cli import main
+code = main(sys.argv[1:])
+print(json.dumps({"code": code, "modules": sorted(sys.modules)}))
+"""
+
+
+@pytest.mark.parametrize("backend", ["recording", "v4l2"])
+def test_run_with_an_existing_bundle_imports_no_simulator_and_no_offline_library(
+        tmp_path, unseen_rec, bundle_path, backend) -> None:
+    """A board's start-up pays for numpy, OpenCV and its devices only: no scipy, scikit-learn,
+    matplotlib, no simulator, no calibration code."""
+    if backend == "recording":
+        camera = f'backend = "recording"\nrecording = "{unseen_rec}"\n'
+        args = ["--frames", "20"]
+    else:  # a real camera backend: the device is absent here, so the run ends with a camera error
+        camera = f'backend = "v4l2"\ndevice = "{tmp_path / "video-absent"}"\n'
+        args = []
+    board = tmp_path / "board.toml"
+    board.write_text(f"[camera]\n{camera}[calibration]\nbundle = \"{bundle_path}\"\n")
+    out = subprocess.run([sys.executable, "-c", PROBE, "run", "--board", str(board), *args],
+                         capture_output=True, text=True, timeout=120, check=False, cwd=tmp_path)
+    last = out.stdout.strip().splitlines()[-1]
+    result = json.loads(last)
+    if backend == "recording":
+        assert result["code"] == 0, out.stdout + out.stderr
+        assert "processed 20 frames" in out.stdout
+    else:
+        assert result["code"] == 2 and "video-absent" in out.stderr, out.stderr
+    assert "optitac_edge.service.loop" in result["modules"] or backend == "v4l2"
+    heavy = [m for m in result["modules"] if m.split(".")[0] in OFFLINE or m.startswith(OFFLINE)]
+    assert heavy == []
