@@ -8,6 +8,7 @@ sum, with no labelling or segmentation per frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -83,17 +84,23 @@ class FiberTable:
 
     def check_frame(self, frame: np.ndarray, pixel_format: str) -> None:
         """Raise :class:`FrameMismatchError` unless ``frame`` is what the table was built for."""
+        self.check_frame_shape(frame.shape, pixel_format, frame.dtype)
+
+    def check_frame_shape(self, shape: tuple[int, ...], pixel_format: str,
+                          dtype: np.dtype[Any] | type = np.uint8) -> None:
+        """Raise :class:`FrameMismatchError` unless frames of ``shape``, ``pixel_format`` and
+        ``dtype`` are what the table was built for (e.g. a camera's ``frame_shape``)."""
         if pixel_format != self.pixel_format:
             raise FrameMismatchError(
                 f"frame is {pixel_format} but the calibration was built for {self.pixel_format} frames"
             )
         try:
-            h, w = frame_geometry(frame.shape, pixel_format)
+            h, w = frame_geometry(tuple(shape), pixel_format)
         except FrameMismatchError:
             h, w = -1, -1
-        if (h, w) != (self.height, self.width) or frame.dtype != np.uint8:
+        if (h, w) != (self.height, self.width) or np.dtype(dtype) != np.uint8:
             raise FrameMismatchError(
-                f"frame is {frame.dtype} {tuple(frame.shape)} but the calibration was built for "
+                f"frame is {np.dtype(dtype)} {tuple(shape)} but the calibration was built for "
                 f"{self.width}x{self.height} uint8 {self.pixel_format} frames"
             )
 

@@ -22,17 +22,16 @@ import gc
 import logging
 import sys
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
-
-import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.frame_check import FrameCheck
+from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
-from optitac_edge.io.cameras.base import Camera
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
+from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.protocol.messages import Command, CommandType, ContactMessage, StatusMessage
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
@@ -45,17 +44,14 @@ log = logging.getLogger(__name__)
 REOPEN_BACKOFF_S = 0.05
 #: Longest wait between camera reopen attempts, s (also capped at a quarter of the frame gap).
 REOPEN_BACKOFF_MAX_S = 1.0
-#: Fewer than DARK_FRACTION of the sampled fiber centres above this gray level: the frame is dark.
-DARK_LEVEL = 8
-DARK_FRACTION = 0.1
-#: Gray level counted as saturated (full scale).
-SATURATED_LEVEL = 255
-#: More than this fraction of the live fibers' centres saturated: the frame is skipped.
-SATURATED_FRACTION = 0.5
+#: Longest wait of the loop while it has no camera or the camera failed, s (it kicks the watchdog between).
+IDLE_WAIT_S = 0.05
 #: GIL switch interval while the service runs, s (the interpreter's default is 5 ms).
 SWITCH_INTERVAL_S = 0.0005
 #: SET_THRESHOLD unit: the contact-on level in 1e-4 of the rest light (relative signal).
 THRESHOLD_UNIT = 1e-4
+
+OnResult = Callable[[ContactEstimate, "ServiceStats"], None]
 
 
 class ServiceStalled(OptiTacError):
@@ -91,20 +87,41 @@ class ServiceStats:
         return self.frames / elapsed if elapsed > 0 else 0.0
 
 
+class _CameraEnded(Exception):
+    """The camera is a finite source (a recording) and has no more frames."""
+
+
+class _Backoff:
+    """Exponential delays between reopen attempts: ``first``, doubling, at most ``longest``."""
+
+    def __init__(self, first: float, longest: float) -> None:
+        self.first, self.longest = first, max(longest, first)
+        self.delay = first
+
+    def next(self) -> float:
+        """The delay to wait now; the next one doubles."""
+        delay = self.delay
+        self.delay = min(delay * 2, self.longest)
+        return delay
+
+    def reset(self) -> None:
+        self.delay = self.first
+
+
 class Service:
     """Runs the frame loop with one camera, one pipeline and one transport.
 
     ``camera`` is opened by the caller (it stays the caller's to close); with
     ``camera_factory`` the service can also reopen the camera after a failure
     (it then closes the cameras it opened itself). ``camera`` may be None when
-    a factory is given: the factory opens the first one.
+    a factory is given: the factory opens the first one. Every time the loop
+    reads or waits goes through ``clock`` (a
+    :class:`~optitac_edge.io.clock.VirtualClock` makes a run deterministic).
     """
 
     def __init__(self, config: BoardConfig, bundle: CalibrationBundle, camera: Camera | None,
                  transport: Transport, notifier: Notifier | None = None, *,
-                 camera_factory: Callable[[], Camera] | None = None) -> None:
-        from optitac_edge.core.pipeline import Pipeline
-
+                 camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
         if camera is None:
             if camera_factory is None:
                 raise ValueError("Service needs a camera or a camera_factory")
@@ -112,14 +129,16 @@ class Service:
             self._owned: Camera | None = camera
         else:
             self._owned = None
-        bundle.fibers.check_frame(np.zeros(camera.frame_shape, np.uint8), camera.pixel_format)
+        bundle.fibers.check_frame_shape(camera.frame_shape, camera.pixel_format)
         self.config = config
         self.bundle = bundle
+        self.clock = clock
         self.camera: Camera | None = camera
         self.camera_factory = camera_factory
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
         self.pipeline = Pipeline(bundle)
+        self.frame_check = FrameCheck(bundle.fibers, camera.frame_shape)
         self.streaming = True
         self.rate_divider = config.link.rate_divider
         self.stats = ServiceStats()
@@ -127,50 +146,17 @@ class Service:
         self._status = StatusMessage(sensor_id=config.sensor.id,
                                      calibration_id=int(bundle.calibration_id[:8] or "0", 16))
         self._degraded = bool(bundle.fibers.dead.any())
-        self._fault_since_status = False
-        self._device_fault = False
-        #: The last processed frame had a live fiber centre at full scale.
-        self.saturated = False
-        # Cheap image check: one pixel (the centre) of every live fiber, luminance plane.
-        t = bundle.fibers
-        col = np.clip(np.rint(t.centroid_px[:, 0]), 0, t.width - 1).astype(np.intp)
-        row = np.clip(np.rint(t.centroid_px[:, 1]), 0, t.height - 1).astype(np.intp)
-        live = ~t.dead if (~t.dead).any() else np.ones_like(t.dead)
-        self._probe = (row * t.width + col)[live]
-        if t.pixel_format == "rgb":  # the three bytes of each probed pixel
-            self._probe = (self._probe[:, None] * 3 + np.arange(3)).ravel()
-        self._probed = np.zeros(self._probe.size, dtype=np.uint8)
-        self._probe_flags = np.zeros(self._probe.size, dtype=bool)
-        self._n_probes = int(live.sum())
-        self._pixel_format = t.pixel_format
+        self._pixel_format = camera.pixel_format
         self._frame_shape = camera.frame_shape
-
-    # -- frame checks ------------------------------------------------------------------------
-
-    def check_frame(self, frame: Any) -> str | None:
-        """Why ``frame`` must be skipped (``"bad"``, ``"dark"``, ``"saturated"``), or None.
-
-        Also sets ``self.saturated`` when some live fiber centre is at full scale
-        (any channel for RGB). Costs one gather of a pixel per fiber into a
-        preallocated buffer and two counts.
-        """
-        self.saturated = False
-        if (not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self._frame_shape):
-            return "bad"
-        values, flags = self._probed, self._probe_flags
-        frame.reshape(-1).take(self._probe, out=values, mode="clip")
-        rgb = self._pixel_format == "rgb"
-        # a pixel is saturated if any of its channels is; bright if its largest channel is
-        np.greater_equal(values, SATURATED_LEVEL, out=flags)
-        n_sat = int(np.count_nonzero(flags.reshape(-1, 3).any(axis=1))) if rgb else int(np.count_nonzero(flags))
-        if n_sat > SATURATED_FRACTION * self._n_probes:
-            return "saturated"
-        np.greater(values, DARK_LEVEL, out=flags)
-        n_lit = int(np.count_nonzero(flags.reshape(-1, 3).any(axis=1))) if rgb else int(np.count_nonzero(flags))
-        if n_lit < DARK_FRACTION * self._n_probes:
-            return "dark"
-        self.saturated = n_sat > 0
-        return None
+        self._fault_since_status = False
+        gap_s = config.watchdog.max_frame_gap_s
+        self._backoff = _Backoff(REOPEN_BACKOFF_S, min(REOPEN_BACKOFF_MAX_S, gap_s / 4))
+        self._max_gap_ns = int(gap_s * 1e9)
+        self._status_period_ns = int(config.status.period_s * 1e9)
+        self._reopen_at_ns = 0
+        self._last_good_ns = 0
+        self._next_status_ns = 0
+        self._ready = False
 
     # -- commands ----------------------------------------------------------------------------
 
@@ -236,6 +222,32 @@ class Service:
         log.info("camera reopened (%d)", self.stats.reopens)
         return True
 
+    def _reopen_step(self, stop: threading.Event, now_ns: int) -> None:
+        """Without a camera: reopen it when its time has come, else wait a little (at most IDLE_WAIT_S)."""
+        if now_ns >= self._reopen_at_ns:
+            if self._try_reopen():
+                self._backoff.reset()
+                return
+            self._reopen_at_ns = now_ns + int(self._backoff.next() * 1e9)
+        self.clock.wait(stop, min(max(self._reopen_at_ns - now_ns, 0) / 1e9, IDLE_WAIT_S))
+
+    def _camera_failed(self, stop: threading.Event, exc: Exception) -> None:
+        """Count a failed read; close the camera for a reopen (or, without a factory, wait a little)."""
+        st = self.stats
+        st.camera_errors += 1
+        if isinstance(exc, CameraError):
+            st.read_errors += 1
+        else:
+            st.unexpected_errors += 1
+        self._fault_since_status = True
+        if st.camera_errors == 1 or st.camera_errors % 100 == 0:
+            log.warning("camera error %d: %s: %s", st.camera_errors, type(exc).__name__, exc)
+        if self.camera_factory is not None:
+            self._close_camera()
+            self._reopen_at_ns = self.clock.monotonic_ns() + int(self._backoff.next() * 1e9)
+        else:
+            self.clock.wait(stop, min(self._backoff.delay, IDLE_WAIT_S))
+
     def close(self) -> None:
         """Close the camera the service opened itself (idempotent)."""
         if self._owned is not None:
@@ -244,7 +256,7 @@ class Service:
     # -- the loop ----------------------------------------------------------------------------
 
     def run(self, stop: threading.Event, duration_s: float | None = None,
-            on_result: Callable[[ContactEstimate, ServiceStats], None] | None = None) -> ServiceStats:
+            on_result: OnResult | None = None) -> ServiceStats:
         """Process frames until ``stop`` is set, ``duration_s`` passes or a finite source ends.
 
         Raises
@@ -252,15 +264,13 @@ class Service:
         ServiceStalled
             No good frame for ``watchdog.max_frame_gap_s`` (the watchdog is no longer kicked).
         """
-        # The camera and link threads hand frames and packets to this loop; with the
-        # interpreter's default 5 ms switch interval a packet can wait that long for the GIL.
-        from optitac_edge.core.pipeline import single_threaded_opencv
-
         # Everything alive now (modules, bundle, buffers: ~30 000 objects) lives as long as the
         # service: moved out of the collector's reach, a full collection takes microseconds,
         # not the ~6 ms (more than a frame at 240 fps) it takes scanning them all.
         gc.collect()
         gc.freeze()
+        # The camera and link threads hand frames and packets to this loop; with the
+        # interpreter's default 5 ms switch interval a packet can wait that long for the GIL.
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
@@ -269,121 +279,113 @@ class Service:
         finally:
             sys.setswitchinterval(switch_interval)
 
-    def _run(self, stop: threading.Event, duration_s: float | None,
-             on_result: Callable[[ContactEstimate, ServiceStats], None] | None) -> ServiceStats:
+    def _run(self, stop: threading.Event, duration_s: float | None, on_result: OnResult | None) -> ServiceStats:
         st = self.stats
-        st.started_ns = time.monotonic_ns()
+        st.started_ns = self._last_good_ns = self.clock.monotonic_ns()
         end_ns = None if duration_s is None else st.started_ns + int(duration_s * 1e9)
-        period_ns = int(self.config.status.period_s * 1e9)
-        next_status = st.started_ns + period_ns
-        timeout = self.config.camera.timeout_s
-        max_gap_ns = int(self.config.watchdog.max_frame_gap_s * 1e9)
-        kick = self.config.watchdog.enabled
-        backoff_max = max(min(REOPEN_BACKOFF_MAX_S, self.config.watchdog.max_frame_gap_s / 4), REOPEN_BACKOFF_S)
-        backoff = REOPEN_BACKOFF_S
-        reopen_at = 0
-        last_good_ns = st.started_ns
-        ready = False
+        self._next_status_ns = st.started_ns + self._status_period_ns
         try:
             while not stop.is_set():
-                now_ns = time.monotonic_ns()
+                now_ns = self.clock.monotonic_ns()
                 if end_ns is not None and now_ns >= end_ns:
                     break
-                if now_ns - last_good_ns > max_gap_ns:
-                    raise ServiceStalled(f"no good camera frame for {(now_ns - last_good_ns) / 1e9:.1f} s "
-                                         f"({st.camera_errors} camera faults); exiting so systemd restarts")
-                est = None
-                if self.camera is None:  # reopening after a failure
-                    if now_ns >= reopen_at and self._try_reopen():
-                        backoff = REOPEN_BACKOFF_S
-                    else:
-                        if now_ns >= reopen_at:
-                            reopen_at = now_ns + int(backoff * 1e9)
-                            backoff = min(backoff * 2, backoff_max)
-                        stop.wait(min(max(reopen_at - now_ns, 0) / 1e9, 0.05))
-                else:
-                    camera = self.camera
-                    dropped = camera.frames_dropped  # the camera counts its sequence gaps
-                    try:
-                        captured = camera.read(timeout)
-                    except Exception as exc:  # noqa: BLE001 - one bad read never ends the service
-                        st.camera_errors += 1
-                        if isinstance(exc, CameraError):
-                            st.read_errors += 1
-                        else:
-                            st.unexpected_errors += 1
-                        self._fault_since_status = True
-                        if st.camera_errors == 1 or st.camera_errors % 100 == 0:
-                            log.warning("camera error %d: %s: %s", st.camera_errors, type(exc).__name__, exc)
-                        if self.camera_factory is not None:
-                            self._close_camera()
-                            reopen_at = time.monotonic_ns() + int(backoff * 1e9)
-                            backoff = min(backoff * 2, backoff_max)
-                        else:
-                            stop.wait(min(backoff, 0.05))
-                        captured = False
-                    if captured is None:
-                        break
-                    if captured is not False:
-                        st.frames_dropped += camera.frames_dropped - dropped
-                        est = self._process(captured)
-                        if est is not None or not self._device_fault:
-                            last_good_ns = time.monotonic_ns()
-                if est is not None and not ready:
-                    ready = True
-                    self.notifier.ready("processing frames")
-                    log.info("first frame processed; streaming to the MCU")
-                if kick:
-                    self.notifier.watchdog()  # from the loop itself: a stuck loop stops kicking
-                for command in self.transport.poll_commands():
-                    self.handle(command)
-                if est is not None and on_result is not None:
-                    on_result(est, st)
-                now_ns = time.monotonic_ns()
-                if now_ns >= next_status:
-                    next_status = now_ns + period_ns
-                    self.transport.send_status(self.status_message(now_ns))
+                self._check_frame_gap(now_ns)
+                try:
+                    est = self._step(stop, now_ns)
+                except _CameraEnded:
+                    break
+                self._after_step(est, on_result)
         finally:
-            try:  # a last STATUS: the MCU sees the final counters
-                self.transport.send_status(self.status_message(time.monotonic_ns()))
-            except Exception as exc:  # noqa: BLE001 - shutting down anyway
-                log.warning("final status not sent: %s", exc)
-            self.notifier.stopping()
-            self.close()
+            self._shut_down()
         log.info("stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens)",
                  st.frames, st.contacts, st.frames_dropped, st.camera_errors, st.reopens)
         return st
 
-    def _process(self, captured: Any) -> ContactEstimate | None:
-        """Check and process one captured frame; None when it was skipped (counted)."""
-        st = self.stats
-        self._device_fault = False
+    def _check_frame_gap(self, now_ns: int) -> None:
+        if now_ns - self._last_good_ns > self._max_gap_ns:
+            raise ServiceStalled(f"no good camera frame for {(now_ns - self._last_good_ns) / 1e9:.1f} s "
+                                 f"({self.stats.camera_errors} camera faults); exiting so systemd restarts")
+
+    def _step(self, stop: threading.Event, now_ns: int) -> ContactEstimate | None:
+        """One pass: reopen the camera or read a frame and process it; the estimate, or None.
+
+        Raises :class:`_CameraEnded` when a finite source has no more frames.
+        """
+        camera = self.camera
+        if camera is None:  # reopening after a failure
+            self._reopen_step(stop, now_ns)
+            return None
+        dropped = camera.frames_dropped  # the camera counts its sequence gaps
         try:
-            why = self.check_frame(captured.frame)
+            captured = camera.read(self.config.camera.timeout_s)
+        except Exception as exc:  # noqa: BLE001 - one bad read never ends the service
+            self._camera_failed(stop, exc)
+            return None
+        if captured is None:
+            raise _CameraEnded
+        self.stats.frames_dropped += camera.frames_dropped - dropped
+        est, device_fault = self._process(captured)
+        if not device_fault:  # a camera delivering wrong frames counts towards the frame gap
+            self._last_good_ns = self.clock.monotonic_ns()
+        return est
+
+    def _after_step(self, est: ContactEstimate | None, on_result: OnResult | None) -> None:
+        """READY once, the watchdog kick, the MCU's commands, the caller's hook, STATUS when due."""
+        if est is not None and not self._ready:
+            self._ready = True
+            self.notifier.ready("processing frames")
+            log.info("first frame processed; streaming to the MCU")
+        if self.config.watchdog.enabled:
+            # from the loop itself: a stuck loop stops kicking
+            self.notifier.watchdog(self.clock.monotonic_ns() / 1e9)
+        for command in self.transport.poll_commands():
+            self.handle(command)
+        if est is not None and on_result is not None:
+            on_result(est, self.stats)
+        now_ns = self.clock.monotonic_ns()
+        if now_ns >= self._next_status_ns:
+            self._next_status_ns = now_ns + self._status_period_ns
+            self.transport.send_status(self.status_message(now_ns))
+
+    def _shut_down(self) -> None:
+        try:  # a last STATUS: the MCU sees the final counters
+            self.transport.send_status(self.status_message(self.clock.monotonic_ns()))
+        except Exception as exc:  # noqa: BLE001 - shutting down anyway
+            log.warning("final status not sent: %s", exc)
+        self.notifier.stopping()
+        self.close()
+
+    def _process(self, captured: CapturedFrame) -> tuple[ContactEstimate | None, bool]:
+        """Check and process one captured frame: (its estimate or None when skipped, device fault)."""
+        st = self.stats
+        try:
+            why = self.frame_check(captured.frame)
         except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
             why = "bad"
         if why is not None:
-            st.camera_errors += 1
-            self._fault_since_status = True
-            if why == "bad":
-                st.bad_frames += 1
-                self._device_fault = True  # a camera delivering wrong frames counts towards the gap
-            elif why == "dark":
-                st.dark_frames += 1
-            else:
-                st.saturated_frames += 1
-            if st.camera_errors == 1 or st.camera_errors % 100 == 0:
-                log.warning("camera fault %d: %s frame skipped", st.camera_errors, why)
-            return None
+            self._frame_skipped(why)
+            return None, why == "bad"
         est = self.pipeline.process(captured.frame, captured.t_ns)
         st.frames += 1
         st.contacts += int(est.contact)
-        st.saturated_sent += int(self.saturated)
+        saturated = self.frame_check.saturated
+        st.saturated_sent += int(saturated)
         if self.streaming and st.frames % self.rate_divider == 0:
-            self._message.fill(est, captured.t_ns, time.monotonic_ns(), self.pipeline.calibrated,
-                               saturated=self.saturated, degraded=self._degraded)
+            self._message.fill(est, captured.t_ns, self.clock.monotonic_ns(), self.pipeline.calibrated,
+                               saturated=saturated, degraded=self._degraded)
             self.transport.send_contact(self._message)
             st.sent += 1
-        return est
+        return est, False
 
-
+    def _frame_skipped(self, why: str) -> None:
+        st = self.stats
+        st.camera_errors += 1
+        self._fault_since_status = True
+        if why == "bad":
+            st.bad_frames += 1
+        elif why == "dark":
+            st.dark_frames += 1
+        else:
+            st.saturated_frames += 1
+        if st.camera_errors == 1 or st.camera_errors % 100 == 0:
+            log.warning("camera fault %d: %s frame skipped", st.camera_errors, why)

@@ -1,0 +1,78 @@
+"""Is a camera frame worth processing? A cheap check before the pipeline: wrong, dark, saturated.
+
+One pixel (the centre) of every live fiber is sampled (the luminance plane;
+all three bytes for RGB): a frame with most of them at full scale is
+skipped as saturated, one with fewer than :data:`DARK_FRACTION` of them above
+:data:`DARK_LEVEL` as dark; a frame of the wrong shape or dtype is bad. A
+frame that passes but has some fiber centre at full scale is processed with
+:attr:`FrameCheck.saturated` set (the SATURATED flag on the wire).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.fiber_table import FiberTable
+
+#: Fewer than DARK_FRACTION of the sampled fiber centres above this gray level: the frame is dark.
+DARK_LEVEL = 8
+DARK_FRACTION = 0.1
+#: Gray level counted as saturated (full scale).
+SATURATED_LEVEL = 255
+#: More than this fraction of the live fibers' centres saturated: the frame is skipped.
+SATURATED_FRACTION = 0.5
+
+
+class FrameCheck:
+    """The check of one bundle's frames; allocates nothing per call.
+
+    Parameters
+    ----------
+    table : FiberTable
+        The bundle's fiber table (frame size, pixel format, fiber centres, dead fibers).
+    frame_shape : tuple of int
+        The array shape the camera delivers.
+    """
+
+    def __init__(self, table: FiberTable, frame_shape: tuple[int, ...]) -> None:
+        col = np.clip(np.rint(table.centroid_px[:, 0]), 0, table.width - 1).astype(np.intp)
+        row = np.clip(np.rint(table.centroid_px[:, 1]), 0, table.height - 1).astype(np.intp)
+        live = ~table.dead if (~table.dead).any() else np.ones_like(table.dead)
+        probe = (row * table.width + col)[live]
+        self._rgb = table.pixel_format == "rgb"
+        if self._rgb:  # the three bytes of each probed pixel
+            probe = (probe[:, None] * 3 + np.arange(3)).ravel()
+        self._probe = probe
+        self._values = np.zeros(probe.size, dtype=np.uint8)
+        self._flags = np.zeros(probe.size, dtype=bool)
+        self._n_probes = int(live.sum())
+        self.frame_shape = tuple(frame_shape)
+        #: The last frame that passed had a live fiber centre at full scale.
+        self.saturated = False
+
+    def _count(self, flags: np.ndarray) -> int:
+        """Probed pixels flagged (for RGB: any of a pixel's three bytes)."""
+        return int(np.count_nonzero(flags.reshape(-1, 3).any(axis=1))) if self._rgb else int(np.count_nonzero(flags))
+
+    def __call__(self, frame: Any) -> str | None:
+        """Why ``frame`` must be skipped (``"bad"``, ``"dark"``, ``"saturated"``), or None.
+
+        Also sets :attr:`saturated` when some live fiber centre is at full scale.
+        Costs one gather of a pixel per fiber into a preallocated buffer and two counts.
+        """
+        self.saturated = False
+        if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self.frame_shape:
+            return "bad"
+        values, flags = self._values, self._flags
+        frame.reshape(-1).take(self._probe, out=values, mode="clip")
+        np.greater_equal(values, SATURATED_LEVEL, out=flags)
+        n_sat = self._count(flags)
+        if n_sat > SATURATED_FRACTION * self._n_probes:
+            return "saturated"
+        np.greater(values, DARK_LEVEL, out=flags)
+        if self._count(flags) < DARK_FRACTION * self._n_probes:
+            return "dark"
+        self.saturated = n_sat > 0
+        return None
