@@ -1,6 +1,7 @@
 """Reliability of the service loop: camera faults, the watchdog, dead fibers and LED drift.
 
-Each test names the fault of docs/reliability.md it shows.
+Each test names the fault of docs/reliability.md it shows. The service, the simulated camera and
+the fault injector run on one virtual clock: the same seed gives the same counts on any machine.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import time
 import pytest
 
 from optitac_edge.errors import CameraError
+from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import NullTransport
@@ -46,8 +48,8 @@ def _config(**overrides):
                                                        "camera.timeout_s": 0.2, **overrides})
 
 
-def _sim(seed: int = 0, **kw) -> SimCamera:
-    return SimCamera(fps=300, realtime=False, seed=seed, rest_frames=10, **kw)
+def _sim(seed: int = 0, clock: VirtualClock | None = None) -> SimCamera:
+    return SimCamera(fps=300, realtime=False, seed=seed, rest_frames=10, clock=clock)
 
 
 @pytest.fixture(scope="module")
@@ -57,15 +59,21 @@ def bundle():
         return load_or_calibrate(config, cam, None)
 
 
+def _faulty_service(bundle, inj_kw: dict, seed: int, transport=None) -> tuple[Service, FaultInjector]:
+    clock = VirtualClock()
+    inj = FaultInjector(clock=clock, **inj_kw)
+    service = Service(_config(), bundle, None, transport or RecordingTransport(), clock=clock,
+                      camera_factory=inj.factory(lambda: _sim(seed=seed, clock=clock)))
+    return service, inj
+
+
 @pytest.mark.parametrize("kind", FAULT_KINDS)
 def test_each_camera_fault_is_skipped_counted_flagged_and_recovered(bundle, kind):
     """Camera: timeout, exception, wrong shape/dtype, black, saturated, gone -> skipped, counted,
     STATUS bit3, camera reopened; the service keeps processing frames and never raises."""
-    config = _config()
-    inj = FaultInjector(rate=0.1, seed=1, kinds=(kind,), gone_s=0.2, max_wait_s=0.05)
-    factory = inj.factory(lambda: _sim(seed=2))
     transport = RecordingTransport()
-    service = Service(config, bundle, None, transport, camera_factory=factory)
+    service, inj = _faulty_service(bundle, {"rate": 0.1, "seed": 1, "kinds": (kind,), "gone_s": 0.2,
+                                            "max_wait_s": 0.05}, seed=2, transport=transport)
     stats = service.run(threading.Event(), duration_s=2.0)
     n = inj.injected[kind]
     assert n >= 3, inj.injected
@@ -91,41 +99,45 @@ def test_each_camera_fault_is_skipped_counted_flagged_and_recovered(bundle, kind
 
 
 def test_all_faults_mixed_never_crash_and_status_clears_after_recovery(bundle):
-    config = _config()
-    inj = FaultInjector(rate=0.05, seed=7, gone_s=0.3, max_wait_s=0.05)
-    transport = RecordingTransport()
-    stop = threading.Event()
-    service = Service(config, bundle, None, transport, camera_factory=inj.factory(lambda: _sim(seed=3)))
-    seen = []
+    runs = []
+    for _ in range(2):  # the same seed twice: the same counts
+        transport = RecordingTransport()
+        service, inj = _faulty_service(bundle, {"rate": 0.05, "seed": 7, "gone_s": 0.3, "max_wait_s": 0.05},
+                                       seed=3, transport=transport)
 
-    def on_result(est, st):
-        seen.append(st.frames)
-        if st.frames == 400:
-            inj.rate = 0.0  # faults end: the fault bit must clear
+        def on_result(est, st, inj=inj):
+            if st.frames == 400:
+                inj.rate = 0.0  # faults end: the fault bit must clear
 
-    stats = service.run(stop, duration_s=3.0, on_result=on_result)
-    assert sum(inj.injected.values()) >= 10 and stats.frames > 400
-    assert stats.camera_errors == (stats.read_errors + stats.unexpected_errors + stats.bad_frames
-                                   + stats.dark_frames + stats.saturated_frames)
-    assert sum(inj.injected.values()) == stats.camera_errors
-    assert transport.status[-1][0] & 8 == 0  # no fault in the last status period
+        stats = service.run(threading.Event(), duration_s=3.0, on_result=on_result)
+        assert sum(inj.injected.values()) >= 10 and stats.frames > 400
+        assert stats.camera_errors == (stats.read_errors + stats.unexpected_errors + stats.bad_frames
+                                       + stats.dark_frames + stats.saturated_frames)
+        assert sum(inj.injected.values()) == stats.camera_errors
+        assert transport.status[-1][0] & 8 == 0  # no fault in the last status period
+        runs.append((dict(inj.injected), stats, transport.status, transport.contacts))
+    assert runs[0] == runs[1]
 
 
 def test_camera_failing_without_factory_is_retried_not_fatal(bundle):
     """The old constructor (a camera, no factory) still works: errors are counted and the read retried."""
-    config = _config()
-    inj = FaultInjector(rate=0.1, seed=4, kinds=("exception",))
-    with FaultyCamera(_sim(seed=5), inj) as cam:
-        stats = Service(config, bundle, cam, NullTransport()).run(threading.Event(), duration_s=1.0)
+    clock = VirtualClock()
+    inj = FaultInjector(rate=0.1, seed=4, kinds=("exception",), clock=clock)
+    with FaultyCamera(_sim(seed=5, clock=clock), inj) as cam:
+        stats = Service(_config(), bundle, cam, NullTransport(), clock=clock).run(threading.Event(), duration_s=1.0)
         assert not cam.closed  # the caller's camera stays the caller's
-    assert stats.read_errors == inj.injected["exception"] >= 3 and stats.frames > 50
+    assert stats.read_errors == inj.injected["exception"] >= 3 and stats.frames > 200
 
 
 class DeadCamera(Camera):
     pixel_format, height, width, fps = "gray", 480, 640, 60.0
 
+    def __init__(self, clock: VirtualClock) -> None:
+        super().__init__()
+        self.clock = clock
+
     def _read_internal(self, timeout_s):
-        time.sleep(0.01)
+        self.clock.sleep(0.01)
         raise CameraError("VIDIOC_DQBUF: No such device")
 
 
@@ -151,17 +163,16 @@ def test_no_good_frame_for_the_frame_gap_stops_kicking_and_raises(bundle, tmp_pa
     kicking WATCHDOG=1 and run() raises ServiceStalled (the CLI exits 2; systemd restarts)."""
     config = _config(**{"watchdog.max_frame_gap_s": 0.5})
     sock, env = _notify_socket(tmp_path)
-    t0 = time.monotonic()
-    with pytest.raises(ServiceStalled, match="no good camera frame"):
-        Service(config, bundle, None, NullTransport(), Notifier(env=env),
-                camera_factory=lambda: DeadCamera()).run(threading.Event(), duration_s=10)
-    elapsed = time.monotonic() - t0
-    msgs = _drain(sock)
-    assert 0.5 <= elapsed < 5.0
-    kicks = [t for t, m in msgs if m == "WATCHDOG=1"]
-    # kicked (every 0.05 s at most) while recovering within the 0.5 s gap, never after it
-    assert 1 <= len(kicks) <= 0.5 / 0.05 + 2
-    assert msgs[-1][1] == "STOPPING=1"
+    clock = VirtualClock()
+    with pytest.raises(ServiceStalled, match="no good camera frame for 0.5 s"):
+        Service(config, bundle, None, NullTransport(), Notifier(env=env), clock=clock,
+                camera_factory=lambda: DeadCamera(clock)).run(threading.Event(), duration_s=10)
+    assert 0.5 < clock.monotonic_ns() / 1e9 < 0.6  # stopped right after the gap, not at the duration
+    msgs = [m for _, m in _drain(sock)]
+    # kicked (every 0.05 s at most: a quarter of WATCHDOG_USEC) while recovering within the
+    # 0.5 s gap, never after it
+    assert 5 <= msgs.count("WATCHDOG=1") <= 0.5 / 0.05 + 1
+    assert msgs[-1] == "STOPPING=1" and "READY=1" not in "".join(msgs)
 
 
 class HangingCamera(Camera):
@@ -211,9 +222,9 @@ def test_partially_saturated_frames_are_processed_with_the_saturated_flag(bundle
     class HotSpot(Camera):
         pixel_format, height, width, fps = "gray", 480, 640, 300.0
 
-        def __init__(self):
+        def __init__(self, clock):
             super().__init__()
-            self.inner = _sim(seed=8)
+            self.inner = _sim(seed=8, clock=clock)
             t = bundle.fibers
             self.idx = t.pixel_index[t.pixel_start[0]:t.pixel_start[3]]
 
@@ -224,8 +235,9 @@ def test_partially_saturated_frames_are_processed_with_the_saturated_flag(bundle
             return CapturedFrame(f, c.t_ns, c.seq)
 
     transport = RecordingTransport()
-    stats = Service(config, bundle, HotSpot(), transport).run(threading.Event(), duration_s=0.5)
-    assert stats.frames > 20 and stats.saturated_frames == 0
+    clock = VirtualClock()
+    stats = Service(config, bundle, HotSpot(clock), transport, clock=clock).run(threading.Event(), duration_s=0.5)
+    assert stats.frames == 151 and stats.saturated_frames == 0  # frames at 0, 1/300, ... 0.5 s
     assert transport.saturated_flags == transport.contacts == stats.saturated_sent
 
 
@@ -254,17 +266,17 @@ class GappyCamera(Camera):
 
     pixel_format, height, width, fps = "gray", 480, 640, 300.0
 
-    def __init__(self, fail_after: int | None = None) -> None:
+    def __init__(self, clock: VirtualClock, fail_after: int | None = None) -> None:
         super().__init__()
-        self._sim, self._seq, self._reads, self._fail_after = _sim(seed=8), 0, 0, fail_after
+        self._sim, self._seq, self._reads, self._fail_after = _sim(seed=8, clock=clock), 0, 0, fail_after
 
     def _read_internal(self, timeout_s):
         self._reads += 1
         if self._reads == self._fail_after:
             raise CameraError("unplugged")
-        frame = self._sim.read(timeout_s).frame
+        captured = self._sim.read(timeout_s)
         self._seq += 2 if self._reads % 5 == 0 else 1
-        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+        return CapturedFrame(captured.frame, captured.t_ns, self._seq)
 
     def _close_internal(self) -> None:
         self._sim.close()
@@ -273,12 +285,13 @@ class GappyCamera(Camera):
 def test_frames_dropped_counts_the_sequence_gaps_and_not_a_reopened_cameras_restart(bundle):
     """Each camera's gaps are counted once; a reopened camera starting again at seq 1 is no drop."""
     cams: list[GappyCamera] = []
+    clock = VirtualClock()
 
     def factory() -> GappyCamera:
-        cams.append(GappyCamera(fail_after=40 if not cams else None))
+        cams.append(GappyCamera(clock, fail_after=40 if not cams else None))
         return cams[-1]
 
-    service = Service(_config(), bundle, None, NullTransport(), camera_factory=factory)
+    service = Service(_config(), bundle, None, NullTransport(), camera_factory=factory, clock=clock)
     stats = service.run(threading.Event(), duration_s=1.0)
     assert len(cams) == 2 and stats.reopens == 1 and stats.read_errors == 1
     assert stats.frames_dropped == sum(c.frames_dropped for c in cams) > 10

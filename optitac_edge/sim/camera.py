@@ -12,6 +12,7 @@ import numpy as np
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
+from optitac_edge.io.clock import Clock
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 
@@ -87,12 +88,20 @@ class SimCamera(Camera):
         rendered ahead by a thread (the simulator's rendering, ~1 ms a frame, is
         the sensor's exposure and readout, not part of the loop being measured);
         otherwise frames come as fast as rendered, stamped when rendered.
+    clock : Clock, optional
+        Not realtime: frame ``k`` is due at ``k / fps`` on this clock; a read
+        sleeps on it until then and stamps the frame with that time, in the
+        calling thread. With a :class:`~optitac_edge.io.clock.VirtualClock`
+        the frames, their times and everything computed from them are the same
+        on any machine.
     """
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
-                 realtime: bool = True, queue_frames: int = 4) -> None:
+                 realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None) -> None:
         super().__init__()
+        if realtime and clock is not None:
+            raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
         check_queue_frames(queue_frames)
         from optitac_edge.sim.optics import CameraOptics
         from optitac_edge.sim.sensor import SimulatedSensor
@@ -116,7 +125,8 @@ class SimCamera(Camera):
         self._cond = threading.Condition()
         self._stop_render = threading.Event()
         self._render_thread: threading.Thread | None = None
-        self._t0_ns = time.monotonic_ns()
+        self._clock = clock
+        self._t0_ns = time.monotonic_ns() if clock is None else clock.monotonic_ns()
         #: Ground truth of the last frame delivered (None when no contact).
         self.truth: dict[str, float] | None = None
 
@@ -130,10 +140,16 @@ class SimCamera(Camera):
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
         if self._realtime:
             return self._read_paced(timeout_s)
-        frame, press = self._render(self._seq)
+        if self._clock is None:
+            frame, press = self._render(self._seq)
+            t_ns = time.monotonic_ns()
+        else:  # paced on the clock: sleep until the frame is due, stamp it with that time
+            t_ns = self._t0_ns + round(self._seq * 1e9 / self.fps)
+            self._clock.sleep((t_ns - self._clock.monotonic_ns()) / 1e9)
+            frame, press = self._render(self._seq)
         self.truth = press
         self._seq += 1
-        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+        return CapturedFrame(frame, t_ns, self._seq)
 
     # -- realtime: a render thread works ahead, frames are delivered at their time -----------
 

@@ -20,7 +20,6 @@ counted in :attr:`FaultInjector.injected` so a run can check all of them were se
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 
@@ -28,6 +27,7 @@ import numpy as np
 
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
+from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 
 FAULT_KINDS: tuple[str, ...] = ("timeout", "exception", "crash", "shape", "dtype", "black", "saturated", "gone")
 
@@ -47,11 +47,14 @@ class FaultInjector:
         How long the device stays gone after a ``gone`` fault, s.
     max_wait_s : float
         Longest wait of a ``timeout`` fault, s.
+    clock : Clock
+        The time of ``gone`` and the waits of ``timeout`` (a
+        :class:`~optitac_edge.io.clock.VirtualClock` with the service's makes a run deterministic).
     """
 
     def __init__(self, rate: float = 0.01, seed: int = 0, kinds: Sequence[str] = FAULT_KINDS,
                  gone_s: float = 0.5, max_wait_s: float = 0.2,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Clock = SYSTEM_CLOCK) -> None:
         unknown = set(kinds) - set(FAULT_KINDS)
         if unknown:
             raise ValueError(f"unknown fault kinds {sorted(unknown)} (known: {', '.join(FAULT_KINDS)})")
@@ -64,13 +67,11 @@ class FaultInjector:
         self.clock = clock
         self.rng = np.random.default_rng(seed)
         self.injected: Counter[str] = Counter()
-        self.gone_until = -float("inf")
-        self.opens = 0
-        self.open_failures = 0
+        self.gone_until_ns: int | None = None
 
     @property
     def gone(self) -> bool:
-        return self.clock() < self.gone_until
+        return self.gone_until_ns is not None and self.clock.monotonic_ns() < self.gone_until_ns
 
     def draw(self) -> str | None:
         """The fault of the next read, or None."""
@@ -79,7 +80,7 @@ class FaultInjector:
         kind = self.kinds[int(self.rng.integers(len(self.kinds)))]
         self.injected[kind] += 1
         if kind == "gone":
-            self.gone_until = self.clock() + self.gone_s
+            self.gone_until_ns = self.clock.monotonic_ns() + round(self.gone_s * 1e9)
         return kind
 
     def factory(self, open_camera: Callable[[], Camera]) -> Callable[[], Camera]:
@@ -87,9 +88,7 @@ class FaultInjector:
 
         def open_faulty() -> Camera:
             if self.gone:
-                self.open_failures += 1
                 raise CameraError("camera device not found (injected: gone)")
-            self.opens += 1
             return FaultyCamera(open_camera(), self)
 
         return open_faulty
@@ -114,7 +113,7 @@ class FaultyCamera(Camera):
         if kind == "gone":
             raise CameraError("camera device gone (injected)")
         if kind == "timeout":
-            time.sleep(min(timeout_s, inj.max_wait_s))
+            inj.clock.sleep(min(timeout_s, inj.max_wait_s))
             raise CameraError(f"no frame within {timeout_s:.2f} s (injected timeout)")
         if kind == "exception":
             raise CameraError("VIDIOC_DQBUF: Input/output error (injected)")
