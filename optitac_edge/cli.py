@@ -141,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fault-rate", type=float, default=0.01, metavar="R", help="probability of a fault per read")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fps", type=float, default=60.0)
+    p.add_argument("--virtual-time", action="store_true",
+                   help="service, camera and faults on a virtual clock: as fast as the machine computes, "
+                        "same seed, same counts")
 
     p = sub.add_parser("bench", help="measure the per-frame loop: stages, reference, memory, end to end, startup")
     p.add_argument("--frames", type=int, default=20000, help="frames timed per stage (default 20000)")
@@ -403,85 +406,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 
 def _cmd_soak(args: argparse.Namespace) -> int:
-    """The service loop on the simulated sensor with injected camera faults, a serial link
-    that is unplugged and plugged back, for ``--minutes``; prints one summary line and
-    exits 1 if any fault was not recovered, an exception escaped or memory grew."""
-    import resource
-    import tracemalloc
-
-    from optitac_edge.io.transports.serial import SerialTransport
-    from optitac_edge.service.loop import Service
-    from optitac_edge.service.wiring import load_or_calibrate
-    from optitac_edge.sim.camera import SimCamera
-    from optitac_edge.sim.faults import FaultInjector
+    """The soak run (devtools.soak); one summary line, exit 1 if its verdict is FAILED."""
+    from optitac_edge.devtools.soak import run_soak
 
     if not args.minutes > 0 or not 0 <= args.fault_rate <= 1:
         raise OptiTacError("--minutes must be positive and --fault-rate in 0..1")
-    from optitac_edge.service.board_config import load_board_config
-
-    config = load_board_config("sim", env={}, overrides={"camera.fps": args.fps, "status.period_s": 0.5,
-                                                         "camera.timeout_s": 0.5})
-    inj = FaultInjector(rate=args.fault_rate, seed=args.seed, gone_s=0.5, max_wait_s=0.1)
-    seeds = iter(range(args.seed + 1, 1 << 30))
-    open_sim = (lambda: SimCamera(fps=args.fps, realtime=True, seed=next(seeds), rest_frames=10))
-    with open_sim() as cam:
-        bundle = load_or_calibrate(config, cam, None)
-    # the serial link: a loop:// port that is "unplugged" every ~7 s for 1 s
-    transport = SerialTransport("loop://", sensor_id=config.sensor.id)
-    stop = threading.Event()
-    unplugs = [0]
-    rss: list[tuple[float, int]] = []
-    t0 = time.monotonic()
-
-    def unplugger() -> None:
-        while not stop.wait(7.0):
-            port = getattr(transport, "_port", None)
-            if port is not None:
-                try:
-                    port.close()  # the next write fails as if the adapter vanished
-                    unplugs[0] += 1
-                except Exception:  # noqa: BLE001
-                    pass
-
-    def sample(est: Any, stats: Any) -> None:
-        now = time.monotonic()
-        if not rss or now - rss[-1][0] >= 5.0:
-            rss.append((now, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
-
-    tracemalloc.start()
-    th = threading.Thread(target=unplugger, daemon=True)
-    th.start()
-    unhandled = 0
-    stats = None
-    service = Service(config, bundle, None, transport, camera_factory=inj.factory(open_sim))
-    try:
-        stats = service.run(stop, duration_s=args.minutes * 60, on_result=sample)
-    except Exception as exc:  # noqa: BLE001 - counted: the soak's verdict
-        unhandled += 1
-        log.error("unhandled exception: %s: %s", type(exc).__name__, exc)
-        stats = service.stats
-    finally:
-        stop.set()
-        th.join(10)
-        link = transport.counters
-        transport.close()
-    current, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    injected = sum(inj.injected.values())
-    first_rss = rss[min(1, len(rss) - 1)][1] if rss else 0  # after warm-up
-    last_rss = rss[-1][1] if rss else 0
-    growth_kb = last_rss - first_rss
-    recovered = stats.camera_errors == injected and stats.frames > 0
-    ok = recovered and unhandled == 0 and growth_kb < 20_000
-    kinds = " ".join(f"{k}={v}" for k, v in sorted(inj.injected.items()))
-    print(f"soak {time.monotonic() - t0:.0f} s: frames {stats.frames}, faults injected {injected} ({kinds}), "
-          f"camera faults counted {stats.camera_errors}, reopens {stats.reopens} "
-          f"(failed {stats.reopen_failures}), serial unplugs {unplugs[0]}, reconnects "
-          f"{getattr(link, 'reconnects', 0)}, link errors {link.send_errors + link.rx_errors}, "
-          f"unhandled exceptions {unhandled}, max RSS {first_rss} -> {last_rss} kB, "
-          f"python heap {current // 1024} kB (peak {peak // 1024} kB): {'OK' if ok else 'FAILED'}",
-          flush=True)
-    return 0 if ok else 1
+    result = run_soak(args.minutes, fault_rate=args.fault_rate, seed=args.seed, fps=args.fps,
+                      virtual_time=args.virtual_time)
+    print(result.summary(), flush=True)
+    return 0 if result.ok else 1
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

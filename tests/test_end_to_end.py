@@ -27,21 +27,34 @@ def optitac_rx(tmp_path_factory) -> Path:
     return exe
 
 
+def _wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 60.0) -> str:
+    """Read ``proc``'s stdout up to the first line holding ``text``; the lines read."""
+    lines = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        lines.append(line)
+        if text in line or not line:
+            break
+    assert text in lines[-1], "".join(lines)
+    return "".join(lines)
+
+
 def _summary(stderr: str) -> dict[str, int]:
     return {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", stderr)}
 
 
 def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
-    """`optitac-edge run` at 120 fps for 10 s over a pty; TARE and STREAM are acknowledged."""
+    """`optitac-edge run` at 120 fps for 1200 frames over a pty; TARE and STREAM are acknowledged."""
     master, slave = os.openpty()
     path = os.ttyname(slave)
-    rx = subprocess.Popen([str(optitac_rx), "-t", "20", "-"], stdin=master, stdout=subprocess.PIPE,
+    rx = subprocess.Popen([str(optitac_rx), "-t", "60", "-"], stdin=master, stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True)
     run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--serial", path, "--fps", "120",
-                            "--duration", "10"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                           env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+                            "--frames", "1200"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"})
     try:
-        time.sleep(5)  # start-up, calibration, then streaming
+        first = _wait_for_line(run, "running")  # calibrated; the loop starts now
         os.close(slave)  # the service holds it open now; the decoder sees EOF when the service ends
         slave = -1
         os.write(master, encode_command(CommandType.TARE, 1))
@@ -57,12 +70,13 @@ def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
         os.close(master)
         if slave >= 0:
             os.close(slave)
+    out = first + out
     sent = int(re.search(r"sent (\d+)", out).group(1))
     assert "commands STREAM=1 TARE=1" in out, out
     rows = [r.split(",") for r in rx_out.splitlines()[1:]]
     summary = _summary(rx_err)
     print(f"sent {sent}, received {len(rows)} CONTACT frames; decoder {summary}")
-    assert sent >= 1100  # 10 s at 120 fps
+    assert sent == 1200 and "processed 1200 frames" in out
     assert len(rows) >= 0.999 * sent
     assert summary["crc"] == summary["cobs"] == summary["length"] == summary["overflow"] == 0
     assert summary["ack"] == 2 and summary["status"] >= 8
@@ -84,14 +98,17 @@ def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac
     config = load_board_config("sim", env={}, overrides={"link.transport": "serial", "link.serial_url": path,
                                                          "camera.fps": 120})
     sent: dict[int, object] = {}
+    stop = threading.Event()
 
     def keep(est, stats):
         sent[(est.t_ns // 1000) % 2**32] = est.copy()
+        if len(sent) == 360:  # 3 s at 120 fps
+            stop.set()
 
     try:
         with open_board_camera(config) as camera, open_board_transport(config) as transport:
             bundle = load_or_calibrate(config, camera, None)
-            Service(config, bundle, camera, transport).run(threading.Event(), duration_s=3.0, on_result=keep)
+            Service(config, bundle, camera, transport).run(stop, on_result=keep)
             transport.wait_idle()
         os.close(slave)
         out, err = rx.communicate(timeout=30)
@@ -101,7 +118,7 @@ def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac
             rx.wait()
         os.close(master)
     rows = [list(map(int, r.split(","))) for r in out.splitlines()]
-    assert len(rows) >= 0.999 * len(sent) and len(sent) > 300
+    assert len(sent) == 360 and len(rows) >= 0.999 * len(sent)
     contacts = 0
     for seq, t_us, flags, x, y, major, minor, angle, strength, shape, confidence, age in rows:
         est = sent[t_us]
@@ -122,10 +139,8 @@ def test_sigterm_stops_the_service_within_a_second():
     run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run"], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and "running" not in (run.stdout.readline() or ""):
-            pass
-        time.sleep(0.5)
+        _wait_for_line(run, "running")
+        time.sleep(0.5)  # the loop is streaming
         t0 = time.monotonic()
         run.send_signal(signal.SIGTERM)
         out, err = run.communicate(timeout=10)

@@ -76,11 +76,13 @@ def test_service_over_can_decodes_with_the_dbc():
     with can.Bus(interface="virtual", channel="svc-test") as mcu:
         with open_board_camera(config) as camera, open_board_transport(config) as transport:
             bundle = load_or_calibrate(config, camera, None)
-            stats = Service(config, bundle, camera, transport).run(threading.Event(), duration_s=1.0)
+            stop = threading.Event()
+            stats = Service(config, bundle, camera, transport).run(
+                stop, on_result=lambda est, st: st.frames == 200 and stop.set())
         names = []
         while (msg := mcu.recv(timeout=0.2)) is not None:
             sensor, name, signals = decode_frame(msg.arbitration_id, msg.data)
             assert sensor == 0
             names.append(name)
-    assert names.count("CONTACT_A") == names.count("CONTACT_B") == stats.sent > 50
-    assert names.count("STATUS") >= 3
+    assert names.count("CONTACT_A") == names.count("CONTACT_B") == stats.sent == 200
+    assert names.count("STATUS") >= 2  # one every 0.2 s of the ~1 s run, and the last

@@ -66,13 +66,16 @@ class SerialTransport(Transport):
         Called from the I/O thread with every valid incoming :class:`Frame` (tests, tools).
     command_queue_size : int
         Validated commands kept for :meth:`poll_commands` (oldest dropped when full).
+    open_port : callable, optional
+        Opens the port (default: ``serial.serial_for_url`` of ``url`` with the timeouts
+        above); a fake port or one a test unplugs goes in here.
     """
 
     def __init__(self, url: str, baudrate: int = 921600, queue_size: int = 8, sensor_id: int = 0,
                  *, require_port: bool = True, read_timeout: float = 0.05,
                  write_timeout: float = 0.2, backoff_min: float = 0.05, backoff_max: float = 1.0,
                  on_frame: Callable[[Frame], None] | None = None,
-                 command_queue_size: int = 32) -> None:
+                 command_queue_size: int = 32, open_port: Callable[[], Any] | None = None) -> None:
         super().__init__()
         if serial is None:
             raise TransportError("the serial transport needs pyserial (pip install pyserial)")
@@ -88,6 +91,7 @@ class SerialTransport(Transport):
         self.backoff_min = float(backoff_min)
         self.backoff_max = float(backoff_max)
         self.on_frame = on_frame
+        self._open_port = open_port
         self.decoder = FrameDecoder()
         #: frames dropped from the full send queue (also in counters.send_errors)
         self.dropped = 0
@@ -280,6 +284,8 @@ class SerialTransport(Transport):
     # -- I/O thread: port ownership, reading ---------------------------------------------
 
     def _open(self) -> Any:
+        if self._open_port is not None:
+            return self._open_port()
         return serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.read_timeout,
                                      write_timeout=self.write_timeout)
 
