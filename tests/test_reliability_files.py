@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -23,14 +24,78 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "optitac_edge"
 
 SAVER = r"""
-import sys
+import json, os, pathlib, signal, sys
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
-a = load_bundle(sys.argv[1]); b = load_bundle(sys.argv[2]); target = sys.argv[3]
-print("ready", flush=True)
-i = 0
-while True:
-    save_bundle(a if i % 2 else b, target)
-    i += 1
+
+a, b = load_bundle(sys.argv[1]), load_bundle(sys.argv[2])
+target, trials = pathlib.Path(sys.argv[3]), json.loads(sys.argv[4])
+
+
+def die():
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+class KillAfter:
+    # a file that dies once `left` more bytes are written (part of the write lands)
+    def __init__(self, f, left):
+        self._f, self._left = f, left
+
+    def write(self, data):
+        if len(data) >= self._left:
+            self._f.write(bytes(data)[:self._left])
+            self._f.flush()
+            die()
+        self._left -= len(data)
+        return self._f.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return self._f.__exit__(*exc)
+
+
+def child(save, point, offset):
+    # save b (number 0) then a (number 1) onto target; die at `point` of save number `save`
+    saves = [0]
+    real_open, real_fsync, real_replace = pathlib.Path.open, os.fsync, os.replace
+
+    def opened(self, mode="r", *args, **kw):
+        f = real_open(self, mode, *args, **kw)
+        return KillAfter(f, offset) if point == "write" and saves[0] == save and "w" in mode else f
+
+    def fsync(fd):
+        if saves[0] == save and point == "fsync-file" and not os.path.isdir(f"/proc/self/fd/{fd}"):
+            die()
+        real_fsync(fd)
+
+    def replace(src, dst):
+        if saves[0] == save and point == "replace":
+            die()
+        real_replace(src, dst)
+        if saves[0] == save and point == "after-replace":
+            die()
+
+    pathlib.Path.open, os.fsync, os.replace = opened, fsync, replace
+    for bundle in (b, a):
+        save_bundle(bundle, target)
+        saves[0] += 1
+    os._exit(0)
+
+
+out = []
+for save, point, offset in trials:
+    save_bundle(a, target)
+    pid = os.fork()
+    if pid == 0:
+        child(save, point, offset)
+    _, status = os.waitpid(pid, 0)
+    killed = os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL
+    out.append([killed, load_bundle(target).extra_meta.get("variant")])
+print(json.dumps(out))
 """
 
 
@@ -49,28 +114,26 @@ def two_bundles(tmp_path_factory):
 
 
 def test_sigkill_during_save_always_leaves_a_loadable_old_or_new_bundle(two_bundles):
-    """Calibration bundle / power loss: 100 SIGKILLs at random points of a save loop."""
+    """Calibration bundle / power loss: a save killed (SIGKILL) at every step -- part-way through
+    writing the temporary file, before its fsync, before the rename, after it -- leaves the old
+    bundle before the rename and the new one after it, always loadable."""
     d, a, _b = two_bundles
     target = d / "cal.npz"
-    save_bundle(a, target)
-    rng = np.random.default_rng(0)
-    loads = {"a": 0, "b": 0}
-    proc_env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    # one interpreter start per trial is slow; each saver is killed at a random time after it started saving
-    for trial in range(100):
-        proc = subprocess.Popen([sys.executable, "-c", SAVER, str(d / "a.npz"), str(d / "b.npz"), str(target)],
-                                stdout=subprocess.PIPE, env=proc_env, text=True)
-        assert proc.stdout.readline().strip() == "ready"
-        time.sleep(float(rng.uniform(0.0, 0.05)))
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        proc.stdout.close()
-        loaded = load_bundle(target)  # raises BundleError on a broken file
-        variant = loaded.extra_meta.get("variant")
-        assert variant in ("a", "b"), trial
-        loads[variant] += 1
-    assert loads["a"] + loads["b"] == 100
-    assert loads["a"] > 5 and loads["b"] > 5, loads  # the kills did land at different points
+    size = (d / "a.npz").stat().st_size
+    trials, expected = [], []
+    for save, old, new in ((0, "a", "b"), (1, "b", "a")):  # the saver writes b over a, then a over b
+        for offset in np.linspace(0, size - 1, 8).astype(int):
+            trials.append((save, "write", int(offset)))
+            expected.append(old)
+        trials += [(save, "fsync-file", 0), (save, "replace", 0), (save, "after-replace", 0)]
+        expected += [old, old, new]
+    out = subprocess.run([sys.executable, "-c", SAVER, str(d / "a.npz"), str(d / "b.npz"), str(target),
+                          json.dumps(trials)], capture_output=True, text=True, check=False, timeout=300,
+                         env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    results = json.loads(out.stdout.strip().splitlines()[-1])  # load_bundle raised nothing
+    assert all(killed for killed, _ in results)
+    assert [variant for _, variant in results] == expected
     # killed saves may leave their private temporary file (never read by anything); nothing else
     others = {p.name for p in d.iterdir()} - {"a.npz", "b.npz", "cal.npz"}
     assert all(re.fullmatch(r"\.cal\.npz\.\d+\.tmp", n) for n in others), others
