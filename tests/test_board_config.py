@@ -7,7 +7,6 @@ from pathlib import Path
 import pytest
 
 from optitac_edge.errors import ConfigError
-from optitac_edge.service.wiring import config_warnings
 from optitac_edge.service.board_config import (
     BoardConfig,
     available_boards,
@@ -15,6 +14,7 @@ from optitac_edge.service.board_config import (
     load_board_config,
     resolve_board_config,
 )
+from optitac_edge.service.wiring import config_warnings
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGED = ["sim", "rpi5-gs", "rpi4-cm3", "jetson-orin-nano-usb", "jetson-csi"]

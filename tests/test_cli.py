@@ -106,7 +106,7 @@ def test_installed_console_script_reports_without_traceback(tmp_path):
     """The real process: exit status 2 and one stderr line, no traceback."""
     proc = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "replay", str(tmp_path / "absent"),
                            "--cal", str(tmp_path / "absent.npz"), "-o", str(tmp_path / "c.csv")],
-                          capture_output=True, text=True, timeout=60)
+                          check=False, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
 

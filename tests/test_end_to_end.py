@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import signal
@@ -83,7 +84,7 @@ def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
     seqs = [int(r[0]) for r in rows]
     total = summary["contact"] + summary["status"] + summary["ack"]
     assert seqs[-1] - seqs[0] + 1 <= total  # continuous: no sequence number missing in between
-    assert all(b > a for a, b in zip(seqs, seqs[1:]))
+    assert all(b > a for a, b in itertools.pairwise(seqs))
 
 
 def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac_rx):
@@ -111,7 +112,7 @@ def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac
             Service(config, bundle, camera, transport).run(stop, on_result=keep)
             transport.wait_idle()
         os.close(slave)
-        out, err = rx.communicate(timeout=30)
+        out, _err = rx.communicate(timeout=30)
     finally:
         if rx.poll() is None:
             rx.kill()

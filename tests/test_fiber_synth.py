@@ -75,7 +75,7 @@ def render(s: Synth, seed: int = 0, n_frames: int = 1) -> np.ndarray:
     canvas = np.zeros((s.height * ss, s.width * ss), dtype=np.float32)
     r_px = 0.5 * s.face_mm * scale * ss
     for (u, v), g in zip(centres, gain):
-        cv2.circle(canvas, (int(round(u * ss)), int(round(v * ss))), int(round(r_px)), float(g), -1)
+        cv2.circle(canvas, (round(float(u * ss)), round(float(v * ss))), round(float(r_px)), float(g), -1)
     img = cv2.resize(canvas, (s.width, s.height), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), s.blur_px or max(0.6, 0.04 * scale))
     base = s.background + s.peak * img

@@ -125,7 +125,7 @@ def test_baseline_then_no_contact_at_rest() -> None:
     assert last.area_mm2 == 0.0 and last.strength == 0.0
     assert math.isnan(last.x_mm) and math.isnan(last.major_mm) and np.all(np.isnan(last.hu))
     assert last.shape == "" and math.isnan(last.confidence)
-    np.testing.assert_allclose(pipe.baseline, np.rint(rest), atol=1e-4)
+    np.testing.assert_allclose(pipe.baseline.values, np.rint(rest), atol=1e-4)
 
 
 @pytest.mark.parametrize("x0,y0", [(0.0, 0.0), (3.1, -2.4), (-5.5, 4.0)])
@@ -377,7 +377,7 @@ def test_shape_features_equal_the_plain_moments_of_the_binarised_contact(options
         est = pipe.process(render(bundle, levels, seed=9), 10**9)
         assert est.contact
         surface = pipe.surface
-        trunc = np.float32(pipe.levels[0])
+        trunc = np.float32(pipe.levels.as_tuple()[0])
         if options.shape_fraction > 0:
             level = np.float32(max(float(trunc), options.shape_fraction * float(surface.max())))
         else:  # the paper: the cells above the truncation level

@@ -43,10 +43,10 @@ def test_levels_from_measured_noise_with_floors() -> None:
     o = ContactOptions(noise_rel=0.002, k_trunc=4, k_off=6, k_on=10, floor_trunc=0.001,
                        floor_off=0.001, floor_on=0.03)
     _, pipe = start(o)
-    trunc, off, on = pipe.levels
+    trunc, off, on = pipe.levels.as_tuple()
     assert trunc == pytest.approx(0.008) and off == pytest.approx(0.012) and on == pytest.approx(0.03)
     _, pipe = start(dataclasses.replace(o, hysteresis=False))
-    assert pipe.levels[1] == pipe.levels[2]
+    assert pipe.levels.as_tuple()[1] == pipe.levels.as_tuple()[2]
 
 
 def test_hysteresis_marginal_press_neither_starts_nor_flickers() -> None:
@@ -134,7 +134,7 @@ def test_shape_features_come_from_their_own_binarization_level(shape_fraction) -
     e = pipe.process(render(bundle, pressed_levels(REST, 0.7, -0.3, 60.0, 2.6, 1.4, 30.0)), 10 * PERIOD)
     assert e.contact
     surface = pipe.surface  # truncated at the noise level only; the moments' own cut is inside
-    level = max(float(pipe.levels[0]), (shape_fraction or 0.5) * float(surface.max()))
+    level = max(float(pipe.levels.as_tuple()[0]), (shape_fraction or 0.5) * float(surface.max()))
     mask = surface > level
     np.testing.assert_allclose(e.hu, log_hu(hu_moments(mask, bundle.grid)), rtol=1e-6, atol=1e-9)
     assert e.features[7] == pytest.approx(q4_moment(mask, bundle.grid), rel=1e-6, abs=1e-9)
@@ -170,14 +170,14 @@ def test_baseline_tracks_slow_led_drift_but_not_a_held_press() -> None:
     # a press held for 5 s is never absorbed, and released it is gone at once
     bundle, pipe = start(tight)
     pressed = render(bundle, pressed_levels(REST, -2.0, 3.0, depth=40.0))
-    before = pipe.baseline.copy()
+    before = pipe.baseline.values.copy()
     strengths = []
     for k in range(300):
         e = pipe.process(pressed, (5 + k) * PERIOD)
         assert e.contact, k
         strengths.append(e.strength)
     assert strengths[-1] == pytest.approx(strengths[0], rel=1e-6)
-    np.testing.assert_array_equal(pipe.baseline, before)
+    np.testing.assert_array_equal(pipe.baseline.values, before)
     assert not pipe.process(render(bundle, REST), 305 * PERIOD).contact
 
 
@@ -307,7 +307,7 @@ def test_gain_compensation_does_not_eat_a_press_covering_the_whole_array() -> No
     assert expected.contact
     bundle, pipe = start(GAIN)
     e = pipe.process(render(bundle, press), 10 * PERIOD)
-    assert e.contact and pipe.gain == pytest.approx(1.0, abs=pipe.levels[0])
+    assert e.contact and pipe.gain == pytest.approx(1.0, abs=pipe.levels.as_tuple()[0])
     assert e.strength == pytest.approx(expected.strength, rel=0.03)
     assert e.major_mm == pytest.approx(expected.major_mm, rel=0.02)
     assert math.hypot(e.x_mm, e.y_mm) < 0.1

@@ -13,8 +13,8 @@ import time
 import pytest
 
 from optitac_edge.errors import CameraError
-from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
+from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import NullTransport
 from optitac_edge.service.board_config import load_board_config

@@ -117,7 +117,7 @@ def test_sigkill_during_save_always_leaves_a_loadable_old_or_new_bundle(two_bund
     """Calibration bundle / power loss: a save killed (SIGKILL) at every step -- part-way through
     writing the temporary file, before its fsync, before the rename, after it -- leaves the old
     bundle before the rename and the new one after it, always loadable."""
-    d, a, _b = two_bundles
+    d, _a, _b = two_bundles
     target = d / "cal.npz"
     size = (d / "a.npz").stat().st_size
     trials, expected = [], []

@@ -81,7 +81,7 @@ def test_service_over_can_decodes_with_the_dbc():
                 stop, on_result=lambda est, st: st.frames == 200 and stop.set())
         names = []
         while (msg := mcu.recv(timeout=0.2)) is not None:
-            sensor, name, signals = decode_frame(msg.arbitration_id, msg.data)
+            sensor, name, _signals = decode_frame(msg.arbitration_id, msg.data)
             assert sensor == 0
             names.append(name)
     assert names.count("CONTACT_A") == names.count("CONTACT_B") == stats.sent == 200

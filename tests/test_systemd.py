@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -146,8 +148,11 @@ def test_install_script_is_strict_and_executable():
 
 @pytest.mark.parametrize("board", ["rpi5-gs", "jetson-csi", "sim"])
 def test_install_dry_run(board):
+    """The dry run checks the board config with the interpreter that has the package (not whichever
+    python3 is first on PATH): the Jetson CSI board's GStreamer pipeline gets its drop-in."""
     proc = subprocess.run(check=False, args=["bash", str(INSTALL), "--dry-run", board], capture_output=True, text=True,
-                          timeout=120)
+                          timeout=120, env={**os.environ, "OPTITAC_PYTHON": sys.executable,
+                                            "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
     assert f"board_configs/{board}.toml /etc/optitac-edge/board.toml" in out or "board.toml" in out
@@ -155,6 +160,7 @@ def test_install_dry_run(board):
     assert "/etc/udev/rules.d/99-optitac-edge.rules" in out
     assert "systemctl enable optitac-edge.service" in out
     assert ("jetson-csi.conf" in out) == (board == "jetson-csi")
+    assert "could not check the config" not in out
 
 
 def test_install_unknown_board_fails_in_one_line():

@@ -297,11 +297,11 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
     lines = [
         "# Accuracy: the paper's experiments on simulated sensors",
         "",
-        "Regenerate with `python tools/accuracy_table.py` "
+        ("Regenerate with `python tools/accuracy_table.py` "
         f"(this run: variants {args.variants}, {seconds / 60:.1f} min on {platform.machine()} "
-        f"{platform.python_implementation()} {platform.python_version()}).",
+        f"{platform.python_implementation()} {platform.python_version()})."),
         "",
-        f"Each sensor is calibrated on day {CAL_DAY} (`rest`, `seen`, `widths`, `shapes`, seeds 100–103) and "
+        (f"Each sensor is calibrated on day {CAL_DAY} (`rest`, `seen`, `widths`, `shapes`, seeds 100–103) and "
         f"evaluated on day {EVAL_DAY} with fresh presses (`seen`, `unseen`, `repeat`, `widths`, `shapes`, "
         "seeds 200–204): the camera shifted by a fraction of a pixel, LED brightness and pin response "
         "drifted by a few %, LED drift during each recording, each press's real depth a few % off the "
@@ -309,7 +309,7 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
         "are random sensor variants (other scale, rotation, mirror, distortion, noise, LED, skin). "
         "Values are x / y or major / minor. No model is evaluated on the data it was fitted to "
         "(shape figures are on the evaluation day's presses; the classifier's own held-out split is "
-        "reported by `optitac-edge report`).",
+        "reported by `optitac-edge report`)."),
         "",
         "## Default configuration against the paper",
         "",
@@ -321,8 +321,8 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
     if ablation:
         arows = {name: summary_row(r) for name, r in ablation.items()}
         lines += ["", f"## Each improvement beyond the paper (sensor {args.ablation_variant})", "",
-                  "Every row is calibrated and evaluated from scratch with only that change to the "
-                  "paper's method (error maps, width model and shape classifier refitted each time).", "",
+                  ("Every row is calibrated and evaluated from scratch with only that change to the "
+                  "paper's method (error maps, width model and shape classifier refitted each time)."), "",
                   "| configuration | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
         for name, r in arows.items():
             lines.append(f"| {name} | " + " | ".join(r[k] for k in keys) + " |")

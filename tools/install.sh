@@ -8,7 +8,8 @@
 # switch boards): every step checks before it changes anything. See docs/deploy.md.
 #
 #   --start     (re)start the service at the end (default: enable only)
-#   --dry-run   print what would be done, change nothing (needs no root)
+#   --dry-run   print what would be done, change nothing (needs no root); the board config is
+#               checked with $OPTITAC_PYTHON (default python3), which must have optitac-edge
 set -euo pipefail
 
 PREFIX=/opt/optitac-edge
@@ -22,7 +23,7 @@ SYS_PY=/usr/bin/python3
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 usage() {
-    sed -n '2,12p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,13p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     exit "${1:-2}"
 }
 
@@ -131,7 +132,7 @@ run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CO
 
 # Check the board config with the installed package before it goes live.
 PY="$VENV/bin/python"
-[ -x "$PY" ] || PY=python3  # dry run before the venv exists
+[ -x "$PY" ] || PY="${OPTITAC_PYTHON:-python3}"  # dry run before the venv exists
 CHECK='import sys; from optitac_edge.service.board_config import load_board_config as load
 c = load(sys.argv[1], env={})
 print("pipeline" if c.camera.pipeline else "device")'

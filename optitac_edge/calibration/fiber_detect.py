@@ -103,7 +103,7 @@ class Blobs:
 
 
 def _odd(n: float) -> int:
-    k = max(1, int(round(n)))
+    k = max(1, round(float(n)))
     return k if k % 2 else k + 1
 
 
@@ -165,7 +165,7 @@ def _normalised(img: np.ndarray, how: Normalisation, radius: float) -> np.ndarra
     if how == "none":
         return img
     if how == "clahe":
-        tiles = max(2, int(round(min(img.shape) / max(8.0 * radius, 8.0))))
+        tiles = max(2, round(float(min(img.shape) / max(8.0 * radius, 8.0))))
         return cv2.createCLAHE(clipLimit=3.0, tileGridSize=(tiles, tiles)).apply(img)
     if how == "local":
         # Divide by a smoothed local maximum over ~3 pitches (evens out vignetting),

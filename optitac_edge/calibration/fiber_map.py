@@ -239,7 +239,7 @@ def _disc_pixels(centre: np.ndarray, radius: float, h: int, w: int) -> np.ndarra
     k = int(np.ceil(r))
     dv, du = np.mgrid[-k : k + 1, -k : k + 1]
     inside = du * du + dv * dv <= r * r
-    u0, v0 = int(round(centre[0])), int(round(centre[1]))
+    u0, v0 = round(float(centre[0])), round(float(centre[1]))
     u, v = u0 + du[inside], v0 + dv[inside]
     ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     if not ok.any():

@@ -93,9 +93,9 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
     arrays = bundle.extra_arrays
     figures: list[tuple[str, str]] = []
     lines = [f"# Calibration report: `{Path(cal).name}` (id {bundle.calibration_id})", "",
-             f"Built {bundle.created_utc} for {bundle.fibers.width}×{bundle.fibers.height} "
-             f"{bundle.fibers.pixel_format} frames; {int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} "
-             f"fibers found, dead: {np.flatnonzero(bundle.fibers.dead).tolist() or 'none'}.", ""]
+             (f"Built {bundle.created_utc} for {bundle.fibers.width}×{bundle.fibers.height} "
+              f"{bundle.fibers.pixel_format} frames; {int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} "
+              f"fibers found, dead: {np.flatnonzero(bundle.fibers.dead).tolist() or 'none'}."), ""]
 
     name = _error_maps(plt, bundle, corrector, out)
     if name:

@@ -70,8 +70,8 @@ class CalibrationBundle:
     fibers: FiberTable
     grid: SurfaceGrid
     interpolation: np.ndarray
-    thresholds: ContactThresholds = ContactThresholds()
-    options: ContactOptions = ContactOptions()
+    thresholds: ContactThresholds = field(default_factory=ContactThresholds)
+    options: ContactOptions = field(default_factory=ContactOptions)
     baseline_frames: int = BASELINE_FRAMES
     fiber_map_report: dict[str, Any] = field(default_factory=dict)
     extra_arrays: Mapping[str, np.ndarray] = field(default_factory=dict)

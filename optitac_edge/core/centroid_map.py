@@ -45,8 +45,8 @@ class CentroidErrorMap:
     def correct(self, x_mm: float, y_mm: float) -> tuple[float, float]:
         """The calibrated centroid: the measured one minus the map value at the nearest cell."""
         n = self.error_x.shape[0]
-        j = min(max(int(round((x_mm - self.x0_mm) / self.step_mm)), 0), n - 1)
-        i = min(max(int(round((y_mm - self.y0_mm) / self.step_mm)), 0), n - 1)
+        j = min(max(round(float((x_mm - self.x0_mm) / self.step_mm)), 0), n - 1)
+        i = min(max(round(float((y_mm - self.y0_mm) / self.step_mm)), 0), n - 1)
         return x_mm - float(self.error_x[i, j]), y_mm - float(self.error_y[i, j])
 
     def to_bundle(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

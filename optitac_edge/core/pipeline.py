@@ -35,6 +35,16 @@ switchable improvements beyond the paper noted in brackets):
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)].
 
+The steps are named parts, each with its own buffers and public methods (the
+benchmark times them one by one): :class:`~optitac_edge.core.fiber_table.FiberSampler`
+(step 2), :class:`~optitac_edge.core.baseline.Baseline` (3, 8),
+:class:`~optitac_edge.core.gain.GainCompensation` (4),
+:class:`~optitac_edge.core.levels.ContactLevels`, the surface operator (5),
+:class:`~optitac_edge.core.segmentation.Segmenter` (6, 7: truncation and the
+split into contacts), :class:`~optitac_edge.core.blob.BlobMeasurer` (7: the
+moments and shape features) and :class:`~optitac_edge.core.corrections.ContactCorrector`
+(the calibration models).
+
 All buffers are allocated at construction; a frame allocates nothing that
 outlives it (net 0 bytes per frame after warm-up, measured by
 ``optitac-edge bench``), only small temporaries: scalars, OpenCV's moment
@@ -45,29 +55,27 @@ numpy and OpenCV only; see docs/performance.md.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import cv2
 import numpy as np
 
+from optitac_edge.core.baseline import Baseline
+from optitac_edge.core.blob import BlobMeasurer
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.fiber_table import FiberSampler
-from optitac_edge.core.moments import BinaryShapeMoments, ellipse_from_central, log_hu_value
+from optitac_edge.core.gain import GainCompensation
+from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
+from optitac_edge.core.segmentation import Segmenter
 from optitac_edge.core.surface import DenseSurface, PatchSurface
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
 MAX_CANDIDATES = 8
-#: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
-#: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
-GAIN_TOLERANCE = 0.1
-#: _partition's label for "all cells above the truncation level" (one blob, one seed).
-WHOLE_MASK = -1
 
 
 @contextmanager
@@ -114,76 +122,39 @@ class Pipeline:
         table = bundle.fibers
         n_fibers = table.n_fibers
         grid = bundle.grid
-        n_cells = grid.n * grid.n
         self._pixel_format = table.pixel_format
-        self._sampler = FiberSampler(table)
         self._dead = np.flatnonzero(table.dead)
         self._has_dead = self._dead.size > 0
         self._live = ~np.asarray(table.dead, dtype=bool)
+        live_idx = np.flatnonzero(self._live)
+        #: Step 2: the fiber means of a frame.
+        self.sampler = FiberSampler(table)
+        #: Step 3 and 8: the rest light, averaged then tracked.
+        self.baseline = Baseline(n_fibers, bundle.baseline_frames, o.black_level, o.baseline_tau_s, o.holdoff_s)
+        #: The truncation, off and on levels.
+        self.levels = ContactLevels(o, bundle.thresholds.threshold)
+        #: Step 4 with ``compensate_gain``: the frame's LED gain divided out (None when off).
+        self.gain_compensation = (GainCompensation(live_idx if live_idx.size else np.arange(n_fibers), n_fibers,
+                                                   o.black_level, o.gain_rate_per_s, o.relative)
+                                  if o.compensate_gain else None)
         fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead) if o.fill_dead and self._has_dead else None
-        # the whole surface every frame, exactly: the factored Clough-Tocher form when the bundle
-        # has it (PatchSurface, ~4x less memory traffic), else the dense matrix
         factors = bundle.surface_factors
-        self._surface_op: PatchSurface | DenseSurface = (
+        #: Step 5: the whole surface every frame, exactly: the factored Clough-Tocher form when the
+        #: bundle has it (PatchSurface, ~4x less memory traffic), else the dense matrix.
+        self.surface_op: PatchSurface | DenseSurface = (
             PatchSurface(factors, grid.n, fill=fill) if factors is not None
             else DenseSurface(np.asarray(bundle.interpolation), fill=fill))
-        self._min_area = float(bundle.thresholds.min_area_mm2)
-        self._cell_area = float(grid.cell_area_mm2)
-        self._n_baseline = max(int(bundle.baseline_frames), 1)
+        min_area = float(bundle.thresholds.min_area_mm2)
+        #: Steps 6 and 7: truncation and the split into contacts.
+        self.segmenter = Segmenter(grid.n, self.levels, min_area / float(grid.cell_area_mm2), o.split_fraction)
+        #: Step 7: each contact's moments and shape features.
+        self.blobs = BlobMeasurer(grid, self.levels, min_area, o.peak_fraction, o.shape_fraction)
         self._multi = o.max_contacts > 1
         self._max_contacts = o.max_contacts
-        self._frac = float(o.peak_fraction)
-        self._shape_frac = float(o.shape_fraction)
-        self._split_frac = float(o.split_fraction)
-        self._tau_ns = float(o.baseline_tau_s) * 1e9
-        self._holdoff_ns = float(o.holdoff_s) * 1e9
-        # levels (truncation, off, on) in signal units, set when the baseline is ready
-        self._trunc = self._off = self._on = np.float32(bundle.thresholds.threshold)
-        self._on_override: float | None = None
-        self._rest_level = 0.0
-        # common-mode LED gain (compensate_gain): the last contact-free frame's gain, when
-        # it was measured, the frame's gain, its tolerance and the cluster width (relative)
-        self._gain_on = bool(o.compensate_gain)
-        self._gain_ref = 1.0
-        self._gain_ref_ns = 0
-        self._gain = 1.0
-        self._frame_gain_value = 1.0
-        self._gain_tol = 0.0
-        self._gain_delta = 0.0
-        self._gain_rate = float(o.gain_rate_per_s) * 1e-9  # per ns
-        self._black = np.float32(o.black_level)
-        self._live_idx = np.flatnonzero(self._live)
-        if self._live_idx.size == 0:
-            self._live_idx = np.arange(n_fibers)
-        self._live_ratio = np.zeros(self._live_idx.size, dtype=np.float32)
-        self._ratio = np.zeros(n_fibers, dtype=np.float32)
-        self._level = np.ones(n_fibers, dtype=np.float32)
-
         self._means = np.zeros(n_fibers, dtype=np.float32)
-        self._baseline_sum = np.zeros(n_fibers, dtype=np.float64)
-        self._baseline = np.zeros(n_fibers, dtype=np.float32)
-        self._baseline_count = 0
-        self._inv_denom = np.ones(n_fibers, dtype=np.float32)
         self._signal = np.zeros(n_fibers, dtype=np.float32)
-        self._work = np.zeros(n_fibers, dtype=np.float32)
-        self._mid = n_fibers // 2
-        self._surface = np.zeros(n_cells, dtype=np.float32)
+        self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
         self._n = grid.n
-        self._mask2d = np.zeros((grid.n, grid.n), dtype=bool)
-        self._mask_u8 = self._mask2d.view(np.uint8)
-        # bounding-box sized scratch (contiguous (h, w) views at the start, see _roi)
-        self._weighted = np.zeros(n_cells, dtype=np.float32)
-        self._blob_img = np.zeros(n_cells, dtype=np.float32)
-        self._split_mask = np.zeros(n_cells, dtype=bool)
-        self._blob = np.zeros(n_cells, dtype=bool)
-        self._below = np.zeros(n_cells, dtype=bool)
-        self._labels = np.zeros(n_cells, dtype=np.int32)
-        self._seed_labels = np.zeros(n_cells, dtype=np.int32)
-        self._nearest = np.zeros((grid.n, grid.n), dtype=np.int32)
-        # moments in mesh cells -> mm: x = x0 + step * col; second moments * step^2 * cell area
-        self._x0, self._y0, self._step = float(grid.x0_mm), float(grid.y0_mm), float(grid.step_mm)
-        self._mu2_scale = self._step * self._step * self._cell_area
-        self._shape_moments = BinaryShapeMoments(grid.n)
         self._frame = 0
         self._in_contact = False
         self._last_ns: int | None = None
@@ -194,20 +165,19 @@ class Pipeline:
         self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
         self._order = np.zeros(MAX_CANDIDATES, dtype=np.float64)
         #: Per-contact corrections (centroid error map, width model, shape), or None.
-        #: Anything with ``apply(estimate)`` that corrects the estimate in place.
-        self._corrector: ContactCorrector | None = None
+        self.corrector: ContactCorrector | None = None
         self.set_corrector(ContactCorrector(bundle))
 
     # -- state -----------------------------------------------------------------
 
     @property
     def baseline_ready(self) -> bool:
-        return self._baseline_count >= self._n_baseline
+        return self.baseline.ready
 
     @property
-    def baseline(self) -> np.ndarray:
-        """Per-fiber baseline gray levels, shape (N,), float32 (zeros until ready)."""
-        return self._baseline
+    def means(self) -> np.ndarray:
+        """The last frame's fiber means, shape (N,), float32 (gray levels)."""
+        return self._means
 
     @property
     def surface(self) -> np.ndarray:
@@ -217,7 +187,7 @@ class Pipeline:
         ``options.relative``). A view into the pipeline's buffer (overwritten by
         the next frame).
         """
-        return self._surface.reshape(self.bundle.grid.n, self.bundle.grid.n)
+        return self._surface.reshape(self._n, self._n)
 
     @property
     def signal(self) -> np.ndarray:
@@ -231,9 +201,9 @@ class Pipeline:
         return self._signal
 
     @property
-    def levels(self) -> tuple[float, float, float]:
-        """(truncation, off, on) levels in signal units (valid once the baseline is ready)."""
-        return float(self._trunc), float(self._off), float(self._on)
+    def gain(self) -> float:
+        """The LED gain relative to the baseline the last frame was compensated with (1 if off)."""
+        return 1.0 if self.gain_compensation is None else self.gain_compensation.gain
 
     @property
     def in_contact(self) -> bool:
@@ -247,65 +217,36 @@ class Pipeline:
         """
         if on_relative is not None and not on_relative > 0:
             raise ValueError(f"contact level must be > 0, got {on_relative!r}")
-        self._on_override = on_relative
-        if self.baseline_ready:
-            self._set_levels()
+        self.levels.on_override = on_relative
+        if self.baseline.ready:
+            self._levels_changed()
 
     def reset_baseline(self) -> None:
         """Tare: re-baseline from the next ``baseline_frames`` frames."""
-        self._baseline_sum.fill(0.0)
-        self._baseline_count = 0
+        self.baseline.reset()
         self._in_contact = False
         self._contact_end_ns = None
-        self._gain_ref = self._gain = 1.0
+        if self.gain_compensation is not None:
+            self.gain_compensation.reset(self.gain_compensation.reference_ns)
 
-    def _baseline_updated(self) -> None:
-        """Relative-signal denominators after a baseline change (217 values)."""
-        if self.options.relative or self._gain_on:
-            np.subtract(self._baseline, self._black, out=self._level)
-            np.maximum(self._level, 1.0, out=self._level)
-            np.reciprocal(self._level, out=self._inv_denom)
-
-    def _set_levels(self) -> None:
-        """Truncation / off / on levels in signal units (when the baseline is first ready)."""
-        o = self.options
-        live = self._baseline[self._live] if self._live.any() else self._baseline
-        rest = float(np.median(live)) - o.black_level if live.size else 1.0
-        self._rest_level = rest = max(rest, 1.0)
-        unit = 1.0 if o.relative else rest  # signal units per relative unit
-        if o.noise_levels:
-            sigma = o.noise_rel if o.relative else o.noise_gray
-            trunc = max(o.k_trunc * sigma, o.floor_trunc * unit)
-            off = max(o.k_off * sigma, o.floor_off * unit, trunc)
-            on = max(o.k_on * sigma, o.floor_on * unit, off)
-        else:
-            thr = self.bundle.thresholds.threshold
-            trunc = off = on = thr / rest if o.relative else thr
-        if self._on_override is not None:  # the MCU's SET_THRESHOLD
-            on = self._on_override * unit
-            off, trunc = min(off, on), min(trunc, on)
-        if not o.hysteresis:
-            off = on
-        self._trunc, self._off, self._on = np.float32(trunc), np.float32(off), np.float32(on)
-        # gain compensation, relative units: a fiber darker than the brightest cluster by the
-        # off level is pressed; the gain may differ from the last contact-free frame's by
-        # GAIN_TOLERANCE truncation levels (plus the drift rate) without evidence
-        self._gain_delta = float(off) / unit
-        self._gain_tol = GAIN_TOLERANCE * float(trunc) / unit
-
-    # -- per frame -------------------------------------------------------------
+    def _levels_changed(self) -> None:
+        self.levels.update(self.baseline.values, self._live)
+        if self.gain_compensation is not None:
+            self.gain_compensation.set_levels(self.levels.gain_delta, self.levels.gain_tolerance)
 
     def set_corrector(self, corrector: ContactCorrector | None) -> None:
         """Apply ``corrector`` (the bundle's calibration models) to every contact; None: raw estimates.
 
         By default the bundle's own models are applied (numpy shape evaluator).
         """
-        self._corrector = corrector if corrector is not None and corrector.active else None
+        self.corrector = corrector if corrector is not None and corrector.active else None
 
     @property
     def calibrated(self) -> bool:
         """True when centroid and width calibrations are applied to the estimates."""
-        return self._corrector is not None and self._corrector.calibrated
+        return self.corrector is not None and self.corrector.calibrated
+
+    # -- per frame -------------------------------------------------------------
 
     def process(self, frame: np.ndarray, now_ns: int) -> ContactEstimate:
         """Contact estimate of one frame.
@@ -331,39 +272,28 @@ class Pipeline:
         FrameMismatchError
             If the frame's shape, dtype or format does not match the bundle.
         """
-        table = self._sampler.table
-        table.check_frame(frame, self._pixel_format)
+        self.sampler.table.check_frame(frame, self._pixel_format)
         est = self._estimate
         est.frame = self._frame
         est.t_ns = now_ns
         self._frame += 1
         dt_ns = 0 if self._last_ns is None else now_ns - self._last_ns
         self._last_ns = now_ns
-        means = self._sampler.means(frame, self._means)
+        means = self.sampler.means(frame, self._means)
+        baseline, gain = self.baseline, self.gain_compensation
 
-        if self._baseline_count < self._n_baseline:
-            self._baseline_sum += means
-            self._baseline_count += 1
-            if self._baseline_count == self._n_baseline:
-                np.multiply(self._baseline_sum, 1.0 / self._n_baseline, out=self._baseline,
-                            casting="same_kind")
-                self._baseline_updated()
-                self._set_levels()
-                self._gain_ref, self._gain, self._gain_ref_ns = 1.0, 1.0, now_ns
+        if not baseline.ready:
+            if baseline.add(means):
+                self._levels_changed()
+                if gain is not None:
+                    gain.reset(now_ns)
             est.baseline_ready = False
             self._no_contact(est, 0.0, 0.0)
             return est
         est.baseline_ready = True
 
-        if self._gain_on:
-            signal = self._compensated_signal(means, now_ns)
-        else:
-            signal = np.subtract(self._baseline, means, out=self._signal)
-            if self.options.relative:
-                np.multiply(signal, self._inv_denom, out=signal)
-        if self._has_dead:
-            signal[self._dead] = 0.0
-        surface = self._surface_op.compute(signal, self._surface)
+        signal = self.compute_signal(means, now_ns)
+        surface = self.surface_op.compute(signal, self._surface)
         n = self._find_contacts(surface, est)
 
         if n > 0:
@@ -371,54 +301,24 @@ class Pipeline:
         elif self._in_contact:
             self._in_contact = False
             self._contact_end_ns = now_ns
-        if n == 0 and self._gain_on:
-            # a contact-free frame: its own gain estimate is the reference from now on
-            self._gain_ref, self._gain_ref_ns = self._frame_gain_value, now_ns
+        if n == 0 and gain is not None:
+            gain.contact_free(now_ns)
         if n == 0 and self.options.track_baseline and dt_ns > 0:
-            if self._gain_on:  # follow the per-fiber drift, not the LED gain
-                means = np.multiply(self._ratio, self._level, out=self._ratio)
-                means /= np.float32(self._gain)
-                means += self._black
-            self._track(means, signal, now_ns, dt_ns)
+            rest = means if gain is None else gain.rest_means(baseline)  # per-fiber drift, not the LED gain
+            baseline.track(rest, signal, float(self.levels.off), now_ns, dt_ns, self._contact_end_ns)
         return est
 
-    @property
-    def gain(self) -> float:
-        """The LED gain relative to the baseline the last frame was compensated with (1 if off)."""
-        return self._gain
-
-    def _compensated_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:
-        """The signal with the frame's common-mode LED gain divided out (``compensate_gain``).
-
-        ``ratio = (mean - black) / (baseline - black)`` per fiber is ``g (1 - d)``
-        with ``g`` the LED gain and ``d >= 0`` the darkening, so the brightest
-        fibers measure ``g``: the median of the ratios within ``delta`` (the off
-        level) of the cluster around the upper quartile, twice. Limited to the last
-        contact-free frame's gain +- ``tol + rate * elapsed``.
-        """
-        ratio = np.subtract(means, self._black, out=self._ratio)
-        ratio *= self._inv_denom
-        live = self._live_ratio
-        ratio.take(self._live_idx, out=live)
-        live.sort()
-        n = live.size
-        g = float(live[(3 * (n - 1)) // 4])
-        keep = 1.0 - self._gain_delta
-        for _ in range(2):
-            j = int(live.searchsorted(np.float32(g * keep)))
-            g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
-        self._frame_gain_value = g
-        band = self._gain_tol + self._gain_rate * float(now_ns - self._gain_ref_ns)
-        g = min(max(g, self._gain_ref - band), self._gain_ref + band)
-        self._gain = g = max(g, 1e-3)
-        signal = self._signal
-        if self.options.relative:  # 1 - ratio / g
-            np.multiply(ratio, np.float32(-1.0 / g), out=signal)
-            signal += 1.0
-        else:  # (baseline - black) - (mean - black) / g, gray levels
-            np.multiply(ratio, np.float32(-1.0 / g), out=signal)
-            signal += 1.0
-            signal *= self._level
+    def compute_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:
+        """Step 4: the inverted signal of ``means`` (shape (N,)) into :attr:`signal` (see there)."""
+        gain = self.gain_compensation
+        if gain is not None:
+            signal = gain.signal(means, self.baseline, now_ns, self._signal)
+        else:
+            signal = np.subtract(self.baseline.values, means, out=self._signal)
+            if self.options.relative:
+                np.multiply(signal, self.baseline.inv_level, out=signal)
+        if self._has_dead:
+            signal[self._dead] = 0.0
         return signal
 
     def _no_contact(self, est: ContactEstimate, strength: float, area: float) -> None:
@@ -430,26 +330,27 @@ class Pipeline:
 
     def _find_contacts(self, surface: np.ndarray, est: ContactEstimate) -> int:
         """Truncate the surface, find and measure the contacts; returns their number."""
-        cells = self._truncate(surface)
+        seg, blobs = self.segmenter, self.blobs
+        cells = seg.truncate(surface)
         if cells == 0:
             self._no_contact(est, 0.0, 0.0)
             return 0
-        level = self._off if self._in_contact else self._on
+        level = self.levels.off if self._in_contact else self.levels.on
         # everything below reads only the bounding box of the cells above the truncation level
-        img, mask, x, y, peak = self._box(surface)
+        box = seg.box(surface)
         n_cand = 0
         if not self._multi:
-            n_cand = self._measure_blob(img, peak, cells, level, self._cands[0], x, y)
+            n_cand = int(blobs.measure(box.img, box.peak, cells, level, self._cands[0], box.x, box.y))
         else:
-            for k, blob_cells in self._partition(img, peak, mask, cells):
-                blob = self._blob_surface(img, mask, k)
-                n_cand += self._measure_blob(blob, peak if blob is img else cv2.minMaxLoc(blob)[1],
-                                             blob_cells, level, self._cands[n_cand], x, y)
+            for k, blob_cells in seg.partition(box, cells):
+                img = seg.contact_surface(box, k)
+                peak = box.peak if img is box.img else cv2.minMaxLoc(img)[1]
+                n_cand += blobs.measure(img, peak, blob_cells, level, self._cands[n_cand], box.x, box.y)
                 if n_cand == MAX_CANDIDATES:
                     break
         if n_cand == 0:
-            strength = float(cv2.sumElems(img)[0]) * self._cell_area
-            self._no_contact(est, strength, cells * self._cell_area)
+            strength = float(cv2.sumElems(box.img)[0]) * float(self.bundle.grid.cell_area_mm2)
+            self._no_contact(est, strength, cells * float(self.bundle.grid.cell_area_mm2))
             return 0
         ranked: np.ndarray | range = range(1)
         if n_cand > 1:
@@ -463,162 +364,6 @@ class Pipeline:
             c = self.contacts[i]
             c.assign(self._cands[int(ranked[i])])
             c.frame, c.t_ns, c.baseline_ready, c.n_contacts = frame, t_ns, True, n
-            if self._corrector is not None:
-                self._corrector.apply(c)
+            if self.corrector is not None:
+                self.corrector.apply(c)
         return n
-
-    def _truncate(self, surface: np.ndarray) -> int:
-        """Values <= the truncation level become 0, in place; the mask of the others; their count."""
-        img = surface.reshape(self._n, self._n)
-        cv2.threshold(img, float(self._trunc), 0.0, cv2.THRESH_TOZERO, dst=img)
-        cells = cv2.countNonZero(img)
-        if cells:  # the levels are > 0, so "above the level" is "not truncated to 0"
-            np.greater(img, 0.0, out=self._mask2d)
-        return cells
-
-    def _box(self, surface: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int, float]:
-        """The truncated surface and the mask in the bounding box of the cells above the level.
-
-        Returns views ``(img, mask)`` of the box, its first mesh column and row, and the
-        largest value of ``img`` (after :meth:`_truncate`, with at least one cell above).
-        """
-        x, y, w, h = cv2.boundingRect(self._mask_u8)
-        img = surface.reshape(self._n, self._n)[y:y + h, x:x + w]
-        return img, self._mask2d[y:y + h, x:x + w], x, y, float(cv2.minMaxLoc(img)[1])
-
-    def _blob_levels(self, peak: float) -> tuple[float, float]:
-        """(weighting level, shape binarization level) of a blob whose largest value is ``peak``.
-
-        The moments weigh the cells above ``max(truncation, peak_fraction * peak)``;
-        the shape features binarize at ``max(truncation, shape_fraction * peak)``,
-        or at the weighting level when ``shape_fraction`` is 0.
-        """
-        t = float(self._trunc)
-        if self._frac > 0.0 and self._frac * peak > t:
-            t = float(np.float32(self._frac * peak))
-        shape = max(float(self._trunc), self._shape_frac * peak) if self._shape_frac > 0.0 else t
-        return t, shape
-
-    def _roi(self, buffer: np.ndarray, h: int, w: int) -> np.ndarray:
-        """A contiguous (h, w) view at the start of a flat (n*n,) buffer."""
-        return buffer[:h * w].reshape(h, w)
-
-    def _partition(self, img: np.ndarray, peak: float, mask: np.ndarray,
-                   cells: int) -> list[tuple[int, int]]:
-        """Split the truncated surface into contacts; ``(label, cells)`` of each, largest first.
-
-        ``img`` and ``mask`` are the bounding box of the cells above the
-        truncation level, ``peak`` the largest value of ``img``. The skin's spread joins neighbouring presses at the
-        (low) noise level, so contacts are seeded by the blobs above
-        ``split_fraction`` of the strongest peak, plus any blob of the
-        truncated surface that holds no such seed (a weaker, separate press);
-        every cell above the truncation level then belongs to its nearest seed.
-        """
-        h, w = img.shape
-        split = max(float(self._trunc), self._split_frac * peak)
-        seeds = self._roi(self._split_mask, h, w)
-        np.greater(img, np.float32(split), out=seeds)
-        labels = self._roi(self._labels, h, w)
-        n_parts = cv2.connectedComponents(mask.view(np.uint8), labels=labels, connectivity=8,
-                                          ltype=cv2.CV_32S)[0]
-        min_cells = self._min_area / self._cell_area
-        if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
-            n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self._roi(self._seed_labels, h, w),
-                                              connectivity=8, ltype=cv2.CV_32S)[0]
-            if n_seeds == 2:
-                return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
-        seeded = np.zeros(n_parts, dtype=bool)
-        seeded[labels[seeds]] = True
-        # seeds: the strong blobs, and the truncated blobs without one
-        blob = self._roi(self._blob, h, w)
-        np.logical_or(seeds, np.logical_and(mask, ~seeded[labels]), out=blob)
-        below = self._roi(self._below, h, w)
-        np.logical_not(blob, out=below)
-        _, self._nearest = cv2.distanceTransformWithLabels(
-            below.view(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)
-        counts = np.bincount(self._nearest[mask], minlength=1)
-        order = np.argsort(counts)[::-1]
-        return [(int(k), int(counts[k])) for k in order if k > 0 and counts[k] >= min_cells - 1e-9]
-
-    def _blob_surface(self, img: np.ndarray, mask: np.ndarray, label: int) -> np.ndarray:
-        """The truncated surface of contact ``label`` alone (see _partition), bounding-box sized."""
-        if label == WHOLE_MASK:
-            return img
-        h, w = img.shape
-        blob = self._roi(self._blob, h, w)
-        np.equal(self._nearest, label, out=blob)
-        np.logical_and(blob, mask, out=blob)
-        out = self._roi(self._blob_img, h, w)
-        np.multiply(img, blob, out=out)
-        return out
-
-    def _measure_blob(self, img: np.ndarray, peak: float, cells: int, level: np.float32,
-                      out: ContactEstimate, x0: int, y0: int) -> int:
-        """Measure one blob into ``out``; 1 if it is a contact, else 0.
-
-        ``img``: the blob's truncated surface (0 elsewhere), a box whose first
-        cell is mesh column ``x0``, row ``y0``; ``peak``: its largest value.
-        """
-        if not peak > level or cells * self._cell_area < self._min_area:
-            return 0
-        t, shape_level = self._blob_levels(peak)
-        weighted = img
-        if t > self._trunc:
-            weighted = self._roi(self._weighted, *img.shape)
-            cv2.threshold(img, t, 0.0, cv2.THRESH_TOZERO, dst=weighted)
-            cells = cv2.countNonZero(weighted)
-        if not self._ellipse(weighted, x0, y0, out):
-            return 0
-        out.area_mm2 = cells * self._cell_area
-        self._shape_features(img, shape_level, out)
-        out.shape = ""
-        out.confidence = math.nan
-        return 1
-
-    def _ellipse(self, weighted: np.ndarray, x0: int, y0: int, out: ContactEstimate) -> bool:
-        """Centroid, FWHM widths, angle and strength of a (box of the) truncated surface into ``out``."""
-        m = cv2.moments(weighted)
-        m00 = m["m00"]
-        if not m00 > 0.0:
-            return False
-        step, area = self._step, self._cell_area
-        e = ellipse_from_central(
-            m00 * area, self._x0 + step * (x0 + m["m10"] / m00), self._y0 + step * (y0 + m["m01"] / m00),
-            m["mu20"] * self._mu2_scale, m["mu11"] * self._mu2_scale, m["mu02"] * self._mu2_scale)
-        out.contact = True
-        out.strength = e.strength
-        out.x_mm, out.y_mm = e.x_mm, e.y_mm
-        out.major_mm, out.minor_mm, out.angle_deg = e.major_mm, e.minor_mm, e.angle_deg
-        return True
-
-    def _shape_features(self, img: np.ndarray, level: float, out: ContactEstimate) -> None:
-        """Log-Hu invariants and q4 of ``img > level`` into ``out.hu`` / ``out.features``."""
-        hu, feats = out.hu, out.features
-        got = self._shape_moments.hu_q4(img, level)
-        if got is None:
-            hu.fill(np.nan)
-            feats.fill(np.nan)
-            return
-        h, feats[7] = got
-        for i in range(7):
-            hu[i] = feats[i] = log_hu_value(h[i])
-
-    def _track(self, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
-        """Slow baseline tracking on quiet contact-free frames."""
-        if self._contact_end_ns is not None and now_ns - self._contact_end_ns < self._holdoff_ns:
-            return
-        # quiet: no fiber departs from the common level by the off level or more (a uniform
-        # brightness drift is what the tracking is for; a press is local)
-        work = self._work
-        np.copyto(work, signal)
-        work.partition(self._mid)
-        common = work[self._mid]
-        np.subtract(signal, common, out=work)
-        np.abs(work, out=work)
-        if float(work.max()) >= self._off:
-            return
-        alpha = np.float32(1.0 - math.exp(-min(float(dt_ns), self._tau_ns) / self._tau_ns))
-        diff = np.subtract(means, self._baseline, out=self._work)
-        diff *= alpha
-        self._baseline += diff
-        self._baseline_updated()

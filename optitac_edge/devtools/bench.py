@@ -58,6 +58,9 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
+
 STAGES = ("whole_frame", "gray", "fiber_means", "baseline", "surface", "segment", "moments", "hu",
           "shape", "calibration", "encode")
 #: Frames (after the baseline) the pipeline runs before anything is measured; at least every
@@ -183,26 +186,26 @@ class _Samples:
 
 
 class StageTimer:
-    """Times one pipeline's frames and re-runs each stage in isolation right after each frame."""
+    """Times one pipeline's frames and re-runs each stage in isolation right after each frame,
+    through the pipeline's parts' public methods."""
 
-    def __init__(self, pipe: Any, n: int) -> None:
-        from optitac_edge.core.contact import ContactEstimate
+    def __init__(self, pipe: Pipeline, n: int) -> None:
         from optitac_edge.io.protocol.messages import ContactMessage
         from optitac_edge.io.protocol.wire import encode_contact
 
         self.pipe = pipe
         # preallocated, so that recording the samples does not grow the RSS being measured
         self.samples = {k: _Samples(n) for k in STAGES}
-        self._surface = np.zeros_like(pipe._surface)
+        self._surface = np.zeros(pipe.surface.size, dtype=np.float32)
         self._msg = ContactMessage()
         self._scratch = ContactEstimate()
         self._encode = encode_contact
-        c = pipe._corrector
+        c = pipe.corrector
         self._shapes = c.shapes if c is not None else None
         self._centroid = c.centroid if c is not None else None
         self._width = c.width if c is not None else None
 
-    def frame(self, frame: np.ndarray, t_ns: int) -> Any:
+    def frame(self, frame: np.ndarray, t_ns: int) -> ContactEstimate:
         p = self.pipe
         s = self.samples
         t0 = time.perf_counter_ns()
@@ -210,19 +213,15 @@ class StageTimer:
         s["whole_frame"].append(time.perf_counter_ns() - t0)
         if not est.baseline_ready:
             return est
-        sampler = p._sampler
-        s["gray"].append(_t(sampler.gather, frame))
-        s["fiber_means"].append(_t(sampler.reduce, p._means))
-        if p._gain_on:
-            s["baseline"].append(_t(p._compensated_signal, p._means, t_ns))
-        else:
-            s["baseline"].append(_t(np.subtract, p._baseline, p._means, p._signal))
-        s["surface"].append(_t(p._surface_op.compute, p._signal, self._surface))
+        s["gray"].append(_t(p.sampler.gather, frame))
+        s["fiber_means"].append(_t(p.sampler.reduce, p.means))
+        s["baseline"].append(_t(p.compute_signal, p.means, t_ns))
+        s["surface"].append(_t(p.surface_op.compute, p.signal, self._surface))
         s["segment"].append(_t(self._segment))
         if est.contact:
-            img, _, x, y, peak = p._box(p._surface)  # the pipeline's truncated surface (not timed)
-            s["moments"].append(_t(self._moments, img, x, y))
-            s["hu"].append(_t(self._hu, img, peak))
+            box = p.segmenter.box(p.surface)  # the pipeline's truncated surface (not timed)
+            s["moments"].append(_t(p.blobs.ellipse, box.img, box.x, box.y, self._scratch))
+            s["hu"].append(_t(self._hu, box.img, box.peak))
             if self._shapes is not None:
                 s["shape"].append(_t(self._shapes.classify, est.features))
             if self._centroid is not None or self._width is not None:
@@ -233,26 +232,24 @@ class StageTimer:
     def _segment(self) -> None:
         """Truncation, the bounding box and (several contacts allowed) the partition."""
         p = self.pipe
-        cells = p._truncate(self._surface)
+        seg = p.segmenter
+        cells = seg.truncate(self._surface)
         if cells:
-            img, mask, _, _, peak = p._box(self._surface)
-            if p._multi:
-                p._partition(img, peak, mask, cells)
-
-    def _moments(self, img: np.ndarray, x: int, y: int) -> None:
-        self.pipe._ellipse(img, x, y, self._scratch)
+            box = seg.box(self._surface)
+            if p.options.max_contacts > 1:
+                seg.partition(box, cells)
 
     def _hu(self, img: np.ndarray, peak: float) -> None:
-        p = self.pipe
-        p._shape_features(img, p._blob_levels(peak)[1], self._scratch)
+        blobs = self.pipe.blobs
+        blobs.shape_features(img, blobs.levels_of(peak)[1], self._scratch)
 
-    def _lookup(self, est: Any) -> None:
+    def _lookup(self, est: ContactEstimate) -> None:
         if self._centroid is not None:
             self._centroid.correct(est.x_mm, est.y_mm)
         if self._width is not None:
             self._width.correct(est.major_mm, est.minor_mm)
 
-    def _encode_frame(self, est: Any, t_ns: int) -> None:
+    def _encode_frame(self, est: ContactEstimate, t_ns: int) -> None:
         self._msg.fill(est, t_ns, t_ns, True)
         self._encode(self._msg, 0)
 
@@ -273,8 +270,6 @@ def _feed(pipe: Any, frames: list[np.ndarray], rest: int, n: int, t_ns: int, per
 
 def measure_stages(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps: float) -> dict[str, Any]:
     """Whole-frame and per-stage times over ``n`` frames, RSS growth over them, contact share."""
-    from optitac_edge.core.pipeline import Pipeline
-
     period = int(1e9 / fps)
     pipe = Pipeline(bundle)
     t = _feed(pipe, frames[:rest], 0, rest, 0, period) if rest else 0
@@ -293,13 +288,11 @@ def measure_stages(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
     return {"frames": n, "contact_fraction": round(contacts[0] / max(n, 1), 3),
             "stages": {k: _summary(v.values) for k, v in timer.samples.items()},
             "rss_growth_bytes": rss1 - rss0, "rss_bytes": rss1,
-            "surface": type(pipe._surface_op).__name__}
+            "surface": type(pipe.surface_op).__name__}
 
 
 def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps: float) -> dict[str, Any]:
     """tracemalloc: net bytes per frame after warm-up, and the largest transient within a frame."""
-    from optitac_edge.core.pipeline import Pipeline
-
     period = int(1e9 / fps)
     pipe = Pipeline(bundle)
     t = _feed(pipe, frames[:rest], 0, rest, 0, period) if rest else 0
@@ -328,7 +321,6 @@ def measure_reference(bundle: Any, frames: list[np.ndarray], rest: int, n: int, 
                       fast_median_us: float | None) -> dict[str, Any]:
     """The paper's method done literally vs the fast pipeline in paper mode, same frames."""
     from optitac_edge.core.options import ContactOptions
-    from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.devtools.reference import ReferencePipeline
 
     period = int(1e9 / fps)
@@ -663,8 +655,6 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
                            "fibers": bundle.fibers.n_fibers, "fiber_pixels": int(bundle.fibers.pixel_index.size),
                            "mesh": bundle.grid.n}
     log(f"bench: {described}; {fmt} {w}x{h}; {frames} frames")
-    from optitac_edge.core.pipeline import single_threaded_opencv
-
     with single_threaded_opencv():  # as the service runs the loop
         res["pipeline"] = measure_stages(bundle, frame_list, rest, frames, fps)
         whole = res["pipeline"]["stages"]["whole_frame"]

@@ -188,7 +188,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
         raise BundleError(f"{path}: is a directory, not a calibration bundle") from None
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as exc:
         raise BundleError(f"{path}: not a readable calibration bundle (corrupted or truncated: {exc})") from None
-    except Exception as exc:  # zipfile/zlib raise assorted errors on damaged data
+    except Exception as exc:  # noqa: BLE001 - zipfile/zlib raise assorted errors on damaged data
         raise BundleError(f"{path}: corrupted calibration bundle ({type(exc).__name__})") from None
     try:
         meta_bytes = members.pop("meta").tobytes()

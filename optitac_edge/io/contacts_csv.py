@@ -6,7 +6,10 @@ import csv
 import math
 import os
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 CONTACTS_HEADER = (
     "frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength",
@@ -61,7 +64,7 @@ class ContactsCsvWriter:
         self._file = None
         self._tmp.unlink(missing_ok=True)
 
-    def __enter__(self) -> ContactsCsvWriter:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, exc_type: object, *rest: object) -> None:

@@ -19,9 +19,12 @@ import logging
 import threading
 import time
 from collections.abc import Iterable
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from optitac_edge.errors import OptiTacError
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +204,7 @@ class LedRing:
     def closed(self) -> bool:
         return self._closed
 
-    def __enter__(self) -> LedRing:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -220,7 +223,7 @@ class NoLed:
     def close(self) -> None:
         self.closed = True
 
-    def __enter__(self) -> NoLed:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -19,12 +19,15 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, RecordingError
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
 SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
@@ -223,7 +226,7 @@ class RecordingWriter:
         self._truth_rows: list[list[str]] | None = [] if with_truth else None
         self._closed = False
 
-    def __enter__(self) -> RecordingWriter:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -8,7 +8,7 @@ the pipeline's estimates.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 from typing import Any
 
@@ -101,7 +101,7 @@ class ContactMessage:
     """
 
     sensor_id: int = 0
-    flags: ContactFlags = ContactFlags(0)
+    flags: ContactFlags = field(default_factory=lambda: ContactFlags(0))
     t_us: int = 0
     x_mm: float = 0.0
     y_mm: float = 0.0
@@ -130,7 +130,9 @@ class ContactMessage:
             flags |= ContactFlags.DEGRADED
         self.flags = flags
         self.t_us = t_ns // 1000
-        finite = (lambda v: float(v) if contact and math.isfinite(v) else 0.0)  # noqa: E731
+        def finite(v: float) -> float:
+            return float(v) if contact and math.isfinite(v) else 0.0
+
         self.x_mm, self.y_mm = finite(est.x_mm), finite(est.y_mm)
         self.major_mm, self.minor_mm = finite(est.major_mm), finite(est.minor_mm)
         self.angle_deg = finite(est.angle_deg)

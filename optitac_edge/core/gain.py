@@ -1,0 +1,101 @@
+"""The frame's common-mode LED gain, measured from the brightest fibers and divided out (``compensate_gain``).
+
+``ratio = (mean - black) / (baseline - black)`` per fiber is ``g (1 - d)``
+with ``g`` the LED gain and ``d >= 0`` the darkening by a press, so the
+brightest fibers measure ``g``: the median of the ratios within ``delta`` (the
+off level) of the cluster around the upper quartile, twice. The gain may
+differ from the last contact-free frame's by a tolerance plus a drift rate
+times the time since, no more: a large press cannot pass for a dimming.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from optitac_edge.core.baseline import Baseline
+
+
+class GainCompensation:
+    """The LED gain of each frame and the gain-compensated signal; allocates nothing per frame.
+
+    Parameters
+    ----------
+    live : ndarray of int, shape (L,)
+        Indices of the fibers the gain is measured on (the live ones).
+    n_fibers : int
+        N.
+    black_level : float
+        Gray level of a fiber with no light.
+    rate_per_s : float
+        How fast the gain may drift without evidence, per s.
+    relative : bool
+        The signal in relative units (else gray levels).
+    """
+
+    def __init__(self, live: np.ndarray, n_fibers: int, black_level: float, rate_per_s: float,
+                 relative: bool) -> None:
+        self._live_idx = np.asarray(live, dtype=np.intp)
+        self._live = np.zeros(self._live_idx.size, dtype=np.float32)
+        #: Per-fiber ratio of the last frame (scratch; see :meth:`rest_means`).
+        self._ratio = np.zeros(n_fibers, dtype=np.float32)
+        self._black = np.float32(black_level)
+        self._rate = float(rate_per_s) * 1e-9  # per ns
+        self._relative = relative
+        #: The gain the last frame was compensated with (1 before any frame).
+        self.gain = 1.0
+        #: The last frame's own gain estimate, before the limit.
+        self.frame_gain = 1.0
+        #: The last contact-free frame's gain and its time, ns.
+        self.reference = 1.0
+        self.reference_ns = 0
+        self._tolerance = 0.0
+        self._keep = 1.0
+
+    def set_levels(self, delta: float, tolerance: float) -> None:
+        """``delta``: the cluster width (the off level, relative); ``tolerance``: the gain change
+        allowed without evidence (relative)."""
+        self._keep = 1.0 - delta
+        self._tolerance = tolerance
+
+    def reset(self, now_ns: int = 0) -> None:
+        """Gain 1 from ``now_ns`` on (a new baseline)."""
+        self.reference = self.gain = 1.0
+        self.reference_ns = now_ns
+
+    def contact_free(self, now_ns: int) -> None:
+        """The last frame had no contact: its own gain estimate is the reference from now on."""
+        self.reference, self.reference_ns = self.frame_gain, now_ns
+
+    def signal(self, means: np.ndarray, baseline: Baseline, now_ns: int, out: np.ndarray) -> np.ndarray:
+        """The inverted signal of ``means`` with the frame's gain divided out, into ``out`` (shape (N,)).
+
+        Relative units: ``1 - ratio / g``; gray levels: ``(baseline - black) - (mean - black) / g``.
+        """
+        ratio = np.subtract(means, self._black, out=self._ratio)
+        ratio *= baseline.inv_level
+        live = self._live
+        ratio.take(self._live_idx, out=live)
+        live.sort()
+        n = live.size
+        g = float(live[(3 * (n - 1)) // 4])
+        keep = self._keep
+        for _ in range(2):
+            j = int(live.searchsorted(np.float32(g * keep)))
+            g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
+        self.frame_gain = g
+        band = self._tolerance + self._rate * float(now_ns - self.reference_ns)
+        g = min(max(g, self.reference - band), self.reference + band)
+        self.gain = g = max(g, 1e-3)
+        np.multiply(ratio, np.float32(-1.0 / g), out=out)
+        out += 1.0
+        if not self._relative:
+            out *= baseline.level
+        return out
+
+    def rest_means(self, baseline: Baseline) -> np.ndarray:
+        """The last frame's fiber means with the gain divided out (what the baseline tracks: per-fiber
+        drift, not the LED gain). Overwrites the ratio scratch; a view valid until the next frame."""
+        means = np.multiply(self._ratio, baseline.level, out=self._ratio)
+        means /= np.float32(self.gain)
+        means += self._black
+        return means

@@ -1,0 +1,142 @@
+"""Truncate the surface and split it into contacts; everything after the truncation reads only the
+bounding box of the cells above the level.
+
+The skin's spread joins neighbouring presses at the (low) noise level, so
+contacts are seeded by the blobs above ``split_fraction`` of the strongest
+peak, plus any blob of the truncated surface that holds no such seed (a
+weaker, separate press); every cell above the truncation level then belongs
+to its nearest seed.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from optitac_edge.core.levels import ContactLevels
+
+#: :meth:`Segmenter.partition`'s label for "all cells above the truncation level" (one blob, one seed).
+WHOLE_MASK = -1
+
+
+class Box(NamedTuple):
+    """The bounding box of the cells above the truncation level.
+
+    Attributes
+    ----------
+    img : ndarray, shape (h, w), float32
+        View of the truncated surface in the box.
+    mask : ndarray, shape (h, w), bool
+        View of the cells above the level.
+    x, y : int
+        The box's first mesh column and row.
+    peak : float
+        The largest value of ``img``.
+    """
+
+    img: np.ndarray
+    mask: np.ndarray
+    x: int
+    y: int
+    peak: float
+
+
+class Segmenter:
+    """Truncation, bounding box and the multi-contact partition of an (n, n) mesh; preallocated buffers.
+
+    Parameters
+    ----------
+    n : int
+        Mesh size.
+    levels : ContactLevels
+        The truncation level is read from here at every frame.
+    min_cells : float
+        Fewest cells of a contact (``min_area_mm2 / cell_area``).
+    split_fraction : float
+        Seeds are the blobs above this fraction of the strongest peak.
+    """
+
+    def __init__(self, n: int, levels: ContactLevels, min_cells: float, split_fraction: float) -> None:
+        self.n = n
+        self.levels = levels
+        self._min_cells = float(min_cells)
+        self._split_frac = float(split_fraction)
+        n_cells = n * n
+        self._mask2d = np.zeros((n, n), dtype=bool)
+        self._mask_u8 = self._mask2d.view(np.uint8)
+        # bounding-box sized scratch (contiguous (h, w) views at the start, see roi)
+        self._split_mask = np.zeros(n_cells, dtype=bool)
+        self._blob = np.zeros(n_cells, dtype=bool)
+        self._below = np.zeros(n_cells, dtype=bool)
+        self._labels = np.zeros(n_cells, dtype=np.int32)
+        self._seed_labels = np.zeros(n_cells, dtype=np.int32)
+        self._blob_img = np.zeros(n_cells, dtype=np.float32)
+        self._nearest = np.zeros((n, n), dtype=np.int32)
+
+    @staticmethod
+    def roi(buffer: np.ndarray, h: int, w: int) -> np.ndarray:
+        """A contiguous (h, w) view at the start of a flat (n*n,) buffer."""
+        return buffer[:h * w].reshape(h, w)
+
+    def truncate(self, surface: np.ndarray) -> int:
+        """Values <= the truncation level become 0, in place (``surface``: shape (n*n,) or (n, n));
+        the number of cells above it."""
+        img = surface.reshape(self.n, self.n)
+        cv2.threshold(img, float(self.levels.trunc), 0.0, cv2.THRESH_TOZERO, dst=img)
+        cells = cv2.countNonZero(img)
+        if cells:  # the levels are > 0, so "above the level" is "not truncated to 0"
+            np.greater(img, 0.0, out=self._mask2d)
+        return cells
+
+    def box(self, surface: np.ndarray) -> Box:
+        """The bounding box of the cells above the level (after :meth:`truncate` found some)."""
+        x, y, w, h = cv2.boundingRect(self._mask_u8)
+        img = surface.reshape(self.n, self.n)[y:y + h, x:x + w]
+        return Box(img, self._mask2d[y:y + h, x:x + w], x, y, float(cv2.minMaxLoc(img)[1]))
+
+    def partition(self, box: Box, cells: int) -> list[tuple[int, int]]:
+        """Split the box into contacts: ``(label, cells)`` of each, largest first, at least ``min_cells``.
+
+        One blob holding one seed is ``[(WHOLE_MASK, cells)]``; otherwise each
+        label is a seed of :meth:`contact_surface`.
+        """
+        img, mask = box.img, box.mask
+        h, w = img.shape
+        split = max(float(self.levels.trunc), self._split_frac * box.peak)
+        seeds = self.roi(self._split_mask, h, w)
+        np.greater(img, np.float32(split), out=seeds)
+        labels = self.roi(self._labels, h, w)
+        n_parts = cv2.connectedComponents(mask.view(np.uint8), labels=labels, connectivity=8,
+                                          ltype=cv2.CV_32S)[0]
+        min_cells = self._min_cells
+        if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
+            n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self.roi(self._seed_labels, h, w),
+                                              connectivity=8, ltype=cv2.CV_32S)[0]
+            if n_seeds == 2:
+                return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
+        seeded = np.zeros(n_parts, dtype=bool)
+        seeded[labels[seeds]] = True
+        # seeds: the strong blobs, and the truncated blobs without one
+        blob = self.roi(self._blob, h, w)
+        np.logical_or(seeds, np.logical_and(mask, ~seeded[labels]), out=blob)
+        below = self.roi(self._below, h, w)
+        np.logical_not(blob, out=below)
+        _, self._nearest = cv2.distanceTransformWithLabels(
+            below.view(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)
+        counts = np.bincount(self._nearest[mask], minlength=1)
+        order = np.argsort(counts)[::-1]
+        return [(int(k), int(counts[k])) for k in order if k > 0 and counts[k] >= min_cells - 1e-9]
+
+    def contact_surface(self, box: Box, label: int) -> np.ndarray:
+        """The truncated surface of contact ``label`` of the last :meth:`partition` alone, box-sized."""
+        if label == WHOLE_MASK:
+            return box.img
+        h, w = box.img.shape
+        blob = self.roi(self._blob, h, w)
+        np.equal(self._nearest, label, out=blob)
+        np.logical_and(blob, box.mask, out=blob)
+        out = self.roi(self._blob_img, h, w)
+        np.multiply(box.img, blob, out=out)
+        return out
