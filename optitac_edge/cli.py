@@ -13,7 +13,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -451,14 +451,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     verbose = args.verbose or args.command == "run"  # the service logs its life to journald
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    handlers = {"bench": _cmd_bench, "sim": _cmd_sim, "replay": _cmd_replay, "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak,
-                "evaluate": _cmd_evaluate,
-                "export-onnx": _cmd_export_onnx, "report": _cmd_report,
-                "calibrate": {"fibers": _cmd_calibrate_fibers, "centroid": _cmd_calibrate_model,
-                              "width": _cmd_calibrate_model, "shapes": _cmd_calibrate_model}}
-    handler = handlers[args.command]
-    if isinstance(handler, dict):
-        handler = handler[args.step]
+    handlers: dict[str, Callable[[argparse.Namespace], int]] = {
+        "sim": _cmd_sim, "calibrate fibers": _cmd_calibrate_fibers, "calibrate centroid": _cmd_calibrate_model,
+        "calibrate width": _cmd_calibrate_model, "calibrate shapes": _cmd_calibrate_model,
+        "evaluate": _cmd_evaluate, "export-onnx": _cmd_export_onnx, "report": _cmd_report, "replay": _cmd_replay,
+        "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench}
+    handler = handlers[f"{args.command} {args.step}" if args.command == "calibrate" else args.command]
     try:
         return handler(args)
     except OptiTacError as exc:

@@ -173,8 +173,8 @@ def _normalised(img: np.ndarray, how: Normalisation, radius: float) -> np.ndarra
         f = max(1.0, radius / 2.0)
         small = cv2.resize(img, None, fx=1.0 / f, fy=1.0 / f, interpolation=cv2.INTER_AREA)
         peak = cv2.dilate(small, _disc(10.0 * radius / f)).astype(np.float32)
-        peak = cv2.blur(peak, (_odd(10.0 * radius / f),) * 2)
-        peak = cv2.resize(peak, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
+        peak = np.asarray(cv2.blur(peak, (_odd(10.0 * radius / f),) * 2))
+        peak = np.asarray(cv2.resize(peak, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR))
         floor = max(8.0, 0.25 * float(peak.max()))
         out = img.astype(np.float32) * (255.0 / np.maximum(peak, floor))
         return np.clip(out, 0, 255).astype(np.uint8)
@@ -183,8 +183,9 @@ def _normalised(img: np.ndarray, how: Normalisation, radius: float) -> np.ndarra
 
 def _watershed(img: np.ndarray, binary: np.ndarray, marker_frac: float) -> np.ndarray:
     """Label image (H, W) int32: 0 background, 1..M blobs (watershed ridges -> 0)."""
-    n_cc, cc = cv2.connectedComponents(binary, connectivity=8)
-    dist = cv2.distanceTransform(binary, cv2.DIST_L2, 5)
+    n_cc, cc_mat = cv2.connectedComponents(binary, connectivity=8)
+    cc = np.asarray(cc_mat, dtype=np.int32)
+    dist = np.asarray(cv2.distanceTransform(binary, cv2.DIST_L2, 5))
     cc_max = np.zeros(n_cc, dtype=np.float32)
     fg = cc > 0
     np.maximum.at(cc_max, cc[fg], dist[fg])

@@ -84,7 +84,7 @@ def calibrate_fibers(
     matrix, factors = build_interpolation(layout, grid)
     report = _jsonable(result.report)
     log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, report)
-    noise = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
+    noise: dict[str, Any] = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
     log.info("rest noise: %s", noise)
     options = dataclasses.replace(options or ContactOptions(), **noise)
     return CalibrationBundle(

@@ -132,12 +132,12 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         measured, true = arrays["report/width_measured"], arrays["report/width_true"]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
         w = corrector.width
-        for ax, k, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
-            ax.scatter(true, measured[:, k], s=10, label="measured FWHM")
-            grid = np.linspace(min(measured[:, k].min(), amap.knots_measured[0]) * 0.95,
-                               measured[:, k].max() * 1.05, 100)
+        for ax, col, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
+            ax.scatter(true, measured[:, col], s=10, label="measured FWHM")
+            grid = np.linspace(min(measured[:, col].min(), amap.knots_measured[0]) * 0.95,
+                               measured[:, col].max() * 1.05, 100)
             ax.plot([amap(g) for g in grid], grid, "r-", label=f"{w.kind} width model")
-            fitted = np.array([amap(v) for v in measured[:, k]])
+            fitted = np.array([amap(v) for v in measured[:, col]])
             ax.scatter(true, fitted, s=10, marker="x", c="k", label="calibrated")
             ax.plot([0, true.max()], [0, true.max()], "k:", lw=0.8)
             rmse = float(np.sqrt(np.mean((fitted - true) ** 2)))
@@ -187,8 +187,8 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         hu, label = arrays["report/shape_hu"], arrays["report/shape_label"]
         fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)
         for ax, (a, b) in zip(axes, ((0, 1), (0, 2), (1, 2))):
-            for k, s in enumerate(SHAPES):
-                sel = label == k
+            for kind, s in enumerate(SHAPES):
+                sel = label == kind
                 if sel.any():
                     ax.scatter(hu[sel, a], hu[sel, b], s=8, c=_COLOURS[s], label=s)
             ax.set_xlabel(f"M{a + 1} (log)")

@@ -122,7 +122,8 @@ class FiberSampler:
         # RGB: one flat gather of the three bytes of every fiber pixel (faster than rows of 3),
         # then OpenCV's RGB -> gray on them as one row of pixels: the same rounded BT.601 gray
         # as cv2.cvtColor of the whole frame (fiber calibration, the reference method)
-        self._index3 = (self._index[:, None] * 3 + np.arange(3)).ravel() if rgb else None
+        # RGB: the three bytes of each fiber pixel (unused for gray and YUV420)
+        self._index3 = (self._index[:, None] * 3 + np.arange(3)).ravel() if rgb else self._index
         self._rgb = np.empty((1, p, 3), dtype=np.uint8) if rgb else None
         # the fiber pixels' gray levels, uint8; summed in the narrowest unsigned integer that
         # holds 255 * the largest fiber's pixel count (exact; uint16 measures 3.7 us here against
@@ -132,7 +133,7 @@ class FiberSampler:
         self._gathered = np.empty(p, dtype=np.uint8)
         self._gathered_row = self._gathered.reshape(1, p)
         # one byte of every 64-byte block of the frame the gather reads, in address order
-        flat = self._index3 if rgb else self._index
+        flat = self._index3
         self._probe = (np.unique(flat // CACHE_LINE) * CACHE_LINE).astype(np.intp)
         self._probed = np.empty(self._probe.size, dtype=np.uint8)
 

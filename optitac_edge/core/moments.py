@@ -67,7 +67,7 @@ class ContactEllipse(NamedTuple):
     strength: float
 
 
-_NAN_ELLIPSE = ContactEllipse(*([math.nan] * 7), 0.0)
+_NAN_ELLIPSE = ContactEllipse(math.nan, math.nan, math.nan, math.nan, math.nan, math.nan, math.nan, 0.0)
 
 
 def _powers(coord: np.ndarray, order: int) -> np.ndarray:

@@ -123,8 +123,8 @@ class Segmenter:
         np.logical_or(seeds, np.logical_and(mask, ~seeded[labels]), out=blob)
         below = self.roi(self._below, h, w)
         np.logical_not(blob, out=below)
-        _, self._nearest = cv2.distanceTransformWithLabels(
-            below.view(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)
+        self._nearest = np.asarray(cv2.distanceTransformWithLabels(
+            below.view(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)[1])
         counts = np.bincount(self._nearest[mask], minlength=1)
         order = np.argsort(counts)[::-1]
         return [(int(k), int(counts[k])) for k in order if k > 0 and counts[k] >= min_cells - 1e-9]

@@ -12,7 +12,7 @@ systematic error of about 0.3 mm that the monotone map removes.
 from __future__ import annotations
 
 from bisect import bisect_right
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,9 @@ class AxisMap:
 
     knots_measured: np.ndarray
     knots_true: np.ndarray
+    # the knots as plain floats (set in __post_init__): per frame, bisect on a list
+    _km: list[float] = field(init=False, repr=False)
+    _kt: list[float] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         km, kt = self.knots_measured, self.knots_true

@@ -409,7 +409,7 @@ def _latencies(rows: list[list[int]], seqs: list[int]) -> tuple[np.ndarray, int]
         recv_us = recv_ns // 1000
         age_us = (recv_us - t_us) % (1 << 32)  # t_us wraps at 32 bits
         lat.append(age_us * 1000 + recv_ns % 1000)
-    gaps = np.diff(np.asarray(seqs, dtype=np.int64)) % (1 << 16)
+    gaps = np.mod(np.diff(np.asarray(seqs, dtype=np.int64)), 1 << 16)
     missing = int(np.sum(gaps[gaps > 1] - 1)) if gaps.size else 0
     return np.asarray(lat, dtype=np.float64), missing
 
@@ -538,7 +538,7 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     ``queue_frames`` overrides the sim board's ``camera.queue_frames``.
     """
     from optitac_edge.io.bundle_file import load_bundle
-    from optitac_edge.io.transports import open_transport
+    from optitac_edge.io.transports.serial import SerialTransport
     from optitac_edge.service.board_config import load_board_config
     from optitac_edge.service.loop import Service
     from optitac_edge.sim.camera import SimCamera
@@ -557,7 +557,7 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     else:
         camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11,
                            queue_frames=config.camera.queue_frames)
-    transport = open_transport("serial", url=path, baudrate=921600, sensor_id=config.sensor.id)
+    transport = SerialTransport(path, baudrate=921600, sensor_id=config.sensor.id)
     steal0 = _steal_jiffies()
     try:
         service = Service(config, bundle, camera, transport)

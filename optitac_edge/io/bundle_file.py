@@ -62,7 +62,7 @@ def _load_factors(path: Path, members: Mapping[str, np.ndarray]) -> SurfaceFacto
 
 def _arrays(bundle: CalibrationBundle) -> dict[str, np.ndarray]:
     t = bundle.fibers
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "layout_ids": bundle.layout.ids.astype(np.int64),
         "layout_xy_mm": bundle.layout.xy_mm.astype(np.float64),
         "fiber_pixel_index": t.pixel_index.astype(np.int32),
@@ -145,7 +145,7 @@ def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundl
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with tmp.open("wb") as f:
-            np.savez(f, **members)
+            np.savez(f, **members)  # type: ignore[arg-type]  # numpy's stub: the first keyword is allow_pickle
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -28,10 +28,10 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-try:
+if sys.version_info >= (3, 11):
     import tomllib
-except ModuleNotFoundError:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
-    import tomli as tomllib  # type: ignore[no-redef]
+else:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
+    import tomli as tomllib
 
 from optitac_edge.errors import ConfigError
 from optitac_edge.io.cameras.frame_ring import MAX_DEPTH

@@ -14,6 +14,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.errors import BundleError, CameraError, OptiTacError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
@@ -156,12 +158,13 @@ def calibrate_from_camera(config: BoardConfig, camera: Camera,
         adjust_led(config, camera, led)
     n = config.calibration.rest_frames
     log.info("calibrating the fiber map from %d rest frames", n)
-    frames = []
+    frames: list[np.ndarray] = []
     while len(frames) < n:
         captured = camera.read(config.camera.timeout_s)
         if captured is None:
             raise CameraError("camera ended before the rest frames were captured")
         frames.append(captured.frame.copy())
-    layout = load_layout_csv(config.calibration.layout_path) if config.calibration.layout else None
+    layout_path = config.calibration.layout_path
+    layout = load_layout_csv(layout_path) if layout_path is not None else None
     return calibrate_fibers(frames, camera.pixel_format, layout=layout,
                             rotation_hint_deg=config.calibration.rotation_deg, mirror=config.calibration.mirror)

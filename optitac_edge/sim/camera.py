@@ -6,6 +6,7 @@ import math
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -13,8 +14,21 @@ from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
 from optitac_edge.io.clock import Clock
+from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
+
+
+@dataclass(frozen=True)
+class _Press:
+    """One press of the program: the indenter at full depth and its timing (frames)."""
+
+    indenter: Indenter
+    t0: int
+    ramp: int
+    hold: int
 
 
 class PressProgram:
@@ -29,37 +43,36 @@ class PressProgram:
         self._fps = fps
         self._rest = rest_frames
         self._radius = array_radius_mm
-        self._press: dict[str, float] | None = None
+        self._press: _Press | None = None
         self._start = self._end = rest_frames
 
-    def _new_press(self, start: int) -> None:
+    def _new_press(self, start: int) -> _Press:
         rng, fps = self._rng, self._fps
         shape = str(rng.choice(_SHAPES))
         size = float(rng.uniform(1.5, 2.5) if shape == "edge" else rng.uniform(3.0, 9.0))
         reach = max(self._radius * 0.8 - (6.0 if shape == "edge" else size / 2.0) - 1.0, 0.0)
         r, phi = reach * math.sqrt(rng.uniform()), rng.uniform(0, 2 * math.pi)
         gap, ramp, hold = (int(rng.uniform(a, b) * fps) + 1 for a, b in ((0.3, 1.0), (0.1, 0.25), (0.4, 1.5)))
-        self._press = {"shape": shape, "x": r * math.cos(phi), "y": r * math.sin(phi),
-                       "angle": float(rng.uniform(-90, 90)), "size": size,
-                       "depth": float(rng.uniform(1.5, 3.5)), "ramp": ramp, "hold": hold,
-                       "t0": start + gap}
+        angle = float(rng.uniform(-90, 90))
+        depth = float(rng.uniform(1.5, 3.5))
+        indenter = Indenter(shape=shape, x_mm=r * math.cos(phi), y_mm=r * math.sin(phi), angle_deg=angle,
+                            size_mm=size, depth_mm=depth)
         self._start = start
         self._end = start + gap + 2 * ramp + hold
+        return _Press(indenter, start + gap, ramp, hold)
 
-    def at(self, frame: int) -> dict[str, float] | None:
-        """The press at ``frame`` (shape, pose, size, current depth), or None."""
+    def at(self, frame: int) -> Indenter | None:
+        """The indenter at ``frame`` (shape, pose, size, current depth), or None."""
         if frame < self._rest:
             return None
         if self._press is None or frame >= self._end:
-            self._new_press(max(frame, self._end))
+            self._press = self._new_press(max(frame, self._end))
         p = self._press
-        assert p is not None
-        t = frame - p["t0"]
-        ramp, hold = p["ramp"], p["hold"]
-        if t < 0 or t >= 2 * ramp + hold:
+        t = frame - p.t0
+        if t < 0 or t >= 2 * p.ramp + p.hold:
             return None
-        frac = min(t / ramp, 1.0, (2 * ramp + hold - t) / ramp)
-        return {**p, "depth": p["depth"] * frac} if frac > 0.05 else None
+        frac = min(t / p.ramp, 1.0, (2 * p.ramp + p.hold - t) / p.ramp)
+        return replace(p.indenter, depth_mm=p.indenter.depth_mm * frac) if frac > 0.05 else None
 
 
 class SimCamera(Camera):
@@ -103,11 +116,7 @@ class SimCamera(Camera):
         if realtime and clock is not None:
             raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
         check_queue_frames(queue_frames)
-        from optitac_edge.sim.optics import CameraOptics
-        from optitac_edge.sim.sensor import SimulatedSensor
-        from optitac_edge.sim.skin import Indenter
 
-        self._indenter_cls = Indenter
         self.sensor = SimulatedSensor(
             optics=CameraOptics(width=width, height=height, rgb=rgb, rotation_deg=rotation_deg, mirror=mirror),
             seed=seed,
@@ -121,21 +130,18 @@ class SimCamera(Camera):
         # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)
         self._queue_frames = queue_frames
         self._ahead = max(3, queue_frames + 1)
-        self._ready: deque[tuple[int, np.ndarray, dict[str, float] | None]] = deque()
+        self._ready: deque[tuple[int, np.ndarray, Indenter | None]] = deque()
         self._cond = threading.Condition()
         self._stop_render = threading.Event()
         self._render_thread: threading.Thread | None = None
         self._clock = clock
         self._t0_ns = time.monotonic_ns() if clock is None else clock.monotonic_ns()
         #: Ground truth of the last frame delivered (None when no contact).
-        self.truth: dict[str, float] | None = None
+        self.truth: Indenter | None = None
 
-    def _render(self, seq: int) -> tuple[np.ndarray, dict[str, float] | None]:
+    def _render(self, seq: int) -> tuple[np.ndarray, Indenter | None]:
         press = self._program.at(seq)
-        indenters = () if press is None else (self._indenter_cls(
-            shape=press["shape"], x_mm=press["x"], y_mm=press["y"], angle_deg=press["angle"],
-            size_mm=press["size"], depth_mm=press["depth"]),)
-        return self.sensor.frame(indenters), press
+        return self.sensor.frame(() if press is None else (press,)), press
 
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
         if self._realtime:

@@ -15,6 +15,7 @@ transmission spread, fixed-pattern noise).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -168,7 +169,7 @@ def sensor_variant(
     width: int = 640,
     height: int = 480,
     layout: FiberLayout | None = None,
-) -> tuple[dict[str, object], SkinModel]:
+) -> tuple[dict[str, Any], SkinModel]:
     """A reproducible, plausible different sensor; variant 0 is the default one.
 
     Parameters
@@ -208,7 +209,7 @@ def sensor_variant(
     layout = hex_layout() if layout is None else layout
     rng = np.random.default_rng([int(variant), 4242])
     u = rng.uniform
-    ov: dict[str, object] = {
+    ov: dict[str, Any] = {
         "fill_fraction": float(u(0.6, 0.9)),
         "rotation_deg": float(u(0.0, 360.0)),
         "mirror": bool(rng.integers(0, 2)),

@@ -1,7 +1,7 @@
 """A fake OpenCV for the v4l2 backend: ``VideoCapture`` over simulated V4L2 devices.
 
 Everything but the capture comes from the real ``cv2`` (constants,
-``VideoWriter_fourcc``); :class:`VideoCapture` follows the real V4L2 backend:
+``VideoWriter.fourcc``); :class:`VideoCapture` follows the real V4L2 backend:
 ``VideoCapture(index_or_path, apiPreference)``, ``isOpened()``, ``set(prop,
 value) -> bool``, ``get(prop) -> float``, ``grab() -> bool`` (blocks until the
 next frame), ``retrieve(image=None, flag=0) -> (bool, ndarray)`` (writes into
@@ -23,7 +23,7 @@ import numpy as np
 
 _NAMES = [n for n in dir(_cv2) if n.startswith(("CAP_", "COLOR_"))]
 globals().update({n: getattr(_cv2, n) for n in _NAMES})
-VideoWriter_fourcc = _cv2.VideoWriter_fourcc
+VideoWriter = _cv2.VideoWriter  # for VideoWriter.fourcc
 cvtColor = _cv2.cvtColor
 
 BUILD_GSTREAMER = False
@@ -34,7 +34,7 @@ def getBuildInformation() -> str:
 
 
 def _fourcc(s: str) -> int:
-    return int(_cv2.VideoWriter_fourcc(*s))
+    return int(_cv2.VideoWriter.fourcc(*s))
 
 
 @dataclass

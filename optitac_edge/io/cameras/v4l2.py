@@ -40,7 +40,7 @@ _FAIL_LIMIT = 20  # consecutive failed grabs before the device counts as gone
 
 
 def fourcc_code(fourcc: str) -> int:
-    return int(cv2.VideoWriter_fourcc(*fourcc))
+    return int(cv2.VideoWriter.fourcc(*fourcc))
 
 
 def fourcc_str(value: float) -> str:

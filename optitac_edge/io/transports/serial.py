@@ -33,7 +33,7 @@ from optitac_edge.io.transports.base import Transport
 try:  # pyserial is needed only when this transport is used (lazy registry)
     import serial
 except ImportError:  # pragma: no cover - reported when a SerialTransport is created
-    serial = None  # type: ignore[assignment]
+    serial = None
 
 log = logging.getLogger(__name__)
 
