@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 
-from optitac_edge.io.sdnotify import Notifier, notify, watchdog_period
+from optitac_edge.io.sdnotify import Notifier, watchdog_period
 
 
 @pytest.fixture
@@ -23,7 +23,7 @@ def listener(tmp_path):
 
 def test_notify_to_path_socket(listener):
     path, sock = listener
-    assert notify("READY=1", env={"NOTIFY_SOCKET": path})
+    assert Notifier(env={"NOTIFY_SOCKET": path}).send("READY=1")
     assert sock.recv(1024) == b"READY=1"
 
 
@@ -33,7 +33,7 @@ def test_notify_abstract_namespace():
     sock.bind(b"\0" + name.encode())
     sock.settimeout(2.0)
     try:
-        assert notify("WATCHDOG=1", env={"NOTIFY_SOCKET": "@" + name})
+        assert Notifier(env={"NOTIFY_SOCKET": "@" + name}).send("WATCHDOG=1")
         assert sock.recv(1024) == b"WATCHDOG=1"
     finally:
         sock.close()
@@ -41,14 +41,15 @@ def test_notify_abstract_namespace():
 
 def test_notify_without_socket_is_a_noop(monkeypatch):
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
-    assert notify("READY=1") is False
-    assert notify("READY=1", env={"NOTIFY_SOCKET": ""}) is False
-    assert notify("READY=1", env={"NOTIFY_SOCKET": "vsock:2:1234"}) is False
+    assert Notifier().send("READY=1") is False
+    assert Notifier(env={"NOTIFY_SOCKET": ""}).send("READY=1") is False
+    assert Notifier(env={"NOTIFY_SOCKET": "vsock:2:1234"}).send("READY=1") is False
 
 
 def test_notify_never_raises(tmp_path):
-    assert notify("READY=1", env={"NOTIFY_SOCKET": str(tmp_path / "absent.sock")}) is False
-    assert notify("READY=1", env={"NOTIFY_SOCKET": "/" + "x" * 200}) is False
+    for env in ({"NOTIFY_SOCKET": str(tmp_path / "absent.sock")}, {"NOTIFY_SOCKET": "/" + "x" * 200}):
+        notifier = Notifier(env=env)
+        assert notifier.send("READY=1") is False and notifier.failed == 1
 
 
 def test_watchdog_period():

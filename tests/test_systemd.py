@@ -155,7 +155,7 @@ def test_install_dry_run(board):
                                             "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
-    assert f"board_configs/{board}.toml /etc/optitac-edge/board.toml" in out or "board.toml" in out
+    assert f"install -m 0644 {REPO}/board_configs/{board}.toml /etc/optitac-edge/board.toml" in out
     assert "/etc/systemd/system/optitac-edge.service" in out
     assert "/etc/udev/rules.d/99-optitac-edge.rules" in out
     assert "systemctl enable optitac-edge.service" in out

@@ -84,13 +84,6 @@ class ShapeMetrics:
     f1: dict[str, float]
     n: int
 
-    @property
-    def confusion_normalised(self) -> np.ndarray:
-        """Row-normalised confusion, shape (C, C), float64 (NaN rows for absent classes)."""
-        rows = self.confusion.sum(axis=1, keepdims=True).astype(np.float64)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return self.confusion / rows
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-able (NaN -> None)."""
         def f(v: float) -> float | None:

@@ -13,17 +13,11 @@ ITU-R BT.601 weights (0.299 R + 0.587 G + 0.114 B, as OpenCV) for ``rgb``.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
 
 from optitac_edge.errors import FrameMismatchError
 
-PixelFormat = Literal["gray", "rgb", "yuv420"]
 PIXEL_FORMATS: tuple[str, ...] = ("gray", "rgb", "yuv420")
-
-#: BT.601 luma weights for R, G, B.
-LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
 def frame_geometry(shape: tuple[int, ...], pixel_format: str) -> tuple[int, int]:

@@ -52,21 +52,3 @@ class ImageTransform:
         r_ref = self.scale_px_per_mm * self.r_ref_mm
         f = 1.0 + self.k1 * (du * du + dv * dv) / (r_ref * r_ref)
         return np.stack([self.cx + du * f, self.cy + dv * f], axis=1)
-
-    def image_to_layout(self, uv_px: np.ndarray) -> np.ndarray:
-        """Map image points, shape (N, 2) (col, row) px, to layout points, shape (N, 2) mm."""
-        uv = np.asarray(uv_px, dtype=np.float64)
-        du_d, dv_d = uv[:, 0] - self.cx, uv[:, 1] - self.cy
-        r_ref = self.scale_px_per_mm * self.r_ref_mm
-        rd = np.hypot(du_d, dv_d) / r_ref
-        # Undistort: solve r * (1 + k1 r^2) = rd by Newton iterations (monotone for |k1| small).
-        r = rd.copy()
-        for _ in range(8):
-            g = r * (1.0 + self.k1 * r * r) - rd
-            r -= g / (1.0 + 3.0 * self.k1 * r * r)
-        ratio = np.divide(r, rd, out=np.ones_like(rd), where=rd > 0)
-        xr = du_d * ratio / self.scale_px_per_mm
-        yr = -dv_d * ratio / self.scale_px_per_mm
-        c, s = self._rotation()
-        x, y = c * xr + s * yr, -s * xr + c * yr
-        return np.stack([-x if self.mirror else x, y], axis=1)

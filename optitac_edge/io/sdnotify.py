@@ -27,21 +27,6 @@ def _address(env: Mapping[str, str]) -> str | bytes | None:
     return None  # vsock:... and other forms are not for a local service
 
 
-def notify(state: str, env: Mapping[str, str] | None = None) -> bool:
-    """Send ``state`` (e.g. ``"READY=1"``, ``"WATCHDOG=1"``, ``"STATUS=60 fps"``) to systemd.
-
-    Returns True if it was sent, False if there is no ``$NOTIFY_SOCKET`` or sending failed.
-    """
-    try:
-        address = _address(os.environ if env is None else env)
-        if address is None:
-            return False
-        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
-            sock.sendto(state.encode(), address)
-        return True
-    except Exception:  # noqa: BLE001 - a notification must never take the service down
-        return False
-
 
 def watchdog_period(env: Mapping[str, str] | None = None) -> float | None:
     """systemd's watchdog timeout in seconds (``$WATCHDOG_USEC``), None when not enabled for us."""
@@ -123,4 +108,4 @@ class Notifier:
                 self._sock = None
 
 
-__all__ = ["Notifier", "notify", "watchdog_period"]
+__all__ = ["Notifier", "watchdog_period"]

@@ -254,12 +254,6 @@ class LinkConfig:
                             "can: bit rate (socketcan: set on the interface, docs/deploy.md)")
     rate_divider: int = _opt(_int(1, 1000), 1, "send the contact of every Nth frame")
 
-    @property
-    def transport_name(self) -> str:
-        """Name for :func:`optitac_edge.io.transports.open_transport` (``none`` is ``null``)."""
-        return "null" if self.transport == "none" else self.transport
-
-
 @dataclass(frozen=True)
 class LedConfig:
     enabled: bool = _opt(_bool, False, "drive an LED ring through an I2C PWM chip")

@@ -33,6 +33,7 @@ from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.protocol.messages import Command, CommandType, ContactMessage, StatusMessage
+from optitac_edge.io.protocol.wire import TEMP_UNKNOWN
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
@@ -183,7 +184,7 @@ class Service:
         c = self.transport.counters
         s.link_errors = c.send_errors + c.rx_errors
         temp = cpu_temperature_c()
-        s.cpu_temp_c_x10 = -32768 if temp is None else round(temp * 10)
+        s.cpu_temp_c_x10 = TEMP_UNKNOWN if temp is None else round(temp * 10)
         fault = self._fault_since_status or self.camera is None
         s.state = ((1 if self.streaming else 0) | (2 if self.pipeline.baseline_ready else 0)
                    | (4 if self._degraded else 0) | (8 if fault else 0))

@@ -108,21 +108,6 @@ def binary_q4(binary: np.ndarray, grid: SurfaceGrid) -> float:
     return abs(c40) / float(mu[0, 0]) ** 3
 
 
-def synthetic_hu(
-    n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
-    shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Labelled log-Hu features of random shapes: :func:`synthetic_features` without q4.
-
-    Returns
-    -------
-    hu_log : ndarray, shape (n_per_class * len(shapes), 7), float64
-    labels : ndarray, shape (n_per_class * len(shapes),), str
-    """
-    f, labels = synthetic_features(n_per_class, seed, grid, shapes, wobble_mm, hu_noise)
-    return f[:, :7], labels
-
-
 def synthetic_features(
     n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
     shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,

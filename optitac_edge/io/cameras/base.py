@@ -7,7 +7,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from optitac_edge.core.frames import frame_geometry
 from optitac_edge.errors import CameraError
 from optitac_edge.io.device import Device
 
@@ -88,8 +87,3 @@ class Camera(Device, ABC):
         if self.pixel_format == "yuv420":
             return (self.height * 3 // 2, self.width)
         return (self.height, self.width)
-
-    def check_geometry(self, frame: np.ndarray) -> None:
-        """Raise :class:`CameraError` if ``frame`` is not what this camera announced."""
-        if frame.dtype != np.uint8 or frame_geometry(frame.shape, self.pixel_format) != (self.height, self.width):
-            raise CameraError(f"camera delivered {frame.dtype} {frame.shape}, expected uint8 {self.frame_shape}")

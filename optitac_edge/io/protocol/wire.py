@@ -77,12 +77,6 @@ COMMAND_LENGTHS = {
     CommandType.STREAM: STREAM.size,
     CommandType.SET_THRESHOLD: SET_THRESHOLD.size,
 }
-PAYLOAD_LENGTHS = {
-    MsgType.CONTACT: CONTACT.size,
-    MsgType.STATUS: STATUS.size,
-    MsgType.ACK: ACK.size,
-    **{MsgType(t): n for t, n in COMMAND_LENGTHS.items()},
-}
 
 # -- scaling (wire LSB in physical units) ----------------------------------------------------
 
