@@ -15,10 +15,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from optitac_edge import __version__
 from optitac_edge.errors import OptiTacError
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 EXIT_ERROR = 2
 log = logging.getLogger("optitac_edge")
@@ -274,22 +277,17 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
+    from optitac_edge.calibration.measure import replay_recording
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.contacts_csv import ContactsCsvWriter
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
-    bundle = load_bundle(args.cal)
-    bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
-    pipeline = Pipeline(bundle)
-    period_ns = int(1e9 / rec.meta.fps)
+    pipeline = Pipeline(load_bundle(args.cal))
     contacts = 0
     with ContactsCsvWriter(args.output) as out:
-        for i in tqdm(range(len(rec)), desc="replay", unit="frame", disable=not sys.stderr.isatty()):
-            estimate = pipeline.process(rec.frames[i], i * period_ns)
+        for i, estimate in replay_recording(rec, pipeline):
             contacts += int(estimate.contact)
             out.write(i, estimate)
     print(f"wrote {args.output}: {len(rec)} frames, {contacts} with contact")
@@ -338,70 +336,78 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -> Any:
-    from optitac_edge.io.sdnotify import Notifier
-    from optitac_edge.service.loop import Service
-    from optitac_edge.service.wiring import (
-        load_or_calibrate,
-        log_config_warnings,
-        open_board_camera,
-        open_board_transport,
-        open_led,
-    )
+class _StatusLine:
+    """The live status line of ``run``, printed by its own thread: the frame loop only hands over
+    a copy of the estimate when one is due, and never waits on the terminal."""
 
-    tty = sys.stdout.isatty()
-    last = [0.0]
-    max_frames = args.frames
+    def __init__(self, period_s: float, tty: bool) -> None:
+        self._period_ns = int(period_s * 1e9)
+        self._tty = tty
+        self._due_ns = 0
+        self._latest: tuple[Any, float] | None = None
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._print_loop, name="optitac-status-line", daemon=True)
 
-    def show(est: Any, stats: Any) -> None:
-        if max_frames is not None and stats.frames >= max_frames:
-            stop.set()
-        now = time.monotonic()
-        if now - last[0] < (0.1 if tty else config.status.period_s):
+    def offer(self, est: Any, stats: Any) -> None:
+        """From the frame loop: keep a copy of ``est`` when a line is due."""
+        now = time.monotonic_ns()
+        if now < self._due_ns:
             return
-        last[0] = now
-        line = _status_line(est, stats.fps(time.monotonic_ns()))
-        sys.stdout.write(("\r\x1b[2K" + line) if tty else (line + "\n"))
-        sys.stdout.flush()
+        self._due_ns = now + self._period_ns
+        with self._lock:
+            self._latest = (est.copy(), stats.fps(now))
+        self._wake.set()
 
-    log_config_warnings(config)
-    notifier = Notifier()
-    with open_led(config.led) as led, open_board_camera(config) as camera, \
-            open_board_transport(config) as transport:
-        led.set_brightness(config.led.brightness)
-        if args.cal is None and config.calibration.bundle_path is None:
+    def _print_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            with self._lock:
+                latest, self._latest = self._latest, None
+            if latest is not None:
+                line = _status_line(*latest)
+                sys.stdout.write(("\r\x1b[2K" + line) if self._tty else (line + "\n"))
+                sys.stdout.flush()
+
+    def __enter__(self) -> Self:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        if self._tty:
+            sys.stdout.write("\n")
+
+
+def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -> Any:
+    from optitac_edge.service.session import BoardSession
+
+    max_frames = args.frames
+    tty = sys.stdout.isatty()
+    with BoardSession(config, args.cal) as session, _StatusLine(0.1 if tty else config.status.period_s, tty) as line:
+        if session.calibrates:
             print("calibrating fibers from the first rest frames...", flush=True)
-        bundle = load_or_calibrate(config, camera, args.cal, led)
+        bundle = session.bundle()
         print(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
               f"({config.camera.backend} camera, {config.link.transport} link; Ctrl-C to stop)", flush=True)
-        service = Service(config, bundle, camera, transport, notifier,
-                          camera_factory=lambda: open_board_camera(config))
-        stats = service.run(stop, duration_s=args.duration, on_result=show)
-    notifier.close()
-    if tty:
-        sys.stdout.write("\n")
-    return stats
+
+        def on_result(est: Any, stats: Any) -> None:
+            if max_frames is not None and stats.frames >= max_frames:
+                stop.set()
+            line.offer(est, stats)
+
+        return session.run(stop, duration_s=args.duration, on_result=on_result)
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from optitac_edge.io.recording import RecordingMeta, RecordingWriter
-    from optitac_edge.service.wiring import open_board_camera
+    from optitac_edge.service.recorder import record_board
 
-    if args.frames < args.rest_frames or args.rest_frames < 5:
-        raise OptiTacError("--frames must be >= --rest-frames >= 5")
-    config = _board(args)
-    with open_board_camera(config) as camera:
-        if camera.pixel_format == "yuv420":
-            raise OptiTacError("recordings hold gray or RGB frames: set camera.pixel_format = 'gray'")
-        meta = RecordingMeta(rest_frames=args.rest_frames, fps=camera.fps,
-                             extra={"board": config.source, "camera": config.camera.backend})
-        with RecordingWriter(args.output, args.frames, camera.frame_shape, meta) as writer:
-            for i in range(args.frames):
-                captured = camera.read(config.camera.timeout_s)
-                if captured is None:
-                    raise OptiTacError(f"the camera ended after {i} frames")
-                writer.write(i, captured.frame)
-    print(f"wrote {args.output}: {args.frames} frames of {camera.width}x{camera.height} {camera.pixel_format}")
+    rec = record_board(_board(args), args.output, args.frames, args.rest_frames)
+    print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
     return 0
 
 

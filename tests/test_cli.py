@@ -153,3 +153,43 @@ def test_bad_board_config_is_one_line(tmp_path, capsys):
     bad.write_text("config_version = 1\n[camera]\nfps = 'fast'\n")
     _one_line_error(capsys, ["run", "--board", str(bad), "--duration", "1"], "camera.fps", str(bad))
     _one_line_error(capsys, ["run", "--board", "no-such-board"], "no such board")
+
+
+def test_the_status_line_never_makes_the_frame_loop_wait_for_the_terminal(monkeypatch):
+    """The loop's hook only hands over a copy; a terminal that blocks holds up the printing thread only."""
+    import threading
+
+    from optitac_edge.cli import _StatusLine
+    from optitac_edge.core.contact import ContactEstimate
+
+    release, writing = threading.Event(), threading.Event()
+
+    class StuckTerminal:
+        def write(self, text):
+            writing.set()
+            release.wait()  # a terminal nobody reads
+
+        def flush(self):
+            pass
+
+    class Stats:
+        def fps(self, now_ns):
+            return 60.0
+
+    monkeypatch.setattr(sys, "stdout", StuckTerminal())
+    est, offers = ContactEstimate(), []
+    with _StatusLine(0.0, tty=False) as line:
+        line.offer(est, Stats())
+        assert writing.wait(5.0)  # the printing thread is stuck in write()
+
+        def loop():
+            for _ in range(1000):
+                line.offer(est, Stats())
+                offers.append(1)
+
+        frames = threading.Thread(target=loop)
+        frames.start()
+        frames.join(5.0)
+        stuck = frames.is_alive()
+        release.set()
+    assert not stuck and len(offers) == 1000

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.corrections import ContactCorrector
+from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.io.recording import Recording
 
 
@@ -43,6 +47,32 @@ class Measurements:
         return int(self.contact.shape[0])
 
 
+def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None = None,
+                     desc: str = "replay") -> Iterator[tuple[int, ContactEstimate]]:
+    """Every frame of ``rec`` through ``pipeline`` at the recording's nominal frame times (``i / fps``).
+
+    Yields ``(frame index, estimate)``; the estimate is the pipeline's reused
+    object (copy it to keep it). The baseline comes from the leading rest frames.
+
+    Parameters
+    ----------
+    progress : bool, optional
+        Show a progress bar on stderr (default: when stderr is a terminal).
+
+    Raises
+    ------
+    FrameMismatchError
+        If the recording's frames are not what the pipeline's bundle was built for.
+    """
+    from tqdm import tqdm
+
+    pipeline.bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
+    period_ns = int(1e9 / rec.meta.fps)
+    show = sys.stderr.isatty() if progress is None else progress
+    for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
+        yield i, pipeline.process(rec.frames[i], i * period_ns)
+
+
 def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool = True,
                       progress: bool | None = None, shape_backend: str = "numpy",
                       onnx_path: str | None = None) -> Measurements:
@@ -59,13 +89,6 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     shape_backend, onnx_path
         How the shape model is evaluated (see :class:`~optitac_edge.core.corrections.ContactCorrector`).
     """
-    from tqdm import tqdm
-
-    from optitac_edge.core.pipeline import Pipeline
-
-    bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
-    from optitac_edge.core.corrections import ContactCorrector
-
     pipeline = Pipeline(bundle)
     pipeline.set_corrector(ContactCorrector(bundle, shape_backend, onnx_path) if corrected else None)
     n = len(rec)
@@ -75,10 +98,7 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     hu = np.full((n, 7), np.nan)
     features = np.full((n, pipeline.contacts[0].features.size), np.nan)
     shape = np.full(n, "", dtype=object)
-    period_ns = int(1e9 / rec.meta.fps)
-    show = sys.stderr.isatty() if progress is None else progress
-    for i in tqdm(range(n), desc=f"measure {rec.path.name}", unit="frame", disable=not show, leave=False):
-        est = pipeline.process(rec.frames[i], i * period_ns)
+    for i, est in replay_recording(rec, pipeline, progress, desc=f"measure {rec.path.name}"):
         if not est.contact:
             continue
         contact[i] = True

@@ -1,0 +1,48 @@
+"""Save frames of a board's camera as a recording (``optitac-edge record``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+from optitac_edge.errors import OptiTacError
+from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta, RecordingWriter
+from optitac_edge.service.board_config import BoardConfig
+from optitac_edge.service.wiring import open_board_camera
+
+
+class Recorded(NamedTuple):
+    """What :func:`record_board` wrote."""
+
+    frames: int
+    width: int
+    height: int
+    pixel_format: str
+    meta: RecordingMeta
+
+
+def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames: int) -> Recorded:
+    """Write ``frames`` frames of the board's camera to the recording directory ``path``.
+
+    The first ``rest_frames`` must be contact-free (``meta.json`` says so).
+
+    Raises
+    ------
+    OptiTacError
+        On bad counts, a YUV420 camera (recordings hold gray or RGB frames) or a
+        camera that ends early.
+    """
+    if frames < rest_frames or rest_frames < MIN_REST_FRAMES:
+        raise OptiTacError(f"--frames must be >= --rest-frames >= {MIN_REST_FRAMES}")
+    with open_board_camera(config) as camera:
+        if camera.pixel_format == "yuv420":
+            raise OptiTacError("recordings hold gray or RGB frames: set camera.pixel_format = 'gray'")
+        meta = RecordingMeta(rest_frames=rest_frames, fps=camera.fps,
+                             extra={"board": config.source, "camera": config.camera.backend})
+        with RecordingWriter(path, frames, camera.frame_shape, meta) as writer:
+            for i in range(frames):
+                captured = camera.read(config.camera.timeout_s)
+                if captured is None:
+                    raise OptiTacError(f"the camera ended after {i} frames")
+                writer.write(i, captured.frame)
+    return Recorded(frames, camera.width, camera.height, camera.pixel_format, meta)
