@@ -439,7 +439,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
                     workdir=args.workdir, reference_frames=args.reference_frames,
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
-                    startup=not args.no_startup, queue_frames=args.queue_frames)
+                    startup=not args.no_startup, queue_frames=args.queue_frames, log=print)
     print(format_table(res))
     args.json.write_text(json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")

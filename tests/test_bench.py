@@ -73,12 +73,12 @@ def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
 
     import numpy as np
 
-    from optitac_edge.devtools.bench import _replay_camera
+    from optitac_edge.devtools.bench.replay_camera import paced_replay_camera
 
     frames = [np.full((8, 8), i, np.uint8) for i in range(20)]
     fps = 50.0
     for depth, pause, lossless in ((6, 3.5, True), (1, 3.5, False)):
-        cam = _replay_camera(frames, rest=2, fps=fps, pixel_format="gray", queue_frames=depth)
+        cam = paced_replay_camera(frames, rest=2, fps=fps, pixel_format="gray", queue_frames=depth)
         try:
             first = cam.read(2.0).seq
             time.sleep(pause / fps)
@@ -93,12 +93,12 @@ def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
 
 
 def test_drops_are_blamed_on_the_loop_only_when_the_capture_thread_was_on_time() -> None:
-    from optitac_edge.devtools.bench import _dropped_in_stall
+    from optitac_edge.devtools.bench.replay_camera import dropped_in_stall
 
     period = 4_166_667.0
     # on time, the dropped frame waited its 4 periods: the loop's drop
-    assert not _dropped_in_stall(10 * period + 1e5, 10 * period, int(6 * period), period)
+    assert not dropped_in_stall(10 * period + 1e5, 10 * period, int(6 * period), period)
     # the pushing frame came a period or more late: a stall
-    assert _dropped_in_stall(11.2 * period, 10 * period, int(6 * period), period)
+    assert dropped_in_stall(11.2 * period, 10 * period, int(6 * period), period)
     # catch-up after a stall: on time by now, but the dropped frame was published 50 µs earlier
-    assert _dropped_in_stall(10 * period + 2e5, 10 * period, int(10 * period + 1.5e5), period)
+    assert dropped_in_stall(10 * period + 2e5, 10 * period, int(10 * period + 1.5e5), period)

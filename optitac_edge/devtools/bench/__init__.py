@@ -1,0 +1,142 @@
+"""``optitac-edge bench``: how fast the per-frame loop is, measured, in one run.
+
+Sections (all on the same frames, one process unless noted; see docs/performance.md):
+
+``stages``
+    The real :meth:`Pipeline.process` call timed per frame (``whole_frame``), and
+    each stage re-run in isolation on that frame's state right after it
+    (``gray``: gather of the fiber pixels, luma for RGB; ``fiber_means``: the
+    segmented sum; ``baseline``: the signal against the baseline, gain
+    compensation included; ``surface``; ``segment``: truncation and the
+    multi-contact partition; ``moments``; ``hu`` (Hu and q4 of the binarised
+    contact); ``shape``: the shape model; ``calibration``: centroid map and
+    width model lookup; ``encode``: CONTACT message fill and wire encoding).
+    Stages that do not run on a frame (no contact, model absent) are not
+    sampled on it. Median, p99 and max, µs.
+``reference``
+    :class:`~optitac_edge.devtools.reference.ReferencePipeline` (the paper's method done
+    the obvious way) on the first ``--reference-frames`` of the same frames, and
+    the fast pipeline in paper mode on the same frames, :data:`FAST_PASSES`
+    times over (a median of 300 samples of ~0.1 ms moved by 10 % between
+    runs); ratios of medians.
+``memory``
+    tracemalloc: net bytes allocated per frame after warm-up (traced memory
+    after minus before, divided by the frames) and the largest transient
+    allocation within a frame; RSS growth over the ``stages`` pass.
+``end_to_end``
+    The service loop (:class:`~optitac_edge.service.loop.Service`) with the
+    simulated camera paced at ``--fps`` writing serial frames into a pty; a
+    separate process reads the pty and timestamps each CONTACT frame's last
+    byte (CLOCK_MONOTONIC, shared by both processes): latency = that time
+    minus the frame's timestamp in the packet. Frames dropped (camera
+    sequence gaps), packets lost (sequence gaps seen by the reader plus
+    frames the transport's queue dropped).
+``startup``
+    ``optitac-edge run --cal BUNDLE`` started as a new process, time from the
+    spawn to the first packet read from the pty; and, separately, the time to
+    import the runtime of a board with a real camera (service, pipeline, serial link, v4l2 camera;
+    no simulator) and whether scipy / scikit-learn got imported.
+
+Runtime code must not import this module (it imports the reference, which uses scipy).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from optitac_edge.core.pipeline import single_threaded_opencv
+from optitac_edge.devtools.bench.end_to_end import measure_end_to_end, measure_startup
+from optitac_edge.devtools.bench.inputs import load_inputs, machine
+from optitac_edge.devtools.bench.stages import FAST_PASSES, STAGES, measure_memory, measure_reference, measure_stages
+
+__all__ = ["FAST_PASSES", "STAGES", "format_table", "run_bench"]
+
+logger = logging.getLogger(__name__)
+
+
+def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,
+              rgb: bool = False, workdir: Path | None = None, reference_frames: int = 300,
+              memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
+              unique_frames: int = 600, queue_frames: int | None = None,
+              log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Run every section; returns the results (see the module docstring).
+
+    ``log`` gets one line per section as it finishes (default: this module's logger).
+    """
+    log = log or logger.info
+    workdir = workdir or Path(tempfile.gettempdir()) / "optitac-bench"
+    t_start = time.time()
+    bundle, cal_path, frame_list, described = load_inputs(source, cal, rgb, workdir, unique_frames, fps)
+    rest = int(bundle.baseline_frames) if source != "sim" else max(int(bundle.baseline_frames), 10)
+    rest = min(rest, len(frame_list) - 1)
+    fmt = bundle.fibers.pixel_format
+    h, w = bundle.fibers.height, bundle.fibers.width
+    res: dict[str, Any] = {"machine": machine(), "source": described, "pixel_format": fmt,
+                           "frame_size": [w, h], "bundle": str(cal_path),
+                           "options": {k: getattr(bundle.options, k) for k in
+                                       ("relative", "compensate_gain", "fill_dead", "max_contacts",
+                                        "track_baseline", "peak_fraction", "shape_fraction")},
+                           "models": sorted(k for k in ("centroid", "width", "shapes")
+                                            if k in bundle.extra_meta),
+                           "fibers": bundle.fibers.n_fibers, "fiber_pixels": int(bundle.fibers.pixel_index.size),
+                           "mesh": bundle.grid.n}
+    log(f"bench: {described}; {fmt} {w}x{h}; {frames} frames")
+    with single_threaded_opencv():  # as the service runs the loop
+        res["pipeline"] = measure_stages(bundle, frame_list, rest, frames, fps)
+        whole = res["pipeline"]["stages"]["whole_frame"]
+        log(f"  whole frame: median {whole['median_us']} µs, p99 {whole['p99_us']} µs, max {whole['max_us']} µs")
+        if reference_frames > 0:
+            res["reference"] = measure_reference(bundle, frame_list, rest, reference_frames, fps,
+                                                 whole["median_us"])
+            r = res["reference"]
+            fast = r["fast_paper_mode"]
+            log(f"  reference: median {r['reference']['median_us']} µs ({r['reference']['n']} frames); "
+                f"paper mode: median {fast['median_us']} µs ({fast['n']} frames); "
+                f"x{r['ratio_reference_to_fast_paper_mode']}")
+        if memory_frames > 0:
+            res["memory"] = measure_memory(bundle, frame_list, rest, memory_frames, fps)
+            res["memory"]["rss_growth_bytes"] = res["pipeline"]["rss_growth_bytes"]
+            res["memory"]["rss_frames"] = frames
+            log(f"  memory: {res['memory']['net_bytes_per_frame']:.1f} net bytes/frame, "
+                f"RSS +{res['memory']['rss_growth_bytes']} B over {frames} frames")
+    if e2e_seconds > 0:
+        if source != "sim":
+            res["end_to_end"] = {"skipped": "needs --source sim"}
+        else:
+            res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb, frame_list, rest,
+                                                                queue_frames)
+            why = ""
+            if "frames_dropped_by_pipeline" in e:
+                st = e["process_stalls"]
+                why = (f" (by the pipeline {e['frames_dropped_by_pipeline']}, in process stalls "
+                       f"{e['frames_dropped_in_process_stalls']}: {st['count']} stalls >= {st['threshold_ms']} ms, "
+                       f"max {st['max_ms']} ms; CPU steal {e['cpu_steal_ms']} ms)")
+            log(f"  end to end @ {fps} fps, {e2e_seconds} s, queue {e['queue_frames']}: {e['frames']} frames, dropped "
+                f"{e['frames_dropped']}{why}, lost {e['packets_lost']}, latency p50/p99/max "
+                f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs")
+    if startup:
+        if source != "sim" or fmt != "gray":
+            res["startup"] = {"skipped": "needs --source sim and gray frames (the sim board's camera)"}
+        else:
+            res["startup"] = s = measure_startup(cal_path, fps)
+            log(f"  startup: first packet after {s['start_to_first_packet_s']} s "
+                f"(runtime import {s['import_runtime_s']} s; heavy modules: "
+                f"{s['heavy_modules_imported'] or 'none'})")
+    res["elapsed_s"] = round(time.time() - t_start, 1)
+    res["machine"]["load_average_at_end"] = [round(v, 2) for v in os.getloadavg()]
+    return res
+
+
+def format_table(res: dict[str, Any]) -> str:
+    """The stage table as Markdown."""
+    lines = ["| stage | median µs | p99 µs | max µs | frames |", "|---|---:|---:|---:|---:|"]
+    for k, v in res["pipeline"]["stages"].items():
+        lines.append(f"| {k} | {v['median_us']} | {v['p99_us']} | {v['max_us']} | {v['n']} |")
+    return "\n".join(lines)
+

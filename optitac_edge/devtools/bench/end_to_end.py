@@ -1,0 +1,120 @@
+"""End to end: the service loop paced at the camera's rate into a pty; start-up to the first packet."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.devtools.bench.link import latencies, open_pty, start_reader
+from optitac_edge.devtools.bench.replay_camera import drop_causes, paced_replay_camera, steal_jiffies
+from optitac_edge.devtools.bench.samples import summary
+
+
+def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
+                       frames: list[np.ndarray] | None = None, rest: int = 10,
+                       queue_frames: int | None = None) -> dict[str, Any]:
+    """The service loop paced at ``fps`` into a pty, read by a separate process.
+
+    With ``frames``, the camera replays them (pre-rendered, see ``paced_replay_camera``);
+    otherwise it is the live simulated camera (rendering ~1 ms a frame in its own thread).
+    ``queue_frames`` overrides the sim board's ``camera.queue_frames``.
+    """
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.io.transports.serial import SerialTransport
+    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.service.loop import Service
+    from optitac_edge.sim.camera import SimCamera
+
+    master, slave, path = open_pty()
+    out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "e2e.json"
+    bundle = load_bundle(cal)
+    overrides: dict[str, Any] = {"camera.fps": fps, "link.transport": "serial", "link.serial_url": path}
+    if queue_frames is not None:
+        overrides["camera.queue_frames"] = queue_frames
+    config = load_board_config("sim", env={}, overrides=overrides)
+    reader = start_reader(master, seconds + 3.0, str(out))
+    time.sleep(0.5)  # reader up
+    if frames is not None:
+        camera = paced_replay_camera(frames, rest, fps, bundle.fibers.pixel_format, config.camera.queue_frames)
+    else:
+        camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11,
+                           queue_frames=config.camera.queue_frames)
+    transport = SerialTransport(path, baudrate=921600, sensor_id=config.sensor.id)
+    steal0 = steal_jiffies()
+    try:
+        service = Service(config, bundle, camera, transport)
+        stop = threading.Event()
+        stats = service.run(stop, duration_s=seconds)
+        steal = steal_jiffies() - steal0
+        transport.wait_idle(1.0)
+        t_stats = dict(transport.stats())
+    finally:
+        transport.close()
+        camera.close()
+        time.sleep(0.2)  # the reader drains the pty
+        os.close(slave)  # no slave left open: the reader's next read fails and it ends
+    reader.wait(timeout=seconds + 30)
+    os.close(master)
+    data = json.loads(out.read_text())
+    lat, missing = latencies(data["rows"], data["seqs"])
+    s = summary(lat)
+    a = summary([r[3] * 1000 for r in data["rows"] if r[3] >= 0])
+    return {"camera": "replayed pre-rendered frames" if frames is not None else "live simulated camera",
+            "fps": fps, "seconds": seconds, "queue_frames": config.camera.queue_frames,
+            "frames": stats.frames, "sent": stats.sent,
+            "received": len(data["rows"]), "frames_dropped": stats.frames_dropped,  # sequence gaps read
+            # written but not read (sequence gaps and a missing tail), plus never written
+            "packets_lost": (max(t_stats.get("sent", 0) - len(data["seqs"]), missing)
+                             + t_stats.get("dropped", 0) + t_stats.get("dropped_disconnected", 0)
+                             + t_stats.get("send_errors", 0)),
+            "sequence_gaps": missing,
+            **drop_causes(camera, fps, steal),
+            "achieved_fps": round(stats.frames / seconds, 1),
+            "latency_us": {"p50": s["median_us"], "p99": s["p99_us"], "max": s["max_us"]},
+            # the part before the message was filled (camera delivery + processing), from its age field
+            "frame_to_fill_us": {"p50": a["median_us"], "p99": a["p99_us"], "max": a["max_us"]},
+            "transport": {k: v for k, v in t_stats.items() if isinstance(v, (int, float, str, bool))}}
+
+
+def measure_startup(cal: Path, fps: float) -> dict[str, Any]:
+    """Process start to first packet (``optitac-edge run --cal``), and the runtime's import time."""
+    master, slave, path = open_pty()
+    out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "startup.json"
+    reader = start_reader(master, 30.0, str(out))
+    time.sleep(0.5)
+    code = "import sys; from optitac_edge.cli import main; raise SystemExit(main())"
+    t0 = time.monotonic_ns()
+    proc = subprocess.Popen([sys.executable, "-c", code, "run", "--cal", str(cal), "--serial", path,
+                             "--fps", str(fps), "--duration", "2"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc.wait(timeout=60)
+    time.sleep(0.2)
+    os.close(slave)
+    reader.wait(timeout=30)
+    os.close(master)
+    data = json.loads(out.read_text())
+    first = data["first_ns"]
+    probe = ("import time, sys; t0 = time.perf_counter(); "
+             "import optitac_edge.service.loop, optitac_edge.service.wiring, optitac_edge.core.pipeline, "
+             "optitac_edge.io.transports.serial, optitac_edge.io.cameras.v4l2; t1 = time.perf_counter(); "
+             "from optitac_edge.io.bundle_file import load_bundle; from optitac_edge.core.pipeline import Pipeline; "
+             "p = Pipeline(load_bundle(sys.argv[1])); t2 = time.perf_counter(); "
+             "heavy = sorted(m for m in ('scipy', 'sklearn', 'matplotlib', 'onnxruntime', 'pandas') "
+             "if m in sys.modules); "
+             "print(t1 - t0, t2 - t1, ','.join(heavy))")
+    res = subprocess.run([sys.executable, "-c", probe, str(cal)], capture_output=True, text=True, timeout=60, check=False)
+    parts = res.stdout.split()
+    return {"start_to_first_packet_s": None if first is None else round((first - t0) / 1e9, 3),
+            "exit_code": proc.returncode,
+            "import_runtime_s": round(float(parts[0]), 3) if parts else None,
+            "load_bundle_and_build_pipeline_s": round(float(parts[1]), 3) if len(parts) > 1 else None,
+            "heavy_modules_imported": (parts[2].split(",") if len(parts) > 2 else [])}
