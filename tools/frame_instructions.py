@@ -52,7 +52,7 @@ def instructions(cal: str, rec: str, frames: int, out_dir: Path) -> int:
     subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable,
                     __file__, "--child", cal, rec, str(frames)], env=env, check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    summary = re.search(r"^summary:\s+(\d+)", out.read_text(), re.M)
+    summary = re.search(r"^summary:\s+(\d+)", out.read_text(), re.MULTILINE)
     if summary is None:
         raise SystemExit(f"no summary in {out}")
     return int(summary.group(1))
