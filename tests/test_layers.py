@@ -60,3 +60,17 @@ def test_run_with_an_existing_bundle_imports_no_simulator_and_no_offline_library
         assert "optitac_edge.service.loop" in result["modules"]
     heavy = [m for m in result["modules"] if m.split(".")[0] in OFFLINE or m.startswith(OFFLINE)]
     assert heavy == []
+
+
+#: Optional packages (the ``board`` and ``onnx`` extras): ``pip install .`` has none of them.
+EXTRAS = ("cobs", "serial", "can", "cantools", "smbus2", "onnxruntime", "picamera2")
+
+
+def test_the_default_run_needs_no_optional_package(tmp_path) -> None:
+    """README's first command: `pip install .` (no extras) then `optitac-edge run` on the simulated
+    sensor, no link: nothing of the board extras may be imported."""
+    out = subprocess.run([sys.executable, "-c", PROBE, "run", "--frames", "30"], capture_output=True, text=True,
+                         timeout=120, check=False, cwd=tmp_path)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["code"] == 0, out.stderr
+    assert [m for m in result["modules"] if m.split(".")[0] in EXTRAS] == []

@@ -32,8 +32,7 @@ from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
-from optitac_edge.io.protocol.messages import Command, CommandType, ContactMessage, StatusMessage
-from optitac_edge.io.protocol.wire import TEMP_UNKNOWN
+from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, Command, CommandType, ContactMessage, StatusMessage
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport

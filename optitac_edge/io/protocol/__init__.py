@@ -1,36 +1,8 @@
-"""The serial protocol v1 to the gripper MCU (docs/protocol.md): framing and messages, no I/O."""
+"""The messages to and from the gripper MCU and their wire formats, no I/O.
 
-from optitac_edge.io.protocol.decoder import DecoderCounters, FrameDecoder
-from optitac_edge.io.protocol.wire import (
-    CSV_HEADER,
-    MAX_ENCODED,
-    VERSION,
-    Ack,
-    Frame,
-    MsgType,
-    ProtocolError,
-    contact_csv_row,
-    contact_fields,
-    contact_payload,
-    crc16,
-    decode_ack,
-    decode_contact,
-    decode_status,
-    encode_ack,
-    encode_command,
-    encode_contact,
-    encode_frame,
-    encode_status,
-    is_sensor_type,
-    parse_command,
-    status_payload,
-    threshold_relative,
-)
-
-__all__ = [
-    "CSV_HEADER", "MAX_ENCODED", "VERSION", "Ack", "DecoderCounters", "Frame", "FrameDecoder",
-    "MsgType", "ProtocolError", "contact_csv_row", "contact_fields", "contact_payload", "crc16",
-    "decode_ack", "decode_contact", "decode_status", "encode_ack", "encode_command",
-    "encode_contact", "encode_frame", "encode_status", "is_sensor_type", "parse_command",
-    "status_payload", "threshold_relative",
-]
+:mod:`.messages` (what is said: CONTACT, STATUS, commands; no dependencies),
+:mod:`.wire` and :mod:`.decoder` (serial protocol v1, docs/protocol.md; needs
+``cobs``), :mod:`.can_codec` and ``optitac.dbc`` (the CAN database, docs/can.md;
+needs ``cantools``). Nothing is imported here, so the messages cost no
+optional package.
+"""

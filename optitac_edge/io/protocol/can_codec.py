@@ -18,7 +18,7 @@ from typing import Any
 import cantools
 
 from optitac_edge.errors import TransportError
-from optitac_edge.io.protocol.messages import ContactMessage, ShapeCode, StatusMessage, fold_angle_deg
+from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, ContactMessage, ShapeCode, StatusMessage, fold_angle_deg
 
 #: The packaged database (a regular file next to this module).
 DBC_PATH = Path(__file__).with_name("optitac.dbc")
@@ -199,7 +199,7 @@ class CanCodec:
 
     def status_payload(self, msg: StatusMessage, counter: int) -> bytes:
         """STATUS payload; cumulative counts are sent modulo their field width."""
-        temp = CPU_TEMP_UNKNOWN if msg.cpu_temp_c_x10 == -32768 else min(msg.cpu_temp_c_x10 / 10.0,
+        temp = CPU_TEMP_UNKNOWN if msg.cpu_temp_c_x10 == TEMP_UNKNOWN else min(msg.cpu_temp_c_x10 / 10.0,
                                                                         CPU_TEMP_UNKNOWN - 1)
         return self._encode("STATUS", {
             "CALIBRATION_ID": (int(msg.calibration_id) >> 16) & 0xFFFF,

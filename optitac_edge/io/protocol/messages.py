@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 from typing import Any
 
+#: STATUS ``cpu_temp_c_x10`` when the temperature is unknown.
+TEMP_UNKNOWN = -32768
+
 
 class ContactFlags(IntFlag):
     """Bits of the CONTACT message's ``flags``."""
@@ -153,7 +156,7 @@ class StatusMessage:
     frames_dropped: int = 0
     camera_errors: int = 0
     link_errors: int = 0  # serial/CAN send errors and bad incoming frames
-    cpu_temp_c_x10: int = -32768  # °C × 10, −32768 unknown
+    cpu_temp_c_x10: int = TEMP_UNKNOWN  # °C × 10
     calibration_id: int = 0  # first 32 bits of the bundle's id
     state: int = 0  # bit0 streaming, bit1 baseline ready, bit2 degraded, bit3 camera fault
 

@@ -96,7 +96,6 @@ STATE_DEGRADED = 0x04
 STATE_CAMERA_FAULT = 0x08
 CONTACT_FLAGS_MASK = 0x1F  # bits 5-7 reserved, sent as 0
 STATE_MASK = 0x0F  # STATUS state bits 4-7 reserved, sent as 0
-TEMP_UNKNOWN = -32768
 
 U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFFFFFF
 
