@@ -24,6 +24,8 @@ if TYPE_CHECKING:
     from typing_extensions import Self
 
 EXIT_ERROR = 2
+#: Exit status of work interrupted by Ctrl-C (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
 log = logging.getLogger("optitac_edge")
 
 
@@ -322,8 +324,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "can", "link.can_channel": args.can}
     config = _board(args, **link, **{"camera.fps": args.fps})
     stop = threading.Event()
-    previous = {signum: signal.signal(signum, lambda *_: stop.set())  # Ctrl-C / systemd stop: clean end
-                for signum in (signal.SIGTERM, signal.SIGINT)}
+    received: list[int] = []
+
+    def on_signal(signum: int, frame: object) -> None:  # Ctrl-C, systemd's stop, a closed terminal
+        received.append(signum)
+        stop.set()
+
+    previous = {signum: signal.signal(signum, on_signal) for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     try:
         stats = _run_service(args, config, stop)
     finally:
@@ -333,7 +340,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(f"processed {stats.frames} frames, {stats.contacts} with contact, sent {stats.sent}, "
           f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}, commands {commands}",
           flush=True)
-    return 0
+    if received and received[0] == signal.SIGINT:
+        print("optitac-edge: interrupted: the service stopped cleanly (final STATUS sent)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0  # SIGTERM / SIGHUP: a requested stop (systemd counts it as success)
 
 
 class _StatusLine:
@@ -427,6 +437,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import json
 
     from optitac_edge.devtools.bench import format_table, run_bench
+    from optitac_edge.io.files import check_output_path, write_file_atomic
 
     if args.frames < 1:
         raise OptiTacError("--frames must be >= 1")
@@ -436,14 +447,34 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     if args.queue_frames is not None and not 1 <= args.queue_frames <= MAX_DEPTH:
         raise OptiTacError(f"--queue-frames must be 1..{MAX_DEPTH}")
+    check_output_path(args.json)  # refused now, not after minutes of measuring
     res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
                     workdir=args.workdir, reference_frames=args.reference_frames,
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
                     startup=not args.no_startup, queue_frames=args.queue_frames, log=print)
     print(format_table(res))
-    args.json.write_text(json.dumps(res, indent=1) + "\n")
+    write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")
     return 0
+
+
+def _left_after_interrupt(args: argparse.Namespace) -> str:
+    """What an interrupted command left behind, for its one line."""
+    command = args.command
+    if command in ("sim", "record"):
+        return f"recording {getattr(args, 'out_dir', None) or args.output} is incomplete (not usable; record it again)"
+    if command == "calibrate":
+        target = args.output if args.step == "fibers" else args.cal
+        return f"bundle {target} unchanged"
+    if command in ("replay", "export-onnx"):
+        return f"{args.output} not written (unchanged)"
+    if command == "report":
+        return f"report {args.output} incomplete (index.md not updated)"
+    if command == "bench":
+        return f"{args.json} not written"
+    if command == "soak":
+        return "soak stopped early: no verdict"
+    return "nothing written"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -468,8 +499,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OptiTacError as exc:
         print(f"optitac-edge: error: {exc}", file=sys.stderr)
     except KeyboardInterrupt:
-        print(file=sys.stderr)
-        return 0
+        print(f"\noptitac-edge: interrupted: {_left_after_interrupt(args)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except OSError as exc:  # e.g. an output path that cannot be written
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"optitac-edge: error: {where}{exc.strerror or exc}", file=sys.stderr)

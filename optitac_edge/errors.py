@@ -37,3 +37,12 @@ class CameraError(OptiTacError):
 
 class TransportError(OptiTacError):
     """A link to the MCU (serial, CAN) cannot be opened or is misconfigured."""
+
+
+class OutputError(OptiTacError):
+    """An output file cannot be written (the message names it): full disk, I/O error, a target
+    that is not a regular file."""
+
+
+class MissingExtraError(OptiTacError):
+    """A feature needs an optional package that is not installed (the message says which extra)."""

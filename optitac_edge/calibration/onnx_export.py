@@ -23,6 +23,7 @@ from optitac_edge.core.shapes.evaluate import CompiledShapeModel
 from optitac_edge.core.shapes.features import IS_Q4, Q4_MAX, SIGNED, ZERO_IS_NULL
 from optitac_edge.core.shapes.model import ShapeModel
 from optitac_edge.core.shapes.onnx_runtime import OUTPUT_NAME
+from optitac_edge.io.files import write_file_atomic
 
 if TYPE_CHECKING:
     import onnx
@@ -134,9 +135,6 @@ def export_onnx(model: ShapeModel, path: str | Path) -> Path:
     -------
     Path
     """
-    import onnx
-
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(build_onnx(model), str(path))
+    write_file_atomic(path, build_onnx(model).SerializeToString())
     return path

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -9,8 +10,9 @@ import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.corrections import ContactCorrector
-from optitac_edge.errors import OptiTacError
+from optitac_edge.errors import OptiTacError, OutputError
 from optitac_edge.io.bundle_file import load_bundle
+from optitac_edge.io.files import check_output_path, write_file_atomic
 from optitac_edge.io.recording import SHAPES, Recording
 
 _COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",
@@ -49,8 +51,7 @@ def _error_maps(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector
         ax.set_title(f"{name} error map (measured − true)")
         fig.colorbar(im, ax=ax, label="mm")
     path = out / "error_maps.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path.name
 
 
@@ -66,8 +67,7 @@ def _scatter(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, m
         rmse = np.sqrt(np.mean((pts - true) ** 2, axis=0))
         ax.set_title(f"{title}, {name}: RMSE x {rmse[0]:.3f}, y {rmse[1]:.3f} mm")
         ax.legend(loc="upper right", fontsize=7)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path.name
 
 
@@ -88,8 +88,11 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
     plt = _plt()
     bundle = load_bundle(cal)
     corrector = ContactCorrector(bundle)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_path(out_dir, directory=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: {exc.strerror or exc}") from None
     arrays = bundle.extra_arrays
     figures: list[tuple[str, str]] = []
     lines = [f"# Calibration report: `{Path(cal).name}` (id {bundle.calibration_id})", "",
@@ -125,8 +128,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         ax.set_ylabel("calibrated centroid error (mm)")
         ax.set_title("Repeatability: 10 presses per position")
         ax.legend()
-        fig.savefig(out / "repeatability.png", dpi=110)
-        plt.close(fig)
+        _save(plt, fig, out / "repeatability.png")
         figures.append(("Repeatability", "repeatability.png"))
     if "report/width_measured" in arrays and corrector.width is not None:
         measured, true = arrays["report/width_measured"], arrays["report/width_true"]
@@ -145,8 +147,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
             ax.set_xlabel("true diameter (mm)")
             ax.set_ylabel("width (mm)")
             ax.legend(fontsize=7)
-        fig.savefig(out / "width_fit.png", dpi=110)
-        plt.close(fig)
+        _save(plt, fig, out / "width_fit.png")
         figures.append(("Width calibration", "width_fit.png"))
         lines.append(f"Width calibration: {bundle.extra_meta.get('width_fit')}")
     shapes_fit = bundle.extra_meta.get("shapes_fit")
@@ -167,8 +168,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         ax.set_xlabel("predicted")
         ax.set_ylabel("true")
         ax.set_title(f"Held-out confusion ({shapes_fit['kind']} {shapes_fit['subset']})", fontsize=9)
-        fig.savefig(out / "confusion.png", dpi=110)
-        plt.close(fig)
+        _save(plt, fig, out / "confusion.png")
         figures.append(("Shape classification (held-out presses)", "confusion.png"))
         lines.append(f"Shape classifier: {shapes_fit['kind']} mixture on {shapes_fit['subset']}, held-out "
                      f"average diagonal {chosen['average_diagonal']:.3f}; paper's unsupervised GMM "
@@ -195,12 +195,19 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
             ax.set_ylabel(f"M{b + 1} (log)")
         axes[0].legend(fontsize=7)
         fig.suptitle("Hu moments M1–M3 of the calibration presses")
-        fig.savefig(out / "hu_scatter.png", dpi=110)
-        plt.close(fig)
+        _save(plt, fig, out / "hu_scatter.png")
         figures.append(("Hu features", "hu_scatter.png"))
     lines.append("")
     for title, file in figures:
         lines += [f"## {title}", "", f"![{title}]({file})", ""]
     index = out / "index.md"
-    index.write_text("\n".join(lines))
+    write_file_atomic(index, "\n".join(lines))
     return index
+
+
+def _save(plt: Any, fig: Any, path: Path) -> None:
+    """A figure as a PNG file, written all or nothing."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    write_file_atomic(path, buf.getvalue())

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import zipfile
 from collections.abc import Mapping
 from dataclasses import asdict, replace
@@ -33,7 +32,8 @@ from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import FiberLayout
 from optitac_edge.core.options import ContactOptions, ContactThresholds
 from optitac_edge.core.surface import SurfaceFactors
-from optitac_edge.errors import BundleError
+from optitac_edge.errors import BundleError, OutputError
+from optitac_edge.io.files import AtomicFile
 
 BUNDLE_FORMAT = "optitac-edge-calibration"
 BUNDLE_VERSION = 1
@@ -110,27 +110,16 @@ def _digest(meta_bytes: bytes, arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def _remove_stale_temporaries(path: Path) -> None:
-    """Delete temporary files of saves that were killed (their process no longer exists)."""
-    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
-        try:
-            pid = int(tmp.name[len(path.name) + 2:-4])
-        except ValueError:
-            continue
-        if pid == os.getpid():
-            continue
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            tmp.unlink(missing_ok=True)
-        except OSError:  # alive but not ours: leave it
-            continue
-
-
 def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundle:
     """Write ``bundle`` to ``path`` atomically; returns it with its id and time set.
 
     The calibration id is the first 16 hex digits of the content digest.
+
+    Raises
+    ------
+    OutputError
+        If ``path`` exists and is not a regular file, or cannot be written
+        (the old bundle, if any, is left as it was).
     """
     path = Path(path)
     created = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
@@ -140,22 +129,11 @@ def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundl
     digest = _digest(meta_bytes, arrays)
     members = {**arrays, "meta": np.frombuffer(meta_bytes, dtype=np.uint8),
                "digest": np.frombuffer(digest.encode(), dtype=np.uint8)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temporaries(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with tmp.open("wb") as f:
-            np.savez(f, **members)  # type: ignore[arg-type]  # numpy's stub: the first keyword is allow_pickle
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    with AtomicFile(path, "wb") as f:
+        try:
+            np.savez(f.file, **members)  # type: ignore[arg-type]  # numpy's stub: the first keyword is allow_pickle
+        except OSError as exc:
+            raise OutputError(f"{path}: {exc.strerror or exc}") from None
     return replace(bundle, calibration_id=digest[:16])
 
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any
+
+from optitac_edge.io.files import AtomicFile
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -25,15 +26,17 @@ def _num(value: float, digits: int) -> str:
 class ContactsCsvWriter:
     """Writes one row per processed frame; the file appears only when complete.
 
-    Rows go to ``PATH.tmp`` and are renamed to ``PATH`` on a clean :meth:`close`;
-    :meth:`abort` removes the partial file.
+    Rows go to a private temporary file (:class:`~optitac_edge.io.files.AtomicFile`),
+    renamed to ``path`` on a clean :meth:`close`; :meth:`abort` (or leaving a
+    ``with`` block by an exception) removes it. ``path`` must be absent or a
+    regular file; any failure to write raises
+    :class:`~optitac_edge.errors.OutputError` naming it.
     """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._tmp = self.path.with_name(self.path.name + ".tmp")
-        self._file: IO[str] | None = self._tmp.open("w", newline="")
-        self._csv = csv.writer(self._file)
+        self._out = AtomicFile(self.path, "w", newline="")
+        self._csv = csv.writer(self._out)
         self._csv.writerow(CONTACTS_HEADER)
 
     def write(self, frame: int, est: Any) -> None:
@@ -49,20 +52,12 @@ class ContactsCsvWriter:
         ])
 
     def close(self) -> None:
-        if self._file is None:
-            return
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        self._file.close()
-        self._file = None
-        os.replace(self._tmp, self.path)
+        """Complete the file at ``path`` (idempotent)."""
+        self._out.commit()
 
     def abort(self) -> None:
-        if self._file is None:
-            return
-        self._file.close()
-        self._file = None
-        self._tmp.unlink(missing_ok=True)
+        """Drop the rows written; ``path`` is left as it was (idempotent)."""
+        self._out.abort()
 
     def __enter__(self) -> Self:
         return self

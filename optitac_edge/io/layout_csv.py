@@ -9,6 +9,7 @@ import numpy as np
 
 from optitac_edge.core.layout import FiberLayout
 from optitac_edge.errors import ConfigError
+from optitac_edge.io.files import AtomicFile
 
 LAYOUT_CSV_HEADER = ("fiber", "x_mm", "y_mm")
 
@@ -53,7 +54,7 @@ def load_layout_csv(path: str | Path) -> FiberLayout:
 
 def save_layout_csv(layout: FiberLayout, path: str | Path) -> None:
     """Write ``layout`` as a CSV file with header ``fiber,x_mm,y_mm``."""
-    with Path(path).open("w", newline="") as f:
+    with AtomicFile(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(LAYOUT_CSV_HEADER)
         for fid, (x, y) in zip(layout.ids, layout.xy_mm):

@@ -13,6 +13,7 @@ Layout of a recording directory (a contract; see docs/formats.md):
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import math
 import os
@@ -24,7 +25,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from optitac_edge.core.frames import infer_pixel_format
-from optitac_edge.errors import FrameMismatchError, RecordingError
+from optitac_edge.errors import FrameMismatchError, OutputError, RecordingError
+from optitac_edge.io.files import AtomicFile, check_output_path, fsync_directory, write_file_atomic
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -63,32 +65,59 @@ class Truth:
         return int(self.frame.shape[0])
 
 
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w") as f:
-        json.dump(obj, f, indent=2)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+#: Largest meta.json read, bytes (it holds a few numbers and the simulator's parameters).
+MAX_META_BYTES = 1 << 20
+#: The frame rates a recording may claim, frames/s.
+FPS_RANGE = (0.1, 10_000.0)
+#: Written instead of meta.json by a writer that did not finish (see RecordingWriter).
+INCOMPLETE_MARKER = "incomplete.json"
 
 
 def read_meta(path: Path) -> RecordingMeta:
-    """Parse and validate ``meta.json``."""
+    """Parse and validate ``meta.json``.
+
+    Raises
+    ------
+    RecordingError
+        If it is missing (the recording is incomplete or not one), unreadable,
+        too large, not a JSON object, or ``rest_frames`` / ``fps`` are out of range.
+    """
     try:
-        raw = json.loads(path.read_text())
+        size = path.stat().st_size
+        if size > MAX_META_BYTES:
+            raise RecordingError(f"{path}: {size} bytes, larger than a meta.json can be ({MAX_META_BYTES})")
+        raw = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise RecordingError(f"{path.parent}: not a recording (no meta.json)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RecordingError(f"{path}: garbled meta.json ({exc})") from None
+        raise RecordingError(f"{path.parent}: {_missing_meta(path.parent)}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, ValueError, RecursionError) as exc:
+        why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise RecordingError(f"{path}: garbled meta.json ({why})") from None
     if not isinstance(raw, dict):
         raise RecordingError(f"{path}: meta.json must hold an object")
     rest = raw.pop("rest_frames", None)
     fps = raw.pop("fps", None)
-    if not isinstance(rest, int) or isinstance(rest, bool) or rest < MIN_REST_FRAMES:
+    if not isinstance(rest, int) or isinstance(rest, bool) or not MIN_REST_FRAMES <= rest <= 1_000_000_000:
         raise RecordingError(f"{path}: 'rest_frames' must be an integer >= {MIN_REST_FRAMES}")
-    if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not (fps > 0 and math.isfinite(fps)):
-        raise RecordingError(f"{path}: 'fps' must be a positive number")
+    lo, hi = FPS_RANGE
+    if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not lo <= fps <= hi:
+        raise RecordingError(f"{path}: 'fps' must be a number in {lo:g}..{hi:g}")
     return RecordingMeta(rest_frames=rest, fps=float(fps), extra=raw)
+
+
+def _missing_meta(directory: Path) -> str:
+    """Why a directory without meta.json is not a usable recording."""
+    marker = directory / INCOMPLETE_MARKER
+    if marker.exists():
+        try:
+            info = json.loads(marker.read_text(encoding="utf-8"))
+            return (f"incomplete recording ({info.get('reason', 'not finished')}: "
+                    f"{int(info.get('frames_written', 0))} of {int(info.get('frames', 0))} frames written); "
+                    "record it again")
+        except (OSError, ValueError, TypeError, AttributeError, RecursionError):
+            return "incomplete recording (interrupted or failed while being written); record it again"
+    if (directory / "frames.npy").exists():
+        return "incomplete recording (no meta.json: interrupted or failed while being written); record it again"
+    return "not a recording (no meta.json)"
 
 
 def _cell_float(value: str) -> float:
@@ -146,6 +175,8 @@ class Recording:
         self.path = Path(path)
         if not self.path.is_dir():
             raise RecordingError(f"{self.path}: recording directory not found")
+        if (self.path / INCOMPLETE_MARKER).exists():
+            raise RecordingError(f"{self.path}: {_missing_meta(self.path)}")
         self.meta = read_meta(self.path / "meta.json")
         frames_path = self.path / "frames.npy"
         try:
@@ -199,11 +230,21 @@ class Recording:
 
 
 class RecordingWriter:
-    """Streams frames into a new recording directory.
+    """Streams frames into a new recording directory; the recording is complete only when closed normally.
 
-    ``frames.npy`` is preallocated for ``n_frames`` and written through a
-    memory map; ``meta.json`` is written last, on :meth:`close`, so a recording
-    cut short is recognisably incomplete.
+    ``frames.npy`` is allocated on disk for ``n_frames`` at the start (a full
+    disk fails there, with one line, not with SIGBUS later) and each frame is
+    written with ``pwrite``; ``meta.json`` (and ``truth.csv``) are written last,
+    on a :meth:`close` after every frame was written. Anything else -- an
+    exception or Ctrl-C inside the ``with`` block, :meth:`abort`, a close with
+    frames missing -- leaves no ``meta.json`` but ``incomplete.json`` saying
+    what happened, and :class:`Recording` refuses the directory in one line.
+
+    Raises
+    ------
+    OutputError
+        If the directory or a file in it cannot be written (full disk, I/O
+        error, a target that is not a regular file), naming the file.
     """
 
     def __init__(
@@ -214,26 +255,79 @@ class RecordingWriter:
         meta: RecordingMeta,
         with_truth: bool = False,
     ) -> None:
-        self.path = Path(path)
-        self.path.mkdir(parents=True, exist_ok=True)
-        for stale in ("meta.json", "truth.csv"):
-            (self.path / stale).unlink(missing_ok=True)
+        if n_frames < 1:
+            raise ValueError(f"a recording needs at least one frame, got {n_frames}")
         infer_pixel_format(frame_shape)
+        self.path = check_output_path(path, directory=True)
         self.meta = meta
-        self._frames = np.lib.format.open_memmap(
-            self.path / "frames.npy", mode="w+", dtype=np.uint8, shape=(n_frames, *frame_shape)
-        )
+        self.n_frames = int(n_frames)
+        self.frame_shape = tuple(int(v) for v in frame_shape)
+        self._frame_bytes = int(np.prod(self.frame_shape))
         self._truth_rows: list[list[str]] | None = [] if with_truth else None
+        self._written = 0
         self._closed = False
+        self._fd = -1
+        frames_path = self.path / "frames.npy"
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            for stale in ("meta.json", "truth.csv", INCOMPLETE_MARKER):
+                (self.path / stale).unlink(missing_ok=True)
+            check_output_path(frames_path)
+            self._mark_incomplete("being written")
+            header = np.lib.format.header_data_from_array_1_0(np.empty((0, *self.frame_shape), np.uint8))
+            header["shape"] = (self.n_frames, *self.frame_shape)
+            with frames_path.open("wb") as f:
+                np.lib.format.write_array_header_1_0(f, header)
+                self._offset = f.tell()
+            self._fd = os.open(frames_path, os.O_WRONLY)
+            size = self._offset + self.n_frames * self._frame_bytes
+            try:  # reserve the blocks now: ENOSPC here, not a SIGBUS or a short write later
+                os.posix_fallocate(self._fd, 0, size)
+            except OSError as exc:
+                if exc.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                    raise
+                os.ftruncate(self._fd, size)
+        except OSError as exc:
+            self._close_fd()
+            raise OutputError(f"{frames_path}: {exc.strerror or exc}") from None
+
+    def _mark_incomplete(self, reason: str) -> None:
+        (self.path / INCOMPLETE_MARKER).write_text(json.dumps(
+            {"reason": reason, "frames_written": self._written, "frames": self.n_frames}) + "\n")
+
+    def _close_fd(self) -> None:
+        if self._fd >= 0:
+            fd, self._fd = self._fd, -1
+            os.close(fd)
 
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort("interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"failed: {exc}")
+
+    @property
+    def frames_written(self) -> int:
+        return self._written
 
     def write(self, index: int, frame: np.ndarray) -> None:
-        self._frames[index] = frame
+        """Write frame ``index`` (0 .. n_frames-1) of the recording's frame shape, uint8."""
+        if not 0 <= index < self.n_frames:
+            raise IndexError(f"frame {index} outside 0..{self.n_frames - 1}")
+        data = np.ascontiguousarray(frame, dtype=np.uint8)
+        if data.shape != self.frame_shape:
+            raise FrameMismatchError(f"frame of shape {data.shape}, the recording holds {self.frame_shape}")
+        try:
+            n = os.pwrite(self._fd, data.data.cast("B"), self._offset + index * self._frame_bytes)
+            if n != self._frame_bytes:
+                raise OSError(errno.ENOSPC, f"short write ({n} of {self._frame_bytes} bytes)")
+        except OSError as exc:
+            self.abort(f"failed: {exc.strerror or exc}")
+            raise OutputError(f"{self.path / 'frames.npy'}: {exc.strerror or exc}") from None
+        self._written = max(self._written, index + 1)
 
     def write_truth(
         self,
@@ -258,16 +352,56 @@ class RecordingWriter:
         )
 
     def close(self) -> None:
+        """Complete the recording: every frame written, then truth.csv and meta.json (idempotent).
+
+        Raises
+        ------
+        RecordingError
+            If frames are missing (the recording is left marked incomplete).
+        OutputError
+            If a file cannot be written.
+        """
+        if self._closed:
+            return
+        if self._written < self.n_frames:
+            self.abort(f"closed after {self._written} frames")
+            raise RecordingError(f"{self.path}: only {self._written} of {self.n_frames} frames were written; "
+                                 "the recording is marked incomplete")
+        self._closed = True
+        try:
+            os.fsync(self._fd)
+        except OSError as exc:
+            self._close_fd()
+            self._mark_failed(exc)
+            raise OutputError(f"{self.path / 'frames.npy'}: {exc.strerror or exc}") from None
+        self._close_fd()
+        try:
+            if self._truth_rows is not None:
+                with AtomicFile(self.path / "truth.csv", "w", newline="") as f:
+                    w = csv.writer(f)
+                    w.writerow(TRUTH_HEADER)
+                    w.writerows(self._truth_rows)
+            write_file_atomic(self.path / "meta.json", json.dumps(self.meta.to_json(), indent=2))
+        except OutputError as exc:
+            self._mark_failed(exc)
+            raise
+        (self.path / INCOMPLETE_MARKER).unlink(missing_ok=True)
+        fsync_directory(self.path)
+
+    def _mark_failed(self, exc: BaseException) -> None:
+        try:
+            (self.path / "meta.json").unlink(missing_ok=True)
+            self._mark_incomplete(f"failed: {exc}")
+        except OSError:  # the marker may not fit either: no meta.json is enough
+            pass
+
+    def abort(self, reason: str = "aborted") -> None:
+        """Stop without completing: no meta.json, ``incomplete.json`` says why (idempotent)."""
         if self._closed:
             return
         self._closed = True
-        self._frames.flush()
-        del self._frames
-        if self._truth_rows is not None:
-            tmp = self.path / "truth.csv.tmp"
-            with tmp.open("w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow(TRUTH_HEADER)
-                w.writerows(self._truth_rows)
-            os.replace(tmp, self.path / "truth.csv")
-        _write_json_atomic(self.path / "meta.json", self.meta.to_json())
+        self._close_fd()
+        try:
+            self._mark_incomplete(reason)
+        except OSError:  # a full disk may refuse even the marker: no meta.json is enough
+            pass
