@@ -136,19 +136,50 @@ def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac
     assert contacts > 50
 
 
-def test_sigterm_stops_the_service_within_a_second():
-    run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run"], stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_stop_the_service_within_a_second_with_a_final_status(signum):
+    """systemd's stop (SIGTERM) and a closed terminal or `kill -HUP` (SIGHUP) end the loop cleanly:
+    exit 0, the summary, and a last STATUS to the MCU after the last CONTACT."""
+    from optitac_edge.io.protocol.decoder import FrameDecoder
+    from optitac_edge.io.protocol.wire import MsgType
+
+    master, slave = os.openpty()
+    tty_path = os.ttyname(slave)
+    frames: list[int] = []
+    done = threading.Event()
+
+    def read_link() -> None:
+        dec = FrameDecoder()
+        while not done.is_set():
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # the service closed its end
+                return
+            frames.extend(f.type for f in dec.feed(data))
+
+    reader = threading.Thread(target=read_link, daemon=True)
+    reader.start()
+    run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--serial", tty_path],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
         _wait_for_line(run, "running")
+        os.close(slave)
+        slave = -1
         time.sleep(0.5)  # the loop is streaming
         t0 = time.monotonic()
-        run.send_signal(signal.SIGTERM)
+        run.send_signal(signum)
         out, err = run.communicate(timeout=10)
         elapsed = time.monotonic() - t0
+        reader.join(5.0)
     finally:
+        done.set()
         if run.poll() is None:
             run.kill()
+        os.close(master)
+        if slave >= 0:
+            os.close(slave)
     assert run.returncode == 0, err
     assert elapsed < 1.0, elapsed
     assert "processed" in out and "Traceback" not in err
+    assert MsgType.CONTACT in frames and frames[-1] == MsgType.STATUS
