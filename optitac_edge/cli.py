@@ -338,7 +338,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             signal.signal(signum, handler)
     commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
     print(f"processed {stats.frames} frames, {stats.contacts} with contact, sent {stats.sent}, "
-          f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}, commands {commands}",
+          f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}, "
+          f"processing errors {stats.processing_errors}, commands {commands}",
           flush=True)
     if received and received[0] == signal.SIGINT:
         print("optitac-edge: interrupted: the service stopped cleanly (final STATUS sent)", file=sys.stderr)

@@ -10,6 +10,7 @@ import socket
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from optitac_edge.errors import CameraError
@@ -297,3 +298,44 @@ def test_frames_dropped_counts_the_sequence_gaps_and_not_a_reopened_cameras_rest
     assert stats.frames_dropped == sum(c.frames_dropped for c in cams) > 10
     # every 5th read of each camera skipped one number; the first camera failed on its 40th read
     assert cams[0].frames_dropped == 7
+
+
+def test_a_pipeline_failure_is_counted_flagged_and_the_loop_goes_on(bundle):
+    """An exception inside the per-frame processing (a bug) never ends the service: the frame is
+    skipped and counted, STATUS flags it, the baseline is taken again, frames keep coming."""
+    clock = VirtualClock()
+    transport = RecordingTransport()
+    service = Service(_config(), bundle, _sim(seed=4, clock=clock), transport, clock=clock)
+    real = service.pipeline.process
+    calls = [0]
+
+    def flaky(frame, t_ns):
+        calls[0] += 1
+        if 100 <= calls[0] < 103:
+            raise IndexError("index 217 is out of bounds for axis 0 with size 217")
+        return real(frame, t_ns)
+
+    service.pipeline.process = flaky
+    stats = service.run(threading.Event(), duration_s=1.0)
+    assert stats.processing_errors == 3
+    assert stats.frames == calls[0] - 3 and stats.frames > 250
+    assert any(state & 8 for state, _, _ in transport.status)  # flagged
+    assert service.pipeline.baseline_ready  # baselined again after the failures
+
+
+def test_fibers_dimmer_than_the_black_level_do_not_crash_the_gain_estimate():
+    """Issue 13.10: 20 frames with the fibers at gray 254, then at 9 (above the dark check, below the
+    calibrated black level 10.2): the gain estimate indexed past its sorted ratios (IndexError)."""
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.sim.sensor import SimulatedSensor
+
+    sensor = SimulatedSensor(seed=3)
+    cal = calibrate_fibers([sensor.frame() for _ in range(10)], "gray")
+    assert cal.options.compensate_gain and cal.options.black_level > 9
+    pipe = Pipeline(cal)
+    frame = np.zeros((480, 640), np.uint8)
+    for i in range(30):
+        frame.reshape(-1)[cal.fibers.pixel_index] = 254 if i < 20 else 9
+        est = pipe.process(frame, i * 16_666_667)
+    assert est.baseline_ready and np.isfinite(pipe.gain)

@@ -81,6 +81,8 @@ class GainCompensation:
         keep = self._keep
         for _ in range(2):
             j = int(live.searchsorted(np.float32(g * keep)))
+            if j >= n:  # no fiber in the cluster (all ratios <= 0: light at or below black): keep g
+                break
             g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
         self.frame_gain = g
         band = self._tolerance + self._rate * float(now_ns - self.reference_ns)

@@ -77,6 +77,7 @@ class ServiceStats:
     dark_frames: int = 0
     saturated_frames: int = 0  # skipped: most fibers at full scale
     saturated_sent: int = 0  # processed frames with some fiber at full scale (SATURATED flag)
+    processing_errors: int = 0  # frames the pipeline failed on (a bug): counted, flagged, baseline re-taken
     reopens: int = 0  # successful camera reopens
     reopen_failures: int = 0
     commands: dict[str, int] = field(default_factory=dict)
@@ -297,8 +298,9 @@ class Service:
                 self._after_step(est, on_result)
         finally:
             self._shut_down()
-        log.info("stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens)",
-                 st.frames, st.contacts, st.frames_dropped, st.camera_errors, st.reopens)
+        log.info("stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
+                 "%d processing errors)", st.frames, st.contacts, st.frames_dropped, st.camera_errors, st.reopens,
+                 st.processing_errors)
         return st
 
     def _check_frame_gap(self, now_ns: int) -> None:
@@ -365,7 +367,11 @@ class Service:
         if why is not None:
             self._frame_skipped(why)
             return None, why == "bad"
-        est = self.pipeline.process(captured.frame, captured.t_ns)
+        try:
+            est = self.pipeline.process(captured.frame, captured.t_ns)
+        except Exception as exc:  # noqa: BLE001 - a per-frame failure never ends the service
+            self._processing_failed(exc)
+            return None, True  # a loop failing on every frame counts towards the frame gap
         st.frames += 1
         st.contacts += int(est.contact)
         saturated = self.frame_check.saturated
@@ -376,6 +382,16 @@ class Service:
             self.transport.send_contact(self._message)
             st.sent += 1
         return est, False
+
+    def _processing_failed(self, exc: Exception) -> None:
+        """Count a frame the pipeline failed on, flag it, and start its state afresh (a new baseline)."""
+        st = self.stats
+        st.processing_errors += 1
+        self._fault_since_status = True
+        if st.processing_errors == 1 or st.processing_errors % 100 == 0:
+            log.error("processing error %d: %s: %s; the baseline is taken again", st.processing_errors,
+                      type(exc).__name__, exc)
+        self.pipeline.reset_baseline()
 
     def _frame_skipped(self, why: str) -> None:
         st = self.stats
