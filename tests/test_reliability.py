@@ -339,3 +339,57 @@ def test_fibers_dimmer_than_the_black_level_do_not_crash_the_gain_estimate():
         frame.reshape(-1)[cal.fibers.pixel_index] = 254 if i < 20 else 9
         est = pipe.process(frame, i * 16_666_667)
     assert est.baseline_ready and np.isfinite(pipe.gain)
+
+
+def _dimmed(frame: np.ndarray, scale: float) -> np.ndarray:
+    return np.clip(frame.astype(np.float32) * scale, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("scale", [0.90, 0.95, 1.10])
+@pytest.mark.parametrize("press_from", [600, 300])  # the press starts after the step, or is under way at it
+def test_a_sudden_led_dimming_is_not_a_contact_and_a_press_during_it_is_found(scale, press_from):
+    """Issue 13.5: the LED drops to 90 % (95 %, or rises to 110 %) at once, as when the gripper's
+    motors start: no contact is reported while nothing presses (it was a full-surface contact for
+    18.8 s), the change is counted once, and a press during the dimming is found where it is."""
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.sim.sensor import SimulatedSensor
+    from optitac_edge.sim.skin import Indenter
+
+    sensor = SimulatedSensor(seed=3)
+    pipe = Pipeline(calibrate_fibers([sensor.frame() for _ in range(10)], "gray"))
+    press = Indenter(shape="circle", x_mm=2.0, y_mm=-3.0, angle_deg=0.0, size_mm=6.0, depth_mm=3.0)
+    false_contacts, found, pressed = 0, 0, 0
+    for i in range(900):  # 15 s at 60 fps; the light steps at frame 500 (8.3 s)
+        pressing = press_from <= i < 700
+        frame = sensor.frame((press,) if pressing else ())
+        est = pipe.process(_dimmed(frame, scale) if i >= 500 else frame, i * 16_666_667)
+        if not pressing:
+            false_contacts += est.contact
+        elif i >= press_from + 10:  # past the ramp of the skin
+            pressed += 1
+            found += est.contact and abs(est.x_mm - 2.0) < 0.5 and abs(est.y_mm + 3.0) < 0.5
+    assert false_contacts == 0
+    assert pressed > 80 and found == pressed
+    assert pipe.gain_compensation.light_changes == 1
+
+
+def test_the_service_flags_and_counts_a_common_mode_light_change_in_status(bundle):
+    class DimmingCamera(Camera):
+        pixel_format, height, width, fps = "gray", 480, 640, 300.0
+
+        def __init__(self, clock):
+            super().__init__()
+            self.inner = _sim(seed=9, clock=clock)
+
+        def _read_internal(self, timeout_s):
+            c = self.inner.read(timeout_s)
+            return CapturedFrame(_dimmed(c.frame, 0.9) if c.seq > 150 else c.frame, c.t_ns, c.seq)
+
+    clock = VirtualClock()
+    transport = RecordingTransport()
+    stats = Service(_config(), bundle, DimmingCamera(clock), transport, clock=clock).run(
+        threading.Event(), duration_s=1.0)
+    assert stats.light_changes == 1
+    flagged = [state & 0x10 for state, _, _ in transport.status]
+    assert sum(bool(f) for f in flagged) == 1  # in the STATUS of the period it happened in, then clear

@@ -6,6 +6,15 @@ brightest fibers measure ``g``: the median of the ratios within ``delta`` (the
 off level) of the cluster around the upper quartile, twice. The gain may
 differ from the last contact-free frame's by a tolerance plus a drift rate
 times the time since, no more: a large press cannot pass for a dimming.
+
+A sudden common-mode change of the light (the LED supply drooping when the
+gripper's motors start) moves the brightest cluster beyond that band too, but
+then most fibers agree on the new gain (a press darkens only the fibers under
+it, by varying amounts): when at least :data:`COMMON_MODE_FRACTION` of the live
+fibers lie within the cluster's width of the new gain, and the change is
+larger than the truncation level (smaller ones cannot make a contact), the
+new gain is taken at once and the change is counted (:attr:`GainCompensation.light_changes`)
+instead of being reported as a contact over the whole surface.
 """
 
 from __future__ import annotations
@@ -13,6 +22,10 @@ from __future__ import annotations
 import numpy as np
 
 from optitac_edge.core.baseline import Baseline
+
+#: A jump of the brightest cluster's gain is a common-mode change of the light when at least this
+#: fraction of the live fibers agree with the new gain (within the cluster's width).
+COMMON_MODE_FRACTION = 0.6
 
 
 class GainCompensation:
@@ -50,17 +63,33 @@ class GainCompensation:
         self.reference_ns = 0
         self._tolerance = 0.0
         self._keep = 1.0
+        self._widen = 1.0
+        self._significant = 0.0
+        #: The last frame's gain was a common-mode change of the light, taken at once.
+        self.light_changed = False
+        #: Common-mode changes of the light taken since construction.
+        self.light_changes = 0
 
-    def set_levels(self, delta: float, tolerance: float) -> None:
+    def set_levels(self, delta: float, tolerance: float, significant: float) -> None:
         """``delta``: the cluster width (the off level, relative); ``tolerance``: the gain change
-        allowed without evidence (relative)."""
+        allowed without evidence (relative); ``significant``: the smallest change of the light that
+        could make a contact (the truncation level, relative)."""
         self._keep = 1.0 - delta
+        self._widen = 1.0 + delta
         self._tolerance = tolerance
+        self._significant = significant
 
     def reset(self, now_ns: int = 0) -> None:
         """Gain 1 from ``now_ns`` on (a new baseline)."""
         self.reference = self.gain = 1.0
         self.reference_ns = now_ns
+
+    def _agree(self, g: float) -> int:
+        """How many live fibers' ratios lie within the cluster's width of gain ``g`` (sorted: two bisections)."""
+        live = self._live
+        lo = int(live.searchsorted(np.float32(g * self._keep)))
+        hi = int(live.searchsorted(np.float32(g * self._widen), side="right"))
+        return hi - lo
 
     def contact_free(self, now_ns: int) -> None:
         """The last frame had no contact: its own gain estimate is the reference from now on."""
@@ -85,8 +114,15 @@ class GainCompensation:
                 break
             g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
         self.frame_gain = g
+        self.light_changed = False
         band = self._tolerance + self._rate * float(now_ns - self.reference_ns)
-        g = min(max(g, self.reference - band), self.reference + band)
+        change = abs(g - self.reference)
+        if change > band and change > self._significant and self._agree(g) >= COMMON_MODE_FRACTION * n:
+            self.reference, self.reference_ns = g, now_ns  # the light changed, not the skin
+            self.light_changed = True
+            self.light_changes += 1
+        else:
+            g = min(max(g, self.reference - band), self.reference + band)
         self.gain = g = max(g, 1e-3)
         np.multiply(ratio, np.float32(-1.0 / g), out=out)
         out += 1.0

@@ -39,6 +39,8 @@ class ContactLevels:
         #: gain change allowed without evidence.
         self.gain_delta = 0.0
         self.gain_tolerance = 0.0
+        #: The truncation level, relative units: a smaller change of the light cannot make a contact.
+        self.gain_significant = 0.0
 
     def update(self, baseline: np.ndarray, live: np.ndarray) -> None:
         """Set the levels from a ready ``baseline`` (shape (N,)) and the ``live`` fibers (bool, (N,))."""
@@ -63,6 +65,7 @@ class ContactLevels:
         self.trunc, self.off, self.on = np.float32(trunc), np.float32(off), np.float32(on)
         self.gain_delta = float(off) / unit
         self.gain_tolerance = GAIN_TOLERANCE * float(trunc) / unit
+        self.gain_significant = float(trunc) / unit
 
     def as_tuple(self) -> tuple[float, float, float]:
         """(truncation, off, on) as floats."""

@@ -206,6 +206,11 @@ class Pipeline:
         return 1.0 if self.gain_compensation is None else self.gain_compensation.gain
 
     @property
+    def light_changed(self) -> bool:
+        """The last frame's light changed common-mode (an LED dimming or brightening, not a contact)."""
+        return self.gain_compensation is not None and self.gain_compensation.light_changed
+
+    @property
     def in_contact(self) -> bool:
         return self._in_contact
 
@@ -232,7 +237,8 @@ class Pipeline:
     def _levels_changed(self) -> None:
         self.levels.update(self.baseline.values, self._live)
         if self.gain_compensation is not None:
-            self.gain_compensation.set_levels(self.levels.gain_delta, self.levels.gain_tolerance)
+            self.gain_compensation.set_levels(self.levels.gain_delta, self.levels.gain_tolerance,
+                                              self.levels.gain_significant)
 
     def set_corrector(self, corrector: ContactCorrector | None) -> None:
         """Apply ``corrector`` (the bundle's calibration models) to every contact; None: raw estimates.

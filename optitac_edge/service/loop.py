@@ -32,7 +32,19 @@ from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
-from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, Command, CommandType, ContactMessage, StatusMessage
+from optitac_edge.io.protocol.messages import (
+    STATE_BASELINE_READY,
+    STATE_CALIBRATION_UNSAVED,
+    STATE_CAMERA_FAULT,
+    STATE_DEGRADED,
+    STATE_LIGHT_CHANGE,
+    STATE_STREAMING,
+    TEMP_UNKNOWN,
+    Command,
+    CommandType,
+    ContactMessage,
+    StatusMessage,
+)
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
@@ -77,6 +89,7 @@ class ServiceStats:
     dark_frames: int = 0
     saturated_frames: int = 0  # skipped: most fibers at full scale
     saturated_sent: int = 0  # processed frames with some fiber at full scale (SATURATED flag)
+    light_changes: int = 0  # common-mode changes of the light (LED dimming), not reported as contacts
     processing_errors: int = 0  # frames the pipeline failed on (a bug): counted, flagged, baseline re-taken
     reopens: int = 0  # successful camera reopens
     reopen_failures: int = 0
@@ -150,6 +163,9 @@ class Service:
         self._pixel_format = camera.pixel_format
         self._frame_shape = camera.frame_shape
         self._fault_since_status = False
+        self._light_since_status = False
+        #: The bundle could not be saved (the service runs on it from memory): STATUS bit5.
+        self.calibration_unsaved = False
         gap_s = config.watchdog.max_frame_gap_s
         self._backoff = _Backoff(REOPEN_BACKOFF_S, min(REOPEN_BACKOFF_MAX_S, gap_s / 4))
         self._max_gap_ns = int(gap_s * 1e9)
@@ -186,9 +202,12 @@ class Service:
         temp = cpu_temperature_c()
         s.cpu_temp_c_x10 = TEMP_UNKNOWN if temp is None else round(temp * 10)
         fault = self._fault_since_status or self.camera is None
-        s.state = ((1 if self.streaming else 0) | (2 if self.pipeline.baseline_ready else 0)
-                   | (4 if self._degraded else 0) | (8 if fault else 0))
-        self._fault_since_status = False
+        s.state = ((STATE_STREAMING if self.streaming else 0)
+                   | (STATE_BASELINE_READY if self.pipeline.baseline_ready else 0)
+                   | (STATE_DEGRADED if self._degraded else 0) | (STATE_CAMERA_FAULT if fault else 0)
+                   | (STATE_LIGHT_CHANGE if self._light_since_status else 0)
+                   | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0))
+        self._fault_since_status = self._light_since_status = False
         return s
 
     # -- camera faults -----------------------------------------------------------------------
@@ -374,6 +393,8 @@ class Service:
             return None, True  # a loop failing on every frame counts towards the frame gap
         st.frames += 1
         st.contacts += int(est.contact)
+        if self.pipeline.light_changed:
+            self._light_changed()
         saturated = self.frame_check.saturated
         st.saturated_sent += int(saturated)
         if self.streaming and st.frames % self.rate_divider == 0:
@@ -382,6 +403,14 @@ class Service:
             self.transport.send_contact(self._message)
             st.sent += 1
         return est, False
+
+    def _light_changed(self) -> None:
+        st = self.stats
+        st.light_changes += 1
+        self._light_since_status = True
+        if st.light_changes == 1 or st.light_changes % 100 == 0:
+            log.warning("common-mode change of the light %d (LED dimming or brightening to %.3f of the "
+                        "baseline): not a contact", st.light_changes, self.pipeline.gain)
 
     def _processing_failed(self, exc: Exception) -> None:
         """Count a frame the pipeline failed on, flag it, and start its state afresh (a new baseline)."""

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from cobs import cobs
 
-from optitac_edge.io.protocol import wire
+from optitac_edge.io.protocol import messages, wire
 from optitac_edge.io.protocol.messages import (
     CommandType,
     ContactFlags,
@@ -115,19 +115,19 @@ def status_vectors() -> str:
         ("status_nominal", 100, 5_000_000, StatusMessage(
             sensor_id=1, t_us=5_000_000, fps_x10=600, frames_dropped=3, camera_errors=0,
             link_errors=2, cpu_temp_c_x10=523, calibration_id=0xDEADBEEF,
-            state=wire.STATE_STREAMING | wire.STATE_BASELINE_READY),
+            state=messages.STATE_STREAMING | messages.STATE_BASELINE_READY),
          ("60.0 fps, 3 dropped, 0 camera errors, 2 link errors, 52.3 C, calibration 0xDEADBEEF, "
          "streaming + baseline ready")),
         ("status_fault", 101, 6_000_000, StatusMessage(
             sensor_id=0, t_us=6_000_000, fps_x10=0, frames_dropped=2**40, camera_errors=17,
             link_errors=0, cpu_temp_c_x10=-32768, calibration_id=0,
-            state=wire.STATE_CAMERA_FAULT | wire.STATE_DEGRADED),
+            state=messages.STATE_CAMERA_FAULT | messages.STATE_DEGRADED),
          ("camera fault + degraded, 0 fps, frames_dropped 2^40 saturates to 2^32-1, temperature "
          "unknown (-32768), no calibration")),
         ("status_cold", 102, 7_000_000, StatusMessage(
             sensor_id=4, t_us=7_000_000, fps_x10=1200, frames_dropped=0, camera_errors=1,
             link_errors=70000, cpu_temp_c_x10=-105, calibration_id=0x00000100,
-            state=wire.STATE_STREAMING),
+            state=messages.STATE_STREAMING),
          "120.0 fps, -10.5 C, 70000 link errors, calibration 0x00000100"),
     ]
     out = [HEAD.format(what="STATUS (type 0x02)")]

@@ -60,6 +60,8 @@ extern "C" {
 #define OPTITAC_S_BASELINE_READY 0x02u
 #define OPTITAC_S_DEGRADED 0x04u
 #define OPTITAC_S_CAMERA_FAULT 0x08u
+#define OPTITAC_S_LIGHT_CHANGE 0x10u        /* common-mode light change since the last STATUS (not a contact) */
+#define OPTITAC_S_CALIBRATION_UNSAVED 0x20u /* running on a bundle that could not be saved */
 
 /* ACK result codes */
 #define OPTITAC_R_OK 0u

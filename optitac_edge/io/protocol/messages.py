@@ -12,6 +12,14 @@ from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 from typing import Any
 
+#: STATUS ``state`` bits (docs/protocol.md).
+STATE_STREAMING = 0x01
+STATE_BASELINE_READY = 0x02
+STATE_DEGRADED = 0x04
+STATE_CAMERA_FAULT = 0x08
+STATE_LIGHT_CHANGE = 0x10  # a common-mode change of the light (LED dimming) since the last STATUS
+STATE_CALIBRATION_UNSAVED = 0x20  # running on a bundle that could not be saved
+
 #: STATUS ``cpu_temp_c_x10`` when the temperature is unknown.
 TEMP_UNKNOWN = -32768
 

@@ -90,12 +90,8 @@ THRESHOLD_MIN = 10  # 0.0010 relative units
 THRESHOLD_MAX = 5000  # 0.5000 relative units
 RATE_DIVIDER_MIN = 1
 RATE_DIVIDER_MAX = 255
-STATE_STREAMING = 0x01
-STATE_BASELINE_READY = 0x02
-STATE_DEGRADED = 0x04
-STATE_CAMERA_FAULT = 0x08
 CONTACT_FLAGS_MASK = 0x1F  # bits 5-7 reserved, sent as 0
-STATE_MASK = 0x0F  # STATUS state bits 4-7 reserved, sent as 0
+STATE_MASK = 0x3F  # STATUS state bits 6-7 reserved, sent as 0
 
 U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFFFFFF
 
