@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import os
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -183,3 +184,35 @@ def test_sigterm_and_sighup_stop_the_service_within_a_second_with_a_final_status
     assert elapsed < 1.0, elapsed
     assert "processed" in out and "Traceback" not in err
     assert MsgType.CONTACT in frames and frames[-1] == MsgType.STATUS
+
+
+def test_run_waits_for_a_missing_mcu_port_and_streams_when_it_appears(tmp_path):
+    """Issue 13.6: `run --serial` on a port that is not there yet exited 2 in 0.55 s (and systemd gave
+    up after ten restarts). It now runs, and streams to the MCU as soon as the port appears."""
+    from optitac_edge.io.protocol.decoder import FrameDecoder
+    from optitac_edge.io.protocol.wire import MsgType
+
+    link = tmp_path / "optitac-mcu"
+    run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--serial", str(link)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    master, slave = os.openpty()
+    try:
+        _wait_for_line(run, "running")
+        assert run.poll() is None
+        os.symlink(os.ttyname(slave), link)  # the MCU is plugged in
+        dec, frames = FrameDecoder(), []
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and sum(f.type == MsgType.CONTACT for f in frames) < 30:
+            r, _, _ = select.select([master], [], [], 0.1)
+            if r:
+                frames += dec.feed(os.read(master, 65536))
+        run.send_signal(signal.SIGTERM)
+        out, err = run.communicate(timeout=10)
+    finally:
+        if run.poll() is None:
+            run.kill()
+        os.close(master)
+        os.close(slave)
+    assert sum(f.type == MsgType.CONTACT for f in frames) >= 30
+    assert run.returncode == 0 and "not present" in err and "Traceback" not in err

@@ -243,3 +243,20 @@ def test_send_cost_and_throughput(mcu):
         assert [f.seq for f in frames] == list(range(n))
     print(f"send_contact: {per_call_us:.1f} us/call")
     assert per_call_us < 200
+
+
+def test_a_second_process_on_a_port_in_use_is_refused(mcu):
+    """Issue 13.7: two instances on one port interleaved their sequence numbers; the port is now
+    locked (pyserial exclusive=True) and the second is refused in one line, waiting or not."""
+    with SerialTransport(mcu.path) as first:
+        for require_port in (True, False):
+            with pytest.raises(TransportError, match="is in use by another process"):
+                SerialTransport(mcu.path, require_port=require_port)
+        first.send_contact(contact(1))
+        assert len(mcu.read_until(lambda fr: len(fr) >= 1)) == 1  # the first one still streams
+
+
+@pytest.mark.parametrize("url", ["foo://x", "loop://?logging=bogus"])
+def test_a_bad_url_is_refused_at_start_even_when_waiting_for_the_port(url):
+    with pytest.raises(TransportError, match="not a valid device or URL"):
+        SerialTransport(url, require_port=False)

@@ -90,7 +90,10 @@ def open_board_camera(config: BoardConfig) -> Camera:
 def open_board_transport(config: BoardConfig) -> Transport:
     link = config.link
     if link.transport == "serial":
-        return open_transport("serial", url=link.serial_url, baudrate=link.baudrate, sensor_id=config.sensor.id)
+        # a port that is not there yet (MCU unplugged, udev not done) is waited for, not fatal:
+        # the service streams as soon as it appears
+        return open_transport("serial", url=link.serial_url, baudrate=link.baudrate, sensor_id=config.sensor.id,
+                              require_port=False)
     if link.transport == "can":
         return open_transport("can", channel=link.can_channel, interface=link.can_interface,
                               sensor_id=config.sensor.id,

@@ -16,6 +16,7 @@ pty slave paths all work.
 
 from __future__ import annotations
 
+import errno
 import logging
 import threading
 import time
@@ -36,6 +37,15 @@ except ImportError:  # pragma: no cover - reported when a SerialTransport is cre
     serial = None
 
 log = logging.getLogger(__name__)
+#: errno of a port that is not there (yet): unplugged adapter, udev not done. Anything else is fatal at start.
+_ABSENT = frozenset({errno.ENOENT, errno.ENODEV, errno.ENXIO, errno.EIO})
+#: errno of a port another process holds (pyserial's exclusive flock).
+_LOCKED = frozenset({errno.EAGAIN, errno.EWOULDBLOCK})
+
+
+def _errno(exc: BaseException) -> int | None:
+    """The errno of an open failure (pyserial wraps the OSError and keeps its errno)."""
+    return getattr(exc, "errno", None)
 
 _IO_ERRORS: tuple[type[BaseException], ...] = (OSError,) if serial is None else (
     OSError, serial.SerialException)
@@ -57,7 +67,9 @@ class SerialTransport(Transport):
         0..255, written into every CONTACT and STATUS (overrides the messages' own).
     require_port : bool
         True: raise :class:`TransportError` when the port cannot be opened at start.
-        False: start disconnected and keep retrying in the background.
+        False: when the port is not present (no such device), start disconnected and
+        keep retrying in the background. A bad URL, a port locked by another
+        process, or any other failure (e.g. permission) is refused either way.
     read_timeout, write_timeout : float
         Port timeouts, seconds (bound how long :meth:`close` can take).
     backoff_min, backoff_max : float
@@ -117,11 +129,18 @@ class SerialTransport(Transport):
         self._ever_opened = False
         self._resync = True
 
-        if require_port:
-            try:
-                self._set_port(self._open())
-            except _IO_ERRORS as exc:
-                raise TransportError(f"cannot open serial port {url!r}: {exc}") from exc
+        try:
+            self._set_port(self._open())
+        except (ValueError, KeyError, TypeError) as exc:  # pyserial's answer to a bad URL or URL option
+            raise TransportError(f"serial port {url!r}: not a valid device or URL ({exc})") from None
+        except _IO_ERRORS as exc:
+            if _errno(exc) in _LOCKED:
+                raise TransportError(f"serial port {url!r} is in use by another process "
+                                     "(another optitac-edge?)") from None
+            if require_port or _errno(exc) not in _ABSENT:
+                raise TransportError(f"cannot open serial port {url!r}: {exc}") from None
+            log.warning("serial port %s not present (%s); streaming as soon as it appears", url,
+                        exc.strerror if isinstance(exc, OSError) and exc.strerror else exc)
         self._io_thread = threading.Thread(target=self._io_loop, name="optitac-serial-io", daemon=True)
         self._writer_thread = threading.Thread(target=self._write_loop, name="optitac-serial-tx",
                                                daemon=True)
@@ -286,8 +305,9 @@ class SerialTransport(Transport):
     def _open(self) -> Any:
         if self._open_port is not None:
             return self._open_port()
+        # exclusive: a second process on the same port is refused (flock), not interleaved
         return serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.read_timeout,
-                                     write_timeout=self.write_timeout)
+                                     write_timeout=self.write_timeout, exclusive=True)
 
     def _set_port(self, port: Any) -> None:
         if self._ever_opened:
