@@ -86,3 +86,48 @@ def test_service_over_can_decodes_with_the_dbc():
             names.append(name)
     assert names.count("CONTACT_A") == names.count("CONTACT_B") == stats.sent == 200
     assert names.count("STATUS") >= 2  # one every 0.2 s of the ~1 s run, and the last
+
+
+def test_a_state_directory_that_cannot_hold_the_bundle_does_not_stop_the_service(tmp_path, caplog):
+    """Issue 13.8: the bundle calibrated at start cannot be saved (a full or read-only state
+    directory; here its parent is a file): the service runs on it from memory, says so once in the
+    log and in every STATUS (bit5), instead of exiting and restart-looping."""
+    import threading
+
+    from optitac_edge.io.protocol.messages import STATE_CALIBRATION_UNSAVED
+    from optitac_edge.service.session import BoardSession
+
+    blocker = tmp_path / "state"
+    blocker.write_text("not a directory")
+    config = load_board_config("sim", env={}, overrides={
+        "calibration.bundle": str(blocker / "calibration.npz"), "camera.fps": 300})
+    stop = threading.Event()
+    with BoardSession(config) as session:
+        stats = session.run(stop, on_result=lambda est, st: st.frames == 60 and stop.set())
+        assert stats.frames == 60
+        assert session.unsaved is not None and "calibration.npz" in session.unsaved
+        assert session.service.status_message(0).state & STATE_CALIBRATION_UNSAVED
+    assert [r.levelname for r in caplog.records if "not saved" in r.getMessage()] == ["ERROR"]
+
+
+def test_run_on_a_full_state_directory_keeps_streaming(tmp_path):
+    """The same through the command: a file size limit makes the save fail (EFBIG, as ENOSPC)."""
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    board = tmp_path / "b.toml"
+    board.write_text(f'[calibration]\nbundle = "{tmp_path / "calibration.npz"}"\n[camera]\nfps = 300\n')
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, 1 << 20))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    proc = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(board),
+                           "--frames", "100"], capture_output=True, text=True, timeout=120, check=False,
+                          preexec_fn=limit)
+    assert proc.returncode == 0, proc.stderr
+    assert "processed 100 frames" in proc.stdout
+    assert "calibration bundle not saved" in proc.stderr and "File too large" in proc.stderr
+    assert not (tmp_path / "calibration.npz").exists()

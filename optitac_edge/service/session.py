@@ -24,8 +24,8 @@ from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.service.loop import OnResult, Service, ServiceStats
 from optitac_edge.service.wiring import (
-    load_or_calibrate,
     log_config_warnings,
+    obtain_bundle,
     open_board_camera,
     open_board_transport,
     open_led,
@@ -57,6 +57,10 @@ class BoardSession:
         self._notifier = notifier
         self._stack = ExitStack()
         self._bundle: CalibrationBundle | None = None
+        #: Why the bundle calibrated at start could not be saved (None: saved or loaded).
+        self.unsaved: str | None = None
+        #: The service of the last :meth:`run`.
+        self.service: Service | None = None
         self.led: LedRing | NoLed | None = None
         self.camera: Camera | None = None
         self.transport: Transport | None = None
@@ -94,14 +98,15 @@ class BoardSession:
         """The calibration bundle (loaded, or calibrated from the camera's rest frames; once)."""
         if self._bundle is None:
             assert self.camera is not None, "open the session first (with BoardSession(...) as session)"
-            self._bundle = load_or_calibrate(self.config, self.camera, self.cal_path, self.led)
+            self._bundle, self.unsaved = obtain_bundle(self.config, self.camera, self.cal_path, self.led)
         return self._bundle
 
     def run(self, stop: Event, duration_s: float | None = None, on_result: OnResult | None = None) -> ServiceStats:
         """Run the frame loop until ``stop``, ``duration_s`` or the camera's end (see :meth:`Service.run`)."""
         assert self.transport is not None, "open the session first (with BoardSession(...) as session)"
         config = self.config
-        service = Service(config, self.bundle(), self.camera, self.transport, self.notifier,
-                          camera_factory=lambda: open_board_camera(config), clock=self.clock)
+        self.service = service = Service(config, self.bundle(), self.camera, self.transport, self.notifier,
+                                         camera_factory=lambda: open_board_camera(config), clock=self.clock)
+        service.calibration_unsaved = self.unsaved is not None
         return service.run(stop, duration_s=duration_s, on_result=on_result)
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.errors import BundleError, CameraError, OptiTacError
+from optitac_edge.errors import BundleError, CameraError, OptiTacError, OutputError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.io.cameras import open_camera
 from optitac_edge.io.cameras.base import Camera
@@ -133,19 +133,37 @@ def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None
     ``cal_path`` (the command line's ``--cal``) must exist; the board's
     ``calibration.bundle`` is calibrated and saved when missing, unless
     ``calibration.if_missing = "fail"``. Only calibrating imports the offline code.
+    A bundle that cannot be saved is still returned (see :func:`obtain_bundle`).
+    """
+    return obtain_bundle(config, camera, cal_path, led)[0]
+
+
+def obtain_bundle(config: BoardConfig, camera: Camera, cal_path: Path | None,
+                  led: LedRing | NoLed | None = None) -> tuple[CalibrationBundle, str | None]:
+    """:func:`load_or_calibrate`, and why a freshly calibrated bundle could not be saved (or None).
+
+    A full or read-only state directory does not take the service down: the
+    bundle works from memory (it is calibrated again at the next start); the
+    failure is logged once and returned for STATUS.
     """
     path = cal_path if cal_path is not None else config.calibration.bundle_path
     if path is not None and Path(path).exists():
-        return load_bundle(path)
+        return load_bundle(path), None
     if path is not None and cal_path is not None:
         raise BundleError(f"{path}: calibration bundle not found")
     if config.calibration.if_missing == "fail":
         raise OptiTacError(f"no calibration bundle at {path} and calibration.if_missing = 'fail'")
     bundle = calibrate_from_camera(config, camera, led)
-    if path is not None:
+    if path is None:
+        return bundle, None
+    try:
         bundle = save_bundle(bundle, path)
-        log.info("saved the calibration bundle to %s", path)
-    return bundle
+    except OutputError as exc:
+        log.error("calibration bundle not saved (%s); running on it from memory, it will be calibrated "
+                  "again at the next start", exc)
+        return bundle, str(exc)
+    log.info("saved the calibration bundle to %s", path)
+    return bundle, None
 
 
 def calibrate_from_camera(config: BoardConfig, camera: Camera,
