@@ -9,16 +9,20 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
 from optitac_edge import __version__
 from optitac_edge.errors import OptiTacError
+from optitac_edge.io.logs import NonBlockingLogging
+from optitac_edge.text import fields
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -61,7 +65,7 @@ class _Scenarios:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    _add_verbosity(parser, None)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("sim", help="write a recording from the built-in simulator")
@@ -168,7 +172,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--queue-frames", type=int, default=None, metavar="N",
                    help="end to end: frames the camera queues for the loop (default: the sim board's "
                         "camera.queue_frames; 1 = latest frame only)")
+    _add_verbosity_to_commands(parser)
     return parser
+
+
+def _add_verbosity(p: argparse.ArgumentParser, default: Any) -> None:
+    """-v / -q, accepted before and after the command (``default`` SUPPRESS on the command's parser,
+    so it keeps what was given before it)."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("-v", "--verbose", action="count", default=0 if default is None else default,
+                       help="more log detail (run: debug)")
+    group.add_argument("-q", "--quiet", action="store_true", default=False if default is None else default,
+                       help="warnings and errors only")
+
+
+def _add_verbosity_to_commands(parser: argparse.ArgumentParser) -> None:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command in dict.fromkeys(action.choices.values()):
+                _add_verbosity(command, argparse.SUPPRESS)
+                _add_verbosity_to_commands(command)
+
+
+def _log_level(args: argparse.Namespace) -> int:
+    """The service logs its life (INFO) unless -q; -v gives debug. Other commands: warnings, -v info."""
+    if args.quiet:
+        return logging.WARNING
+    if args.command == "run":
+        return logging.DEBUG if args.verbose else logging.INFO
+    return logging.INFO if args.verbose == 1 else logging.DEBUG if args.verbose > 1 else logging.WARNING
 
 
 def _add_board(p: argparse.ArgumentParser) -> None:
@@ -213,7 +245,7 @@ def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
     print(f"wrote {args.output} (id {bundle.calibration_id}): "
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found, "
-          f"dead {dead if dead else 'none'}, {len(bundle.fibers.unmatched_px)} unmatched blobs, "
+          f"dead {', '.join(map(str, dead)) or 'none'}, {len(bundle.fibers.unmatched_px)} unmatched blobs, "
           f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
     return 0
 
@@ -232,7 +264,7 @@ def _cmd_calibrate_model(args: argparse.Namespace) -> int:
     else:
         bundle, summary = calibrate_steps.calibrate_width(rec, bundle, kind=args.model)
     bundle = save_bundle(bundle, args.cal)
-    print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: {summary}")
+    print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: {fields(summary)}")
     return 0
 
 
@@ -296,15 +328,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _status_line(est: Any, fps: float) -> str:
+def _status_line(est: Any, fps: float | None) -> str:
+    rate = "  -.- fps" if fps is None else f"{fps:5.1f} fps"
     if not est.baseline_ready:
-        return f"{fps:5.1f} fps  baselining..."
+        return f"{rate}  baselining..."
     if not est.contact:
-        return f"{fps:5.1f} fps  no contact"
-    shape = f"  {est.shape}" if est.shape else ""
-    return (f"{fps:5.1f} fps  CONTACT x {est.x_mm:+6.2f} y {est.y_mm:+6.2f} mm  "
-            f"width {est.major_mm:5.2f} x {est.minor_mm:5.2f} mm  angle {est.angle_deg:+6.1f} deg  "
-            f"strength {est.strength:7.1f}{shape}")
+        return f"{rate}  no contact"
+    shape = f" {est.shape}" if est.shape else ""
+    return (f"{rate}  CONTACT {est.x_mm:+.2f},{est.y_mm:+.2f} mm  {est.major_mm:.2f}x{est.minor_mm:.2f} mm  "
+            f"{est.angle_deg:+.0f}°  s {est.strength:.0f}{shape}")
 
 
 def _board(args: argparse.Namespace, **overrides: Any) -> Any:
@@ -331,16 +363,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
         stop.set()
 
     previous = {signum: signal.signal(signum, on_signal) for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+    # run's own lines go to stdout through a queue too: a stdout nobody reads never holds up the service
+    console = NonBlockingLogging(logging.INFO, sys.stdout, logger="optitac_edge.console", fmt="%(message)s",
+                                 always=True).start()
     try:
-        stats = _run_service(args, config, stop)
+        stats = _run_service(args, config, stop, logging.getLogger("optitac_edge.console").info)
+        sent = f"sent {stats.sent}" if config.link.transport != "none" else "no link"
+        commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
+        logging.getLogger("optitac_edge.console").info(
+            "processed %d frames, %d with contact, %s, dropped %d, camera errors %d, processing errors %d, "
+            "commands %s", stats.frames, stats.contacts, sent, stats.frames_dropped, stats.camera_errors,
+            stats.processing_errors, commands)
     finally:
+        console.stop()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
-    print(f"processed {stats.frames} frames, {stats.contacts} with contact, sent {stats.sent}, "
-          f"dropped {stats.frames_dropped}, camera errors {stats.camera_errors}, "
-          f"processing errors {stats.processing_errors}, commands {commands}",
-          flush=True)
     if received and received[0] == signal.SIGINT:
         print("optitac-edge: interrupted: the service stopped cleanly (final STATUS sent)", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -348,14 +385,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 class _StatusLine:
-    """The live status line of ``run``, printed by its own thread: the frame loop only hands over
-    a copy of the estimate when one is due, and never waits on the terminal."""
+    """The live status line of ``run`` on a terminal, printed by its own thread: the frame loop only
+    hands over a copy of the estimate when a line is due, and never waits on the terminal. The rate is
+    over the last interval; the line is cut to the terminal's width so it never wraps."""
 
-    def __init__(self, period_s: float, tty: bool) -> None:
+    def __init__(self, period_s: float, link: str, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self._clock = clock
         self._period_ns = int(period_s * 1e9)
-        self._tty = tty
+        self._link = link
         self._due_ns = 0
-        self._latest: tuple[Any, float] | None = None
+        self._last: tuple[int, int] | None = None  # (ns, frames) of the previous line
+        self._latest: tuple[Any, float | None] | None = None
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -363,12 +403,16 @@ class _StatusLine:
 
     def offer(self, est: Any, stats: Any) -> None:
         """From the frame loop: keep a copy of ``est`` when a line is due."""
-        now = time.monotonic_ns()
+        now = self._clock()
         if now < self._due_ns:
             return
         self._due_ns = now + self._period_ns
+        fps = None
+        if self._last is not None and now > self._last[0]:
+            fps = (stats.frames - self._last[1]) * 1e9 / (now - self._last[0])
+        self._last = (now, stats.frames)
         with self._lock:
-            self._latest = (est.copy(), stats.fps(now))
+            self._latest = (est.copy(), fps)
         self._wake.set()
 
     def _print_loop(self) -> None:
@@ -378,8 +422,9 @@ class _StatusLine:
             with self._lock:
                 latest, self._latest = self._latest, None
             if latest is not None:
-                line = _status_line(*latest)
-                sys.stdout.write(("\r\x1b[2K" + line) if self._tty else (line + "\n"))
+                width = max(shutil.get_terminal_size((80, 24)).columns - 1, 20)
+                line = f"[{self._link}] {_status_line(*latest)}"
+                sys.stdout.write("\r\x1b[2K" + line[:width])
                 sys.stdout.flush()
 
     def __enter__(self) -> Self:
@@ -390,26 +435,29 @@ class _StatusLine:
         self._stop.set()
         self._wake.set()
         self._thread.join(timeout=2.0)
-        if self._tty:
+        if not self._thread.is_alive():  # (a terminal stuck in write(): leave it alone)
             sys.stdout.write("\n")
 
 
-def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event) -> Any:
+def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event, say: Callable[[str], None]) -> Any:
     from optitac_edge.service.session import BoardSession
 
     max_frames = args.frames
-    tty = sys.stdout.isatty()
-    with BoardSession(config, args.cal) as session, _StatusLine(0.1 if tty else config.status.period_s, tty) as line:
+    link = "no link" if config.link.transport == "none" else config.link.transport
+    with BoardSession(config, args.cal) as session, ExitStack() as stack:
+        # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
+        line = stack.enter_context(_StatusLine(0.1, link)) if sys.stdout.isatty() else None
         if session.calibrates:
-            print("calibrating fibers from the first rest frames...", flush=True)
+            say("calibrating fibers from the first rest frames...")
         bundle = session.bundle()
-        print(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
-              f"({config.camera.backend} camera, {config.link.transport} link; Ctrl-C to stop)", flush=True)
+        say(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
+            f"({config.camera.backend} camera, {link if link == 'no link' else link + ' link'}; Ctrl-C to stop)")
 
         def on_result(est: Any, stats: Any) -> None:
             if max_frames is not None and stats.frames >= max_frames:
                 stop.set()
-            line.offer(est, stats)
+            if line is not None:
+                line.offer(est, stats)
 
         return session.run(stop, duration_s=args.duration, on_result=on_result)
 
@@ -486,29 +534,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.environ.setdefault(var, "1")
     parser = build_parser()
     args = parser.parse_args(argv)
-    verbose = args.verbose or args.command == "run"  # the service logs its life to journald
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logs = NonBlockingLogging(_log_level(args)).start()  # nothing that logs ever waits on stderr
     handlers: dict[str, Callable[[argparse.Namespace], int]] = {
         "sim": _cmd_sim, "calibrate fibers": _cmd_calibrate_fibers, "calibrate centroid": _cmd_calibrate_model,
         "calibrate width": _cmd_calibrate_model, "calibrate shapes": _cmd_calibrate_model,
         "evaluate": _cmd_evaluate, "export-onnx": _cmd_export_onnx, "report": _cmd_report, "replay": _cmd_replay,
         "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench}
     handler = handlers[f"{args.command} {args.step}" if args.command == "calibrate" else args.command]
+    message, code = None, EXIT_ERROR
     try:
-        return handler(args)
+        code = handler(args)
     except OptiTacError as exc:
-        print(f"optitac-edge: error: {exc}", file=sys.stderr)
+        message = f"error: {exc}"
     except KeyboardInterrupt:
-        print(f"\noptitac-edge: interrupted: {_left_after_interrupt(args)}", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        message, code = f"interrupted: {_left_after_interrupt(args)}", EXIT_INTERRUPTED
     except OSError as exc:  # e.g. an output path that cannot be written
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"optitac-edge: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        message = f"error: {where}{exc.strerror or exc}"
     except MemoryError:
-        print("optitac-edge: error: out of memory", file=sys.stderr)
-    return EXIT_ERROR
-
+        message = "error: out of memory"
+    finally:
+        logs.stop()  # the queued log lines first, then the verdict
+    if message is not None:
+        print(f"{chr(10) if code == EXIT_INTERRUPTED and sys.stderr.isatty() else ''}optitac-edge: {message}",
+              file=sys.stderr)
+    return code
 
 if __name__ == "__main__":
     sys.exit(main())

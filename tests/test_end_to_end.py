@@ -208,7 +208,7 @@ def test_run_waits_for_a_missing_mcu_port_and_streams_when_it_appears(tmp_path):
             if r:
                 frames += dec.feed(os.read(master, 65536))
         run.send_signal(signal.SIGTERM)
-        out, err = run.communicate(timeout=10)
+        _out, err = run.communicate(timeout=10)
     finally:
         if run.poll() is None:
             run.kill()
@@ -216,3 +216,57 @@ def test_run_waits_for_a_missing_mcu_port_and_streams_when_it_appears(tmp_path):
         os.close(slave)
     assert sum(f.type == MsgType.CONTACT for f in frames) >= 30
     assert run.returncode == 0 and "not present" in err and "Traceback" not in err
+
+
+def _full_pipe() -> tuple[int, int]:
+    """A pipe whose buffer is already full: the next write to it blocks until someone reads."""
+    import fcntl
+
+    r, w = os.pipe()
+    fcntl.fcntl(w, 1031, 4096)  # F_SETPIPE_SZ: one page
+    os.set_blocking(w, False)
+    try:
+        while True:
+            os.write(w, b"x" * 4096)
+    except BlockingIOError:
+        pass
+    os.set_blocking(w, True)
+    return r, w
+
+
+def test_a_stdout_and_stderr_nobody_reads_never_stall_the_loop():
+    """Issue 13.9: with an unread pipe as stdout the loop stopped within 5 s (the status line and the
+    log wrote from it) and then exited 'no good camera frame'. With both stdout and stderr full and
+    unread, -v logging and a 120 fps run, every CONTACT still reaches the MCU."""
+    from optitac_edge.io.protocol.decoder import FrameDecoder
+    from optitac_edge.io.protocol.wire import MsgType
+
+    out_r, out_w = _full_pipe()
+    master, slave = os.openpty()
+    run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "-v", "--serial", os.ttyname(slave),
+                            "--fps", "120", "--frames", "600"], stdout=out_w, stderr=out_w)
+    os.close(out_w)
+    dec, contacts = FrameDecoder(), 0
+    try:
+        deadline = time.monotonic() + 90
+        while contacts < 600 and time.monotonic() < deadline and run.poll() is None:
+            r, _, _ = select.select([master], [], [], 0.1)
+            if r:
+                contacts += sum(f.type == MsgType.CONTACT for f in dec.feed(os.read(master, 65536)))
+        received_while_blocked = contacts
+        drained = b""
+        while run.poll() is None or select.select([out_r], [], [], 0)[0]:  # now read the pipe: it can finish
+            if select.select([out_r], [], [], 0.1)[0]:
+                chunk = os.read(out_r, 65536)
+                if not chunk:
+                    break
+                drained += chunk
+        run.wait(timeout=30)
+    finally:
+        if run.poll() is None:
+            run.kill()
+        for fd in (master, slave, out_r):
+            os.close(fd)
+    assert received_while_blocked == 600  # the whole run streamed while nobody read its output
+    assert run.returncode == 0
+    assert b"processed 600 frames" in drained and b"Traceback" not in drained

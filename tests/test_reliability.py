@@ -28,6 +28,8 @@ from optitac_edge.sim.faults import FAULT_KINDS, FaultInjector, FaultyCamera
 class RecordingTransport(NullTransport):
     """Keeps every STATUS and counts CONTACTs (and their flags)."""
 
+    delivers = True
+
     def __init__(self) -> None:
         super().__init__()
         self.status: list[tuple[int, int, int]] = []  # (state, camera_errors, t_us)

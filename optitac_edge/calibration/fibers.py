@@ -16,6 +16,7 @@ from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.core.options import ContactOptions, ContactThresholds
 from optitac_edge.errors import FiberMapError
+from optitac_edge.text import fields
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +84,9 @@ def calibrate_fibers(
     grid = SurfaceGrid.over_layout(layout)
     matrix, factors = build_interpolation(layout, grid)
     report = _jsonable(result.report)
-    log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, report)
+    log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, fields(report))
     noise: dict[str, Any] = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
-    log.info("rest noise: %s", noise)
+    log.info("rest noise: %s", fields(noise))
     options = dataclasses.replace(options or ContactOptions(), **noise)
     return CalibrationBundle(
         layout=layout, transform=result.transform, fibers=result.table, grid=grid,

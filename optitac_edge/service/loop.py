@@ -355,7 +355,8 @@ class Service:
         if est is not None and not self._ready:
             self._ready = True
             self.notifier.ready("processing frames")
-            log.info("first frame processed; streaming to the MCU")
+            log.info("first frame processed; %s", "streaming to the MCU" if self.transport.delivers
+                     else "no link to an MCU: nothing is sent")
         if self.config.watchdog.enabled:
             # from the loop itself: a stuck loop stops kicking
             self.notifier.watchdog(self.clock.monotonic_ns() / 1e9)
@@ -397,7 +398,7 @@ class Service:
             self._light_changed()
         saturated = self.frame_check.saturated
         st.saturated_sent += int(saturated)
-        if self.streaming and st.frames % self.rate_divider == 0:
+        if self.streaming and st.frames % self.rate_divider == 0 and self.transport.delivers:
             self._message.fill(est, captured.t_ns, self.clock.monotonic_ns(), self.pipeline.calibrated,
                                saturated=saturated, degraded=self._degraded)
             self.transport.send_contact(self._message)

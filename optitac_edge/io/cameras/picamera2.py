@@ -35,6 +35,7 @@ import numpy as np
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import FrameRing
+from optitac_edge.text import fields
 
 log = logging.getLogger(__name__)
 
@@ -245,9 +246,9 @@ class Picamera2Camera(Camera):
                 break
         else:
             log.warning("picamera2: exposure/gain did not settle to %s within %d frames "
-                        "(last: ExposureTime %s, AnalogueGain %s)", lock, settle_frames,
+                        "(last: ExposureTime %s, AnalogueGain %s)", fields(lock), settle_frames,
                         md.get("ExposureTime"), md.get("AnalogueGain"))
-        log.info("picamera2: locked %s", lock)
+        log.info("picamera2: locked %s", fields(lock))
 
     # -- capture -------------------------------------------------------------
 

@@ -26,6 +26,9 @@ class Transport(Device, ABC):
     Use as a context manager; :meth:`close` is idempotent.
     """
 
+    #: Messages go somewhere (False for :class:`NullTransport`, ``run`` without a link).
+    delivers: bool = True
+
     def __init__(self) -> None:
         self.counters = TransportCounters()
         Device.__init__(self)
@@ -45,6 +48,8 @@ class Transport(Device, ABC):
 
 class NullTransport(Transport):
     """Discards everything (``run`` without a link)."""
+
+    delivers = False
 
     def send_contact(self, message: ContactMessage) -> None:
         self.counters.sent += 1
