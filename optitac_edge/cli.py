@@ -244,8 +244,8 @@ def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
     print(f"wrote {args.output} (id {bundle.calibration_id}): "
-          f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found, "
-          f"dead {', '.join(map(str, dead)) or 'none'}, {len(bundle.fibers.unmatched_px)} unmatched blobs, "
+          f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
+          f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs; "
           f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
     return 0
 

@@ -10,7 +10,7 @@ from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import hex_layout
 from optitac_edge.core.options import ContactThresholds
 from optitac_edge.errors import BundleError, FrameMismatchError
-from optitac_edge.io.bundle_file import BUNDLE_VERSION, load_bundle, save_bundle
+from optitac_edge.io.bundle_file import BUNDLE_VERSION, FACTOR_MEMBERS, load_bundle, save_bundle
 
 
 def small_bundle(height=40, width=50, pixel_format="gray"):
@@ -238,3 +238,99 @@ def test_contact_thresholds_must_be_finite_and_not_negative(bad) -> None:
 
     with pytest.raises(ValueError, match=next(iter(bad))):
         ContactThresholds(**bad)
+
+
+# -- issue 13.11: a digest proves only that nothing changed since it was computed -------------------
+
+
+def _craft(src, dst, *, meta=None, arrays=None, drop=()):
+    """A copy of bundle ``src`` with ``meta``/``arrays`` edited and the digest recomputed (valid)."""
+    import json
+
+    from optitac_edge.io.bundle_file import _digest
+
+    with np.load(src, allow_pickle=False) as npz:
+        members = {k: npz[k] for k in npz.files}
+    m = json.loads(members.pop("meta").tobytes())
+    members.pop("digest")
+    if meta is not None:
+        meta(m)
+    if arrays is not None:
+        arrays(members)
+    for k in drop:
+        members.pop(k)
+    meta_bytes = json.dumps(m).encode()
+    digest = _digest(meta_bytes, members)
+    np.savez(dst, **members, meta=np.frombuffer(meta_bytes, np.uint8), digest=np.frombuffer(digest.encode(), np.uint8))
+    return dst
+
+
+def _set_grid(key, value):
+    def edit(m):
+        m["grid"][key] = value
+    return edit
+
+
+def _nan_in(name):
+    def edit(arrays):
+        a = arrays[name].copy()
+        a.flat[a.size // 2] = np.nan
+        arrays[name] = a
+    return edit
+
+
+def _all_dead(arrays):
+    arrays["fiber_dead"] = np.ones_like(arrays["fiber_dead"])
+
+
+@pytest.mark.parametrize(("name", "edit", "message"), [
+    ("nan interpolation", {"arrays": _nan_in("interpolation"), "drop": FACTOR_MEMBERS.values()},
+     "interpolation matrix must be finite"),
+    ("nan surface factor", {"arrays": _nan_in("interpolation_cell_weights")}, "non-finite"),
+    ("step 0", {"meta": _set_grid("step_mm", 0.0)}, "step_mm must be > 0"),
+    ("step nan", {"meta": _set_grid("step_mm", float("nan"))}, "step_mm must be a finite number"),
+    ("grid huge", {"meta": _set_grid("n", 10**9)}, "grid size n must be an integer"),
+    ("baseline 1e12", {"meta": lambda m: m.__setitem__("baseline_frames", 10**12)}, "baseline_frames must be"),
+    ("all dead", {"arrays": _all_dead}, "every fiber is dead"),
+    ("nan centroid", {"arrays": _nan_in("fiber_centroid_px")}, "centroids must be finite"),
+    ("frame size 0", {"meta": lambda m: m["frame"].__setitem__("width", 0)}, "frame width must be"),
+    ("nan transform", {"meta": lambda m: m["transform"].__setitem__("scale_px_per_mm", float("nan"))},
+     "scale_px_per_mm must be a finite"),
+])
+def test_a_crafted_bundle_with_a_valid_digest_is_refused_in_one_line(tmp_path, bundle_path, capsys, name, edit,
+                                                                       message):
+    from optitac_edge.cli import main
+
+    bad = _craft(bundle_path, tmp_path / "bad.npz", **edit)
+    with pytest.raises(BundleError, match=message):
+        load_bundle(bad)
+    assert main(["replay", str(tmp_path / "no-rec"), "--cal", str(bad), "-o", str(tmp_path / "c.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+
+
+def test_a_bundle_member_claiming_a_gibibyte_is_refused_before_it_is_read(tmp_path, bundle_path):
+    """A 6.6 MB file whose member decompresses to 1 GiB took 2.2 GB of RSS; the .npy header is read
+    first and the member refused before a byte of its data is allocated."""
+    import subprocess
+    import sys
+
+    bad = tmp_path / "big.npz"
+    with zipfile.ZipFile(bundle_path) as src, zipfile.ZipFile(bad, "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            dst.writestr(info.filename, src.read(info.filename))
+        with dst.open("huge.npy", "w", force_zip64=True) as f:
+            header = {"descr": "<f4", "fortran_order": False, "shape": (1 << 28,)}
+            np.lib.format.write_array_header_1_0(f, header)
+            zeros = bytes(64 << 20)
+            for _ in range(16):  # 1 GiB of zeros: a few MB compressed
+                f.write(zeros)
+    assert bad.stat().st_size < 20 << 20
+    code = ("import sys; from optitac_edge.io.bundle_file import load_bundle\n"
+            "from optitac_edge.errors import BundleError\n"
+            "try:\n    load_bundle(sys.argv[1])\nexcept BundleError as e:\n    print(e)\n"
+            "print([int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmHWM')][0])")
+    out = subprocess.run([sys.executable, "-c", code, str(bad)], capture_output=True, text=True, timeout=120,
+                         check=True).stdout.split("\n")
+    assert "member 'huge' claims 1024 MiB" in out[0]
+    assert int(out[1]) < 400_000  # peak RSS of the process (VmHWM, kB): nowhere near the gibibyte

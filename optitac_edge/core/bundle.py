@@ -21,6 +21,8 @@ from optitac_edge.core.surface import SurfaceFactors
 
 #: Leading contact-free frames averaged into the baseline (the paper's 5).
 BASELINE_FRAMES = 5
+#: Most frames a bundle may average into the baseline (a few seconds at 240 fps).
+MAX_BASELINE_FRAMES = 1000
 #: Largest difference between the factored and the dense surface of a test vector accepted
 #: by :class:`CalibrationBundle`, relative to the largest ``|A| @ |v|`` (float32 rounding: ~1e-7).
 FACTOR_CHECK_TOL = 1e-4
@@ -86,6 +88,15 @@ class CalibrationBundle:
             raise ValueError(f"fiber table has {self.fibers.n_fibers} fibers, layout {n}")
         if self.interpolation.shape != (self.grid.n * self.grid.n, n):
             raise ValueError(f"interpolation matrix has shape {self.interpolation.shape}")
+        if self.interpolation.dtype.kind != "f" or not np.all(np.isfinite(self.interpolation)):
+            raise ValueError("interpolation matrix must be finite floating point")
+        b = self.baseline_frames
+        if not isinstance(b, int) or isinstance(b, bool) or not 1 <= b <= MAX_BASELINE_FRAMES:
+            raise ValueError(f"baseline_frames must be an integer in 1..{MAX_BASELINE_FRAMES}, got {b!r}")
+        for name, arr in self.extra_arrays.items():
+            a = np.asarray(arr)
+            if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+                raise ValueError(f"extra array {name!r} holds non-finite values")
         if self.surface_factors is not None:
             _check_factors(self.surface_factors, self.interpolation)
 

@@ -7,6 +7,7 @@ two map values there (x and y error) are subtracted: O(1).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,8 +58,13 @@ class CentroidErrorMap:
     def from_bundle(cls, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> CentroidErrorMap:
         ex = np.asarray(arrays["centroid/error_x"], dtype=np.float32)
         ey = np.asarray(arrays["centroid/error_y"], dtype=np.float32)
-        if ex.ndim != 2 or ex.shape[0] != ex.shape[1] or ey.shape != ex.shape:
+        if ex.ndim != 2 or ex.shape[0] != ex.shape[1] or ey.shape != ex.shape or ex.shape[0] < 2:
             raise ValueError("centroid error maps must be two square arrays of one size")
-        return cls(float(meta["x0_mm"]), float(meta["y0_mm"]), float(meta["step_mm"]), ex, ey)
+        if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
+            raise ValueError("centroid error maps must be finite")
+        x0, y0, step = float(meta["x0_mm"]), float(meta["y0_mm"]), float(meta["step_mm"])
+        if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(step) and step > 0):
+            raise ValueError("centroid map origin must be finite and its step > 0")
+        return cls(x0, y0, step, ex, ey)
 
 

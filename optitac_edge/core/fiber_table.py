@@ -13,11 +13,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from optitac_edge.core.frames import frame_geometry
+from optitac_edge.core.frames import PIXEL_FORMATS, frame_geometry
 from optitac_edge.errors import FrameMismatchError
 
 #: Bytes per CPU cache line (x86-64, Cortex-A72/A76), for the gather's probe of a new frame.
 CACHE_LINE = 64
+#: Largest image side a fiber table may be built for, px.
+MAX_SIDE = 8192
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,6 +58,20 @@ class FiberTable:
     unmatched_px: np.ndarray
 
     def __post_init__(self) -> None:
+        for name in ("height", "width"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_SIDE:
+                raise ValueError(f"frame {name} must be an integer in 1..{MAX_SIDE}, got {value!r}")
+        if self.pixel_format not in PIXEL_FORMATS:
+            raise ValueError(f"pixel format must be one of {', '.join(PIXEL_FORMATS)}, got {self.pixel_format!r}")
+        if self.centroid_px.ndim != 2 or self.centroid_px.shape[1:] != (2,):
+            raise ValueError("fiber centroids must have shape (N, 2)")
+        if not np.all(np.isfinite(self.centroid_px)):
+            raise ValueError("fiber centroids must be finite")
+        if self.dead.dtype != bool:
+            raise ValueError("dead must be a boolean array")
+        if self.dead.size and self.dead.all():
+            raise ValueError("every fiber is dead: the bundle cannot see a contact")
         n = self.centroid_px.shape[0]
         if self.pixel_start.shape != (n + 1,) or self.dead.shape != (n,):
             raise ValueError("fiber table arrays disagree on the number of fibers")

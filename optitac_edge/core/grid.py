@@ -7,6 +7,7 @@ upside down with respect to the camera image unless flipped).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +15,8 @@ import numpy as np
 from optitac_edge.core.layout import FiberLayout
 
 DEFAULT_GRID_SIZE = 100
+#: The mesh sizes a grid may have (a bundle claiming more is refused before anything is allocated).
+MIN_GRID_SIZE, MAX_GRID_SIZE = 2, 4096
 
 
 @dataclass(frozen=True)
@@ -24,6 +27,16 @@ class SurfaceGrid:
     x0_mm: float
     y0_mm: float
     step_mm: float
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.n, int) or isinstance(self.n, bool) or not MIN_GRID_SIZE <= self.n <= MAX_GRID_SIZE:
+            raise ValueError(f"grid size n must be an integer in {MIN_GRID_SIZE}..{MAX_GRID_SIZE}, got {self.n!r}")
+        for name in ("x0_mm", "y0_mm", "step_mm"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"grid {name} must be a finite number, got {value!r}")
+        if not self.step_mm > 0:
+            raise ValueError(f"grid step_mm must be > 0, got {self.step_mm!r}")
 
     @classmethod
     def over_layout(cls, layout: FiberLayout, n: int = DEFAULT_GRID_SIZE) -> SurfaceGrid:

@@ -34,6 +34,16 @@ class ImageTransform:
     k1: float = 0.0
     r_ref_mm: float = 1.0
 
+    def __post_init__(self) -> None:
+        for name in ("rotation_deg", "scale_px_per_mm", "cx", "cy", "k1", "r_ref_mm"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"transform {name} must be a finite number, got {value!r}")
+        if not self.scale_px_per_mm > 0 or not self.r_ref_mm > 0:
+            raise ValueError("transform scale_px_per_mm and r_ref_mm must be > 0")
+        if not isinstance(self.mirror, bool):
+            raise TypeError(f"transform mirror must be true or false, got {self.mirror!r}")
+
     def to_dict(self) -> dict[str, float | bool]:
         return asdict(self)
 

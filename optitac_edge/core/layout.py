@@ -10,6 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: Fewest fibers a layout may have (the surface needs a triangulation).
+MIN_FIBERS = 7
+
 
 @dataclass(frozen=True, eq=False)
 class FiberLayout:
@@ -31,6 +34,14 @@ class FiberLayout:
             raise ValueError("xy_mm must have shape (N, 2)")
         if self.ids.shape != (self.xy_mm.shape[0],):
             raise ValueError("ids must have shape (N,)")
+        if self.xy_mm.shape[0] < MIN_FIBERS:
+            raise ValueError(f"a layout needs at least {MIN_FIBERS} fibers, got {self.xy_mm.shape[0]}")
+        if not np.all(np.isfinite(self.xy_mm)):
+            raise ValueError("fiber positions must be finite")
+        if np.unique(self.ids).size != self.ids.size:
+            raise ValueError("fiber ids must be unique")
+        if np.unique(self.xy_mm, axis=0).shape[0] != self.xy_mm.shape[0]:
+            raise ValueError("two fibers at the same position")
 
     @property
     def n_fibers(self) -> int:

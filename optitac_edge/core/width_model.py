@@ -40,6 +40,8 @@ class AxisMap:
         km, kt = self.knots_measured, self.knots_true
         if km.ndim != 1 or km.shape != kt.shape or km.size < 2 or np.any(np.diff(km) <= 0):
             raise ValueError("width knots must be two increasing arrays of one length >= 2")
+        if not (np.all(np.isfinite(km)) and np.all(np.isfinite(kt))):
+            raise ValueError("width knots must be finite")
         object.__setattr__(self, "_km", [float(v) for v in km])
         object.__setattr__(self, "_kt", [float(v) for v in kt])
 

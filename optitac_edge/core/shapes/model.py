@@ -114,6 +114,9 @@ class ShapeModel:
             raise ValueError("component_class out of range")
         if not (np.all(self.weights > 0) and abs(self.weights.sum() - 1.0) < 1e-9):
             raise ValueError("weights must be positive and sum to 1")
+        if not all(np.all(np.isfinite(a)) for a in (self.mean, self.std, self.means)) or not (
+                np.isfinite(self.log_hu_cap) and np.isfinite(self.q4_floor)):
+            raise ValueError("shape model parameters must be finite")
         diag = np.diagonal(self.precisions_cholesky, axis1=1, axis2=2)
         if not (np.all(np.isfinite(self.precisions_cholesky)) and np.all(diag > 0)):
             raise ValueError("precision Cholesky factors must be finite with positive diagonal")
