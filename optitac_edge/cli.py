@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import shutil
 import signal
@@ -40,8 +41,28 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see --help)\n")
 
 
+def _number(lo: float, hi: float, *, integer: bool = False, lo_open: bool = False) -> Callable[[str], Any]:
+    """An argparse type: a finite number (an integer with ``integer``) in ``lo..hi``; one-line errors."""
+    def parse(text: str) -> float | int:
+        try:
+            value: float | int = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
+        low_ok = value > lo if lo_open else value >= lo
+        if not (math.isfinite(value) and low_ok and value <= hi):
+            raise argparse.ArgumentTypeError(
+                f"{text} is outside {'(' if lo_open else ''}{lo:g}..{hi:g}{')' if lo_open else ''}")
+        return value
+    return parse
+
+
+COUNT = _number(1, 10**9, integer=True)
+SEED = _number(0, 2**32 - 1, integer=True)
+FPS = _number(1, 1000)
+
+
 def _add_orientation(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rotation-deg", type=float, default=0.0, metavar="A",
+    p.add_argument("--rotation-deg", type=_number(-360, 360), default=0.0, metavar="A",
                    help="the array appears rotated counter-clockwise by about A degrees in the image")
     p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
 
@@ -71,19 +92,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sim", help="write a recording from the built-in simulator")
     p.add_argument("out_dir", type=Path)
     p.add_argument("--scenario", required=True, choices=_Scenarios(), metavar="NAME", help="%(choices)s")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--frames", type=int, default=None, help="number of frames (scenario default if omitted)")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--frames", type=COUNT, default=None, help="number of frames (scenario default if omitted)")
+    p.add_argument("--width", type=_number(64, 8192, integer=True), default=640)
+    p.add_argument("--height", type=_number(64, 8192, integer=True), default=480)
     p.add_argument("--rgb", action="store_true", help="write (N,H,W,3) RGB frames")
     p.add_argument("--dark-fibers", type=str, default="", metavar="I,J,...",
                    help="layout indices of fibers that transmit no light")
-    p.add_argument("--day", type=int, default=0,
+    p.add_argument("--day", type=_number(0, 10_000, integer=True), default=0,
                    help="session drift: camera shift, LED/pin gain, depth jitter, LED drift (0 = none)")
-    p.add_argument("--variant", type=int, default=0,
+    p.add_argument("--variant", type=_number(0, 10_000, integer=True), default=0,
                    help="another simulated sensor (optics and skin drawn from seed N; 0 = default); "
                         "sets its own rotation and mirror")
-    p.add_argument("--warmup", type=float, default=0.03, help="LED change over a 'drift' recording")
+    p.add_argument("--warmup", type=_number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
     _add_orientation(p)
 
     cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
@@ -101,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("recording", type=Path)
         p.add_argument("--cal", type=Path, required=True, metavar="CAL", help="bundle to update in place")
         if step == "shapes":
-            p.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the fits")
+            p.add_argument("--seed", type=SEED, default=0, help="seed of the held-out split and the fits")
         if step == "width":
             p.add_argument("--model", choices=("monotone", "linear"), default="monotone",
                            help="per-axis map: monotone piecewise-linear (default) or the paper's linear")
@@ -135,39 +156,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cal", type=Path, default=None, help="use this bundle (default: the board's)")
     p.add_argument("--serial", default=None, metavar="PORT", help="serial device or pyserial URL (overrides the board)")
     p.add_argument("--can", default=None, metavar="CHANNEL", help="CAN channel (overrides the board)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop cleanly after S seconds")
-    p.add_argument("--frames", type=int, default=None, help="stop after N frames")
-    p.add_argument("--fps", type=float, default=None, help="camera frame rate (overrides the board)")
+    p.add_argument("--duration", type=_number(0, 1e8, lo_open=True), default=None, metavar="S",
+                   help="stop cleanly after S seconds")
+    p.add_argument("--frames", type=COUNT, default=None, help="stop after N frames")
+    p.add_argument("--fps", type=FPS, default=None, help="camera frame rate (overrides the board)")
 
     p = sub.add_parser("record", help="save frames of a live source as a recording")
     _add_board(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
-    p.add_argument("--frames", type=int, default=300)
-    p.add_argument("--rest-frames", type=int, default=10, help="leading contact-free frames (meta.json)")
+    p.add_argument("--frames", type=COUNT, default=300)
+    p.add_argument("--rest-frames", type=COUNT, default=10, help="leading contact-free frames (meta.json)")
 
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
-    p.add_argument("--minutes", type=float, required=True, metavar="M")
-    p.add_argument("--fault-rate", type=float, default=0.01, metavar="R", help="probability of a fault per read")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fps", type=float, default=60.0)
+    p.add_argument("--minutes", type=_number(0, 1e6, lo_open=True), required=True, metavar="M")
+    p.add_argument("--fault-rate", type=_number(0, 1), default=0.01, metavar="R",
+                   help="probability of a fault per read")
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--fps", type=FPS, default=60.0)
     p.add_argument("--virtual-time", action="store_true",
                    help="service, camera and faults on a virtual clock: as fast as the machine computes, "
                         "same seed, same counts")
 
     p = sub.add_parser("bench", help="measure the per-frame loop: stages, reference, memory, end to end, startup")
-    p.add_argument("--frames", type=int, default=20000, help="frames timed per stage (default 20000)")
+    p.add_argument("--frames", type=COUNT, default=20000, help="frames timed per stage (default 20000)")
     p.add_argument("--source", default="sim", metavar="sim|REC",
                    help="the simulated camera (default) or a recording directory")
-    p.add_argument("--fps", type=float, default=240.0, help="frame rate of the end-to-end run (default 240)")
+    p.add_argument("--fps", type=FPS, default=240.0, help="frame rate of the end-to-end run (default 240)")
     p.add_argument("--cal", type=Path, default=None,
                    help="bundle to use (default: built once for the simulator with all calibration models)")
     p.add_argument("--rgb", action="store_true", help="simulated camera: RGB frames instead of gray")
     p.add_argument("--json", type=Path, default=Path("bench.json"), metavar="PATH",
                    help="write the results here (default bench.json)")
     p.add_argument("--workdir", type=Path, default=None, help="cache of the simulator bundle (default: a temp dir)")
-    p.add_argument("--reference-frames", type=int, default=300, help="frames the reference runs on (0: skip)")
-    p.add_argument("--memory-frames", type=int, default=2000, help="frames traced with tracemalloc (0: skip)")
-    p.add_argument("--e2e-seconds", type=float, default=60.0, help="end-to-end run length (0: skip)")
+    p.add_argument("--reference-frames", type=_number(0, 10**7, integer=True), default=300,
+                   help="frames the reference runs on (0: skip)")
+    p.add_argument("--memory-frames", type=_number(0, 10**8, integer=True), default=2000,
+                   help="frames traced with tracemalloc (0: skip)")
+    p.add_argument("--e2e-seconds", type=_number(0, 1e6), default=60.0, help="end-to-end run length (0: skip)")
     p.add_argument("--no-startup", action="store_true", help="skip the start-to-first-packet run")
     p.add_argument("--queue-frames", type=int, default=None, metavar="N",
                    help="end to end: frames the camera queues for the loop (default: the sim board's "
@@ -209,15 +234,17 @@ def _add_board(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    from optitac_edge.core.layout import hex_layout
     from optitac_edge.sim.optics import CameraOptics
     from optitac_edge.sim.scenarios import write_scenario
 
+    n_fibers = hex_layout().n_fibers
     try:
         dark = tuple(int(s) for s in args.dark_fibers.split(",") if s.strip())
     except ValueError:
         raise OptiTacError(f"--dark-fibers must be comma-separated integers, got {args.dark_fibers!r}") from None
-    if args.frames is not None and args.frames < 1:
-        raise OptiTacError("--frames must be at least 1")
+    if any(not 0 <= i < n_fibers for i in dark) or len(set(dark)) != len(dark):
+        raise OptiTacError(f"--dark-fibers must be distinct fiber indices in 0..{n_fibers - 1}")
     optics = CameraOptics(width=args.width, height=args.height, rgb=args.rgb,
                           rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
     path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics,

@@ -12,23 +12,37 @@ from optitac_edge.errors import ConfigError
 from optitac_edge.io.files import AtomicFile
 
 LAYOUT_CSV_HEADER = ("fiber", "x_mm", "y_mm")
+#: Largest layout file read (a fiber is one short line), bytes.
+MAX_LAYOUT_BYTES = 4 << 20
+#: Longest cell of a layout (a number), characters.
+MAX_CELL_CHARS = 64
+#: Largest fiber number.
+MAX_FIBER_ID = 2**31 - 1
 
 
 def load_layout_csv(path: str | Path) -> FiberLayout:
-    """Read a custom layout from a CSV file with header ``fiber,x_mm,y_mm``.
+    """Read a custom layout from a CSV file with header ``fiber,x_mm,y_mm`` (UTF-8, a BOM allowed).
 
     Raises
     ------
     ConfigError
-        If the file is missing, has another header, a bad number, a duplicate
-        fiber number, or fewer than 7 fibers.
+        One line naming the file (and line) if it is missing, too large, not
+        UTF-8 text, has another header, a cell too long or not a number, a fiber
+        number outside 0..2**31-1 or repeated, two fibers at one position, or
+        fewer than 7 fibers.
     """
     path = Path(path)
     try:
-        with path.open(newline="") as f:
+        if path.stat().st_size > MAX_LAYOUT_BYTES:
+            raise ConfigError(f"{path}: larger than a layout can be ({MAX_LAYOUT_BYTES // 1024} KiB)")
+        with path.open(newline="", encoding="utf-8-sig") as f:  # utf-8-sig: as Excel saves CSV
             rows = list(csv.reader(f))
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read layout ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    except csv.Error as exc:
+        raise ConfigError(f"{path}: not a CSV layout ({exc})") from None
     if not rows or tuple(c.strip() for c in rows[0]) != LAYOUT_CSV_HEADER:
         raise ConfigError(f"{path}: layout header must be '{','.join(LAYOUT_CSV_HEADER)}'")
     ids, xy = [], []
@@ -37,11 +51,16 @@ def load_layout_csv(path: str | Path) -> FiberLayout:
             continue
         if len(row) != 3:
             raise ConfigError(f"{path}: line {line_no}: expected 3 cells, got {len(row)}")
+        if any(len(c) > MAX_CELL_CHARS for c in row):
+            raise ConfigError(f"{path}: line {line_no}: a cell longer than {MAX_CELL_CHARS} characters")
         try:
-            ids.append(int(row[0]))
+            fiber = int(row[0])
             xy.append((float(row[1]), float(row[2])))
         except ValueError:
-            raise ConfigError(f"{path}: line {line_no}: not a number in {row!r}") from None
+            raise ConfigError(f"{path}: line {line_no}: not a number in {', '.join(row)}") from None
+        if not 0 <= fiber <= MAX_FIBER_ID:
+            raise ConfigError(f"{path}: line {line_no}: fiber number {row[0].strip()} outside 0..{MAX_FIBER_ID}")
+        ids.append(fiber)
     if len(set(ids)) != len(ids):
         raise ConfigError(f"{path}: duplicate fiber number")
     if len(ids) < 7:
@@ -49,7 +68,10 @@ def load_layout_csv(path: str | Path) -> FiberLayout:
     xy_arr = np.asarray(xy, dtype=np.float64)
     if not np.all(np.isfinite(xy_arr)):
         raise ConfigError(f"{path}: non-finite coordinate")
-    return FiberLayout(ids=np.asarray(ids, dtype=np.int64), xy_mm=xy_arr)
+    try:
+        return FiberLayout(ids=np.asarray(ids, dtype=np.int64), xy_mm=xy_arr)
+    except ValueError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
 
 
 def save_layout_csv(layout: FiberLayout, path: str | Path) -> None:

@@ -65,6 +65,8 @@ class Truth:
         return int(self.frame.shape[0])
 
 
+#: Largest truth.csv read, bytes (a row a frame).
+MAX_TRUTH_BYTES = 64 << 20
 #: Largest meta.json read, bytes (it holds a few numbers and the simulator's parameters).
 MAX_META_BYTES = 1 << 20
 #: The frame rates a recording may claim, frames/s.
@@ -125,15 +127,29 @@ def _cell_float(value: str) -> float:
 
 
 def read_truth(path: Path, n_frames: int) -> Truth:
-    """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames."""
+    """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames.
+
+    Raises
+    ------
+    RecordingError
+        One line naming the file and line: unreadable or not UTF-8, another
+        header, no rows, a cell not a number, a frame out of range or listed
+        twice, a contact row without its position, shape, size or depth, an
+        unknown shape.
+    """
     try:
-        with path.open(newline="") as f:
+        if path.stat().st_size > MAX_TRUTH_BYTES:
+            raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
+        with path.open(newline="", encoding="utf-8-sig") as f:
             rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise RecordingError(f"{path}: cannot read truth ({exc})") from None
     if not rows or tuple(c.strip() for c in rows[0]) != TRUTH_HEADER:
         raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}'")
+    if len(rows) < 2:
+        raise RecordingError(f"{path}: no rows after the header")
     cols: list[list[Any]] = [[] for _ in TRUTH_HEADER]
+    seen: set[int] = set()
     for line_no, row in enumerate(rows[1:], start=2):
         if len(row) != len(TRUTH_HEADER):
             raise RecordingError(f"{path}: line {line_no}: expected {len(TRUTH_HEADER)} cells")
@@ -145,8 +161,15 @@ def read_truth(path: Path, n_frames: int) -> Truth:
         shape = row[2].strip()
         if not 0 <= frame < n_frames or contact not in (0, 1):
             raise RecordingError(f"{path}: line {line_no}: frame or contact out of range")
+        if frame in seen:
+            raise RecordingError(f"{path}: line {line_no}: frame {frame} is listed twice")
+        seen.add(frame)
         if contact and shape not in SHAPES:
             raise RecordingError(f"{path}: line {line_no}: unknown shape {shape!r}")
+        if contact and not all(math.isfinite(v) for i, v in enumerate(values) if TRUTH_HEADER[3 + i] != "angle_deg"):
+            missing = [TRUTH_HEADER[3 + i] for i, v in enumerate(values)
+                       if not math.isfinite(v) and TRUTH_HEADER[3 + i] != "angle_deg"]
+            raise RecordingError(f"{path}: line {line_no}: a contact without {', '.join(missing)}")
         for col, value in zip(cols, [frame, bool(contact), shape if contact else "", *values]):
             col.append(value)
     return Truth(

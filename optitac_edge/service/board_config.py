@@ -42,6 +42,8 @@ DEFAULT_STATE_DIR = "/var/lib/optitac-edge"
 ENV_PREFIX = "OPTITAC_"
 #: Camera backends a board config may name (the registry in optitac_edge.io.cameras may add more).
 KNOWN_CAMERA_BACKENDS = ("sim", "recording", "picamera2", "v4l2")
+#: Most rest frames calibrated from at start (each is held in memory: 300 RGB 640x480 frames are 276 MB).
+MAX_REST_FRAMES = 300
 #: The only schema version there is.
 CONFIG_VERSION = 1
 
@@ -228,7 +230,7 @@ class CalibrationConfig:
                        "calibration bundle ('' = calibrate at every start, keep nothing)")
     if_missing: str = _opt(_choice("calibrate", "fail"), "calibrate",
                            "no bundle: calibrate fibers from rest frames and save, or fail")
-    rest_frames: int = _opt(_int(1, 10_000), 10, "contact-free frames used to calibrate at start")
+    rest_frames: int = _opt(_int(1, MAX_REST_FRAMES), 10, "contact-free frames used to calibrate at start")
     rotation_deg: float = _opt(_num(-360, 360), 0.0, "orientation hint (docs/formats.md)")
     mirror: bool = _opt(_bool, False, "orientation hint: the array appears mirrored")
     layout: str = _opt(_path, "", "custom layout CSV ('' = the default hexagonal array)")

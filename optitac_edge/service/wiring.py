@@ -10,17 +10,20 @@ calibration code, and with it scipy, imported).
 
 from __future__ import annotations
 
+import inspect
 import logging
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.errors import BundleError, CameraError, OptiTacError, OutputError
+from optitac_edge.errors import BundleError, CameraError, ConfigError, OptiTacError, OutputError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
-from optitac_edge.io.cameras import open_camera
+from optitac_edge.io.cameras import BACKENDS, open_camera
 from optitac_edge.io.cameras.base import Camera
+from optitac_edge.io.device import load_backend
 from optitac_edge.io.layout_csv import load_layout_csv
 from optitac_edge.io.led import I2CBus, LedRing, NoLed, pwm_period_us
 from optitac_edge.io.transports import open_transport
@@ -63,24 +66,57 @@ def log_config_warnings(config: BoardConfig) -> None:
 
 
 def camera_kwargs(config: BoardConfig) -> dict[str, Any]:
-    """Constructor arguments of the configured camera backend."""
+    """Constructor arguments of the configured camera backend: the typed ``[camera]`` keys, then
+    ``camera.options`` for what the backend takes beyond them.
+
+    Raises
+    ------
+    ConfigError
+        If an option sets what a typed key sets (``camera.options.fps``: use
+        ``camera.fps``, which is validated), or names no parameter of the backend.
+    """
     cam = config.camera
+    typed: dict[str, Any]
     if cam.backend == "sim":
-        return {"fps": cam.fps, "width": cam.width, "height": cam.height, "rgb": cam.pixel_format == "rgb",
-                "rest_frames": max(config.calibration.rest_frames, 10), "queue_frames": cam.queue_frames,
-                **dict(cam.options)}
-    if cam.backend == "recording":
-        return {"path": cam.recording, "realtime": True, **dict(cam.options)}
-    if cam.backend == "picamera2":
-        return {"width": cam.width, "height": cam.height, "fps": cam.fps, "camera_num": cam.index,
-                "pixel_format": cam.pixel_format, "exposure_us": cam.exposure_us or None,
-                "analogue_gain": cam.gain or None, "warmup_frames": cam.warmup_frames,
-                "timeout_s": cam.timeout_s, "queue_frames": cam.queue_frames, **dict(cam.options)}
-    if cam.backend == "v4l2":  # exposure in driver units goes in camera.options.exposure
+        typed = {"fps": cam.fps, "width": cam.width, "height": cam.height, "rgb": cam.pixel_format == "rgb",
+                 "rest_frames": max(config.calibration.rest_frames, 10), "queue_frames": cam.queue_frames}
+    elif cam.backend == "recording":
+        typed = {"path": cam.recording, "realtime": True}
+    elif cam.backend == "picamera2":
+        typed = {"width": cam.width, "height": cam.height, "fps": cam.fps, "camera_num": cam.index,
+                 "pixel_format": cam.pixel_format, "exposure_us": cam.exposure_us or None,
+                 "analogue_gain": cam.gain or None, "warmup_frames": cam.warmup_frames,
+                 "timeout_s": cam.timeout_s, "queue_frames": cam.queue_frames}
+    elif cam.backend == "v4l2":  # exposure in driver units goes in camera.options.exposure
         source = {"pipeline": cam.pipeline} if cam.pipeline else {"device": cam.device}
-        return {**source, "width": cam.width, "height": cam.height, "fps": cam.fps,
-                "gain": cam.gain or None, "queue_frames": cam.queue_frames, **dict(cam.options)}
-    return dict(cam.options)
+        typed = {**source, "width": cam.width, "height": cam.height, "fps": cam.fps,
+                 "gain": cam.gain or None, "queue_frames": cam.queue_frames}
+    else:
+        typed = {}
+    _check_camera_options(config, typed)
+    return {**typed, **dict(cam.options)}
+
+
+def _check_camera_options(config: BoardConfig, typed: dict[str, Any]) -> None:
+    cam = config.camera
+    if not cam.options:
+        return
+    shadowed = {f.name for f in fields(cam)} | set(typed)
+    try:
+        params = inspect.signature(load_backend(BACKENDS, cam.backend, "camera backend", ConfigError)).parameters
+    except ImportError:  # the backend's module cannot be imported here: it says why when opened
+        return
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    for name in cam.options:
+        where = config.origins.get(f"camera.options.{name}", config.source)
+        if name in shadowed:
+            raise ConfigError(f"{where}: camera.options.{name}: set it with the camera key that does "
+                              f"(camera.{name if name in {f.name for f in fields(cam)} else '...'}), "
+                              "which is checked")
+        if not takes_any and (name not in params or name == "clock"):
+            known = sorted(set(params) - shadowed - {"self", "clock"})
+            raise ConfigError(f"{where}: camera.options.{name}: not an option of the {cam.backend} camera "
+                              f"(its options: {', '.join(known) or 'none'})")
 
 
 def open_board_camera(config: BoardConfig) -> Camera:
