@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
 from optitac_edge import __version__
-from optitac_edge.errors import OptiTacError
+from optitac_edge.errors import EXTRA_OF_MODULE, OptiTacError, missing_extra
 from optitac_edge.io.logs import NonBlockingLogging
 from optitac_edge.text import fields
 
@@ -578,6 +578,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # e.g. an output path that cannot be written
         where = f"{exc.filename}: " if exc.filename else ""
         message = f"error: {where}{exc.strerror or exc}"
+    except ModuleNotFoundError as exc:  # an optional package this feature needs
+        if exc.name is None or exc.name.split(".")[0] not in (*EXTRA_OF_MODULE, "picamera2"):
+            raise
+        message = f"error: {missing_extra(exc.name, f'optitac-edge {args.command}')}"
     except MemoryError:
         message = "error: out of memory"
     finally:

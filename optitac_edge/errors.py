@@ -46,3 +46,21 @@ class OutputError(OptiTacError):
 
 class MissingExtraError(OptiTacError):
     """A feature needs an optional package that is not installed (the message says which extra)."""
+
+
+#: The pip extra that installs each optional module (``pip install 'optitac-edge[EXTRA]'``).
+EXTRA_OF_MODULE = {
+    "sklearn": "calibrate", "threadpoolctl": "calibrate", "matplotlib": "calibrate", "onnx": "calibrate",
+    "onnxruntime": "onnx", "can": "can", "cantools": "can", "smbus2": "board",
+}
+
+
+def missing_extra(module: str, feature: str) -> MissingExtraError:
+    """The one-line error for ``feature`` when the optional ``module`` is not installed."""
+    root = module.split(".")[0]
+    extra = EXTRA_OF_MODULE.get(root)
+    if root == "picamera2":
+        return MissingExtraError(f"{feature} needs picamera2: on Raspberry Pi OS, sudo apt install python3-picamera2 "
+                                 "and a virtual environment with --system-site-packages (tools/install.sh does both)")
+    how = f"pip install 'optitac-edge[{extra}]'" if extra else f"pip install {root}"
+    return MissingExtraError(f"{feature} needs {root}, which is not installed: {how}")

@@ -23,6 +23,7 @@ from optitac_edge.core.shapes.evaluate import CompiledShapeModel
 from optitac_edge.core.shapes.features import IS_Q4, Q4_MAX, SIGNED, ZERO_IS_NULL
 from optitac_edge.core.shapes.model import ShapeModel
 from optitac_edge.core.shapes.onnx_runtime import OUTPUT_NAME
+from optitac_edge.errors import missing_extra
 from optitac_edge.io.files import write_file_atomic
 
 if TYPE_CHECKING:
@@ -38,14 +39,14 @@ def build_onnx(model: ShapeModel) -> onnx.ModelProto:
 
     Raises
     ------
-    ImportError
+    MissingExtraError
         If the ``onnx`` package is not installed.
     """
     try:
         import onnx
         from onnx import TensorProto, helper, numpy_helper
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError("ONNX export needs the 'onnx' package (pip install onnx)") from exc
+        raise missing_extra("onnx", "ONNX export") from exc
 
     c = CompiledShapeModel.from_model(model)
     k, n_cls = model.n_components, len(model.class_names)

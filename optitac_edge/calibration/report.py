@@ -10,7 +10,7 @@ import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.corrections import ContactCorrector
-from optitac_edge.errors import OptiTacError, OutputError
+from optitac_edge.errors import OptiTacError, OutputError, missing_extra
 from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.files import check_output_path, write_file_atomic
 from optitac_edge.io.recording import SHAPES, Recording
@@ -23,7 +23,7 @@ def _plt() -> Any:
     try:
         import matplotlib
     except ImportError:
-        raise OptiTacError("the report needs matplotlib (pip install 'optitac-edge[calibrate]')") from None
+        raise missing_extra("matplotlib", "the report") from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

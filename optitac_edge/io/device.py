@@ -6,7 +6,7 @@ import importlib
 import threading
 from typing import Any
 
-from optitac_edge.errors import OptiTacError
+from optitac_edge.errors import OptiTacError, missing_extra
 
 
 class Device:
@@ -44,4 +44,10 @@ def load_backend(registry: dict[str, str], name: str, kind: str, error: type[Opt
     except KeyError:
         raise error(f"unknown {kind} {name!r} (known: {', '.join(sorted(registry))})") from None
     module_name, class_name = target.split(":")
-    return getattr(importlib.import_module(module_name), class_name)
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:  # the backend's optional library: say which extra installs it
+        if exc.name is None or exc.name.split(".")[0] == "optitac_edge":
+            raise
+        raise missing_extra(exc.name, f"the {name} {kind}") from None
+    return getattr(module, class_name)

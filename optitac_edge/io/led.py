@@ -21,7 +21,7 @@ import time
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any, Protocol
 
-from optitac_edge.errors import OptiTacError
+from optitac_edge.errors import OptiTacError, missing_extra
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -144,7 +144,7 @@ class LedRing:
         try:
             from smbus2 import SMBus
         except ImportError:
-            raise LedError("the LED ring needs smbus2 (pip install smbus2)") from None
+            raise missing_extra("smbus2", "the LED ring") from None
         try:
             return SMBus(number)
         except OSError as exc:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from optitac_edge.core.shapes.evaluate import width_error
+from optitac_edge.errors import missing_extra
 
 #: Name of the graph's output (see :mod:`optitac_edge.calibration.onnx_export`).
 OUTPUT_NAME = "probabilities"
@@ -30,18 +31,15 @@ class OnnxShapeClassifier:
 
     Raises
     ------
-    ImportError
-        If onnxruntime is not installed.
+    MissingExtraError
+        If onnxruntime is not installed (the ``onnx`` extra).
     """
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
         try:
             import onnxruntime as ort
         except ImportError as exc:
-            raise ImportError(
-                "OnnxShapeClassifier needs onnxruntime: pip install 'optitac-edge[onnx]' "
-                "(or pip install onnxruntime); the numpy ShapeClassifier needs nothing extra"
-            ) from exc
+            raise missing_extra("onnxruntime", "the onnx shape backend") from exc
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
