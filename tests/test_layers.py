@@ -74,3 +74,12 @@ def test_the_default_run_needs_no_optional_package(tmp_path) -> None:
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["code"] == 0, out.stderr
     assert [m for m in result["modules"] if m.split(".")[0] in EXTRAS] == []
+
+
+def test_the_board_config_loader_needs_only_the_standard_library() -> None:
+    """tools/install.sh checks a board config with the system Python before it installs anything."""
+    code = ("import sys; from optitac_edge.service.board_config import available_boards, load_board_config\n"
+            "[load_board_config(n, env={}) for n in available_boards()]\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'cv2', 'scipy', 'serial', 'cobs'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "[]"

@@ -173,3 +173,35 @@ def test_install_unknown_board_fails_in_one_line():
 def test_install_script_is_shellcheck_clean():
     proc = subprocess.run(check=False, args=["shellcheck", str(INSTALL)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stdout
+
+
+def test_modemmanager_leaves_the_mcu_port_alone():
+    """Issue 13.16: ModemManager (JetPack) probes new serial ports with AT commands unless udev says not to."""
+    rules = (REPO / "systemd" / "99-optitac-edge.rules").read_text().splitlines()
+    mcu = [r.lstrip("# ") for r in rules if "optitac-mcu" in r and "SUBSYSTEM" in r]
+    uarts = [r for r in rules if "ttyTHS" in r and not r.startswith("#")]
+    assert len(mcu) >= 4 and uarts
+    assert all('ENV{ID_MM_DEVICE_IGNORE}="1"' in r for r in mcu + uarts)
+
+
+def test_the_unit_allows_every_serial_device_a_packaged_board_can_name():
+    """/dev/serial0 is ttyAMA0 or, on a Pi 4 with Bluetooth on, ttyS0 (major 4, 'ttyS')."""
+    unit = (REPO / "systemd" / "optitac-edge.service").read_text()
+    allowed = set(re.findall(r"^DeviceAllow=char-(\S+) rw$", unit, re.MULTILINE))
+    assert {"ttyS", "ttyAMA", "ttyACM", "ttyUSB", "ttyTHS"} <= allowed
+
+
+def test_install_checks_a_relative_board_path_before_changing_anything(tmp_path):
+    """Issue 13.15: `install.sh ./my-board.toml` ran apt, useradd, the venv and pip, then failed its
+    config check after `cd /` with a traceback. The config is checked first, by its absolute path."""
+    (tmp_path / "my-board.toml").write_text((REPO / "board_configs" / "rpi5-gs.toml").read_text())
+    ok = subprocess.run(["bash", str(INSTALL), "--dry-run", "./my-board.toml"], capture_output=True, text=True,
+                        timeout=120, check=False, cwd=tmp_path)
+    assert ok.returncode == 0, ok.stderr
+    assert f"install -m 0644 {tmp_path}/my-board.toml /etc/optitac-edge/board.toml" in ok.stdout
+    (tmp_path / "bad.toml").write_text("[camera]\nfps = 0\n")
+    bad = subprocess.run(["bash", str(INSTALL), "--dry-run", "./bad.toml"], capture_output=True, text=True,
+                         timeout=120, check=False, cwd=tmp_path)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert bad.stderr.strip().startswith(f"install.sh: {tmp_path}/bad.toml: camera.fps: must be a number in 1..1000")
+    assert "+ " not in bad.stdout  # nothing was (or would have been) done

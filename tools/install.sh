@@ -8,8 +8,10 @@
 # switch boards): every step checks before it changes anything. See docs/deploy.md.
 #
 #   --start     (re)start the service at the end (default: enable only)
-#   --dry-run   print what would be done, change nothing (needs no root); the board config is
-#               checked with $OPTITAC_PYTHON (default python3), which must have optitac-edge
+#   --dry-run   print what would be done, change nothing (needs no root)
+#
+# The board config is checked first, before anything changes (with this checkout's package and
+# $OPTITAC_PYTHON, default /usr/bin/python3).
 set -euo pipefail
 
 PREFIX=/opt/optitac-edge
@@ -23,7 +25,7 @@ SYS_PY=/usr/bin/python3
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 usage() {
-    sed -n '2,13p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     exit "${1:-2}"
 }
 
@@ -60,7 +62,7 @@ if [ "$DRY_RUN" -eq 0 ] && [ "$(id -u)" -ne 0 ]; then
     exit 1
 fi
 
-# --- the board config file ------------------------------------------------------------------
+# --- the board config file: checked before anything is changed ----------------------------------
 case "$BOARD" in
     */*|*.toml) BOARD_FILE="$BOARD" ;;
     *) BOARD_FILE="$REPO/board_configs/$BOARD.toml" ;;
@@ -71,6 +73,24 @@ if [ ! -f "$BOARD_FILE" ]; then
     echo "install.sh: no board config $BOARD_FILE (packaged:$known)" >&2
     exit 2
 fi
+BOARD_FILE="$(cd "$(dirname "$BOARD_FILE")" && pwd)/$(basename "$BOARD_FILE")"  # absolute: later steps cd
+# The config loader needs the standard library only (and tomli on Python 3.10): check with the
+# checkout's package now, before apt, the user, the venv or pip touch anything.
+CHECK_PY="${OPTITAC_PYTHON:-$SYS_PY}"
+if ! "$CHECK_PY" -c 'import sys; sys.version_info >= (3, 11) or __import__("tomli")' 2> /dev/null; then
+    echo "install.sh: $CHECK_PY needs Python >= 3.11 or the tomli package to check the board config" \
+         "(sudo apt install python3-tomli)" >&2
+    exit 2
+fi
+CHECK='import sys
+from optitac_edge.errors import OptiTacError
+from optitac_edge.service.board_config import load_board_config
+try:
+    c = load_board_config(sys.argv[1], env={})
+except OptiTacError as exc:
+    sys.exit(f"install.sh: {exc}")
+print("pipeline" if c.camera.pipeline else "device")'
+camera_kind="$(cd / && PYTHONPATH="$REPO" "$CHECK_PY" -c "$CHECK" "$BOARD_FILE")" || exit 2
 
 # --- platform ---------------------------------------------------------------------------------
 PLATFORM=generic
@@ -130,21 +150,8 @@ fi
 run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CONSTRAINTS:+--constraint "$CONSTRAINTS"} \
     "${REPO}[board]"
 
-# Check the board config with the installed package before it goes live.
 PY="$VENV/bin/python"
-[ -x "$PY" ] || PY="${OPTITAC_PYTHON:-python3}"  # dry run before the venv exists
-CHECK='import sys; from optitac_edge.service.board_config import load_board_config as load
-c = load(sys.argv[1], env={})
-print("pipeline" if c.camera.pipeline else "device")'
-if ! camera_kind="$(cd / && "$PY" -c "$CHECK" "$BOARD_FILE" 2>&1)"; then
-    if [ "$DRY_RUN" -eq 1 ]; then
-        log "(dry run: could not check the config yet: $camera_kind)"
-        camera_kind=device
-    else
-        echo "install.sh: $camera_kind" >&2
-        exit 2
-    fi
-fi
+[ -x "$PY" ] || PY="$CHECK_PY"  # dry run before the venv exists
 
 if [ "$camera_kind" = pipeline ] && [ "$PLATFORM" = jetson ]; then
     # pip's opencv-python-headless has no GStreamer: let JetPack's cv2 (system site packages) through.

@@ -34,7 +34,7 @@ else:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
     import tomli as tomllib
 
 from optitac_edge.errors import ConfigError
-from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
+from optitac_edge.io.cameras import MAX_QUEUE_FRAMES
 
 #: Where systemd's ``StateDirectory=optitac-edge`` lives (the calibration bundle's home).
 DEFAULT_STATE_DIR = "/var/lib/optitac-edge"
@@ -217,7 +217,7 @@ class CameraConfig:
     recording: str = _opt(_path, "", "recording: the recording directory to replay")
     warmup_frames: int = _opt(_int(0, 1000), 5, "frames discarded after opening (auto exposure settles)")
     timeout_s: float = _opt(_num(0, 60, lo_open=True), 1.0, "longest wait for one frame, s")
-    queue_frames: int = _opt(_int(1, MAX_DEPTH), 4, "frames that may wait for the loop; when full the oldest "
+    queue_frames: int = _opt(_int(1, MAX_QUEUE_FRAMES), 4, "frames that may wait for the loop; when full the oldest "
                              "is dropped (1 = latest frame only)")
     #: Backend-specific options (free names, scalar values), validated by the backend.
     options: Mapping[str, Scalar] = field(default_factory=lambda: MappingProxyType({}),
@@ -375,11 +375,13 @@ def resolve_board_config(name_or_path: str | os.PathLike[str]) -> Path:
 
 
 def _display(path: Path) -> str:
+    """``path`` relative to the working directory when it is below it (and that is not ``/``)."""
+    cwd = Path.cwd().resolve()
     try:
-        rel = path.resolve().relative_to(Path.cwd().resolve())
+        rel = path.resolve().relative_to(cwd)
     except ValueError:
         return str(path)
-    return str(rel)
+    return str(path) if cwd == Path(cwd.anchor) else str(rel)
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

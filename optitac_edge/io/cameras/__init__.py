@@ -2,13 +2,18 @@
 
 >>> with open_camera("sim", fps=60) as cam:       # doctest: +SKIP
 ...     captured = cam.read()
+
+Importing this package needs the standard library only (the board config
+validates backend names and queue depths with it, before anything is
+installed); :class:`Camera` and :class:`CapturedFrame` are loaded on first use.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from optitac_edge.io.cameras.base import Camera, CapturedFrame
+if TYPE_CHECKING:
+    from optitac_edge.io.cameras.base import Camera, CapturedFrame
 
 #: Backend name -> "module:class", imported on first use (python-can style).
 BACKENDS: dict[str, str] = {
@@ -17,6 +22,8 @@ BACKENDS: dict[str, str] = {
     "picamera2": "optitac_edge.io.cameras.picamera2:Picamera2Camera",
     "v4l2": "optitac_edge.io.cameras.v4l2:V4L2Camera",
 }
+#: Most frames a camera may queue for the loop (``camera.queue_frames``).
+MAX_QUEUE_FRAMES = 16
 
 
 def open_camera(name: str, **kwargs: Any) -> Camera:
@@ -30,7 +37,16 @@ def open_camera(name: str, **kwargs: Any) -> Camera:
     from optitac_edge.errors import CameraError
     from optitac_edge.io.device import load_backend
 
-    return load_backend(BACKENDS, name, "camera backend", CameraError)(**kwargs)
+    camera: Camera = load_backend(BACKENDS, name, "camera backend", CameraError)(**kwargs)
+    return camera
 
 
-__all__ = ["BACKENDS", "Camera", "CapturedFrame", "open_camera"]
+def __getattr__(name: str) -> Any:
+    if name in ("Camera", "CapturedFrame"):
+        from optitac_edge.io.cameras import base
+
+        return getattr(base, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["BACKENDS", "MAX_QUEUE_FRAMES", "Camera", "CapturedFrame", "open_camera"]

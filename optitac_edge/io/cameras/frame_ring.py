@@ -21,9 +21,10 @@ from collections import deque
 import numpy as np
 
 from optitac_edge.errors import CameraError
+from optitac_edge.io.cameras import MAX_QUEUE_FRAMES
 
 #: Most frames a ring may hold waiting (``camera.queue_frames``'s upper bound).
-MAX_DEPTH = 16
+MAX_DEPTH = MAX_QUEUE_FRAMES
 
 
 def check_queue_frames(depth: object) -> int:
