@@ -62,8 +62,13 @@ def test_bench_recording_source_without_a_bundle_calibrates_from_its_rest_frames
 
 
 def test_bench_rejects_bad_arguments(capsys) -> None:
-    assert main(["bench", "--frames", "0"]) != 0
-    assert main(["bench", "--queue-frames", "0"]) != 0
+    import pytest
+
+    with pytest.raises(SystemExit) as info:
+        main(["bench", "--frames", "0"])
+    assert info.value.code == 2 and "argument --frames: 0 is outside" in capsys.readouterr().err
+    assert main(["bench", "--queue-frames", "0"]) == 2
+    assert "--queue-frames must be 1..16" in capsys.readouterr().err
 
 
 def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:

@@ -147,9 +147,11 @@ def test_bus_number_opens_smbus2_lazily(monkeypatch):
     assert bus.closed  # a bus it opened is closed
 
 
-def test_missing_smbus2_is_a_led_error(monkeypatch):
+def test_missing_smbus2_says_which_extra_installs_it(monkeypatch):
+    from optitac_edge.errors import MissingExtraError
+
     monkeypatch.setitem(sys.modules, "smbus2", None)
-    with pytest.raises(LedError, match="smbus2"):
+    with pytest.raises(MissingExtraError, match=r"smbus2, which is not installed: pip install 'optitac-edge\[board\]'"):
         LedRing(1, 0x40, [0], 0.5)
 
 
