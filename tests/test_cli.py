@@ -249,3 +249,17 @@ def test_verbosity_works_before_and_after_the_command_and_changes_runs_logging(a
     from optitac_edge.cli import _log_level, build_parser
 
     assert logging.getLevelName(_log_level(build_parser().parse_args(argv))) == level
+
+
+def test_no_raw_python_dict_or_list_in_the_lines_a_person_reads(caplog, capsys, tmp_path, rest_rec):
+    """Issue 13.14: the calibration logged its report as a Python dict; `calibrate` printed one."""
+    import logging
+
+    from optitac_edge.sim.scenarios import write_scenario
+
+    with caplog.at_level(logging.DEBUG):
+        assert main(["calibrate", "fibers", str(rest_rec), "-o", str(tmp_path / "cal.npz")]) == 0
+        seen = write_scenario(tmp_path / "seen", "seen", seed=3, frames=240)
+        assert main(["calibrate", "centroid", str(seen), "--cal", str(tmp_path / "cal.npz")]) == 0
+    lines = [r.getMessage() for r in caplog.records] + capsys.readouterr().out.splitlines()
+    assert lines and not [x for x in lines if "{'" in x or "': " in x or "[0." in x or "], " in x]
