@@ -350,7 +350,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     with ContactsCsvWriter(args.output) as out:
         for i, estimate in replay_recording(rec, pipeline):
             contacts += int(estimate.contact)
-            out.write(i, estimate)
+            out.write(i, estimate, int(rec.t_ns[i]))
     print(f"wrote {args.output}: {len(rec)} frames, {contacts} with contact")
     return 0
 

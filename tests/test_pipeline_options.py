@@ -247,13 +247,14 @@ def test_contacts_csv_has_n_contacts_and_q4(tmp_path) -> None:
     with ContactsCsvWriter(out) as w:
         e = pipe.process(render(bundle, levels), 10 * PERIOD)
         q4 = float(e.features[7])
-        w.write(0, e)
-        w.write(1, pipe.process(render(bundle, REST), 11 * PERIOD))
+        w.write(0, e, 10 * PERIOD)
+        w.write(1, pipe.process(render(bundle, REST), 11 * PERIOD), 11 * PERIOD)
     rows = [r.split(",") for r in out.read_text().splitlines()]
     assert rows[0] == list(CONTACTS_HEADER)
     col = {name: k for k, name in enumerate(CONTACTS_HEADER)}
     assert rows[1][col["n_contacts"]] == "2" and rows[2][col["n_contacts"]] == "0"
     assert float(rows[1][col["q4"]]) == pytest.approx(q4, abs=1e-8) and rows[2][col["q4"]] == ""
+    assert [int(r[col["t_ns"]]) for r in rows[1:]] == [10 * PERIOD, 11 * PERIOD]
 
 
 def test_calibration_measures_noise_and_black_level() -> None:

@@ -49,7 +49,7 @@ class Measurements:
 
 def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None = None,
                      desc: str = "replay") -> Iterator[tuple[int, ContactEstimate]]:
-    """Every frame of ``rec`` through ``pipeline`` at the recording's nominal frame times (``i / fps``).
+    """Every frame of ``rec`` through ``pipeline`` at its capture time (``rec.t_ns``; ``i / fps`` when not stamped).
 
     Yields ``(frame index, estimate)``; the estimate is the pipeline's reused
     object (copy it to keep it). The baseline comes from the leading rest frames.
@@ -67,10 +67,10 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     from tqdm import tqdm
 
     pipeline.bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
-    period_ns = int(1e9 / rec.meta.fps)
+    t_ns = rec.t_ns
     show = sys.stderr.isatty() if progress is None else progress
     for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
-        yield i, pipeline.process(rec.frames[i], i * period_ns)
+        yield i, pipeline.process(rec.frames[i], int(t_ns[i]))
 
 
 def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool = True,

@@ -7,7 +7,12 @@ Layout of a recording directory (a contract; see docs/formats.md):
 ``meta.json``   at least ``rest_frames`` (int >= 5, leading contact-free
                 frames) and ``fps`` (> 0); other keys are kept as ``extra``.
 ``truth.csv``   optional, header
-                ``frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm``.
+                ``frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm``,
+                optionally followed by ``phase,rig_x_mm,rig_y_mm,rig_z_mm``
+                (a rig's pose for every frame, written by ``collect``).
+``timestamps.npy`` optional, int64 shape (N,): each frame's capture time,
+                CLOCK_MONOTONIC ns (the camera's own where it gives one),
+                non-decreasing; without it frame ``i`` is at ``i / fps``.
 """
 
 from __future__ import annotations
@@ -32,6 +37,11 @@ if TYPE_CHECKING:
     from typing_extensions import Self
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
+#: Optional columns after TRUTH_HEADER: the phase of the press and the rig's pose (rig frame, mm).
+RIG_COLUMNS = ("phase", "rig_x_mm", "rig_y_mm", "rig_z_mm")
+#: Phases of a rig-collected frame; only ``rest`` and ``hold`` frames (and rows without a phase) are scored.
+PHASES = ("rest", "approach", "hold", "release", "move")
+SCORED_PHASES = ("", "rest", "hold")
 SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 MIN_REST_FRAMES = 5
 
@@ -65,6 +75,24 @@ class Truth:
         return int(self.frame.shape[0])
 
 
+@dataclass(frozen=True, eq=False)
+class RigPoses:
+    """The rig's pose for every row of a rig-collected ``truth.csv``.
+
+    Attributes
+    ----------
+    frame : ndarray, shape (N,), int64
+    phase : ndarray, shape (N,), str
+        One of :data:`PHASES`.
+    xyz_mm : ndarray, shape (N, 3), float64
+        The indenter tip in the rig's coordinates, mm.
+    """
+
+    frame: np.ndarray
+    phase: np.ndarray
+    xyz_mm: np.ndarray
+
+
 #: Largest truth.csv read, bytes (a row a frame).
 MAX_TRUTH_BYTES = 64 << 20
 #: Largest meta.json read, bytes (it holds a few numbers and the simulator's parameters).
@@ -73,6 +101,28 @@ MAX_META_BYTES = 1 << 20
 FPS_RANGE = (0.1, 10_000.0)
 #: Written instead of meta.json by a writer that did not finish (see RecordingWriter).
 INCOMPLETE_MARKER = "incomplete.json"
+#: Per-frame capture times, int64 ns.
+TIMESTAMPS = "timestamps.npy"
+
+
+def read_timestamps(path: Path, n_frames: int) -> np.ndarray:
+    """Load and check ``timestamps.npy``: int64, shape (n_frames,), non-decreasing, ns.
+
+    Raises
+    ------
+    RecordingError
+        One line naming the file when it is garbled, of another length or dtype, or goes backwards.
+    """
+    try:
+        t = np.load(path, allow_pickle=False, mmap_mode="r")
+    except (OSError, ValueError, EOFError) as exc:
+        raise RecordingError(f"{path}: garbled timestamps ({exc})") from None
+    if t.dtype != np.int64 or t.shape != (n_frames,):
+        raise RecordingError(f"{path}: timestamps must be int64 of shape ({n_frames},), got {t.dtype} {t.shape}")
+    t = np.array(t)
+    if n_frames > 1 and np.any(np.diff(t) < 0):
+        raise RecordingError(f"{path}: timestamps go backwards at frame {int(np.argmax(np.diff(t) < 0)) + 1}")
+    return t
 
 
 def read_meta(path: Path) -> RecordingMeta:
@@ -127,7 +177,16 @@ def _cell_float(value: str) -> float:
 
 
 def read_truth(path: Path, n_frames: int) -> Truth:
+    """The scored rows of ``truth.csv`` (see :func:`read_truth_file`)."""
+    return read_truth_file(path, n_frames)[0]
+
+
+def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
     """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames.
+
+    Returns the truth of the scored rows -- every row, or with the rig columns
+    the ``rest`` and ``hold`` frames (during approach and release the depth
+    changes within a frame) -- and the rig's pose of every row when present.
 
     Raises
     ------
@@ -135,7 +194,7 @@ def read_truth(path: Path, n_frames: int) -> Truth:
         One line naming the file and line: unreadable or not UTF-8, another
         header, no rows, a cell not a number, a frame out of range or listed
         twice, a contact row without its position, shape, size or depth, an
-        unknown shape.
+        unknown shape or phase.
     """
     try:
         if path.stat().st_size > MAX_TRUTH_BYTES:
@@ -144,18 +203,24 @@ def read_truth(path: Path, n_frames: int) -> Truth:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise RecordingError(f"{path}: cannot read truth ({exc})") from None
-    if not rows or tuple(c.strip() for c in rows[0]) != TRUTH_HEADER:
-        raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}'")
+    header = tuple(c.strip() for c in rows[0]) if rows else ()
+    if header not in (TRUTH_HEADER, TRUTH_HEADER + RIG_COLUMNS):
+        raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}' "
+                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}')")
+    rig = len(header) > len(TRUTH_HEADER)
     if len(rows) < 2:
         raise RecordingError(f"{path}: no rows after the header")
     cols: list[list[Any]] = [[] for _ in TRUTH_HEADER]
+    rig_cols: list[list[Any]] = [[], [], []]
     seen: set[int] = set()
+    n_values = len(TRUTH_HEADER) - 3
     for line_no, row in enumerate(rows[1:], start=2):
-        if len(row) != len(TRUTH_HEADER):
-            raise RecordingError(f"{path}: line {line_no}: expected {len(TRUTH_HEADER)} cells")
+        if len(row) != len(header):
+            raise RecordingError(f"{path}: line {line_no}: expected {len(header)} cells")
         try:
             frame, contact = int(row[0]), int(row[1])
-            values = [_cell_float(c) for c in row[3:]]
+            values = [_cell_float(c) for c in row[3:3 + n_values]]
+            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:]]
         except ValueError:
             raise RecordingError(f"{path}: line {line_no}: not a number") from None
         shape = row[2].strip()
@@ -164,20 +229,32 @@ def read_truth(path: Path, n_frames: int) -> Truth:
         if frame in seen:
             raise RecordingError(f"{path}: line {line_no}: frame {frame} is listed twice")
         seen.add(frame)
+        phase = row[len(TRUTH_HEADER)].strip() if rig else ""
+        if rig and (phase not in PHASES or not all(math.isfinite(v) for v in pose)):
+            raise RecordingError(f"{path}: line {line_no}: unknown phase {phase!r} or a rig pose not finite")
         if contact and shape not in SHAPES:
             raise RecordingError(f"{path}: line {line_no}: unknown shape {shape!r}")
         if contact and not all(math.isfinite(v) for i, v in enumerate(values) if TRUTH_HEADER[3 + i] != "angle_deg"):
             missing = [TRUTH_HEADER[3 + i] for i, v in enumerate(values)
                        if not math.isfinite(v) and TRUTH_HEADER[3 + i] != "angle_deg"]
             raise RecordingError(f"{path}: line {line_no}: a contact without {', '.join(missing)}")
+        if rig:
+            rig_cols[0].append(frame)
+            rig_cols[1].append(phase)
+            rig_cols[2].append(pose)
+        if phase not in SCORED_PHASES:
+            continue
         for col, value in zip(cols, [frame, bool(contact), shape if contact else "", *values]):
             col.append(value)
-    return Truth(
+    truth = Truth(
         frame=np.asarray(cols[0], dtype=np.int64),
         contact=np.asarray(cols[1], dtype=bool),
         shape=np.asarray(cols[2], dtype=str),
         **{name: np.asarray(c, dtype=np.float64) for name, c in zip(TRUTH_HEADER[3:], cols[3:])},
     )
+    poses = RigPoses(np.asarray(rig_cols[0], dtype=np.int64), np.asarray(rig_cols[1], dtype=str),
+                     np.asarray(rig_cols[2], dtype=np.float64).reshape(-1, 3)) if rig else None
+    return truth, poses
 
 
 class Recording:
@@ -221,7 +298,17 @@ class Recording:
         if self.meta.rest_frames > len(frames):
             raise RecordingError(f"{self.path}: rest_frames={self.meta.rest_frames} but only {len(frames)} frames")
         truth_path = self.path / "truth.csv"
-        self.truth: Truth | None = read_truth(truth_path, len(frames)) if truth_path.exists() else None
+        self.truth: Truth | None = None
+        #: The rig's pose of every frame, when a rig collected the recording.
+        self.rig_poses: RigPoses | None = None
+        if truth_path.exists():
+            self.truth, self.rig_poses = read_truth_file(truth_path, len(frames))
+        stamps = self.path / TIMESTAMPS
+        #: True when ``t_ns`` holds the capture times, False when they are nominal (``i / fps``).
+        self.timestamped = stamps.exists()
+        #: Capture time of each frame, int64 ns, shape (N,).
+        self.t_ns: np.ndarray = (read_timestamps(stamps, len(frames)) if self.timestamped else
+                                 np.round(np.arange(len(frames)) * (1e9 / self.meta.fps)).astype(np.int64))
 
     def __len__(self) -> int:
         return int(self.frames.shape[0])
@@ -252,67 +339,153 @@ class Recording:
         return np.ascontiguousarray(self.frames[index])
 
 
+#: An open-ended writer grows ``frames.npy`` by this many frames at a time.
+GROW_FRAMES = 256
+#: Digits reserved in an open-ended ``frames.npy`` header for the frame count.
+_COUNT_DIGITS = 15
+
+
+def _npy_header(shape: tuple[int, ...], length: int | None = None) -> bytes:
+    """A ``.npy`` v1.0 header of uint8 ``shape``, padded to ``length`` bytes (else to a multiple of 64)."""
+    text = f"{{'descr': '|u1', 'fortran_order': False, 'shape': {shape!r}, }}"
+    total = length if length is not None else -(-(10 + len(text) + 1) // 64) * 64
+    pad = total - 10 - len(text) - 1
+    if pad < 0:
+        raise ValueError("header does not fit")
+    body = (text + " " * pad + "\n").encode("latin1")
+    return b"\x93NUMPY\x01\x00" + len(body).to_bytes(2, "little") + body
+
+
 class RecordingWriter:
     """Streams frames into a new recording directory; the recording is complete only when closed normally.
 
     ``frames.npy`` is allocated on disk for ``n_frames`` at the start (a full
     disk fails there, with one line, not with SIGBUS later) and each frame is
-    written with ``pwrite``; ``meta.json`` (and ``truth.csv``) are written last,
-    on a :meth:`close` after every frame was written. Anything else -- an
-    exception or Ctrl-C inside the ``with`` block, :meth:`abort`, a close with
-    frames missing -- leaves no ``meta.json`` but ``incomplete.json`` saying
-    what happened, and :class:`Recording` refuses the directory in one line.
+    written with ``pwrite``; ``meta.json`` (and ``truth.csv``,
+    ``timestamps.npy``) are written last, on a :meth:`close` after every frame
+    was written. Anything else -- an exception or Ctrl-C inside the ``with``
+    block, :meth:`abort`, a close with frames missing -- leaves no
+    ``meta.json`` but ``incomplete.json`` saying what happened, and
+    :class:`Recording` refuses the directory in one line.
+
+    Parameters
+    ----------
+    n_frames : int or None
+        Frames the recording will hold; ``None``: open-ended, the file grows
+        ``GROW_FRAMES`` at a time and holds the frames written when closed
+        (frames ``0 .. k-1`` without gaps).
+    with_truth : bool
+        Collect ``truth.csv`` rows (:meth:`write_truth`).
+    rig_columns : bool
+        ``truth.csv`` carries the rig's phase and pose (:data:`RIG_COLUMNS`).
+    keep_frames : int
+        Open-ended only: continue an existing incomplete recording of this
+        frame shape after its first ``keep_frames`` frames (their times in
+        ``kept_t_ns``, their truth rows given again with :meth:`write_truth`).
 
     Raises
     ------
     OutputError
         If the directory or a file in it cannot be written (full disk, I/O
         error, a target that is not a regular file), naming the file.
+    RecordingError
+        If ``keep_frames`` asks for frames the existing recording does not hold.
     """
 
     def __init__(
         self,
         path: str | Path,
-        n_frames: int,
+        n_frames: int | None,
         frame_shape: tuple[int, ...],
         meta: RecordingMeta,
         with_truth: bool = False,
+        rig_columns: bool = False,
+        keep_frames: int = 0,
+        kept_t_ns: np.ndarray | None = None,
     ) -> None:
-        if n_frames < 1:
+        if n_frames is not None and n_frames < 1:
             raise ValueError(f"a recording needs at least one frame, got {n_frames}")
+        if keep_frames and n_frames is not None:
+            raise ValueError("only an open-ended recording can be continued")
         infer_pixel_format(frame_shape)
         self.path = check_output_path(path, directory=True)
         self.meta = meta
-        self.n_frames = int(n_frames)
+        self.open_ended = n_frames is None
+        self.n_frames = GROW_FRAMES if n_frames is None else int(n_frames)
         self.frame_shape = tuple(int(v) for v in frame_shape)
         self._frame_bytes = int(np.prod(self.frame_shape))
-        self._truth_rows: list[list[str]] | None = [] if with_truth else None
+        self._truth_rows: list[list[str]] | None = [] if with_truth or rig_columns else None
+        self._rig = rig_columns
         self._written = 0
         self._closed = False
         self._fd = -1
+        self._t_ns = np.zeros(self.n_frames, dtype=np.int64)
+        self._stamped = np.zeros(self.n_frames, dtype=bool)
         frames_path = self.path / "frames.npy"
         try:
             self.path.mkdir(parents=True, exist_ok=True)
-            for stale in ("meta.json", "truth.csv", INCOMPLETE_MARKER):
+            for stale in ("meta.json", "truth.csv", TIMESTAMPS):
                 (self.path / stale).unlink(missing_ok=True)
             check_output_path(frames_path)
-            self._mark_incomplete("being written")
-            header = np.lib.format.header_data_from_array_1_0(np.empty((0, *self.frame_shape), np.uint8))
-            header["shape"] = (self.n_frames, *self.frame_shape)
-            with frames_path.open("wb") as f:
-                np.lib.format.write_array_header_1_0(f, header)
-                self._offset = f.tell()
-            self._fd = os.open(frames_path, os.O_WRONLY)
-            size = self._offset + self.n_frames * self._frame_bytes
-            try:  # reserve the blocks now: ENOSPC here, not a SIGBUS or a short write later
-                os.posix_fallocate(self._fd, 0, size)
-            except OSError as exc:
-                if exc.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
-                    raise
-                os.ftruncate(self._fd, size)
+            if keep_frames:
+                self._continue(frames_path, keep_frames, kept_t_ns)
+            else:
+                (self.path / INCOMPLETE_MARKER).unlink(missing_ok=True)
+                self._mark_incomplete("being written")
+                shape = (10**_COUNT_DIGITS - 1 if self.open_ended else self.n_frames, *self.frame_shape)
+                with frames_path.open("wb") as f:
+                    f.write(_npy_header(shape))
+                    self._offset = f.tell()
+                self._fd = os.open(frames_path, os.O_WRONLY)
+                self._reserve(self.n_frames)
         except OSError as exc:
             self._close_fd()
             raise OutputError(f"{frames_path}: {exc.strerror or exc}") from None
+
+    def _continue(self, frames_path: Path, keep: int, kept_t_ns: np.ndarray | None) -> None:
+        """Reopen an incomplete open-ended recording, keeping its first ``keep`` frames."""
+        try:
+            with frames_path.open("rb") as f:
+                if np.lib.format.read_magic(f) != (1, 0):
+                    raise ValueError("not written by this writer")
+                shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+                offset = f.tell()
+            size = frames_path.stat().st_size
+        except (OSError, ValueError) as exc:
+            raise RecordingError(f"{frames_path}: cannot continue this recording ({exc})") from None
+        if (dtype != np.uint8 or tuple(shape[1:]) != self.frame_shape
+                or size < offset + keep * self._frame_bytes):
+            raise RecordingError(f"{frames_path}: cannot continue this recording (it holds other frames, "
+                                 f"or fewer than {keep})")
+        if kept_t_ns is None or len(kept_t_ns) != keep:
+            raise ValueError("keep_frames needs the kept frames' times")
+        self._mark_incomplete("being written")
+        self._offset = offset
+        self._fd = os.open(frames_path, os.O_WRONLY)
+        self._grow_to(keep + GROW_FRAMES)
+        self._t_ns[:keep] = kept_t_ns
+        self._stamped[:keep] = True
+        self._written = keep
+
+    def _reserve(self, n_frames: int) -> None:
+        """Allocate the blocks of ``n_frames`` frames now: ENOSPC here, not a SIGBUS or a short write later."""
+        size = self._offset + n_frames * self._frame_bytes
+        try:
+            os.posix_fallocate(self._fd, 0, size)
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                raise
+            os.ftruncate(self._fd, size)
+
+    def _grow_to(self, n_frames: int) -> None:
+        if n_frames <= self.n_frames and self._written <= n_frames:
+            self._reserve(self.n_frames)
+            return
+        self._reserve(n_frames)
+        extra = n_frames - self.n_frames
+        self._t_ns = np.concatenate([self._t_ns, np.zeros(extra, np.int64)])
+        self._stamped = np.concatenate([self._stamped, np.zeros(extra, bool)])
+        self.n_frames = n_frames
 
     def _mark_incomplete(self, reason: str) -> None:
         (self.path / INCOMPLETE_MARKER).write_text(json.dumps(
@@ -336,14 +509,20 @@ class RecordingWriter:
     def frames_written(self) -> int:
         return self._written
 
-    def write(self, index: int, frame: np.ndarray) -> None:
-        """Write frame ``index`` (0 .. n_frames-1) of the recording's frame shape, uint8."""
-        if not 0 <= index < self.n_frames:
+    def write(self, index: int, frame: np.ndarray, t_ns: int | None = None) -> None:
+        """Write frame ``index`` (0 .. n_frames-1; open-ended: any) of the recording's frame shape, uint8.
+
+        ``t_ns`` is the frame's capture time (ns); when every frame has one they
+        are saved in ``timestamps.npy``, else frames are at ``i / fps``.
+        """
+        if index < 0 or (index >= self.n_frames and not self.open_ended):
             raise IndexError(f"frame {index} outside 0..{self.n_frames - 1}")
         data = np.ascontiguousarray(frame, dtype=np.uint8)
         if data.shape != self.frame_shape:
             raise FrameMismatchError(f"frame of shape {data.shape}, the recording holds {self.frame_shape}")
         try:
+            if index >= self.n_frames:
+                self._grow_to(max(index + 1, self.n_frames + GROW_FRAMES))
             n = os.pwrite(self._fd, data.data.cast("B"), self._offset + index * self._frame_bytes)
             if n != self._frame_bytes:
                 raise OSError(errno.ENOSPC, f"short write ({n} of {self._frame_bytes} bytes)")
@@ -351,6 +530,9 @@ class RecordingWriter:
             self.abort(f"failed: {exc.strerror or exc}")
             raise OutputError(f"{self.path / 'frames.npy'}: {exc.strerror or exc}") from None
         self._written = max(self._written, index + 1)
+        if t_ns is not None:
+            self._t_ns[index] = t_ns
+            self._stamped[index] = True
 
     def write_truth(
         self,
@@ -362,17 +544,23 @@ class RecordingWriter:
         angle_deg: float = math.nan,
         size_mm: float = math.nan,
         depth_mm: float = math.nan,
+        phase: str = "",
+        rig_xyz_mm: tuple[float, float, float] | None = None,
     ) -> None:
+        """Add the truth row of ``frame``; with ``rig_columns`` also its ``phase`` and the rig's pose."""
         if self._truth_rows is None:
             raise ValueError("writer was opened without truth")
+        if self._rig and (phase not in PHASES or rig_xyz_mm is None):
+            raise ValueError(f"a rig row needs a phase in {PHASES} and the rig's pose")
 
         def cell(v: float) -> str:
             return "" if not contact or math.isnan(v) else f"{v:.4f}"
 
-        self._truth_rows.append(
-            [str(frame), str(int(contact)), shape if contact else "",
-             *(cell(v) for v in (x_mm, y_mm, angle_deg, size_mm, depth_mm))]
-        )
+        row = [str(frame), str(int(contact)), shape if contact else "",
+               *(cell(v) for v in (x_mm, y_mm, angle_deg, size_mm, depth_mm))]
+        if self._rig and rig_xyz_mm is not None:
+            row += [phase, *(f"{v:.4f}" for v in rig_xyz_mm)]
+        self._truth_rows.append(row)
 
     def close(self) -> None:
         """Complete the recording: every frame written, then truth.csv and meta.json (idempotent).
@@ -386,12 +574,19 @@ class RecordingWriter:
         """
         if self._closed:
             return
-        if self._written < self.n_frames:
+        if self.open_ended:
+            self.n_frames = self._written
+        if self._written < self.n_frames or self._written == 0:
             self.abort(f"closed after {self._written} frames")
             raise RecordingError(f"{self.path}: only {self._written} of {self.n_frames} frames were written; "
                                  "the recording is marked incomplete")
         self._closed = True
         try:
+            if self.open_ended:
+                os.ftruncate(self._fd, self._offset + self._written * self._frame_bytes)
+                header = _npy_header((self._written, *self.frame_shape), self._offset)
+                if os.pwrite(self._fd, header, 0) != len(header):
+                    raise OSError(errno.EIO, "short write of the header")
             os.fsync(self._fd)
         except OSError as exc:
             self._close_fd()
@@ -399,10 +594,17 @@ class RecordingWriter:
             raise OutputError(f"{self.path / 'frames.npy'}: {exc.strerror or exc}") from None
         self._close_fd()
         try:
+            stamped = self._stamped[: self._written]
+            if stamped.all():
+                t = self._t_ns[: self._written]
+                if np.any(np.diff(t) < 0):
+                    raise OutputError(f"{self.path / TIMESTAMPS}: frame times go backwards")
+                with AtomicFile(self.path / TIMESTAMPS, "wb") as f:
+                    np.save(f, t, allow_pickle=False)
             if self._truth_rows is not None:
                 with AtomicFile(self.path / "truth.csv", "w", newline="") as f:
                     w = csv.writer(f)
-                    w.writerow(TRUTH_HEADER)
+                    w.writerow(TRUTH_HEADER + (RIG_COLUMNS if self._rig else ()))
                     w.writerows(self._truth_rows)
             write_file_atomic(self.path / "meta.json", json.dumps(self.meta.to_json(), indent=2))
         except OutputError as exc:

@@ -44,5 +44,5 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
                 captured = camera.read(config.camera.timeout_s)
                 if captured is None:
                     raise OptiTacError(f"the camera ended after {i} frames")
-                writer.write(i, captured.frame)
+                writer.write(i, captured.frame, captured.t_ns)
     return Recorded(frames, camera.width, camera.height, camera.pixel_format, meta)

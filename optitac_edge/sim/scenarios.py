@@ -365,7 +365,7 @@ def write_scenario(
                     real = sensor.last_real_indenters[0].depth_mm
                     real_depths.append([i, round(real, 5)])
                 last = press
-            writer.write(i, sensor.frame_from_darkening(dark, t_s=i / FPS))
+            writer.write(i, sensor.frame_from_darkening(dark, t_s=i / FPS), round(i * 1e9 / FPS))
             if press is None:
                 writer.write_truth(i, False)
             else:
