@@ -31,6 +31,10 @@ class FiberMapError(OptiTacError):
     """The fiber array could not be found reliably in the rest frames."""
 
 
+class OrientationError(OptiTacError):
+    """A bundle's fiber map disagrees with presses of known position, or presses cannot settle it."""
+
+
 class CameraError(OptiTacError):
     """A camera backend failed to open or deliver a frame."""
 

@@ -16,11 +16,19 @@ import numpy as np
 from optitac_edge.calibration.bundle_models import with_centroid_map, with_shape_model, with_width_model
 from optitac_edge.calibration.centroid_fit import fit_centroid_map
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
-from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.calibration.measure import Measurements, measure_recording
+from optitac_edge.calibration.orientation import (
+    OrientationFit,
+    fit_orientation,
+    is_verified,
+    layout_symmetries,
+    mark_verified,
+    reorient_bundle,
+)
 from optitac_edge.calibration.width_fit import fit_width_model
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.errors import RecordingError
-from optitac_edge.io.recording import SHAPES, Recording
+from optitac_edge.errors import OrientationError, RecordingError
+from optitac_edge.io.recording import SHAPES, Recording, Truth
 
 log = logging.getLogger(__name__)
 #: The centroid maps reach this far beyond the outermost fiber, mm.
@@ -39,11 +47,66 @@ def _with_report_arrays(bundle: CalibrationBundle, **arrays: np.ndarray) -> Cali
     return bundle.with_updates(extra_arrays=extra)
 
 
-def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "nearest"
-                       ) -> tuple[CalibrationBundle, dict[str, Any]]:
-    """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map)."""
+def press_orientation(m: Measurements, truth: Truth, bundle: CalibrationBundle) -> OrientationFit:
+    """Which symmetry of the layout the bundle's fiber map is off by, from a recording's detected presses.
+
+    Each press counts once: the mean raw centroid of its detected frames against its true position.
+    """
+    ids = press_ids(truth)
+    rows = detected_rows(m, truth)
+    measured, true = [], []
+    for p in range(int(ids.max(initial=-1)) + 1):
+        sel = np.flatnonzero((ids == p) & rows)
+        if sel.size:
+            frames = truth.frame[sel]
+            measured.append((np.mean(m.x_mm[frames]), np.mean(m.y_mm[frames])))
+            true.append((truth.x_mm[sel[0]], truth.y_mm[sel[0]]))
+    return fit_orientation(np.array(measured).reshape(-1, 2), np.array(true).reshape(-1, 2),
+                           layout_symmetries(bundle.layout))
+
+
+def calibrate_orientation(rec: Recording, bundle: CalibrationBundle
+                          ) -> tuple[CalibrationBundle, OrientationFit]:
+    """Check the bundle's fiber map against the recording's presses; correct it if off by a symmetry.
+
+    Raises
+    ------
+    OrientationError
+        When the presses cannot tell the layout's symmetries apart, or none fits.
+    """
+    truth = _truth(rec)
+    fit = press_orientation(measure_recording(rec, bundle, corrected=False), truth, bundle)
+    if fit.symmetry is None:
+        raise OrientationError(f"{rec.path}: {fit.reason}")
+    evidence = f"{fit.presses} presses of {rec.path.name}, RMS {fit.best_rmse_mm:.2f} mm"
+    if fit.symmetry.is_identity:
+        return mark_verified(bundle, evidence), fit
+    return reorient_bundle(bundle, fit.symmetry, evidence), fit
+
+
+def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "nearest",
+                       bundle_path: str = "CAL") -> tuple[CalibrationBundle, dict[str, Any]]:
+    """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map).
+
+    The bundle's orientation is checked against the same presses first.
+
+    Raises
+    ------
+    OrientationError
+        If the presses show the fiber map off by a symmetry of the layout, or
+        cannot confirm an orientation that was never verified.
+    """
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
+    fit = press_orientation(m, truth, bundle)
+    fix = f"fix it with: optitac-edge calibrate orientation {rec.path} --cal {bundle_path}"
+    if fit.symmetry is not None and not fit.symmetry.is_identity:
+        raise OrientationError(
+            f"{rec.path}: the bundle's fiber map is {fit.symmetry.label} from these presses "
+            f"(RMS {fit.best_rmse_mm:.2f} mm that way, {fit.rmse_mm[0]:.2f} mm as it is); {fix}")
+    if fit.symmetry is None and not is_verified(bundle):
+        raise OrientationError(f"{rec.path}: cannot confirm the bundle's orientation: {fit.reason}; "
+                               "verify it with 'optitac-edge orient' or 'calibrate orientation' on other presses")
     rows = np.flatnonzero(detected_rows(m, truth))
     if rows.size < 3:
         raise RecordingError(f"{rec.path}: only {rows.size} detected presses to calibrate the centroid")
@@ -58,6 +121,8 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "n
         "raw_rmse_mm": np.sqrt(np.mean((measured - true) ** 2, axis=0)).round(4).tolist(),
         "fitted_rmse_mm": np.sqrt(np.mean((corrected - true) ** 2, axis=0)).round(4).tolist(),
     }
+    if fit.symmetry is not None:
+        bundle = mark_verified(bundle, f"{fit.presses} presses of {rec.path.name}, RMS {fit.best_rmse_mm:.2f} mm")
     bundle = with_centroid_map(bundle, error_map)
     bundle = _with_report_arrays(bundle, centroid_measured=measured, centroid_true=true)
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": summary}), summary

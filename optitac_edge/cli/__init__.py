@@ -115,7 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", type=Path, default=None, metavar="CSV", help="custom layout (fiber,x_mm,y_mm)")
     _add_orientation(p)
 
-    for step, text in (("centroid", "centroid error maps from presses of known position"),
+    for step, text in (("orientation", ("check the fiber map against presses of known position; fix a "
+                                        "rotation or mirror of the layout")),
+                       ("centroid", "centroid error maps from presses of known position"),
                        ("width", "linear width model from circles of known diameter"),
                        ("shapes", "shape classifier from labelled presses")):
         p = cal.add_parser(step, help=text)
@@ -284,10 +286,24 @@ def _cmd_calibrate_model(args: argparse.Namespace) -> int:
 
     rec = Recording(args.recording)
     bundle = load_bundle(args.cal)
+    if args.step == "orientation":
+        bundle, fit = calibrate_steps.calibrate_orientation(rec, bundle)
+        assert fit.symmetry is not None
+        bundle = save_bundle(bundle, args.cal)
+        other, other_rmse = fit.runner_up
+        evidence = (f"{fit.presses} presses, RMS {fit.best_rmse_mm:.2f} mm; "
+                    f"next best '{other}' {other_rmse:.2f} mm")
+        if fit.symmetry.is_identity:
+            print(f"orientation of {args.cal} confirmed ({evidence})")
+        else:
+            print(f"corrected {args.cal} (id {bundle.calibration_id}): its fiber map was {fit.symmetry.label} "
+                  f"({evidence}); centroid, width and shape models were removed: calibrate them again")
+        return 0
     if args.step == "shapes":
         bundle, summary = calibrate_steps.calibrate_shapes(rec, bundle, seed=args.seed)
     elif args.step == "centroid":
-        bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill)
+        bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill,
+                                                               bundle_path=str(args.cal))
     else:
         bundle, summary = calibrate_steps.calibrate_width(rec, bundle, kind=args.model)
     bundle = save_bundle(bundle, args.cal)
@@ -564,6 +580,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logs = NonBlockingLogging(_log_level(args)).start()  # nothing that logs ever waits on stderr
     handlers: dict[str, Callable[[argparse.Namespace], int]] = {
         "sim": _cmd_sim, "calibrate fibers": _cmd_calibrate_fibers, "calibrate centroid": _cmd_calibrate_model,
+        "calibrate orientation": _cmd_calibrate_model,
         "calibrate width": _cmd_calibrate_model, "calibrate shapes": _cmd_calibrate_model,
         "evaluate": _cmd_evaluate, "export-onnx": _cmd_export_onnx, "report": _cmd_report, "replay": _cmd_replay,
         "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench}
@@ -590,6 +607,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{chr(10) if code == EXIT_INTERRUPTED and sys.stderr.isatty() else ''}optitac-edge: {message}",
               file=sys.stderr)
     return code
-
-if __name__ == "__main__":
-    sys.exit(main())

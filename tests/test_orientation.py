@@ -1,0 +1,155 @@
+"""Orientation: the layout's symmetries, and a fiber map off by one of them found from presses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.orientation import (
+    Symmetry,
+    fit_orientation,
+    is_verified,
+    layout_symmetries,
+    reorient_bundle,
+)
+from optitac_edge.calibration.steps import calibrate_centroid, calibrate_orientation
+from optitac_edge.cli import main
+from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
+from optitac_edge.io.recording import Recording
+from optitac_edge.sim.scenarios import write_scenario
+
+
+def test_the_default_hexagon_has_twelve_symmetries_identity_first() -> None:
+    layout = hex_layout()
+    sym = layout_symmetries(layout)
+    assert len(sym) == 12 and sym[0].is_identity
+    assert sorted((h.mirror, round(h.rotation_deg)) for h in sym) == sorted(
+        (m, 60 * k) for m in (False, True) for k in range(6))
+    for h in sym:  # each is a bijection that maps every fiber onto a fiber
+        assert np.array_equal(np.sort(h.permutation), np.arange(layout.n_fibers))
+        assert np.allclose(h.apply(layout.xy_mm), layout.xy_mm[h.permutation], atol=1e-9)
+
+
+def test_a_custom_layout_has_only_its_own_symmetries() -> None:
+    hexagon = hex_layout(rings=3)
+    xy = hexagon.xy_mm
+    off_axis = int(np.argmin(np.hypot(xy[:, 0] - 2.5 * 1.5, xy[:, 1] - 1.5 * math.sqrt(3) / 2)))
+    keep = np.arange(len(xy)) != off_axis  # one fiber missing off every mirror axis: nothing but the identity
+    lone = layout_symmetries(FiberLayout(ids=hexagon.ids[keep], xy_mm=xy[keep]))
+    assert len(lone) == 1 and lone[0].is_identity
+    grid = np.array([(x, y) for x in (-3.0, -1.5, 0.0, 1.5, 3.0) for y in (-1.5, 0.0, 1.5)])  # a 5x3 rectangle
+    rect = layout_symmetries(FiberLayout(ids=np.arange(15), xy_mm=grid))
+    assert sorted((h.mirror, round(h.rotation_deg)) for h in rect) == [(False, 0), (False, 180), (True, 0),
+                                                                     (True, 180)]
+
+
+@pytest.mark.parametrize("k", range(12))
+def test_fit_finds_the_symmetry_presses_were_read_through(k) -> None:
+    sym = layout_symmetries(hex_layout())
+    rng = np.random.default_rng(k)
+    true = rng.uniform(-9, 9, (20, 2))
+    measured = sym[k].apply(true) + rng.normal(0, 0.3, true.shape)
+    fit = fit_orientation(measured, true, sym)
+    assert fit.symmetry is sym[k] and fit.best_rmse_mm < 0.6
+
+
+@pytest.mark.parametrize("true, why", [
+    (np.zeros((5, 2)) + 0.05, "cannot tell"),  # on the centre: every symmetry fits
+    (np.array([[4.0, 0.0], [8.0, 0.0], [-6.0, 0.0]]), "cannot tell"),  # along a mirror axis only
+])
+def test_presses_that_cannot_tell_are_refused(true, why) -> None:
+    sym = layout_symmetries(hex_layout())
+    fit = fit_orientation(true.copy(), true, sym)
+    assert fit.symmetry is None and why in fit.reason
+
+
+def test_no_symmetry_fits_presses_read_elsewhere() -> None:
+    sym = layout_symmetries(hex_layout())
+    true = np.array([[5.0, 1.0], [-3.0, 6.0], [2.0, -7.0]])
+    fit = fit_orientation(true + 6.0, true, sym)
+    assert fit.symmetry is None and "no orientation fits" in fit.reason
+
+
+@pytest.fixture(scope="module")
+def presses(tmp_path_factory):
+    path = write_scenario(tmp_path_factory.mktemp("orient") / "unseen", "unseen", seed=4, frames=400)
+    rec = Recording(path)
+    return rec, calibrate_fibers(rec.rest_frames(), rec.pixel_format)  # the simulator is unrotated, unmirrored
+
+
+@pytest.mark.parametrize("offset", (-20, 20))
+@pytest.mark.parametrize("mirror", (False, True))
+@pytest.mark.parametrize("k", range(6))
+def test_every_wrong_orientation_hint_is_corrected_from_presses(presses, k, mirror, offset) -> None:
+    """Each of the 12 symmetries given as the hint, 20 degrees off either way: the right fiber map."""
+    rec, right = presses
+    wrong = calibrate_fibers(rec.rest_frames(), rec.pixel_format, rotation_hint_deg=60 * k + offset, mirror=mirror)
+    fixed, fit = calibrate_orientation(rec, wrong)
+    assert fit.symmetry is not None and fit.symmetry.is_identity == (k == 0 and not mirror)
+    assert is_verified(fixed) and not fixed.transform.mirror
+    assert min(fixed.transform.rotation_deg, 360 - fixed.transform.rotation_deg) < 0.5
+    assert np.array_equal(fixed.fibers.pixel_start, right.fibers.pixel_start)
+    assert np.array_equal(fixed.fibers.pixel_index, right.fibers.pixel_index)
+    assert np.allclose(fixed.transform.layout_to_image(fixed.layout.xy_mm), fixed.fibers.centroid_px, atol=1.0)
+
+
+def test_reorienting_drops_the_models_fitted_through_the_wrong_map(presses) -> None:
+    rec, right = presses
+    bundle, _ = calibrate_centroid(rec, right)
+    assert "centroid_map" in str(sorted(bundle.extra_meta)) or bundle.extra_arrays
+    h = layout_symmetries(bundle.layout)[3]
+    turned = reorient_bundle(bundle, h, "test")
+    assert not any(k.startswith(("centroid", "report/")) for k in turned.extra_arrays)
+    assert "centroid_fit" not in turned.extra_meta and turned.extra_meta["orientation"]["corrected"] == h.label
+
+
+def test_calibrate_centroid_refuses_a_wrong_orientation_and_says_how_to_fix_it(presses, tmp_path, capsys) -> None:
+    rec, _ = presses
+    cal = tmp_path / "cal.npz"
+    save_bundle(calibrate_fibers(rec.rest_frames(), rec.pixel_format, rotation_hint_deg=60.0), cal)
+    before = cal.read_bytes()
+    assert main(["calibrate", "centroid", str(rec.path), "--cal", str(cal)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "rotated 300°" in err
+    assert f"calibrate orientation {rec.path} --cal {cal}" in err
+    assert cal.read_bytes() == before
+    assert main(["calibrate", "orientation", str(rec.path), "--cal", str(cal)]) == 0
+    assert "its fiber map was rotated 300°" in capsys.readouterr().out
+    assert main(["calibrate", "centroid", str(rec.path), "--cal", str(cal)]) == 0
+    assert is_verified(load_bundle(cal))
+
+
+def test_calibrate_orientation_refuses_presses_that_cannot_tell(tmp_path, capsys) -> None:
+    from optitac_edge.io.recording import RecordingMeta, RecordingWriter
+    from optitac_edge.sim.sensor import SimulatedSensor
+    from optitac_edge.sim.skin import Indenter
+
+    sensor = SimulatedSensor(seed=0)
+    press = Indenter(shape="circle", x_mm=0.0, y_mm=0.0, angle_deg=0.0, size_mm=5.0, depth_mm=3.0)
+    rec_path = tmp_path / "centre"
+    with RecordingWriter(rec_path, 30, sensor.frame_shape, RecordingMeta(rest_frames=10, fps=60.0),
+                         with_truth=True) as w:
+        for i in range(30):
+            pressed = i >= 20
+            w.write(i, sensor.frame((press,) if pressed else ()))
+            w.write_truth(i, pressed, "circle", 0.0, 0.0, 0.0, 5.0, 3.0)
+    rec = Recording(rec_path)
+    cal = tmp_path / "cal.npz"
+    save_bundle(calibrate_fibers(rec.rest_frames(), rec.pixel_format), cal)
+    before = cal.read_bytes()
+    assert main(["calibrate", "orientation", str(rec_path), "--cal", str(cal)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot tell" in err and "press away from the centre" in err
+    assert main(["calibrate", "centroid", str(rec_path), "--cal", str(cal)]) == 2
+    assert "cannot confirm the bundle's orientation" in capsys.readouterr().err
+    assert cal.read_bytes() == before
+
+
+def test_symmetry_labels() -> None:
+    ident = Symmetry(0.0, False, np.arange(3))
+    assert ident.label == "as it is" and ident.is_identity
+    assert Symmetry(120.0, True, np.arange(3)).label == "rotated 120°, mirrored"
