@@ -153,3 +153,53 @@ def test_symmetry_labels() -> None:
     ident = Symmetry(0.0, False, np.arange(3))
     assert ident.label == "as it is" and ident.is_identity
     assert Symmetry(120.0, True, np.arange(3)).label == "rotated 120°, mirrored"
+
+
+def _fiducial_layout(tmp_path, marks: dict[int, str]):
+    from optitac_edge.io.layout_csv import load_layout_csv
+
+    layout = hex_layout()
+    path = tmp_path / "layout.csv"
+    lines = ["fiber,x_mm,y_mm,fiducial"] + [
+        f"{int(i)},{x:.6f},{y:.6f},{marks.get(k, '')}" for k, (i, (x, y)) in enumerate(zip(layout.ids, layout.xy_mm))]
+    path.write_text("\n".join(lines) + "\n")
+    return path, load_layout_csv(path)
+
+
+def _fiber_at(x: float, y: float) -> int:
+    xy = hex_layout().xy_mm
+    return int(np.argmin(np.hypot(xy[:, 0] - x, xy[:, 1] - y)))
+
+
+@pytest.mark.parametrize("k, mirror", [(0, False), (2, False), (1, True), (5, True)])
+def test_dark_fiducials_settle_the_orientation_from_rest_frames(tmp_path, k, mirror) -> None:
+    from optitac_edge.sim.optics import CameraOptics
+    from optitac_edge.sim.sensor import SimulatedSensor
+
+    dark = (_fiber_at(3.75, 1.3), _fiber_at(-6.0, 5.2))  # off every mirror axis of the hexagon
+    sensor = SimulatedSensor(optics=CameraOptics(dark_fibers=dark), seed=1)
+    rest = np.stack([sensor.frame(()) for _ in range(8)])
+    _, layout = _fiducial_layout(tmp_path, {i: "dark" for i in dark})
+    right = calibrate_fibers(rest, "gray", layout=layout)
+    bundle = calibrate_fibers(rest, "gray", layout=layout, rotation_hint_deg=60 * k + 10, mirror=mirror)
+    assert is_verified(bundle) and np.array_equal(bundle.fibers.dead, right.fibers.dead)
+    assert set(np.flatnonzero(bundle.fibers.dead)) == set(dark)
+    assert np.array_equal(bundle.fibers.pixel_index, right.fibers.pixel_index) and not bundle.transform.mirror
+
+
+def test_symmetric_fiducials_are_refused_in_one_line(tmp_path, capsys) -> None:
+    rec = write_scenario(tmp_path / "rest", "rest", seed=0)
+    path, _ = _fiducial_layout(tmp_path, {_fiber_at(0.0, 0.0): "dark"})  # the centre: as symmetric as the layout
+    assert main(["calibrate", "fibers", str(rec), "-o", str(tmp_path / "c.npz"), "--layout", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "fiducials cannot tell" in err and not (tmp_path / "c.npz").exists()
+
+
+def test_a_bad_fiducial_cell_is_refused(tmp_path) -> None:
+    from optitac_edge.errors import ConfigError
+    from optitac_edge.io.layout_csv import load_layout_csv
+
+    path, _ = _fiducial_layout(tmp_path, {3: "dark"})
+    path.write_text(path.read_text().replace(",dark", ",grey"))
+    with pytest.raises(ConfigError, match="line 5: fiducial must be 'dark', 'bright' or empty"):
+        load_layout_csv(path)

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from optitac_edge.core.bundle import BASELINE_FRAMES, CalibrationBundle
+from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.frames import frame_geometry, to_gray
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
@@ -88,11 +89,38 @@ def calibrate_fibers(
     noise: dict[str, Any] = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
     log.info("rest noise: %s", fields(noise))
     options = dataclasses.replace(options or ContactOptions(), **noise)
-    return CalibrationBundle(
+    bundle = CalibrationBundle(
         layout=layout, transform=result.transform, fibers=result.table, grid=grid,
         interpolation=matrix, thresholds=thresholds or ContactThresholds(), options=options,
         fiber_map_report=report, surface_factors=factors,
     )
+    if layout.fiducial is not None and np.any(layout.fiducial):
+        bundle = _orient_by_fiducials(bundle, rest_frames)
+    return bundle
+
+
+def _orient_by_fiducials(bundle: CalibrationBundle, rest_frames: Sequence[np.ndarray] | np.ndarray
+                         ) -> CalibrationBundle:
+    """Settle the layout's symmetry from fibers dark or bright by design (see :func:`fiducial_orientation`)."""
+    from optitac_edge.calibration.orientation import (
+        fiducial_orientation,
+        layout_symmetries,
+        mark_verified,
+        reorient_bundle,
+    )
+
+    sampler = FiberSampler(bundle.fibers)
+    out = np.empty(bundle.layout.n_fibers, dtype=np.float32)
+    levels = np.mean([sampler.means(np.ascontiguousarray(f), out).copy() for f in rest_frames], axis=0)
+    levels[bundle.fibers.dead] = 0.0
+    fit = fiducial_orientation(levels, bundle.layout, layout_symmetries(bundle.layout))
+    if fit.symmetry is None:
+        raise FiberMapError(fit.reason)
+    evidence = f"{fit.presses} fiducials"
+    if fit.symmetry.is_identity:
+        return mark_verified(bundle, evidence)
+    log.info("fiducials: the orientation hint was off; the fiber map is %s from it", fit.symmetry.label)
+    return reorient_bundle(bundle, fit.symmetry, evidence)
 
 
 def measure_rest_noise(

@@ -136,7 +136,9 @@ class OrientationFit:
         return self.labels[k], self.rmse_mm[k]
 
 
-def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: list[Symmetry]) -> OrientationFit:
+def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: list[Symmetry],
+                    accept_mm: float = ACCEPT_RMSE_MM, margin_mm: float = MARGIN_MM,
+                    margin_ratio: float = MARGIN_RATIO) -> OrientationFit:
     """Choose the symmetry ``h`` with ``measured ≈ h(true)``, or refuse when the presses can't tell.
 
     Parameters
@@ -149,9 +151,9 @@ def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: li
 
     Notes
     -----
-    Accepted when the best RMS error is below ``ACCEPT_RMSE_MM`` and every
-    other symmetry's is at least ``MARGIN_MM`` and ``MARGIN_RATIO`` times
-    larger. Presses on the array's centre or only along one mirror axis fit
+    Accepted when the best RMS error is below ``accept_mm`` and every
+    other symmetry's is at least ``margin_mm`` larger and ``margin_ratio``
+    times as large. Presses on the array's centre or only along one mirror axis fit
     several symmetries equally well and are refused.
     """
     m = np.asarray(measured_mm, dtype=np.float64).reshape(-1, 2)
@@ -165,13 +167,13 @@ def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: li
     order = np.argsort(rmse)
     best = int(order[0])
     fit = OrientationFit(symmetries[best], rmse, labels, int(m.shape[0]))
-    if rmse[best] > ACCEPT_RMSE_MM:
+    if rmse[best] > accept_mm:
         return replace(fit, symmetry=None, reason=(
             f"no orientation fits these presses (best {labels[best]}: RMS {rmse[best]:.2f} mm, "
-            f"accepted below {ACCEPT_RMSE_MM:g} mm)"))
+            f"accepted below {accept_mm:g} mm)"))
     if len(order) > 1:
         second = rmse[int(order[1])]
-        if second < rmse[best] + MARGIN_MM or second < MARGIN_RATIO * rmse[best]:
+        if second < rmse[best] + margin_mm or second < margin_ratio * rmse[best]:
             return replace(fit, symmetry=None, reason=(
                 f"the presses cannot tell '{labels[best]}' ({rmse[best]:.2f} mm) from "
                 f"'{labels[int(order[1])]}' ({second:.2f} mm): press away from the centre and not only "
@@ -222,3 +224,45 @@ def is_verified(bundle: CalibrationBundle) -> bool:
     """True when the bundle's orientation was checked against presses."""
     record = bundle.extra_meta.get(ORIENTATION_KEY)
     return isinstance(record, dict) and record.get("verified") is True
+
+
+#: Fiducials decide a symmetry when the next best scores this many level standard deviations worse.
+FIDUCIAL_MARGIN = 1.0
+
+
+def fiducial_orientation(levels: np.ndarray, layout: FiberLayout, symmetries: list[Symmetry]) -> OrientationFit:
+    """The symmetry under which fibers dark and bright by design read darkest and brightest.
+
+    Parameters
+    ----------
+    levels : ndarray, shape (N,), float
+        Each fiber's mean gray level in the rest frames, through the bundle's
+        fiber map (0 for fibers found dead).
+    layout : FiberLayout
+        With ``fiducial`` set.
+
+    Notes
+    -----
+    Score of ``h``: mean standardised level of the fibers ``h`` puts on the
+    dark fiducials minus that on the bright ones (lowest wins); the best must
+    beat the next by ``FIDUCIAL_MARGIN`` standard deviations, else the
+    fiducials are as symmetric as the layout and the fit refuses.
+    """
+    marks = layout.fiducial
+    labels = tuple(h.label for h in symmetries)
+    if marks is None or not np.any(marks):
+        return OrientationFit(None, tuple(math.inf for _ in symmetries), labels, 0, "the layout has no fiducials")
+    z = (levels - levels.mean()) / max(float(levels.std()), 1e-9)
+    dark, bright = np.flatnonzero(marks < 0), np.flatnonzero(marks > 0)
+    scores = []
+    for h in symmetries:
+        seen = z[h.permutation]
+        scores.append((seen[dark].mean() if dark.size else 0.0) - (seen[bright].mean() if bright.size else 0.0))
+    order = np.argsort(scores)
+    best = int(order[0])
+    fit = OrientationFit(symmetries[best], tuple(float(s) for s in scores), labels, int(dark.size + bright.size))
+    if len(order) > 1 and scores[int(order[1])] - scores[best] < FIDUCIAL_MARGIN:
+        return replace(fit, symmetry=None, reason=(
+            f"the fiducials cannot tell '{labels[best]}' from '{labels[int(order[1])]}' "
+            "(they are as symmetric as the layout, or not dark/bright in the rest frames)"))
+    return fit

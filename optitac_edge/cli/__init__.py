@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import os
 import shutil
 import signal
@@ -18,9 +17,21 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge import __version__
+from optitac_edge.cli import bringup
+from optitac_edge.cli.common import (
+    COUNT,
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
+    FPS,
+    SEED,
+    Parser,
+    add_board,
+    board_config,
+    number,
+)
 from optitac_edge.errors import EXTRA_OF_MODULE, OptiTacError, missing_extra
 from optitac_edge.io.logs import NonBlockingLogging
 from optitac_edge.text import fields
@@ -28,41 +39,11 @@ from optitac_edge.text import fields
 if TYPE_CHECKING:
     from typing_extensions import Self
 
-EXIT_ERROR = 2
-#: Exit status of work interrupted by Ctrl-C (128 + SIGINT, as a shell reports it).
-EXIT_INTERRUPTED = 130
 log = logging.getLogger("optitac_edge")
 
 
-class _Parser(argparse.ArgumentParser):
-    """Argument parser whose usage errors are one line."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see --help)\n")
-
-
-def _number(lo: float, hi: float, *, integer: bool = False, lo_open: bool = False) -> Callable[[str], Any]:
-    """An argparse type: a finite number (an integer with ``integer``) in ``lo..hi``; one-line errors."""
-    def parse(text: str) -> float | int:
-        try:
-            value: float | int = int(text) if integer else float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
-        low_ok = value > lo if lo_open else value >= lo
-        if not (math.isfinite(value) and low_ok and value <= hi):
-            raise argparse.ArgumentTypeError(
-                f"{text} is outside {'(' if lo_open else ''}{lo:g}..{hi:g}{')' if lo_open else ''}")
-        return value
-    return parse
-
-
-COUNT = _number(1, 10**9, integer=True)
-SEED = _number(0, 2**32 - 1, integer=True)
-FPS = _number(1, 1000)
-
-
 def _add_orientation(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rotation-deg", type=_number(-360, 360), default=0.0, metavar="A",
+    p.add_argument("--rotation-deg", type=number(-360, 360), default=0.0, metavar="A",
                    help="the array appears rotated counter-clockwise by about A degrees in the image")
     p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
 
@@ -84,31 +65,31 @@ class _Scenarios:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
+    parser = Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     _add_verbosity(parser, None)
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
 
     p = sub.add_parser("sim", help="write a recording from the built-in simulator")
     p.add_argument("out_dir", type=Path)
     p.add_argument("--scenario", required=True, choices=_Scenarios(), metavar="NAME", help="%(choices)s")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--frames", type=COUNT, default=None, help="number of frames (scenario default if omitted)")
-    p.add_argument("--width", type=_number(64, 8192, integer=True), default=640)
-    p.add_argument("--height", type=_number(64, 8192, integer=True), default=480)
+    p.add_argument("--width", type=number(64, 8192, integer=True), default=640)
+    p.add_argument("--height", type=number(64, 8192, integer=True), default=480)
     p.add_argument("--rgb", action="store_true", help="write (N,H,W,3) RGB frames")
     p.add_argument("--dark-fibers", type=str, default="", metavar="I,J,...",
                    help="layout indices of fibers that transmit no light")
-    p.add_argument("--day", type=_number(0, 10_000, integer=True), default=0,
+    p.add_argument("--day", type=number(0, 10_000, integer=True), default=0,
                    help="session drift: camera shift, LED/pin gain, depth jitter, LED drift (0 = none)")
-    p.add_argument("--variant", type=_number(0, 10_000, integer=True), default=0,
+    p.add_argument("--variant", type=number(0, 10_000, integer=True), default=0,
                    help="another simulated sensor (optics and skin drawn from seed N; 0 = default); "
                         "sets its own rotation and mirror")
-    p.add_argument("--warmup", type=_number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
+    p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
     _add_orientation(p)
 
     cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
-        dest="step", required=True, parser_class=_Parser)
+        dest="step", required=True, parser_class=Parser)
     p = cal.add_parser("fibers", help="build a calibration bundle from a recording's rest frames")
     p.add_argument("recording", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="CAL")
@@ -154,24 +135,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="CONTACTS.csv")
 
     p = sub.add_parser("run", help="capture -> process -> transmit (default: the built-in simulated sensor)")
-    _add_board(p)
+    add_board(p)
     p.add_argument("--cal", type=Path, default=None, help="use this bundle (default: the board's)")
     p.add_argument("--serial", default=None, metavar="PORT", help="serial device or pyserial URL (overrides the board)")
     p.add_argument("--can", default=None, metavar="CHANNEL", help="CAN channel (overrides the board)")
-    p.add_argument("--duration", type=_number(0, 1e8, lo_open=True), default=None, metavar="S",
+    p.add_argument("--duration", type=number(0, 1e8, lo_open=True), default=None, metavar="S",
                    help="stop cleanly after S seconds")
     p.add_argument("--frames", type=COUNT, default=None, help="stop after N frames")
     p.add_argument("--fps", type=FPS, default=None, help="camera frame rate (overrides the board)")
 
     p = sub.add_parser("record", help="save frames of a live source as a recording")
-    _add_board(p)
+    add_board(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
     p.add_argument("--frames", type=COUNT, default=300)
     p.add_argument("--rest-frames", type=COUNT, default=10, help="leading contact-free frames (meta.json)")
 
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
-    p.add_argument("--minutes", type=_number(0, 1e6, lo_open=True), required=True, metavar="M")
-    p.add_argument("--fault-rate", type=_number(0, 1), default=0.01, metavar="R",
+    p.add_argument("--minutes", type=number(0, 1e6, lo_open=True), required=True, metavar="M")
+    p.add_argument("--fault-rate", type=number(0, 1), default=0.01, metavar="R",
                    help="probability of a fault per read")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--fps", type=FPS, default=60.0)
@@ -190,15 +171,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=Path("bench.json"), metavar="PATH",
                    help="write the results here (default bench.json)")
     p.add_argument("--workdir", type=Path, default=None, help="cache of the simulator bundle (default: a temp dir)")
-    p.add_argument("--reference-frames", type=_number(0, 10**7, integer=True), default=300,
+    p.add_argument("--reference-frames", type=number(0, 10**7, integer=True), default=300,
                    help="frames the reference runs on (0: skip)")
-    p.add_argument("--memory-frames", type=_number(0, 10**8, integer=True), default=2000,
+    p.add_argument("--memory-frames", type=number(0, 10**8, integer=True), default=2000,
                    help="frames traced with tracemalloc (0: skip)")
-    p.add_argument("--e2e-seconds", type=_number(0, 1e6), default=60.0, help="end-to-end run length (0: skip)")
+    p.add_argument("--e2e-seconds", type=number(0, 1e6), default=60.0, help="end-to-end run length (0: skip)")
     p.add_argument("--no-startup", action="store_true", help="skip the start-to-first-packet run")
     p.add_argument("--queue-frames", type=int, default=None, metavar="N",
                    help="end to end: frames the camera queues for the loop (default: the sim board's "
                         "camera.queue_frames; 1 = latest frame only)")
+    bringup.add_parsers(sub)
     _add_verbosity_to_commands(parser)
     return parser
 
@@ -228,11 +210,6 @@ def _log_level(args: argparse.Namespace) -> int:
     if args.command == "run":
         return logging.DEBUG if args.verbose else logging.INFO
     return logging.INFO if args.verbose == 1 else logging.DEBUG if args.verbose > 1 else logging.WARNING
-
-
-def _add_board(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--board", default="sim", metavar="NAME|PATH",
-                   help="board config: a name in board_configs/ or a TOML file (default: sim)")
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
@@ -382,13 +359,6 @@ def _status_line(est: Any, fps: float | None) -> str:
             f"{est.angle_deg:+.0f}°  s {est.strength:.0f}{shape}")
 
 
-def _board(args: argparse.Namespace, **overrides: Any) -> Any:
-    from optitac_edge.service.board_config import load_board_config
-
-    return load_board_config(args.board, env=os.environ,
-                             overrides={k: v for k, v in overrides.items() if v is not None})
-
-
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise OptiTacError("--duration must be positive")
@@ -397,7 +367,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "serial", "link.serial_url": args.serial}
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
-    config = _board(args, **link, **{"camera.fps": args.fps})
+    config = board_config(args, **link, **{"camera.fps": args.fps})
     stop = threading.Event()
     received: list[int] = []
 
@@ -508,7 +478,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event, s
 def _cmd_record(args: argparse.Namespace) -> int:
     from optitac_edge.service.recorder import record_board
 
-    rec = record_board(_board(args), args.output, args.frames, args.rest_frames)
+    rec = record_board(board_config(args), args.output, args.frames, args.rest_frames)
     print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
     return 0
 
@@ -583,7 +553,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "calibrate orientation": _cmd_calibrate_model,
         "calibrate width": _cmd_calibrate_model, "calibrate shapes": _cmd_calibrate_model,
         "evaluate": _cmd_evaluate, "export-onnx": _cmd_export_onnx, "report": _cmd_report, "replay": _cmd_replay,
-        "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench}
+        "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench,
+        **bringup.HANDLERS}
     handler = handlers[f"{args.command} {args.step}" if args.command == "calibrate" else args.command]
     message, code = None, EXIT_ERROR
     try:

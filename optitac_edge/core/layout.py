@@ -24,10 +24,14 @@ class FiberLayout:
         Fiber numbers as printed on the CAD drawing (any unique integers).
     xy_mm : ndarray, shape (N, 2), float64
         Fiber centres in the sensor frame, mm.
+    fiducial : ndarray, shape (N,), int8, or None
+        Fibers dark (-1) or bright (+1) by design, 0 for the others; they let
+        fiber calibration tell the layout's symmetries apart from rest frames.
     """
 
     ids: np.ndarray
     xy_mm: np.ndarray
+    fiducial: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.xy_mm.ndim != 2 or self.xy_mm.shape[1] != 2:
@@ -42,6 +46,9 @@ class FiberLayout:
             raise ValueError("fiber ids must be unique")
         if np.unique(self.xy_mm, axis=0).shape[0] != self.xy_mm.shape[0]:
             raise ValueError("two fibers at the same position")
+        if self.fiducial is not None and (self.fiducial.shape != self.ids.shape
+                                          or not np.all(np.isin(self.fiducial, (-1, 0, 1)))):
+            raise ValueError("fiducial must have shape (N,) and values -1 (dark), 0 or +1 (bright)")
 
     @property
     def n_fibers(self) -> int:

@@ -1,0 +1,52 @@
+"""What every command's parser shares: one-line usage errors, checked numbers, the board option."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from collections.abc import Callable
+from typing import Any, NoReturn
+
+EXIT_ERROR = 2
+#: Exit status of work interrupted by Ctrl-C (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
+
+
+class Parser(argparse.ArgumentParser):
+    """Argument parser whose usage errors are one line."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def number(lo: float, hi: float, *, integer: bool = False, lo_open: bool = False) -> Callable[[str], Any]:
+    """An argparse type: a finite number (an integer with ``integer``) in ``lo..hi``; one-line errors."""
+    def parse(text: str) -> float | int:
+        try:
+            value: float | int = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
+        low_ok = value > lo if lo_open else value >= lo
+        if not (math.isfinite(value) and low_ok and value <= hi):
+            raise argparse.ArgumentTypeError(
+                f"{text} is outside {'(' if lo_open else ''}{lo:g}..{hi:g}{')' if lo_open else ''}")
+        return value
+    return parse
+
+
+COUNT = number(1, 10**9, integer=True)
+SEED = number(0, 2**32 - 1, integer=True)
+FPS = number(1, 1000)
+
+
+def add_board(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", default="sim", metavar="NAME|PATH",
+                   help="board config: a name in board_configs/ or a TOML file (default: sim)")
+
+
+def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
+    from optitac_edge.service.board_config import load_board_config
+
+    return load_board_config(args.board, env=os.environ,
+                             overrides={k: v for k, v in overrides.items() if v is not None})

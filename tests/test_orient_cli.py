@@ -1,0 +1,65 @@
+"""``optitac-edge orient``: two presses near the marked edges fix a fiber map that is off by a symmetry."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.orientation import is_verified
+from optitac_edge.cli import main
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
+from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter
+
+
+def _edge_presses(path, presses=((8.5, 0.7), (-0.8, 8.8))):
+    """Rest, a press near +x held 1 s, release, a press near +y held 1 s, release (60 fps)."""
+    sensor = SimulatedSensor(seed=5)
+    plan = [None] * 20
+    for x, y in presses:
+        plan += [Indenter(shape="circle", x_mm=x, y_mm=y, angle_deg=0.0, size_mm=5.0, depth_mm=2.5)] * 60
+        plan += [None] * 30
+    with RecordingWriter(path, len(plan), sensor.frame_shape, RecordingMeta(rest_frames=10, fps=60.0)) as w:
+        for i, press in enumerate(plan):
+            w.write(i, sensor.frame(() if press is None else (press,)))
+    return path
+
+
+def _board(tmp_path, rec):
+    board = tmp_path / "board.toml"
+    board.write_text(f'[camera]\nbackend = "recording"\nrecording = "{rec}"\n')
+    return board
+
+
+def test_orient_corrects_a_mirrored_fiber_map_from_two_edge_presses(tmp_path, capsys) -> None:
+    rec = _edge_presses(tmp_path / "edges")
+    rest = Recording(rec).rest_frames()
+    right = calibrate_fibers(rest, "gray")
+    cal = tmp_path / "cal.npz"
+    save_bundle(calibrate_fibers(rest, "gray", rotation_hint_deg=240.0, mirror=True), cal)
+    assert main(["orient", "--board", str(_board(tmp_path, rec)), "--cal", str(cal), "--timeout", "30"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("press near the +x edge") and "release" in out
+    assert any(line.startswith("press near the +y edge") for line in out)
+    assert "done: the fiber map is rotated 240°, mirrored" in out
+    assert "orientation corrected (the fiber map was rotated 240°, mirrored" in out[-1]
+    fixed = load_bundle(cal)
+    assert is_verified(fixed) and not fixed.transform.mirror
+    assert np.array_equal(fixed.fibers.pixel_index, right.fibers.pixel_index)
+
+
+def test_orient_refuses_presses_that_do_not_decide_and_leaves_the_bundle(tmp_path, capsys) -> None:
+    rec = _edge_presses(tmp_path / "edges", presses=((8.5, 0.0), (7.4, 4.3)))  # "+y" 30° from +x
+    cal = tmp_path / "cal.npz"
+    save_bundle(calibrate_fibers(Recording(rec).rest_frames(), "gray"), cal)
+    before = cal.read_bytes()
+    assert main(["orient", "--board", str(_board(tmp_path, rec)), "--cal", str(cal)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "did not decide the orientation" in err
+    assert cal.read_bytes() == before
+
+
+def test_orient_on_a_board_that_keeps_no_bundle_needs_an_output(capsys) -> None:
+    assert main(["orient", "--board", "sim"]) == 2
+    assert "give -o CAL" in capsys.readouterr().err
