@@ -43,6 +43,10 @@ class TransportError(OptiTacError):
     """A link to the MCU (serial, CAN) cannot be opened or is misconfigured."""
 
 
+class RigError(OptiTacError):
+    """An indentation rig refused a move, raised an alarm, or stopped answering."""
+
+
 class OutputError(OptiTacError):
     """An output file cannot be written (the message names it): full disk, I/O error, a target
     that is not a regular file."""
@@ -55,7 +59,8 @@ class MissingExtraError(OptiTacError):
 #: The pip extra that installs each optional module (``pip install 'optitac-edge[EXTRA]'``).
 EXTRA_OF_MODULE = {
     "sklearn": "calibrate", "threadpoolctl": "calibrate", "matplotlib": "calibrate", "onnx": "calibrate",
-    "onnxruntime": "onnx", "can": "can", "cantools": "can", "smbus2": "board",
+    "onnxruntime": "onnx", "can": "can", "cantools": "can", "smbus2": "board", "rtde_control": "ur",
+    "rtde_receive": "ur",
 }
 
 

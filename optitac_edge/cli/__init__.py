@@ -536,6 +536,11 @@ def _left_after_interrupt(args: argparse.Namespace) -> str:
         return f"{args.json} not written"
     if command == "soak":
         return "soak stopped early: no verdict"
+    if command == "collect":
+        return (f"tip retracted; recording {args.output} is incomplete: run the same command again to continue "
+                "after the last complete press")
+    if command == "orient":
+        return "bundle unchanged"
     return "nothing written"
 
 

@@ -22,6 +22,58 @@ def add_parsers(sub: Any) -> None:
                    help="write the oriented bundle here (default: where it was read from)")
     p.add_argument("--timeout", type=number(1, 3600), default=120.0, metavar="S",
                    help="give up after S seconds of camera time (default 120)")
+    _add_collect(sub)
+
+
+def _add_collect(sub: Any) -> None:
+    from optitac_edge.bringup.experiments import EXPERIMENTS
+
+    p = sub.add_parser("collect", help="run an experiment on an indentation rig into a recording with truth")
+    p.add_argument("experiment", choices=EXPERIMENTS, metavar="EXPERIMENT", help="%(choices)s")
+    add_board(p)
+    p.add_argument("--rig", default=None, metavar="URL",
+                   help="gcode://PORT, ur://HOST or sim://?rotation=DEG&origin=X,Y (default: the board's rig.url)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
+    p.add_argument("--cal", type=Path, default=None, metavar="CAL",
+                   help="bundle that reads the registration presses (default: the board's, or calibrated "
+                        "from the first frames)")
+    p.add_argument("--seed", type=number(0, 2**32 - 1, integer=True), default=0,
+                   help="seed of the experiment's random positions")
+    p.add_argument("--limit", type=number(1, 10**6, integer=True), default=None, metavar="N",
+                   help="only the first N presses of the experiment")
+    p.add_argument("--fresh", action="store_true", help="start again instead of continuing an interrupted collection")
+
+
+def _cmd_collect(args: argparse.Namespace) -> int:
+    from contextlib import ExitStack
+
+    from optitac_edge.bringup.collect import Collector
+    from optitac_edge.bringup.rigs import open_rig
+    from optitac_edge.service.wiring import obtain_bundle, open_board_camera
+
+    config = board_config(args)
+    with ExitStack() as stack:
+        rig, camera = open_rig(config, args.rig)
+        stack.enter_context(rig)
+        camera = stack.enter_context(camera if camera is not None else open_board_camera(config))
+        bundle, _ = obtain_bundle(config, camera, args.cal)
+        collector = Collector(camera, rig, bundle, prompt=lambda line: print(line, flush=True),
+                              confirm=_wait_for_enter)
+        result = collector.run(args.experiment, args.output, seed=args.seed, limit=args.limit, fresh=args.fresh)
+    f = result.rig_frame
+    print(f"wrote {args.output}: {result.experiment}, {result.presses} presses, {result.frames} frames"
+          f"{f' (continued after press {result.resumed_at})' if result.resumed_at else ''}; "
+          f"rig frame origin ({f.origin_xy_mm[0]:.2f}, {f.origin_xy_mm[1]:.2f}) mm, +x at {f.rotation_deg:+.2f}°, "
+          f"surface z {f.surface_z_mm:.3f} mm; bundle orientation: {result.bundle_symmetry}")
+    return 0
+
+
+def _wait_for_enter(line: str) -> None:
+    import sys
+
+    print(line, flush=True)
+    if sys.stdin.readline() == "":
+        raise OptiTacError("standard input closed while waiting for the operator")
 
 
 def _cmd_orient(args: argparse.Namespace) -> int:
@@ -49,4 +101,4 @@ def _cmd_orient(args: argparse.Namespace) -> int:
     return 0
 
 
-HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {"orient": _cmd_orient}
+HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {"orient": _cmd_orient, "collect": _cmd_collect}

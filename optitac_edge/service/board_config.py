@@ -283,6 +283,27 @@ class WatchdogConfig:
     max_frame_gap_s: float = _opt(_num(0.1, 600), 2.0, "no frame for this long: stop kicking, exit with failure")
 
 
+@dataclass(frozen=True)
+class RigConfig:
+    """The indentation rig of ``optitac-edge collect`` (bench use only; the service never moves it)."""
+
+    url: str = _opt(_str(256), "", "gcode://PORT (GRBL), ur://HOST (Universal Robots) or sim:// (simulator)")
+    baudrate: int = _opt(_int(1200, 4_000_000), 115200, "gcode: serial baud rate")
+    home: bool = _opt(_bool, False, "gcode: home ($H) at start when the machine is locked")
+    x_min: float = _opt(_num(-1e5, 1e5), 0.0, "lowest x the tip may go to, mm (rig coordinates)")
+    x_max: float = _opt(_num(-1e5, 1e5), 0.0, "highest x, mm")
+    y_min: float = _opt(_num(-1e5, 1e5), 0.0, "lowest y, mm")
+    y_max: float = _opt(_num(-1e5, 1e5), 0.0, "highest y, mm")
+    z_min: float = _opt(_num(-1e5, 1e5), 0.0, "lowest z (deepest), mm: keep it above what the skin can take")
+    z_max: float = _opt(_num(-1e5, 1e5), 0.0, "highest z, mm")
+    safe_z: float = _opt(_num(-1e5, 1e5), 0.0, "z of every retract, mm (0: z_max)")
+    feed_mm_s: float = _opt(_num(0.1, 500), 10.0, "speed of every move, mm/s")
+
+    @property
+    def limits_set(self) -> bool:
+        return self.x_min < self.x_max and self.y_min < self.y_max and self.z_min < self.z_max
+
+
 _SECTIONS: dict[str, type] = {
     "sensor": SensorConfig,
     "camera": CameraConfig,
@@ -291,6 +312,7 @@ _SECTIONS: dict[str, type] = {
     "led": LedConfig,
     "status": StatusConfig,
     "watchdog": WatchdogConfig,
+    "rig": RigConfig,
 }
 #: Keys holding paths, resolved against the directory of the file that set them.
 _PATH_KEYS = {("camera", "device"), ("camera", "recording"), ("calibration", "bundle"),
@@ -311,6 +333,7 @@ class BoardConfig:
     led: LedConfig = field(default_factory=LedConfig)
     status: StatusConfig = field(default_factory=StatusConfig)
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
     #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
     origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
 

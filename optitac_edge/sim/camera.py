@@ -7,6 +7,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 
@@ -19,6 +20,12 @@ from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
+
+
+class PressSource(Protocol):
+    """What presses the simulated skin: the indenter (shape, pose, size, current depth) at a frame, or None."""
+
+    def at(self, frame: int) -> Indenter | None: ...
 
 
 @dataclass(frozen=True)
@@ -101,6 +108,9 @@ class SimCamera(Camera):
         rendered ahead by a thread (the simulator's rendering, ~1 ms a frame, is
         the sensor's exposure and readout, not part of the loop being measured);
         otherwise frames come as fast as rendered, stamped when rendered.
+    program : PressSource, optional
+        What presses the skin at each frame (default: random presses,
+        :class:`PressProgram`); the simulated rig drives it instead.
     clock : Clock, optional
         Not realtime: frame ``k`` is due at ``k / fps`` on this clock; a read
         sleeps on it until then and stamps the frame with that time, in the
@@ -111,7 +121,8 @@ class SimCamera(Camera):
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
-                 realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None) -> None:
+                 realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None,
+                 program: PressSource | None = None) -> None:
         super().__init__()
         if realtime and clock is not None:
             raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
@@ -124,7 +135,8 @@ class SimCamera(Camera):
         self.pixel_format = "rgb" if rgb else "gray"
         self.height, self.width, self.fps = height, width, float(fps)
         self.rest_frames = rest_frames
-        self._program = PressProgram(self.fps, rest_frames, seed, self.sensor.layout.radius_mm)
+        self._program: PressSource = program or PressProgram(self.fps, rest_frames, seed,
+                                                             self.sensor.layout.radius_mm)
         self._realtime = realtime
         self._seq = 0
         # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)

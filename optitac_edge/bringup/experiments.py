@@ -1,0 +1,130 @@
+"""The paper's experiments as lists of presses for an indentation rig (sensor frame, pure functions).
+
+``seen``    5 mm circle, 3 mm deep, over every fiber.
+``unseen``  5 mm circle, 3 mm deep, in 0.25 mm steps along x (y = 0), then y
+            (x = 0), as far as it stays 0.5 mm inside the array.
+``repeat``  5 mm circle, 3 mm deep, 10 presses at each of 5 points (the centre and
+            half the radius out at 45, 135, 225, 315 degrees).
+``widths``  circles of ``WIDTHS_MM``, 3 mm deep, 5 presses each at random positions
+            fully on the array; one block per indenter (the operator changes it).
+``shapes``  5 shapes, each in 4 blocks of angles across its symmetry period, 10
+            presses a block at random positions fully on the array, 3 mm deep.
+``depths``  a 5 mm circle at the centre and 6 points half the radius out, at
+            ``DEPTHS_MM``, twice each, in random order (for depth calibration).
+
+Presses are grouped by indenter so the operator changes it once per block.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from optitac_edge.core.layout import FiberLayout
+
+EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths")
+WIDTHS_MM: tuple[float, ...] = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0)
+DEPTHS_MM: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
+SHAPE_SIZE_MM = {"edge": 1.5, "circle": 6.0, "square": 6.0, "ellipse": 7.0, "triangle": 7.0}
+ANGLE_PERIOD_DEG = {"circle": 0.0, "square": 90.0, "triangle": 120.0, "ellipse": 180.0, "edge": 180.0}
+#: How far an indenter's outline reaches beyond its size/2 (edge: its length), mm.
+EDGE_LENGTH_MM = 12.0
+
+
+@dataclass(frozen=True)
+class PlannedPress:
+    """One press of an experiment.
+
+    Attributes
+    ----------
+    x_mm, y_mm : float
+        Centre of the press in the sensor frame, mm.
+    depth_mm : float
+        Indentation depth below the skin's surface, mm.
+    shape : str
+    size_mm : float
+        Diameter of a circle, side of a square or triangle, major axis of an ellipse, width of an edge.
+    angle_deg : float
+        The indenter's angle as mounted, counter-clockwise from the rig's +X, degrees.
+    """
+
+    x_mm: float
+    y_mm: float
+    depth_mm: float
+    shape: str = "circle"
+    size_mm: float = 5.0
+    angle_deg: float = 0.0
+
+    @property
+    def indenter(self) -> str:
+        """Label of the indenter this press needs (``shape:size@angle``)."""
+        return f"{self.shape}:{self.size_mm:g}@{self.angle_deg:g}"
+
+
+def inscribed_radius(layout: FiberLayout) -> float:
+    """Radius (mm) of the largest origin-centred circle inside the fiber centres' convex hull."""
+    from scipy.spatial import ConvexHull
+
+    return float(-ConvexHull(layout.xy_mm).equations[:, 2].max())
+
+
+def _reach(shape: str, size: float) -> float:
+    if shape == "edge":
+        return EDGE_LENGTH_MM / 2.0
+    if shape == "ellipse" or shape == "triangle":
+        return size / 2.0 if shape == "ellipse" else size / math.sqrt(3.0)
+    return size / 2.0 * (math.sqrt(2.0) if shape == "square" else 1.0)
+
+
+def _random_on_array(rng: np.random.Generator, layout: FiberLayout, shape: str, size: float) -> tuple[float, float]:
+    room = inscribed_radius(layout) - _reach(shape, size)
+    if room < inscribed_radius(layout) / 4:
+        return 0.0, 0.0
+    r, t = room * math.sqrt(rng.uniform()), rng.uniform(0.0, 2 * math.pi)
+    return r * math.cos(t), r * math.sin(t)
+
+
+def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPress]:
+    """The presses of ``experiment`` (one of :data:`EXPERIMENTS`) on ``layout``, grouped by indenter.
+
+    Raises
+    ------
+    ValueError
+        For an unknown experiment.
+    """
+    rng = np.random.default_rng(seed)
+    if experiment == "seen":
+        return [PlannedPress(float(x), float(y), 3.0) for x, y in layout.xy_mm]
+    if experiment == "unseen":
+        step = 0.25
+        lim = math.floor((layout.radius_mm - 2.5 - 0.5) / step + 1e-9) * step
+        line = np.arange(-lim, lim + step / 2, step)
+        return ([PlannedPress(float(v), 0.0, 3.0) for v in line]
+                + [PlannedPress(0.0, float(v), 3.0) for v in line])
+    if experiment == "repeat":
+        ring = 0.5 * layout.radius_mm
+        points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
+                                 for a in (45.0, 135.0, 225.0, 315.0)]
+        return [PlannedPress(x, y, 3.0) for x, y in points for _ in range(10)]
+    if experiment == "widths":
+        return [PlannedPress(*_random_on_array(rng, layout, "circle", d), 3.0, "circle", d)
+                for d in WIDTHS_MM for _ in range(5)]
+    if experiment == "shapes":
+        out = []
+        for shape, size in SHAPE_SIZE_MM.items():
+            period = ANGLE_PERIOD_DEG[shape]
+            angles = [0.0] if not period else [period * k / 4 for k in range(4)]
+            per_block = 40 // len(angles)
+            for angle in angles:
+                out += [PlannedPress(*_random_on_array(rng, layout, shape, size), 3.0, shape, size, angle)
+                        for _ in range(per_block)]
+        return out
+    if experiment == "depths":
+        ring = 0.5 * layout.radius_mm
+        points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
+                                 for a in range(0, 360, 60)]
+        presses = [PlannedPress(x, y, d) for x, y in points for d in DEPTHS_MM for _ in range(2)]
+        return [presses[k] for k in rng.permutation(len(presses))]
+    raise ValueError(f"unknown experiment {experiment!r} (known: {', '.join(EXPERIMENTS)})")

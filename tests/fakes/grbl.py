@@ -1,0 +1,184 @@
+"""A fake GRBL 1.1 controller on a pty, following GRBL's protocol closely enough to test a rig backend.
+
+Line commands are answered ``ok`` or ``error:N``; realtime bytes: ``?`` status
+report ``<Idle|MPos:x,y,z|FS:f,0>``, ``!`` feed hold (``Hold:1`` then
+``Hold:0``), ``~`` resume, Ctrl-X soft reset (a reset while moving, not held,
+loses the position: ``ALARM:3``). Moves beyond the travel raise ``ALARM:2``
+(soft limits). ``$H`` homes, ``$X`` unlocks. Motion runs in real time,
+``speed`` times faster than commanded (to keep tests short).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pty
+import re
+import threading
+import time
+import tty
+
+BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
+
+
+class FakeGrbl:
+    def __init__(self, start=(100.6, 79.6, 5.0), travel=((0.0, 200.0), (0.0, 200.0), (-10.0, 40.0)),
+                 speed: float = 1.0, locked: bool = False) -> None:
+        self.master, self.slave = pty.openpty()
+        tty.setraw(self.slave)
+        self.port = os.ttyname(self.slave)
+        self.travel = travel
+        self.speed = speed
+        self._lock = threading.Lock()
+        self._from = self._to = tuple(start)
+        self._t0 = self._t1 = time.monotonic()
+        self._held_at: float | None = None
+        self.state = "Alarm" if locked else "Idle"
+        self.lines: list[str] = []
+        self.realtime: list[bytes] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    # -- motion ---------------------------------------------------------------------------------
+
+    def position(self, now: float | None = None) -> tuple[float, float, float]:
+        with self._lock:
+            return self._position(time.monotonic() if now is None else now)
+
+    def _position(self, now: float) -> tuple[float, float, float]:
+        if self._held_at is not None:
+            now = min(now, self._held_at)
+        if now >= self._t1 or self._t1 == self._t0:
+            return self._to
+        f = (now - self._t0) / (self._t1 - self._t0)
+        return tuple(a + f * (b - a) for a, b in zip(self._from, self._to))  # type: ignore[return-value]
+
+    def _moving(self, now: float) -> bool:
+        return self._held_at is None and now < self._t1
+
+    def _status(self) -> bytes:
+        now = time.monotonic()
+        with self._lock:
+            pos = self._position(now)
+            if self.state == "Alarm":
+                state = "Alarm"
+            elif self._held_at is not None:
+                state = "Hold:0" if now - self._held_at > 0.02 else "Hold:1"
+            else:
+                state = "Run" if self._moving(now) else "Idle"
+        return f"<{state}|MPos:{pos[0]:.3f},{pos[1]:.3f},{pos[2]:.3f}|FS:0,0>\r\n".encode()
+
+    # -- the wire -------------------------------------------------------------------------------
+
+    def _send(self, data: bytes) -> None:
+        try:
+            os.write(self.master, data)
+        except OSError:
+            pass
+
+    def inject_alarm(self, code: int = 1) -> None:
+        with self._lock:
+            now = time.monotonic()
+            self._from = self._to = self._position(now)
+            self._t0 = self._t1 = now
+            self.state = "Alarm"
+        self._send(f"ALARM:{code}\r\n".encode())
+
+    def _serve(self) -> None:
+        line = b""
+        while not self._stop.is_set():
+            try:
+                data = os.read(self.master, 256)
+            except OSError:
+                return
+            for byte in data:
+                b = bytes([byte])
+                if b in (b"?", b"!", b"~", b"\x18"):
+                    self.realtime.append(b)
+                    self._realtime(b)
+                elif b in (b"\n", b"\r"):
+                    if line.strip():
+                        self._line(line.decode("ascii", "replace").strip())
+                    line = b""
+                else:
+                    line += b
+
+    def _realtime(self, b: bytes) -> None:
+        now = time.monotonic()
+        if b == b"?":
+            self._send(self._status())
+        elif b == b"!":
+            with self._lock:
+                if self._moving(now):
+                    self._held_at = now
+        elif b == b"~":
+            with self._lock:
+                if self._held_at is not None:
+                    pos = self._position(now)
+                    self._held_at = None
+                    self._start_move(pos, self._to, 1.0, now)
+        elif b == b"\x18":
+            with self._lock:
+                lost = self._moving(now)
+                pos = self._position(now)
+                self._from = self._to = pos
+                self._t0 = self._t1 = now
+                self._held_at = None
+                if lost:
+                    self.state = "Alarm"
+            if lost:
+                self._send(b"ALARM:3\r\n")
+            self._send(BANNER)
+            if self.state == "Alarm":
+                self._send(b"[MSG:'$H'|'$X' to unlock]\r\n")
+
+    def _start_move(self, a, b, feed_mm_min: float, now: float) -> None:
+        self._from, self._to = tuple(a), tuple(b)
+        dist = math.dist(a, b)
+        self._t0 = now
+        self._t1 = now + (dist / (feed_mm_min / 60.0) / self.speed if feed_mm_min > 0 else 0.0)
+        self._feed = feed_mm_min
+
+    def _line(self, text: str) -> None:
+        self.lines.append(text)
+        upper = text.upper()
+        if upper == "$H":
+            with self._lock:
+                self.state = "Idle"
+            self._send(b"ok\r\n")
+            return
+        if upper == "$X":
+            with self._lock:
+                self.state = "Idle"
+            self._send(b"[MSG:Caution: Unlocked]\r\nok\r\n")
+            return
+        if self.state == "Alarm":
+            self._send(b"error:9\r\n")  # G-code locked out during alarm
+            return
+        words = dict(re.findall(r"([A-Z])\s*(-?[0-9.]+)", upper))
+        if upper.startswith(("G21", "G90", "G4")) and "X" not in words:
+            self._send(b"ok\r\n")
+            return
+        if upper.startswith(("G0", "G1")):
+            now = time.monotonic()
+            with self._lock:
+                pos = self._position(now)
+                target = tuple(float(words.get(axis, pos[k])) for k, axis in enumerate("XYZ"))
+                feed = float(words.get("F", getattr(self, "_feed", 600.0)))
+                if any(not lo <= v <= hi for v, (lo, hi) in zip(target, self.travel)):
+                    self.state = "Alarm"
+                    self._send(b"ALARM:2\r\n")
+                    return
+                self._start_move(pos, target, feed, now)
+            self._send(b"ok\r\n")
+            return
+        self._send(b"error:20\r\n")  # unsupported or invalid g-code command
+
+    def close(self) -> None:
+        self._stop.set()
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass

@@ -1,0 +1,138 @@
+"""The GRBL rig backend against a fake GRBL on a pty, and ``collect`` through it: Ctrl-C, retract, resume."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fakes.grbl import FakeGrbl
+
+from optitac_edge.bringup.collect import JOURNAL, Collector, CollectSettings
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.steps import calibrate_centroid
+from optitac_edge.errors import RecordingError, RigError
+from optitac_edge.io.recording import Recording
+from optitac_edge.io.rigs.base import RigLimits
+from optitac_edge.io.rigs.gcode import GcodeRig
+from optitac_edge.sim.camera import SimCamera
+from optitac_edge.sim.rig import SimMount
+
+LIMITS = RigLimits(x_mm=(60.0, 140.0), y_mm=(40.0, 120.0), z_mm=(-3.0, 20.0), feed_mm_s=10.0, safe_z_mm=12.0)
+MOUNT = SimMount(origin_xy_mm=(100.0, 80.0), rotation_deg=-9.0, surface_z_mm=2.0)
+
+
+@pytest.fixture
+def grbl():
+    machine = FakeGrbl(speed=20.0)
+    yield machine
+    machine.close()
+
+
+class GrblSkin:
+    """The simulated skin pressed by the fake machine's tool head (a PressSource)."""
+
+    def __init__(self, machine: FakeGrbl, mount: SimMount) -> None:
+        self.machine, self.mount = machine, mount
+
+    def at(self, frame: int):
+        from optitac_edge.sim.skin import Indenter
+
+        x, y, z = self.machine.position()
+        depth = self.mount.surface_z_mm - z
+        if depth <= 0:
+            return None
+        sx, sy = self.mount.to_sensor(x, y)
+        return Indenter("circle", sx, sy, 0.0, 5.0, depth)
+
+
+def test_moves_status_and_limits(grbl) -> None:
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        assert rig.status().state == "idle" and rig.status().xyz_mm == pytest.approx((100.6, 79.6, 5.0))
+        sent = len(grbl.lines)
+        with pytest.raises(RigError, match=r"z = -4.000 mm is outside the limits -3..20 mm; nothing moved"):
+            rig.move_to((100.0, 80.0, -4.0))
+        assert len(grbl.lines) == sent  # refused before anything was sent
+        rig.move_to((101.0, 80.0, 4.0))
+        assert grbl.lines[-1] == "G1 X101.000 Y80.000 Z4.000 F600.0"
+        for _ in range(200):
+            if rig.status().state == "idle":
+                break
+        assert rig.status().xyz_mm == pytest.approx((101.0, 80.0, 4.0))
+        with pytest.raises(RigError, match=r"'M3' refused \(error:20\)"):
+            rig.command("M3")
+
+
+def test_an_alarm_is_one_line_and_stops_the_rig(grbl) -> None:
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        grbl.inject_alarm(1)
+        with pytest.raises(RigError, match="ALARM:1 \\(hard limit triggered\\)"):
+            for _ in range(50):
+                rig.status()
+
+
+def test_a_locked_machine_is_refused_unless_homing_is_allowed(grbl) -> None:
+    grbl.state = "Alarm"
+    with pytest.raises(RigError, match="in alarm .* home it"):
+        GcodeRig(grbl.port, LIMITS)
+    with GcodeRig(grbl.port, LIMITS, home=True) as rig:
+        assert "$H" in grbl.lines and rig.status().state == "idle"
+
+
+def test_no_grbl_on_the_port_is_one_line(tmp_path) -> None:
+    with pytest.raises(RigError, match="cannot open the port"):
+        GcodeRig(str(tmp_path / "absent"), LIMITS)
+
+
+def test_retract_holds_resets_and_lifts_without_losing_the_position(grbl) -> None:
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        rig.move_to((100.6, 79.6, -2.0), 1.0)  # slow: still moving when we stop
+        rig.retract()
+        assert grbl.realtime.count(b"!") == 1 and b"\x18" in grbl.realtime
+        assert grbl.state == "Idle"  # held before the reset: no ALARM:3
+        assert grbl.lines[-1].startswith("G1 X100.6") and grbl.lines[-1].endswith("Z12.000 F600.0")
+
+
+class InterruptDuringPress:
+    """A camera that raises KeyboardInterrupt (Ctrl-C) a few frames into press ``k`` of a collection."""
+
+    def __init__(self, camera: SimCamera, journal, k: int) -> None:
+        self.camera, self.journal, self.k, self.frames = camera, journal, k, 0
+
+    def __getattr__(self, name: str):
+        return getattr(self.camera, name)
+
+    def read(self, timeout_s: float = 1.0):
+        if self.journal.exists() and len(self.journal.read_text().splitlines()) > self.k:
+            self.frames += 1
+            if self.frames == 20:  # in the middle of press k + 1, with the tip in the skin or near it
+                raise KeyboardInterrupt
+        return self.camera.read(timeout_s)
+
+
+def test_collect_seen_through_grbl_interrupted_retracted_and_continued(grbl, tmp_path) -> None:
+    out = tmp_path / "seen"
+    settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=5)
+    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+    lines: list[str] = []
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        with pytest.raises(KeyboardInterrupt):
+            Collector(InterruptDuringPress(camera, out / JOURNAL, 7), rig, bundle, settings,
+                      prompt=lines.append).run("seen", out, limit=14)
+        assert grbl.position()[2] == pytest.approx(12.0)  # the tip went up
+        assert lines[-1] == "retracted the tip to z = 12 mm"
+    with pytest.raises(RecordingError, match="incomplete recording"):
+        Recording(out)
+    done = len((out / JOURNAL).read_text().splitlines()) - 1
+    assert done == 7
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        result = Collector(camera, rig, bundle, settings, prompt=lines.append).run("seen", out, limit=14)
+    assert result.resumed_at == done and result.presses == 14
+    assert f"continuing seen after press {done} of 14" in lines
+    rec = Recording(out)
+    assert rec.timestamped and rec.rig_poses is not None and len(rec.rig_poses.frame) == len(rec)
+    assert np.all(np.diff(rec.t_ns) >= 0)
+    assert abs(result.rig_frame.rotation_deg - MOUNT.rotation_deg) < 0.5
+    assert np.hypot(*(np.array(result.rig_frame.origin_xy_mm) - MOUNT.origin_xy_mm)) < 0.3
+    assert not (out / JOURNAL).exists()
+    _, summary = calibrate_centroid(rec, calibrate_fibers(rec.rest_frames(), rec.pixel_format))
+    assert summary["frames"] >= 14 * settings.hold_frames
