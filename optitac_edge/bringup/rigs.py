@@ -48,6 +48,8 @@ def open_rig(config: BoardConfig, url: str | None = None) -> tuple[Rig, Camera |
     url = url or config.rig.url
     if not url:
         raise RigError(f"{config.source}: no rig: give --rig URL or set rig.url")
+    if not url.startswith(("gcode://", "ur://", "sim:")):
+        raise RigError(f"unknown rig URL {url!r} (gcode://PORT, ur://HOST or sim://)")
     limits = rig_limits(config, url)
     scheme = url.split(":", 1)[0]
     if scheme == "gcode" and url.startswith("gcode://"):

@@ -1,0 +1,114 @@
+"""``optitac-edge collect`` over the simulator's virtual rig (sim://): every experiment, limits, rig frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from optitac_edge.bringup.experiments import EXPERIMENTS, plan
+from optitac_edge.bringup.rig_frame import fit_rig_frame
+from optitac_edge.calibration.orientation import layout_symmetries
+from optitac_edge.cli import main
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.errors import RigError
+from optitac_edge.io.recording import Recording
+from optitac_edge.sim.rig import parse_sim_url
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_collects_over_the_virtual_rig(experiment, tmp_path, capsys) -> None:
+    out = tmp_path / experiment
+    assert main(["collect", experiment, "--rig", "sim://?rotation=-12&origin=95,84", "-o", str(out),
+                 "--limit", "3"]) == 0
+    stdout = capsys.readouterr().out
+    assert "touch-off" in stdout and f"wrote {out}: {experiment}, 3 presses" in stdout
+    rec = Recording(out)
+    truth, poses = rec.truth, rec.rig_poses
+    assert truth is not None and poses is not None and rec.timestamped
+    assert len(poses.frame) == len(rec) and set(poses.phase) == {"rest", "approach", "hold", "release", "move"}
+    held = np.flatnonzero(poses.phase == "hold")
+    presses = plan(experiment, hex_layout())[:3]
+    # the last three presses' hold frames: the planned position and depth, in the sensor frame
+    last = truth.contact & (np.isin(truth.frame, held))
+    xy = np.stack([truth.x_mm[last], truth.y_mm[last]], 1)[-3 * 8:]
+    want = np.repeat([(p.x_mm, p.y_mm) for p in presses], 8, axis=0)
+    assert np.abs(xy - want).max() < 0.3
+    assert np.abs(truth.depth_mm[last][-3 * 8:] - np.repeat([p.depth_mm for p in presses], 8)).max() < 0.1
+    meta = rec.meta.extra["collect"]
+    assert abs(meta["rig_frame"]["rotation_deg"] + 12.0) < 0.5 and meta["bundle_orientation"] == "as it is"
+
+
+def test_the_rig_frame_and_surface_are_found_not_typed_in(tmp_path, capsys) -> None:
+    out = tmp_path / "r"
+    assert main(["collect", "repeat", "--rig", "sim://?rotation=23&origin=110,70&surface=-1.5", "-o", str(out),
+                 "--limit", "1"]) == 0
+    frame = Recording(out).meta.extra["collect"]["rig_frame"]
+    assert abs(frame["rotation_deg"] - 23.0) < 0.3
+    assert np.hypot(frame["origin_xy_mm"][0] - 110.0, frame["origin_xy_mm"][1] - 70.0) < 0.2
+    assert abs(frame["surface_z_mm"] + 1.5) < 0.05
+
+
+def test_a_mirrored_mount_is_reported_as_a_bundle_to_reorient(tmp_path, capsys) -> None:
+    out = tmp_path / "r"
+    assert main(["collect", "unseen", "--rig", "sim://?mirror=1", "-o", str(out), "--limit", "2"]) == 0
+    stdout = capsys.readouterr().out
+    assert "warning: the bundle's fiber map is" in stdout and "mirrored" in stdout
+
+
+def test_a_target_outside_the_limits_is_refused_before_the_rig_moves(tmp_path, capsys) -> None:
+    board = tmp_path / "board.toml"
+    board.write_text("[rig]\nx_min = 40.0\nx_max = 160.0\ny_min = 20.0\ny_max = 140.0\nz_min = -0.5\nz_max = 20.0\n")
+    # the skin's surface is at z = 2: registration (2 mm deep) fits, a 3 mm deep press needs z = -1, below z_min
+    assert main(["collect", "seen", "--board", str(board), "--rig", "sim://", "-o", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "outside the limits" in err[0]
+    assert "nothing moved" in err[0]
+
+
+def test_a_real_rig_without_limits_is_refused(tmp_path, capsys) -> None:
+    assert main(["collect", "seen", "--rig", "gcode:///dev/optitac-no-such-port", "-o", str(tmp_path / "r")]) == 2
+    assert "set the rig's travel limits" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("url, message", [
+    ("sim://?spin=3", "unknown key 'spin'"), ("sim://?rotation=abc", "finite numbers"),
+    ("ftp://x", "unknown rig URL"), ("sim://host/path", "sim://?key=value"),
+])
+def test_bad_rig_urls_are_one_line(url, message, tmp_path, capsys) -> None:
+    assert main(["collect", "seen", "--rig", url, "-o", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err
+
+
+def test_continuing_with_other_arguments_is_refused(tmp_path, capsys) -> None:
+    from optitac_edge.bringup.collect import JOURNAL
+
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "incomplete.json").write_text('{"reason": "interrupted", "frames_written": 0, "frames": 256}')
+    (out / JOURNAL).write_text('{"kind": "setup", "experiment": "unseen", "seed": 0, "presses": 10}\n')
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "2"]) == 2
+    assert "an interrupted collection of unseen" in capsys.readouterr().err
+
+
+def test_rig_frame_fit_recovers_rotation_origin_and_the_bundles_symmetry() -> None:
+    sym = layout_symmetries(hex_layout())
+    rng = np.random.default_rng(0)
+    rig = np.array([[100, 80], [106, 80], [100, 86], [94, 80], [100, 74]], dtype=float)
+    theta = np.radians(-17.0)  # sensor +x at -17 degrees from the rig's +X
+    d = rig - (101.0, 79.0)
+    c, s = np.cos(-theta), np.sin(-theta)
+    sensor = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]], 1)
+    for h in (sym[0], sym[2], sym[9]):
+        frame, found = fit_rig_frame(rig, h.apply(sensor) + rng.normal(0, 0.05, sensor.shape), 2.0, sym)
+        assert found.label == h.label
+        assert abs(frame.rotation_deg + 17.0) < 1.0 and np.allclose(frame.origin_xy_mm, (101.0, 79.0), atol=0.1)
+        assert np.allclose(frame.to_sensor(rig), sensor, atol=0.15)
+        assert np.allclose(frame.to_rig(frame.to_sensor(rig)), rig)
+
+
+def test_sim_url_parsing() -> None:
+    mount = parse_sim_url("sim://?rotation=5&origin=1,2&surface=-3&mirror=1")
+    assert mount.rotation_deg == 5 and mount.origin_xy_mm == (1.0, 2.0) and mount.surface_z_mm == -3 and mount.mirror
+    with pytest.raises(RigError):
+        parse_sim_url("sim://?origin=1")
