@@ -143,6 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop cleanly after S seconds")
     p.add_argument("--frames", type=COUNT, default=None, help="stop after N frames")
     p.add_argument("--fps", type=FPS, default=None, help="camera frame rate (overrides the board)")
+    p.add_argument("--view", default=None, metavar="HOST:PORT",
+                   help="serve the live view here (off by default; e.g. 127.0.0.1:8080, see docs/bring-up.md)")
 
     p = sub.add_parser("record", help="save frames of a live source as a recording")
     add_board(p)
@@ -463,6 +465,9 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event, s
         if session.calibrates:
             say("calibrating fibers from the first rest frames...")
         bundle = session.bundle()
+        if getattr(args, "view", None):
+            url = session.open_view(args.view)
+            say(f"view: {url}")
         say(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
             f"({config.camera.backend} camera, {link if link == 'no link' else link + ' link'}; Ctrl-C to stop)")
 

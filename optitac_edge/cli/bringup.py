@@ -24,6 +24,22 @@ def add_parsers(sub: Any) -> None:
                    help="give up after S seconds of camera time (default 120)")
     _add_collect(sub)
 
+    p = sub.add_parser("view", help="serve the live view: camera, fiber map, surface, contacts (any browser)")
+    add_board(p)
+    p.add_argument("--cal", type=Path, default=None, metavar="CAL", help="use this bundle (default: the board's)")
+    p.add_argument("--bind", default="127.0.0.1:8080", metavar="HOST:PORT",
+                   help="address to serve on (default 127.0.0.1:8080; anything else needs the printed token "
+                        "for actions)")
+    p.add_argument("--duration", type=number(0, 1e8, lo_open=True), default=None, metavar="S",
+                   help="stop after S seconds")
+
+    p = sub.add_parser("snapshot", help="write the live view's picture of a board's camera to a PNG")
+    add_board(p)
+    p.add_argument("--cal", type=Path, default=None, metavar="CAL", help="use this bundle (default: the board's)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="PNG")
+    p.add_argument("--frames", type=number(1, 10**5, integer=True), default=10,
+                   help="frames processed after the baseline before the picture (default 10)")
+
 
 def _add_collect(sub: Any) -> None:
     from optitac_edge.bringup.experiments import EXPERIMENTS
@@ -76,6 +92,53 @@ def _wait_for_enter(line: str) -> None:
         raise OptiTacError("standard input closed while waiting for the operator")
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from optitac_edge.cli import _cmd_run
+
+    run_args = argparse.Namespace(**vars(args), serial=None, can=None, frames=None, fps=None, view=args.bind)
+    return _cmd_run(run_args)
+
+
+def _cmd_snapshot(args: argparse.Namespace) -> int:
+    from types import SimpleNamespace
+
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.io.files import AtomicFile
+    from optitac_edge.service.view.live import STAT_FIELDS, LiveView
+    from optitac_edge.service.view.render import encode_png, render_view
+    from optitac_edge.service.view.server import ViewServer
+    from optitac_edge.service.wiring import obtain_bundle, open_board_camera
+
+    config = board_config(args)
+    with open_board_camera(config) as camera:
+        bundle, _ = obtain_bundle(config, camera, args.cal)
+        pipeline = Pipeline(bundle)
+        view = LiveView(bundle, camera.pixel_format, rate_hz=1e9)
+        stats = SimpleNamespace(**dict.fromkeys(STAT_FIELDS, 0))
+        try:
+            taken = 0
+            while taken < args.frames:
+                captured = camera.read(config.camera.timeout_s)
+                if captured is None:
+                    raise OptiTacError("the camera ended before the picture was taken")
+                est = pipeline.process(captured.frame, captured.t_ns)
+                stats.frames += 1
+                stats.contacts += int(est.contact)
+                taken += int(est.baseline_ready)
+            view.observe(captured.frame, captured.t_ns, pipeline, stats)
+            published = view.wait_published(0, timeout_s=10.0)
+        finally:
+            view.close()
+    if published is None:
+        raise OptiTacError("the view produced no picture")
+    picture = render_view(published.gray, bundle, published.surface, published.contacts,
+                          ViewServer._lines(published), published.levels)
+    with AtomicFile(args.output, "wb") as f:
+        f.write(encode_png(picture))
+    print(f"wrote {args.output}: {picture.shape[1]}x{picture.shape[0]} px, {len(published.contacts)} contacts")
+    return 0
+
+
 def _cmd_orient(args: argparse.Namespace) -> int:
     from optitac_edge.bringup.orient import orient_live
     from optitac_edge.calibration.orientation import mark_verified, reorient_bundle
@@ -101,4 +164,5 @@ def _cmd_orient(args: argparse.Namespace) -> int:
     return 0
 
 
-HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {"orient": _cmd_orient, "collect": _cmd_collect}
+HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "orient": _cmd_orient, "collect": _cmd_collect, "view": _cmd_view, "snapshot": _cmd_snapshot}

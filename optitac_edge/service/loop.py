@@ -24,6 +24,7 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
@@ -152,6 +153,8 @@ class Service:
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
         self.pipeline = Pipeline(bundle)
+        #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
+        self.view: Any = None
         self.frame_check = FrameCheck(bundle.fibers, camera.frame_shape)
         self.streaming = True
         self.rate_divider = config.link.rate_divider
@@ -268,6 +271,10 @@ class Service:
         else:
             self.clock.wait(stop, min(self._backoff.delay, IDLE_WAIT_S))
 
+    def replace_pipeline(self, pipeline: Pipeline) -> None:
+        """Use ``pipeline`` from the next frame (a bundle re-oriented from the view; built off the frame thread)."""
+        self.pipeline = pipeline
+
     def close(self) -> None:
         """Close the camera the service opened itself (idempotent)."""
         if self._owned is not None:
@@ -346,6 +353,8 @@ class Service:
             raise _CameraEnded
         self.stats.frames_dropped += camera.frames_dropped - dropped
         est, device_fault = self._process(captured)
+        if self.view is not None:  # the live view copies what it needs when an update is due; never waits
+            self.view.observe(captured.frame, captured.t_ns, self.pipeline, self.stats)
         if not device_fault:  # a camera delivering wrong frames counts towards the frame gap
             self._last_good_ns = self.clock.monotonic_ns()
         return est

@@ -13,7 +13,7 @@ from contextlib import ExitStack, closing
 from pathlib import Path
 from threading import Event
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.io.cameras.base import Camera
@@ -64,6 +64,8 @@ class BoardSession:
         self.led: LedRing | NoLed | None = None
         self.camera: Camera | None = None
         self.transport: Transport | None = None
+        #: The live view, when :meth:`open_view` was called.
+        self.view: Any = None
 
     def __enter__(self) -> Self:
         log_config_warnings(self.config)
@@ -101,6 +103,24 @@ class BoardSession:
             self._bundle, self.unsaved = obtain_bundle(self.config, self.camera, self.cal_path, self.led)
         return self._bundle
 
+    def open_view(self, bind: str) -> str:
+        """Serve the live view on ``bind`` (``HOST:PORT``) while the session runs; returns its URL.
+
+        Everything the view does runs in its own threads: the frame loop only
+        hands over a copy when an update is due and never waits for a viewer.
+        """
+        from optitac_edge.service.view.live import LiveView
+        from optitac_edge.service.view.server import ViewServer
+
+        assert self.camera is not None and self.transport is not None, "open the session first"
+        transport = self.transport
+        view = LiveView(self.bundle(), self.camera.pixel_format, link=lambda: _link_state(transport))
+        view.bundle_path = self.cal_path or self.config.calibration.bundle_path
+        self._stack.callback(view.close)
+        server = self._stack.enter_context(ViewServer(view, bind))
+        self.view = view
+        return server.url
+
     def run(self, stop: Event, duration_s: float | None = None, on_result: OnResult | None = None) -> ServiceStats:
         """Run the frame loop until ``stop``, ``duration_s`` or the camera's end (see :meth:`Service.run`)."""
         assert self.transport is not None, "open the session first (with BoardSession(...) as session)"
@@ -108,5 +128,17 @@ class BoardSession:
         self.service = service = Service(config, self.bundle(), self.camera, self.transport, self.notifier,
                                          camera_factory=lambda: open_board_camera(config), clock=self.clock)
         service.calibration_unsaved = self.unsaved is not None
+        if self.view is not None:
+            service.view = self.view
+            self.view.swap_pipeline = service.replace_pipeline
         return service.run(stop, duration_s=duration_s, on_result=on_result)
 
+
+
+def _link_state(transport: Transport) -> str:
+    """A few words on the link to the MCU, for the view."""
+    if not transport.delivers:
+        return "none"
+    connected = getattr(transport, "connected", None)
+    state = "" if connected is None else (" connected" if connected else " disconnected")
+    return f"{type(transport).__name__.removesuffix('Transport').lower()}{state}, sent {transport.counters.sent}"

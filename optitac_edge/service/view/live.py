@@ -1,0 +1,317 @@
+"""The live view's model: what the frame loop hands over, and the worker that turns it into a picture and data.
+
+The frame loop calls :meth:`LiveView.observe` after every frame. At most
+``rate_hz`` times a second it copies the frame and the pipeline's state into
+preallocated buffers under a lock it only *tries* to take (never waits): if
+the worker is swapping buffers at that instant, the update is skipped and
+counted. The worker thread does everything else off the frame thread --
+gray conversion, JPEG encoding, JSON -- and publishes the result by
+replacing one reference. Actions from the page (tare, a new bundle) are
+queued (bounded) and applied by the frame loop between frames.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.frames import to_gray
+from optitac_edge.core.pipeline import MAX_CONTACTS
+from optitac_edge.errors import OptiTacError
+
+log = logging.getLogger(__name__)
+
+#: Contact fields copied per contact (columns of the contact buffer).
+CONTACT_FIELDS = ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength", "confidence", "area_mm2")
+#: Service counters shown (from ServiceStats).
+STAT_FIELDS = ("frames", "contacts", "frames_dropped", "camera_errors", "light_changes", "processing_errors")
+#: A fiber darker than this fraction of the median fiber is flagged dark; this bright (gray level) saturated.
+DARK_FRACTION = 0.25
+SATURATED_LEVEL = 250.0
+#: JPEG quality of the camera picture.
+JPEG_QUALITY = 80
+
+
+@dataclass
+class Published:
+    """One update as the server hands it out (immutable once published)."""
+
+    seq: int
+    state: bytes  # JSON
+    jpeg: bytes
+    surface: np.ndarray  # (n, n) float32, for the snapshot picture
+    gray: np.ndarray
+    contacts: list[dict[str, Any]]
+    levels: np.ndarray
+
+
+class _Buffers:
+    """One copy of everything an update needs (two of them: the loop fills one, the worker reads the other)."""
+
+    def __init__(self, frame_shape: tuple[int, ...], n_fibers: int, n_cells: int) -> None:
+        self.frame = np.empty(frame_shape, dtype=np.uint8)
+        self.means = np.zeros(n_fibers, dtype=np.float32)
+        self.surface = np.zeros(n_cells, dtype=np.float32)
+        self.contacts = np.full((MAX_CONTACTS, len(CONTACT_FIELDS)), np.nan)
+        self.shapes: list[str] = [""] * MAX_CONTACTS
+        self.n_contacts = 0
+        self.stats = np.zeros(len(STAT_FIELDS), dtype=np.int64)
+        self.t_ns = 0
+        self.fps = 0.0
+        self.trunc = 0.0
+        self.baseline_ready = False
+        self.link = ""
+        self.full = False
+
+
+class LiveView:
+    """Live data for the view server, fed by the frame loop, computed by a worker thread.
+
+    Parameters
+    ----------
+    bundle : CalibrationBundle
+        The fiber map drawn over the frames.
+    pixel_format : str
+    rate_hz : float
+        Most updates a second.
+    link : callable, optional
+        Returns a short description of the link to the MCU (called by the worker).
+    """
+
+    def __init__(self, bundle: CalibrationBundle, pixel_format: str, rate_hz: float = 20.0,
+                 link: Callable[[], str] | None = None) -> None:
+        self.bundle = bundle
+        self.pixel_format = pixel_format
+        self.period_ns = int(1e9 / rate_hz)
+        self.link = link or (lambda: "none")
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._fill: _Buffers | None = None
+        self._spare: _Buffers | None = None
+        self._next_ns = 0
+        self._seq = 0
+        self._last: tuple[int, int] | None = None
+        #: Updates skipped because the worker was swapping buffers (the loop never waits).
+        self.skipped = 0
+        self.published: Published | None = None
+        self.actions: deque[tuple[str, Any]] = deque(maxlen=16)
+        self.message = ""
+        self.procedure: Any = None  # EdgePresses while the guided orientation runs
+        self.on_oriented: Callable[[Any], str] | None = None
+        #: Where an oriented bundle is written (None: kept in memory).
+        self.bundle_path: Any = None
+        #: Called by the frame loop with a new pipeline (the service sets it).
+        self.swap_pipeline: Callable[[Any], None] | None = None
+        self._thread = threading.Thread(target=self._work, name="optitac-view", daemon=True)
+        self._thread.start()
+
+    # -- the frame loop's side ----------------------------------------------------------------
+
+    def observe(self, frame: np.ndarray, t_ns: int, pipeline: Any, stats: Any) -> None:
+        """Hand over this frame if an update is due; apply one queued action. Never blocks."""
+        if self.actions:
+            self._apply(pipeline)
+        if t_ns < self._next_ns or not self._lock.acquire(blocking=False):
+            return
+        try:
+            b = self._fill
+            if b is None or b.frame.shape != frame.shape:
+                n = pipeline.surface.size
+                b = self._fill = _Buffers(frame.shape, pipeline.means.size, n)
+                self._spare = _Buffers(frame.shape, pipeline.means.size, n)
+            np.copyto(b.frame, frame)
+            np.copyto(b.means, pipeline.means)
+            np.copyto(b.surface, pipeline.surface.reshape(-1))
+            est = pipeline.contacts[0]
+            n = est.n_contacts if est.contact else 0
+            b.n_contacts = n
+            for k in range(n):
+                c = pipeline.contacts[k]
+                for j, name in enumerate(CONTACT_FIELDS):
+                    b.contacts[k, j] = getattr(c, name)
+                b.shapes[k] = c.shape
+            for j, name in enumerate(STAT_FIELDS):
+                b.stats[j] = getattr(stats, name)
+            b.t_ns, b.trunc = t_ns, float(pipeline.levels.trunc)
+            b.baseline_ready = bool(pipeline.baseline_ready)
+            b.full = True
+        finally:
+            self._lock.release()
+        self._next_ns = t_ns + self.period_ns
+        self._wake.set()
+
+    def _apply(self, pipeline: Any) -> None:
+        kind, value = self.actions.popleft()
+        if kind == "tare":
+            pipeline.reset_baseline()
+            self.message = "tare: the baseline is taken again"
+        elif kind == "swap":
+            value(pipeline)
+
+    # -- the worker -----------------------------------------------------------------------------
+
+    def _take(self) -> _Buffers | None:
+        with self._lock:  # the swap: microseconds
+            b = self._fill
+            if b is None or not b.full:
+                return None
+            self._fill, self._spare = self._spare, b
+            return b
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            b = self._take()
+            if b is None:
+                continue
+            try:
+                self._publish(b)
+            except Exception:
+                log.exception("live view update failed")
+            finally:
+                b.full = False
+
+    def _publish(self, b: _Buffers) -> None:
+        frames = int(b.stats[0])
+        if self._last is not None and b.t_ns > self._last[0]:
+            b.fps = (frames - self._last[1]) * 1e9 / (b.t_ns - self._last[0])
+        self._last = (b.t_ns, frames)
+        gray = to_gray(b.frame, self.pixel_format)
+        ok, jpeg = cv2.imencode(".jpg", gray, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        n = self.bundle.grid.n
+        surface = b.surface.reshape(n, n).copy()
+        contacts = [self._contact(b, k) for k in range(b.n_contacts)]
+        if self.procedure is not None and b.baseline_ready:
+            c = contacts[0] if contacts else None
+            self.procedure.feed(c is not None, c["x_mm"] if c else math.nan, c["y_mm"] if c else math.nan, b.t_ns)
+            if self.procedure.done and self.on_oriented is not None:
+                self.message = self.on_oriented(self.procedure.fit)
+                self.procedure = None
+        self._seq += 1
+        state = self._state(b, surface, contacts)
+        self.published = Published(self._seq, json.dumps(state, separators=(",", ":")).encode(),
+                                   jpeg.tobytes() if ok else b"", surface, gray, contacts, b.means.copy())
+
+    def _contact(self, b: _Buffers, k: int) -> dict[str, Any]:
+        values = dict(zip(CONTACT_FIELDS, (float(v) for v in b.contacts[k])))
+        t = self.bundle.transform
+        a = math.radians(values["angle_deg"]) if math.isfinite(values["angle_deg"]) else 0.0
+        phi = np.linspace(0, 2 * math.pi, 33)
+        ma = values["major_mm"] / 2 if math.isfinite(values["major_mm"]) else 1.0
+        mi = values["minor_mm"] / 2 if math.isfinite(values["minor_mm"]) else 1.0
+        ex, ey = ma * np.cos(phi), mi * np.sin(phi)
+        pts = np.stack([values["x_mm"] + ex * math.cos(a) - ey * math.sin(a),
+                        values["y_mm"] + ex * math.sin(a) + ey * math.cos(a)], 1)
+        uv = t.layout_to_image(np.vstack([[values["x_mm"], values["y_mm"]], pts]))
+        out: dict[str, Any] = {k2: (round(v, 3) if math.isfinite(v) else None) for k2, v in values.items()}
+        out.update(shape=b.shapes[k], u=round(float(uv[0, 0]), 1), v=round(float(uv[0, 1]), 1),
+                   outline=np.round(uv[1:], 1).tolist())
+        return out
+
+    def _state(self, b: _Buffers, surface: np.ndarray, contacts: list[dict[str, Any]]) -> dict[str, Any]:
+        means = b.means
+        live = ~self.bundle.fibers.dead
+        median = float(np.median(means[live])) if live.any() else 0.0
+        ids = self.bundle.layout.ids
+        dark = [int(i) for i in ids[live & (means < DARK_FRACTION * median)]]
+        saturated = [int(i) for i in ids[live & (means >= SATURATED_LEVEL)]]
+        top = float(surface.max(initial=0.0))
+        scaled = np.zeros(surface.shape, np.uint8) if top <= 0 else np.clip(surface / top * 255, 0, 255).astype(np.uint8)
+        stats = dict(zip(STAT_FIELDS, (int(v) for v in b.stats)))
+        return {
+            "seq": self._seq, "t_ns": b.t_ns, "fps": round(b.fps, 1), **stats, "view_skipped": self.skipped,
+            "link": self.link(), "baseline_ready": b.baseline_ready, "truncation": round(b.trunc, 4),
+            "levels": np.round(means, 1).tolist(), "dark": dark, "saturated": saturated,
+            "surface": {"n": int(surface.shape[0]), "max": round(top, 4),
+                        "values": scaled.ravel().tolist()},
+            "contacts": contacts, "message": self.message,
+            "orient": {"active": self.procedure is not None,
+                       "prompt": self.procedure.prompt if self.procedure is not None else ""},
+        }
+
+    def layout_json(self) -> bytes:
+        """The fiber map for the overlay: frame size, each fiber's centre, radius, id, dead; unmatched blobs."""
+        t = self.bundle.fibers
+        radius = np.sqrt(t.pixel_count / math.pi)
+        fibers = [{"id": int(i), "u": round(float(c[0]), 1), "v": round(float(c[1]), 1), "r": round(float(r), 1),
+                   "dead": bool(d)} for i, c, r, d in zip(self.bundle.layout.ids, t.centroid_px, radius, t.dead)]
+        grid = self.bundle.grid
+        return json.dumps({"width": t.width, "height": t.height, "fibers": fibers,
+                           "unmatched": np.round(t.unmatched_px, 1).tolist(),
+                           "calibration_id": self.bundle.calibration_id,
+                           "grid": {"n": grid.n, "x0_mm": grid.x0_mm, "y0_mm": grid.y0_mm,
+                                    "step_mm": grid.step_mm}},
+                          separators=(",", ":")).encode()
+
+    # -- the guided orientation -----------------------------------------------------------------
+
+    def start_orientation(self) -> str:
+        """Start the guided orientation (press near +x, then +y); the prompt is in every update."""
+        from optitac_edge.calibration.edge_presses import EdgePresses
+
+        self.procedure = EdgePresses(self.bundle.layout)
+        self.on_oriented = self.on_oriented or self._oriented
+        return "orientation: " + self.procedure.prompt
+
+    def cancel_orientation(self) -> str:
+        self.procedure = None
+        return "orientation cancelled"
+
+    def _oriented(self, fit: Any) -> str:
+        """Write the result into the bundle (file, when there is one) and hand the loop the new fiber map."""
+        from optitac_edge.calibration.orientation import mark_verified, reorient_bundle
+        from optitac_edge.core.pipeline import Pipeline
+
+        if fit.symmetry is None:
+            return f"orientation not decided: {fit.reason}"
+        evidence = f"edge presses in the view, RMS {fit.best_rmse_mm:.1f} mm"
+        bundle = (mark_verified(self.bundle, evidence) if fit.symmetry.is_identity
+                  else reorient_bundle(self.bundle, fit.symmetry, evidence))
+        where = "kept in memory"
+        if self.bundle_path is not None:
+            from optitac_edge.io.bundle_file import save_bundle
+
+            try:
+                bundle = save_bundle(bundle, self.bundle_path)
+                where = f"saved to {self.bundle_path}"
+            except OptiTacError as exc:
+                where = f"not saved ({exc})"
+        self.bundle = bundle
+        pipeline = Pipeline(bundle)  # built here, off the frame thread; the loop only swaps it in
+        self.actions.append(("swap", lambda old: self._swap(old, pipeline)))
+        what = "confirmed" if fit.symmetry.is_identity else f"corrected (the fiber map was {fit.symmetry.label})"
+        return f"orientation {what}; {where}"
+
+    def _swap(self, old: Any, pipeline: Any) -> None:
+        if self.swap_pipeline is not None:
+            self.swap_pipeline(pipeline)
+
+    def close(self) -> None:
+        """Stop the worker (idempotent)."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    def wait_published(self, after_seq: int = 0, timeout_s: float = 5.0) -> Published | None:
+        """The first update after ``after_seq`` (tests and ``snapshot``), or None after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            p = self.published
+            if p is not None and p.seq > after_seq:
+                return p
+            time.sleep(0.005)
+        return None

@@ -1,0 +1,305 @@
+"""The view's HTTP server: its own assets and the live data, nothing else (standard library only).
+
+Routes (anything else is 404; other methods 405):
+
+``GET  /``, ``/app.js``, ``/style.css``  the page (shipped in the package: works with no internet)
+``GET  /api/layout``                     the fiber map (JSON)
+``GET  /api/state``                      the latest update (JSON; ``?after=SEQ`` waits up to 1 s for a newer one)
+``GET  /api/frame.jpg``                  the latest camera frame (JPEG)
+``POST /api/tare``                       take the baseline again
+``POST /api/snapshot``                   the view as a PNG
+``POST /api/orient`` ``start``/``cancel`` the guided orientation (press near +x, then +y)
+
+Requests are checked before anything else: the request target at most
+``MAX_TARGET`` characters, a body at most ``MAX_BODY`` bytes, a ``Host`` that
+names this server (no DNS rebinding), POSTs with the ``X-OptiTac`` header
+(no cross-site requests) and, when bound to anything but localhost, the
+token printed at start. At most ``MAX_CLIENTS`` connections are served at
+once; each has ``TIMEOUT_S`` to send its request. All of it runs in the
+server's threads: the frame loop never waits for a viewer.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import logging
+import secrets
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from typing import TYPE_CHECKING, Any
+from urllib.parse import parse_qs, urlsplit
+
+from optitac_edge.errors import OptiTacError
+from optitac_edge.service.view.live import LiveView
+from optitac_edge.service.view.render import encode_png, render_view
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+log = logging.getLogger(__name__)
+
+MAX_TARGET = 256
+MAX_BODY = 1024
+MAX_CLIENTS = 16
+TIMEOUT_S = 5.0
+ASSETS = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("index.html", "text/html; charset=utf-8"),
+          "/app.js": ("app.js", "text/javascript; charset=utf-8"), "/style.css": ("style.css", "text/css; charset=utf-8"),
+          "/favicon.svg": ("favicon.svg", "image/svg+xml"), "/favicon.ico": ("favicon.svg", "image/svg+xml")}
+
+
+def parse_bind(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[v6]:PORT``) -> (host, port).
+
+    Raises
+    ------
+    OptiTacError
+        One line when it is not an address and a port in 1..65535 (0: any free port).
+    """
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    try:
+        number = int(port)
+        if not sep or not host or not 0 <= number <= 65535:
+            raise ValueError
+        ipaddress.ip_address(host) if host != "localhost" else None
+    except ValueError:
+        raise OptiTacError(f"view address must be HOST:PORT with an IP address (e.g. 127.0.0.1:8080), "
+                           f"got {text!r}") from None
+    return host, number
+
+
+def is_loopback(host: str) -> bool:
+    return host == "localhost" or ipaddress.ip_address(host).is_loopback
+
+
+def _assets() -> dict[str, bytes]:
+    root = resources.files("optitac_edge.service.view") / "assets"
+    return {name: (root / name).read_bytes() for name, _ in set(ASSETS.values())}
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+    request_queue_size = 16
+
+    def __init__(self, address: tuple[str, int], view: LiveView, token: str | None, snapshot_lines: Any) -> None:
+        self.view, self.token, self.snapshot_lines = view, token, snapshot_lines
+        self.assets = _assets()
+        self.slots = threading.BoundedSemaphore(MAX_CLIENTS)
+        self.refused = 0
+        self.bad_requests = 0
+        super().__init__(address, _Handler)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self.slots.acquire(blocking=False):  # too many clients: close at once, count it
+            self.refused += 1
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self.slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    timeout = TIMEOUT_S
+    protocol_version = "HTTP/1.1"
+    server_version = "optitac-view"
+    sys_version = ""
+
+    def log_message(self, format: str, *args: Any) -> None:
+        log.debug("view %s: %s", self.client_address[0], format % args)
+
+    # -- checks ---------------------------------------------------------------------------------
+
+    def _refuse(self, status: HTTPStatus, why: str) -> None:
+        self.server.bad_requests += 1
+        self._send(status, why.encode() + b"\n", "text/plain; charset=utf-8", close=True)
+
+    def _send(self, status: HTTPStatus, body: bytes, kind: str, close: bool = False, cache: bool = False) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.send_header("Content-Security-Policy", "default-src 'self'; img-src 'self' blob:; style-src 'self'")
+        if close:
+            self.send_header("Connection", "close")
+            self.close_connection = True
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _checked(self) -> tuple[str, dict[str, list[str]]] | None:
+        if len(self.path) > MAX_TARGET:
+            self._refuse(HTTPStatus.REQUEST_URI_TOO_LONG, "request target too long")
+            return None
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]")
+        bound = str(self.server.server_address[0])
+        if is_loopback(bound) and host not in ("localhost", "127.0.0.1", "::1"):
+            self._refuse(HTTPStatus.FORBIDDEN, "unexpected Host")
+            return None
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if not 0 <= length <= MAX_BODY:
+            self._refuse(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, "request body too large")
+            return None
+        if length:
+            self.rfile.read(length)
+        parts = urlsplit(self.path)
+        try:
+            query = parse_qs(parts.query, strict_parsing=False, max_num_fields=4)
+        except ValueError:
+            self._refuse(HTTPStatus.BAD_REQUEST, "malformed query")
+            return None
+        return parts.path, query
+
+    def _authorised(self) -> bool:
+        if self.headers.get("X-OptiTac") != "1":
+            self._refuse(HTTPStatus.FORBIDDEN, "missing X-OptiTac header")
+            return False
+        token = self.server.token
+        given = self.headers.get("X-OptiTac-Token") or ""
+        if token is not None and not hmac.compare_digest(given.encode(), token.encode()):
+            self._refuse(HTTPStatus.FORBIDDEN, "a token is needed (printed when the view started)")
+            return False
+        return True
+
+    # -- methods ----------------------------------------------------------------------------------
+
+    def do_GET(self) -> None:
+        checked = self._checked()
+        if checked is None:
+            return
+        path, query = checked
+        view = self.server.view
+        if path in ASSETS:
+            name, kind = ASSETS[path]
+            self._send(HTTPStatus.OK, self.server.assets[name], kind, cache=False)
+        elif path == "/api/layout":
+            self._send(HTTPStatus.OK, view.layout_json(), "application/json")
+        elif path == "/api/state":
+            after = query.get("after", ["0"])[0]
+            if not after.isdigit() or len(after) > 12:
+                self._refuse(HTTPStatus.BAD_REQUEST, "after must be a number")
+                return
+            p = view.wait_published(int(after), timeout_s=1.0) or view.published
+            self._send(HTTPStatus.OK, p.state if p is not None else b'{"seq":0}', "application/json")
+        elif path == "/api/frame.jpg":
+            p = view.published
+            if p is None or not p.jpeg:
+                self._send(HTTPStatus.SERVICE_UNAVAILABLE, b"no frame yet\n", "text/plain; charset=utf-8")
+            else:
+                self._send(HTTPStatus.OK, p.jpeg, "image/jpeg")
+        else:
+            self._refuse(HTTPStatus.NOT_FOUND, "not found")
+
+    def do_HEAD(self) -> None:
+        self.do_GET()
+
+    def do_POST(self) -> None:
+        checked = self._checked()
+        if checked is None or not self._authorised():
+            return
+        path, query = checked
+        view = self.server.view
+        if path == "/api/tare":
+            view.actions.append(("tare", None))
+            self._send(HTTPStatus.OK, b'{"ok":true}', "application/json")
+        elif path == "/api/snapshot":
+            p = view.published
+            if p is None:
+                self._send(HTTPStatus.SERVICE_UNAVAILABLE, b"no frame yet\n", "text/plain; charset=utf-8")
+                return
+            picture = render_view(p.gray, view.bundle, p.surface, p.contacts, self.server.snapshot_lines(p), p.levels)
+            self._send(HTTPStatus.OK, encode_png(picture), "image/png")
+        elif path == "/api/orient":
+            what = query.get("do", [""])[0]
+            if what not in ("start", "cancel"):
+                self._refuse(HTTPStatus.BAD_REQUEST, "do must be start or cancel")
+                return
+            message = view.start_orientation() if what == "start" else view.cancel_orientation()
+            self._send(HTTPStatus.OK, f'{{"message":"{message}"}}'.encode(), "application/json")
+        else:
+            self._refuse(HTTPStatus.NOT_FOUND, "not found")
+
+    def _not_allowed(self) -> None:
+        self._refuse(HTTPStatus.METHOD_NOT_ALLOWED, "method not allowed")
+
+    do_PUT = do_DELETE = do_PATCH = do_OPTIONS = do_TRACE = do_CONNECT = _not_allowed
+
+
+class ViewServer:
+    """Serves a :class:`LiveView` on ``host:port`` from a daemon thread; ``close()`` stops it (idempotent).
+
+    Parameters
+    ----------
+    view : LiveView
+    bind : str
+        ``HOST:PORT``; anything but a loopback address requires the token for actions.
+    """
+
+    def __init__(self, view: LiveView, bind: str = "127.0.0.1:8080") -> None:
+        host, port = parse_bind(bind)
+        self.token = None if is_loopback(host) else secrets.token_urlsafe(18)
+        try:
+            self._server = _Server((host, port), view, self.token, self._lines)
+        except OSError as exc:
+            raise OptiTacError(f"view: cannot listen on {bind} ({exc.strerror or exc})") from None
+        self.view = view
+        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.2},
+                                        name="optitac-view-http", daemon=True)
+        self._thread.start()
+        self._closed = False
+
+    @property
+    def url(self) -> str:
+        host, port = str(self._server.server_address[0]), int(self._server.server_address[1])
+        shown = f"[{host}]" if ":" in host else host
+        return f"http://{shown}:{port}/" + (f"?token={self.token}" if self.token else "")
+
+    @property
+    def port(self) -> int:
+        return int(self._server.server_address[1])
+
+    @property
+    def bad_requests(self) -> int:
+        return self._server.bad_requests + self._server.refused
+
+    @staticmethod
+    def _lines(p: Any) -> list[str]:
+        import json
+
+        s = json.loads(p.state)
+        first = (f"{s['fps']:.1f} fps  frames {s['frames']}  dropped {s['frames_dropped']}  camera faults "
+                 f"{s['camera_errors']}  light changes {s['light_changes']}  link {s['link']}")
+        second = (f"contacts {len(s['contacts'])}  truncation {s['truncation']:g}  dark fibers {len(s['dark'])}  "
+                  f"saturated fibers {len(s['saturated'])}")
+        return [first, second]
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._server.shutdown()
+        self._server.server_close()
+        self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,224 @@
+"""The live view: its server refuses what it should, and a real headless browser shows the sensor.
+
+The browser tests use Debian's chromium and chromedriver (installed by .ci/run; skipped, saying how to
+install them, where they are missing) through selenium.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.service.view.live import STAT_FIELDS, LiveView
+from optitac_edge.service.view.server import ViewServer, parse_bind
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+
+
+class Stats:
+    def __init__(self) -> None:
+        for name in STAT_FIELDS:
+            setattr(self, name, 0)
+
+
+@pytest.fixture(scope="module")
+def fed_view():
+    """A LiveView fed by a pipeline on simulated frames (a press in the last one), with its server."""
+    sensor = SimulatedSensor(seed=2)
+    bundle = calibrate_fibers([sensor.frame(()) for _ in range(8)], "gray")
+    pipeline = Pipeline(bundle)
+    view = LiveView(bundle, "gray", rate_hz=1e9)
+    stats = Stats()
+    press = Indenter("circle", 3.0, -2.0, 0.0, 6.0, 3.0)
+    t = 0
+    for k in range(12):
+        frame = sensor.frame((press,) if k >= 8 else ())
+        pipeline.process(frame, t)
+        stats.frames += 1
+        t += 16_666_667
+    view.observe(frame, t, pipeline, stats)
+    assert view.wait_published(0) is not None
+    server = ViewServer(view, "127.0.0.1:0")
+    yield view, server, bundle
+    server.close()
+    view.close()
+
+
+def _get(url: str, method: str = "GET", headers: dict[str, str] | None = None, data: bytes | None = None):
+    req = urllib.request.Request(url, method=method, headers=headers or {}, data=data)
+    try:
+        with urllib.request.urlopen(req, timeout=5) as r:
+            return r.status, r.read(), dict(r.headers)
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read(), dict(exc.headers)
+
+
+def test_the_view_serves_its_page_the_fiber_map_and_live_data(fed_view) -> None:
+    view, server, bundle = fed_view
+    base = f"http://127.0.0.1:{server.port}"
+    status, page, headers = _get(base + "/")
+    assert status == 200 and b'<script src="app.js">' in page and "default-src 'self'" in headers[
+        "Content-Security-Policy"]
+    assert _get(base + "/app.js")[0] == 200 and _get(base + "/style.css")[0] == 200
+    layout = json.loads(_get(base + "/api/layout")[1])
+    assert len(layout["fibers"]) == 217 and (layout["width"], layout["height"]) == (640, 480)
+    state = json.loads(_get(base + "/api/state")[1])
+    assert len(state["levels"]) == 217 and state["surface"]["n"] ** 2 == len(state["surface"]["values"])
+    assert len(state["contacts"]) == 1
+    c = state["contacts"][0]
+    assert abs(c["x_mm"] - 3.0) < 1.0 and abs(c["y_mm"] + 2.0) < 1.0
+    u, v = bundle.transform.layout_to_image(np.array([[c["x_mm"], c["y_mm"]]]))[0]
+    assert abs(c["u"] - u) < 0.2 and abs(c["v"] - v) < 0.2
+    status, jpeg, headers = _get(base + "/api/frame.jpg")
+    assert status == 200 and jpeg[:2] == b"\xff\xd8" and headers["Content-Type"] == "image/jpeg"
+
+
+def test_actions_need_the_header_and_reach_the_loop(fed_view) -> None:
+    view, server, _ = fed_view
+    base = f"http://127.0.0.1:{server.port}"
+    assert _get(base + "/api/tare", "POST")[0] == 403  # a cross-site form cannot set X-OptiTac
+    assert _get(base + "/api/tare", "POST", {"X-OptiTac": "1"})[0] == 200
+    assert view.actions and view.actions[-1][0] == "tare"
+    view.actions.clear()
+    status, png, _ = _get(base + "/api/snapshot", "POST", {"X-OptiTac": "1"})
+    assert status == 200 and png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("request_bytes, status", [
+    (b"GET /" + b"a" * 300 + b" HTTP/1.1\r\nHost: localhost\r\n\r\n", b"414"),
+    (b"POST /api/tare HTTP/1.1\r\nHost: localhost\r\nX-OptiTac: 1\r\nContent-Length: 99999\r\n\r\n", b"413"),
+    (b"GET /api/state HTTP/1.1\r\nHost: evil.example\r\n\r\n", b"403"),
+    (b"GET /../../etc/passwd HTTP/1.1\r\nHost: localhost\r\n\r\n", b"404"),
+    (b"PUT /api/tare HTTP/1.1\r\nHost: localhost\r\n\r\n", b"405"),
+    (b"\x16\x03\x01\x02\x00garbage\r\n\r\n", b"400"),
+    (b"GET /api/state?after=abc HTTP/1.1\r\nHost: localhost\r\n\r\n", b"400"),
+])
+def test_malformed_or_oversized_requests_are_refused_and_the_server_goes_on(fed_view, request_bytes, status) -> None:
+    _, server, _ = fed_view
+    with socket.create_connection(("127.0.0.1", server.port), timeout=5) as s:
+        s.sendall(request_bytes)
+        reply = s.recv(4096)
+    # a request line that is not HTTP gets http.server's bare error page (HTTP/0.9 has no status line)
+    assert reply.split(b" ")[1] == status if reply.startswith(b"HTTP/") else b"Error code: " + status in reply
+    assert _get(f"http://127.0.0.1:{server.port}/api/layout")[0] == 200
+
+
+def test_bound_beyond_localhost_actions_need_the_token(fed_view) -> None:
+    view, _, _ = fed_view
+    with ViewServer(view, "0.0.0.0:0") as server:
+        assert server.token and f"?token={server.token}" in server.url
+        base = f"http://127.0.0.1:{server.port}"
+        assert _get(base + "/api/state")[0] == 200  # reading needs no token
+        assert _get(base + "/api/tare", "POST", {"X-OptiTac": "1"})[0] == 403
+        assert _get(base + "/api/tare", "POST", {"X-OptiTac": "1", "X-OptiTac-Token": "wrong"})[0] == 403
+        assert _get(base + "/api/tare", "POST", {"X-OptiTac": "1", "X-OptiTac-Token": server.token})[0] == 200
+    view.actions.clear()
+
+
+def test_the_frame_loop_never_waits_for_the_view(fed_view) -> None:
+    """While the worker holds the buffers, observe() skips the update instead of waiting."""
+    view, _, bundle = fed_view
+    pipeline = Pipeline(bundle)
+    frame = np.zeros((480, 640), np.uint8)
+    pipeline.process(frame, 0)
+    view._next_ns = 0
+    with view._lock:  # the worker swapping buffers at this instant
+        before = view.published.seq
+        view.observe(frame, 10**12, pipeline, Stats())  # returns at once
+    assert view.published.seq == before
+
+
+@pytest.mark.parametrize("text", ["8080", "localhost", "host:99999", "example.com:80", ":80"])
+def test_bad_bind_addresses_are_one_line(text) -> None:
+    from optitac_edge.errors import OptiTacError
+
+    with pytest.raises(OptiTacError, match="HOST:PORT"):
+        parse_bind(text)
+
+
+def test_snapshot_writes_the_picture(tmp_path) -> None:
+    from optitac_edge.cli import main
+
+    out = tmp_path / "shot.png"
+    assert main(["snapshot", "-o", str(out), "--frames", "3"]) == 0
+    import cv2
+
+    picture = cv2.imread(str(out))
+    assert picture is not None and picture.shape[1] > 1280
+
+
+# -- a real browser -----------------------------------------------------------------------------------
+
+@pytest.fixture
+def view_process():
+    proc = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "view", "--bind", "127.0.0.1:0",
+                             "--duration", "120"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    url = None
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        m = re.search(r"view: (http://\S+)", line)
+        if m:
+            url = m.group(1)
+            break
+    assert url, "the view did not start"
+    yield url
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+def browser():
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1400,1000",
+                "--disable-dev-shm-usage"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+
+
+@pytest.mark.skipif(not (CHROMIUM and CHROMEDRIVER),
+                    reason="needs a browser: apt-get install chromium chromium-driver (.ci/run does)")
+def test_a_headless_browser_shows_217_fibers_and_a_press_as_a_contact(view_process) -> None:
+    from selenium.webdriver.common.by import By
+
+    driver = browser()
+    try:
+        driver.get(view_process)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and driver.execute_script("return document.body.dataset.fibers") != "217":
+            time.sleep(0.05)
+        assert len(driver.find_elements(By.CSS_SELECTOR, "#fibers [data-fiber]")) == 217
+        seen = None
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:  # the simulated sensor presses every second or two
+            if driver.find_elements(By.CSS_SELECTOR, "#contacts-layer polygon.contact"):
+                seen = driver.find_element(By.CSS_SELECTOR, "#contacts tbody tr").text
+                break
+            time.sleep(0.02)
+        assert seen and re.match(r"1 [-+]?\d+\.\d\d, [-+]?\d+\.\d\d", seen)
+        assert driver.find_element(By.ID, "frame").get_attribute("naturalWidth") == "640"
+        driver.find_element(By.ID, "tare").click()
+        errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+        assert errors == []
+    finally:
+        driver.quit()
