@@ -182,6 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--queue-frames", type=int, default=None, metavar="N",
                    help="end to end: frames the camera queues for the loop (default: the sim board's "
                         "camera.queue_frames; 1 = latest frame only)")
+    p.add_argument("--view", default=None, metavar="HOST:PORT",
+                   help="end to end: serve the live view during the run (open it in a browser to include its cost)")
     bringup.add_parsers(sub)
     _add_verbosity_to_commands(parser)
     return parser
@@ -518,7 +520,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
                     workdir=args.workdir, reference_frames=args.reference_frames,
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
-                    startup=not args.no_startup, queue_frames=args.queue_frames, log=print)
+                    startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view, log=print)
     print(format_table(res))
     write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")

@@ -63,7 +63,7 @@ logger = logging.getLogger(__name__)
 def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,
               rgb: bool = False, workdir: Path | None = None, reference_frames: int = 300,
               memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
-              unique_frames: int = 600, queue_frames: int | None = None,
+              unique_frames: int = 600, queue_frames: int | None = None, view: str | None = None,
               log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every section; returns the results (see the module docstring).
 
@@ -110,7 +110,7 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
             res["end_to_end"] = {"skipped": "needs --source sim"}
         else:
             res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb, frame_list, rest,
-                                                                queue_frames)
+                                                       queue_frames, view, lambda url: log(f"  view: {url}"))
             why = ""
             if "frames_dropped_by_pipeline" in e:
                 st = e["process_stalls"]
@@ -119,7 +119,8 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
                        f"max {st['max_ms']} ms; CPU steal {e['cpu_steal_ms']} ms)")
             log(f"  end to end @ {fps} fps, {e2e_seconds} s, queue {e['queue_frames']}: {e['frames']} frames, dropped "
                 f"{e['frames_dropped']}{why}, lost {e['packets_lost']}, latency p50/p99/max "
-                f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs")
+                f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs"
+                + (f"; view updates {e['view']['updates']}, skipped {e['view']['skipped']}" if "view" in e else ""))
     if startup:
         if source != "sim" or fmt != "gray":
             res["startup"] = {"skipped": "needs --source sim and gray frames (the sim board's camera)"}

@@ -21,12 +21,15 @@ from optitac_edge.devtools.bench.samples import summary
 
 def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
                        frames: list[np.ndarray] | None = None, rest: int = 10,
-                       queue_frames: int | None = None) -> dict[str, Any]:
+                       queue_frames: int | None = None, view: str | None = None,
+                       on_view: Any = None) -> dict[str, Any]:
     """The service loop paced at ``fps`` into a pty, read by a separate process.
 
     With ``frames``, the camera replays them (pre-rendered, see ``paced_replay_camera``);
     otherwise it is the live simulated camera (rendering ~1 ms a frame in its own thread).
-    ``queue_frames`` overrides the sim board's ``camera.queue_frames``.
+    ``queue_frames`` overrides the sim board's ``camera.queue_frames``. With ``view``
+    (``HOST:PORT``) the live view is served during the run (``on_view`` gets its URL),
+    so the cost of a browser on it is in the figures.
     """
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
@@ -50,14 +53,30 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
                            queue_frames=config.camera.queue_frames)
     transport = SerialTransport(path, baudrate=921600, sensor_id=config.sensor.id)
     steal0 = steal_jiffies()
+    live = server = None
     try:
         service = Service(config, bundle, camera, transport)
+        if view is not None:
+            from optitac_edge.service.view.live import LiveView
+            from optitac_edge.service.view.server import ViewServer
+
+            live = LiveView(bundle, bundle.fibers.pixel_format)
+            server = ViewServer(live, view)
+            service.view = live
+            if on_view is not None:
+                on_view(server.url)
         stop = threading.Event()
         stats = service.run(stop, duration_s=seconds)
         steal = steal_jiffies() - steal0
         transport.wait_idle(1.0)
         t_stats = dict(transport.stats())
     finally:
+        view_stats = {}
+        if server is not None and live is not None:
+            view_stats = {"updates": live.published.seq if live.published else 0, "skipped": live.skipped,
+                          "bad_requests": server.bad_requests}
+            server.close()
+            live.close()
         transport.close()
         camera.close()
         time.sleep(0.2)  # the reader drains the pty
@@ -82,7 +101,8 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
             "latency_us": {"p50": s["median_us"], "p99": s["p99_us"], "max": s["max_us"]},
             # the part before the message was filled (camera delivery + processing), from its age field
             "frame_to_fill_us": {"p50": a["median_us"], "p99": a["p99_us"], "max": a["max_us"]},
-            "transport": {k: v for k, v in t_stats.items() if isinstance(v, (int, float, str, bool))}}
+            "transport": {k: v for k, v in t_stats.items() if isinstance(v, (int, float, str, bool))},
+            **({"view": view_stats} if view is not None else {})}
 
 
 def measure_startup(cal: Path, fps: float) -> dict[str, Any]:

@@ -12,7 +12,9 @@ queued (bounded) and applied by the frame loop between frames.
 
 from __future__ import annotations
 
+import base64
 import json
+import os
 import logging
 import math
 import threading
@@ -41,6 +43,17 @@ DARK_FRACTION = 0.25
 SATURATED_LEVEL = 250.0
 #: JPEG quality of the camera picture.
 JPEG_QUALITY = 80
+
+
+def lower_priority(niceness: int = 10) -> None:
+    """Run the calling thread at a lower scheduling priority (Linux: per-thread nice), best effort.
+
+    The view's threads then take the CPU only when the frame loop does not need it.
+    """
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+    except (AttributeError, OSError):
+        pass
 
 
 @dataclass
@@ -98,6 +111,7 @@ class LiveView:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._published = threading.Condition()
         self._fill: _Buffers | None = None
         self._spare: _Buffers | None = None
         self._next_ns = 0
@@ -171,6 +185,7 @@ class LiveView:
             return b
 
     def _work(self) -> None:
+        lower_priority()
         while not self._stop.is_set():
             self._wake.wait(0.5)
             self._wake.clear()
@@ -202,8 +217,11 @@ class LiveView:
                 self.procedure = None
         self._seq += 1
         state = self._state(b, surface, contacts)
-        self.published = Published(self._seq, json.dumps(state, separators=(",", ":")).encode(),
-                                   jpeg.tobytes() if ok else b"", surface, gray, contacts, b.means.copy())
+        published = Published(self._seq, json.dumps(state, separators=(",", ":")).encode(),
+                              jpeg.tobytes() if ok else b"", surface, gray, contacts, b.means.copy())
+        with self._published:
+            self.published = published
+            self._published.notify_all()
 
     def _contact(self, b: _Buffers, k: int) -> dict[str, Any]:
         values = dict(zip(CONTACT_FIELDS, (float(v) for v in b.contacts[k])))
@@ -230,13 +248,14 @@ class LiveView:
         saturated = [int(i) for i in ids[live & (means >= SATURATED_LEVEL)]]
         top = float(surface.max(initial=0.0))
         scaled = np.zeros(surface.shape, np.uint8) if top <= 0 else np.clip(surface / top * 255, 0, 255).astype(np.uint8)
-        stats = dict(zip(STAT_FIELDS, (int(v) for v in b.stats)))
+        stats = {("contact_frames" if k == "contacts" else k): int(v) for k, v in zip(STAT_FIELDS, b.stats)}
         return {
             "seq": self._seq, "t_ns": b.t_ns, "fps": round(b.fps, 1), **stats, "view_skipped": self.skipped,
             "link": self.link(), "baseline_ready": b.baseline_ready, "truncation": round(b.trunc, 4),
-            "levels": np.round(means, 1).tolist(), "dark": dark, "saturated": saturated,
+            "levels": base64.b64encode(np.clip(np.rint(means), 0, 255).astype(np.uint8).tobytes()).decode(),
+            "dark": dark, "saturated": saturated,
             "surface": {"n": int(surface.shape[0]), "max": round(top, 4),
-                        "values": scaled.ravel().tolist()},
+                        "values": base64.b64encode(scaled.tobytes()).decode()},
             "contacts": contacts, "message": self.message,
             "orient": {"active": self.procedure is not None,
                        "prompt": self.procedure.prompt if self.procedure is not None else ""},
@@ -309,9 +328,12 @@ class LiveView:
     def wait_published(self, after_seq: int = 0, timeout_s: float = 5.0) -> Published | None:
         """The first update after ``after_seq`` (tests and ``snapshot``), or None after ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            p = self.published
-            if p is not None and p.seq > after_seq:
-                return p
-            time.sleep(0.005)
-        return None
+        with self._published:
+            while True:
+                p = self.published
+                if p is not None and p.seq > after_seq:
+                    return p
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._published.wait(left)

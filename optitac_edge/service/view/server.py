@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, urlsplit
 
 from optitac_edge.errors import OptiTacError
-from optitac_edge.service.view.live import LiveView
+from optitac_edge.service.view.live import LiveView, lower_priority
 from optitac_edge.service.view.render import encode_png, render_view
 
 if TYPE_CHECKING:
@@ -105,6 +105,7 @@ class _Server(ThreadingHTTPServer):
             raise
 
     def process_request_thread(self, request: Any, client_address: Any) -> None:
+        lower_priority()
         try:
             super().process_request_thread(request, client_address)
         finally:

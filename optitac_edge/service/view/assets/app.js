@@ -45,14 +45,22 @@ function drawLayout() {
   el("g", { id: "contacts-layer" }, svg);
 }
 
+function bytes(b64) {
+  const text = atob(b64);
+  const out = new Uint8Array(text.length);
+  for (let k = 0; k < text.length; k++) out[k] = text.charCodeAt(k);
+  return out;
+}
+
 function drawSurface(s) {
   const canvas = $("surface");
   const ctx = canvas.getContext("2d");
   const n = s.n;
+  const values = bytes(s.values);
   const img = ctx.createImageData(n, n);
   for (let row = 0; row < n; row++) {
     for (let col = 0; col < n; col++) {
-      const v = s.values[row * n + col];
+      const v = values[row * n + col];
       const o = ((n - 1 - row) * n + col) * 4; // +y up
       img.data[o] = Math.min(255, v * 2);
       img.data[o + 1] = Math.max(0, v * 2 - 255) + v / 4;
@@ -102,16 +110,21 @@ function show(s) {
   $("trunc").textContent = `max ${s.surface.max.toFixed(3)}, truncation level ${s.truncation}`;
   const warn = new Set([...s.dark, ...s.saturated]);
   for (const [id, node] of fiberNodes) {
-    if (node.tagName === "circle") node.setAttribute("class", warn.has(id) ? "fiber warn" : "fiber");
+    const want = warn.has(id) ? "fiber warn" : "fiber";
+    if (node.tagName === "circle" && node.getAttribute("class") !== want) node.setAttribute("class", want);
   }
   $("warnings").textContent = `${s.dark.length} dark, ${s.saturated.length} saturated`;
   drawSurface(s.surface);
-  drawLevels(s.levels, warn);
+  drawLevels(bytes(s.levels), warn);
   drawContacts(s.contacts);
   $("prompt").textContent = s.orient.active ? s.orient.prompt : s.message;
   $("orient").textContent = s.orient.active ? "Cancel orientation" : "Orientation…";
-  $("status").textContent = `update ${s.seq} · view updates skipped ${s.view_skipped} · contacts so far ${s.contacts}`;
+  $("status").textContent = `update ${s.seq} · view updates skipped ${s.view_skipped} · frames with contact ${s.contact_frames}`;
   document.body.dataset.seq = String(s.seq);
+  document.body.dataset.tns = String(s.t_ns);
+  // when each update was shown (ms since the epoch), for tools/view_check.py; bounded
+  const shown = (window.optitacShown = window.optitacShown || []);
+  if (shown.length < 100000) shown.push([s.seq, s.t_ns, s.contacts.length, performance.timeOrigin + performance.now()]);
   document.body.dataset.contacts = String(s.contacts.length);
 }
 
