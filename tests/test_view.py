@@ -16,7 +16,6 @@ import sys
 import time
 import urllib.error
 import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,7 +69,7 @@ def _get(url: str, method: str = "GET", headers: dict[str, str] | None = None, d
 
 
 def test_the_view_serves_its_page_the_fiber_map_and_live_data(fed_view) -> None:
-    view, server, bundle = fed_view
+    _, server, bundle = fed_view
     base = f"http://127.0.0.1:{server.port}"
     status, page, headers = _get(base + "/")
     assert status == 200 and b'<script src="app.js">' in page and "default-src 'self'" in headers[

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import base64
 import json
-import os
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
