@@ -24,6 +24,19 @@ def add_parsers(sub: Any) -> None:
                    help="give up after S seconds of camera time (default 120)")
     _add_collect(sub)
 
+    p = sub.add_parser("monitor", help="show what the MCU receives (CONTACT, STATUS, ACK), rates, gaps, errors; "
+                                       "send the MCU's commands")
+    link = p.add_mutually_exclusive_group(required=True)
+    link.add_argument("--serial", metavar="PORT", help="serial device or pyserial URL (the MCU's end of the link)")
+    link.add_argument("--can", metavar="CHANNEL", help="CAN channel (e.g. can0)")
+    p.add_argument("--baud", type=number(300, 4_000_000, integer=True), default=921600)
+    p.add_argument("--can-interface", default="socketcan", help="python-can interface (default socketcan)")
+    p.add_argument("--send", action="append", default=[], metavar="CMD",
+                   help="send a command at start (serial): ping, tare, 'stream on [DIV]', 'stream off', "
+                        "'threshold LEVEL'; repeatable")
+    p.add_argument("--duration", type=number(0, 1e8, lo_open=True), default=None, metavar="S")
+    p.add_argument("--all", action="store_true", help="print every message, not only a summary a second")
+
     p = sub.add_parser("view", help="serve the live view: camera, fiber map, surface, contacts (any browser)")
     add_board(p)
     p.add_argument("--cal", type=Path, default=None, metavar="CAL", help="use this bundle (default: the board's)")
@@ -90,6 +103,23 @@ def _wait_for_enter(line: str) -> None:
     print(line, flush=True)
     if sys.stdin.readline() == "":
         raise OptiTacError("standard input closed while waiting for the operator")
+
+
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    from optitac_edge.bringup.monitor import command_frame, monitor_can, monitor_serial
+
+    def say(line: str) -> None:
+        print(line, flush=True)
+
+    if args.serial is not None:
+        for text in args.send:
+            command_frame(text, 0)  # refuse a bad command before opening anything
+        monitor_serial(args.serial, args.baud, args.duration, args.send, say, every=args.all)
+    else:
+        if args.send:
+            raise OptiTacError("protocol v1 carries no commands on CAN: --send needs --serial")
+        monitor_can(args.can, args.can_interface, args.duration, say, every=args.all)
+    return 0
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
@@ -165,4 +195,5 @@ def _cmd_orient(args: argparse.Namespace) -> int:
 
 
 HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
-    "orient": _cmd_orient, "collect": _cmd_collect, "view": _cmd_view, "snapshot": _cmd_snapshot}
+    "orient": _cmd_orient, "collect": _cmd_collect, "view": _cmd_view, "snapshot": _cmd_snapshot,
+    "monitor": _cmd_monitor}
