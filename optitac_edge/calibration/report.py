@@ -14,6 +14,7 @@ from optitac_edge.errors import OptiTacError, OutputError, missing_extra
 from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.files import check_output_path, write_file_atomic
 from optitac_edge.io.recording import SHAPES, Recording
+from optitac_edge.text import fields
 
 _COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",
             "triangle": "tab:purple"}
@@ -38,17 +39,29 @@ def _fibers(ax: Any, bundle: CalibrationBundle) -> None:
     ax.set_ylabel("y (mm)")
 
 
+def array_colour_limit(data: np.ndarray, cm: Any, radius_mm: float) -> float:
+    """The largest |error| of an error map within ``radius_mm`` of the array's centre (1.0 if none):
+    the colour scale of the map, so the extrapolated rim cannot wash out the array."""
+    xs = cm.x0_mm + cm.step_mm * np.arange(cm.n)
+    ys = cm.y0_mm + cm.step_mm * np.arange(cm.n)
+    xx, yy = np.meshgrid(xs, ys)
+    inside = np.hypot(xx, yy) <= radius_mm
+    return float(np.abs(data[inside]).max(initial=0.0)) or 1.0
+
+
 def _error_maps(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, out: Path) -> str | None:
     cm = corrector.centroid
     if cm is None:
         return None
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), constrained_layout=True)
     extent = [cm.x0_mm, cm.x0_mm + cm.step_mm * (cm.n - 1), cm.y0_mm, cm.y0_mm + cm.step_mm * (cm.n - 1)]
+    # the colour scale is that of the array: the map is extrapolated beyond the outermost fibers,
+    # where its values can be far larger and would wash out the part that matters
     for ax, data, name in zip(axes, (cm.error_x, cm.error_y), ("x", "y")):
-        lim = float(np.abs(data).max()) or 1.0
+        lim = array_colour_limit(data, cm, bundle.layout.radius_mm)
         im = ax.imshow(data, origin="lower", extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim)
         _fibers(ax, bundle)
-        ax.set_title(f"{name} error map (measured − true)")
+        ax.set_title(f"{name} error map (measured − true; colours: the array)")
         fig.colorbar(im, ax=ax, label="mm")
     path = out / "error_maps.png"
     _save(plt, fig, path)
@@ -107,7 +120,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Seen presses (calibration data)", _scatter(
             plt, bundle, corrector, arrays["report/centroid_measured"], arrays["report/centroid_true"],
             "seen", out / "seen_scatter.png")))
-        lines.append(f"Centroid calibration: {bundle.extra_meta.get('centroid_fit')}")
+        lines.append(f"Centroid calibration: {fields(bundle.extra_meta.get('centroid_fit') or {})}.")
     if unseen is not None:
         m, truth = _measure_truth(unseen, bundle)
         rows = np.flatnonzero(detected_rows(m, truth))
@@ -115,6 +128,17 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Unseen presses", _scatter(
             plt, bundle, corrector, np.stack([m.x_mm[f], m.y_mm[f]], 1),
             np.stack([truth.x_mm[rows], truth.y_mm[rows]], 1), "unseen", out / "unseen_scatter.png")))
+    from optitac_edge.calibration.verdict import Verdict, bundle_checks, judge
+
+    if unseen is not None:
+        verdict = judge(bundle, *_measure_truth(unseen, bundle, corrected=True))
+        basis = f"the presses of `{Path(unseen).name}`"
+    else:
+        verdict = Verdict(tuple(bundle_checks(bundle)))
+        basis = "the bundle alone (give --unseen REC for the centroid and detection checks)"
+    head, *checks = verdict.lines()
+    lines += ["", "## Verdict", "", f"**{head[len('verdict: '):]}**, from {basis}:", "",
+              *(f"* {c.strip()}" for c in checks), ""]
     if repeat is not None:
         positions = repeatability(*_measure_truth(repeat, bundle, corrected=True))
         fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
@@ -149,7 +173,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
             ax.legend(fontsize=7)
         _save(plt, fig, out / "width_fit.png")
         figures.append(("Width calibration", "width_fit.png"))
-        lines.append(f"Width calibration: {bundle.extra_meta.get('width_fit')}")
+        lines.append(f"Width calibration: {fields(bundle.extra_meta.get('width_fit') or {})}.")
     shapes_fit = bundle.extra_meta.get("shapes_fit")
     if shapes_fit:
         chosen = next(shapes_fit[k] for k in ("unsupervised", "supervised")

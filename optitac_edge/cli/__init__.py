@@ -118,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cal", type=Path, required=True, metavar="CAL")
     p.add_argument("--shape-backend", choices=("numpy", "onnx"), default="numpy")
     p.add_argument("--onnx", type=Path, default=None, help="exported shape model for --shape-backend onnx")
+    p.add_argument("--strict", action="store_true", help="exit 1 when the verdict is not good enough")
 
     p = sub.add_parser("export-onnx", help="export the bundle's shape classifier to ONNX")
     p.add_argument("cal", type=Path, metavar="CAL")
@@ -305,10 +306,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     bundle = load_bundle(args.cal)
     m = measure_recording(rec, bundle, shape_backend=args.shape_backend,
                           onnx_path=str(args.onnx) if args.onnx else None)
+    from optitac_edge.calibration.verdict import judge
+
     print(f"{rec.path} with {args.cal} (id {bundle.calibration_id}):")
     for line in format_evaluation(m, rec.truth):
         print(line)
-    return 0
+    verdict = judge(bundle, m, rec.truth)
+    for line in verdict.lines():
+        print(line)
+    return 1 if args.strict and not verdict.good else 0
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:

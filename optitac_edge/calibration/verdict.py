@@ -1,0 +1,120 @@
+"""Is a calibration good enough? One verdict with its reasons (``evaluate`` and ``report`` print it).
+
+The limits (docs/calibration.md, "What good looks like"):
+
+=============================  ================================  ==========================================
+check                          limit                             why
+=============================  ================================  ==========================================
+fiber map                      residual <= 0.15 pitch RMS,       a blob farther off is probably another
+                               dead fibers <= 5 %                fiber, or the image is out of focus
+orientation                    checked against presses           the 12 symmetries look alike at rest
+coverage                       >= 90 % of the live fibers        the centroid map is extrapolated where
+                               within one pitch of a press       no press was
+centroid (evaluated presses)   RMSE <= 0.4 mm per axis           the paper's unseen accuracy
+detection (evaluated presses)  >= 99 % of contact frames,        a missed or invented contact reaches
+                               0 false contacts                  the gripper
+=============================  ================================  ==========================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from optitac_edge.calibration.evaluation import centroid_accuracy, detection
+from optitac_edge.calibration.measure import Measurements
+from optitac_edge.calibration.orientation import is_verified
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.corrections import CENTROID_KEY
+from optitac_edge.io.recording import Truth
+
+MAX_RESIDUAL_PITCH = 0.15
+MAX_DEAD_FRACTION = 0.05
+MIN_COVERAGE = 0.90
+MAX_CENTROID_RMSE_MM = 0.4
+MIN_DETECTION = 0.99
+
+
+@dataclass(frozen=True)
+class Check:
+    """One check of a verdict: its name, pass or fail, and what was seen against what is required."""
+
+    name: str
+    ok: bool
+    seen: str
+    fix: str = ""
+
+    def line(self) -> str:
+        return f"  [{'ok' if self.ok else 'FAIL'}] {self.name}: {self.seen}" + ("" if self.ok else f" -> {self.fix}")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    checks: tuple[Check, ...]
+
+    @property
+    def good(self) -> bool:
+        return all(c.ok for c in self.checks)
+
+    def lines(self) -> list[str]:
+        failed = [c.name for c in self.checks if not c.ok]
+        head = ("verdict: GOOD ENOUGH (every check passes)" if not failed
+                else f"verdict: NOT GOOD ENOUGH ({', '.join(failed)})")
+        return [head, *(c.line() for c in self.checks)]
+
+
+def coverage(bundle: CalibrationBundle) -> float | None:
+    """Fraction of live fibers within one pitch of a press the centroid map was fitted to (None: no map)."""
+    if CENTROID_KEY not in bundle.extra_meta or "report/centroid_true" not in bundle.extra_arrays:
+        return None
+    presses = np.asarray(bundle.extra_arrays["report/centroid_true"], dtype=np.float64).reshape(-1, 2)
+    live = bundle.layout.xy_mm[~bundle.fibers.dead]
+    if not len(presses) or not len(live):
+        return 0.0
+    d, _ = cKDTree(presses).query(live)
+    return float(np.mean(d <= bundle.layout.pitch_mm + 1e-9))
+
+
+def bundle_checks(bundle: CalibrationBundle) -> list[Check]:
+    """The checks that need only the bundle: fiber map, orientation, coverage."""
+    report = bundle.fiber_map_report
+    pitch_px = bundle.transform.scale_px_per_mm * bundle.layout.pitch_mm
+    residual = float(report.get("residual_rms_px", math.nan))
+    dead = float(np.mean(bundle.fibers.dead))
+    fiber_ok = residual <= MAX_RESIDUAL_PITCH * pitch_px and dead <= MAX_DEAD_FRACTION
+    checks = [Check("fiber map", fiber_ok,
+                    f"residual {residual:.2f} px = {residual / pitch_px:.2f} pitch (limit {MAX_RESIDUAL_PITCH}), "
+                    f"{100 * dead:.1f} % dead (limit {100 * MAX_DEAD_FRACTION:g} %)",
+                    "check focus and the LED in the view, then calibrate fibers again")]
+    record = bundle.extra_meta.get("orientation", {})
+    checks.append(Check("orientation", is_verified(bundle),
+                        f"checked ({record.get('evidence', '')})" if is_verified(bundle) else "never checked",
+                        "run 'calibrate orientation REC' on presses with truth, or 'optitac-edge orient'"))
+    cov = coverage(bundle)
+    checks.append(Check("coverage", cov is not None and cov >= MIN_COVERAGE,
+                        "no centroid calibration" if cov is None else
+                        f"{100 * cov:.0f} % of the live fibers within a pitch of a calibration press "
+                        f"(limit {100 * MIN_COVERAGE:g} %)",
+                        "calibrate the centroid from a 'seen' collection (a press over every fiber)"))
+    return checks
+
+
+def judge(bundle: CalibrationBundle, m: Measurements, truth: Truth) -> Verdict:
+    """The verdict on ``bundle`` from a recording of presses it was not calibrated on."""
+    checks = bundle_checks(bundle)
+    c = centroid_accuracy(m, truth)
+    worst = max(c.rmse_x, c.rmse_y) if c.n else math.nan
+    checks.append(Check("centroid", c.n > 0 and worst <= MAX_CENTROID_RMSE_MM,
+                        f"RMSE x {c.rmse_x:.3f}, y {c.rmse_y:.3f} mm over {c.n} frames "
+                        f"(limit {MAX_CENTROID_RMSE_MM} mm)" if c.n else "no detected presses",
+                        "calibrate the centroid on presses that cover the array, then evaluate on others"))
+    d = detection(m, truth)
+    rate = d.rate if d.contact_frames else math.nan
+    checks.append(Check("detection", d.contact_frames > 0 and rate >= MIN_DETECTION and d.false_contacts == 0,
+                        f"{d.detected}/{d.contact_frames} contact frames, {d.false_contacts} false contacts "
+                        f"(limits {100 * MIN_DETECTION:g} %, 0)",
+                        "check the LED and the rest frames; take the baseline again (tare)"))
+    return Verdict(tuple(checks))

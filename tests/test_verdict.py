@@ -1,0 +1,84 @@
+"""A verdict on each calibration: the checks, their limits, and the report without raw dicts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.calibration.steps import calibrate_centroid
+from optitac_edge.calibration.verdict import bundle_checks, coverage, judge
+from optitac_edge.cli import main
+from optitac_edge.io.bundle_file import save_bundle
+from optitac_edge.io.recording import Recording
+from optitac_edge.sim.scenarios import write_scenario
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    wd = tmp_path_factory.mktemp("verdict")
+    seen = Recording(write_scenario(wd / "seen", "seen", seed=3))
+    fibers = calibrate_fibers(seen.rest_frames(), seen.pixel_format)
+    bundle, _ = calibrate_centroid(seen, fibers)
+    cal = wd / "cal.npz"
+    save_bundle(bundle, cal)
+    return wd, fibers, bundle, cal
+
+
+def test_a_fiber_map_alone_is_not_good_enough_and_says_why(calibrated) -> None:
+    _, fibers, _, _ = calibrated
+    checks = {c.name: c for c in bundle_checks(fibers)}
+    assert checks["fiber map"].ok and "0.0 % dead" in checks["fiber map"].seen
+    assert not checks["orientation"].ok and "calibrate orientation" in checks["orientation"].fix
+    assert not checks["coverage"].ok and checks["coverage"].seen == "no centroid calibration"
+
+
+def test_a_seen_calibration_covers_the_array_and_checks_the_orientation(calibrated) -> None:
+    _, _, bundle, _ = calibrated
+    assert coverage(bundle) == 1.0
+    checks = {c.name: c for c in bundle_checks(bundle)}
+    assert checks["orientation"].ok and checks["coverage"].ok
+
+
+def test_presses_near_the_centre_only_cover_too_little(calibrated, tmp_path) -> None:
+    wd, fibers, _, _ = calibrated
+    repeat = Recording(write_scenario(tmp_path / "r", "unseen", seed=5))
+    bundle, _ = calibrate_centroid(repeat, fibers)
+    cov = coverage(bundle)
+    assert cov is not None and cov < 0.5
+
+
+def test_the_verdict_on_unseen_presses(calibrated, tmp_path, capsys) -> None:
+    wd, fibers, bundle, cal = calibrated
+    unseen = Recording(write_scenario(tmp_path / "u", "unseen", seed=6))
+    verdict = judge(bundle, measure_recording(unseen, bundle), unseen.truth)
+    assert verdict.good, verdict.lines()
+    assert main(["evaluate", str(unseen.path), "--cal", str(cal), "--strict"]) == 0
+    assert "verdict: GOOD ENOUGH (every check passes)" in capsys.readouterr().out
+    bare = tmp_path / "fibers.npz"
+    save_bundle(fibers, bare)
+    assert main(["evaluate", str(unseen.path), "--cal", str(bare), "--strict"]) == 1
+    out = capsys.readouterr().out
+    assert "verdict: NOT GOOD ENOUGH (orientation, coverage)" in out and "[FAIL] coverage" in out
+    assert main(["evaluate", str(unseen.path), "--cal", str(bare)]) == 0  # without --strict: informative only
+
+
+def test_the_report_has_a_verdict_and_no_raw_dicts(calibrated, tmp_path) -> None:
+    wd, _, _, cal = calibrated
+    assert main(["report", str(cal), "-o", str(tmp_path / "rep")]) == 0
+    text = (tmp_path / "rep" / "index.md").read_text()
+    assert "## Verdict" in text and "[ok] coverage: 100 %" in text
+    assert "{" not in text and "}" not in text and "[0." not in text
+
+
+def test_error_map_colours_are_on_the_scale_of_the_array() -> None:
+    from types import SimpleNamespace
+
+    from optitac_edge.calibration.report import array_colour_limit
+
+    cm = SimpleNamespace(x0_mm=-20.0, y0_mm=-20.0, step_mm=1.0, n=41)
+    data = np.zeros((41, 41), np.float32)
+    data[20, 25] = 0.3  # inside the array (5 mm from the centre)
+    data[0, 0] = 9.0  # the extrapolated corner
+    assert array_colour_limit(data, cm, radius_mm=12.0) == pytest.approx(0.3)
