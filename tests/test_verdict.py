@@ -42,7 +42,7 @@ def test_a_seen_calibration_covers_the_array_and_checks_the_orientation(calibrat
 
 
 def test_presses_near_the_centre_only_cover_too_little(calibrated, tmp_path) -> None:
-    wd, fibers, _, _ = calibrated
+    _, fibers, _, _ = calibrated
     repeat = Recording(write_scenario(tmp_path / "r", "unseen", seed=5))
     bundle, _ = calibrate_centroid(repeat, fibers)
     cov = coverage(bundle)
@@ -50,7 +50,7 @@ def test_presses_near_the_centre_only_cover_too_little(calibrated, tmp_path) -> 
 
 
 def test_the_verdict_on_unseen_presses(calibrated, tmp_path, capsys) -> None:
-    wd, fibers, bundle, cal = calibrated
+    _, fibers, bundle, cal = calibrated
     unseen = Recording(write_scenario(tmp_path / "u", "unseen", seed=6))
     verdict = judge(bundle, measure_recording(unseen, bundle), unseen.truth)
     assert verdict.good, verdict.lines()
@@ -65,7 +65,7 @@ def test_the_verdict_on_unseen_presses(calibrated, tmp_path, capsys) -> None:
 
 
 def test_the_report_has_a_verdict_and_no_raw_dicts(calibrated, tmp_path) -> None:
-    wd, _, _, cal = calibrated
+    _, _, _, cal = calibrated
     assert main(["report", str(cal), "-o", str(tmp_path / "rep")]) == 0
     text = (tmp_path / "rep" / "index.md").read_text()
     assert "## Verdict" in text and "[ok] coverage: 100 %" in text
