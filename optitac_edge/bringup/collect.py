@@ -190,26 +190,34 @@ class Collector:
     # -- setup: rest, touch-off, registration --------------------------------------------------
 
     def _touch_off(self, x: float, y: float, z0: float, tip: PlannedPress) -> tuple[float, dict[str, float]]:
+        """Coarse steps down to the first contact, back up, then fine steps through the surface."""
         s = self.settings
-        z = z0
         lowest = self.rig.limits.z_mm[0]
-        samples: list[tuple[float, float]] = []
-        found_at: float | None = None
-        while True:
-            z = round(z - s.touch_step_mm, 4)
+
+        def probe(z: float) -> tuple[bool, float]:
             if z < lowest:
                 raise RigError(f"touch-off: no contact down to the rig's lowest z ({lowest:g} mm): "
                                "is the tip over the skin?")
             self._move((x, y, z), "approach", tip, s.approach_feed_mm_s)
             est = self._frames(3, "approach", tip)
-            strength = float(np.mean([e.strength if e.contact else 0.0 for e in est]))
-            contact = sum(bool(e.contact) for e in est) >= 2
+            return (sum(bool(e.contact) for e in est) >= 2,
+                    float(np.mean([e.strength if e.contact else 0.0 for e in est])))
+
+        coarse = 5 * s.touch_step_mm
+        z = z0
+        while not probe(z := round(z - coarse, 4))[0]:
+            pass
+        z = round(z + coarse + s.touch_step_mm, 4)  # above the first contact again, then fine steps
+        self._move((x, y, z + s.hover_mm), "release", tip, s.approach_feed_mm_s)
+        samples: list[tuple[float, float]] = []
+        found_at: float | None = None
+        while found_at is None or found_at - z < s.touch_extra_mm - 1e-9:
+            z = round(z - s.touch_step_mm, 4)
+            contact, strength = probe(z)
             if contact and found_at is None:
                 found_at = z
             if found_at is not None:
                 samples.append((z, strength))
-                if found_at - z >= s.touch_extra_mm - 1e-9:
-                    break
         zs, st = np.array(samples).T
         slope, intercept = np.polyfit(zs, st, 1)
         surface = float(-intercept / slope) if slope < 0 else found_at
