@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from optitac_edge.bringup.collect import Collector, CollectSettings
 from optitac_edge.bringup.experiments import EXPERIMENTS, plan
 from optitac_edge.bringup.rig_frame import fit_rig_frame
+from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.orientation import layout_symmetries
 from optitac_edge.cli import main
 from optitac_edge.core.layout import hex_layout
@@ -15,44 +17,63 @@ from optitac_edge.io.recording import Recording
 from optitac_edge.sim.rig import parse_sim_url
 
 
+FAST = CollectSettings(initial_rest_frames=10, rest_frames=5, hold_frames=4, approach_feed_mm_s=20.0,
+                       touch_extra_mm=0.3)
+
+
+def _collect(experiment: str, out, url: str, limit: int = 3, settings: CollectSettings = FAST):
+    from optitac_edge.bringup.rigs import open_rig
+    from optitac_edge.service.board_config import load_board_config
+
+    rig, camera = open_rig(load_board_config("sim", env={}), url)
+    with rig, camera:
+        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(6)], "gray")
+        return Collector(camera, rig, bundle, settings, prompt=lambda line: None).run(experiment, out, limit=limit)
+
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_every_experiment_collects_over_the_virtual_rig(experiment, tmp_path, capsys) -> None:
+def test_every_experiment_collects_over_the_virtual_rig(experiment, tmp_path) -> None:
     out = tmp_path / experiment
-    assert main(["collect", experiment, "--rig", "sim://?rotation=-12&origin=95,84", "-o", str(out),
-                 "--limit", "3"]) == 0
-    stdout = capsys.readouterr().out
-    assert "touch-off" in stdout and f"wrote {out}: {experiment}, 3 presses" in stdout
+    result = _collect(experiment, out, "sim://?rotation=-12&origin=95,84")
+    assert result.presses == 3 and result.bundle_symmetry == "as it is"
     rec = Recording(out)
     truth, poses = rec.truth, rec.rig_poses
     assert truth is not None and poses is not None and rec.timestamped
     assert len(poses.frame) == len(rec) and set(poses.phase) == {"rest", "approach", "hold", "release", "move"}
     held = np.flatnonzero(poses.phase == "hold")
     presses = plan(experiment, hex_layout())[:3]
-    # the last three presses' hold frames: the planned position and depth, in the sensor frame
+    hold = FAST.hold_frames
+    # the three presses' hold frames: the planned position and depth, in the sensor frame
     last = truth.contact & (np.isin(truth.frame, held))
-    xy = np.stack([truth.x_mm[last], truth.y_mm[last]], 1)[-3 * 8:]
-    want = np.repeat([(p.x_mm, p.y_mm) for p in presses], 8, axis=0)
+    xy = np.stack([truth.x_mm[last], truth.y_mm[last]], 1)[-3 * hold:]
+    want = np.repeat([(p.x_mm, p.y_mm) for p in presses], hold, axis=0)
     assert np.abs(xy - want).max() < 0.3
-    assert np.abs(truth.depth_mm[last][-3 * 8:] - np.repeat([p.depth_mm for p in presses], 8)).max() < 0.1
-    meta = rec.meta.extra["collect"]
-    assert abs(meta["rig_frame"]["rotation_deg"] + 12.0) < 0.5 and meta["bundle_orientation"] == "as it is"
+    assert np.abs(truth.depth_mm[last][-3 * hold:] - np.repeat([p.depth_mm for p in presses], hold)).max() < 0.1
+    frame = rec.meta.extra["collect"]["rig_frame"]
+    assert abs(frame["rotation_deg"] + 12.0) < 0.5
+
+
+def test_collect_from_the_command_line(tmp_path, capsys) -> None:
+    out = tmp_path / "seen"
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "2"]) == 0
+    stdout = capsys.readouterr().out
+    assert "touch-off" in stdout and f"wrote {out}: seen, 2 presses" in stdout
+    assert Recording(out).meta.extra["collect"]["presses"] == 2
 
 
 def test_the_rig_frame_and_surface_are_found_not_typed_in(tmp_path, capsys) -> None:
     out = tmp_path / "r"
-    assert main(["collect", "repeat", "--rig", "sim://?rotation=23&origin=110,70&surface=-1.5", "-o", str(out),
-                 "--limit", "1"]) == 0
+    _collect("repeat", out, "sim://?rotation=23&origin=110,70&surface=-1.5", limit=1,
+             settings=CollectSettings(initial_rest_frames=10, rest_frames=5, hold_frames=4))
     frame = Recording(out).meta.extra["collect"]["rig_frame"]
     assert abs(frame["rotation_deg"] - 23.0) < 0.3
     assert np.hypot(frame["origin_xy_mm"][0] - 110.0, frame["origin_xy_mm"][1] - 70.0) < 0.2
     assert abs(frame["surface_z_mm"] + 1.5) < 0.05
 
 
-def test_a_mirrored_mount_is_reported_as_a_bundle_to_reorient(tmp_path, capsys) -> None:
-    out = tmp_path / "r"
-    assert main(["collect", "unseen", "--rig", "sim://?mirror=1", "-o", str(out), "--limit", "2"]) == 0
-    stdout = capsys.readouterr().out
-    assert "warning: the bundle's fiber map is" in stdout and "mirrored" in stdout
+def test_a_mirrored_mount_is_reported_as_a_bundle_to_reorient(tmp_path) -> None:
+    result = _collect("unseen", tmp_path / "r", "sim://?mirror=1", limit=1)
+    assert "mirrored" in result.bundle_symmetry
 
 
 def test_a_target_outside_the_limits_is_refused_before_the_rig_moves(tmp_path, capsys) -> None:

@@ -102,7 +102,7 @@ def test_monitoring_the_running_service_and_commanding_it() -> None:
     lines: list[str] = []
     try:
         os.read(master, 65536) if select.select([master], [], [], 15)[0] else None  # the service is up
-        mon = monitor_serial(path, 921600, 4.0, ["stream on 2", "tare", "threshold 0.05"], lines.append,
+        mon = monitor_serial(path, 921600, 2.0, ["stream on 2", "tare", "threshold 0.05"], lines.append,
                              serial_port=MasterEnd(master))
     finally:
         service.terminate()

@@ -49,15 +49,30 @@ def test_orient_corrects_a_mirrored_fiber_map_from_two_edge_presses(tmp_path, ca
     assert np.array_equal(fixed.fibers.pixel_index, right.fibers.pixel_index)
 
 
-def test_orient_refuses_presses_that_do_not_decide_and_leaves_the_bundle(tmp_path, capsys) -> None:
+def test_orient_refuses_presses_that_do_not_decide(tmp_path) -> None:
+    import pytest
+
+    from optitac_edge.bringup.orient import orient_live
+    from optitac_edge.errors import OrientationError
+    from optitac_edge.io.cameras.recording import RecordingCamera
+
     rec = _edge_presses(tmp_path / "edges", presses=((8.5, 0.0), (7.4, 4.3)))  # "+y" 30° from +x
-    cal = tmp_path / "cal.npz"
-    save_bundle(calibrate_fibers(Recording(rec).rest_frames(), "gray"), cal)
-    before = cal.read_bytes()
-    assert main(["orient", "--board", str(_board(tmp_path, rec)), "--cal", str(cal)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "did not decide the orientation" in err
-    assert cal.read_bytes() == before
+    prompts: list[str] = []
+    with RecordingCamera(rec) as camera, pytest.raises(OrientationError, match="did not decide the orientation"):
+        orient_live(camera, calibrate_fibers(Recording(rec).rest_frames(), "gray"), 30.0, prompts.append)
+    assert prompts[-1].startswith("not decided")
+
+
+def test_orient_gives_up_after_its_time_limit(tmp_path) -> None:
+    import pytest
+
+    from optitac_edge.bringup.orient import orient_live
+    from optitac_edge.errors import OrientationError
+    from optitac_edge.io.cameras.recording import RecordingCamera
+
+    rec = _edge_presses(tmp_path / "edges", presses=((8.5, 0.0),))
+    with RecordingCamera(rec) as camera, pytest.raises(OrientationError, match="no orientation within 1 s"):
+        orient_live(camera, calibrate_fibers(Recording(rec).rest_frames(), "gray"), 1.0, lambda line: None)
 
 
 def test_orient_on_a_board_that_keeps_no_bundle_needs_an_output(capsys) -> None:

@@ -21,6 +21,10 @@ class RecordingCamera(Camera):
         as they are read (False).
     loop : bool
         Start again after the last frame instead of ending.
+
+    Each frame carries its recorded capture time (``Recording.t_ns``), moved to
+    the moment the camera was opened: replayed as fast as read, a recording
+    still has its own timing.
     """
 
     def __init__(self, path: str | Path, realtime: bool = False, loop: bool = False) -> None:
@@ -34,11 +38,18 @@ class RecordingCamera(Camera):
         self._index = 0
         self._seq = 0
         self._next_ns = time.monotonic_ns()
+        # frames are stamped with their recorded capture times (timestamps.npy, else i / fps),
+        # moved to start now; a loop continues one frame period after the last frame
+        t = self.recording.t_ns
+        self._times = t - t[0]
+        self._period_ns = int(1e9 / self.fps)
+        self._t0_ns = time.monotonic_ns()
 
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
         if self._index >= len(self.recording):
             if not self._loop:
                 return None
+            self._t0_ns += int(self._times[-1]) + self._period_ns
             self._index = 0
         if self._realtime:
             delay = (self._next_ns - time.monotonic_ns()) / 1e9
@@ -46,9 +57,10 @@ class RecordingCamera(Camera):
                 time.sleep(delay)
             self._next_ns = max(self._next_ns, time.monotonic_ns() - 1_000_000_000) + int(1e9 / self.fps)
         frame = self.recording.frame(self._index)
+        t_ns = self._t0_ns + int(self._times[self._index])
         self._index += 1
         self._seq += 1
-        return CapturedFrame(frame, time.monotonic_ns(), self._seq)
+        return CapturedFrame(frame, t_ns, self._seq)
 
     def _close_internal(self) -> None:
         self.recording = None  # type: ignore[assignment]  # drop the memory map
