@@ -16,7 +16,6 @@ from optitac_edge.errors import RigError
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.rig import parse_sim_url
 
-
 FAST = CollectSettings(initial_rest_frames=10, rest_frames=5, hold_frames=4, approach_feed_mm_s=20.0,
                        touch_extra_mm=0.3)
 

@@ -120,7 +120,7 @@ def test_collect_seen_through_grbl_interrupted_retracted_and_continued(grbl, tmp
                       prompt=lines.append).run("seen", out, limit=14)
         assert grbl.position()[2] == pytest.approx(12.0)  # the tip went up
         assert lines[-1] == "retracted the tip to z = 12 mm"
-    with pytest.raises(RecordingError, match="incomplete recording"):
+    with pytest.raises(RecordingError, match="interrupted collection: run the same 'optitac-edge collect' command"):
         Recording(out)
     done = len((out / JOURNAL).read_text().splitlines()) - 1
     assert done == 7

@@ -233,3 +233,35 @@ def test_a_headless_browser_shows_217_fibers_and_a_press_as_a_contact(view_proce
         assert errors == []
     finally:
         driver.quit()
+
+
+def test_the_guided_orientation_in_the_view_corrects_the_bundle_and_swaps_the_loops_pipeline(tmp_path) -> None:
+    sensor = SimulatedSensor(seed=4)
+    rest = [sensor.frame(()) for _ in range(8)]
+    right = calibrate_fibers(rest, "gray")
+    wrong = calibrate_fibers(rest, "gray", rotation_hint_deg=120.0)
+    pipeline = Pipeline(wrong)
+    view = LiveView(wrong, "gray", rate_hz=1e9)
+    view.bundle_path = tmp_path / "cal.npz"
+    swapped: list[Pipeline] = []
+    view.swap_pipeline = swapped.append
+    stats = Stats()
+    try:
+        assert view.start_orientation().startswith("orientation: press near the +x edge")
+        t = 0
+        plan = [None] * 8 + [(8.5, 0.5)] * 60 + [None] * 30 + [(-0.5, 8.8)] * 60 + [None] * 30
+        for k, xy in enumerate(plan):
+            frame = sensor.frame(() if xy is None else (Indenter("circle", xy[0], xy[1], 0.0, 5.0, 2.5),))
+            pipeline.process(frame, t)
+            stats.frames += 1
+            before = view.published.seq if view.published else 0
+            view._next_ns = 0
+            view.observe(frame, t, pipeline, stats)
+            assert view.wait_published(before) is not None
+            t += 16_666_667
+        assert view.procedure is None and view.message.startswith("orientation corrected (the fiber map was rotated")
+        view.observe(frame, t, pipeline, stats)  # the loop applies the queued swap between frames
+        assert len(swapped) == 1 and np.array_equal(swapped[0].bundle.fibers.pixel_index, right.fibers.pixel_index)
+        assert (tmp_path / "cal.npz").exists()
+    finally:
+        view.close()

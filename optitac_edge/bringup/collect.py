@@ -40,12 +40,12 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.errors import CameraError, RigError
 from optitac_edge.io.cameras.base import Camera
-from optitac_edge.io.recording import INCOMPLETE_MARKER, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import COLLECT_JOURNAL, INCOMPLETE_MARKER, RecordingMeta, RecordingWriter
 from optitac_edge.io.rigs.base import Rig
 
 log = logging.getLogger(__name__)
 
-JOURNAL = "collect.jsonl"
+JOURNAL = COLLECT_JOURNAL
 
 
 @dataclass(frozen=True)

@@ -103,6 +103,8 @@ FPS_RANGE = (0.1, 10_000.0)
 INCOMPLETE_MARKER = "incomplete.json"
 #: Per-frame capture times, int64 ns.
 TIMESTAMPS = "timestamps.npy"
+#: The journal of a collection on a rig (``optitac-edge collect``), there until it completes.
+COLLECT_JOURNAL = "collect.jsonl"
 
 
 def read_timestamps(path: Path, n_frames: int) -> np.ndarray:
@@ -159,6 +161,9 @@ def read_meta(path: Path) -> RecordingMeta:
 def _missing_meta(directory: Path) -> str:
     """Why a directory without meta.json is not a usable recording."""
     marker = directory / INCOMPLETE_MARKER
+    if marker.exists() and (directory / COLLECT_JOURNAL).exists():
+        return ("interrupted collection: run the same 'optitac-edge collect' command to continue it after its "
+                "last complete press")
     if marker.exists():
         try:
             info = json.loads(marker.read_text(encoding="utf-8"))
