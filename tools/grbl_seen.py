@@ -18,21 +18,21 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from fakes.grbl import FakeGrbl  # noqa: E402
+from fakes.grbl import FakeGrbl
 
-from optitac_edge.bringup.collect import JOURNAL, Collector, CollectSettings  # noqa: E402
-from optitac_edge.calibration.evaluation import centroid_accuracy, detection  # noqa: E402
-from optitac_edge.calibration.fibers import calibrate_fibers  # noqa: E402
-from optitac_edge.calibration.measure import measure_recording  # noqa: E402
-from optitac_edge.calibration.steps import calibrate_centroid, calibrate_orientation  # noqa: E402
-from optitac_edge.errors import RecordingError  # noqa: E402
-from optitac_edge.io.recording import Recording  # noqa: E402
-from optitac_edge.io.rigs.base import RigLimits  # noqa: E402
-from optitac_edge.io.rigs.gcode import GcodeRig  # noqa: E402
-from optitac_edge.sim.camera import SimCamera  # noqa: E402
-from optitac_edge.sim.rig import SimMount  # noqa: E402
-from optitac_edge.sim.scenarios import write_scenario  # noqa: E402
-from optitac_edge.sim.skin import Indenter  # noqa: E402
+from optitac_edge.bringup.collect import JOURNAL, Collector
+from optitac_edge.calibration.evaluation import centroid_accuracy, detection
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.measure import measure_recording
+from optitac_edge.calibration.steps import calibrate_centroid, calibrate_orientation
+from optitac_edge.errors import RecordingError
+from optitac_edge.io.recording import Recording
+from optitac_edge.io.rigs.base import RigLimits
+from optitac_edge.io.rigs.gcode import GcodeRig
+from optitac_edge.sim.camera import SimCamera
+from optitac_edge.sim.rig import SimMount
+from optitac_edge.sim.scenarios import write_scenario
+from optitac_edge.sim.skin import Indenter
 
 LIMITS = RigLimits(x_mm=(60.0, 140.0), y_mm=(40.0, 120.0), z_mm=(-3.0, 20.0), feed_mm_s=10.0, safe_z_mm=12.0)
 MOUNT = SimMount(origin_xy_mm=(100.0, 80.0), rotation_deg=-9.0, surface_z_mm=2.0)
