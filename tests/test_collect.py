@@ -132,3 +132,28 @@ def test_sim_url_parsing() -> None:
     assert mount.rotation_deg == 5 and mount.origin_xy_mm == (1.0, 2.0) and mount.surface_z_mm == -3 and mount.mirror
     with pytest.raises(RigError):
         parse_sim_url("sim://?origin=1")
+
+
+def test_ctrl_c_retracts_and_exits_130_saying_how_to_continue(tmp_path) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "r"
+    proc = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "collect", "seen", "--rig", "sim://", "-o",
+                             str(out), "--limit", "40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        if line.startswith("sensor origin at rig"):  # registration done: the experiment's presses begin
+            break
+    proc.send_signal(signal.SIGINT)
+    rest, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "retracted the tip to z = 12 mm" in rest
+    assert err.strip().splitlines()[-1] == (
+        f"optitac-edge: interrupted: tip retracted; recording {out} is incomplete: run the same command again to "
+        "continue after the last complete press")
+    from optitac_edge.errors import RecordingError
+
+    with pytest.raises(RecordingError, match="interrupted collection"):
+        Recording(out)
