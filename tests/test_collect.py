@@ -16,8 +16,11 @@ from optitac_edge.errors import RigError
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.rig import parse_sim_url
 
-FAST = CollectSettings(initial_rest_frames=10, rest_frames=5, hold_frames=4, approach_feed_mm_s=20.0,
+FAST = CollectSettings(initial_rest_frames=6, rest_frames=3, hold_frames=4, approach_feed_mm_s=30.0, hover_mm=1.0,
                        touch_extra_mm=0.3)
+
+
+_BUNDLES: dict[str, object] = {}
 
 
 def _collect(experiment: str, out, url: str, limit: int = 3, settings: CollectSettings = FAST):
@@ -26,8 +29,11 @@ def _collect(experiment: str, out, url: str, limit: int = 3, settings: CollectSe
 
     rig, camera = open_rig(load_board_config("sim", env={}), url)
     with rig, camera:
-        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(6)], "gray")
-        return Collector(camera, rig, bundle, settings, prompt=lambda line: None).run(experiment, out, limit=limit)
+        rest = [camera.read().frame.copy() for _ in range(6)]
+        if "sim" not in _BUNDLES:  # the virtual rig's camera is always the same simulated sensor
+            _BUNDLES["sim"] = calibrate_fibers(rest, "gray")
+        return Collector(camera, rig, _BUNDLES["sim"], settings, prompt=lambda line: None).run(
+            experiment, out, limit=limit)
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
