@@ -32,6 +32,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--fps", type=float, default=240.0)
     ap.add_argument("--screenshot", type=Path, default=Path("docs/figures/view.png"))
+    ap.add_argument("--service-nice", type=int, default=0,
+                    help="run the bench (the service loop) at this niceness, e.g. -10 as the systemd unit does")
     ap.add_argument("--browser-nice", type=int, default=0,
                     help="run the browser at this niceness (on a robot the browser is on another computer; "
                          "here it shares the board's CPUs)")
@@ -40,7 +42,8 @@ def main() -> None:
     from selenium.webdriver.chrome.service import Service
 
     out = Path(tempfile.mkdtemp()) / "bench.json"
-    bench = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "bench", "--frames", "2000",
+    nice = ["nice", "-n", str(args.service_nice)] if args.service_nice else []
+    bench = subprocess.Popen([*nice, sys.executable, "-m", "optitac_edge.cli", "bench", "--frames", "2000",
                               "--reference-frames", "0", "--memory-frames", "0", "--no-startup",
                               "--e2e-seconds", str(args.seconds), "--fps", str(args.fps),
                               "--view", "127.0.0.1:0", "--json", str(out)],
@@ -96,6 +99,7 @@ def main() -> None:
                              "max": round(lat[-1], 1)},
         "first_contact_frame_to_page_ms": None if first_contact is None else round(first_contact, 1),
         "console_errors": len(errors), "browser_nice": args.browser_nice,
+        "service_nice": args.service_nice,
         "bench": {k: res.get(k) for k in ("fps", "frames", "frames_dropped", "frames_dropped_by_pipeline",
                                           "packets_lost", "achieved_fps", "latency_us", "view")},
         "screenshot": str(args.screenshot)}, indent=1))
