@@ -146,8 +146,12 @@ def test_ctrl_c_retracts_and_exits_130_saying_how_to_continue(tmp_path) -> None:
     import sys
 
     out = tmp_path / "r"
-    proc = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "collect", "seen", "--rig", "sim://", "-o",
-                             str(out), "--limit", "40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # as from a terminal: Ctrl-C raises KeyboardInterrupt even when the tests themselves run in the
+    # background (a shell starts background jobs with SIGINT ignored, and Python keeps it so)
+    start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "sys.argv = ['optitac-edge', *sys.argv[1:]]; runpy.run_module('optitac_edge.cli', run_name='__main__')")
+    proc = subprocess.Popen([sys.executable, "-c", start, "collect", "seen", "--rig", "sim://", "-o", str(out),
+                             "--limit", "40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     for line in proc.stdout:
         if line.startswith("sensor origin at rig"):  # registration done: the experiment's presses begin
