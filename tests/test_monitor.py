@@ -114,3 +114,28 @@ def test_monitoring_the_running_service_and_commanding_it() -> None:
     assert all(any(f"ACK of #{k}: OK" in a for a in acks) for k in (1, 2, 3)), acks
     assert mon.tally.counts["CONTACT"] > 10 and mon.decoder.counters.crc == 0
     assert lines[-1].startswith("CONTACT") and "errors: crc 0" in lines[-1]
+
+
+def test_monitoring_the_can_bus_decodes_and_finds_counter_gaps() -> None:
+    import can
+
+    from optitac_edge.bringup.monitor import monitor_can
+    from optitac_edge.io.protocol.can_codec import CanCodec
+
+    codec = CanCodec(sensor_id=0)
+    msg = ContactMessage(sensor_id=0, flags=ContactFlags.CONTACT, x_mm=1.5, y_mm=-2.0, major_mm=4.0, minor_mm=3.0)
+    sender = can.Bus(channel="optitac-monitor-test", interface="virtual")
+    listener = can.Bus(channel="optitac-monitor-test", interface="virtual")
+    for counter in (0, 1, 3):  # 2 is missing
+        a, b = codec.contact_payloads(msg, counter)
+        sender.send(can.Message(arbitration_id=codec.ids["CONTACT_A"], data=a, is_extended_id=False))
+        sender.send(can.Message(arbitration_id=codec.ids["CONTACT_B"], data=b, is_extended_id=False))
+    sender.send(can.Message(arbitration_id=codec.ids["STATUS"], data=codec.status_payload(StatusMessage(), 4),
+                            is_extended_id=False))
+    sender.shutdown()
+    lines: list[str] = []
+    mon = monitor_can("optitac-monitor-test", "virtual", 0.5, lines.append, every=True, bus=listener)
+    assert mon.tally.counts["CONTACT"] == 3 and mon.tally.counts["STATUS"] == 1
+    assert mon.tally.gaps == 2  # CONTACT_A and CONTACT_B each skip counter 2
+    assert any(line.startswith("sensor 0 CONTACT_A: X 1.5") for line in lines)
+    assert lines[-1].startswith("CONTACT") and "undecodable 0" in lines[-1]

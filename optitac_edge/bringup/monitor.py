@@ -188,29 +188,39 @@ def monitor_serial(port: str, baudrate: int, duration_s: float | None, commands:
         except (serial.SerialException, ValueError, OSError) as exc:
             raise TransportError(f"monitor: cannot open {port} ({exc})") from None
     mon = SerialMonitor()
-    stop = stop or threading.Event()
-    start = time.monotonic_ns()
-    next_report = start + int(period_s * 1e9)
+
+    def poll() -> list[str]:
+        chunk = serial_port.read(max(1, serial_port.in_waiting))
+        return [line for line in mon.feed(chunk, time.monotonic_ns())
+                if every or " ACK " in line or "bad payload" in line]
+
     try:
         for data, name in frames:
             serial_port.write(b"\x00" + data)
             say(f"sent {name}")
-        while not stop.is_set():
-            now = time.monotonic_ns()
-            if duration_s is not None and now - start >= duration_s * 1e9:
-                break
-            chunk = serial_port.read(max(1, serial_port.in_waiting))
-            now = time.monotonic_ns()
-            for line in mon.feed(chunk, now):
-                if every or " ACK " in line or "bad payload" in line:
-                    say(line)
-            if now >= next_report:
-                next_report = now + int(period_s * 1e9)
-                say(mon.summary(now))
+        _watch(poll, mon.summary, say, duration_s, period_s, stop)
     finally:
         serial_port.close()
     say(mon.summary(time.monotonic_ns()))
     return mon
+
+
+def _watch(poll: Callable[[], list[str]], summary: Callable[[int], str], say: Callable[[str], None],
+           duration_s: float | None, period_s: float, stop: threading.Event | None) -> None:
+    """Call ``poll`` until ``duration_s`` passes or ``stop`` is set, saying the lines it returns and
+    ``summary(now_ns)`` every ``period_s``."""
+    stop = stop or threading.Event()
+    start = time.monotonic_ns()
+    next_report = start + int(period_s * 1e9)
+    while not stop.is_set():
+        if duration_s is not None and time.monotonic_ns() - start >= duration_s * 1e9:
+            break
+        for line in poll():
+            say(line)
+        now = time.monotonic_ns()
+        if now >= next_report:
+            next_report = now + int(period_s * 1e9)
+            say(summary(now))
 
 
 class CanMonitor:
@@ -260,23 +270,16 @@ def monitor_can(channel: str, interface: str, duration_s: float | None, say: Cal
         except (can.CanError, OSError, ValueError) as exc:
             raise TransportError(f"monitor: cannot open CAN {interface} channel {channel!r} ({exc})") from None
     mon = CanMonitor()
-    stop = stop or threading.Event()
-    start = time.monotonic_ns()
-    next_report = start + int(period_s * 1e9)
+
+    def poll() -> list[str]:
+        msg = bus.recv(0.05)
+        if msg is None:
+            return []
+        line = mon.feed(msg.arbitration_id, bytes(msg.data), time.monotonic_ns())
+        return [line] if line is not None and (every or "not decodable" in line) else []
+
     try:
-        while not stop.is_set():
-            now = time.monotonic_ns()
-            if duration_s is not None and now - start >= duration_s * 1e9:
-                break
-            msg = bus.recv(0.05)
-            now = time.monotonic_ns()
-            if msg is not None:
-                line = mon.feed(msg.arbitration_id, bytes(msg.data), now)
-                if line is not None and (every or "not decodable" in line):
-                    say(line)
-            if now >= next_report:
-                next_report = now + int(period_s * 1e9)
-                say(mon.summary(now))
+        _watch(poll, mon.summary, say, duration_s, period_s, stop)
     finally:
         bus.shutdown()
     say(mon.summary(time.monotonic_ns()))
