@@ -134,7 +134,6 @@ class BoardSession:
         return service.run(stop, duration_s=duration_s, on_result=on_result)
 
 
-
 def _link_state(transport: Transport) -> str:
     """A few words on the link to the MCU, for the view."""
     if not transport.delivers:

@@ -123,7 +123,6 @@ class LiveView:
         self.actions: deque[tuple[str, Any]] = deque(maxlen=16)
         self.message = ""
         self.procedure: Any = None  # EdgePresses while the guided orientation runs
-        self.on_oriented: Callable[[Any], str] | None = None
         #: Where an oriented bundle is written (None: kept in memory).
         self.bundle_path: Any = None
         #: Called by the frame loop with a new pipeline (the service sets it).
@@ -171,8 +170,8 @@ class LiveView:
         if kind == "tare":
             pipeline.reset_baseline()
             self.message = "tare: the baseline is taken again"
-        elif kind == "swap":
-            value(pipeline)
+        elif kind == "swap" and self.swap_pipeline is not None:
+            self.swap_pipeline(value)
 
     # -- the worker -----------------------------------------------------------------------------
 
@@ -212,8 +211,8 @@ class LiveView:
         if self.procedure is not None and b.baseline_ready:
             c = contacts[0] if contacts else None
             self.procedure.feed(c is not None, c["x_mm"] if c else math.nan, c["y_mm"] if c else math.nan, b.t_ns)
-            if self.procedure.done and self.on_oriented is not None:
-                self.message = self.on_oriented(self.procedure.fit)
+            if self.procedure.done:
+                self.message = self._oriented(self.procedure.fit)
                 self.procedure = None
         self._seq += 1
         state = self._state(b, surface, contacts)
@@ -282,7 +281,6 @@ class LiveView:
         from optitac_edge.calibration.edge_presses import EdgePresses
 
         self.procedure = EdgePresses(self.bundle.layout)
-        self.on_oriented = self.on_oriented or self._oriented
         return "orientation: " + self.procedure.prompt
 
     def cancel_orientation(self) -> str:
@@ -310,13 +308,9 @@ class LiveView:
                 where = f"not saved ({exc})"
         self.bundle = bundle
         pipeline = Pipeline(bundle)  # built here, off the frame thread; the loop only swaps it in
-        self.actions.append(("swap", lambda old: self._swap(old, pipeline)))
+        self.actions.append(("swap", pipeline))
         what = "confirmed" if fit.symmetry.is_identity else f"corrected (the fiber map was {fit.symmetry.label})"
         return f"orientation {what}; {where}"
-
-    def _swap(self, old: Any, pipeline: Any) -> None:
-        if self.swap_pipeline is not None:
-            self.swap_pipeline(pipeline)
 
     def close(self) -> None:
         """Stop the worker (idempotent)."""
