@@ -267,8 +267,9 @@ class Collector:
         meta = RecordingMeta(rest_frames=self.settings.initial_rest_frames, fps=self.camera.fps,
                              extra={"collect": {"experiment": experiment, "seed": seed}})
         kept = done[-1]["end_frame"] if done else setup.get("end_frame", 0)
-        kept_rows = [r for entry in ([setup] if setup else []) + done for r in entry["rows"]]
-        kept_t = [t for entry in ([setup] if setup else []) + done for t in entry["t_ns"]]
+        entries = ([setup] if setup else []) + done
+        kept_rows = [r for entry in entries for r in entry["rows"]]
+        kept_t = [t for entry in entries for t in entry["t_ns"]]
         self.writer = RecordingWriter(out, None, self.camera.frame_shape, meta, rig_columns=True,
                                       keep_frames=kept, kept_t_ns=np.asarray(kept_t, np.int64) if kept else None)
         try:
@@ -304,7 +305,6 @@ class Collector:
             symmetry = setup["bundle_orientation"]
             touch = setup.get("touch_off", {})
             self.prompt(f"continuing {experiment} after press {len(done)} of {len(presses)}")
-            self._rows, self._times = [], []
             self._frames(s.rest_frames, "rest", None)  # a fresh baseline
         else:
             x0, y0, z0 = self._pose()
@@ -313,7 +313,7 @@ class Collector:
             first = presses[0]
             tip = PlannedPress(0.0, 0.0, s.register_depth_mm, first.shape, first.size_mm, first.angle_deg)
             if tip.indenter != self._mounted:
-                self._change_indenter(tip, (x0, y0, z0))
+                self._change_indenter(tip)
                 self._move((x0, y0, z0), "move", None)
             self.prompt("touch-off: finding the skin's surface")
             surface, touch = self._touch_off(x0, y0, z0, tip)
@@ -348,7 +348,7 @@ class Collector:
             tx, ty = float(targets[k, 0]), float(targets[k, 1])
             hover = frame.surface_z_mm + s.hover_mm
             if p.indenter != self._mounted:
-                self._change_indenter(p, (tx, ty, hover))
+                self._change_indenter(p)
             self._move((tx, ty, hover), "move", p)
             self._frames(s.rest_frames, "rest", p)
             self._move((tx, ty, frame.surface_z_mm - p.depth_mm), "approach", p, s.approach_feed_mm_s)
@@ -363,7 +363,7 @@ class Collector:
         return CollectResult(experiment, len(presses), self._index, frame, symmetry,
                              resumed_at=len(done), touch_off=dict(touch))
 
-    def _change_indenter(self, p: PlannedPress, above: tuple[float, float, float]) -> None:
+    def _change_indenter(self, p: PlannedPress) -> None:
         if not self.rig.changes_indenters:
             x, y, _ = self._pose()
             self._move((x, y, self.rig.limits.safe_z_mm), "move", None)
