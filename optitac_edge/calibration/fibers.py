@@ -105,7 +105,6 @@ def _orient_by_fiducials(bundle: CalibrationBundle, rest_frames: Sequence[np.nda
     from optitac_edge.calibration.orientation import (
         fiducial_orientation,
         layout_symmetries,
-        mark_verified,
         reorient_bundle,
     )
 
@@ -116,11 +115,9 @@ def _orient_by_fiducials(bundle: CalibrationBundle, rest_frames: Sequence[np.nda
     fit = fiducial_orientation(levels, bundle.layout, layout_symmetries(bundle.layout))
     if fit.symmetry is None:
         raise FiberMapError(fit.reason)
-    evidence = f"{fit.presses} fiducials"
-    if fit.symmetry.is_identity:
-        return mark_verified(bundle, evidence)
-    log.info("fiducials: the orientation hint was off; the fiber map is %s from it", fit.symmetry.label)
-    return reorient_bundle(bundle, fit.symmetry, evidence)
+    if not fit.symmetry.is_identity:
+        log.info("fiducials: the orientation hint was off; the fiber map is %s from it", fit.symmetry.label)
+    return reorient_bundle(bundle, fit.symmetry, f"{fit.presses} fiducials")
 
 
 def measure_rest_noise(

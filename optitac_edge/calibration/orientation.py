@@ -195,11 +195,14 @@ def reorient_table(table: FiberTable, permutation: np.ndarray) -> FiberTable:
 def reorient_bundle(bundle: CalibrationBundle, h: Symmetry, evidence: str) -> CalibrationBundle:
     """The bundle with its fiber map corrected by the symmetry ``h`` it was found to be off by.
 
-    Fiber ``i`` takes the pixels of the fiber at ``h(x_i)``; the transform
+    The identity changes nothing but the record: the orientation was checked
+    (:func:`mark_verified`). Otherwise fiber ``i`` takes the pixels of the fiber at ``h(x_i)``; the transform
     becomes ``T ∘ h``. Models fitted through the wrong fiber map (centroid,
     width, shapes) are removed: calibrate them again. The orientation record
     (``extra_meta['orientation']``) says it was verified and how.
     """
+    if h.is_identity:
+        return mark_verified(bundle, evidence)
     t = bundle.transform
     rotation = (t.rotation_deg - h.rotation_deg) if t.mirror else (t.rotation_deg + h.rotation_deg)
     transform = replace(t, rotation_deg=rotation % 360.0, mirror=t.mirror != h.mirror)

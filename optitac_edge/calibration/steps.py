@@ -79,8 +79,6 @@ def calibrate_orientation(rec: Recording, bundle: CalibrationBundle
     if fit.symmetry is None:
         raise OrientationError(f"{rec.path}: {fit.reason}")
     evidence = f"{fit.presses} presses of {rec.path.name}, RMS {fit.best_rmse_mm:.2f} mm"
-    if fit.symmetry.is_identity:
-        return mark_verified(bundle, evidence), fit
     return reorient_bundle(bundle, fit.symmetry, evidence), fit
 
 

@@ -171,7 +171,7 @@ def _cmd_snapshot(args: argparse.Namespace) -> int:
 
 def _cmd_orient(args: argparse.Namespace) -> int:
     from optitac_edge.bringup.orient import orient_live
-    from optitac_edge.calibration.orientation import mark_verified, reorient_bundle
+    from optitac_edge.calibration.orientation import reorient_bundle
     from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.service.wiring import obtain_bundle, open_board_camera
 
@@ -185,8 +185,7 @@ def _cmd_orient(args: argparse.Namespace) -> int:
         fit = orient_live(camera, bundle, args.timeout, lambda prompt: print(prompt, flush=True))
     assert fit.symmetry is not None
     evidence = f"edge presses, RMS {fit.best_rmse_mm:.1f} mm"
-    bundle = (mark_verified(bundle, evidence) if fit.symmetry.is_identity
-              else reorient_bundle(bundle, fit.symmetry, evidence))
+    bundle = reorient_bundle(bundle, fit.symmetry, evidence)
     bundle = save_bundle(bundle, target)
     what = ("confirmed" if fit.symmetry.is_identity else
             f"corrected (the fiber map was {fit.symmetry.label}; centroid, width and shape models were removed)")

@@ -289,14 +289,13 @@ class LiveView:
 
     def _oriented(self, fit: Any) -> str:
         """Write the result into the bundle (file, when there is one) and hand the loop the new fiber map."""
-        from optitac_edge.calibration.orientation import mark_verified, reorient_bundle
+        from optitac_edge.calibration.orientation import reorient_bundle
         from optitac_edge.core.pipeline import Pipeline
 
         if fit.symmetry is None:
             return f"orientation not decided: {fit.reason}"
         evidence = f"edge presses in the view, RMS {fit.best_rmse_mm:.1f} mm"
-        bundle = (mark_verified(self.bundle, evidence) if fit.symmetry.is_identity
-                  else reorient_bundle(self.bundle, fit.symmetry, evidence))
+        bundle = reorient_bundle(self.bundle, fit.symmetry, evidence)
         where = "kept in memory"
         if self.bundle_path is not None:
             from optitac_edge.io.bundle_file import save_bundle
