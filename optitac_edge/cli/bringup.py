@@ -135,8 +135,7 @@ def _cmd_snapshot(args: argparse.Namespace) -> int:
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.io.files import AtomicFile
     from optitac_edge.service.view.live import STAT_FIELDS, LiveView
-    from optitac_edge.service.view.render import encode_png, render_view
-    from optitac_edge.service.view.server import ViewServer
+    from optitac_edge.service.view.render import encode_png, render_published
     from optitac_edge.service.wiring import obtain_bundle, open_board_camera
 
     config = board_config(args)
@@ -161,8 +160,7 @@ def _cmd_snapshot(args: argparse.Namespace) -> int:
             view.close()
     if published is None:
         raise OptiTacError("the view produced no picture")
-    picture = render_view(published.gray, bundle, published.surface, published.contacts,
-                          ViewServer._lines(published), published.levels)
+    picture = render_published(published, bundle)
     with AtomicFile(args.output, "wb") as f:
         f.write(encode_png(picture))
     print(f"wrote {args.output}: {picture.shape[1]}x{picture.shape[0]} px, {len(published.contacts)} contacts")

@@ -483,9 +483,7 @@ class RecordingWriter:
             os.ftruncate(self._fd, size)
 
     def _grow_to(self, n_frames: int) -> None:
-        if n_frames <= self.n_frames and self._written <= n_frames:
-            self._reserve(self.n_frames)
-            return
+        """Room for ``n_frames`` (more than today) on disk and in the frame times."""
         self._reserve(n_frames)
         extra = n_frames - self.n_frames
         self._t_ns = np.concatenate([self._t_ns, np.zeros(extra, np.int64)])

@@ -93,3 +93,15 @@ def encode_png(picture: np.ndarray) -> bytes:
     if not ok:
         raise ValueError("PNG encoding failed")
     return bytes(data.tobytes())
+
+
+def render_published(p: Any, bundle: CalibrationBundle) -> np.ndarray:
+    """The picture of one view update (:class:`~optitac_edge.service.view.live.Published`), with its figures."""
+    import json
+
+    s = json.loads(p.state)
+    lines = [(f"{s['fps']:.1f} fps  frames {s['frames']}  dropped {s['frames_dropped']}  camera faults "
+              f"{s['camera_errors']}  light changes {s['light_changes']}  link {s['link']}"),
+             (f"contacts {len(s['contacts'])}  truncation {s['truncation']:g}  dark fibers {len(s['dark'])}  "
+              f"saturated fibers {len(s['saturated'])}")]
+    return render_view(p.gray, bundle, p.surface, p.contacts, lines, p.levels)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hmac
 import ipaddress
+import json
 import logging
 import secrets
 import threading
@@ -34,7 +35,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from optitac_edge.errors import OptiTacError
 from optitac_edge.service.view.live import LiveView, lower_priority
-from optitac_edge.service.view.render import encode_png, render_view
+from optitac_edge.service.view.render import encode_png, render_published
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -85,8 +86,8 @@ class _Server(ThreadingHTTPServer):
     allow_reuse_address = True
     request_queue_size = 16
 
-    def __init__(self, address: tuple[str, int], view: LiveView, token: str | None, snapshot_lines: Any) -> None:
-        self.view, self.token, self.snapshot_lines = view, token, snapshot_lines
+    def __init__(self, address: tuple[str, int], view: LiveView, token: str | None) -> None:
+        self.view, self.token = view, token
         self.assets = _assets()
         self.slots = threading.BoundedSemaphore(MAX_CLIENTS)
         self.refused = 0
@@ -225,15 +226,14 @@ class _Handler(BaseHTTPRequestHandler):
             if p is None:
                 self._send(HTTPStatus.SERVICE_UNAVAILABLE, b"no frame yet\n", "text/plain; charset=utf-8")
                 return
-            picture = render_view(p.gray, view.bundle, p.surface, p.contacts, self.server.snapshot_lines(p), p.levels)
-            self._send(HTTPStatus.OK, encode_png(picture), "image/png")
+            self._send(HTTPStatus.OK, encode_png(render_published(p, view.bundle)), "image/png")
         elif path == "/api/orient":
             what = query.get("do", [""])[0]
             if what not in ("start", "cancel"):
                 self._refuse(HTTPStatus.BAD_REQUEST, "do must be start or cancel")
                 return
             message = view.start_orientation() if what == "start" else view.cancel_orientation()
-            self._send(HTTPStatus.OK, f'{{"message":"{message}"}}'.encode(), "application/json")
+            self._send(HTTPStatus.OK, json.dumps({"message": message}).encode(), "application/json")
         else:
             self._refuse(HTTPStatus.NOT_FOUND, "not found")
 
@@ -257,7 +257,7 @@ class ViewServer:
         host, port = parse_bind(bind)
         self.token = None if is_loopback(host) else secrets.token_urlsafe(18)
         try:
-            self._server = _Server((host, port), view, self.token, self._lines)
+            self._server = _Server((host, port), view, self.token)
         except OSError as exc:
             raise OptiTacError(f"view: cannot listen on {bind} ({exc.strerror or exc})") from None
         self.view = view
@@ -279,17 +279,6 @@ class ViewServer:
     @property
     def bad_requests(self) -> int:
         return self._server.bad_requests + self._server.refused
-
-    @staticmethod
-    def _lines(p: Any) -> list[str]:
-        import json
-
-        s = json.loads(p.state)
-        first = (f"{s['fps']:.1f} fps  frames {s['frames']}  dropped {s['frames_dropped']}  camera faults "
-                 f"{s['camera_errors']}  light changes {s['light_changes']}  link {s['link']}")
-        second = (f"contacts {len(s['contacts'])}  truncation {s['truncation']:g}  dark fibers {len(s['dark'])}  "
-                  f"saturated fibers {len(s['saturated'])}")
-        return [first, second]
 
     def close(self) -> None:
         if self._closed:
