@@ -1,4 +1,4 @@
-"""Surface factors (A = S @ W) and the runtime surfaces: PatchSurface, DenseSurface."""
+"""Surface factors (A = S @ W) and the runtime surfaces: TriangleSurface, DenseSurface."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from optitac_edge.calibration.interpolation import build_interpolation, build_in
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
-from optitac_edge.core.surface import DenseSurface, PatchSurface, SurfaceFactors
+from optitac_edge.core.surface import DenseSurface, TriangleSurface, SurfaceFactors
 
 HEX = hex_layout()
 HEX_GRID = SurfaceGrid.over_layout(HEX)
@@ -62,7 +62,7 @@ def test_factors_reproduce_the_matrix_irregular(make_layout, n: int) -> None:
     exact = build_interpolation_matrix(layout, grid).astype(np.float64)
     np.testing.assert_array_equal(matrix, exact.astype(np.float32))
     assert _relative_error(factors.dense(), exact) <= 1e-6
-    surf = PatchSurface(factors, n)
+    surf = TriangleSurface(factors, n)
     out = np.full(n * n, np.nan, dtype=np.float32)
     v = np.random.default_rng(n).normal(0.0, 5.0, layout.n_fibers).astype(np.float32)
     assert _relative_error(surf.compute(v, out), exact @ v) <= 1e-5
@@ -100,20 +100,41 @@ def _signals(xy: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
     return out
 
 
-@pytest.mark.parametrize("tile", [1, 6, 7, 13])
-def test_patch_surface_equals_dense_product(hex_built, tile: int) -> None:
+def test_triangle_surface_equals_dense_product(hex_built) -> None:
     matrix, factors = hex_built
-    surf = PatchSurface(factors, HEX_GRID.n, tile=tile)
-    assert surf.n_tiles < (-(-HEX_GRID.n // tile)) ** 2  # the corners outside the hexagon are dropped
+    surf = TriangleSurface(factors, HEX_GRID.n)
+    assert surf.n_triangles == 384  # 217 fibers: 6 * 8**2 triangles, at most 20 cells each
     a64 = matrix.astype(np.float64)
     out = np.full(HEX_GRID.n ** 2, np.nan, dtype=np.float32)
-    for v in _signals(HEX.xy_mm, np.random.default_rng(tile)):
+    for v in _signals(HEX.xy_mm, np.random.default_rng(3)):
         assert surf.compute(v, out) is out
+        assert surf.evaluated == surf.n_triangles
         ref = a64 @ v
         if not ref.any():
             assert not out.any()
             continue
         assert _relative_error(out, ref) <= 1e-5
+
+
+@pytest.mark.parametrize("level", [0.5, 5.0, 20.0, 59.0])
+def test_triangle_surface_above_a_level_equals_the_truncated_dense_product(hex_built, level: float) -> None:
+    """Cells of triangles that cannot exceed the level are skipped; after the truncation nothing differs."""
+    matrix, factors = hex_built
+    surf = TriangleSurface(factors, HEX_GRID.n)
+    a64 = matrix.astype(np.float64)
+    out = np.full(HEX_GRID.n ** 2, np.nan, dtype=np.float32)
+    skipped = 0
+    for v in _signals(HEX.xy_mm, np.random.default_rng(int(level))):
+        surf.compute(v, out, level)
+        ref = a64 @ v
+        above = ref > level + 1e-4 * max(abs(level), 1.0)
+        near = np.abs(ref - level) <= 1e-4 * max(abs(level), 1.0)  # float32 rounding decides these
+        assert np.all(out[above] > level)
+        assert np.all(out[~above & ~near] <= level)
+        kept = out > level
+        np.testing.assert_allclose(out[kept], ref[kept], rtol=1e-4, atol=1e-4)
+        skipped += surf.n_triangles - surf.evaluated
+    assert skipped > 0  # a local bump evaluates only the triangles near it
 
 
 def test_patch_surface_with_dead_fiber_fill(hex_built) -> None:
@@ -122,7 +143,7 @@ def test_patch_surface_with_dead_fiber_fill(hex_built) -> None:
     dead[[0, 50, 51, 108, 200]] = True
     fill = dead_fill_matrix(HEX.xy_mm, dead)
     filled = matrix.astype(np.float64) @ fill
-    patch = PatchSurface(factors, HEX_GRID.n, fill=fill)
+    patch = TriangleSurface(factors, HEX_GRID.n, fill=fill)
     dense = DenseSurface(matrix, fill=fill)
     out, out_dense = (np.empty(HEX_GRID.n ** 2, np.float32) for _ in range(2))
     for v in _signals(HEX.xy_mm, np.random.default_rng(5))[2:]:
@@ -142,15 +163,17 @@ def test_dense_surface_is_the_matrix_product(hex_built) -> None:
         DenseSurface(matrix, fill=np.eye(3))
 
 
-@pytest.mark.parametrize("kind", ["patch", "dense"])
-def test_compute_allocates_nothing(hex_built, kind: str, traced_bytes) -> None:
+@pytest.mark.parametrize("kind, level", [("triangles", None), ("triangles", 1.0), ("dense", None)])
+def test_compute_allocates_nothing(hex_built, kind: str, level: float | None, traced_bytes) -> None:
     matrix, factors = hex_built
-    surf = PatchSurface(factors, HEX_GRID.n) if kind == "patch" else DenseSurface(matrix)
+    surf = TriangleSurface(factors, HEX_GRID.n) if kind == "triangles" else DenseSurface(matrix)
     v = np.random.default_rng(0).normal(0, 1, HEX.n_fibers).astype(np.float32)
     out = np.empty(HEX_GRID.n ** 2, np.float32)
-    net, peak = traced_bytes(lambda: surf.compute(v, out), 100)
+    net, peak = traced_bytes(lambda: surf.compute(v, out, level), 100)
     assert net == 0
-    assert peak < 1024  # not even temporaries of array size (a (n*n,) float32 is 40 kB)
+    # not even temporaries of array size (a (n*n,) float32 is 40 kB); with a level, the indices of
+    # the triangles evaluated (8 bytes each, at most 384, and np.nonzero's own bookkeeping)
+    assert peak < (1024 if level is None else 1024 + 16 * 384)
 
 
 def _factors(n_fibers: int = 5, n_cells: int = 4) -> dict[str, np.ndarray]:
@@ -183,9 +206,9 @@ def test_surface_factors_validate() -> None:
 def test_patch_surface_refuses_mismatched_mesh_or_fill(hex_built) -> None:
     _, factors = hex_built
     with pytest.raises(ValueError, match="cells"):
-        PatchSurface(factors, HEX_GRID.n - 1)
+        TriangleSurface(factors, HEX_GRID.n - 1)
     with pytest.raises(ValueError, match="fill"):
-        PatchSurface(factors, HEX_GRID.n, fill=np.eye(HEX.n_fibers - 1))
+        TriangleSurface(factors, HEX_GRID.n, fill=np.eye(HEX.n_fibers - 1))
 
 
 def test_patch_surface_of_hand_made_factors_with_repeated_columns() -> None:
@@ -197,5 +220,5 @@ def test_patch_surface_of_hand_made_factors_with_repeated_columns() -> None:
     v = np.random.default_rng(1).normal(0, 1, 5).astype(np.float32)
     out = np.full(9, np.nan, np.float32)
     ref = factors.dense().astype(np.float64) @ v
-    np.testing.assert_allclose(PatchSurface(factors, 3, tile=2).compute(v, out), ref, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(TriangleSurface(factors, 3).compute(v, out), ref, rtol=1e-5, atol=1e-6)
     assert out[4] == 0.0

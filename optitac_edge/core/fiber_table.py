@@ -176,15 +176,16 @@ class FiberSampler:
         # frame, 24 -> 17 us gray (640x480, 217 fibers, docs/performance.md). The blocks are
         # counted from the frame's start, not the memory's: a block that straddles two lines
         # touches one, which the adjacent-line prefetch mostly covers.
-        # ndarray.take, not np.take (no Python wrapper); the default mode="raise" measures
-        # faster than "clip" and "wrap" here
+        # ndarray.take, not np.take (no Python wrapper); mode="wrap": the default "raise" copies
+        # into a new buffer and then into ``out`` (a 21 kB allocation per frame), and the indices
+        # are in range for every frame check_frame accepts (FiberTable checks them against its size)
         flat = frame.reshape(-1)
-        flat.take(self._probe, out=self._probed)
+        flat.take(self._probe, out=self._probed, mode="wrap")
         if self._rgb is not None:
-            flat.take(self._index3, out=self._rgb.reshape(-1))
+            flat.take(self._index3, out=self._rgb.reshape(-1), mode="wrap")
             cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY, dst=self._gathered_row)
         else:
-            flat.take(self._index, out=self._gathered)
+            flat.take(self._index, out=self._gathered, mode="wrap")
         return self._gathered
 
     def reduce(self, out: np.ndarray) -> np.ndarray:

@@ -103,7 +103,7 @@ class GainCompensation:
         ratio = np.subtract(means, self._black, out=self._ratio)
         ratio *= baseline.inv_level
         live = self._live
-        ratio.take(self._live_idx, out=live)
+        ratio.take(self._live_idx, out=live, mode="wrap")
         live.sort()
         n = live.size
         g = float(live[(3 * (n - 1)) // 4])

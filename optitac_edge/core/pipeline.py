@@ -17,7 +17,7 @@ switchable improvements beyond the paper noted in brackets):
    the matrix];
 5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh),
    the whole mesh every frame, exactly, in the factored form
-   (:class:`~optitac_edge.core.surface.PatchSurface`: the values and estimated
+   (:class:`~optitac_edge.core.surface.TriangleSurface`: the values and estimated
    gradients at the fibers, then 9 of them per mesh cell, tile by tile);
 6. truncate: values <= threshold become 0, values above are kept
    [noise_levels: the truncation level is k * measured noise];
@@ -72,7 +72,7 @@ from optitac_edge.core.gain import GainCompensation
 from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
-from optitac_edge.core.surface import DenseSurface, PatchSurface
+from optitac_edge.core.surface import DenseSurface, TriangleSurface
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
 MAX_CANDIDATES = 8
@@ -140,9 +140,9 @@ class Pipeline:
         fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead) if o.fill_dead and self._has_dead else None
         factors = bundle.surface_factors
         #: Step 5: the whole surface every frame, exactly: the factored Clough-Tocher form when the
-        #: bundle has it (PatchSurface, ~4x less memory traffic), else the dense matrix.
-        self.surface_op: PatchSurface | DenseSurface = (
-            PatchSurface(factors, grid.n, fill=fill) if factors is not None
+        #: bundle has it (TriangleSurface, ~4x less memory traffic), else the dense matrix.
+        self.surface_op: TriangleSurface | DenseSurface = (
+            TriangleSurface(factors, grid.n, fill=fill) if factors is not None
             else DenseSurface(np.asarray(bundle.interpolation), fill=fill))
         min_area = float(bundle.thresholds.min_area_mm2)
         #: Steps 6 and 7: truncation and the split into contacts.
@@ -299,7 +299,7 @@ class Pipeline:
         est.baseline_ready = True
 
         signal = self.compute_signal(means, now_ns)
-        surface = self.surface_op.compute(signal, self._surface)
+        surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self._find_contacts(surface, est)
 
         if n > 0:

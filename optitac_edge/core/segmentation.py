@@ -73,7 +73,11 @@ class Segmenter:
         self._labels = np.zeros(n_cells, dtype=np.int32)
         self._seed_labels = np.zeros(n_cells, dtype=np.int32)
         self._blob_img = np.zeros(n_cells, dtype=np.float32)
-        self._nearest = np.zeros((n, n), dtype=np.int32)
+        self._nearest_buf = np.zeros(n_cells, dtype=np.int32)
+        self._dist = np.zeros(n_cells, dtype=np.float32)
+        self._label_values = np.zeros(n_cells, dtype=np.float32)  # labels as float32, for cv2.calcHist
+        self._hist = np.zeros(n_cells + 1, dtype=np.float32)
+        self._nearest = self.roi(self._nearest_buf, 1, 1)
 
     @staticmethod
     def roi(buffer: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -100,7 +104,9 @@ class Segmenter:
         """Split the box into contacts: ``(label, cells)`` of each, largest first, at least ``min_cells``.
 
         One blob holding one seed is ``[(WHOLE_MASK, cells)]``; otherwise each
-        label is a seed of :meth:`contact_surface`.
+        label is a seed of :meth:`contact_surface`. The cells are counted per
+        label with ``cv2.calcHist`` over the mask, into preallocated buffers:
+        no numpy buffer is allocated per frame.
         """
         img, mask = box.img, box.mask
         h, w = img.shape
@@ -108,26 +114,39 @@ class Segmenter:
         seeds = self.roi(self._split_mask, h, w)
         np.greater(img, np.float32(split), out=seeds)
         labels = self.roi(self._labels, h, w)
-        n_parts = cv2.connectedComponents(mask.view(np.uint8), labels=labels, connectivity=8,
-                                          ltype=cv2.CV_32S)[0]
+        mask_u8 = mask.view(np.uint8)
+        n_parts = cv2.connectedComponents(mask_u8, labels=labels, connectivity=8, ltype=cv2.CV_32S)[0]
         min_cells = self._min_cells
         if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
             n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self.roi(self._seed_labels, h, w),
                                               connectivity=8, ltype=cv2.CV_32S)[0]
             if n_seeds == 2:
                 return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
-        seeded = np.zeros(n_parts, dtype=bool)
-        seeded[labels[seeds]] = True
-        # seeds: the strong blobs, and the truncated blobs without one
+        # seeds: the strong blobs, and the truncated blobs without one (each blob's seed cells counted)
         blob = self.roi(self._blob, h, w)
-        np.logical_or(seeds, np.logical_and(mask, ~seeded[labels]), out=blob)
+        np.copyto(blob, seeds)
+        for k, n_seed_cells in enumerate(self._count(labels, seeds.view(np.uint8), n_parts)):
+            if k > 0 and n_seed_cells == 0:
+                below = self.roi(self._below, h, w)
+                np.equal(labels, k, out=below)
+                np.logical_or(blob, below, out=blob)
         below = self.roi(self._below, h, w)
         np.logical_not(blob, out=below)
-        self._nearest = np.asarray(cv2.distanceTransformWithLabels(
-            below.view(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_CCOMP)[1])
-        counts = np.bincount(self._nearest[mask], minlength=1)
-        order = np.argsort(counts)[::-1]
-        return [(int(k), int(counts[k])) for k in order if k > 0 and counts[k] >= min_cells - 1e-9]
+        self._nearest = nearest = self.roi(self._nearest_buf, h, w)
+        cv2.distanceTransformWithLabels(below.view(np.uint8), cv2.DIST_L2, 3, dst=self.roi(self._dist, h, w),
+                                        labels=nearest, labelType=cv2.DIST_LABEL_CCOMP)
+        n_labels = int(cv2.minMaxLoc(nearest)[1]) + 1
+        counts = self._count(nearest, mask_u8, n_labels)
+        order = sorted(range(1, n_labels), key=lambda k: -counts[k])
+        return [(k, int(counts[k])) for k in order if counts[k] >= min_cells - 1e-9]
+
+    def _count(self, labels: np.ndarray, where: np.ndarray, n_labels: int) -> list[float]:
+        """Cells of each label 0 .. n_labels - 1 of ``labels`` where ``where`` (uint8) is set."""
+        values = self.roi(self._label_values, *labels.shape)
+        np.copyto(values, labels, casting="unsafe")
+        hist = self._hist[:n_labels].reshape(n_labels, 1)
+        cv2.calcHist([values], [0], where, [n_labels], [0, n_labels], hist=hist)
+        return hist[:, 0].tolist()
 
     def contact_surface(self, box: Box, label: int) -> np.ndarray:
         """The truncated surface of contact ``label`` of the last :meth:`partition` alone, box-sized."""

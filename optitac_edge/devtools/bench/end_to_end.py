@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -66,7 +67,9 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
             if on_view is not None:
                 on_view(server.url)
         stop = threading.Event()
-        stats = service.run(stop, duration_s=seconds)
+        cpu = MainThreadCpu(warm_frames=int(fps))  # from the second second on
+        stats = service.run(stop, duration_s=seconds, on_result=cpu.on_result)
+        cpu.stop(stats.frames)
         steal = steal_jiffies() - steal0
         transport.wait_idle(1.0)
         t_stats = dict(transport.stats())
@@ -98,11 +101,48 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
             "sequence_gaps": missing,
             **drop_causes(camera, fps, steal),
             "achieved_fps": round(stats.frames / seconds, 1),
+            **cpu.result(),
             "latency_us": {"p50": s["median_us"], "p99": s["p99_us"], "max": s["max_us"]},
             # the part before the message was filled (camera delivery + processing), from its age field
             "frame_to_fill_us": {"p50": a["median_us"], "p99": a["p99_us"], "max": a["max_us"]},
             "transport": {k: v for k, v in t_stats.items() if isinstance(v, (int, float, str, bool))},
             **({"view": view_stats} if view is not None else {})}
+
+
+class MainThreadCpu:
+    """The service thread's CPU time and context switches per frame, from frame ``warm_frames`` to the end.
+
+    Everything the loop does counts: waiting for and taking the camera's frame,
+    the frame check, the pipeline, the message fill and encode, the transport's
+    hand-off, commands and STATUS (``getrusage(RUSAGE_THREAD)``: user + system).
+    """
+
+    def __init__(self, warm_frames: int) -> None:
+        self.warm = max(int(warm_frames), 1)
+        self._start: tuple[float, int, int, int] | None = None
+        self._end: tuple[float, int, int, int] | None = None
+
+    @staticmethod
+    def _sample(frames: int) -> tuple[float, int, int, int]:
+        r = resource.getrusage(resource.RUSAGE_THREAD)
+        return r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, frames
+
+    def on_result(self, _est: Any, stats: Any) -> None:
+        if self._start is None and stats.frames >= self.warm:
+            self._start = self._sample(stats.frames)
+
+    def stop(self, frames: int) -> None:
+        """Call on the service's thread right after ``Service.run`` returned."""
+        self._end = self._sample(frames)
+
+    def result(self) -> dict[str, Any]:
+        if self._start is None or self._end is None or self._end[3] <= self._start[3]:
+            return {"main_thread": None}
+        n = self._end[3] - self._start[3]
+        return {"main_thread": {
+            "frames": n, "cpu_us_per_frame": round((self._end[0] - self._start[0]) / n * 1e6, 1),
+            "voluntary_switches_per_frame": round((self._end[1] - self._start[1]) / n, 2),
+            "involuntary_switches_per_frame": round((self._end[2] - self._start[2]) / n, 3)}}
 
 
 def measure_startup(cal: Path, fps: float) -> dict[str, Any]:
