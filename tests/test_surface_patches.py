@@ -11,7 +11,7 @@ from optitac_edge.calibration.interpolation import build_interpolation, build_in
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
-from optitac_edge.core.surface import DenseSurface, TriangleSurface, SurfaceFactors
+from optitac_edge.core.surface import DenseSurface, SurfaceFactors, TriangleSurface
 
 HEX = hex_layout()
 HEX_GRID = SurfaceGrid.over_layout(HEX)

@@ -196,7 +196,7 @@ class TriangleSurface:
         counts = np.bincount(tri_of, minlength=len(tri_cols))
         starts = np.concatenate([[0], np.cumsum(counts)])
         #: Triangles (T) and the most cells of one (P).
-        self.n_triangles = n_tri = int(len(tri_cols))
+        self.n_triangles = n_tri = len(tri_cols)
         self.width = width = int(counts.max(initial=1))
         cells = np.zeros((max(n_tri, 1), width), dtype=np.intp)
         weights = np.zeros((max(n_tri, 1), width, CELL_TERMS), dtype=np.float32)
