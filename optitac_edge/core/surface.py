@@ -152,13 +152,16 @@ class TriangleSurface:
     the triangle's first cell, which write the same value twice), weights
     ``(T, P, 9)``.
 
-    Given a level (the truncation level), a triangle whose bound
-    ``sum_j M[t, j] * |g[t, j]|`` (``M``: the largest ``|weight|`` of each term
-    over the triangle's cells, ``g``: its 9 entries of ``w``) does not exceed
-    it cannot hold a cell above the level and is not evaluated: its cells are
-    0. After the truncation (values <= level become 0) the surface equals the
-    whole one exactly, and a frame costs the gradients plus the triangles near
-    a contact, not the whole mesh. Without a level, every triangle is evaluated.
+    Given a level (the truncation level), a triangle whose bound cannot
+    exceed it is not evaluated: its cells are 0. The bound of triangle ``t``
+    with vertex values ``v_i`` and the 6 gradient terms ``g_j``:
+    ``P_t * max_i |v_i| + sum_j M_tj |g_j|``, with ``P_t`` the largest
+    ``sum_i |weight|`` of the value terms over its cells (the value weights
+    sum to 1, so ``P_t`` is near 1) and ``M_tj`` the largest ``|weight|`` of
+    gradient term ``j``. After the truncation (values <= level become 0) the
+    surface equals the whole one exactly, and a frame costs the gradients plus
+    the triangles near a contact, not the whole mesh. Without a level, every
+    triangle is evaluated.
     Allocates one small array per call with a level (the indices of the triangles evaluated).
 
     Parameters
@@ -207,9 +210,15 @@ class TriangleSurface:
             weights[t] = wts[padded]
         self._tri_cols = np.ascontiguousarray(tri_cols, dtype=np.intp).reshape(n_tri, CELL_TERMS)
         self._cells, self._weights = cells[:n_tri], weights[:n_tri]
-        # the bound's terms and weights term-major, (9, T): the per-triangle sum is 8 vector adds
+        # the bound's terms and weights term-major, (9, T): per triangle sums and maxima are vector ops
         self._cols_t = np.ascontiguousarray(self._tri_cols.T)
-        self._bound_w = np.ascontiguousarray(np.abs(self._weights).max(axis=1).T, dtype=np.float32)
+        # value terms first, then gradients (as calibration builds them); other factors: every term
+        # is bounded by its largest weight
+        nv = 3 if n_tri and bool(np.all(tri_cols[:, :3] < n_f) and np.all(tri_cols[:, 3:] >= n_f)) else 0
+        self._n_value = nv
+        self._value_w = np.abs(self._weights[:, :, :nv]).sum(axis=2).max(axis=1, initial=0.0).astype(np.float32)
+        self._grad_w = np.ascontiguousarray(np.abs(self._weights[:, :, nv:]).max(axis=1).T, dtype=np.float32)
+        self._value_bound = np.zeros(n_tri, dtype=np.float32)
         self._all = np.arange(n_tri, dtype=np.intp)
         self._w = np.zeros(op.shape[0], dtype=np.float32)
         self._w_values, self._w_grads = self._w[:n_f], self._w[n_f:]
@@ -241,15 +250,21 @@ class TriangleSurface:
         else:
             # ndarray.take, not np.take: no keyword dict per call; "wrap": the indices were checked
             # at construction (in range, so nothing wraps), "raise" would buffer ``out``
-            bound_terms = self._w.take(self._cols_t, out=self._terms_t, mode="wrap")
-            np.abs(bound_terms, out=bound_terms)
-            np.multiply(bound_terms, self._bound_w, out=bound_terms)
-            np.add.reduce(bound_terms, axis=0, out=self._bound)
+            terms_t = self._w.take(self._cols_t, out=self._terms_t, mode="wrap")
+            np.abs(terms_t, out=terms_t)
+            nv = self._n_value
+            if nv:
+                np.maximum.reduce(terms_t[:nv], axis=0, out=self._value_bound)
+                np.multiply(self._value_bound, self._value_w, out=self._value_bound)
+            grads = terms_t[nv:]
+            np.multiply(grads, self._grad_w, out=grads)
+            np.add.reduce(grads, axis=0, out=self._bound)
+            np.add(self._bound, self._value_bound, out=self._bound)
             np.greater(self._bound, np.float32(float(level) * (1.0 - self.BOUND_MARGIN)), out=self._selected)
-            idx = np.flatnonzero(self._selected)  # the frame's one numpy buffer here, 8 bytes a triangle
-            if idx.size == 0:
+            if not self._selected.any():
                 self.evaluated = 0
                 return out
+            idx = np.flatnonzero(self._selected)  # the one numpy buffer allocated here, 8 bytes a triangle
         k = idx.size
         self.evaluated = k
         sel_cols = self._tri_cols.take(idx, axis=0, out=self._sel_cols[:k], mode="wrap")
