@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import cv2
 import numpy as np
 
 from optitac_edge.core.fiber_table import FiberTable
@@ -60,13 +61,17 @@ class FrameCheck:
         """Why ``frame`` must be skipped (``"bad"``, ``"dark"``, ``"saturated"``), or None.
 
         Also sets :attr:`saturated` when some live fiber centre is at full scale.
-        Costs one gather of a pixel per fiber into a preallocated buffer and two counts.
+        Costs one gather of a pixel per fiber into a preallocated buffer and its minimum and
+        maximum; two counts only when some probe is dark or at full scale.
         """
         self.saturated = False
         if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self.frame_shape:
             return "bad"
         values, flags = self._values, self._flags
-        frame.reshape(-1).take(self._probe, out=values, mode="clip")
+        frame.reshape(-1).take(self._probe, out=values, mode="wrap")  # in range for a frame of this shape
+        low, high = cv2.minMaxLoc(values)[:2]
+        if low > DARK_LEVEL and high < SATURATED_LEVEL:  # the usual frame: one gather and one pass
+            return None
         np.greater_equal(values, SATURATED_LEVEL, out=flags)
         n_sat = self._count(flags)
         if n_sat > SATURATED_FRACTION * self._n_probes:

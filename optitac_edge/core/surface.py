@@ -209,15 +209,18 @@ class TriangleSurface:
             cells[t] = padded
             weights[t] = wts[padded]
         self._tri_cols = np.ascontiguousarray(tri_cols, dtype=np.intp).reshape(n_tri, CELL_TERMS)
-        self._cells, self._weights = cells[:n_tri], weights[:n_tri]
+        # weights term-major per triangle, (T, 9, P): the product is a row of 9 terms times (9, P),
+        # which numpy's stacked matmul does ~3x faster than (P, 9) times a column
+        self._cells = cells[:n_tri]
+        self._weights = np.ascontiguousarray(weights[:n_tri].transpose(0, 2, 1))
         # the bound's terms and weights term-major, (9, T): per triangle sums and maxima are vector ops
         self._cols_t = np.ascontiguousarray(self._tri_cols.T)
         # value terms first, then gradients (as calibration builds them); other factors: every term
         # is bounded by its largest weight
         nv = 3 if n_tri and bool(np.all(tri_cols[:, :3] < n_f) and np.all(tri_cols[:, 3:] >= n_f)) else 0
         self._n_value = nv
-        self._value_w = np.abs(self._weights[:, :, :nv]).sum(axis=2).max(axis=1, initial=0.0).astype(np.float32)
-        self._grad_w = np.ascontiguousarray(np.abs(self._weights[:, :, nv:]).max(axis=1).T, dtype=np.float32)
+        self._value_w = np.abs(self._weights[:, :nv]).sum(axis=1).max(axis=1, initial=0.0).astype(np.float32)
+        self._grad_w = np.ascontiguousarray(np.abs(self._weights[:, nv:]).max(axis=2).T, dtype=np.float32)
         self._value_bound = np.zeros(n_tri, dtype=np.float32)
         self._all = np.arange(n_tri, dtype=np.intp)
         self._w = np.zeros(op.shape[0], dtype=np.float32)
@@ -226,10 +229,10 @@ class TriangleSurface:
         self._bound = np.zeros(n_tri, dtype=np.float32)
         self._selected = np.zeros(n_tri, dtype=bool)
         self._sel_cols = np.zeros((n_tri, CELL_TERMS), dtype=np.intp)
-        self._sel_terms = np.zeros((n_tri, CELL_TERMS, 1), dtype=np.float32)
-        self._sel_weights = np.zeros((n_tri, width, CELL_TERMS), dtype=np.float32)
+        self._sel_terms = np.zeros((n_tri, 1, CELL_TERMS), dtype=np.float32)
+        self._sel_weights = np.zeros((n_tri, CELL_TERMS, width), dtype=np.float32)
         self._sel_cells = np.zeros((n_tri, width), dtype=np.intp)
-        self._values = np.zeros((n_tri, width, 1), dtype=np.float32)
+        self._values = np.zeros((n_tri, 1, width), dtype=np.float32)
         #: Triangles evaluated by the last :meth:`compute`.
         self.evaluated = 0
 
@@ -268,8 +271,9 @@ class TriangleSurface:
         k = idx.size
         self.evaluated = k
         sel_cols = self._tri_cols.take(idx, axis=0, out=self._sel_cols[:k], mode="wrap")
-        self._w.take(sel_cols, out=self._sel_terms[:k, :, 0], mode="wrap")
+        self._w.take(sel_cols, out=self._sel_terms[:k, 0], mode="wrap")
         sel_weights = self._weights.take(idx, axis=0, out=self._sel_weights[:k], mode="wrap")
-        vals = np.matmul(sel_weights, self._sel_terms[:k], out=self._values[:k])
-        out.put(self._cells.take(idx, axis=0, out=self._sel_cells[:k], mode="wrap"), vals, mode="wrap")
+        vals = np.matmul(self._sel_terms[:k], sel_weights, out=self._values[:k])
+        # fancy assignment, not ndarray.put: ~2.5x faster for a few thousand cells
+        out[self._cells.take(idx, axis=0, out=self._sel_cells[:k], mode="wrap")] = vals[:, 0]
         return out

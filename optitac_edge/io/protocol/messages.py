@@ -34,6 +34,11 @@ class ContactFlags(IntFlag):
     MORE_CONTACTS = 0x10
 
 
+_CONTACT, _CALIBRATED, _SATURATED, _DEGRADED, _MORE = (int(f) for f in (
+    ContactFlags.CONTACT, ContactFlags.CALIBRATED, ContactFlags.SATURATED, ContactFlags.DEGRADED,
+    ContactFlags.MORE_CONTACTS))
+
+
 class ShapeCode(IntEnum):
     """Contact shape on the wire."""
 
@@ -48,6 +53,8 @@ class ShapeCode(IntEnum):
     @classmethod
     def coerce(cls, value: object) -> int:
         """``value`` as a shape code on the wire; anything that is not one becomes UNKNOWN."""
+        if type(value) is cls:  # the message's own field: no lookup (per frame)
+            return int(value)  # type: ignore[call-overload]
         try:
             return int(cls(int(value)))  # type: ignore[call-overload]
         except (ValueError, TypeError, OverflowError):
@@ -57,7 +64,16 @@ class ShapeCode(IntEnum):
     def from_name(cls, name: str, contact: bool) -> ShapeCode:
         if not contact:
             return cls.NONE
-        return cls.__members__.get(name.upper(), cls.UNKNOWN) if name else cls.UNKNOWN
+        code = _SHAPE_BY_NAME.get(name)
+        if code is None:
+            code = _SHAPE_BY_NAME[name] = cls.__members__.get(name.upper(), cls.UNKNOWN) if name else cls.UNKNOWN
+        return code
+
+
+#: Shape names already looked up (the model's class names: a handful), name -> code.
+_SHAPE_BY_NAME: dict[str, ShapeCode] = {}
+#: Every CONTACT flags value, by its integer (an IntFlag built once, not per frame).
+_FLAGS = tuple(ContactFlags(i) for i in range(32))
 
 
 def fold_angle_deg(deg: float) -> float:
@@ -128,28 +144,20 @@ class ContactMessage:
              degraded: bool = False) -> ContactMessage:
         """Update in place from a :class:`~optitac_edge.core.contact.ContactEstimate`; returns self."""
         contact = bool(est.contact)
-        flags = ContactFlags(0)
-        if contact:
-            flags |= ContactFlags.CONTACT
-            if getattr(est, "n_contacts", 1) > 1:
-                flags |= ContactFlags.MORE_CONTACTS
-        if calibrated:
-            flags |= ContactFlags.CALIBRATED
-        if saturated:
-            flags |= ContactFlags.SATURATED
-        if degraded:
-            flags |= ContactFlags.DEGRADED
-        self.flags = flags
+        flags = ((_CONTACT | (_MORE if getattr(est, "n_contacts", 1) > 1 else 0)) if contact else 0) \
+            | (_CALIBRATED if calibrated else 0) | (_SATURATED if saturated else 0) | (_DEGRADED if degraded else 0)
+        self.flags = _FLAGS[flags]
         self.t_us = t_ns // 1000
-        def finite(v: float) -> float:
-            return float(v) if contact and math.isfinite(v) else 0.0
-
-        self.x_mm, self.y_mm = finite(est.x_mm), finite(est.y_mm)
-        self.major_mm, self.minor_mm = finite(est.major_mm), finite(est.minor_mm)
-        self.angle_deg = finite(est.angle_deg)
-        self.strength = finite(est.strength)
+        isfinite = math.isfinite
+        if contact:
+            v = (float(est.x_mm), float(est.y_mm), float(est.major_mm), float(est.minor_mm),
+                 float(est.angle_deg), float(est.strength), float(est.confidence))
+            (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
+             self.confidence) = (x if isfinite(x) else 0.0 for x in v)
+        else:
+            self.x_mm = self.y_mm = self.major_mm = self.minor_mm = self.angle_deg = 0.0
+            self.strength = self.confidence = 0.0
         self.shape = ShapeCode.from_name(est.shape, contact)
-        self.confidence = finite(est.confidence)
         self.age_us = max((now_ns - t_ns) // 1000, 0)
         return self
 
