@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from optitac_edge.cli import main
-from optitac_edge.devtools.bench import FAST_PASSES, STAGES
+from optitac_edge.devtools.bench import STAGES
 
 
 def _check_stats(d: dict) -> None:
@@ -14,11 +14,17 @@ def _check_stats(d: dict) -> None:
         assert 0 <= d["median_us"] <= d["p99_us"] <= d["max_us"]
 
 
-def test_bench_sim_all_sections(tmp_path, bundle_path, capsys) -> None:
+def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> None:
+    from optitac_edge.devtools.bench import scaling
+
+    # small arrays and few distinct frames: the structure of every section, quickly
+    monkeypatch.setattr(scaling, "FIBER_RINGS", (2, 3))
+    monkeypatch.setattr(scaling, "DISTINCT_FRAMES", 6)
     out = tmp_path / "bench.json"
     assert main(["bench", "--frames", "40", "--cal", str(bundle_path), "--fps", "120",
                  "--reference-frames", "3", "--memory-frames", "20", "--e2e-seconds", "1",
-                 "--queue-frames", "2", "--json", str(out)]) == 0
+                 "--paced-frames", "4", "--cpu-seconds", "0",
+                 "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| whole_frame |" in text
     res = json.loads(out.read_text())
@@ -30,13 +36,24 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys) -> None:
         _check_stats(d)
     ref = res["reference"]
     assert ref["frames"] == 3 and ref["ratio_reference_to_fast_paper_mode"] > 0
-    assert ref["reference"]["n"] == 3 and ref["fast_paper_mode"]["n"] == 3 * FAST_PASSES
+    assert ref["reference"]["n"] == 3 and ref["fast_paper_mode"]["n"] == 3 and ref["fast_all_options"]["n"] == 3
+    contacts = res["contacts"]["per_contacts"]
+    assert list(contacts) == ["0", "1", "2", "4"]
+    for k, d in contacts.items():  # the simulator pressed that many indenters, and each was found
+        assert d["n"] == 4 and d["contacts"] == int(k)
+    assert res["contacts"]["ratio_4_to_1"] > 0 and res["contacts"]["ratio_0_to_1"] > 0
+    fibers = res["fibers"]["per_fibers"]
+    assert list(fibers) == ["19", "37"] and all(d["contacts"] == 1 for d in fibers.values())
+    heap = res["heap"]
+    assert {"0", "1", "2", "4"} <= set(heap) and all("in_use_growth_bytes" in heap[k] for k in "0124")
+    assert "service_cpu" not in res  # --cpu-seconds 0 (see the test of measure_service_cpu)
     mem = res["memory"]
     assert {"net_bytes_per_frame", "max_transient_bytes_in_frame", "rss_growth_bytes"} <= set(mem)
     e2e = res["end_to_end"]
     assert e2e["frames"] > 0 and e2e["received"] > 0 and e2e["queue_frames"] == 2
     assert {"p50", "p99", "max"} == set(e2e["latency_us"])
     assert e2e["received"] <= e2e["sent"] <= e2e["frames"]
+    assert e2e["contacts_pressed"] == 2 and e2e["main_thread"]["cpu_us_per_frame"] > 0
     st = res["startup"]
     assert st["start_to_first_packet_s"] is not None and st["start_to_first_packet_s"] > 0
     assert st["heavy_modules_imported"] == []  # the runtime imports neither scipy nor scikit-learn
@@ -107,3 +124,95 @@ def test_drops_are_blamed_on_the_loop_only_when_the_capture_thread_was_on_time()
     assert dropped_in_stall(11.2 * period, 10 * period, int(6 * period), period)
     # catch-up after a stall: on time by now, but the dropped frame was published 50 µs earlier
     assert dropped_in_stall(10 * period + 2e5, 10 * period, int(10 * period + 1.5e5), period)
+
+
+def test_service_cpu_runs_every_contact_count_interleaved_and_takes_medians(monkeypatch, tmp_path) -> None:
+    """The production loop's runs are faked: the order of the passes and the figures derived from them."""
+    import numpy as np
+
+    from optitac_edge.devtools.bench import end_to_end, scaling
+
+    calls: list[int] = []
+    cpu = {0: [100.0, 120.0, 80.0], 1: [200.0, 260.0, 220.0], 2: [300.0, 300.0, 330.0], 4: [400.0, 450.0, 420.0]}
+
+    made: dict[int, list] = {}
+
+    def frames(k, rgb, fps, layout=None):
+        made[k] = [np.full((4, 4), k, np.uint8)] * (scaling.REST_FRAMES + 3)
+        return made[k]
+
+    def fake(cal, fps, seconds, rgb, frame_list, rest):
+        k = int(frame_list[0][0, 0])  # which contact count's frames the run got
+        calls.append(k)
+        return {"main_thread": {"cpu_us_per_frame": cpu[k][calls.count(k) - 1]},
+                "frames_dropped": 0, "latency_us": {"p50": 1, "p99": 2, "max": 3}}
+
+    monkeypatch.setattr(scaling, "contact_frames", frames)
+
+    monkeypatch.setattr(end_to_end, "measure_end_to_end", fake)
+    lines: list[str] = []
+    res = scaling.measure_service_cpu(tmp_path / "cal.npz", 240.0, 5.0, 3, False, lines.append)
+    assert calls == [1, 0, 2, 4] * 3
+    assert res["cpu_us_per_frame"] == {"0": 100.0, "1": 220.0, "2": 300.0, "4": 420.0}
+    assert res["ratio_4_to_1"] == round(420 / 220, 3) and res["ratio_0_to_1"] == round(100 / 220, 3)
+    assert len(lines) == 12 and "1 contact(s), pass 1: 200.0" in lines[0]
+
+
+def test_main_thread_cpu_counts_from_the_warm_frame_to_the_end() -> None:
+    from types import SimpleNamespace
+
+    from optitac_edge.devtools.bench.end_to_end import MainThreadCpu
+
+    cpu = MainThreadCpu(warm_frames=10)
+    for frames in range(1, 10):
+        cpu.on_result(None, SimpleNamespace(frames=frames))
+    assert cpu.result() == {"main_thread": None}  # not warm yet
+    for frames in range(10, 200):
+        cpu.on_result(None, SimpleNamespace(frames=frames))
+    sum(i * i for i in range(200_000))  # some CPU on this thread
+    cpu.stop(200)
+    got = cpu.result()["main_thread"]
+    assert got["frames"] == 190 and got["cpu_us_per_frame"] > 0
+
+
+def test_paced_runs_take_turns_frame_by_frame_on_the_camera_clock() -> None:
+    """Configuration i % C gets frame i, due at i / fps; the loop sleeps until then, counts late frames."""
+    import numpy as np
+
+    from optitac_edge.devtools.bench.paced import Paced, run_interleaved
+
+    now = [0]
+    slept: list[float] = []
+    seen: list[tuple[str, int, int]] = []
+
+    def clock() -> int:
+        return now[0]
+
+    def sleep(s: float) -> None:
+        slept.append(s)
+        now[0] += round(s * 1e9)
+
+    def process(name: str, cost_ns: int):
+        def run(frame: np.ndarray, t_ns: int) -> int:
+            seen.append((name, int(frame[0]), t_ns))
+            now[0] += cost_ns
+            return int(frame[0])
+        return run
+
+    frames = [np.array([v], np.uint8) for v in range(6)]  # frame 0: rest; then 1..5 cycled
+    configs = [Paced("a", process("a", 1_000_000), frames, 1, count=lambda e: e),
+               Paced("b", process("b", 6_000_000), frames, 1)]  # b overruns a 10 ms period
+    res = run_interleaved(configs, 100.0, 3, warmup_per_config=1, sleep=sleep, clock_ns=clock, timer_ns=clock)
+    assert [s[0] for s in seen] == ["a", "b"] * 5  # rest frames, then turn by turn
+    assert [s[1] for s in seen if s[0] == "a"] == [0, 1, 2, 3, 4]  # each its own frames (rest, then cycled)
+    assert [s[2] for s in seen if s[0] == "a"] == [20_000_000 * i for i in range(5)]  # C periods a frame
+    assert res["a"]["n"] == res["b"]["n"] == 3
+    assert res["a"]["contacts"] == 3.0  # the median of its estimates' counts (frames 2, 3, 4)
+    assert slept and all(s > 0 for s in slept) and res["a"]["late_frames"] == res["b"]["late_frames"] == 0
+    assert res["a"]["median_us"] == 1000.0 and res["b"]["median_us"] == 6000.0
+    # b now takes 25 ms, more than two 10-ms periods: the frames after each of its start late
+    configs[1] = Paced("b", process("b", 25_000_000), frames, 1)
+    seen.clear()
+    res = run_interleaved(configs, 100.0, 3, warmup_per_config=1, sleep=sleep, clock_ns=clock, timer_ns=clock)
+    assert res["a"]["late_frames"] >= 2 and res["b"]["late_frames"] >= 2
+

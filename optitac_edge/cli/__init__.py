@@ -185,6 +185,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "camera.queue_frames; 1 = latest frame only)")
     p.add_argument("--view", default=None, metavar="HOST:PORT",
                    help="end to end: serve the live view during the run (open it in a browser to include its cost)")
+    p.add_argument("--paced-frames", type=number(0, 10**7, integer=True), default=2000, metavar="N",
+                   help="frames per configuration of the paced runs: 0, 1, 2, 4 contacts and 217, 469, 1027 "
+                        "fibers (0: skip)")
+    p.add_argument("--cpu-seconds", type=number(0, 1e5), default=10.0, metavar="S",
+                   help="service main-thread CPU: seconds per run with 0, 1, 2 and 4 contacts (0: skip)")
+    p.add_argument("--cpu-rounds", type=number(1, 100, integer=True), default=2, metavar="R",
+                   help="service main-thread CPU: interleaved passes over the contact counts (default 2)")
+    p.add_argument("--e2e-contacts", type=number(0, 4, integer=True), default=2, metavar="K",
+                   help="end to end: indenters pressed throughout the run (default 2)")
     bringup.add_parsers(sub)
     _add_verbosity_to_commands(parser)
     return parser
@@ -526,7 +535,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
                     workdir=args.workdir, reference_frames=args.reference_frames,
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
-                    startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view, log=print)
+                    startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view,
+                    paced_frames=args.paced_frames, cpu_seconds=args.cpu_seconds, cpu_rounds=args.cpu_rounds,
+                    e2e_contacts=args.e2e_contacts, log=print)
     print(format_table(res))
     write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")

@@ -89,3 +89,35 @@ def cached_sim_bundle(workdir: str | Path, *, rgb: bool = False) -> Path:
         except BundleError:
             pass
     return build_sim_bundle(path, rgb=rgb, workdir=workdir)
+
+
+#: Rest frames the fiber map of :func:`cached_layout_bundle` is calibrated from.
+LAYOUT_REST_FRAMES = 30
+
+
+def cached_layout_bundle(workdir: str | Path, rings: int, *, rgb: bool = False) -> Path:
+    """A fiber-map-only bundle of a simulated sensor with a hexagonal array of ``rings`` rings.
+
+    The array fills the 640 x 480 frame as the 217-fiber one does (8 rings:
+    217 fibers; 12: 469; 18: 1027), so the bench compares fiber counts at
+    the same frame size. Built once into ``workdir`` and reused.
+    """
+    import numpy as np
+
+    from optitac_edge.core.layout import hex_layout
+    from optitac_edge.sim.sensor import SimulatedSensor
+
+    workdir = Path(workdir)
+    path = workdir / f"cal-hex{rings}-{'rgb' if rgb else 'gray'}.npz"
+    if path.exists():
+        try:
+            if load_bundle(path).surface_factors is not None:
+                return path
+        except BundleError:
+            pass
+    layout = hex_layout(rings)
+    sensor = SimulatedSensor(layout=layout, optics=CameraOptics(rgb=rgb), seed=1)
+    frames = np.stack([sensor.frame(()) for _ in range(LAYOUT_REST_FRAMES)])
+    workdir.mkdir(parents=True, exist_ok=True)
+    save_bundle(calibrate_fibers(frames, "rgb" if rgb else "gray", layout=layout), path)
+    return path

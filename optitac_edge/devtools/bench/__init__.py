@@ -13,19 +13,32 @@ Sections (all on the same frames, one process unless noted; see docs/performance
     width model lookup; ``encode``: CONTACT message fill and wire encoding).
     Stages that do not run on a frame (no contact, model absent) are not
     sampled on it. Median, p99 and max, µs.
+``contacts``
+    Frames with 0, 1, 2 and 4 indenters pressed at once (the simulator's
+    multi-press), paced at ``--fps`` with cold caches and interleaved frame by
+    frame (:mod:`~optitac_edge.devtools.bench.paced`); ratios to one contact.
+``fibers``
+    One contact on 217, 469 and 1027-fiber arrays at the same frame size,
+    paced and interleaved; the ratio of the largest to the smallest.
 ``reference``
     :class:`~optitac_edge.devtools.reference.ReferencePipeline` (the paper's method done
-    the obvious way) on the first ``--reference-frames`` of the same frames, and
-    the fast pipeline in paper mode on the same frames, :data:`FAST_PASSES`
-    times over (a median of 300 samples of ~0.1 ms moved by 10 % between
-    runs); ratios of medians.
+    the obvious way), the fast pipeline in paper mode and with all options, on
+    the first ``--reference-frames`` of the same frames, interleaved frame by
+    frame so that the load cancels in the ratios of medians.
+``heap``
+    glibc's heap in use and arena over steady-state frames with 0-4 contacts (growth, bytes).
+``service_cpu``
+    The service's main-thread CPU time per frame (``getrusage(RUSAGE_THREAD)``:
+    capture hand-off, frame check, pipeline, encode, transport) with 0, 1, 2
+    and 4 contacts, ``--cpu-seconds`` per run, ``--cpu-rounds`` interleaved passes.
 ``memory``
     tracemalloc: net bytes allocated per frame after warm-up (traced memory
     after minus before, divided by the frames) and the largest transient
     allocation within a frame; RSS growth over the ``stages`` pass.
 ``end_to_end``
     The service loop (:class:`~optitac_edge.service.loop.Service`) with the
-    simulated camera paced at ``--fps`` writing serial frames into a pty; a
+    camera replaying frames with ``--e2e-contacts`` indenters pressed throughout
+    (default 2), paced at ``--fps``, writing serial frames into a pty; a
     separate process reads the pty and timestamps each CONTACT frame's last
     byte (CLOCK_MONOTONIC, shared by both processes): latency = that time
     minus the frame's timestamp in the packet. Frames dropped (camera
@@ -53,9 +66,17 @@ from typing import Any
 from optitac_edge.core.pipeline import single_threaded_opencv
 from optitac_edge.devtools.bench.end_to_end import measure_end_to_end, measure_startup
 from optitac_edge.devtools.bench.inputs import load_inputs, machine
-from optitac_edge.devtools.bench.stages import FAST_PASSES, STAGES, measure_memory, measure_reference, measure_stages
+from optitac_edge.devtools.bench.scaling import (
+    contact_frames,
+    measure_contacts,
+    measure_fibers,
+    measure_heap,
+    measure_reference,
+    measure_service_cpu,
+)
+from optitac_edge.devtools.bench.stages import STAGES, measure_memory, measure_stages
 
-__all__ = ["FAST_PASSES", "STAGES", "format_table", "run_bench"]
+__all__ = ["STAGES", "format_table", "run_bench"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,6 +85,7 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
               rgb: bool = False, workdir: Path | None = None, reference_frames: int = 300,
               memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
               unique_frames: int = 600, queue_frames: int | None = None, view: str | None = None,
+              paced_frames: int = 2000, cpu_seconds: float = 10.0, cpu_rounds: int = 2, e2e_contacts: int = 2,
               log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every section; returns the results (see the module docstring).
 
@@ -91,26 +113,45 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
         res["pipeline"] = measure_stages(bundle, frame_list, rest, frames, fps)
         whole = res["pipeline"]["stages"]["whole_frame"]
         log(f"  whole frame: median {whole['median_us']} µs, p99 {whole['p99_us']} µs, max {whole['max_us']} µs")
+        if paced_frames > 0 and source == "sim":
+            res["contacts"] = c = measure_contacts(bundle, fps, paced_frames, rgb)
+            per = c["per_contacts"]
+            log(f"  contacts, paced at {fps} fps: " + ", ".join(
+                f"{k}: {v['median_us']} µs" for k, v in per.items())
+                + f"; 4/1 x{c['ratio_4_to_1']}, 0/1 x{c['ratio_0_to_1']}")
+            res["fibers"] = fb = measure_fibers(workdir, fps, paced_frames, rgb)
+            log("  fibers, one contact: " + ", ".join(f"{k}: {v['median_us']} µs" for k, v in fb["per_fibers"].items())
+                + f"; x{fb['ratio_largest_to_smallest']}")
         if reference_frames > 0:
-            res["reference"] = measure_reference(bundle, frame_list, rest, reference_frames, fps,
-                                                 whole["median_us"])
-            r = res["reference"]
-            fast = r["fast_paper_mode"]
-            log(f"  reference: median {r['reference']['median_us']} µs ({r['reference']['n']} frames); "
-                f"paper mode: median {fast['median_us']} µs ({fast['n']} frames); "
-                f"x{r['ratio_reference_to_fast_paper_mode']}")
+            res["reference"] = r = measure_reference(bundle, frame_list, rest, reference_frames)
+            log(f"  reference (interleaved): median {r['reference']['median_us']} µs; paper mode "
+                f"{r['fast_paper_mode']['median_us']} µs, x{r['ratio_reference_to_fast_paper_mode']}; "
+                f"all options x{r['ratio_reference_to_fast_all_options']}")
         if memory_frames > 0:
             res["memory"] = measure_memory(bundle, frame_list, rest, memory_frames, fps)
             res["memory"]["rss_growth_bytes"] = res["pipeline"]["rss_growth_bytes"]
             res["memory"]["rss_frames"] = frames
             log(f"  memory: {res['memory']['net_bytes_per_frame']:.1f} net bytes/frame, "
                 f"RSS +{res['memory']['rss_growth_bytes']} B over {frames} frames")
+            if source == "sim":
+                res["heap"] = hp = measure_heap(bundle, fps, memory_frames, rgb)
+                log("  libc heap growth over " + str(memory_frames) + " frames: " + ", ".join(
+                    f"{k} contacts {v['in_use_growth_bytes']} B" for k, v in hp.items() if isinstance(v, dict)))
+    if cpu_seconds > 0 and cpu_rounds > 0 and source == "sim":
+        res["service_cpu"] = sc = measure_service_cpu(cal_path, fps, cpu_seconds, cpu_rounds, rgb, log)
+        log("  service main-thread CPU per frame: " + ", ".join(
+            f"{k} contacts {v} µs" for k, v in sc["cpu_us_per_frame"].items())
+            + f"; 4/1 x{sc['ratio_4_to_1']}, 0/1 x{sc['ratio_0_to_1']}")
     if e2e_seconds > 0:
         if source != "sim":
             res["end_to_end"] = {"skipped": "needs --source sim"}
         else:
-            res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb, frame_list, rest,
+            from optitac_edge.devtools.bench.scaling import REST_FRAMES
+
+            res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb,
+                                                       contact_frames(e2e_contacts, rgb, fps), REST_FRAMES,
                                                        queue_frames, view, lambda url: log(f"  view: {url}"))
+            e["contacts_pressed"] = e2e_contacts
             why = ""
             if "frames_dropped_by_pipeline" in e:
                 st = e["process_stalls"]
@@ -120,6 +161,7 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
             log(f"  end to end @ {fps} fps, {e2e_seconds} s, queue {e['queue_frames']}: {e['frames']} frames, dropped "
                 f"{e['frames_dropped']}{why}, lost {e['packets_lost']}, latency p50/p99/max "
                 f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs"
+                + (f"; main-thread CPU {e['main_thread']['cpu_us_per_frame']} µs/frame" if e.get("main_thread") else "")
                 + (f"; view updates {e['view']['updates']}, skipped {e['view']['skipped']}" if "view" in e else ""))
     if startup:
         if source != "sim" or fmt != "gray":

@@ -67,7 +67,7 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
             if on_view is not None:
                 on_view(server.url)
         stop = threading.Event()
-        cpu = MainThreadCpu(warm_frames=int(fps))  # from the second second on
+        cpu = MainThreadCpu(warm_frames=int(fps * min(1.0, seconds / 4)))  # from the second second on (short runs: the first quarter)
         stats = service.run(stop, duration_s=seconds, on_result=cpu.on_result)
         cpu.stop(stats.frames)
         steal = steal_jiffies() - steal0

@@ -48,7 +48,8 @@ class Paced:
 
 def run_interleaved(configs: Sequence[Paced], fps: float, n_per_config: int,
                     warmup_per_config: int = 100, sleep: Callable[[float], None] = time.sleep,
-                    clock_ns: Callable[[], int] = time.monotonic_ns) -> dict[str, dict[str, Any]]:
+                    clock_ns: Callable[[], int] = time.monotonic_ns,
+                    timer_ns: Callable[[], int] = time.perf_counter_ns) -> dict[str, dict[str, Any]]:
     """Time every configuration's frames, paced at ``fps`` and taking turns frame by frame.
 
     Parameters
@@ -59,8 +60,8 @@ def run_interleaved(configs: Sequence[Paced], fps: float, n_per_config: int,
         0: back to back, no pacing.
     n_per_config : int
         Timed frames per configuration, after ``warmup_per_config`` untimed ones.
-    sleep, clock_ns : callable
-        Injected for tests.
+    sleep, clock_ns, timer_ns : callable
+        The pacing's sleep and clock, and the frame timer; injected for tests.
 
     Returns
     -------
@@ -103,9 +104,9 @@ def run_interleaved(configs: Sequence[Paced], fps: float, n_per_config: int,
                 late[k] += 1
         frame = next_frame(k)
         c = configs[k]
-        start = time.perf_counter_ns()
+        start = timer_ns()
         est = c.process(frame, t_ns[k])
-        elapsed = time.perf_counter_ns() - start
+        elapsed = timer_ns() - start
         t_ns[k] += step[0]
         if timed_frame:
             samples[k].append(elapsed)

@@ -22,10 +22,6 @@ STAGES = ("whole_frame", "gray", "fiber_means", "baseline", "surface", "segment"
 WARMUP_FRAMES = 200
 
 
-#: Passes of the fast pipeline over the reference's frames (it takes ~1/40 of the time per frame).
-FAST_PASSES = 10
-
-
 def _warmup(frames: list[np.ndarray], rest: int) -> int:
     return max(WARMUP_FRAMES, len(frames) - rest)
 
@@ -160,35 +156,3 @@ def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
         tracemalloc.stop()
     return {"frames": n, "net_bytes_per_frame": (after - before) / max(n, 1),
             "net_bytes_total": after - before, "max_transient_bytes_in_frame": transient[0]}
-
-
-def measure_reference(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps: float,
-                      fast_median_us: float | None) -> dict[str, Any]:
-    """The paper's method done literally vs the fast pipeline in paper mode, same frames."""
-    from optitac_edge.core.options import ContactOptions
-    from optitac_edge.devtools.reference import ReferencePipeline
-
-    period = int(1e9 / fps)
-    ref = ReferencePipeline(bundle)
-    fast = Pipeline(bundle, ContactOptions.paper())
-    fast.set_corrector(None)
-    t = 0
-    for f in frames[:rest]:
-        ref.process(f, t)
-        fast.process(f, t)
-        t += period
-    k = len(frames) - rest
-    ref_ns, fast_ns = [], []
-    t_ref = t
-    for i in range(n):  # the reference, then the fast pipeline: interleaved, the reference's
-        ref_ns.append(timed(ref.process, frames[rest + i % k], t_ref))  # working set (tens of MB)
-        t_ref += period  # would evict the fast one's tables from the caches every frame
-    for i in range(n * FAST_PASSES):  # the same n frames, FAST_PASSES times
-        fast_ns.append(timed(fast.process, frames[rest + i % n % k], t))
-        t += period
-    ref_s, fast_s = summary(ref_ns), summary(fast_ns)
-    out = {"frames": n, "reference": ref_s, "fast_paper_mode": fast_s,
-           "ratio_reference_to_fast_paper_mode": round(ref_s["median_us"] / fast_s["median_us"], 1)}
-    if fast_median_us:
-        out["ratio_reference_to_fast_all_options"] = round(ref_s["median_us"] / fast_median_us, 1)
-    return out

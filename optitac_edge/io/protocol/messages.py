@@ -54,7 +54,7 @@ class ShapeCode(IntEnum):
     def coerce(cls, value: object) -> int:
         """``value`` as a shape code on the wire; anything that is not one becomes UNKNOWN."""
         if type(value) is cls:  # the message's own field: no lookup (per frame)
-            return int(value)  # type: ignore[call-overload]
+            return int(value)
         try:
             return int(cls(int(value)))  # type: ignore[call-overload]
         except (ValueError, TypeError, OverflowError):
