@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 
@@ -36,10 +37,14 @@ class Baseline:
         self.level = np.ones(n_fibers, dtype=np.float32)
         #: ``1 / level``, shape (N,), float32.
         self.inv_level = np.ones(n_fibers, dtype=np.float32)
-        self._black = np.float32(black_level)
+        # 0-d operands (a scalar given to a ufunc becomes a new array every call)
+        self._black = np.full((), black_level, dtype=np.float32)
+        self._one = np.ones((), dtype=np.float32)
+        self._alpha = np.zeros((), dtype=np.float32)
         self._sum = np.zeros(n_fibers, dtype=np.float64)
         self._count = 0
         self._work = np.zeros(n_fibers, dtype=np.float32)
+        self._sorted = np.zeros((1, n_fibers), dtype=np.float32)
         self._mid = n_fibers // 2
         self._tau_ns = float(tau_s) * 1e9
         self._holdoff_ns = float(holdoff_s) * 1e9
@@ -67,7 +72,7 @@ class Baseline:
     def _updated(self) -> None:
         """The light above black and its reciprocal after a change (N values)."""
         np.subtract(self.values, self._black, out=self.level)
-        np.maximum(self.level, 1.0, out=self.level)
+        np.maximum(self.level, self._one, out=self.level)
         np.reciprocal(self.level, out=self.inv_level)
 
     def track(self, means: np.ndarray, signal: np.ndarray, off_level: float, now_ns: int, dt_ns: int,
@@ -82,16 +87,16 @@ class Baseline:
         if contact_end_ns is not None and now_ns - contact_end_ns < self._holdoff_ns:
             return False
         work = self._work
-        np.copyto(work, signal)
-        work.partition(self._mid)
-        common = work[self._mid]
+        # the median by OpenCV's sort into a buffer (ndarray.partition allocates a work buffer)
+        cv2.sort(signal.reshape(1, -1), cv2.SORT_EVERY_ROW | cv2.SORT_ASCENDING, dst=self._sorted)
+        common = self._sorted[0, self._mid:self._mid + 1]
         np.subtract(signal, common, out=work)
         np.abs(work, out=work)
-        if float(work.max()) >= off_level:
+        if cv2.minMaxLoc(work)[1] >= off_level:
             return False
-        alpha = np.float32(1.0 - math.exp(-min(float(dt_ns), self._tau_ns) / self._tau_ns))
+        self._alpha.fill(1.0 - math.exp(-min(float(dt_ns), self._tau_ns) / self._tau_ns))
         diff = np.subtract(means, self.values, out=self._work)
-        diff *= alpha
+        diff *= self._alpha
         self.values += diff
         self._updated()
         return True

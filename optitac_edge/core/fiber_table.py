@@ -146,6 +146,9 @@ class FiberSampler:
         # 7.5 us for a float32 reduceat, which converts every pixel)
         most = int(table.pixel_count.max(initial=1))
         self._sums = np.zeros(table.n_fibers, dtype=np.uint16 if 255 * most <= 0xFFFF else np.uint32)
+        # widened first (one cast copy, no temporary): reduceat with dtype= would cast through a new buffer
+        self._wide = np.zeros(p, dtype=self._sums.dtype)
+        self._sums32 = np.zeros(table.n_fibers, dtype=np.float32)  # the sums as float32 (no mixed-type product)
         self._gathered = np.empty(p, dtype=np.uint8)
         self._gathered_row = self._gathered.reshape(1, p)
         # one byte of every 64-byte block of the frame the gather reads, in address order
@@ -190,6 +193,8 @@ class FiberSampler:
 
     def reduce(self, out: np.ndarray) -> np.ndarray:
         """Per-fiber means of the last :meth:`gather` into ``out`` (one segmented sum)."""
-        np.add.reduceat(self._gathered, self._starts, dtype=self._sums.dtype, out=self._sums)
-        np.multiply(self._sums, self._inv_count, out=out)
+        np.copyto(self._wide, self._gathered)
+        np.add.reduceat(self._wide, self._starts, out=self._sums)
+        np.copyto(self._sums32, self._sums)
+        np.multiply(self._sums32, self._inv_count, out=out)
         return out

@@ -19,6 +19,7 @@ instead of being reported as a contact over the whole surface.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from optitac_edge.core.baseline import Baseline
@@ -48,10 +49,17 @@ class GainCompensation:
     def __init__(self, live: np.ndarray, n_fibers: int, black_level: float, rate_per_s: float,
                  relative: bool) -> None:
         self._live_idx = np.asarray(live, dtype=np.intp)
-        self._live = np.zeros(self._live_idx.size, dtype=np.float32)
+        self._live = np.zeros(self._live_idx.size, dtype=np.float32)  # the live fibers' ratios, sorted
+        self._unsorted = np.zeros(self._live_idx.size, dtype=np.float32)
+        self._live_row, self._unsorted_row = self._live.reshape(1, -1), self._unsorted.reshape(1, -1)
+        # 0-d operands filled per frame: a Python or numpy scalar given to a ufunc becomes a new array
+        self._probe = np.zeros((), dtype=np.float32)
+        self._below = np.zeros(self._live_idx.size, dtype=bool)  # searchsorted as a count: no result array
+        self._scale = np.zeros((), dtype=np.float32)
+        self._one = np.ones((), dtype=np.float32)
         #: Per-fiber ratio of the last frame (scratch; see :meth:`rest_means`).
         self._ratio = np.zeros(n_fibers, dtype=np.float32)
-        self._black = np.float32(black_level)
+        self._black = np.full((), black_level, dtype=np.float32)  # 0-d: no new array per ufunc call
         self._rate = float(rate_per_s) * 1e-9  # per ns
         self._relative = relative
         #: The gain the last frame was compensated with (1 before any frame).
@@ -86,10 +94,14 @@ class GainCompensation:
 
     def _agree(self, g: float) -> int:
         """How many live fibers' ratios lie within the cluster's width of gain ``g`` (sorted: two bisections)."""
-        live = self._live
-        lo = int(live.searchsorted(np.float32(g * self._keep)))
-        hi = int(live.searchsorted(np.float32(g * self._widen), side="right"))
-        return hi - lo
+        return self._count_below(g * self._widen, inclusive=True) - self._count_below(g * self._keep)
+
+    def _count_below(self, value: float, inclusive: bool = False) -> int:
+        """Live ratios < ``value`` (<= with ``inclusive``), compared in float32: ``searchsorted`` on the
+        sorted ratios (left, or right side), without the result array it allocates."""
+        self._probe.fill(value)
+        (np.less_equal if inclusive else np.less)(self._live, self._probe, out=self._below)
+        return int(np.count_nonzero(self._below))
 
     def contact_free(self, now_ns: int) -> None:
         """The last frame had no contact: its own gain estimate is the reference from now on."""
@@ -103,13 +115,14 @@ class GainCompensation:
         ratio = np.subtract(means, self._black, out=self._ratio)
         ratio *= baseline.inv_level
         live = self._live
-        ratio.take(self._live_idx, out=live, mode="wrap")
-        live.sort()
+        ratio.take(self._live_idx, out=self._unsorted, mode="wrap")
+        # OpenCV's sort into the buffer: ndarray.sort allocates a work buffer every call
+        cv2.sort(self._unsorted_row, cv2.SORT_EVERY_ROW | cv2.SORT_ASCENDING, dst=self._live_row)
         n = live.size
         g = float(live[(3 * (n - 1)) // 4])
         keep = self._keep
         for _ in range(2):
-            j = int(live.searchsorted(np.float32(g * keep)))
+            j = self._count_below(g * keep)
             if j >= n:  # no fiber in the cluster (all ratios <= 0: light at or below black): keep g
                 break
             g = 0.5 * (float(live[(j + n - 1) // 2]) + float(live[(j + n) // 2]))
@@ -124,8 +137,9 @@ class GainCompensation:
         else:
             g = min(max(g, self.reference - band), self.reference + band)
         self.gain = g = max(g, 1e-3)
-        np.multiply(ratio, np.float32(-1.0 / g), out=out)
-        out += 1.0
+        self._scale.fill(-1.0 / g)
+        np.multiply(ratio, self._scale, out=out)
+        out += self._one
         if not self._relative:
             out *= baseline.level
         return out
@@ -134,6 +148,7 @@ class GainCompensation:
         """The last frame's fiber means with the gain divided out (what the baseline tracks: per-fiber
         drift, not the LED gain). Overwrites the ratio scratch; a view valid until the next frame."""
         means = np.multiply(self._ratio, baseline.level, out=self._ratio)
-        means /= np.float32(self.gain)
+        self._scale.fill(self.gain)
+        means /= self._scale
         means += self._black
         return means

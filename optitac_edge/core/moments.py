@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from optitac_edge.core.grid import SurfaceGrid
@@ -431,6 +432,7 @@ class BinaryShapeMoments:
         self._x_powers = np.ascontiguousarray(c[:, None] ** np.arange(5.0))  # (size, 5)
         self._y_powers_t = np.ascontiguousarray(self._x_powers.T)  # (5, size)
         self._binary = np.zeros(size * size, dtype=np.float64)
+        self._binary32 = np.zeros(size * size, dtype=np.float32)
         self._rows = np.zeros((size, 5), dtype=np.float64)
         self._raw = np.zeros((5, 5), dtype=np.float64)
 
@@ -453,7 +455,11 @@ class BinaryShapeMoments:
         """
         h, w = img.shape
         binary = self._binary[:h * w].reshape(h, w)
-        np.greater(img, np.float32(level), out=binary)
+        # 0/1 in float32 by OpenCV (compared in float32), widened by a cast copy: a bool result
+        # written into float64 would be cast through a new buffer
+        binary32 = self._binary32[:h * w].reshape(h, w)
+        cv2.threshold(img, float(level), 1.0, cv2.THRESH_BINARY, dst=binary32)
+        np.copyto(binary, binary32)
         rows = self._rows[:h]
         np.matmul(binary, self._x_powers[:w], out=rows)
         return np.matmul(self._y_powers_t[:, :h], rows, out=self._raw)

@@ -163,7 +163,6 @@ class Pipeline:
         self.contacts: list[ContactEstimate] = [ContactEstimate() for _ in range(MAX_CONTACTS)]
         self._estimate = self.contacts[0]
         self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
-        self._order = np.zeros(MAX_CANDIDATES, dtype=np.float64)
         #: Per-contact corrections (centroid error map, width model, shape), or None.
         self.corrector: ContactCorrector | None = None
         self.set_corrector(ContactCorrector(bundle))
@@ -358,17 +357,14 @@ class Pipeline:
             strength = float(cv2.sumElems(box.img)[0]) * float(self.bundle.grid.cell_area_mm2)
             self._no_contact(est, strength, cells * float(self.bundle.grid.cell_area_mm2))
             return 0
-        ranked: np.ndarray | range = range(1)
-        if n_cand > 1:
-            order = self._order[:n_cand]
-            for i in range(n_cand):
-                order[i] = -self._cands[i].strength
-            ranked = np.argsort(order, kind="stable")
+        cands = self._cands
+        # strongest first, ties in candidate order (a stable sort; Python's: no numpy buffer)
+        ranked = sorted(range(n_cand), key=lambda i: -cands[i].strength) if n_cand > 1 else range(1)
         n = min(n_cand, self._max_contacts)
         frame, t_ns = est.frame, est.t_ns
         for i in range(n):
             c = self.contacts[i]
-            c.assign(self._cands[int(ranked[i])])
+            c.assign(cands[ranked[i]])
             c.frame, c.t_ns, c.baseline_ready, c.n_contacts = frame, t_ns, True, n
             if self.corrector is not None:
                 self.corrector.apply(c)

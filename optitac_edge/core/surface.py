@@ -222,11 +222,16 @@ class TriangleSurface:
         self._value_w = np.abs(self._weights[:, :nv]).sum(axis=1).max(axis=1, initial=0.0).astype(np.float32)
         self._grad_w = np.ascontiguousarray(np.abs(self._weights[:, nv:]).max(axis=2).T, dtype=np.float32)
         self._value_bound = np.zeros(n_tri, dtype=np.float32)
+        # the gradient terms summed per triangle as a (1, 6) x (6, T) product (a reduction along an
+        # axis allocates); 0-d level (a scalar given to a ufunc becomes a new array every call)
+        self._ones = np.ones((1, CELL_TERMS - nv), dtype=np.float32)
+        self._level = np.zeros((), dtype=np.float32)
         self._all = np.arange(n_tri, dtype=np.intp)
         self._w = np.zeros(op.shape[0], dtype=np.float32)
         self._w_values, self._w_grads = self._w[:n_f], self._w[n_f:]
         self._terms_t = np.zeros((CELL_TERMS, n_tri), dtype=np.float32)
         self._bound = np.zeros(n_tri, dtype=np.float32)
+        self._bound_row = self._bound.reshape(1, -1)
         self._selected = np.zeros(n_tri, dtype=bool)
         self._sel_cols = np.zeros((n_tri, CELL_TERMS), dtype=np.intp)
         self._sel_terms = np.zeros((n_tri, 1, CELL_TERMS), dtype=np.float32)
@@ -256,15 +261,18 @@ class TriangleSurface:
             terms_t = self._w.take(self._cols_t, out=self._terms_t, mode="wrap")
             np.abs(terms_t, out=terms_t)
             nv = self._n_value
-            if nv:
-                np.maximum.reduce(terms_t[:nv], axis=0, out=self._value_bound)
-                np.multiply(self._value_bound, self._value_w, out=self._value_bound)
             grads = terms_t[nv:]
             np.multiply(grads, self._grad_w, out=grads)
-            np.add.reduce(grads, axis=0, out=self._bound)
-            np.add(self._bound, self._value_bound, out=self._bound)
-            np.greater(self._bound, np.float32(float(level) * (1.0 - self.BOUND_MARGIN)), out=self._selected)
-            if not self._selected.any():
+            np.matmul(self._ones, grads, out=self._bound_row)
+            if nv:
+                vb = self._value_bound
+                np.maximum(terms_t[0], terms_t[1], out=vb)
+                np.maximum(vb, terms_t[2], out=vb)
+                np.multiply(vb, self._value_w, out=vb)
+                np.add(self._bound, vb, out=self._bound)
+            self._level.fill(float(level) * (1.0 - self.BOUND_MARGIN))
+            np.greater(self._bound, self._level, out=self._selected)
+            if not np.count_nonzero(self._selected):
                 self.evaluated = 0
                 return out
             idx = np.flatnonzero(self._selected)  # the one numpy buffer allocated here, 8 bytes a triangle

@@ -131,6 +131,8 @@ class ShapeClassifier:
         self._map1 = np.ascontiguousarray(np.hstack([c.class_map, np.ones((k, 1))]))
         self._y = np.empty((1, k * d))
         self._ll = np.empty((1, k))
+        self._top = np.zeros(())  # 0-d operand: a scalar given to a ufunc becomes a new array every call
+        self._const = np.ascontiguousarray(np.asarray(c.const, dtype=np.float64).reshape(1, k))
         self._p = np.empty((1, len(model.class_names) + 1))
         self._n_cls = len(model.class_names)
 
@@ -211,8 +213,9 @@ class ShapeClassifier:
         np.matmul(self._z, self._proj1, out=y)
         np.multiply(y, y, out=y)
         np.matmul(y, self._block1, out=ll)
-        np.add(ll, self._c.const, out=ll)
-        np.subtract(ll, max(ll[0].tolist()), out=ll)
+        np.add(ll, self._const, out=ll)
+        self._top.fill(max(ll[0].tolist()))
+        np.subtract(ll, self._top, out=ll)
         np.exp(ll, out=ll)
         np.matmul(ll, self._map1, out=p)
         vals = p[0].tolist()
