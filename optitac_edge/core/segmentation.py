@@ -1,11 +1,12 @@
 """Truncate the surface and split it into contacts; everything after the truncation reads only the
 bounding box of the cells above the level.
 
-The skin's spread joins neighbouring presses at the (low) noise level, so
-contacts are seeded by the blobs above ``split_fraction`` of the strongest
-peak, plus any blob of the truncated surface that holds no such seed (a
-weaker, separate press); every cell above the truncation level then belongs
-to its nearest seed.
+Each blob (8-connected) of the cells above the truncation level is one
+contact, unless the skin's spread joined neighbouring presses at the (low)
+noise level: contacts are seeded by the blobs above ``split_fraction`` of the
+strongest peak, and when a blob holds more than one seed, every cell above
+the truncation level belongs to its nearest seed (a blob without a seed, a
+weaker separate press, is a seed itself; a distance transform with labels).
 """
 
 from __future__ import annotations
@@ -133,10 +134,20 @@ class Segmenter:
                                               connectivity=8, ltype=cv2.CV_32S)[0]
             if n_seeds == 2:
                 return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
-        # seeds: the strong blobs, and the truncated blobs without one (each blob's seed cells counted)
+        seed_cells = self._count(labels, seeds.view(np.uint8), n_parts)  # each blob's seed cells
+        if n_parts > 2:
+            seeded_blobs = sum(1 for c in seed_cells[1:] if c > 0)
+            n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self.roi(self._seed_labels, h, w),
+                                              connectivity=8, ltype=cv2.CV_32S)[0] - 1
+            if n_seeds == seeded_blobs:  # no blob holds two seeds: every blob is one contact
+                self._nearest = labels
+                counts = self._count(labels, mask_u8, n_parts)
+                order = sorted(range(1, n_parts), key=lambda k: -counts[k])
+                return [(k, int(counts[k])) for k in order if counts[k] >= min_cells - 1e-9]
+        # seeds: the strong blobs, and the truncated blobs without one
         blob = self.roi(self._blob, h, w)
         np.copyto(blob, seeds)
-        for k, n_seed_cells in enumerate(self._count(labels, seeds.view(np.uint8), n_parts)):
+        for k, n_seed_cells in enumerate(seed_cells):
             if k > 0 and n_seed_cells == 0:
                 below = self.roi(self._below, h, w)
                 self._label.fill(k)
