@@ -57,7 +57,7 @@ class CalibrationBundle:
         JSON-able parameters of later calibration models.
     surface_factors : SurfaceFactors or None
         Exact factorisation of ``interpolation`` (fast runtime surface, see
-        :class:`~optitac_edge.core.surface.PatchSurface`); None for bundles written
+        :class:`~optitac_edge.core.surface.TriangleSurface`); None for bundles written
         without it (the runtime then uses the dense matrix).
 
     Raises
