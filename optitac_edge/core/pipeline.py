@@ -16,9 +16,10 @@ switchable improvements beyond the paper noted in brackets):
    dead fibers get 0 [fill_dead: the mean of their neighbours, folded into
    the matrix];
 5. surface = interpolation matrix @ signal (Clough-Tocher, 100 x 100 mesh),
-   the whole mesh every frame, exactly, in the factored form
-   (:class:`~optitac_edge.core.surface.TriangleSurface`: the values and estimated
-   gradients at the fibers, then 9 of them per mesh cell, tile by tile);
+   in the factored form (:class:`~optitac_edge.core.surface.TriangleSurface`:
+   the values and estimated gradients at the fibers, then 9 of them per mesh
+   cell, only in the triangles that can exceed the truncation level: after
+   step 6 exactly the whole mesh's surface);
 6. truncate: values <= threshold become 0, values above are kept
    [noise_levels: the truncation level is k * measured noise];
 7. contact if the area above the threshold >= ``min_area_mm2`` [and the peak
@@ -140,7 +141,7 @@ class Pipeline:
         fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead) if o.fill_dead and self._has_dead else None
         factors = bundle.surface_factors
         #: Step 5: the whole surface every frame, exactly: the factored Clough-Tocher form when the
-        #: bundle has it (TriangleSurface, ~4x less memory traffic), else the dense matrix.
+        #: bundle has it (TriangleSurface: only the triangles near a contact), else the dense matrix.
         self.surface_op: TriangleSurface | DenseSurface = (
             TriangleSurface(factors, grid.n, fill=fill) if factors is not None
             else DenseSurface(np.asarray(bundle.interpolation), fill=fill))
