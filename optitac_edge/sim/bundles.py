@@ -74,6 +74,14 @@ def build_sim_bundle(path: str | Path, *, rgb: bool = False, models: Sequence[st
     return path
 
 
+def _usable(path: Path) -> bool:
+    """A cached bundle that loads and has surface factors (else it is rebuilt)."""
+    try:
+        return path.exists() and load_bundle(path).surface_factors is not None
+    except BundleError:
+        return False
+
+
 def cached_sim_bundle(workdir: str | Path, *, rgb: bool = False) -> Path:
     """A bundle of :func:`build_sim_bundle` with every model, built once in ``workdir`` and reused.
 
@@ -82,12 +90,8 @@ def cached_sim_bundle(workdir: str | Path, *, rgb: bool = False) -> Path:
     """
     workdir = Path(workdir)
     path = workdir / ("cal-rgb.npz" if rgb else "cal-gray.npz")
-    if path.exists():
-        try:
-            if load_bundle(path).surface_factors is not None:
-                return path
-        except BundleError:
-            pass
+    if _usable(path):
+        return path
     return build_sim_bundle(path, rgb=rgb, workdir=workdir)
 
 
@@ -109,12 +113,8 @@ def cached_layout_bundle(workdir: str | Path, rings: int, *, rgb: bool = False) 
 
     workdir = Path(workdir)
     path = workdir / f"cal-hex{rings}-{'rgb' if rgb else 'gray'}.npz"
-    if path.exists():
-        try:
-            if load_bundle(path).surface_factors is not None:
-                return path
-        except BundleError:
-            pass
+    if _usable(path):
+        return path
     layout = hex_layout(rings)
     sensor = SimulatedSensor(layout=layout, optics=CameraOptics(rgb=rgb), seed=1)
     frames = np.stack([sensor.frame(()) for _ in range(LAYOUT_REST_FRAMES)])
