@@ -135,11 +135,8 @@ def test_service_cpu_runs_every_contact_count_interleaved_and_takes_medians(monk
     calls: list[int] = []
     cpu = {0: [100.0, 120.0, 80.0], 1: [200.0, 260.0, 220.0], 2: [300.0, 300.0, 330.0], 4: [400.0, 450.0, 420.0]}
 
-    made: dict[int, list] = {}
-
     def frames(k, rgb, fps, layout=None):
-        made[k] = [np.full((4, 4), k, np.uint8)] * (scaling.REST_FRAMES + 3)
-        return made[k]
+        return [np.full((4, 4), k, np.uint8)] * (scaling.REST_FRAMES + 3)
 
     def fake(cal, fps, seconds, rgb, frame_list, rest):
         k = int(frame_list[0][0, 0])  # which contact count's frames the run got

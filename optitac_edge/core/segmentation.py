@@ -128,22 +128,14 @@ class Segmenter:
         labels = self.roi(self._labels, h, w)
         mask_u8 = mask.view(np.uint8)
         n_parts = cv2.connectedComponents(mask_u8, labels=labels, connectivity=8, ltype=cv2.CV_32S)[0]
-        min_cells = self._min_cells
-        if n_parts == 2:  # one blob: it holds the peak, so it is one contact if its seeds are one
-            n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self.roi(self._seed_labels, h, w),
-                                              connectivity=8, ltype=cv2.CV_32S)[0]
-            if n_seeds == 2:
-                return [(WHOLE_MASK, cells)] if cells >= min_cells - 1e-9 else []
+        n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self.roi(self._seed_labels, h, w),
+                                          connectivity=8, ltype=cv2.CV_32S)[0] - 1
+        if n_parts == 2 and n_seeds == 1:  # one blob holding one seed: one contact
+            return [(WHOLE_MASK, cells)] if cells >= self._min_cells - 1e-9 else []
         seed_cells = self._count(labels, seeds.view(np.uint8), n_parts)  # each blob's seed cells
-        if n_parts > 2:
-            seeded_blobs = sum(1 for c in seed_cells[1:] if c > 0)
-            n_seeds = cv2.connectedComponents(seeds.view(np.uint8), labels=self.roi(self._seed_labels, h, w),
-                                              connectivity=8, ltype=cv2.CV_32S)[0] - 1
-            if n_seeds == seeded_blobs:  # no blob holds two seeds: every blob is one contact
-                self._nearest = labels
-                counts = self._count(labels, mask_u8, n_parts)
-                order = sorted(range(1, n_parts), key=lambda k: -counts[k])
-                return [(k, int(counts[k])) for k in order if counts[k] >= min_cells - 1e-9]
+        if n_seeds == sum(1 for c in seed_cells[1:] if c > 0):  # no blob holds two seeds: every blob is one contact
+            self._nearest = labels
+            return self._largest_first(labels, mask_u8, n_parts)
         # seeds: the strong blobs, and the truncated blobs without one
         blob = self.roi(self._blob, h, w)
         np.copyto(blob, seeds)
@@ -158,10 +150,13 @@ class Segmenter:
         self._nearest = nearest = self.roi(self._nearest_buf, h, w)
         cv2.distanceTransformWithLabels(below.view(np.uint8), cv2.DIST_L2, 3, dst=self.roi(self._dist, h, w),
                                         labels=nearest, labelType=cv2.DIST_LABEL_CCOMP)
-        n_labels = int(cv2.minMaxLoc(nearest)[1]) + 1
-        counts = self._count(nearest, mask_u8, n_labels)
+        return self._largest_first(nearest, mask_u8, int(cv2.minMaxLoc(nearest)[1]) + 1)
+
+    def _largest_first(self, labels: np.ndarray, mask_u8: np.ndarray, n_labels: int) -> list[tuple[int, int]]:
+        """``(label, cells)`` of labels 1 .. n_labels - 1 within the mask, largest first, at least ``min_cells``."""
+        counts = self._count(labels, mask_u8, n_labels)
         order = sorted(range(1, n_labels), key=lambda k: -counts[k])
-        return [(k, int(counts[k])) for k in order if counts[k] >= min_cells - 1e-9]
+        return [(k, int(counts[k])) for k in order if counts[k] >= self._min_cells - 1e-9]
 
     def _count(self, labels: np.ndarray, where: np.ndarray, n_labels: int) -> list[float]:
         """Cells of each label 0 .. n_labels - 1 of ``labels`` where ``where`` (uint8) is set."""

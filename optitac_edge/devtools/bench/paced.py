@@ -72,13 +72,13 @@ def run_interleaved(configs: Sequence[Paced], fps: float, n_per_config: int,
         started a period or more after they were due: the machine was busy).
     """
     period_ns = int(1e9 / fps) if fps > 0 else 0
-    step = [len(configs) * max(period_ns, 1)]  # each pipeline's own clock advances C periods a frame
+    step = len(configs) * max(period_ns, 1)  # each pipeline's own clock advances C periods a frame
     t_ns = [0] * len(configs)
     pos = [0] * len(configs)
     for k, c in enumerate(configs):
         for f in c.frames[:c.rest]:
             c.process(f, t_ns[k])
-            t_ns[k] += step[0]
+            t_ns[k] += step
 
     def next_frame(k: int) -> np.ndarray:
         c = configs[k]
@@ -107,7 +107,7 @@ def run_interleaved(configs: Sequence[Paced], fps: float, n_per_config: int,
         start = timer_ns()
         est = c.process(frame, t_ns[k])
         elapsed = timer_ns() - start
-        t_ns[k] += step[0]
+        t_ns[k] += step
         if timed_frame:
             samples[k].append(elapsed)
             if c.count is not None:
