@@ -260,3 +260,53 @@ def test_a_second_process_on_a_port_in_use_is_refused(mcu):
 def test_a_bad_url_is_refused_at_start_even_when_waiting_for_the_port(url):
     with pytest.raises(TransportError, match="not a valid device or URL"):
         SerialTransport(url, require_port=False)
+
+
+def test_the_frame_loop_writes_an_idle_line_itself(mcu):
+    """Issue 15: a frame on an idle line is written by the caller (no writer-thread wake-up per frame)."""
+    with SerialTransport(mcu.path) as tr:
+        for i in range(50):
+            tr.send_contact(contact(i))
+            assert len(mcu.read_until(lambda fr, k=i: len(fr) > k)) == i + 1  # the MCU keeps up
+        assert tr.direct_writes == 50 and tr.partial_writes == 0 and tr.counters.sent == 50
+    assert [decode_contact(f.payload).age_us - 1200 for f in mcu.frames] == list(range(50))
+    assert [f.seq for f in mcu.frames] == list(range(50))
+
+
+def test_a_full_line_hands_over_to_the_writer_thread_in_order(mcu):
+    """The MCU reads nothing for a while: the kernel's buffer fills, the caller's write would block
+    (or takes part of a frame), and the writer thread sends the rest; the MCU decodes every frame, in
+    seq order, with no framing error."""
+    n = 2000
+    with SerialTransport(mcu.path, queue_size=n) as tr:
+        for i in range(n):
+            tr.send_contact(contact(i % 50))
+        frames = mcu.read_until(lambda fr: len(fr) >= n, timeout=10)
+        assert 0 < tr.direct_writes < n and tr.partial_writes <= 1 and tr.dropped == 0
+    assert [f.seq for f in frames] == list(range(n))
+    assert mcu.decoder.counters.errors == 0
+
+
+def test_the_rest_of_a_frame_written_in_part_goes_out_before_the_next(mcu):
+    """The kernel takes 5 bytes of a frame: the writer thread writes the other bytes first, so the
+    frame arrives whole and the next frames follow it."""
+    with SerialTransport(mcu.path) as tr:
+        real = tr._os_write
+        tr._os_write = lambda fd, data: real(fd, data[:5])
+        tr.send_contact(contact(0))
+        tr._os_write = real
+        assert tr.partial_writes == 1
+        for i in range(1, 4):
+            tr.send_contact(contact(i))
+        frames = mcu.read_until(lambda fr: len(fr) >= 4)
+        assert wait_for(lambda: tr.counters.sent == 4)
+    assert [decode_contact(f.payload).age_us - 1200 for f in frames] == [0, 1, 2, 3]
+    assert [f.seq for f in frames] == [0, 1, 2, 3] and mcu.decoder.counters.errors == 0
+
+
+def test_loop_url_has_no_descriptor_and_uses_the_writer_thread():
+    got = []
+    with SerialTransport("loop://", on_frame=got.append) as tr:
+        tr.send_contact(contact(0))
+        assert wait_for(lambda: len(got) == 1)
+        assert tr.direct_writes == 0 and tr.counters.sent == 1

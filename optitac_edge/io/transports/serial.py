@@ -2,10 +2,16 @@
 
 Threads
 -------
-* the caller (the frame loop) only packs a payload and appends it to a bounded queue:
-  :meth:`SerialTransport.send_contact` never blocks and never raises; when the queue is
-  full the oldest frame is dropped and counted;
-* a writer thread numbers (``seq``), frames and writes queued messages, ACKs first;
+* the caller (the frame loop) packs a payload; :meth:`SerialTransport.send_contact` never
+  blocks and never raises. When the line is idle (nothing queued, no write under way) and
+  the port has a non-blocking file descriptor (a UART, USB CDC or pty), it writes the frame
+  itself with one non-blocking ``write``: no hand-off, no thread wake-up per frame. When the
+  write would block, the frame goes to the queue; when the kernel took only part of it, the
+  writer thread writes the rest before anything else. Otherwise it appends the payload to a
+  bounded queue; when the queue is full the oldest frame is dropped and counted;
+* a writer thread numbers (``seq``), frames and writes queued messages, ACKs first; one lock
+  keeps a frame's bytes together whichever thread writes them, and ``seq`` is taken under it,
+  so the wire carries the frames in ``seq`` order;
 * an I/O thread owns the port: it opens it, reads and decodes incoming bytes, answers each
   command with an ACK, queues validated commands for :meth:`poll_commands`, and reopens the
   port with exponential backoff when it fails or vanishes (``counters.reconnects``).
@@ -18,6 +24,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -46,6 +53,23 @@ _LOCKED = frozenset({errno.EAGAIN, errno.EWOULDBLOCK})
 def _errno(exc: BaseException) -> int | None:
     """The errno of an open failure (pyserial wraps the OSError and keeps its errno)."""
     return getattr(exc, "errno", None)
+
+#: :meth:`SerialTransport._next`'s type of a queued item that is the rest of a frame written in part.
+_TAIL = -1
+
+
+def _nonblocking_fd(port: Any) -> int | None:
+    """The port's file descriptor when it is non-blocking (pyserial opens POSIX ports so), else None.
+
+    ``loop://`` and ports without a descriptor, or with a blocking one, are written by the writer
+    thread only.
+    """
+    try:
+        fd = port.fileno()
+        return fd if isinstance(fd, int) and fd >= 0 and not os.get_blocking(fd) else None
+    except Exception:  # noqa: BLE001 - no descriptor (loop://, a test's fake, a closed port)
+        return None
+
 
 _IO_ERRORS: tuple[type[BaseException], ...] = (OSError,) if serial is None else (
     OSError, serial.SerialException)
@@ -123,6 +147,17 @@ class SerialTransport(Transport):
         self._commands: deque[Command] = deque()
         self._command_queue_size = int(command_queue_size)
         self._seq = 0
+        #: Held for every write to the port (one frame's bytes stay together); ``seq`` is taken under it.
+        self._write_lock = threading.Lock()
+        #: The port's non-blocking file descriptor, for the frame loop's own writes (None: queue only).
+        self._direct_fd: int | None = None
+        self._os_write = os.write  # the frame loop's write (a test makes the kernel take part of a frame)
+        #: The unwritten end of a frame the frame loop wrote in part; the writer sends it first.
+        self._tail = b""
+        #: frames the frame loop wrote itself (the line was idle), of ``counters.sent``
+        self.direct_writes = 0
+        #: of those, frames the kernel took only in part (the writer thread wrote the rest)
+        self.partial_writes = 0
         self._stop = threading.Event()
         self._broken = threading.Event()
         self._port: Any = None
@@ -182,7 +217,7 @@ class SerialTransport(Transport):
     def pending(self) -> int:
         """Frames waiting in the send queues."""
         with self._lock:
-            return len(self._queue) + len(self._acks)
+            return len(self._queue) + len(self._acks) + int(bool(self._tail))
 
     def stats(self) -> dict[str, Any]:
         """Every counter, flat (for STATUS and logs)."""
@@ -191,6 +226,7 @@ class SerialTransport(Transport):
             "sent": c.sent, "send_errors": c.send_errors, "received": c.received,
             "rx_errors": c.rx_errors, "reconnects": c.reconnects, "dropped": self.dropped,
             "dropped_disconnected": self.dropped_disconnected, "unexpected": self.unexpected,
+            "direct_writes": self.direct_writes, "partial_writes": self.partial_writes,
             "commands_dropped": self.commands_dropped, "connected": self.connected,
         }
         out.update({f"rx_{k}": v for k, v in self.decoder.counters.as_dict().items()})
@@ -211,15 +247,68 @@ class SerialTransport(Transport):
     _writing = False
 
     def _enqueue(self, msg_type: int, t_us: int, payload: bytes) -> None:
+        t_us &= wire.U32
         with self._lock:
             if self._closed:
                 return
-            if len(self._queue) >= self._queue_size:
-                self._queue.popleft()
-                self.dropped += 1
-                self.counters.send_errors += 1
-            self._queue.append((msg_type, t_us & wire.U32, payload))
-            self._lock.notify()
+            # the line is idle: this thread writes the frame itself (taking the write lock here,
+            # under the queue's lock, keeps the frames in order with the writer thread's)
+            direct = (self._direct_fd is not None and not self._queue and not self._acks and not self._tail
+                      and not self._broken.is_set() and self._write_lock.acquire(blocking=False))
+            if not direct:
+                self._append(msg_type, t_us, payload)
+                return
+        try:
+            written = self._write_direct(msg_type, t_us, payload)
+        finally:
+            self._write_lock.release()
+        with self._lock:
+            if not written:  # the kernel's buffer is full: the writer thread waits for room
+                self._append(msg_type, t_us, payload)
+            elif self._acks or self._tail:  # an ACK came meanwhile, or the rest of this frame
+                self._lock.notify()
+
+    def _append(self, msg_type: int, t_us: int, payload: bytes) -> None:
+        """Queue a frame for the writer thread (holding ``_lock``); the oldest is dropped when full."""
+        if len(self._queue) >= self._queue_size:
+            self._queue.popleft()
+            self.dropped += 1
+            self.counters.send_errors += 1
+        self._queue.append((msg_type, t_us, payload))
+        self._lock.notify()
+
+    def _write_direct(self, msg_type: int, t_us: int, payload: bytes) -> bool:
+        """Write one frame from the calling thread without blocking (holding the write lock).
+
+        False when nothing was written (the write would block); True when the frame was
+        written, in full or in part (the writer thread sends the rest), or dropped and counted
+        (the port failed).
+        """
+        fd = self._direct_fd
+        if fd is None or self._broken.is_set():
+            return False
+        seq = self._seq
+        data = wire.encode_frame(msg_type, seq, t_us, payload)
+        if self._resync:
+            data = wire.DELIMITER + data
+        try:
+            n = self._os_write(fd, data)
+        except BlockingIOError:
+            return False
+        except OSError as exc:  # port gone: the I/O thread reopens it
+            log.warning("serial write failed: %s", exc)
+            self.counters.send_errors += 1
+            self._broken.set()
+            return True
+        self._seq = (seq + 1) & wire.U16
+        self._resync = False
+        if n < len(data):
+            self._tail = data[n:]
+            self.partial_writes += 1
+        else:
+            self.counters.sent += 1
+        self.direct_writes += 1
+        return True
 
     def _enqueue_ack(self, seq_acked: int, result: int) -> None:
         with self._lock:
@@ -233,7 +322,10 @@ class SerialTransport(Transport):
     # -- writer thread --------------------------------------------------------------------
 
     def _next(self) -> tuple[int, int, bytes, ResultCode | None] | None:
-        """The next frame to write (ACKs first), popped; None if both queues are empty."""
+        """The next frame to write (the rest of a frame written in part, then ACKs), popped; None if none."""
+        if self._tail:
+            tail, self._tail = self._tail, b""
+            return _TAIL, 0, tail, None
         if self._acks:
             seq_acked, result = self._acks.popleft()
             t_us = (time.monotonic_ns() // 1000) & wire.U32
@@ -243,46 +335,62 @@ class SerialTransport(Transport):
             return msg_type, t_us, payload, None
         return None
 
+    def _has_work(self) -> bool:
+        return bool(self._tail or self._acks or self._queue)
+
     def _write_loop(self) -> None:
         drain_deadline: float | None = None
         while True:
             with self._lock:
-                while not self._stop.is_set() and not (
-                        (self._acks or self._queue) and self.connected):
-                    if not self.connected and (self._acks or self._queue):
-                        # keep the newest frames; they go out once the port is back
+                held = False  # the write lock, taken here under the queue's lock
+                while not self._stop.is_set():
+                    if self._has_work() and self.connected:
+                        if self._write_lock.acquire(blocking=False):
+                            held = True
+                            break
+                        # the frame loop holds it for one non-blocking write; it notifies when
+                        # work is left for this thread (a millisecond at most otherwise)
+                        self._lock.wait(0.001)
+                    elif self._has_work():
+                        # no port: keep the newest frames; they go out once the port is back
                         self._lock.wait(0.05)
                     else:
                         self._lock.wait(0.5)
-                if self._stop.is_set():
+                if not held:  # stopping: what is queued goes out for at most 0.2 s
                     if drain_deadline is None:
                         drain_deadline = time.monotonic() + 0.2
-                    if not self.connected or time.monotonic() > drain_deadline:
+                    if not self.connected or time.monotonic() > drain_deadline or not self._has_work():
                         return
+                    if not self._write_lock.acquire(timeout=0.05):
+                        continue
                 item = self._next()
                 if item is None:
-                    if self._stop.is_set():
-                        return
+                    self._write_lock.release()
                     continue
                 self._writing = True
-                seq = self._seq
-                self._seq = (seq + 1) & wire.U16
             try:
-                self._write_frame(item, seq)
+                self._write_frame(item)
             finally:
                 self._writing = False
+                self._write_lock.release()
 
-    def _write_frame(self, item: tuple[int, int, bytes, ResultCode | None], seq: int) -> None:
+    def _write_frame(self, item: tuple[int, int, bytes, ResultCode | None]) -> None:
+        """Write one queued frame (holding the write lock; ``seq`` is taken here)."""
         msg_type, t_us, payload, ack_result = item
-        data = wire.encode_frame(msg_type, seq, t_us, payload)
         port = self._port
         if port is None or self._broken.is_set():
             self.dropped_disconnected += 1
             self.counters.send_errors += 1
             return
-        if self._resync:  # after (re)connecting or a partial write: end any partial frame
-            data = wire.DELIMITER + data
-            self._resync = False
+        if msg_type == _TAIL:  # the rest of a frame the frame loop wrote in part: no seq of its own
+            data = payload
+        else:
+            seq = self._seq
+            self._seq = (seq + 1) & wire.U16
+            data = wire.encode_frame(msg_type, seq, t_us, payload)
+            if self._resync:  # after (re)connecting or a partial write: end any partial frame
+                data = wire.DELIMITER + data
+                self._resync = False
         try:
             n = port.write(data)
             if n is not None and n != len(data):
@@ -314,19 +422,24 @@ class SerialTransport(Transport):
             self.counters.reconnects += 1
         self._ever_opened = True
         self.decoder.reset()
-        self._resync = True
+        with self._write_lock:
+            self._resync = True
+            self._tail = b""  # the end of a frame begun on the old port: the new one starts afresh
+            self._direct_fd = _nonblocking_fd(port)
         self._broken.clear()
         self._port = port
         with self._lock:
             self._lock.notify_all()
 
     def _drop_port(self) -> None:
-        port, self._port = self._port, None
-        if port is not None:
-            try:
-                port.close()
-            except Exception as exc:  # noqa: BLE001 - closing a vanished port may fail
-                log.debug("closing %s: %s", self.url, exc)
+        with self._write_lock:  # no write is under way on the descriptor being closed
+            port, self._port = self._port, None
+            self._direct_fd = None
+            if port is not None:
+                try:
+                    port.close()
+                except Exception as exc:  # noqa: BLE001 - closing a vanished port may fail
+                    log.debug("closing %s: %s", self.url, exc)
 
     def _io_loop(self) -> None:
         backoff = self.backoff_min
