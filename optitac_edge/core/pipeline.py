@@ -349,9 +349,9 @@ class Pipeline:
             n_cand = int(blobs.measure(box.img, box.peak, cells, level, self._cands[0], box.x, box.y))
         else:
             for k, blob_cells in seg.partition(box, cells):
-                img = seg.contact_surface(box, k)
+                img, x, y = seg.contact_surface(box, k)  # the contact's own box
                 peak = box.peak if img is box.img else cv2.minMaxLoc(img)[1]
-                n_cand += blobs.measure(img, peak, blob_cells, level, self._cands[n_cand], box.x, box.y)
+                n_cand += blobs.measure(img, peak, blob_cells, level, self._cands[n_cand], x, y)
                 if n_cand == MAX_CANDIDATES:
                     break
         if n_cand == 0:

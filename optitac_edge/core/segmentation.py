@@ -166,17 +166,25 @@ class Segmenter:
         cv2.calcHist([values], [0], where, [n_labels], [0, n_labels], hist=hist)
         return hist[:, 0].tolist()
 
-    def contact_surface(self, box: Box, label: int) -> np.ndarray:
-        """The truncated surface of contact ``label`` of the last :meth:`partition` alone, box-sized."""
+    def contact_surface(self, box: Box, label: int) -> tuple[np.ndarray, int, int]:
+        """The truncated surface of contact ``label`` of the last :meth:`partition` alone, in its own
+        bounding box: ``(img, x, y)`` with ``img`` (h, w) float32 whose first cell is mesh column
+        ``x``, row ``y``.
+
+        Everything measured per contact then reads only that box, not the box of all contacts
+        (four contacts on a ring: each a quarter of it).
+        """
         if label == WHOLE_MASK:
-            return box.img
+            return box.img, box.x, box.y
         h, w = box.img.shape
         blob = self.roi(self._blob, h, w)
         self._label.fill(label)
         np.equal(self._nearest, self._label, out=blob)
         np.logical_and(blob, box.mask, out=blob)
-        out = self.roi(self._blob_img, h, w)
+        blob_u8 = blob.view(np.uint8)
+        bx, by, bw, bh = cv2.boundingRect(blob_u8)
+        out = self.roi(self._blob_img, bh, bw)
         out.fill(0.0)
         # OpenCV's masked copy: img * blob casts through a buffer, np.copyto(where=) is 6x slower
-        cv2.copyTo(box.img, blob.view(np.uint8), dst=out)
-        return out
+        cv2.copyTo(box.img[by:by + bh, bx:bx + bw], blob_u8[by:by + bh, bx:bx + bw], dst=out)
+        return out, box.x + bx, box.y + by
