@@ -67,6 +67,12 @@ class ContactEstimate:
         Number of simultaneous contacts in the frame (0 without contact); the
         same in every contact of the frame. The pipeline's primary estimate is
         the strongest (largest ``strength``).
+    contact_id : int
+        1 … 255, the same for one contact from the frame it touched in to its
+        release (:class:`~optitac_edge.core.tracking.ContactTracker`); 0 without contact.
+    touch_frame : int
+        The frame (``frame``) this contact touched in; ``touch_frame == frame``
+        in the frame of the touch. -1 without contact.
     """
 
     frame: int = -1
@@ -85,6 +91,8 @@ class ContactEstimate:
     shape: str = ""
     confidence: float = math.nan
     n_contacts: int = 0
+    contact_id: int = 0
+    touch_frame: int = -1
 
     def clear_geometry(self) -> None:
         """Set the geometric fields and shape features to NaN (no contact), in place."""
@@ -103,6 +111,7 @@ class ContactEstimate:
             minor_mm=self.minor_mm, angle_deg=self.angle_deg, strength=self.strength,
             area_mm2=self.area_mm2, hu=self.hu.copy(), features=self.features.copy(),
             shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
+            contact_id=self.contact_id, touch_frame=self.touch_frame,
         )
 
     def assign(self, other: ContactEstimate) -> None:
@@ -114,6 +123,7 @@ class ContactEstimate:
         np.copyto(self.hu, other.hu)
         np.copyto(self.features, other.features)
         self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
+        self.contact_id, self.touch_frame = other.contact_id, other.touch_frame
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (NaN floats become None, ``hu`` and ``features`` lists)."""
@@ -129,5 +139,6 @@ class ContactEstimate:
             "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
             "features": [f(v) for v in self.features],
             "shape": self.shape, "confidence": f(self.confidence),
-            "n_contacts": int(self.n_contacts),
+            "n_contacts": int(self.n_contacts), "contact_id": int(self.contact_id),
+            "touch_frame": int(self.touch_frame),
         }

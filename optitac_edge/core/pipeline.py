@@ -32,19 +32,22 @@ switchable improvements beyond the paper noted in brackets):
    only the bounding box of the cells above the level (OpenCV's moments,
    threshold and labelling on views of it; the shape features from two small
    matrix products, :class:`~optitac_edge.core.moments.BinaryShapeMoments`);
-8. [track_baseline: without contact, on quiet frames, the baseline follows
+8. the contacts get stable ids, the frame they touched in, and the contacts
+   of the previous frame that are gone are released
+   (:class:`~optitac_edge.core.tracking.ContactTracker`; ``pipeline.released``);
+9. [track_baseline: without contact, on quiet frames, the baseline follows
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)].
 
 The steps are named parts, each with its own buffers and public methods (the
 benchmark times them one by one): :class:`~optitac_edge.core.fiber_table.FiberSampler`
-(step 2), :class:`~optitac_edge.core.baseline.Baseline` (3, 8),
+(step 2), :class:`~optitac_edge.core.baseline.Baseline` (3, 9),
 :class:`~optitac_edge.core.gain.GainCompensation` (4),
 :class:`~optitac_edge.core.levels.ContactLevels`, the surface operator (5),
 :class:`~optitac_edge.core.segmentation.Segmenter` (6, 7: truncation and the
 split into contacts), :class:`~optitac_edge.core.blob.BlobMeasurer` (7: the
-moments and shape features) and :class:`~optitac_edge.core.corrections.ContactCorrector`
-(the calibration models).
+moments and shape features), :class:`~optitac_edge.core.corrections.ContactCorrector`
+(the calibration models) and :class:`~optitac_edge.core.tracking.ContactTracker` (8).
 
 All buffers are allocated at construction; a frame allocates nothing that
 outlives it (net 0 bytes per frame after warm-up, measured by
@@ -74,6 +77,7 @@ from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
 from optitac_edge.core.surface import DenseSurface, TriangleSurface
+from optitac_edge.core.tracking import ContactTracker
 
 #: Most blobs measured per frame (the largest by area) before the strongest are kept.
 MAX_CANDIDATES = 8
@@ -164,6 +168,8 @@ class Pipeline:
         self.contacts: list[ContactEstimate] = [ContactEstimate() for _ in range(MAX_CONTACTS)]
         self._estimate = self.contacts[0]
         self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
+        #: Stable contact ids, touch frames and releases from frame to frame.
+        self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
         #: Per-contact corrections (centroid error map, width model, shape), or None.
         self.corrector: ContactCorrector | None = None
         self.set_corrector(ContactCorrector(bundle))
@@ -213,6 +219,11 @@ class Pipeline:
     @property
     def in_contact(self) -> bool:
         return self._in_contact
+
+    @property
+    def released(self) -> list[tuple[int, int]]:
+        """``(contact id, touch frame)`` of the contacts the last frame released (a new list)."""
+        return self.tracker.released[:self.tracker.n_released]
 
     def set_contact_level(self, on_relative: float | None) -> None:
         """Set the contact-on level, in relative units of the rest light (None: the calibrated one).
@@ -295,12 +306,14 @@ class Pipeline:
                     gain.reset(now_ns)
             est.baseline_ready = False
             self._no_contact(est, 0.0, 0.0)
+            self.tracker.update(self.contacts, 0, est.frame)
             return est
         est.baseline_ready = True
 
         signal = self.compute_signal(means, now_ns)
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self._find_contacts(surface, est)
+        self.tracker.update(self.contacts, n, est.frame)
 
         if n > 0:
             self._in_contact = True
@@ -332,6 +345,7 @@ class Pipeline:
         est.strength = strength
         est.area_mm2 = area
         est.n_contacts = 0
+        est.contact_id, est.touch_frame = 0, -1
         est.clear_geometry()
 
     def _find_contacts(self, surface: np.ndarray, est: ContactEstimate) -> int:
