@@ -28,6 +28,7 @@ import numpy as np
 
 from optitac_edge.calibration.evaluation import (
     centroid_accuracy,
+    depth_accuracy,
     detection,
     repeatability,
     shape_accuracy,
@@ -35,15 +36,15 @@ from optitac_edge.calibration.evaluation import (
 )
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.measure import measure_recording
-from optitac_edge.calibration.steps import calibrate_centroid, calibrate_shapes, calibrate_width
+from optitac_edge.calibration.steps import calibrate_centroid, calibrate_depth, calibrate_shapes, calibrate_width
 from optitac_edge.core.options import ContactOptions
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.optics import CameraOptics
 from optitac_edge.sim.scenarios import write_scenario
 
 CAL_DAY, EVAL_DAY = 1, 2
-CAL_SCENARIOS = ("rest", "seen", "widths", "shapes")
-EVAL_SCENARIOS = ("seen", "unseen", "repeat", "widths", "shapes")
+CAL_SCENARIOS = ("rest", "seen", "widths", "shapes", "depths")
+EVAL_SCENARIOS = ("seen", "unseen", "repeat", "widths", "shapes", "depths")
 
 PAPER = {"unseen_rmse": "0.4 / 0.4", "unseen_r2": "0.99 / 0.99", "seen_r2": "0.99",
          "repeat_range": "0.09", "repeat_mean": "< 0.71", "width_rmse": "1.2 / 1.0",
@@ -89,6 +90,15 @@ def record(workdir: Path, variant: int, day: int, name: str, seed: int, **kw: An
     return Recording(path)
 
 
+def real_depths(rec: Recording) -> np.ndarray:
+    """The simulator's real depth of every truth row (NaN on rest rows; truth.csv has the commanded depth)."""
+    real = sorted((int(f), float(d)) for f, d in rec.meta.extra["simulator"]["real_depth_mm"])
+    starts = np.array([f for f, _ in real])
+    t = rec.truth
+    k = np.searchsorted(starts, t.frame, side="right") - 1
+    return np.where(t.contact & (k >= 0), np.array([d for _, d in real])[np.maximum(k, 0)], np.nan)
+
+
 def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config: Config,
                     hint: tuple[float, bool]) -> dict[str, Any]:
     rest = cal["rest"]
@@ -98,7 +108,8 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
     bundle, _ = calibrate_centroid(cal["seen"], bundle, fill=config.map_fill)
     bundle, _ = calibrate_width(cal["widths"], bundle, kind=config.width_kind)
     bundle, shapes_fit = calibrate_shapes(cal["shapes"], bundle)
-    out: dict[str, Any] = {"shapes_fit": shapes_fit}
+    bundle, depth_fit = calibrate_depth(cal["depths"], bundle)
+    out: dict[str, Any] = {"shapes_fit": shapes_fit, "depth_fit": depth_fit}
     missed = false = contact_frames = rest_frames = 0
     for name, rec in ev.items():
         truth = rec.truth
@@ -118,6 +129,9 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
             out["widths"] = width_accuracy(calibrated, truth)
         elif name == "shapes":
             out["shapes"] = shape_accuracy(calibrated, truth)
+        elif name == "depths":
+            out["depth_real"] = depth_accuracy(calibrated, truth, real_depths(rec))
+            out["depth_commanded"] = depth_accuracy(calibrated, truth)
     out["detection"] = (missed, contact_frames, false, rest_frames)
     return out
 
@@ -239,6 +253,9 @@ def summary_row(r: dict[str, Any]) -> dict[str, str]:
         "shape min F1": f"{min(sh.f1.values()):.2f}",
         "missed contact frames": f"{missed}/{contacts}",
         "false contacts (rest frames)": f"{false}/{rests}",
+        "depth RMSE, real depths (mm)": f"{r['depth_real'].depth_rmse_mm:.3f}",
+        "depth RMSE, commanded depths (mm)": f"{r['depth_commanded'].depth_rmse_mm:.3f}",
+        "force RMSE (N, % of range)": f"{r['depth_real'].force_rmse_n:.3f}, {r['depth_real'].force_rmse_pct:.1f} %",
     }
 
 
@@ -251,6 +268,7 @@ PAPER_FOR_ROW = {
     "width RMSE ≥ 10 mm": PAPER["width_large"], "shape avg. diagonal": PAPER["shape_diag"],
     "shape F1 edge": PAPER["shape_f1_edge"], "shape min F1": PAPER["shape_f1_min"],
     "missed contact frames": "–", "false contacts (rest frames)": "–",
+    "depth RMSE, real depths (mm)": "–", "depth RMSE, commanded depths (mm)": "–", "force RMSE (N, % of range)": "–",
 }
 
 
@@ -301,15 +319,18 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
         f"(this run: variants {args.variants}, {seconds / 60:.1f} min on {platform.machine()} "
         f"{platform.python_implementation()} {platform.python_version()})."),
         "",
-        (f"Each sensor is calibrated on day {CAL_DAY} (`rest`, `seen`, `widths`, `shapes`, seeds 100–103) and "
-        f"evaluated on day {EVAL_DAY} with fresh presses (`seen`, `unseen`, `repeat`, `widths`, `shapes`, "
-        "seeds 200–204): the camera shifted by a fraction of a pixel, LED brightness and pin response "
+        (f"Each sensor is calibrated on day {CAL_DAY} (`rest`, `seen`, `widths`, `shapes`, `depths`, seeds "
+        f"100–104) and evaluated on day {EVAL_DAY} with fresh presses (`seen`, `unseen`, `repeat`, `widths`, "
+        "`shapes`, `depths`, seeds 200–205): the camera shifted by a fraction of a pixel, LED brightness and pin response "
         "drifted by a few %, LED drift during each recording, each press's real depth a few % off the "
         "commanded 3 mm (see docs/simulator.md). Sensor 0 is the simulator's default sensor; the others "
         "are random sensor variants (other scale, rotation, mirror, distortion, noise, LED, skin). "
         "Values are x / y or major / minor. No model is evaluated on the data it was fitted to "
         "(shape figures are on the evaluation day's presses; the classifier's own held-out split is "
-        "reported by `optitac-edge report`)."),
+        "reported by `optitac-edge report`). Depth and force (issue 16): a 5 mm circle at 0.5–4 mm, "
+        "centre and 6 points half the radius out; depth against the simulator's real depth of each press "
+        "and against the commanded one (which the day's depth jitter puts a few % off), force against the "
+        "simulator's force model (docs/simulator.md) as a load cell would measure it."),
         "",
         "## Default configuration against the paper",
         "",

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.centroid_map import CentroidErrorMap
-from optitac_edge.core.corrections import CENTROID_KEY, SHAPES_KEY, WIDTH_KEY
+from optitac_edge.core.corrections import CENTROID_KEY, DEPTH_KEY, SHAPES_KEY, WIDTH_KEY
+from optitac_edge.core.depth_model import DepthForceModel
 from optitac_edge.core.shapes.model import ShapeModel
 from optitac_edge.core.width_model import WidthModel
 
@@ -28,3 +29,7 @@ def with_shape_model(bundle: CalibrationBundle, model: ShapeModel) -> Calibratio
     kept = {k: v for k, v in bundle.extra_arrays.items() if not k.startswith(SHAPES_KEY + "/")}
     return bundle.with_updates(extra_meta={**bundle.extra_meta, SHAPES_KEY: meta},
                                extra_arrays={**kept, **{f"{SHAPES_KEY}/{k}": v for k, v in arrays.items()}})
+
+
+def with_depth_model(bundle: CalibrationBundle, model: DepthForceModel) -> CalibrationBundle:
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, DEPTH_KEY: model.to_bundle()})

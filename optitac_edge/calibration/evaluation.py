@@ -41,6 +41,9 @@ def read_contacts_csv(path: str | Path) -> Measurements:
             features=np.stack([col(f"hu{k}") for k in range(1, 8)] + [col("q4")], axis=1)
             if rows else np.zeros((0, 8)),
             shape=np.array([r["shape"] for r in rows], dtype=str), confidence=col("confidence"),
+            # columns added later (issue 16): absent in older files
+            depth_mm=col("depth_mm") if rows and "depth_mm" in rows[0] else None,
+            force_n=col("force_n") if rows and "force_n" in rows[0] else None,
         )
     except (OSError, KeyError, ValueError) as exc:
         raise RecordingError(f"{path}: not a contacts CSV ({exc})") from None
@@ -231,6 +234,48 @@ def width_accuracy(m: Measurements, truth: Truth) -> WidthReport | None:
     )
 
 
+@dataclass(frozen=True)
+class DepthReport:
+    """Depth (mm) and force (N) error over detected presses with a calibrated depth model.
+
+    ``force_*`` are NaN without a force model or without ``force_n`` in the truth;
+    ``force_range_n`` is the span of the true forces.
+    """
+
+    n: int
+    depth_rmse_mm: float
+    depth_bias_mm: float
+    force_rmse_n: float
+    force_range_n: float
+
+    @property
+    def force_rmse_pct(self) -> float:
+        return 100.0 * self.force_rmse_n / self.force_range_n if self.force_range_n > 0 else float("nan")
+
+
+def depth_accuracy(m: Measurements, truth: Truth, true_depth_mm: np.ndarray | None = None) -> DepthReport | None:
+    """Depth and force error over detected presses; None without a depth model or presses at 2+ depths.
+
+    ``true_depth_mm`` (shape (len(truth),)) replaces the truth's commanded depth (the simulator's real depths).
+    """
+    if m.depth_mm is None:
+        return None
+    rows = np.flatnonzero(detected_rows(m, truth))
+    frames = truth.frame[rows]
+    rows, frames = rows[np.isfinite(m.depth_mm[frames])], frames[np.isfinite(m.depth_mm[frames])]
+    depth = (truth.depth_mm if true_depth_mm is None else np.asarray(true_depth_mm))[rows]
+    if rows.size == 0 or np.unique(depth).size < 2:
+        return None
+    err = m.depth_mm[frames] - depth
+    force_rmse = force_range = float("nan")
+    if truth.force_n is not None and m.force_n is not None:
+        true_f, got_f = truth.force_n[rows], m.force_n[frames]
+        ok = np.isfinite(true_f) & np.isfinite(got_f)
+        if ok.any():
+            force_rmse, force_range = _rmse(got_f[ok] - true_f[ok]), float(np.ptp(true_f[ok]))
+    return DepthReport(int(rows.size), _rmse(err), float(np.mean(err)), force_rmse, force_range)
+
+
 def shape_accuracy(m: Measurements, truth: Truth) -> ShapeReport | None:
     """Confusion matrix and F1 over detected contact frames; None with fewer than two shapes."""
     rows = np.flatnonzero(detected_rows(m, truth))
@@ -277,6 +322,13 @@ def format_evaluation(m: Measurements, truth: Truth) -> list[str]:
                      f"R² major {w.r2_major:.4f}, minor {w.r2_minor:.4f}")
         lines.append(f"  below {WIDTH_SPLIT_MM:g} mm: RMSE {w.rmse_major_small:.3f}/{w.rmse_minor_small:.3f} mm; "
                      f"above: {w.rmse_major_large:.3f}/{w.rmse_minor_large:.3f} mm")
+    dr = depth_accuracy(m, truth)
+    if dr is not None:
+        line = f"depth ({dr.n} frames): RMSE {dr.depth_rmse_mm:.3f} mm, bias {dr.depth_bias_mm:+.3f} mm"
+        if np.isfinite(dr.force_rmse_n):
+            line += (f"; force RMSE {dr.force_rmse_n:.3f} N ({dr.force_rmse_pct:.1f} % of the "
+                     f"{dr.force_range_n:.2f} N range)")
+        lines.append(line)
     s = shape_accuracy(m, truth)
     if s is not None:
         lines.append(f"shapes: average diagonal {s.average_diagonal:.3f}; F1 "

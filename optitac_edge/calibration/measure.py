@@ -29,6 +29,8 @@ class Measurements:
         The shape classifier's input of the primary contact (log-Hu and q4).
     shape : ndarray, shape (N,), str
     confidence : ndarray, shape (N,), float64
+    depth_mm, force_n : ndarray, shape (N,), float64, optional
+        The bundle's depth and force model (NaN when not calibrated); None: not read.
     """
 
     contact: np.ndarray
@@ -42,6 +44,8 @@ class Measurements:
     features: np.ndarray
     shape: np.ndarray
     confidence: np.ndarray
+    depth_mm: np.ndarray | None = None
+    force_n: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.contact.shape[0])
@@ -93,7 +97,7 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     pipeline.set_corrector(ContactCorrector(bundle, shape_backend, onnx_path) if corrected else None)
     n = len(rec)
     cols = {k: np.full(n, np.nan) for k in ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg",
-                                            "strength", "confidence")}
+                                            "strength", "confidence", "depth_mm", "force_n")}
     contact = np.zeros(n, dtype=bool)
     hu = np.full((n, 7), np.nan)
     features = np.full((n, pipeline.contacts[0].features.size), np.nan)

@@ -1,4 +1,4 @@
-"""The calibration steps after ``calibrate fibers``: centroid, width, shapes.
+"""The calibration steps after ``calibrate fibers``: orientation, centroid, width, shapes, depth.
 
 Each step replays a recording with known truth through the raw pipeline
 (baseline from its rest frames), fits its model, and returns an updated
@@ -13,8 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.calibration.bundle_models import with_centroid_map, with_shape_model, with_width_model
+from optitac_edge.calibration.bundle_models import (
+    with_centroid_map,
+    with_depth_model,
+    with_shape_model,
+    with_width_model,
+)
 from optitac_edge.calibration.centroid_fit import fit_centroid_map
+from optitac_edge.calibration.depth_fit import fit_radial_monotone, press_means
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.measure import Measurements, measure_recording
 from optitac_edge.calibration.orientation import (
@@ -27,6 +33,7 @@ from optitac_edge.calibration.orientation import (
 )
 from optitac_edge.calibration.width_fit import fit_width_model
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.depth_model import DepthForceModel
 from optitac_edge.errors import OrientationError, RecordingError
 from optitac_edge.io.recording import SHAPES, Recording, Truth
 
@@ -172,3 +179,47 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
     bundle = _with_report_arrays(bundle, shape_hu=features[:, :7],
                                  shape_label=np.array([SHAPES.index(s) for s in labels], dtype=np.int64))
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": details}), summary
+
+
+def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str = "width"
+                    ) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Depth model, and force model when ``truth.csv`` has a load cell's ``force_n``, from presses of known
+    depth (the ``depths`` experiment: one indenter, several depths and positions).
+
+    Each press counts once (the mean of its detected frames); the raw estimate's ``feature`` (the
+    mean FWHM width, or the strength) and position are the model's inputs.
+    """
+    truth = _truth(rec)
+    m = measure_recording(rec, bundle, corrected=False)
+    rows = np.flatnonzero(detected_rows(m, truth))
+    if np.unique(truth.depth_mm[rows]).size < 3:
+        raise RecordingError(f"{rec.path}: depth calibration needs detected presses at 3 depths or more "
+                             f"(the 'depths' experiment), got {np.unique(truth.depth_mm[rows]).size}")
+    frames = truth.frame[rows]
+    radius = float(bundle.layout.radius_mm)
+    rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / radius ** 2
+    force = truth.force_n[rows] if truth.force_n is not None else np.full(rows.size, np.nan)
+    with_force = bool(np.isfinite(force).all())
+    value = 0.5 * (m.major_mm + m.minor_mm) if feature == "width" else m.strength
+    means, counts = press_means(np.stack([value[frames], rho2, truth.depth_mm[rows], force], axis=1),
+                                press_ids(truth)[rows])
+    try:
+        level = means[:, 2]  # the commanded depth of each press
+        depth = fit_radial_monotone(means[:, 0], means[:, 1], level, radius, level, counts)
+        force_fit = (fit_radial_monotone(means[:, 0], means[:, 1], means[:, 3], radius, level, counts)
+                     if with_force else None)
+    except ValueError as exc:
+        raise RecordingError(f"{rec.path}: {exc}") from None
+    model = DepthForceModel(feature, depth.model, None if force_fit is None else force_fit.model)
+    summary: dict[str, Any] = {
+        "presses": int(counts.size), "frames": int(rows.size), "feature": feature,
+        "depth_range_mm": [round(float(means[:, 2].min()), 3), round(float(means[:, 2].max()), 3)],
+        "depth_radial": depth.model.radial, "fitted_depth_rmse_mm": round(depth.rmse, 4)}
+    if force_fit is not None:
+        span = float(np.ptp(means[:, 3]))
+        summary.update({"force_range_n": [round(float(means[:, 3].min()), 3), round(float(means[:, 3].max()), 3)],
+                        "force_radial": force_fit.model.radial, "fitted_force_rmse_n": round(force_fit.rmse, 4),
+                        "fitted_force_rmse_pct_of_range": round(100 * force_fit.rmse / span, 2) if span else None})
+    bundle = with_depth_model(bundle, model)
+    bundle = _with_report_arrays(bundle, depth_presses=means, depth_press_frames=counts)
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "depth_fit": summary}), summary

@@ -100,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
                                         "rotation or mirror of the layout")),
                        ("centroid", "centroid error maps from presses of known position"),
                        ("width", "linear width model from circles of known diameter"),
-                       ("shapes", "shape classifier from labelled presses")):
+                       ("shapes", "shape classifier from labelled presses"),
+                       ("depth", "depth (and force, with a load cell's force_n column) from known depths")):
         p = cal.add_parser(step, help=text)
         p.add_argument("recording", type=Path)
         p.add_argument("--cal", type=Path, required=True, metavar="CAL", help="bundle to update in place")
@@ -292,6 +293,8 @@ def _cmd_calibrate_model(args: argparse.Namespace) -> int:
         return 0
     if args.step == "shapes":
         bundle, summary = calibrate_steps.calibrate_shapes(rec, bundle, seed=args.seed)
+    elif args.step == "depth":
+        bundle, summary = calibrate_steps.calibrate_depth(rec, bundle)
     elif args.step == "centroid":
         bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill,
                                                                bundle_path=str(args.cal))
@@ -581,6 +584,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "sim": _cmd_sim, "calibrate fibers": _cmd_calibrate_fibers, "calibrate centroid": _cmd_calibrate_model,
         "calibrate orientation": _cmd_calibrate_model,
         "calibrate width": _cmd_calibrate_model, "calibrate shapes": _cmd_calibrate_model,
+        "calibrate depth": _cmd_calibrate_model,
         "evaluate": _cmd_evaluate, "export-onnx": _cmd_export_onnx, "report": _cmd_report, "replay": _cmd_replay,
         "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench,
         **bringup.HANDLERS}

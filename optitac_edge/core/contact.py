@@ -67,6 +67,12 @@ class ContactEstimate:
         Number of simultaneous contacts in the frame (0 without contact); the
         same in every contact of the frame. The pipeline's primary estimate is
         the strongest (largest ``strength``).
+    depth_mm : float
+        Indentation depth, mm, from the bundle's depth model
+        (:class:`~optitac_edge.core.depth_model.DepthForceModel`); NaN when not calibrated.
+    force_n : float
+        Normal force, N, from the same model when it was calibrated with a
+        load cell; NaN otherwise.
     contact_id : int
         1 … 255, the same for one contact from the frame it touched in to its
         release (:class:`~optitac_edge.core.tracking.ContactTracker`); 0 without contact.
@@ -91,6 +97,8 @@ class ContactEstimate:
     shape: str = ""
     confidence: float = math.nan
     n_contacts: int = 0
+    depth_mm: float = math.nan
+    force_n: float = math.nan
     contact_id: int = 0
     touch_frame: int = -1
 
@@ -98,6 +106,7 @@ class ContactEstimate:
         """Set the geometric fields and shape features to NaN (no contact), in place."""
         self.x_mm = self.y_mm = math.nan
         self.major_mm = self.minor_mm = self.angle_deg = math.nan
+        self.depth_mm = self.force_n = math.nan
         self.hu.fill(np.nan)
         self.features.fill(np.nan)
         self.shape = ""
@@ -111,6 +120,7 @@ class ContactEstimate:
             minor_mm=self.minor_mm, angle_deg=self.angle_deg, strength=self.strength,
             area_mm2=self.area_mm2, hu=self.hu.copy(), features=self.features.copy(),
             shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
+            depth_mm=self.depth_mm, force_n=self.force_n,
             contact_id=self.contact_id, touch_frame=self.touch_frame,
         )
 
@@ -123,6 +133,7 @@ class ContactEstimate:
         np.copyto(self.hu, other.hu)
         np.copyto(self.features, other.features)
         self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
+        self.depth_mm, self.force_n = other.depth_mm, other.force_n
         self.contact_id, self.touch_frame = other.contact_id, other.touch_frame
 
     def to_dict(self) -> dict[str, Any]:
@@ -139,6 +150,7 @@ class ContactEstimate:
             "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
             "features": [f(v) for v in self.features],
             "shape": self.shape, "confidence": f(self.confidence),
-            "n_contacts": int(self.n_contacts), "contact_id": int(self.contact_id),
+            "n_contacts": int(self.n_contacts), "depth_mm": f(self.depth_mm), "force_n": f(self.force_n),
+            "contact_id": int(self.contact_id),
             "touch_frame": int(self.touch_frame),
         }

@@ -1,4 +1,5 @@
-"""Calibration models applied to each reported contact: centroid error map, width model, shape.
+"""Calibration models applied to each reported contact: centroid error map, width model, shape,
+depth and force.
 
 The models live in the bundle (``extra_meta`` / ``extra_arrays``, see
 docs/formats.md) and are added by ``optitac-edge calibrate centroid|width|shapes``.
@@ -10,10 +11,11 @@ from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.centroid_map import CentroidErrorMap
+from optitac_edge.core.depth_model import DepthForceModel
 from optitac_edge.core.width_model import WidthModel
 from optitac_edge.errors import BundleError
 
-CENTROID_KEY, WIDTH_KEY, SHAPES_KEY = "centroid", "width", "shapes"
+CENTROID_KEY, WIDTH_KEY, SHAPES_KEY, DEPTH_KEY = "centroid", "width", "shapes", "depth"
 
 
 def _arrays_with_prefix(bundle: CalibrationBundle, prefix: str) -> dict[str, Any]:
@@ -52,6 +54,7 @@ class ContactCorrector:
             self.centroid = (CentroidErrorMap.from_bundle(meta[CENTROID_KEY], dict(bundle.extra_arrays))
                              if CENTROID_KEY in meta else None)
             self.width = WidthModel.from_bundle(meta[WIDTH_KEY]) if WIDTH_KEY in meta else None
+            self.depth = DepthForceModel.from_bundle(meta[DEPTH_KEY]) if DEPTH_KEY in meta else None
         except (KeyError, ValueError, TypeError) as exc:
             raise BundleError(f"bundle has an invalid calibration model ({exc})") from None
         shape_model = load_shape_model(bundle)
@@ -72,7 +75,8 @@ class ContactCorrector:
 
     @property
     def active(self) -> bool:
-        return self.centroid is not None or self.width is not None or self.shapes is not None
+        return (self.centroid is not None or self.width is not None or self.shapes is not None
+                or self.depth is not None)
 
     @property
     def calibrated(self) -> bool:
@@ -81,6 +85,8 @@ class ContactCorrector:
 
     def apply(self, est: Any) -> None:
         """Correct one contact (a :class:`~optitac_edge.core.contact.ContactEstimate` with contact)."""
+        if self.depth is not None:  # first: it reads the raw widths and position it was fitted on
+            self.depth.apply(est)
         if self.centroid is not None:
             est.x_mm, est.y_mm = self.centroid.correct(est.x_mm, est.y_mm)
         if self.width is not None:

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 CONTACTS_HEADER = (
     "frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength",
     "shape", "confidence", "area_mm2", "hu1", "hu2", "hu3", "hu4", "hu5", "hu6", "hu7",
-    "n_contacts", "q4", "t_ns",
+    "n_contacts", "q4", "t_ns", "depth_mm", "force_n", "contact_id",
 )
 
 
@@ -43,13 +43,14 @@ class ContactsCsvWriter:
         """Append the row of frame ``frame`` (captured at ``t_ns``, ns) from a
         :class:`~optitac_edge.core.contact.ContactEstimate`."""
         if not est.contact:
-            self._csv.writerow([frame, 0, *([""] * (len(CONTACTS_HEADER) - 5)), 0, "", int(t_ns)])
+            self._csv.writerow([frame, 0, *([""] * 16), 0, "", int(t_ns), "", "", 0])
             return
         self._csv.writerow([
             frame, 1, _num(est.x_mm, 4), _num(est.y_mm, 4), _num(est.major_mm, 4), _num(est.minor_mm, 4),
             _num(est.angle_deg, 3), _num(est.strength, 3), est.shape or "", _num(est.confidence, 4),
             _num(est.area_mm2, 3), *(_num(float(h), 6) for h in est.hu),
             est.n_contacts, _num(float(est.features[7]), 8), int(t_ns),
+            _num(est.depth_mm, 4), _num(est.force_n, 4), int(est.contact_id),
         ])
 
     def close(self) -> None:

@@ -39,6 +39,8 @@ if TYPE_CHECKING:
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
 #: Optional columns after TRUTH_HEADER: the phase of the press and the rig's pose (rig frame, mm).
 RIG_COLUMNS = ("phase", "rig_x_mm", "rig_y_mm", "rig_z_mm")
+#: Optional last column: the normal force a load cell measured, N ('' where none).
+FORCE_COLUMN = "force_n"
 #: Phases of a rig-collected frame; only ``rest`` and ``hold`` frames (and rows without a phase) are scored.
 PHASES = ("rest", "approach", "hold", "release", "move")
 SCORED_PHASES = ("", "rest", "hold")
@@ -70,6 +72,8 @@ class Truth:
     angle_deg: np.ndarray
     size_mm: np.ndarray
     depth_mm: np.ndarray
+    #: (N,) float64, N: the load cell's force (NaN where none); None: the recording has no force column.
+    force_n: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
@@ -209,14 +213,17 @@ def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise RecordingError(f"{path}: cannot read truth ({exc})") from None
     header = tuple(c.strip() for c in rows[0]) if rows else ()
-    if header not in (TRUTH_HEADER, TRUTH_HEADER + RIG_COLUMNS):
+    force = bool(header) and header[-1] == FORCE_COLUMN
+    base = header[:-1] if force else header
+    if base not in (TRUTH_HEADER, TRUTH_HEADER + RIG_COLUMNS):
         raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}' "
-                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}')")
-    rig = len(header) > len(TRUTH_HEADER)
+                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}', then ',{FORCE_COLUMN}')")
+    rig = len(base) > len(TRUTH_HEADER)
     if len(rows) < 2:
         raise RecordingError(f"{path}: no rows after the header")
     cols: list[list[Any]] = [[] for _ in TRUTH_HEADER]
     rig_cols: list[list[Any]] = [[], [], []]
+    forces: list[float] = []
     seen: set[int] = set()
     n_values = len(TRUTH_HEADER) - 3
     for line_no, row in enumerate(rows[1:], start=2):
@@ -225,7 +232,8 @@ def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
         try:
             frame, contact = int(row[0]), int(row[1])
             values = [_cell_float(c) for c in row[3:3 + n_values]]
-            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:]]
+            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:len(base)]]
+            force_n = _cell_float(row[-1]) if force else math.nan
         except ValueError:
             raise RecordingError(f"{path}: line {line_no}: not a number") from None
         shape = row[2].strip()
@@ -243,6 +251,8 @@ def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
             missing = [TRUTH_HEADER[3 + i] for i, v in enumerate(values)
                        if not math.isfinite(v) and TRUTH_HEADER[3 + i] != "angle_deg"]
             raise RecordingError(f"{path}: line {line_no}: a contact without {', '.join(missing)}")
+        if force and (math.isinf(force_n) or force_n < 0):
+            raise RecordingError(f"{path}: line {line_no}: force_n must be a force >= 0 N or empty")
         if rig:
             rig_cols[0].append(frame)
             rig_cols[1].append(phase)
@@ -251,11 +261,13 @@ def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
             continue
         for col, value in zip(cols, [frame, bool(contact), shape if contact else "", *values]):
             col.append(value)
+        forces.append(force_n)
     truth = Truth(
         frame=np.asarray(cols[0], dtype=np.int64),
         contact=np.asarray(cols[1], dtype=bool),
         shape=np.asarray(cols[2], dtype=str),
         **{name: np.asarray(c, dtype=np.float64) for name, c in zip(TRUTH_HEADER[3:], cols[3:])},
+        force_n=np.asarray(forces, dtype=np.float64) if force else None,
     )
     poses = RigPoses(np.asarray(rig_cols[0], dtype=np.int64), np.asarray(rig_cols[1], dtype=str),
                      np.asarray(rig_cols[2], dtype=np.float64).reshape(-1, 3)) if rig else None
@@ -383,6 +395,8 @@ class RecordingWriter:
         Collect ``truth.csv`` rows (:meth:`write_truth`).
     rig_columns : bool
         ``truth.csv`` carries the rig's phase and pose (:data:`RIG_COLUMNS`).
+    force_column : bool
+        ``truth.csv`` carries a load cell's force (:data:`FORCE_COLUMN`, last).
     keep_frames : int
         Open-ended only: continue an existing incomplete recording of this
         frame shape after its first ``keep_frames`` frames (their times in
@@ -407,6 +421,7 @@ class RecordingWriter:
         rig_columns: bool = False,
         keep_frames: int = 0,
         kept_t_ns: np.ndarray | None = None,
+        force_column: bool = False,
     ) -> None:
         if n_frames is not None and n_frames < 1:
             raise ValueError(f"a recording needs at least one frame, got {n_frames}")
@@ -419,8 +434,9 @@ class RecordingWriter:
         self.n_frames = GROW_FRAMES if n_frames is None else int(n_frames)
         self.frame_shape = tuple(int(v) for v in frame_shape)
         self._frame_bytes = int(np.prod(self.frame_shape))
-        self._truth_rows: list[list[str]] | None = [] if with_truth or rig_columns else None
+        self._truth_rows: list[list[str]] | None = [] if with_truth or rig_columns or force_column else None
         self._rig = rig_columns
+        self._force = force_column
         self._written = 0
         self._closed = False
         self._fd = -1
@@ -549,8 +565,10 @@ class RecordingWriter:
         depth_mm: float = math.nan,
         phase: str = "",
         rig_xyz_mm: tuple[float, float, float] | None = None,
+        force_n: float = math.nan,
     ) -> None:
-        """Add the truth row of ``frame``; with ``rig_columns`` also its ``phase`` and the rig's pose."""
+        """Add the truth row of ``frame``; with ``rig_columns`` also its ``phase`` and the rig's pose,
+        with ``force_column`` the force (N; NaN: none)."""
         if self._truth_rows is None:
             raise ValueError("writer was opened without truth")
         if self._rig and (phase not in PHASES or rig_xyz_mm is None):
@@ -563,6 +581,8 @@ class RecordingWriter:
                *(cell(v) for v in (x_mm, y_mm, angle_deg, size_mm, depth_mm))]
         if self._rig and rig_xyz_mm is not None:
             row += [phase, *(f"{v:.4f}" for v in rig_xyz_mm)]
+        if self._force:
+            row.append("" if math.isnan(force_n) else f"{force_n:.4f}")
         self._truth_rows.append(row)
 
     def close(self) -> None:
@@ -607,7 +627,8 @@ class RecordingWriter:
             if self._truth_rows is not None:
                 with AtomicFile(self.path / "truth.csv", "w", newline="") as f:
                     w = csv.writer(f)
-                    w.writerow(TRUTH_HEADER + (RIG_COLUMNS if self._rig else ()))
+                    w.writerow(TRUTH_HEADER + (RIG_COLUMNS if self._rig else ())
+                               + ((FORCE_COLUMN,) if self._force else ()))
                     w.writerows(self._truth_rows)
             write_file_atomic(self.path / "meta.json", json.dumps(self.meta.to_json(), indent=2))
         except OutputError as exc:

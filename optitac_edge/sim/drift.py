@@ -197,8 +197,9 @@ def sensor_variant(
     skin : SkinModel
         max_darkening, compression_gain, tilt_gain, spread_mm,
         spread_per_depth, clamp_margin_mm, rim_width_mm each x U(0.75, 1.25)
-        (max_darkening x U(0.75, 1.1), i.e. 0.64-0.94); indenter geometry (ellipse ratio, edge
-        length) and grid step unchanged.
+        (max_darkening x U(0.75, 1.1), i.e. 0.64-0.94); modulus_mpa x U(0.75, 1.25) (from
+        its own random stream); indenter geometry (ellipse ratio, edge length), grid step,
+        stiffening_mm and rim_stiffening unchanged.
 
     The variant's transmission pattern comes from :func:`variant_sensor_seed`.
     """
@@ -239,6 +240,8 @@ def sensor_variant(
         spread_per_depth=base.spread_per_depth * skin_f[4],
         clamp_margin_mm=base.clamp_margin_mm * skin_f[5],
         rim_width_mm=base.rim_width_mm * skin_f[6],
+        # a stream of its own: the draws above (and every variant's skin) stay as they were
+        modulus_mpa=base.modulus_mpa * float(np.random.default_rng([variant, 77]).uniform(0.75, 1.25)),
     )
     # No saturation: cap the brightest rest fiber.
     optics = replace(CameraOptics(width=width, height=height), **ov)

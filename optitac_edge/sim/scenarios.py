@@ -18,6 +18,12 @@ contact-free frame. ``truth.csv`` has a row for every frame. Scenarios:
              circle could move less than a quarter of the inscribed radius).
 ``shapes``   40 presses of each shape in random order, random angle and
              position fully on the array, size 4-8 mm (edge width 1.5-2 mm), 3 mm deep.
+``depths``   depth and force calibration (the bring-up experiment of that name):
+             a 5 mm circle at the centre and at 6 points half the array's radius
+             out (every 60 degrees), at each of :data:`DEPTHS_MM`, twice, in random
+             order; ``truth.csv`` ends with the load cell's ``force_n`` (the
+             simulator's force model at the press's real depth, see
+             :func:`~optitac_edge.sim.skin.contact_force_n`).
 ``drift``    baseline tracking: long contact-free stretches with the LEDs warming
              up (+:data:`DRIFT_WARMUP` brightness over the recording, per-fiber
              drift of sigma :data:`DRIFT_FIBER_SIGMA`) and an occasional press:
@@ -52,7 +58,7 @@ from optitac_edge.io.recording import SHAPES, RecordingMeta, RecordingWriter
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.sensor import SimulatedSensor
-from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, bounding_radius
+from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, bounding_radius, contact_force_n
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +71,7 @@ SCENARIOS: tuple[str, ...] = (
     "widths",
     "shapes",
     "drift",
+    "depths",
 )
 REST_FRAMES = 10
 HOLD_FRAMES = 2
@@ -75,6 +82,8 @@ DRIFT_GAP = 90
 DRIFT_HOLD = 30
 DRIFT_WARMUP = 0.03
 DRIFT_FIBER_SIGMA = 0.005
+#: ``depths`` scenario: the commanded depths, mm.
+DEPTHS_MM: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
 WIDTHS_MM: tuple[float, ...] = tuple(float(d) for d in np.round(np.linspace(1.85, 20.09, 12), 2))
 ANGLE_PERIOD_DEG = {
     "circle": 0.0,
@@ -180,6 +189,17 @@ def _shapes(
     return out
 
 
+def _depths(
+    rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
+) -> list[Indenter]:
+    ring = 0.5 * layout.radius_mm
+    angles = np.radians(np.arange(0.0, 360.0, 60.0))
+    points = [(0.0, 0.0), *zip(ring * np.cos(angles), ring * np.sin(angles))]
+    presses = [Indenter("circle", float(px), float(py), 0.0, 5.0, d)
+               for px, py in points for d in DEPTHS_MM for _ in range(2)]
+    return [presses[k] for k in rng.permutation(len(presses))]
+
+
 _PressMaker = Callable[[np.random.Generator, FiberLayout, SkinModel, int], list[Indenter]]
 _PRESSES: dict[str, _PressMaker] = {
     "demo": _demo,
@@ -189,6 +209,7 @@ _PRESSES: dict[str, _PressMaker] = {
     "widths": _widths,
     "shapes": _shapes,
     "drift": _drift,
+    "depths": _depths,
 }
 _DEFAULT_FRAMES = {"rest": 30, "demo": 300, "drift": 1200}
 
@@ -355,7 +376,11 @@ def write_scenario(
         out,
     )
     real_depths: list[list[float]] = []
-    with RecordingWriter(out, len(plan), sensor.frame_shape, meta, with_truth=True) as writer:
+    load_cell = name == "depths"
+    clamp_r = float(np.linalg.norm(layout.xy_mm, axis=1).max()) + skin.clamp_margin_mm
+    force = math.nan
+    with RecordingWriter(out, len(plan), sensor.frame_shape, meta, with_truth=True,
+                         force_column=load_cell) as writer:
         last: Frame = None
         dark = sensor.darkening(())
         for i, press in enumerate(plan):
@@ -364,6 +389,7 @@ def write_scenario(
                 if press is not None:
                     real = sensor.last_real_indenters[0].depth_mm
                     real_depths.append([i, round(real, 5)])
+                    force = contact_force_n(sensor.last_real_indenters[0], clamp_r, skin)
                 last = press
             writer.write(i, sensor.frame_from_darkening(dark, t_s=i / FPS), round(i * 1e9 / FPS))
             if press is None:
@@ -378,6 +404,7 @@ def write_scenario(
                     press.angle_deg,
                     press.size_mm,
                     press.depth_mm,
+                    force_n=force if load_cell else math.nan,
                 )
         simulator["real_depth_mm"] = real_depths
     return out

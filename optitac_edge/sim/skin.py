@@ -14,6 +14,14 @@ Model (per indenter, on a mm grid covering the clamped skin):
    white tips away from the fiber; the response saturates.
 
 Several indenters combine as ``1 - prod(1 - d_i)``.
+
+Normal force (the simulator's load cell, :func:`contact_force_n`): a flat punch
+on an elastic layer, ``F = 2 E* a δ (1 + δ / δs) (1 + k_rim (r / Rc)²)`` with
+``a = sqrt(footprint area / π)`` the equivalent punch radius, ``δ`` the depth,
+``E*`` the skin's effective modulus, ``δs`` the depth at which the stretched
+membrane doubles the stiffness, and the clamped rim stiffening the skin
+towards ``Rc`` (the clamp radius). It is documented in docs/simulator.md;
+depth and force calibration (``calibrate depth``) are evaluated against it.
 """
 
 from __future__ import annotations
@@ -88,6 +96,12 @@ class SkinModel:
         Length of an edge indenter's bar (default 12).
     grid_step_mm : float
         Resolution of the deflection grid (default 0.2).
+    modulus_mpa : float
+        Effective modulus ``E*`` of the skin for the normal force, N/mm² (default 0.12).
+    stiffening_mm : float
+        Depth ``δs`` at which the membrane doubles the skin's stiffness, mm (default 4).
+    rim_stiffening : float
+        ``k_rim``: how much stiffer the skin is at the clamp radius than at the centre (default 1: twice).
     """
 
     max_darkening: float = 0.85
@@ -100,6 +114,9 @@ class SkinModel:
     ellipse_ratio: float = 0.6
     edge_length_mm: float = 12.0
     grid_step_mm: float = 0.2
+    modulus_mpa: float = 0.12
+    stiffening_mm: float = 4.0
+    rim_stiffening: float = 1.0
 
     def to_dict(self) -> dict[str, float]:
         """JSON-able dict of all fields."""
@@ -211,3 +228,34 @@ def fiber_darkening(
         d = skin.max_darkening * (1.0 - np.exp(-(skin.compression_gain * wf + skin.tilt_gain * sf)))
         keep *= 1.0 - d
     return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+
+
+def footprint_area_mm2(indenter: Indenter, skin: SkinModel = DEFAULT_SKIN) -> float:
+    """Area of the indenter's flat face, mm² (an edge: its bar, ``edge_length_mm`` long)."""
+    s = indenter.size_mm
+    return {
+        "circle": math.pi * s * s / 4,
+        "square": s * s,
+        "ellipse": math.pi * s * s * skin.ellipse_ratio / 4,
+        "triangle": math.sqrt(3.0) * s * s / 4,
+        "edge": skin.edge_length_mm * s,
+    }[indenter.shape]
+
+
+def contact_force_n(indenter: Indenter, clamp_radius_mm: float, skin: SkinModel = DEFAULT_SKIN) -> float:
+    """Normal force of one indenter at its depth, N (see the module docstring).
+
+    Parameters
+    ----------
+    indenter : Indenter
+    clamp_radius_mm : float
+        ``Rc``: the outermost fiber's radius plus ``skin.clamp_margin_mm``.
+    skin : SkinModel
+    """
+    depth = indenter.depth_mm
+    if depth <= 0:
+        return 0.0
+    a = math.sqrt(footprint_area_mm2(indenter, skin) / math.pi)
+    rho = min(math.hypot(indenter.x_mm, indenter.y_mm) / clamp_radius_mm, 1.0)
+    return (2.0 * skin.modulus_mpa * a * depth * (1.0 + depth / skin.stiffening_mm)
+            * (1.0 + skin.rim_stiffening * rho * rho))

@@ -1,0 +1,128 @@
+"""Indentation depth (mm) and normal force (N) of a contact, from its width (or strength) and position.
+
+Fitted offline by :func:`optitac_edge.calibration.steps.calibrate_depth`
+from presses of known depth (and force, when the rig carries a load cell).
+The deeper an indenter goes, the wider the skin drapes around it: a
+contact's width (the mean of its raw FWHM widths, mm) grows monotonically
+with the depth, and, unlike its strength, does not change when the skin's
+or the LED's response drifts from day to day (the FWHM is relative to the
+contact's own peak). The clamped rim makes the skin respond less (and push
+back harder) the further out the contact is, so each target is
+
+``target = h(feature * (1 + radial * rho^2))``,  ``rho = r / radius_mm``
+
+with ``h`` monotone increasing and piecewise linear (linear beyond its end
+knots, clipped at 0) and ``radial`` fitted per target. The feature is the
+raw width (``width``, default) or the strength (``strength``); the model
+reads the raw estimate (before the centroid map and the width model). It
+holds for the indenter it was calibrated with (the ``depths`` experiment
+presses a 5 mm circle): a wider indenter at the same depth reads deeper.
+
+Per contact: a few float operations and a bisection (no numpy call).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.width_model import AxisMap
+
+#: The contact features a depth model may use: the mean of the raw FWHM widths (mm), or the strength.
+DEPTH_FEATURES = ("width", "strength")
+
+
+def depth_feature(est: Any, feature: str) -> float:
+    """The value of ``feature`` (one of :data:`DEPTH_FEATURES`) of a raw contact estimate."""
+    if feature == "width":
+        return 0.5 * (float(est.major_mm) + float(est.minor_mm))
+    return float(est.strength)
+
+
+@dataclass(frozen=True, eq=False)
+class RadialMonotoneMap:
+    """``h(feature * (1 + radial * (r / radius_mm)^2))`` with ``h`` an :class:`AxisMap`.
+
+    Attributes
+    ----------
+    radial : float
+        The radial gain (> -1: the factor stays positive over the array).
+    radius_mm : float
+        The array's radius, mm (> 0).
+    curve : AxisMap
+        ``h``: scaled feature -> target.
+    """
+
+    radial: float
+    radius_mm: float
+    curve: AxisMap
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.radial) and self.radial > -1.0):
+            raise ValueError(f"radial gain must be finite and > -1, got {self.radial!r}")
+        if not (math.isfinite(self.radius_mm) and self.radius_mm > 0):
+            raise ValueError(f"radius must be finite and > 0 mm, got {self.radius_mm!r}")
+
+    def scaled(self, feature: float, x_mm: float, y_mm: float) -> float:
+        """The feature times the radial factor at ``(x_mm, y_mm)`` (the factor capped at the rim)."""
+        rho2 = min((x_mm * x_mm + y_mm * y_mm) / (self.radius_mm * self.radius_mm), 1.0)
+        return feature * (1.0 + self.radial * rho2)
+
+    def __call__(self, feature: float, x_mm: float, y_mm: float) -> float:
+        """The target (>= 0) of a contact; NaN when the feature or position is NaN."""
+        v = self.scaled(float(feature), float(x_mm), float(y_mm))
+        return math.nan if math.isnan(v) else self.curve(v)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"radial": self.radial, "radius_mm": self.radius_mm,
+                "knots_feature": self.curve.knots_measured.tolist(), "knots_target": self.curve.knots_true.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RadialMonotoneMap:
+        curve = AxisMap(np.asarray(d["knots_feature"], dtype=np.float64), np.asarray(d["knots_target"], dtype=np.float64))
+        if np.any(np.diff(curve.knots_true) < 0):
+            raise ValueError("depth / force knots must not decrease")
+        return cls(float(d["radial"]), float(d["radius_mm"]), curve)
+
+
+@dataclass(frozen=True, eq=False)
+class DepthForceModel:
+    """Depth, and force when calibrated, of a contact.
+
+    Attributes
+    ----------
+    feature : str
+        One of :data:`DEPTH_FEATURES`.
+    depth : RadialMonotoneMap
+        -> indentation depth, mm.
+    force : RadialMonotoneMap or None
+        -> normal force, N (None: no load cell in the calibration).
+    """
+
+    feature: str
+    depth: RadialMonotoneMap
+    force: RadialMonotoneMap | None = None
+
+    def __post_init__(self) -> None:
+        if self.feature not in DEPTH_FEATURES:
+            raise ValueError(f"unknown depth feature {self.feature!r} (known: {', '.join(DEPTH_FEATURES)})")
+
+    def apply(self, est: Any) -> None:
+        """Set ``est.depth_mm`` and ``est.force_n`` (NaN without a force model) of one raw contact estimate."""
+        f = depth_feature(est, self.feature)
+        x, y = est.x_mm, est.y_mm
+        est.depth_mm = self.depth(f, x, y)
+        est.force_n = math.nan if self.force is None else self.force(f, x, y)
+
+    def to_bundle(self) -> dict[str, Any]:
+        return {"feature": self.feature, "depth": self.depth.to_dict(),
+                "force": None if self.force is None else self.force.to_dict()}
+
+    @classmethod
+    def from_bundle(cls, meta: dict[str, Any]) -> DepthForceModel:
+        force = meta.get("force")
+        return cls(str(meta["feature"]), RadialMonotoneMap.from_dict(meta["depth"]),
+                   None if force is None else RadialMonotoneMap.from_dict(force))

@@ -1,0 +1,198 @@
+"""Depth and force: the simulator's force model, the truth's force column, the fit, the runtime model, the CLI."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.depth_fit import fit_radial_monotone
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.depth_model import DepthForceModel, RadialMonotoneMap
+from optitac_edge.core.width_model import AxisMap
+from optitac_edge.errors import RecordingError
+from optitac_edge.io.recording import FORCE_COLUMN, TRUTH_HEADER, read_truth
+from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, contact_force_n, footprint_area_mm2
+
+# -- the simulator's force model -------------------------------------------------------------
+
+
+def test_force_is_the_flat_punch_law_at_the_centre_and_stiffens_with_depth_and_towards_the_rim():
+    skin = SkinModel(modulus_mpa=0.1, stiffening_mm=4.0, rim_stiffening=1.0)
+    circle = Indenter("circle", 0.0, 0.0, 0.0, 5.0, 1.0)
+    a = 2.5  # the circle's radius
+    assert contact_force_n(circle, 12.0, skin) == pytest.approx(2 * 0.1 * a * 1.0 * (1 + 1 / 4))
+    deep = Indenter("circle", 0.0, 0.0, 0.0, 5.0, 4.0)  # at the stiffening depth the stiffness doubles
+    assert contact_force_n(deep, 12.0, skin) / 4.0 == pytest.approx(2 * 2 * 0.1 * a)
+    rim = Indenter("circle", 12.0, 0.0, 0.0, 5.0, 1.0)  # at the clamp radius: twice as stiff
+    assert contact_force_n(rim, 12.0, skin) == pytest.approx(2 * contact_force_n(circle, 12.0, skin))
+    assert contact_force_n(Indenter("circle", 0.0, 0.0, 0.0, 5.0, 0.0), 12.0, skin) == 0.0
+
+
+@pytest.mark.parametrize("shape, area", [("circle", math.pi * 4), ("square", 16.0),
+                                         ("triangle", math.sqrt(3) * 4), ("edge", 4 * 12.0),
+                                         ("ellipse", math.pi * 4 * 0.6)])
+def test_footprint_areas(shape, area):
+    assert footprint_area_mm2(Indenter(shape, 0.0, 0.0, 0.0, 4.0, 1.0), DEFAULT_SKIN) == pytest.approx(area)
+
+
+# -- truth.csv's force column ----------------------------------------------------------------
+
+
+def _truth_file(tmp_path, header, rows):
+    path = tmp_path / "truth.csv"
+    path.write_text("\n".join([",".join(header), *rows]) + "\n")
+    return path
+
+
+def test_the_force_column_is_read_and_optional(tmp_path):
+    row = "0,1,circle,0,0,0,5,1.5,{}"
+    t = read_truth(_truth_file(tmp_path, TRUTH_HEADER + (FORCE_COLUMN,), [row.format("1.25"), "1,0,,,,,,,"]), 2)
+    assert t.force_n is not None and t.force_n[0] == 1.25 and math.isnan(t.force_n[1])
+    assert read_truth(_truth_file(tmp_path, TRUTH_HEADER, ["0,1,circle,0,0,0,5,1.5"]), 1).force_n is None
+
+
+@pytest.mark.parametrize("value", ["-1", "inf", "x"])
+def test_a_bad_force_is_refused_in_one_line_naming_file_and_line(tmp_path, value):
+    path = _truth_file(tmp_path, TRUTH_HEADER + (FORCE_COLUMN,), [f"0,1,circle,0,0,0,5,1.5,{value}"])
+    with pytest.raises(RecordingError, match=r"truth.csv: line 2") as err:
+        read_truth(path, 1)
+    assert "\n" not in str(err.value)
+
+
+# -- the fit and the runtime model -----------------------------------------------------------
+
+
+def test_the_fit_recovers_a_known_radial_gain_and_curve():
+    """Presses at 6 depths and 5 radii whose strength follows depth = g(s * (1 + 0.5 rho^2)) exactly."""
+    rng = np.random.default_rng(1)
+    depths = np.repeat([0.5, 1.0, 1.5, 2.0, 3.0, 4.0], 5)
+    rho2 = np.tile([0.0, 0.1, 0.2, 0.3, 0.4], 6)
+    scaled = 10.0 * depths ** 1.5  # g^-1
+    strength = scaled / (1.0 + 0.5 * rho2)
+    fit = fit_radial_monotone(strength, rho2, depths, 12.0, level=depths, weight=rng.integers(1, 4, depths.size))
+    assert fit.model.radial == pytest.approx(0.5, abs=1e-9) and fit.rmse < 1e-9
+    m = fit.model
+    assert m(float(strength[7]), math.sqrt(float(rho2[7])) * 12.0, 0.0) == pytest.approx(depths[7])
+
+
+def test_the_fit_refuses_presses_at_fewer_than_three_depths():
+    with pytest.raises(ValueError, match="3 depths"):
+        fit_radial_monotone(np.array([1.0, 2.0, 3.0]), np.zeros(3), np.array([1.0, 2.0, 2.0]), 12.0,
+                            level=np.array([1.0, 2.0, 2.0]))
+
+
+def _model(force: bool = True) -> DepthForceModel:
+    curve = AxisMap(np.array([10.0, 20.0, 40.0]), np.array([1.0, 2.0, 3.0]))
+    fcurve = AxisMap(np.array([10.0, 40.0]), np.array([0.5, 5.0]))
+    return DepthForceModel("strength", RadialMonotoneMap(1.0, 10.0, curve),
+                           RadialMonotoneMap(0.0, 10.0, fcurve) if force else None)
+
+
+def test_the_model_scales_by_the_radius_caps_it_at_the_rim_and_extends_linearly():
+    m = _model()
+    est = ContactEstimate(contact=True, x_mm=0.0, y_mm=0.0, strength=15.0)
+    m.apply(est)
+    assert est.depth_mm == pytest.approx(1.5) and est.force_n == pytest.approx(0.5 + 4.5 * 5 / 30)
+    est.x_mm, est.y_mm = 6.0, 8.0  # r = 10 mm, rho = 1: strength x 2
+    m.apply(est)
+    assert est.depth_mm == pytest.approx(2.5)
+    est.x_mm = 60.0  # beyond the rim: the factor stays at its rim value
+    m.apply(est)
+    assert est.depth_mm == pytest.approx(np.interp(15.0 * 2, [10, 20, 40], [1, 2, 3]))
+    est.x_mm, est.y_mm, est.strength = 0.0, 0.0, 60.0  # beyond the last knot: the last segment's slope
+    m.apply(est)
+    assert est.depth_mm == pytest.approx(3.0 + 20 / 20 * 1.0)
+    est.x_mm = math.nan
+    m.apply(est)
+    assert math.isnan(est.depth_mm) and math.isnan(est.force_n)
+    no_force = _model(force=False)
+    est.x_mm = 0.0
+    no_force.apply(est)
+    assert est.depth_mm == pytest.approx(4.0) and math.isnan(est.force_n)
+
+
+def test_the_model_round_trips_and_refuses_bad_parameters():
+    m = _model()
+    again = DepthForceModel.from_bundle(m.to_bundle())
+    assert again.to_bundle() == m.to_bundle()
+    bad = m.to_bundle()
+    bad["depth"]["knots_target"] = [3.0, 2.0, 1.0]
+    with pytest.raises(ValueError, match="must not decrease"):
+        DepthForceModel.from_bundle(bad)
+    with pytest.raises(ValueError, match="radial"):
+        RadialMonotoneMap(-1.0, 10.0, m.depth.curve)
+    with pytest.raises(ValueError, match="unknown depth feature"):
+        DepthForceModel("area_mm2", m.depth)
+
+
+# -- the calibration step, end to end on the simulator ---------------------------------------
+
+
+def test_calibrate_depth_on_another_day_meets_the_depth_and_force_targets(tmp_path, bundle_path, capsys):
+    """Issue 16: calibrated on one day's ``depths`` presses, evaluated on another day's: depth RMSE against the
+    simulator's real depths <= 0.10 mm over 0.5-4 mm, force RMSE <= 5 % of the range; the CSV carries both."""
+    import json
+    import shutil
+
+    from optitac_edge.calibration.evaluation import depth_accuracy, read_contacts_csv
+    from optitac_edge.calibration.measure import measure_recording
+    from optitac_edge.cli import main
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.io.recording import Recording
+
+    cal = tmp_path / "cal.npz"
+    shutil.copy(bundle_path, cal)
+    assert main(["sim", str(tmp_path / "d1"), "--scenario", "depths", "--seed", "105", "--day", "1", "-q"]) == 0
+    assert main(["sim", str(tmp_path / "d2"), "--scenario", "depths", "--seed", "205", "--day", "2", "-q"]) == 0
+    assert main(["calibrate", "depth", str(tmp_path / "d1"), "--cal", str(cal)]) == 0
+    assert "with the depth calibration: presses 112" in capsys.readouterr().out
+    rec = Recording(tmp_path / "d2")
+    real = dict(json.loads((tmp_path / "d2" / "meta.json").read_text())["simulator"]["real_depth_mm"])
+    starts = sorted(real)
+    first = np.searchsorted(starts, rec.truth.frame, side="right") - 1
+    real_depth = np.array([real[starts[k]] for k in first])
+    m = measure_recording(rec, load_bundle(cal), progress=False)
+    report = depth_accuracy(m, rec.truth, real_depth)
+    assert report is not None and report.n == 224
+    assert report.depth_rmse_mm <= 0.10 and report.force_rmse_pct <= 5.0
+    assert main(["evaluate", str(tmp_path / "d2"), "--cal", str(cal)]) == 0
+    assert "force RMSE" in capsys.readouterr().out
+    assert main(["replay", str(tmp_path / "d2"), "--cal", str(cal), "-o", str(tmp_path / "c.csv"), "-q"]) == 0
+    back = read_contacts_csv(tmp_path / "c.csv")
+    assert back.depth_mm is not None and np.nanmax(np.abs(back.depth_mm - m.depth_mm)) < 1e-4
+
+
+def test_calibrate_depth_refuses_presses_at_one_depth(tmp_path, bundle_path, capsys):
+    import shutil
+
+    from optitac_edge.cli import main
+
+    cal = tmp_path / "cal.npz"
+    shutil.copy(bundle_path, cal)
+    assert main(["sim", str(tmp_path / "r"), "--scenario", "repeat", "--seed", "1", "--frames", "40", "-q"]) == 0
+    assert main(["calibrate", "depth", str(tmp_path / "r"), "--cal", str(cal)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "3 depths or more" in err[0]
+
+
+def test_the_width_feature_is_the_mean_raw_fwhm_and_the_model_runs_before_the_width_model(bundle_path):
+    from optitac_edge.calibration.bundle_models import with_depth_model, with_width_model
+    from optitac_edge.core.corrections import ContactCorrector
+    from optitac_edge.core.depth_model import depth_feature
+    from optitac_edge.core.width_model import WidthModel
+    from optitac_edge.io.bundle_file import load_bundle
+
+    est = ContactEstimate(contact=True, x_mm=0.0, y_mm=0.0, major_mm=6.0, minor_mm=4.0, strength=99.0)
+    assert depth_feature(est, "width") == 5.0 and depth_feature(est, "strength") == 99.0
+    curve = AxisMap(np.array([4.0, 6.0]), np.array([1.0, 3.0]))
+    model = DepthForceModel("width", RadialMonotoneMap(0.0, 10.0, curve))
+    model.apply(est)
+    assert est.depth_mm == pytest.approx(2.0)
+    double = AxisMap(np.array([0.0, 10.0]), np.array([0.0, 20.0]))  # a width model that doubles every width
+    bundle = with_depth_model(with_width_model(load_bundle(bundle_path), WidthModel("monotone", double, double)),
+                              model)
+    est = ContactEstimate(contact=True, x_mm=0.0, y_mm=0.0, major_mm=6.0, minor_mm=4.0)
+    ContactCorrector(bundle).apply(est)
+    assert est.depth_mm == pytest.approx(2.0) and (est.major_mm, est.minor_mm) == (12.0, 8.0)
