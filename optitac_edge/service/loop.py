@@ -33,17 +33,21 @@ from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
+from optitac_edge.io.protocol.announce import ContactAnnouncer
 from optitac_edge.io.protocol.messages import (
     STATE_BASELINE_READY,
     STATE_CALIBRATION_UNSAVED,
     STATE_CAMERA_FAULT,
     STATE_DEGRADED,
     STATE_LIGHT_CHANGE,
+    STATE_PROTOCOL_V2,
     STATE_STREAMING,
     TEMP_UNKNOWN,
     Command,
     CommandType,
     ContactMessage,
+    ContactV2Message,
+    ReleaseMessage,
     StatusMessage,
 )
 from optitac_edge.io.sdnotify import Notifier
@@ -92,6 +96,7 @@ class ServiceStats:
     saturated_sent: int = 0  # processed frames with some fiber at full scale (SATURATED flag)
     light_changes: int = 0  # common-mode changes of the light (LED dimming), not reported as contacts
     processing_errors: int = 0  # frames the pipeline failed on (a bug): counted, flagged, baseline re-taken
+    protocol_refused: int = 0  # SET_PROTOCOL for a version the link cannot speak: ignored
     reopens: int = 0  # successful camera reopens
     reopen_failures: int = 0
     commands: dict[str, int] = field(default_factory=dict)
@@ -160,6 +165,11 @@ class Service:
         self.rate_divider = config.link.rate_divider
         self.stats = ServiceStats()
         self._message = ContactMessage(sensor_id=config.sensor.id)
+        #: The protocol the MCU asked for with SET_PROTOCOL (1 until it does).
+        self.protocol = 1
+        self._messages_v2 = [ContactV2Message(sensor_id=config.sensor.id) for _ in range(4)]
+        self._release = ReleaseMessage(sensor_id=config.sensor.id)
+        self._announcer = ContactAnnouncer()
         self._status = StatusMessage(sensor_id=config.sensor.id,
                                      calibration_id=int(bundle.calibration_id[:8] or "0", 16))
         self._degraded = bool(bundle.fibers.dead.any())
@@ -191,6 +201,16 @@ class Service:
             self.rate_divider = max(int(command.rate_divider), 1)
         elif command.type == CommandType.SET_THRESHOLD:
             self.pipeline.set_contact_level(command.threshold * THRESHOLD_UNIT)
+        elif command.type == CommandType.SET_PROTOCOL:
+            if command.version in self.transport.protocols:
+                if command.version != self.protocol:
+                    log.info("the MCU switched to protocol v%d", command.version)
+                self.protocol = command.version
+                self._announcer.reset()  # a new session: every contact is news to the MCU
+            else:
+                self.stats.protocol_refused += 1
+                log.warning("SET_PROTOCOL %d ignored: this link speaks %s", command.version,
+                            ", ".join(f"v{v}" for v in self.transport.protocols))
 
     # -- status ------------------------------------------------------------------------------
 
@@ -209,7 +229,8 @@ class Service:
                    | (STATE_BASELINE_READY if self.pipeline.baseline_ready else 0)
                    | (STATE_DEGRADED if self._degraded else 0) | (STATE_CAMERA_FAULT if fault else 0)
                    | (STATE_LIGHT_CHANGE if self._light_since_status else 0)
-                   | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0))
+                   | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0)
+                   | (STATE_PROTOCOL_V2 if self.protocol == 2 else 0))
         self._fault_since_status = self._light_since_status = False
         return s
 
@@ -408,11 +429,32 @@ class Service:
         saturated = self.frame_check.saturated
         st.saturated_sent += int(saturated)
         if self.streaming and st.frames % self.rate_divider == 0 and self.transport.delivers:
-            self._message.fill(est, captured.t_ns, self.clock.monotonic_ns(), self.pipeline.calibrated,
-                               saturated=saturated, degraded=self._degraded)
-            self.transport.send_contact(self._message)
+            if self.protocol == 2:
+                self._send_v2(est, captured.t_ns, saturated)
+            else:
+                self._message.fill(est, captured.t_ns, self.clock.monotonic_ns(), self.pipeline.calibrated,
+                                   saturated=saturated, degraded=self._degraded)
+                self.transport.send_contact(self._message)
             st.sent += 1
         return est, False
+
+    def _send_v2(self, est: ContactEstimate, t_ns: int, saturated: bool) -> None:
+        """Protocol v2: a RELEASE for every contact the MCU was told of that is gone, then a CONTACT2 for
+        every contact of the frame (one with no contact when there is none)."""
+        contacts = self.pipeline.contacts
+        n = est.n_contacts if est.contact else 0
+        released = self._announcer.update(contacts, n)
+        t_us = t_ns // 1000
+        r = self._release
+        for cid, touch in released:
+            r.contact_id, r.touch_frame, r.frame, r.t_us = cid, touch, est.frame, t_us
+            self.transport.send_release(r)
+        now_ns, calibrated = self.clock.monotonic_ns(), self.pipeline.calibrated
+        touched = self._announcer.touched
+        for k in range(max(n, 1)):
+            msg = self._messages_v2[k].fill(contacts[k] if n else est, k, t_ns, now_ns, calibrated, saturated,
+                                             self._degraded, touch=touched[k] if n else None)
+            self.transport.send_contact_v2(msg)
 
     def _light_changed(self) -> None:
         st = self.stats

@@ -19,9 +19,25 @@ STATE_DEGRADED = 0x04
 STATE_CAMERA_FAULT = 0x08
 STATE_LIGHT_CHANGE = 0x10  # a common-mode change of the light (LED dimming) since the last STATUS
 STATE_CALIBRATION_UNSAVED = 0x20  # running on a bundle that could not be saved
+STATE_PROTOCOL_V2 = 0x40  # the sensor speaks protocol v2 (the MCU asked for it with SET_PROTOCOL)
+
+#: The protocol versions a SET_PROTOCOL command may ask for.
+PROTOCOL_VERSIONS = (1, 2)
 
 #: STATUS ``cpu_temp_c_x10`` when the temperature is unknown.
 TEMP_UNKNOWN = -32768
+
+
+class ContactV2Flags(IntFlag):
+    """Bits of the CONTACT2 message's ``flags`` (protocol v2)."""
+
+    CONTACT = 0x01
+    CALIBRATED = 0x02
+    SATURATED = 0x04
+    DEGRADED = 0x08
+    TOUCH = 0x10  # this contact touched in this frame
+    DEPTH = 0x20  # depth_mm is calibrated
+    FORCE = 0x40  # force_n is calibrated
 
 
 class ContactFlags(IntFlag):
@@ -37,6 +53,7 @@ class ContactFlags(IntFlag):
 _CONTACT, _CALIBRATED, _SATURATED, _DEGRADED, _MORE = (int(f) for f in (
     ContactFlags.CONTACT, ContactFlags.CALIBRATED, ContactFlags.SATURATED, ContactFlags.DEGRADED,
     ContactFlags.MORE_CONTACTS))
+_TOUCH, _DEPTH, _FORCE = (int(f) for f in (ContactV2Flags.TOUCH, ContactV2Flags.DEPTH, ContactV2Flags.FORCE))
 
 
 class ShapeCode(IntEnum):
@@ -91,6 +108,7 @@ class CommandType(IntEnum):
     TARE = 0x11
     STREAM = 0x12
     SET_THRESHOLD = 0x13
+    SET_PROTOCOL = 0x14
 
 
 class ResultCode(IntEnum):
@@ -163,6 +181,108 @@ class ContactMessage:
 
 
 @dataclass(slots=True)
+class ContactV2Message:
+    """Protocol v2: one contact of one processed frame (every contact; one message with
+    ``n_contacts`` 0 when there is none), in physical units (the encoders quantise).
+
+    Attributes
+    ----------
+    sensor_id : int
+    flags : int
+        :class:`ContactV2Flags` bits.
+    t_us : int
+        The frame's sensor timestamp, µs.
+    frame : int
+        The sensor's frame counter (the same in every message of one camera frame; wraps on the wire).
+    index, n_contacts : int
+        This contact's rank (0: the strongest) and the frame's number of contacts (0…4).
+    contact_id : int
+        1…255, stable from the contact's touch to its release; 0 without contact.
+    x_mm, y_mm, major_mm, minor_mm, angle_deg, strength, shape, confidence, age_us
+        As in :class:`ContactMessage`.
+    depth_mm, force_n : float
+        Indentation depth (mm) and normal force (N); 0 unless the DEPTH / FORCE flag is set.
+    """
+
+    sensor_id: int = 0
+    flags: int = 0
+    t_us: int = 0
+    frame: int = 0
+    index: int = 0
+    n_contacts: int = 0
+    contact_id: int = 0
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    major_mm: float = 0.0
+    minor_mm: float = 0.0
+    angle_deg: float = 0.0
+    strength: float = 0.0
+    depth_mm: float = 0.0
+    force_n: float = 0.0
+    shape: ShapeCode = ShapeCode.NONE
+    confidence: float = 0.0
+    age_us: int = 0
+
+    def fill(self, est: Any, index: int, t_ns: int, now_ns: int, calibrated: bool, saturated: bool = False,
+             degraded: bool = False, touch: bool | None = None) -> ContactV2Message:
+        """Update in place from contact ``index`` of a frame (a
+        :class:`~optitac_edge.core.contact.ContactEstimate`; the primary one when there is no contact).
+
+        ``touch``: the TOUCH flag (new to the receiver); None: the contact touched in this frame.
+        """
+        contact = bool(est.contact)
+        isfinite = math.isfinite
+        flags = ((_CONTACT if contact else 0) | (_CALIBRATED if calibrated else 0)
+                 | (_SATURATED if saturated else 0) | (_DEGRADED if degraded else 0))
+        self.t_us = t_ns // 1000
+        self.frame = int(est.frame)
+        self.index = index
+        if contact:
+            self.n_contacts = int(est.n_contacts)
+            self.contact_id = int(est.contact_id)
+            if (est.touch_frame == est.frame) if touch is None else touch:
+                flags |= _TOUCH
+            v = (float(est.x_mm), float(est.y_mm), float(est.major_mm), float(est.minor_mm),
+                 float(est.angle_deg), float(est.strength), float(est.confidence))
+            (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
+             self.confidence) = (x if isfinite(x) else 0.0 for x in v)
+            depth, force = float(est.depth_mm), float(est.force_n)
+            self.depth_mm = depth if isfinite(depth) else 0.0
+            self.force_n = force if isfinite(force) else 0.0
+            flags |= (_DEPTH if isfinite(depth) else 0) | (_FORCE if isfinite(force) else 0)
+        else:
+            self.n_contacts = self.contact_id = 0
+            self.x_mm = self.y_mm = self.major_mm = self.minor_mm = self.angle_deg = 0.0
+            self.strength = self.confidence = self.depth_mm = self.force_n = 0.0
+        self.flags = flags
+        self.shape = ShapeCode.from_name(est.shape, contact)
+        self.age_us = max((now_ns - t_ns) // 1000, 0)
+        return self
+
+
+@dataclass(slots=True)
+class ReleaseMessage:
+    """Protocol v2: a contact of the previous frame is gone (sent in the frame of its release).
+
+    Attributes
+    ----------
+    sensor_id, contact_id : int
+    t_us : int
+        The releasing frame's timestamp, µs.
+    frame : int
+        The frame it was released in (the first without it).
+    touch_frame : int
+        The frame it touched in.
+    """
+
+    sensor_id: int = 0
+    contact_id: int = 0
+    t_us: int = 0
+    frame: int = 0
+    touch_frame: int = 0
+
+
+@dataclass(slots=True)
 class StatusMessage:
     """About once a second: the health of the sensor service."""
 
@@ -186,3 +306,4 @@ class Command:
     stream_on: bool = True
     rate_divider: int = 1
     threshold: int = 0
+    version: int = 0  # SET_PROTOCOL

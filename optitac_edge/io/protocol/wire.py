@@ -20,6 +20,7 @@ from typing import NamedTuple
 from cobs import cobs
 
 from optitac_edge.io.protocol.messages import (
+    PROTOCOL_VERSIONS,
     Command,
     CommandType,
     ContactFlags,
@@ -48,10 +49,13 @@ class MsgType(IntEnum):
 
     CONTACT = 0x01
     STATUS = 0x02
+    CONTACT2 = 0x03  # protocol v2 (wire_v2)
+    RELEASE = 0x04  # protocol v2 (wire_v2)
     PING = 0x10
     TARE = 0x11
     STREAM = 0x12
     SET_THRESHOLD = 0x13
+    SET_PROTOCOL = 0x14
     ACK = 0x7F
 
 
@@ -70,12 +74,14 @@ STATUS = struct.Struct("<BBHIIIhI")
 ACK = struct.Struct("<HB")
 STREAM = struct.Struct("<BB")  # on (0/1), rate divider (1..255)
 SET_THRESHOLD = struct.Struct("<H")  # contact-on level, 0.0001 relative units
+SET_PROTOCOL = struct.Struct("<B")  # the protocol version the MCU asks for (1 or 2)
 
 COMMAND_LENGTHS = {
     CommandType.PING: 0,
     CommandType.TARE: 0,
     CommandType.STREAM: STREAM.size,
     CommandType.SET_THRESHOLD: SET_THRESHOLD.size,
+    CommandType.SET_PROTOCOL: SET_PROTOCOL.size,
 }
 
 # -- scaling (wire LSB in physical units) ----------------------------------------------------
@@ -91,7 +97,7 @@ THRESHOLD_MAX = 5000  # 0.5000 relative units
 RATE_DIVIDER_MIN = 1
 RATE_DIVIDER_MAX = 255
 CONTACT_FLAGS_MASK = 0x1F  # bits 5-7 reserved, sent as 0
-STATE_MASK = 0x3F  # STATUS state bits 6-7 reserved, sent as 0
+STATE_MASK = 0x7F  # STATUS state bit 7 reserved, sent as 0 (bit 6: protocol v2, never set on v1)
 
 U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFFFFFF
 
@@ -130,7 +136,7 @@ def encode_frame(msg_type: int, seq: int, t_us: int, payload: bytes = b"") -> by
 # -- quantisation ------------------------------------------------------------------------------
 
 
-def _q(value: float, lsb: float, lo: int, hi: int) -> int:
+def quantise(value: float, lsb: float, lo: int, hi: int) -> int:
     """value/lsb rounded half away from zero, saturated to [lo, hi]; NaN -> 0."""
     v = float(value)
     if math.isnan(v):
@@ -147,7 +153,7 @@ def _q(value: float, lsb: float, lo: int, hi: int) -> int:
     return lo if n < lo else hi if n > hi else int(n)
 
 
-def _clamp_int(value: float, lo: int, hi: int) -> int:
+def clamp_int(value: float, lo: int, hi: int) -> int:
     v = float(value)
     if math.isnan(v):
         return lo
@@ -161,17 +167,17 @@ def contact_payload(msg: ContactMessage, sensor_id: int | None = None) -> bytes:
     """The 18-byte CONTACT payload of ``msg`` (quantised with rounding and saturation);
     ``sensor_id`` overrides the message's."""
     return CONTACT.pack(
-        _clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
+        clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
         int(msg.flags) & CONTACT_FLAGS_MASK,
-        _q(msg.x_mm, MM_LSB, -32768, 32767),
-        _q(msg.y_mm, MM_LSB, -32768, 32767),
-        _q(msg.major_mm, MM_LSB, 0, U16),
-        _q(msg.minor_mm, MM_LSB, 0, U16),
-        _q(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
-        _q(msg.strength, STRENGTH_LSB, 0, U16),
+        quantise(msg.x_mm, MM_LSB, -32768, 32767),
+        quantise(msg.y_mm, MM_LSB, -32768, 32767),
+        quantise(msg.major_mm, MM_LSB, 0, U16),
+        quantise(msg.minor_mm, MM_LSB, 0, U16),
+        quantise(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
+        quantise(msg.strength, STRENGTH_LSB, 0, U16),
         ShapeCode.coerce(msg.shape),
-        _q(msg.confidence, 1.0 / CONFIDENCE_MAX, 0, CONFIDENCE_MAX),
-        _clamp_int(msg.age_us, 0, U16),
+        quantise(msg.confidence, 1.0 / CONFIDENCE_MAX, 0, CONFIDENCE_MAX),
+        clamp_int(msg.age_us, 0, U16),
     )
 
 
@@ -179,13 +185,13 @@ def status_payload(msg: StatusMessage, sensor_id: int | None = None) -> bytes:
     """The 22-byte STATUS payload of ``msg`` (counters saturate at 2^32-1); ``sensor_id``
     overrides the message's."""
     return STATUS.pack(
-        _clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
+        clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
         int(msg.state) & STATE_MASK,
-        _clamp_int(msg.fps_x10, 0, U16),
-        _clamp_int(msg.frames_dropped, 0, U32),
-        _clamp_int(msg.camera_errors, 0, U32),
-        _clamp_int(msg.link_errors, 0, U32),
-        _clamp_int(msg.cpu_temp_c_x10, -32768, 32767),
+        clamp_int(msg.fps_x10, 0, U16),
+        clamp_int(msg.frames_dropped, 0, U32),
+        clamp_int(msg.camera_errors, 0, U32),
+        clamp_int(msg.link_errors, 0, U32),
+        clamp_int(msg.cpu_temp_c_x10, -32768, 32767),
         int(msg.calibration_id) & U32,
     )
 
@@ -206,7 +212,7 @@ def encode_ack(seq_acked: int, result: int, seq: int, t_us: int) -> bytes:
 
 
 def encode_command(cmd_type: int, seq: int, t_us: int = 0, *, stream_on: bool = True,
-                   rate_divider: int = 1, threshold: int = 0) -> bytes:
+                   rate_divider: int = 1, threshold: int = 0, version: int = 2) -> bytes:
     """A command frame as the MCU sends it (for tests, tools and MCU simulation).
 
     Values are packed as given (masked to their width), not range-checked, so tests can
@@ -216,6 +222,8 @@ def encode_command(cmd_type: int, seq: int, t_us: int = 0, *, stream_on: bool = 
         payload = STREAM.pack(int(stream_on) & U8, rate_divider & U8)
     elif cmd_type == CommandType.SET_THRESHOLD:
         payload = SET_THRESHOLD.pack(threshold & U16)
+    elif cmd_type == CommandType.SET_PROTOCOL:
+        payload = SET_PROTOCOL.pack(version & U8)
     else:
         payload = b""
     return encode_frame(cmd_type, seq, t_us, payload)
@@ -266,7 +274,8 @@ def parse_command(msg_type: int, seq: int, payload: bytes) -> Command | tuple[in
     """A validated :class:`Command`, or ``(seq, result)`` to answer with a non-zero ACK.
 
     Unknown type -> UNKNOWN_COMMAND, wrong payload length -> BAD_LENGTH, a value out of its
-    range (STREAM on not 0/1, divider 0, threshold outside 10..5000) -> OUT_OF_RANGE.
+    range (STREAM on not 0/1, divider 0, threshold outside 10..5000, a protocol version other
+    than 1 or 2) -> OUT_OF_RANGE.
     Callers should not answer sensor-side types at all (:func:`is_sensor_type`).
     """
     try:
@@ -285,6 +294,11 @@ def parse_command(msg_type: int, seq: int, payload: bytes) -> Command | tuple[in
         if not THRESHOLD_MIN <= thr <= THRESHOLD_MAX:
             return seq, ResultCode.OUT_OF_RANGE
         return Command(ctype, seq, threshold=thr)
+    if ctype == CommandType.SET_PROTOCOL:
+        (version,) = SET_PROTOCOL.unpack(payload)
+        if version not in PROTOCOL_VERSIONS:
+            return seq, ResultCode.OUT_OF_RANGE
+        return Command(ctype, seq, version=version)
     return Command(ctype, seq)
 
 

@@ -6,7 +6,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from optitac_edge.io.device import Device
-from optitac_edge.io.protocol.messages import Command, ContactMessage, StatusMessage
+from optitac_edge.io.protocol.messages import Command, ContactMessage, ContactV2Message, ReleaseMessage, StatusMessage
 
 
 @dataclass
@@ -28,6 +28,8 @@ class Transport(Device, ABC):
 
     #: Messages go somewhere (False for :class:`NullTransport`, ``run`` without a link).
     delivers: bool = True
+    #: The protocol versions the link can speak (the MCU switches with SET_PROTOCOL).
+    protocols: tuple[int, ...] = (1,)
 
     def __init__(self) -> None:
         self.counters = TransportCounters()
@@ -41,6 +43,14 @@ class Transport(Device, ABC):
     def send_status(self, message: StatusMessage) -> None:
         """Queue one STATUS (non-blocking)."""
 
+    def send_contact_v2(self, message: ContactV2Message) -> None:
+        """Queue one CONTACT2 (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`."""
+        raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
+
+    def send_release(self, message: ReleaseMessage) -> None:
+        """Queue one RELEASE (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`."""
+        raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
+
     def poll_commands(self) -> list[Command]:
         """Commands received since the last call (validated; bad ones already answered and counted)."""
         return []
@@ -50,8 +60,15 @@ class NullTransport(Transport):
     """Discards everything (``run`` without a link)."""
 
     delivers = False
+    protocols = (1, 2)
 
     def send_contact(self, message: ContactMessage) -> None:
+        self.counters.sent += 1
+
+    def send_contact_v2(self, message: ContactV2Message) -> None:
+        self.counters.sent += 1
+
+    def send_release(self, message: ReleaseMessage) -> None:
         self.counters.sent += 1
 
     def send_status(self, message: StatusMessage) -> None:

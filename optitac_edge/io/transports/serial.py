@@ -32,9 +32,16 @@ from collections.abc import Callable
 from typing import Any
 
 from optitac_edge.errors import TransportError
-from optitac_edge.io.protocol import wire
+from optitac_edge.io.protocol import wire, wire_v2
 from optitac_edge.io.protocol.decoder import FrameDecoder
-from optitac_edge.io.protocol.messages import Command, ContactMessage, ResultCode, StatusMessage
+from optitac_edge.io.protocol.messages import (
+    Command,
+    ContactMessage,
+    ContactV2Message,
+    ReleaseMessage,
+    ResultCode,
+    StatusMessage,
+)
 from optitac_edge.io.protocol.wire import Frame, MsgType
 from optitac_edge.io.transports.base import Transport
 
@@ -76,7 +83,7 @@ _IO_ERRORS: tuple[type[BaseException], ...] = (OSError,) if serial is None else 
 
 
 class SerialTransport(Transport):
-    """Protocol v1 over a serial port.
+    """Protocol v1, and v2 when the MCU asks for it, over a serial port.
 
     Parameters
     ----------
@@ -191,6 +198,24 @@ class SerialTransport(Transport):
             self._enqueue(MsgType.CONTACT, int(message.t_us), payload)
         except Exception:
             log.exception("CONTACT not encodable")
+            self.counters.send_errors += 1
+
+    protocols = (1, 2)
+
+    def send_contact_v2(self, message: ContactV2Message) -> None:
+        """Queue one CONTACT2 (protocol v2); never blocks, never raises (drops are counted)."""
+        try:
+            self._enqueue(MsgType.CONTACT2, int(message.t_us), wire_v2.contact2_payload(message, self.sensor_id))
+        except Exception:
+            log.exception("CONTACT2 not encodable")
+            self.counters.send_errors += 1
+
+    def send_release(self, message: ReleaseMessage) -> None:
+        """Queue one RELEASE (protocol v2); never blocks, never raises."""
+        try:
+            self._enqueue(MsgType.RELEASE, int(message.t_us), wire_v2.release_payload(message, self.sensor_id))
+        except Exception:
+            log.exception("RELEASE not encodable")
             self.counters.send_errors += 1
 
     def send_status(self, message: StatusMessage) -> None:
