@@ -77,17 +77,24 @@ def test_packaged_dbc_layout():
     db = _db()
     by_name = {m.name: m for m in db.messages}
     assert {n: m.frame_id for n, m in by_name.items()} == {"CONTACT_A": 0x300, "CONTACT_B": 0x301,
-                                                           "STATUS": 0x302}
+                                                           "STATUS": 0x302,
+                                                           "CONTACT2": 0x303, "RELEASE": 0x304}
     for message in db.messages:
         assert message.length == 8 and not message.is_extended_frame
         assert "COUNTER" in [s.name for s in message.signals]
-        bits = set()
-        for signal in message.signals:
-            assert signal.byte_order == "little_endian"
-            own = set(range(signal.start, signal.start + signal.length))
-            assert not bits & own, f"{message.name}.{signal.name} overlaps"
-            bits |= own
-        assert bits == set(range(64)), f"{message.name} leaves bits unused"
+        # a multiplexed message (protocol v2's CONTACT2): each PART with the common signals
+        branches = sorted({v for s in message.signals for v in (s.multiplexer_ids or [])}) or [None]
+        for branch in branches:
+            bits = set()
+            for signal in message.signals:
+                if signal.multiplexer_ids is not None and branch not in signal.multiplexer_ids:
+                    continue
+                assert signal.byte_order == "little_endian"
+                own = set(range(signal.start, signal.start + signal.length))
+                assert not bits & own, f"{message.name}.{signal.name} overlaps"
+                bits |= own
+            if message.name in ("CONTACT_A", "CONTACT_B", "STATUS"):  # v1: every bit used
+                assert bits == set(range(64)), f"{message.name} leaves bits unused"
     assert by_name["CONTACT_A"].cycle_time == by_name["CONTACT_B"].cycle_time
     assert by_name["STATUS"].cycle_time == 1000
     shape = by_name["CONTACT_B"].get_signal_by_name("SHAPE")
@@ -98,14 +105,17 @@ def test_packaged_dbc_layout():
 
 
 def test_message_ids_and_split():
-    assert message_ids(0) == {"CONTACT_A": 0x300, "CONTACT_B": 0x301, "STATUS": 0x302}
-    assert message_ids(5) == {"CONTACT_A": 0x350, "CONTACT_B": 0x351, "STATUS": 0x352}
+    assert message_ids(0) == {"CONTACT_A": 0x300, "CONTACT_B": 0x301, "STATUS": 0x302,
+                              "CONTACT2": 0x303, "RELEASE": 0x304}  # the last two: protocol v2 only
+    assert message_ids(5) == {"CONTACT_A": 0x350, "CONTACT_B": 0x351, "STATUS": 0x352, "CONTACT2": 0x353,
+                              "RELEASE": 0x354}
     top = max_sensor_id()
     assert top == 79 and message_ids(top)["STATUS"] <= 0x7FF
     for sensor in (0, 1, 17, top):
         for name, frame_id in message_ids(sensor).items():
             assert split_id(frame_id) == (sensor, name)
-    assert split_id(0x2FF) is None and split_id(0x303) is None and split_id(0x800) is None
+    assert split_id(0x2FF) is None and split_id(0x305) is None and split_id(0x800) is None
+    assert split_id(0x303) == (0, "CONTACT2") and split_id(0x314) == (1, "RELEASE")
     with pytest.raises(TransportError):
         message_ids(top + 1)
     with pytest.raises(TransportError):
@@ -238,7 +248,7 @@ def test_custom_dbc_is_checked(tmp_path):
 
 def test_contacts_and_status_over_virtual_bus(link):
     tx, rx = link
-    assert tx.ids == {"CONTACT_A": 0x330, "CONTACT_B": 0x331, "STATUS": 0x332}
+    assert tx.ids == {"CONTACT_A": 0x330, "CONTACT_B": 0x331, "STATUS": 0x332, "CONTACT2": 0x333, "RELEASE": 0x334}
     msgs = [_contact(x_mm=0.1 * i, angle_deg=-80 + 7.3 * i, age_us=100 * i) for i in range(5)]
     for m in msgs:
         tx.send_contact(m)

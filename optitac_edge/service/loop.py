@@ -429,12 +429,13 @@ class Service:
         saturated = self.frame_check.saturated
         st.saturated_sent += int(saturated)
         if self.streaming and st.frames % self.rate_divider == 0 and self.transport.delivers:
-            if self.protocol == 2:
-                self._send_v2(est, captured.t_ns, saturated)
-            else:
+            alongside = self.transport.v2_alongside_v1
+            if self.protocol == 1 or alongside:
                 self._message.fill(est, captured.t_ns, self.clock.monotonic_ns(), self.pipeline.calibrated,
                                    saturated=saturated, degraded=self._degraded)
                 self.transport.send_contact(self._message)
+            if self.protocol == 2 or alongside:
+                self._send_v2(est, captured.t_ns, saturated)
             st.sent += 1
         return est, False
 

@@ -132,7 +132,7 @@ def open_board_transport(config: BoardConfig) -> Transport:
                               require_port=False)
     if link.transport == "can":
         return open_transport("can", channel=link.can_channel, interface=link.can_interface,
-                              sensor_id=config.sensor.id,
+                              sensor_id=config.sensor.id, protocol=link.can_protocol,
                               bitrate=link.can_bitrate if link.can_interface == "socketcan" else None)
     return open_transport("null")
 

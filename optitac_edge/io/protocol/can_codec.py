@@ -18,7 +18,14 @@ from typing import Any
 import cantools
 
 from optitac_edge.errors import TransportError
-from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, ContactMessage, ShapeCode, StatusMessage, fold_angle_deg
+from optitac_edge.io.protocol.messages import (
+    TEMP_UNKNOWN,
+    ContactMessage,
+    ContactV2Message,
+    ShapeCode,
+    StatusMessage,
+    fold_angle_deg,
+)
 
 #: The packaged database (a regular file next to this module).
 DBC_PATH = Path(__file__).with_name("optitac.dbc")
@@ -27,7 +34,7 @@ DBC_PATH = Path(__file__).with_name("optitac.dbc")
 BASE_ID = 0x300
 SENSOR_STRIDE = 0x10
 #: Message name -> offset from the sensor's base identifier.
-MESSAGE_OFFSETS: dict[str, int] = {"CONTACT_A": 0, "CONTACT_B": 1, "STATUS": 2}
+MESSAGE_OFFSETS: dict[str, int] = {"CONTACT_A": 0, "CONTACT_B": 1, "STATUS": 2, "CONTACT2": 3, "RELEASE": 4}
 _MAX_STANDARD_ID = 0x7FF
 COUNTER_MODULO = 16
 
@@ -38,6 +45,15 @@ REQUIRED_SIGNALS: dict[str, tuple[str, ...]] = {
     "STATUS": ("CALIBRATION_ID", "FPS", "STATE", "CPU_TEMP", "FRAMES_DROPPED", "LINK_ERRORS",
                "CAMERA_ERRORS", "COUNTER"),
 }
+
+#: Protocol v2's messages (``link.can_protocol = 2``): required only then.
+V2_SIGNALS: dict[str, tuple[str, ...]] = {
+    "CONTACT2": ("PART", "SLOT", "COUNTER", "X", "Y", "MAJOR", "MINOR", "ANGLE", "STRENGTH", "SHAPE", "CONFIDENCE",
+                 "N_CONTACTS", "DEPTH", "FORCE", "CONTACT_ID", "FLAGS", "AGE"),
+    "RELEASE": ("CONTACT_ID", "COUNTER"),
+}
+#: CONTACT2's parts (its multiplexer PART): geometry, orientation and shape, depth/force/id/flags.
+CONTACT2_PARTS = 3
 
 #: STATUS.CPU_TEMP physical value meaning "unknown" (raw 255).
 CPU_TEMP_UNKNOWN = 215.0
@@ -120,10 +136,12 @@ class CanCodec:
         A database with the same message and signal names (default: packaged).
     base_id : int
         Identifier of sensor 0's CONTACT_A.
+    protocol : int
+        2: the database must also hold protocol v2's CONTACT2 and RELEASE.
     """
 
     def __init__(self, sensor_id: int = 0, dbc_path: str | Path | None = None,
-                 base_id: int = BASE_ID) -> None:
+                 base_id: int = BASE_ID, protocol: int = 1) -> None:
         self.sensor_id = int(sensor_id)
         self.base_id = int(base_id)
         self.ids = message_ids(self.sensor_id, self.base_id)
@@ -132,7 +150,8 @@ class CanCodec:
         self._messages: dict[str, Any] = {}
         self._limits: dict[str, dict[str, tuple[float, float]]] = {}
         self._signals: dict[str, dict[str, Any]] = {}
-        for name, required in REQUIRED_SIGNALS.items():
+        wanted = {**REQUIRED_SIGNALS, **(V2_SIGNALS if protocol == 2 else {})}
+        for name, required in wanted.items():
             try:
                 message = self.db.get_message_by_name(name)
             except KeyError:
@@ -211,6 +230,23 @@ class CanCodec:
             "CAMERA_ERRORS": max(int(msg.camera_errors), 0) % 16,
             "COUNTER": counter % COUNTER_MODULO,
         })
+
+    def contact2_payloads(self, msg: ContactV2Message, counter: int) -> tuple[bytes, bytes, bytes]:
+        """The three CONTACT2 parts of one contact (SLOT = its index), with the frame's ``counter``."""
+        head = {"SLOT": min(max(int(msg.index), 0), 3), "COUNTER": counter % COUNTER_MODULO}
+        geometry = self._encode("CONTACT2", {**head, "PART": 0, "X": _finite(msg.x_mm), "Y": _finite(msg.y_mm),
+                                             "MAJOR": _finite(msg.major_mm), "MINOR": _finite(msg.minor_mm)})
+        shape = self._encode("CONTACT2", {**head, "PART": 1, "ANGLE": fold_angle_deg(_finite(msg.angle_deg)),
+                                          "STRENGTH": _finite(msg.strength), "SHAPE": ShapeCode.coerce(msg.shape),
+                                          "CONFIDENCE": _finite(msg.confidence), "N_CONTACTS": int(msg.n_contacts)})
+        force = self._encode("CONTACT2", {**head, "PART": 2, "DEPTH": _finite(msg.depth_mm),
+                                          "FORCE": _finite(msg.force_n), "CONTACT_ID": int(msg.contact_id),
+                                          "FLAGS": int(msg.flags) & 0x7F, "AGE": _int_or_zero(msg.age_us)})
+        return geometry, shape, force
+
+    def release_payload(self, contact_id: int, counter: int) -> bytes:
+        """A RELEASE of ``contact_id`` in the frame of ``counter``."""
+        return self._encode("RELEASE", {"CONTACT_ID": int(contact_id), "COUNTER": counter % COUNTER_MODULO})
 
     def decode(self, arbitration_id: int, data: bytes,
                decode_choices: bool = False) -> tuple[str, dict[str, Any]] | None:

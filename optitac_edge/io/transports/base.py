@@ -30,6 +30,9 @@ class Transport(Device, ABC):
     delivers: bool = True
     #: The protocol versions the link can speak (the MCU switches with SET_PROTOCOL).
     protocols: tuple[int, ...] = (1,)
+    #: Protocol v2's messages go out on their own ids beside v1's, from the start (CAN with
+    #: ``link.can_protocol = 2``: the MCU cannot ask, and a v1 MCU filters the new ids out).
+    v2_alongside_v1: bool = False
 
     def __init__(self) -> None:
         self.counters = TransportCounters()
@@ -44,11 +47,13 @@ class Transport(Device, ABC):
         """Queue one STATUS (non-blocking)."""
 
     def send_contact_v2(self, message: ContactV2Message) -> None:
-        """Queue one CONTACT2 (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`."""
+        """Queue one CONTACT2 (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`
+        or :attr:`v2_alongside_v1`."""
         raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
 
     def send_release(self, message: ReleaseMessage) -> None:
-        """Queue one RELEASE (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`."""
+        """Queue one RELEASE (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`
+        or :attr:`v2_alongside_v1`."""
         raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
 
     def poll_commands(self) -> list[Command]:

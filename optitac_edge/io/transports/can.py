@@ -25,7 +25,7 @@ import can
 
 from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
-from optitac_edge.io.protocol.messages import ContactMessage, StatusMessage
+from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Message, ReleaseMessage, StatusMessage
 from optitac_edge.io.transports.base import Transport
 
 log = logging.getLogger(__name__)
@@ -92,9 +92,14 @@ class CanTransport(Transport):
     def __init__(self, channel: str = "can0", interface: str = "socketcan", sensor_id: int = 0,
                  bitrate: int | None = None, dbc_path: str | Path | None = None, *,
                  base_id: int = BASE_ID, backoff_s: tuple[float, float] = (0.1, 5.0),
-                 down_after: int = 100, bus_kwargs: dict[str, Any] | None = None) -> None:
+                 down_after: int = 100, bus_kwargs: dict[str, Any] | None = None, protocol: int = 1) -> None:
         super().__init__()
-        self.codec = CanCodec(sensor_id, dbc_path, base_id)
+        if protocol not in (1, 2):
+            raise TransportError(f"CAN protocol must be 1 or 2, got {protocol!r}")
+        self.codec = CanCodec(sensor_id, dbc_path, base_id, protocol=protocol)
+        #: Protocol 2: CONTACT2 and RELEASE frames on their own ids besides the v1 frames (a v1 MCU
+        #: filters them out and never notices).
+        self.v2_alongside_v1 = protocol == 2
         self.ids = self.codec.ids
         self.channel, self.interface, self.bitrate = channel, interface, bitrate
         self.stats = CanStats()
@@ -104,6 +109,7 @@ class CanTransport(Transport):
         self._down_after = max(int(down_after), 1)
         self._consecutive_errors = 0
         self._contact_counter = 0
+        self._frame_counter = 0  # the counter of the last CONTACT pair: v2 frames of that frame carry it
         self._status_counter = 0
         self._lock = threading.Lock()  # guards _bus swaps and the reconnect thread
         self._stop = threading.Event()
@@ -212,13 +218,26 @@ class CanTransport(Transport):
         both count as send errors. The counter advances even for dropped frames, so the
         MCU sees the gap.
         """
-        counter = self._contact_counter
+        counter = self._frame_counter = self._contact_counter
         self._contact_counter = (counter + 1) % COUNTER_MODULO
         payload_a, payload_b = self.codec.contact_payloads(message, counter)
         if self._send(self.ids["CONTACT_A"], payload_a):
             self._send(self.ids["CONTACT_B"], payload_b)
         else:
             self.counters.send_errors += 1  # CONTACT_B, not attempted
+
+    def send_contact_v2(self, message: ContactV2Message) -> None:
+        """Protocol v2 (``protocol=2``): the three CONTACT2 parts of one contact, with the counter of the
+        frame's CONTACT pair (sent first); a message without contact sends nothing (the pair says so)."""
+        if message.n_contacts == 0:
+            return
+        for payload in self.codec.contact2_payloads(message, self._frame_counter):
+            if not self._send(self.ids["CONTACT2"], payload):
+                break
+
+    def send_release(self, message: ReleaseMessage) -> None:
+        """Protocol v2: a RELEASE with the counter of the frame's CONTACT pair."""
+        self._send(self.ids["RELEASE"], self.codec.release_payload(message.contact_id, self._frame_counter))
 
     def send_status(self, message: StatusMessage) -> None:
         counter = self._status_counter
