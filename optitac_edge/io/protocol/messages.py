@@ -93,6 +93,18 @@ _SHAPE_BY_NAME: dict[str, ShapeCode] = {}
 _FLAGS = tuple(ContactFlags(i) for i in range(32))
 
 
+#: x, y, major, minor, angle, strength and confidence of a message without contact.
+_NO_CONTACT = (0.0,) * 7
+
+
+def _contact_values(est: Any) -> tuple[float, ...]:
+    """x, y, major, minor, angle, strength and confidence of a contact estimate, NaN as 0."""
+    isfinite = math.isfinite
+    return tuple(v if isfinite(v) else 0.0 for v in (
+        float(est.x_mm), float(est.y_mm), float(est.major_mm), float(est.minor_mm), float(est.angle_deg),
+        float(est.strength), float(est.confidence)))
+
+
 def fold_angle_deg(deg: float) -> float:
     """An axis angle folded into [−90, 90] degrees (kept as it is when already there; NaN stays NaN)."""
     d = float(deg)
@@ -166,15 +178,8 @@ class ContactMessage:
             | (_CALIBRATED if calibrated else 0) | (_SATURATED if saturated else 0) | (_DEGRADED if degraded else 0)
         self.flags = _FLAGS[flags]
         self.t_us = t_ns // 1000
-        isfinite = math.isfinite
-        if contact:
-            v = (float(est.x_mm), float(est.y_mm), float(est.major_mm), float(est.minor_mm),
-                 float(est.angle_deg), float(est.strength), float(est.confidence))
-            (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
-             self.confidence) = (x if isfinite(x) else 0.0 for x in v)
-        else:
-            self.x_mm = self.y_mm = self.major_mm = self.minor_mm = self.angle_deg = 0.0
-            self.strength = self.confidence = 0.0
+        (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
+         self.confidence) = _contact_values(est) if contact else _NO_CONTACT
         self.shape = ShapeCode.from_name(est.shape, contact)
         self.age_us = max((now_ns - t_ns) // 1000, 0)
         return self
@@ -242,18 +247,17 @@ class ContactV2Message:
             self.contact_id = int(est.contact_id)
             if (est.touch_frame == est.frame) if touch is None else touch:
                 flags |= _TOUCH
-            v = (float(est.x_mm), float(est.y_mm), float(est.major_mm), float(est.minor_mm),
-                 float(est.angle_deg), float(est.strength), float(est.confidence))
             (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
-             self.confidence) = (x if isfinite(x) else 0.0 for x in v)
+             self.confidence) = _contact_values(est)
             depth, force = float(est.depth_mm), float(est.force_n)
             self.depth_mm = depth if isfinite(depth) else 0.0
             self.force_n = force if isfinite(force) else 0.0
             flags |= (_DEPTH if isfinite(depth) else 0) | (_FORCE if isfinite(force) else 0)
         else:
             self.n_contacts = self.contact_id = 0
-            self.x_mm = self.y_mm = self.major_mm = self.minor_mm = self.angle_deg = 0.0
-            self.strength = self.confidence = self.depth_mm = self.force_n = 0.0
+            (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
+             self.confidence) = _NO_CONTACT
+            self.depth_mm = self.force_n = 0.0
         self.flags = flags
         self.shape = ShapeCode.from_name(est.shape, contact)
         self.age_us = max((now_ns - t_ns) // 1000, 0)

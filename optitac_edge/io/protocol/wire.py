@@ -15,7 +15,7 @@ import binascii
 import math
 import struct
 from enum import IntEnum
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from cobs import cobs
 
@@ -163,18 +163,22 @@ def clamp_int(value: float, lo: int, hi: int) -> int:
     return lo if n < lo else min(n, hi)
 
 
+def geometry_ints(msg: Any) -> tuple[int, int, int, int, int, int]:
+    """x, y, major, minor (0.01 mm), angle (0.01°, folded into ±90°) and strength (0.01) of a contact
+    message as wire integers (quantised and saturated), in that order (CONTACT and CONTACT2 alike)."""
+    return (quantise(msg.x_mm, MM_LSB, -32768, 32767), quantise(msg.y_mm, MM_LSB, -32768, 32767),
+            quantise(msg.major_mm, MM_LSB, 0, U16), quantise(msg.minor_mm, MM_LSB, 0, U16),
+            quantise(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
+            quantise(msg.strength, STRENGTH_LSB, 0, U16))
+
+
 def contact_payload(msg: ContactMessage, sensor_id: int | None = None) -> bytes:
     """The 18-byte CONTACT payload of ``msg`` (quantised with rounding and saturation);
     ``sensor_id`` overrides the message's."""
     return CONTACT.pack(
         clamp_int(msg.sensor_id if sensor_id is None else sensor_id, 0, U8),
         int(msg.flags) & CONTACT_FLAGS_MASK,
-        quantise(msg.x_mm, MM_LSB, -32768, 32767),
-        quantise(msg.y_mm, MM_LSB, -32768, 32767),
-        quantise(msg.major_mm, MM_LSB, 0, U16),
-        quantise(msg.minor_mm, MM_LSB, 0, U16),
-        quantise(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
-        quantise(msg.strength, STRENGTH_LSB, 0, U16),
+        *geometry_ints(msg),
         ShapeCode.coerce(msg.shape),
         quantise(msg.confidence, 1.0 / CONFIDENCE_MAX, 0, CONFIDENCE_MAX),
         clamp_int(msg.age_us, 0, U16),

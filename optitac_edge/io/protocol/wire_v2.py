@@ -17,11 +17,9 @@ from optitac_edge.io.protocol.messages import (
     ContactV2Message,
     ReleaseMessage,
     ShapeCode,
-    fold_angle_deg,
 )
 from optitac_edge.io.protocol.wire import (
     ANGLE_LSB,
-    ANGLE_MAX,
     CONFIDENCE_MAX,
     MM_LSB,
     STRENGTH_LSB,
@@ -31,6 +29,7 @@ from optitac_edge.io.protocol.wire import (
     ProtocolError,
     clamp_int,
     encode_frame,
+    geometry_ints,
     quantise,
 )
 
@@ -60,12 +59,7 @@ def contact2_payload(msg: ContactV2Message, sensor_id: int | None = None) -> byt
         clamp_int(msg.n_contacts, 0, U8),
         clamp_int(msg.contact_id, 0, U8),
         ShapeCode.coerce(msg.shape),
-        quantise(msg.x_mm, MM_LSB, -32768, 32767),
-        quantise(msg.y_mm, MM_LSB, -32768, 32767),
-        quantise(msg.major_mm, MM_LSB, 0, U16),
-        quantise(msg.minor_mm, MM_LSB, 0, U16),
-        quantise(fold_angle_deg(msg.angle_deg), ANGLE_LSB, -ANGLE_MAX, ANGLE_MAX),
-        quantise(msg.strength, STRENGTH_LSB, 0, U16),
+        *geometry_ints(msg),
         quantise(msg.depth_mm, DEPTH_LSB, 0, U16),
         quantise(msg.force_n, FORCE_LSB, 0, U16),
         quantise(msg.confidence, 1.0 / CONFIDENCE_MAX, 0, CONFIDENCE_MAX),

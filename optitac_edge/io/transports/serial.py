@@ -191,40 +191,31 @@ class SerialTransport(Transport):
 
     # -- Transport API (frame loop side) --------------------------------------------------
 
+    protocols = (1, 2)
+
     def send_contact(self, message: ContactMessage) -> None:
         """Queue one CONTACT; never blocks, never raises (drops are counted)."""
-        try:
-            payload = wire.contact_payload(message, self.sensor_id)
-            self._enqueue(MsgType.CONTACT, int(message.t_us), payload)
-        except Exception:
-            log.exception("CONTACT not encodable")
-            self.counters.send_errors += 1
-
-    protocols = (1, 2)
+        self._send(MsgType.CONTACT, message, wire.contact_payload)
 
     def send_contact_v2(self, message: ContactV2Message) -> None:
         """Queue one CONTACT2 (protocol v2); never blocks, never raises (drops are counted)."""
-        try:
-            self._enqueue(MsgType.CONTACT2, int(message.t_us), wire_v2.contact2_payload(message, self.sensor_id))
-        except Exception:
-            log.exception("CONTACT2 not encodable")
-            self.counters.send_errors += 1
+        self._send(MsgType.CONTACT2, message, wire_v2.contact2_payload)
 
     def send_release(self, message: ReleaseMessage) -> None:
         """Queue one RELEASE (protocol v2); never blocks, never raises."""
-        try:
-            self._enqueue(MsgType.RELEASE, int(message.t_us), wire_v2.release_payload(message, self.sensor_id))
-        except Exception:
-            log.exception("RELEASE not encodable")
-            self.counters.send_errors += 1
+        self._send(MsgType.RELEASE, message, wire_v2.release_payload)
 
     def send_status(self, message: StatusMessage) -> None:
         """Queue one STATUS; never blocks, never raises."""
+        self._send(MsgType.STATUS, message, wire.status_payload)
+
+    def _send(self, msg_type: MsgType, message: Any, payload_of: Callable[[Any, int], bytes]) -> None:
+        """Encode ``message`` with this link's sensor id and queue (or write) it; a message that
+        cannot be encoded is logged and counted, never raised to the frame loop."""
         try:
-            payload = wire.status_payload(message, self.sensor_id)
-            self._enqueue(MsgType.STATUS, int(message.t_us), payload)
+            self._enqueue(msg_type, int(message.t_us), payload_of(message, self.sensor_id))
         except Exception:
-            log.exception("STATUS not encodable")
+            log.exception("%s not encodable", msg_type.name)
             self.counters.send_errors += 1
 
     def poll_commands(self) -> list[Command]:
