@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from optitac_edge.cli import main
 from optitac_edge.devtools.bench import STAGES
 
@@ -23,7 +25,7 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> N
     out = tmp_path / "bench.json"
     assert main(["bench", "--frames", "40", "--cal", str(bundle_path), "--fps", "120",
                  "--reference-frames", "3", "--memory-frames", "20", "--e2e-seconds", "1",
-                 "--paced-frames", "4", "--cpu-seconds", "0",
+                 "--paced-frames", "4", "--cpu-seconds", "0", "--patches", "2", "--patch-frame", "960x400",
                  "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| whole_frame |" in text
@@ -44,6 +46,10 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> N
     assert res["contacts"]["ratio_4_to_1"] > 0 and res["contacts"]["ratio_0_to_1"] > 0
     fibers = res["fibers"]["per_fibers"]
     assert list(fibers) == ["19", "37"] and all(d["contacts"] == 1 for d in fibers.values())
+    patches = res["patches"]  # two patches on one frame; one pressed at a time, and found
+    assert patches["patches"] == 2 and patches["frame_size"] == [960, 400]
+    assert patches["back_to_back"]["n"] == 4 and patches["paced"]["n"] == 4
+    assert patches["paced"]["contacts"] == 1 and patches["back_to_back"]["median_us"] > 0
     heap = res["heap"]
     assert {"0", "1", "2", "4"} <= set(heap) and all("in_use_growth_bytes" in heap[k] for k in "0124")
     assert "service_cpu" not in res  # --cpu-seconds 0 (see the test of measure_service_cpu)
@@ -213,3 +219,12 @@ def test_paced_runs_take_turns_frame_by_frame_on_the_camera_clock() -> None:
     res = run_interleaved(configs, 100.0, 3, warmup_per_config=1, sleep=sleep, clock_ns=clock, timer_ns=clock)
     assert res["a"]["late_frames"] >= 2 and res["b"]["late_frames"] >= 2
 
+
+
+@pytest.mark.parametrize("bad", ["1280", "axb", "10x720", "1280x9000"])
+def test_bench_refuses_a_bad_patch_frame_in_one_line(bad, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--patch-frame", bad])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--patch-frame" in err[0]

@@ -30,6 +30,7 @@ from optitac_edge.cli.common import (
     Parser,
     add_board,
     board_config,
+    frame_size,
     number,
 )
 from optitac_edge.errors import EXTRA_OF_MODULE, OptiTacError, missing_extra
@@ -195,6 +196,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="service main-thread CPU: interleaved passes over the contact counts (default 2)")
     p.add_argument("--e2e-contacts", type=number(0, 4, integer=True), default=2, metavar="K",
                    help="end to end: indenters pressed throughout the run (default 2)")
+    p.add_argument("--patches", type=number(0, 16, integer=True), default=4, metavar="N",
+                   help="paced runs: N patches of 217 fibers on one camera, every pipeline on each frame "
+                        "(0: skip; gray only)")
+    p.add_argument("--patch-frame", type=frame_size, default=(1280, 720), metavar="WxH",
+                   help="the patches' camera frame (default 1280x720)")
     bringup.add_parsers(sub)
     _add_verbosity_to_commands(parser)
     return parser
@@ -540,7 +546,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
                     startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view,
                     paced_frames=args.paced_frames, cpu_seconds=args.cpu_seconds, cpu_rounds=args.cpu_rounds,
-                    e2e_contacts=args.e2e_contacts, log=print)
+                    e2e_contacts=args.e2e_contacts, patches=args.patches, patch_frame=args.patch_frame, log=print)
     print(format_table(res))
     write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")

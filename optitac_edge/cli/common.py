@@ -35,6 +35,18 @@ def number(lo: float, hi: float, *, integer: bool = False, lo_open: bool = False
     return parse
 
 
+def frame_size(text: str) -> tuple[int, int]:
+    """An argparse type: ``WxH``, a frame size of 64..8192 px a side; one-line errors."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a frame size WxH (e.g. 1280x720)") from None
+    if not (64 <= width <= 8192 and 64 <= height <= 8192):
+        raise argparse.ArgumentTypeError(f"{text} is outside 64..8192 px a side")
+    return width, height
+
+
 COUNT = number(1, 10**9, integer=True)
 SEED = number(0, 2**32 - 1, integer=True)
 FPS = number(1, 1000)

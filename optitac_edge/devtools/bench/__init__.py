@@ -86,6 +86,7 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
               memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
               unique_frames: int = 600, queue_frames: int | None = None, view: str | None = None,
               paced_frames: int = 2000, cpu_seconds: float = 10.0, cpu_rounds: int = 2, e2e_contacts: int = 2,
+              patches: int = 4, patch_frame: tuple[int, int] = (1280, 720),
               log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every section; returns the results (see the module docstring).
 
@@ -122,6 +123,13 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
             res["fibers"] = fb = measure_fibers(workdir, fps, paced_frames, rgb)
             log("  fibers, one contact: " + ", ".join(f"{k}: {v['median_us']} µs" for k, v in fb["per_fibers"].items())
                 + f"; x{fb['ratio_largest_to_smallest']}")
+            if patches > 0 and not rgb:
+                from optitac_edge.devtools.bench.patches import measure_patches
+
+                res["patches"] = pt = measure_patches(patches, *patch_frame, fps, paced_frames)
+                log(f"  {patches} patches of {pt['fibers_per_patch']} fibers on one {patch_frame[0]}x{patch_frame[1]} "
+                    f"camera, per frame: back to back {pt['back_to_back']['median_us']} µs, paced "
+                    f"{pt['paced']['median_us']} µs (medians)")
         if reference_frames > 0:
             res["reference"] = r = measure_reference(bundle, frame_list, rest, reference_frames)
             log(f"  reference (interleaved): median {r['reference']['median_us']} µs; paper mode "
