@@ -29,6 +29,7 @@ from typing import Any
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.frame_check import FrameCheck
+from optitac_edge.core.options import MAX_CONTACTS
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
@@ -167,7 +168,7 @@ class Service:
         self._message = ContactMessage(sensor_id=config.sensor.id)
         #: The protocol the MCU asked for with SET_PROTOCOL (1 until it does).
         self.protocol = 1
-        self._messages_v2 = [ContactV2Message(sensor_id=config.sensor.id) for _ in range(4)]
+        self._messages_v2 = [ContactV2Message(sensor_id=config.sensor.id) for _ in range(MAX_CONTACTS)]
         self._release = ReleaseMessage(sensor_id=config.sensor.id)
         self._announcer = ContactAnnouncer()
         self._status = StatusMessage(sensor_id=config.sensor.id,
