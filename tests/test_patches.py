@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.calibration.region import Region, bundle_region, place_bundle, place_fiber_table
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.pipeline import Pipeline
-from optitac_edge.core.region import Region, bundle_region, place_bundle, place_fiber_table
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.sim.patches import PatchFrames, crop
 from optitac_edge.sim.skin import Indenter

@@ -4,7 +4,7 @@ Each patch is its own simulated sensor (layout, skin, transmission pattern)
 rendered at its region's size, with its own presses; the frame is the
 camera's background with every patch pasted into its region. Calibrate each
 patch on its region's crop and place its bundle in the frame
-(:func:`optitac_edge.core.region.place_bundle`).
+(:func:`optitac_edge.calibration.region.place_bundle`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from optitac_edge.calibration.region import Region
 from optitac_edge.core.layout import FiberLayout
-from optitac_edge.core.region import Region
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.render import SENSOR_SEED
 from optitac_edge.sim.sensor import SimulatedSensor

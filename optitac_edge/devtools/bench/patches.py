@@ -2,7 +2,7 @@
 
 Patches of the default 217-fiber array in a grid on one camera frame
 (:class:`~optitac_edge.sim.patches.PatchFrames`), each calibrated on its crop
-and placed in the frame (:func:`~optitac_edge.core.region.place_bundle`). One
+and placed in the frame (:func:`~optitac_edge.calibration.region.place_bundle`). One
 patch at a time is pressed (a 5 mm circle at a new place every frame), the
 others rest, as a hand holding an object. A camera frame's time is all its
 patches' pipelines, back to back and paced at the camera's rate
@@ -29,7 +29,7 @@ def patch_pipelines(n_patches: int, width: int, height: int, seed: int = 1
                     ) -> tuple[list[Pipeline], list[np.ndarray], list[np.ndarray]]:
     """``n_patches`` placed pipelines on one ``width`` x ``height`` camera, its rest frames and press frames."""
     from optitac_edge.calibration.fibers import calibrate_fibers
-    from optitac_edge.core.region import Region, place_bundle
+    from optitac_edge.calibration.region import Region, place_bundle
     from optitac_edge.sim.patches import PatchFrames, crop
     from optitac_edge.sim.skin import Indenter
 
@@ -39,7 +39,8 @@ def patch_pipelines(n_patches: int, width: int, height: int, seed: int = 1
     regions = [Region((k % cols) * w, (k // cols) * h, w - GAP_PX, h - GAP_PX) for k in range(n_patches)]
     cam = PatchFrames(regions, width, height, seed=seed)
     rest = [cam.frame() for _ in range(10)]
-    pipes = [Pipeline(place_bundle(calibrate_fibers(crop(np.stack(rest), r), "gray"), r, width, height))
+    stacked = np.stack(rest)
+    pipes = [Pipeline(place_bundle(calibrate_fibers(crop(stacked, r), "gray"), r, width, height))
              for r in regions]
     rng = np.random.default_rng(seed + 1)
     frames = []

@@ -7,6 +7,7 @@ pixel indices, centres and image transform move by the region's offset, and the
 bundle records the region. Every sensor's pipeline then takes the camera's
 frame as it comes (no crop, no copy) and gathers only its own fibers' pixels,
 so the cost per frame grows with the number of fibers, not with the frame size.
+Done once, offline (after ``calibrate_fibers`` on the crop); nothing here runs per frame.
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def place_fiber_table(table: FiberTable, region: Region, frame_width: int, frame
     return FiberTable(height=frame_height, width=frame_width, pixel_format=table.pixel_format,
                       pixel_index=(row * frame_width + col).astype(table.pixel_index.dtype),
                       pixel_start=table.pixel_start, centroid_px=table.centroid_px + offset, dead=table.dead,
-                      unmatched_px=table.unmatched_px + offset if table.unmatched_px.size else table.unmatched_px)
+                      unmatched_px=table.unmatched_px + offset)
 
 
 def place_bundle(bundle: CalibrationBundle, region: Region, frame_width: int, frame_height: int) -> CalibrationBundle:
