@@ -196,3 +196,25 @@ def test_the_width_feature_is_the_mean_raw_fwhm_and_the_model_runs_before_the_wi
     est = ContactEstimate(contact=True, x_mm=0.0, y_mm=0.0, major_mm=6.0, minor_mm=4.0)
     ContactCorrector(bundle).apply(est)
     assert est.depth_mm == pytest.approx(2.0) and (est.major_mm, est.minor_mm) == (12.0, 8.0)
+
+
+def test_the_simulated_depths_scenario_presses_where_and_as_deep_as_the_rig_experiment():
+    """The simulator's ``depths`` scenario mirrors the bring-up experiment of that name (the simulator sits
+    below bring-up and keeps its own copy): the same indenter, points and depths, twice each."""
+    from collections import Counter
+
+    from optitac_edge.bringup.experiments import plan
+    from optitac_edge.core.layout import hex_layout
+    from optitac_edge.sim.scenarios import schedule
+
+    layout = hex_layout()
+    frames = schedule("depths", seed=3, layout=layout)
+    sim = [p for k, p in enumerate(frames) if p is not None and p is not frames[k - 1]]
+    rig = plan("depths", layout, seed=3)
+
+    def key(shape: str, size: float, x: float, y: float, d: float) -> tuple:
+        return shape, size, round(x, 9), round(y, 9), d
+
+    assert Counter(key(p.shape, p.size_mm, p.x_mm, p.y_mm, p.depth_mm) for p in sim) == \
+        Counter(key(p.shape, p.size_mm, p.x_mm, p.y_mm, p.depth_mm) for p in rig)
+    assert len(sim) == 7 * 8 * 2

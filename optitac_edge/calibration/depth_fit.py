@@ -33,26 +33,30 @@ class RadialFit:
     rmse: float
 
 
-def press_means(values: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``values`` (shape (K,) or (K, M)) per group and the group sizes, groups in sorted order."""
-    keys, inverse, counts = np.unique(groups, return_inverse=True, return_counts=True)
+def grouped_means(values: np.ndarray, groups: np.ndarray, weights: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` (shape (K,) or (K, M)) per group, weighted by ``weights`` (default: each row
+    once), groups in sorted order; and each group's total weight (without weights: its row count)."""
+    keys, inverse = np.unique(groups, return_inverse=True)
+    inverse = inverse.ravel()
     v = np.asarray(values, dtype=np.float64)
+    if weights is None:
+        total = np.bincount(inverse, minlength=keys.size)
+    else:
+        total = np.bincount(inverse, weights=weights, minlength=keys.size)
+        v = v * np.asarray(weights, dtype=np.float64).reshape(-1, *([1] * (v.ndim - 1)))
     sums = np.zeros((keys.size, *v.shape[1:]))
-    np.add.at(sums, inverse.ravel(), v)
-    return sums / counts.reshape(-1, *([1] * (v.ndim - 1))), counts
+    np.add.at(sums, inverse, v)
+    return sums / total.reshape(-1, *([1] * (v.ndim - 1))), total
 
 
 def _curve(scaled: np.ndarray, target: np.ndarray, weight: np.ndarray, level: np.ndarray) -> AxisMap | None:
     """Knots at each level's weighted mean (scaled feature, target), the targets made non-decreasing."""
     from sklearn.isotonic import IsotonicRegression
 
-    keys, inverse = np.unique(level, return_inverse=True)
-    inverse = inverse.ravel()
-    w = np.bincount(inverse, weights=weight, minlength=keys.size)
-    x = np.bincount(inverse, weights=weight * scaled, minlength=keys.size) / w
-    y = np.bincount(inverse, weights=weight * target, minlength=keys.size) / w
-    order = np.argsort(x, kind="stable")
-    x, y, w = x[order], y[order], w[order]
+    means, w = grouped_means(np.stack([scaled, target], axis=1), level, weight)
+    order = np.argsort(means[:, 0], kind="stable")
+    x, y, w = means[order, 0], means[order, 1], w[order]
     keep = np.concatenate([[True], np.diff(x) > 0])  # equal features: one knot
     if keep.sum() < 2:
         return None

@@ -20,7 +20,7 @@ from optitac_edge.calibration.bundle_models import (
     with_width_model,
 )
 from optitac_edge.calibration.centroid_fit import fit_centroid_map
-from optitac_edge.calibration.depth_fit import fit_radial_monotone, press_means
+from optitac_edge.calibration.depth_fit import fit_radial_monotone, grouped_means
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.measure import Measurements, measure_recording
 from optitac_edge.calibration.orientation import (
@@ -33,7 +33,7 @@ from optitac_edge.calibration.orientation import (
 )
 from optitac_edge.calibration.width_fit import fit_width_model
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.depth_model import DepthForceModel
+from optitac_edge.core.depth_model import DepthForceModel, depth_feature
 from optitac_edge.errors import OrientationError, RecordingError
 from optitac_edge.io.recording import SHAPES, Recording, Truth
 
@@ -200,8 +200,8 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str = "w
     rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / radius ** 2
     force = truth.force_n[rows] if truth.force_n is not None else np.full(rows.size, np.nan)
     with_force = bool(np.isfinite(force).all())
-    value = 0.5 * (m.major_mm + m.minor_mm) if feature == "width" else m.strength
-    means, counts = press_means(np.stack([value[frames], rho2, truth.depth_mm[rows], force], axis=1),
+    value = depth_feature(m, feature)
+    means, counts = grouped_means(np.stack([value[frames], rho2, truth.depth_mm[rows], force], axis=1),
                                 press_ids(truth)[rows])
     try:
         level = means[:, 2]  # the commanded depth of each press

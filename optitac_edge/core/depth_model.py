@@ -35,11 +35,14 @@ from optitac_edge.core.width_model import AxisMap
 DEPTH_FEATURES = ("width", "strength")
 
 
-def depth_feature(est: Any, feature: str) -> float:
-    """The value of ``feature`` (one of :data:`DEPTH_FEATURES`) of a raw contact estimate."""
+def depth_feature(est: Any, feature: str) -> Any:
+    """The value of ``feature`` (one of :data:`DEPTH_FEATURES`) of a raw contact estimate (a float), or of
+    per-frame arrays under the same names (the calibration's ``Measurements``: an array)."""
     if feature == "width":
-        return 0.5 * (float(est.major_mm) + float(est.minor_mm))
-    return float(est.strength)
+        return 0.5 * (est.major_mm + est.minor_mm)
+    if feature == "strength":
+        return est.strength
+    raise ValueError(f"unknown depth feature {feature!r} (known: {', '.join(DEPTH_FEATURES)})")
 
 
 @dataclass(frozen=True, eq=False)

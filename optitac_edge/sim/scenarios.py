@@ -58,7 +58,14 @@ from optitac_edge.io.recording import SHAPES, RecordingMeta, RecordingWriter
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.sensor import SimulatedSensor
-from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, bounding_radius, contact_force_n
+from optitac_edge.sim.skin import (
+    DEFAULT_SKIN,
+    Indenter,
+    SkinModel,
+    bounding_radius,
+    clamp_radius_mm,
+    contact_force_n,
+)
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +89,8 @@ DRIFT_GAP = 90
 DRIFT_HOLD = 30
 DRIFT_WARMUP = 0.03
 DRIFT_FIBER_SIGMA = 0.005
-#: ``depths`` scenario: the commanded depths, mm.
+#: ``depths`` scenario: the commanded depths, mm (the bring-up experiment's, ``bringup.experiments``: a
+#: test keeps the two the same; the simulator sits below bring-up and cannot import it).
 DEPTHS_MM: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
 WIDTHS_MM: tuple[float, ...] = tuple(float(d) for d in np.round(np.linspace(1.85, 20.09, 12), 2))
 ANGLE_PERIOD_DEG = {
@@ -377,7 +385,7 @@ def write_scenario(
     )
     real_depths: list[list[float]] = []
     load_cell = name == "depths"
-    clamp_r = float(np.linalg.norm(layout.xy_mm, axis=1).max()) + skin.clamp_margin_mm
+    clamp_r = clamp_radius_mm(layout.xy_mm, skin)
     force = math.nan
     with RecordingWriter(out, len(plan), sensor.frame_shape, meta, with_truth=True,
                          force_column=load_cell) as writer:

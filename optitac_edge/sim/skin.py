@@ -209,7 +209,7 @@ def fiber_darkening(
     active = [ind for ind in indenters if ind.depth_mm > 0]
     if not active:
         return np.zeros(len(xy))
-    clamp_r = float(np.linalg.norm(xy, axis=1).max()) + skin.clamp_margin_mm
+    clamp_r = clamp_radius_mm(xy, skin)
     h = skin.grid_step_mm
     half = clamp_r + h
     axis = np.arange(-half, half + h / 2, h)
@@ -230,6 +230,11 @@ def fiber_darkening(
     return np.clip(1.0 - keep, 0.0, skin.max_darkening)
 
 
+def clamp_radius_mm(layout_xy_mm: np.ndarray, skin: SkinModel = DEFAULT_SKIN) -> float:
+    """``Rc``: where the skin is clamped, the outermost fiber's radius plus ``skin.clamp_margin_mm``."""
+    return float(np.linalg.norm(np.asarray(layout_xy_mm, dtype=np.float64), axis=1).max()) + skin.clamp_margin_mm
+
+
 def footprint_area_mm2(indenter: Indenter, skin: SkinModel = DEFAULT_SKIN) -> float:
     """Area of the indenter's flat face, mm² (an edge: its bar, ``edge_length_mm`` long)."""
     s = indenter.size_mm
@@ -242,20 +247,20 @@ def footprint_area_mm2(indenter: Indenter, skin: SkinModel = DEFAULT_SKIN) -> fl
     }[indenter.shape]
 
 
-def contact_force_n(indenter: Indenter, clamp_radius_mm: float, skin: SkinModel = DEFAULT_SKIN) -> float:
+def contact_force_n(indenter: Indenter, clamp_r_mm: float, skin: SkinModel = DEFAULT_SKIN) -> float:
     """Normal force of one indenter at its depth, N (see the module docstring).
 
     Parameters
     ----------
     indenter : Indenter
-    clamp_radius_mm : float
-        ``Rc``: the outermost fiber's radius plus ``skin.clamp_margin_mm``.
+    clamp_r_mm : float
+        ``Rc`` (:func:`clamp_radius_mm` of the layout).
     skin : SkinModel
     """
     depth = indenter.depth_mm
     if depth <= 0:
         return 0.0
     a = math.sqrt(footprint_area_mm2(indenter, skin) / math.pi)
-    rho = min(math.hypot(indenter.x_mm, indenter.y_mm) / clamp_radius_mm, 1.0)
+    rho = min(math.hypot(indenter.x_mm, indenter.y_mm) / clamp_r_mm, 1.0)
     return (2.0 * skin.modulus_mpa * a * depth * (1.0 + depth / skin.stiffening_mm)
             * (1.0 + skin.rim_stiffening * rho * rho))

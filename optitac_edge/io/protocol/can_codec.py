@@ -52,8 +52,6 @@ V2_SIGNALS: dict[str, tuple[str, ...]] = {
                  "N_CONTACTS", "DEPTH", "FORCE", "CONTACT_ID", "FLAGS", "AGE"),
     "RELEASE": ("CONTACT_ID", "COUNTER"),
 }
-#: CONTACT2's parts (its multiplexer PART): geometry, orientation and shape, depth/force/id/flags.
-CONTACT2_PARTS = 3
 
 #: STATUS.CPU_TEMP physical value meaning "unknown" (raw 255).
 CPU_TEMP_UNKNOWN = 215.0

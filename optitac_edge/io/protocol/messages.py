@@ -97,6 +97,12 @@ _FLAGS = tuple(ContactFlags(i) for i in range(32))
 _NO_CONTACT = (0.0,) * 7
 
 
+def _frame_flags(contact: bool, calibrated: bool, saturated: bool, degraded: bool) -> int:
+    """The flag bits CONTACT and CONTACT2 share (bits 0-3, the same in both)."""
+    return ((_CONTACT if contact else 0) | (_CALIBRATED if calibrated else 0) | (_SATURATED if saturated else 0)
+            | (_DEGRADED if degraded else 0))
+
+
 def _contact_values(est: Any) -> tuple[float, ...]:
     """x, y, major, minor, angle, strength and confidence of a contact estimate, NaN as 0."""
     isfinite = math.isfinite
@@ -174,8 +180,8 @@ class ContactMessage:
              degraded: bool = False) -> ContactMessage:
         """Update in place from a :class:`~optitac_edge.core.contact.ContactEstimate`; returns self."""
         contact = bool(est.contact)
-        flags = ((_CONTACT | (_MORE if getattr(est, "n_contacts", 1) > 1 else 0)) if contact else 0) \
-            | (_CALIBRATED if calibrated else 0) | (_SATURATED if saturated else 0) | (_DEGRADED if degraded else 0)
+        flags = _frame_flags(contact, calibrated, saturated, degraded) \
+            | (_MORE if contact and getattr(est, "n_contacts", 1) > 1 else 0)
         self.flags = _FLAGS[flags]
         self.t_us = t_ns // 1000
         (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
@@ -237,8 +243,7 @@ class ContactV2Message:
         """
         contact = bool(est.contact)
         isfinite = math.isfinite
-        flags = ((_CONTACT if contact else 0) | (_CALIBRATED if calibrated else 0)
-                 | (_SATURATED if saturated else 0) | (_DEGRADED if degraded else 0))
+        flags = _frame_flags(contact, calibrated, saturated, degraded)
         self.t_us = t_ns // 1000
         self.frame = int(est.frame)
         self.index = index

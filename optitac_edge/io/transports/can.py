@@ -25,7 +25,13 @@ import can
 
 from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
-from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Message, ReleaseMessage, StatusMessage
+from optitac_edge.io.protocol.messages import (
+    PROTOCOL_VERSIONS,
+    ContactMessage,
+    ContactV2Message,
+    ReleaseMessage,
+    StatusMessage,
+)
 from optitac_edge.io.transports.base import Transport
 
 log = logging.getLogger(__name__)
@@ -94,8 +100,8 @@ class CanTransport(Transport):
                  base_id: int = BASE_ID, backoff_s: tuple[float, float] = (0.1, 5.0),
                  down_after: int = 100, bus_kwargs: dict[str, Any] | None = None, protocol: int = 1) -> None:
         super().__init__()
-        if protocol not in (1, 2):
-            raise TransportError(f"CAN protocol must be 1 or 2, got {protocol!r}")
+        if protocol not in PROTOCOL_VERSIONS:
+            raise TransportError(f"CAN protocol must be one of {PROTOCOL_VERSIONS}, got {protocol!r}")
         self.codec = CanCodec(sensor_id, dbc_path, base_id, protocol=protocol)
         #: Protocol 2: CONTACT2 and RELEASE frames on their own ids besides the v1 frames (a v1 MCU
         #: filters them out and never notices).

@@ -293,6 +293,17 @@ class SerialTransport(Transport):
         self._queue.append((msg_type, t_us, payload))
         self._lock.notify()
 
+    def _wire_bytes(self, msg_type: int, t_us: int, payload: bytes) -> bytes:
+        """The wire frame with the next ``seq`` (holding the write lock), after a delimiter when the line
+        must resync (after (re)connecting or a partial write: it ends any partial frame)."""
+        data = wire.encode_frame(msg_type, self._seq, t_us, payload)
+        return wire.DELIMITER + data if self._resync else data
+
+    def _took_seq(self) -> None:
+        """The frame of :meth:`_wire_bytes` went to the port: the next one takes the next ``seq``."""
+        self._seq = (self._seq + 1) & wire.U16
+        self._resync = False
+
     def _write_direct(self, msg_type: int, t_us: int, payload: bytes) -> bool:
         """Write one frame from the calling thread without blocking (holding the write lock).
 
@@ -303,21 +314,17 @@ class SerialTransport(Transport):
         fd = self._direct_fd
         if fd is None or self._broken.is_set():
             return False
-        seq = self._seq
-        data = wire.encode_frame(msg_type, seq, t_us, payload)
-        if self._resync:
-            data = wire.DELIMITER + data
+        data = self._wire_bytes(msg_type, t_us, payload)
         try:
             n = self._os_write(fd, data)
         except BlockingIOError:
-            return False
+            return False  # nothing written: the seq is not taken
         except OSError as exc:  # port gone: the I/O thread reopens it
             log.warning("serial write failed: %s", exc)
             self.counters.send_errors += 1
             self._broken.set()
             return True
-        self._seq = (seq + 1) & wire.U16
-        self._resync = False
+        self._took_seq()
         if n < len(data):
             self._tail = data[n:]
             self.partial_writes += 1
@@ -401,12 +408,8 @@ class SerialTransport(Transport):
         if msg_type == _TAIL:  # the rest of a frame the frame loop wrote in part: no seq of its own
             data = payload
         else:
-            seq = self._seq
-            self._seq = (seq + 1) & wire.U16
-            data = wire.encode_frame(msg_type, seq, t_us, payload)
-            if self._resync:  # after (re)connecting or a partial write: end any partial frame
-                data = wire.DELIMITER + data
-                self._resync = False
+            data = self._wire_bytes(msg_type, t_us, payload)
+            self._took_seq()
         try:
             n = port.write(data)
             if n is not None and n != len(data):
