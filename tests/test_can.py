@@ -252,7 +252,7 @@ def test_contacts_and_status_over_virtual_bus(link):
     msgs = [_contact(x_mm=0.1 * i, angle_deg=-80 + 7.3 * i, age_us=100 * i) for i in range(5)]
     for m in msgs:
         tx.send_contact(m)
-    tx.send_status(StatusMessage(fps_x10=600, calibration_id=0x12345678, state=1))
+    tx.send_status(StatusMessage(sensor_id=3, fps_x10=600, calibration_id=0x12345678, state=1))
     frames = _receive(rx, 11)
     db = _db()
     for i, m in enumerate(msgs):
@@ -345,11 +345,11 @@ def test_send_errors_are_counted_and_dropped(link, exc):
     else:
         assert tx.stats.other_errors == 1
     flaky.fail = [exc]
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     assert tx.counters.send_errors == 3
     # later sends work; the counters show the gaps
     tx.send_contact(_contact())
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     frames = _receive(rx, 3)
     assert [f.arbitration_id for f in frames] == [0x330, 0x331, 0x332]
     assert decode_frame(frames[0].arbitration_id, frames[0].data)[2]["COUNTER"] == 1
@@ -391,7 +391,7 @@ def test_interface_down_reopens_in_background(link, exc):
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
     flaky.fail = [exc]
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     assert tx.stats.link_down == 1 and flaky.shutdowns == 1
     assert not tx.connected
     # frames offered while down are dropped and counted, without blocking
@@ -441,25 +441,25 @@ def test_reopen_retries_with_backoff(monkeypatch, link):
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
     flaky.fail = [OSError(errno.ENODEV, "No such device")]
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     assert _wait(lambda: tx.connected)
     assert tx.stats.open_failures == 3 and tx.counters.reconnects == 1 and len(attempts) == 4
     gaps = [b - a for a, b in itertools.pairwise(attempts)]
     assert gaps[-1] >= gaps[0] * 0.9  # waits grow (capped at 0.05 s here)
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     assert _receive(rx, 1)[0].arbitration_id == 0x332
 
 
 def test_close_is_idempotent_and_sends_after_close_are_dropped():
     channel = _channel()
-    tx = CanTransport(channel=channel, interface="virtual")
+    tx = CanTransport(channel=channel, interface="virtual", sensor_id=3)
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
     tx.close()
     tx.close()
     assert flaky.shutdowns == 1 and tx.closed
     tx.send_contact(_contact())
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     assert tx.counters.sent == 0 and tx.counters.send_errors == 3
 
 
@@ -469,7 +469,7 @@ def test_close_while_reconnecting_stops_the_thread(link):
     tx._bus = flaky
     tx._backoff = tx._backoff_min = 10.0  # the thread would wait long
     flaky.fail = [OSError(errno.ENETDOWN, "Network is down")]
-    tx.send_status(StatusMessage())
+    tx.send_status(StatusMessage(sensor_id=3))
     thread = tx._reconnector
     assert thread is not None and thread.is_alive()
     t0 = time.perf_counter()
@@ -496,3 +496,28 @@ def test_fill_from_estimate_and_send(link):
     assert b["AGE"] == 2500
     assert a["X"] == pytest.approx(2.35) and b["ANGLE"] == pytest.approx(33.33)
     assert math.isclose(a["CONFIDENCE"], round(0.66 * 255) / 255)
+
+
+def test_one_link_carries_every_sensor_of_a_board_on_its_own_ids_and_counters():
+    """A board with several sensors shares one bus: each message goes out on its own sensor's ids with that
+    sensor's counters; a message of a sensor the link does not carry is counted and dropped."""
+    channel = _channel()
+    rx = can.Bus(channel=channel, interface="virtual")
+    try:
+        with CanTransport(channel=channel, interface="virtual", sensor_id=[1, 2]) as tx:
+            for i in range(3):
+                tx.send_contact(_contact(sensor_id=1 + i % 2, age_us=i))
+            tx.send_status(StatusMessage(sensor_id=2))
+            tx.send_contact(_contact(sensor_id=5))
+            frames = _receive(rx, 7)
+            got = []
+            for f in frames:
+                sensor, name, signals = decode_frame(f.arbitration_id, f.data)
+                got.append((sensor, name, signals["COUNTER"]))
+            assert got == [(1, "CONTACT_A", 0), (1, "CONTACT_B", 0), (2, "CONTACT_A", 0), (2, "CONTACT_B", 0),
+                           (1, "CONTACT_A", 1), (1, "CONTACT_B", 1), (2, "STATUS", 0)]
+            assert tx.counters.send_errors == 1 and tx.stats.unknown_sensor == 1 and rx.recv(0.01) is None
+    finally:
+        rx.shutdown()
+    with pytest.raises(TransportError, match="distinct"):
+        CanTransport(channel=channel, interface="virtual", sensor_id=[1, 1])

@@ -147,9 +147,10 @@ def test_two_presses_reach_the_mcu_in_every_frame_with_stable_ids_after_it_asks_
     frames = multi_press_frames(2, 100, rest, layout=bundle.layout, seed=5)
     frames += frames[:3]  # contact-free again: both released
     mcu = FakeMcu()
-    config = load_board_config("sim", env={}, overrides={"link.transport": "serial", "link.serial_url": mcu.path})
+    config = load_board_config("sim", env={}, overrides={"link.transport": "serial", "link.serial_url": mcu.path,
+                                                         "sensor.id": 4})
     try:
-        with SerialTransport(mcu.path, sensor_id=4, queue_size=64) as link:
+        with SerialTransport(mcu.path, queue_size=64) as link:
             mcu.write(encode_command(CommandType.SET_PROTOCOL, 77, 0, version=2))
             assert mcu.read_until(lambda fr: len(fr) >= 1)  # the ACK: the command was taken
             service = Service(config, bundle, ListCamera(frames), link)

@@ -19,8 +19,8 @@ from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import NullTransport
 from optitac_edge.service.board_config import load_board_config
+from optitac_edge.service.bundles import load_or_calibrate
 from optitac_edge.service.loop import Service, ServiceStalled
-from optitac_edge.service.wiring import load_or_calibrate
 from optitac_edge.sim.camera import SimCamera
 from optitac_edge.sim.faults import FAULT_KINDS, FaultInjector, FaultyCamera
 

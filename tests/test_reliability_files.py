@@ -102,7 +102,7 @@ print(json.dumps(out))
 @pytest.fixture(scope="module")
 def two_bundles(tmp_path_factory):
     from optitac_edge.service.board_config import load_board_config
-    from optitac_edge.service.wiring import load_or_calibrate
+    from optitac_edge.service.bundles import load_or_calibrate
     from optitac_edge.sim.camera import SimCamera
 
     d = tmp_path_factory.mktemp("bundles")

@@ -32,7 +32,7 @@ def test_led_is_lowered_at_calibration_until_no_fiber_saturates():
     import numpy as np
 
     from optitac_edge.io.cameras.base import Camera, CapturedFrame
-    from optitac_edge.service.wiring import adjust_led
+    from optitac_edge.service.bundles import adjust_led
 
     class LitCamera(Camera):
         pixel_format, height, width, fps = "gray", 8, 8, 30.0
@@ -67,8 +67,9 @@ def test_service_over_can_decodes_with_the_dbc():
     import can
 
     from optitac_edge.io.protocol.can_codec import decode_frame
+    from optitac_edge.service.bundles import load_or_calibrate
     from optitac_edge.service.loop import Service
-    from optitac_edge.service.wiring import load_or_calibrate, open_board_camera, open_board_transport
+    from optitac_edge.service.wiring import open_board_camera, open_board_transport
 
     config = load_board_config("sim", env={}, overrides={
         "link.transport": "can", "link.can_interface": "virtual", "link.can_channel": "svc-test",

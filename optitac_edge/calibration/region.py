@@ -12,59 +12,27 @@ Done once, offline (after ``calibrate_fibers`` on the crop); nothing here runs p
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
+
+import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.frames import frame_geometry, to_gray
+from optitac_edge.core.region import REGION_KEY, Region, bundle_region
 
-#: ``CalibrationBundle.extra_meta`` key of the region a bundle was placed in.
-REGION_KEY = "region"
+__all__ = ["REGION_KEY", "Region", "bundle_region", "calibrate_region", "crop_frames", "place_bundle",
+           "place_fiber_table"]
 
+def place_fiber_table(table: FiberTable, region: Region, frame_width: int, frame_height: int,
+                      pixel_format: str | None = None) -> FiberTable:
+    """``table`` (built on a crop of ``region``'s size) with its pixels in the whole frame.
 
-@dataclass(frozen=True)
-class Region:
-    """A rectangle of a camera frame, px: columns ``x … x + width - 1``, rows ``y … y + height - 1``."""
-
-    x: int
-    y: int
-    width: int
-    height: int
-
-    def __post_init__(self) -> None:
-        for name in ("x", "y", "width", "height"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise TypeError(f"region {name} must be an integer, got {v!r}")
-        if self.x < 0 or self.y < 0 or self.width < 1 or self.height < 1:
-            raise ValueError(f"region {self.to_dict()} needs x, y >= 0 and a size of at least 1 px")
-
-    def inside(self, frame_width: int, frame_height: int) -> bool:
-        """The region lies within a frame of this size."""
-        return self.x + self.width <= frame_width and self.y + self.height <= frame_height
-
-    def overlaps(self, other: Region) -> bool:
-        return (self.x < other.x + other.width and other.x < self.x + self.width
-                and self.y < other.y + other.height and other.y < self.y + self.height)
-
-    def to_dict(self) -> dict[str, int]:
-        return {"x": self.x, "y": self.y, "width": self.width, "height": self.height}
-
-    @classmethod
-    def from_dict(cls, d: Any) -> Region:
-        if not isinstance(d, dict) or set(d) != {"x", "y", "width", "height"}:
-            raise ValueError(f"a region is {{x, y, width, height}}, got {d!r}")
-        return cls(d["x"], d["y"], d["width"], d["height"])
-
-
-def bundle_region(bundle: CalibrationBundle) -> Region | None:
-    """The region a bundle was placed in (None: it covers its whole frame)."""
-    d = bundle.extra_meta.get(REGION_KEY)
-    return None if d is None else Region.from_dict(d)
-
-
-def place_fiber_table(table: FiberTable, region: Region, frame_width: int, frame_height: int) -> FiberTable:
-    """``table`` (built on a crop of ``region``'s size) with its pixels in the whole frame."""
+    ``pixel_format`` (default: the table's) is the whole frame's: a ``yuv420`` camera's crop is
+    calibrated on its luma as ``gray``, and the luma plane's pixel indices are the frame's.
+    """
     if (table.width, table.height) != (region.width, region.height):
         raise ValueError(f"the fiber table is for {table.width}x{table.height} frames, the region is "
                          f"{region.width}x{region.height}")
@@ -72,13 +40,14 @@ def place_fiber_table(table: FiberTable, region: Region, frame_width: int, frame
         raise ValueError(f"region {region.to_dict()} leaves the {frame_width}x{frame_height} frame")
     row, col = table.pixel_index // table.width + region.y, table.pixel_index % table.width + region.x
     offset = [region.x, region.y]
-    return FiberTable(height=frame_height, width=frame_width, pixel_format=table.pixel_format,
+    return FiberTable(height=frame_height, width=frame_width, pixel_format=pixel_format or table.pixel_format,
                       pixel_index=(row * frame_width + col).astype(table.pixel_index.dtype),
                       pixel_start=table.pixel_start, centroid_px=table.centroid_px + offset, dead=table.dead,
                       unmatched_px=table.unmatched_px + offset)
 
 
-def place_bundle(bundle: CalibrationBundle, region: Region, frame_width: int, frame_height: int) -> CalibrationBundle:
+def place_bundle(bundle: CalibrationBundle, region: Region, frame_width: int, frame_height: int,
+                 pixel_format: str | None = None) -> CalibrationBundle:
     """A bundle calibrated on ``region``'s crop, placed in the whole ``frame_width`` x ``frame_height`` frame.
 
     Raises
@@ -88,7 +57,43 @@ def place_bundle(bundle: CalibrationBundle, region: Region, frame_width: int, fr
     """
     if REGION_KEY in bundle.extra_meta:
         raise ValueError(f"the bundle is already placed in region {bundle.extra_meta[REGION_KEY]}")
-    fibers = place_fiber_table(bundle.fibers, region, frame_width, frame_height)
+    fibers = place_fiber_table(bundle.fibers, region, frame_width, frame_height, pixel_format)
     transform = replace(bundle.transform, cx=bundle.transform.cx + region.x, cy=bundle.transform.cy + region.y)
     return bundle.with_updates(fibers=fibers, transform=transform,
                                extra_meta={**bundle.extra_meta, REGION_KEY: region.to_dict()})
+
+
+def crop_frames(frames: Sequence[np.ndarray] | np.ndarray, pixel_format: str,
+                region: Region) -> tuple[np.ndarray, str]:
+    """Whole camera frames cut to ``region``: (frames (F, h, w[, 3]) C-contiguous, their pixel format).
+
+    A ``yuv420`` frame's crop is its luma (``gray``): what the pipeline reads of it.
+
+    Raises
+    ------
+    ValueError
+        If the region leaves the frames.
+    """
+    gray_like = pixel_format == "yuv420"
+    out = []
+    for f in frames:
+        f = to_gray(np.asarray(f), pixel_format) if gray_like else np.asarray(f)
+        if not region.inside(f.shape[1], f.shape[0]):
+            raise ValueError(f"region {region.to_dict()} leaves the {f.shape[1]}x{f.shape[0]} frame")
+        out.append(f[region.y:region.y + region.height, region.x:region.x + region.width])
+    return np.ascontiguousarray(np.stack(out)), "gray" if gray_like else pixel_format
+
+
+def calibrate_region(frames: Sequence[np.ndarray] | np.ndarray, pixel_format: str, region: Region,
+                     **kwargs: Any) -> CalibrationBundle:
+    """The fiber map of the sensor in ``region`` of whole rest frames, placed in the frame.
+
+    ``kwargs`` go to :func:`~optitac_edge.calibration.fibers.calibrate_fibers`
+    (layout, orientation hint, ...).
+    """
+    from optitac_edge.calibration.fibers import calibrate_fibers
+
+    height, width = frame_geometry(np.asarray(frames[0]).shape, pixel_format)
+    cropped, crop_format = crop_frames(frames, pixel_format, region)
+    bundle = calibrate_fibers(cropped, crop_format, **kwargs)
+    return place_bundle(bundle, region, width, height, pixel_format)

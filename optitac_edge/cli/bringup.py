@@ -78,7 +78,8 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
     from optitac_edge.bringup.collect import Collector
     from optitac_edge.bringup.rigs import open_rig
-    from optitac_edge.service.wiring import obtain_bundle, open_board_camera
+    from optitac_edge.service.bundles import obtain_bundle
+    from optitac_edge.service.wiring import open_board_camera
 
     config = board_config(args)
     with ExitStack() as stack:
@@ -134,9 +135,10 @@ def _cmd_snapshot(args: argparse.Namespace) -> int:
 
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.io.files import AtomicFile
+    from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.view.live import STAT_FIELDS, LiveView
     from optitac_edge.service.view.render import encode_png, render_published
-    from optitac_edge.service.wiring import obtain_bundle, open_board_camera
+    from optitac_edge.service.wiring import open_board_camera
 
     config = board_config(args)
     with open_board_camera(config) as camera:
@@ -171,7 +173,8 @@ def _cmd_orient(args: argparse.Namespace) -> int:
     from optitac_edge.bringup.orient import orient_live
     from optitac_edge.calibration.orientation import reorient_bundle
     from optitac_edge.io.bundle_file import save_bundle
-    from optitac_edge.service.wiring import obtain_bundle, open_board_camera
+    from optitac_edge.service.bundles import obtain_bundle
+    from optitac_edge.service.wiring import open_board_camera
 
     config = board_config(args)
     target = args.output or args.cal or config.calibration.bundle_path

@@ -30,8 +30,8 @@ from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock, VirtualClock
 from optitac_edge.io.transports.serial import SerialTransport
 from optitac_edge.service.board_config import load_board_config
+from optitac_edge.service.bundles import calibrate_from_camera
 from optitac_edge.service.loop import Service, ServiceStats
-from optitac_edge.service.wiring import calibrate_from_camera
 from optitac_edge.sim.camera import SimCamera
 from optitac_edge.sim.faults import FaultInjector
 
@@ -124,7 +124,7 @@ def run_soak(minutes: float, fault_rate: float = 0.01, seed: int = 0, fps: float
         ports[-1].close()
         return 1
 
-    transport = SerialTransport("loop://", sensor_id=config.sensor.id, open_port=open_port)
+    transport = SerialTransport("loop://", open_port=open_port)
     stop = stop or threading.Event()
     start_ns = clock.monotonic_ns()
     due = {"unplug": start_ns + int(UNPLUG_EVERY_S * 1e9), "rss": start_ns}

@@ -173,6 +173,29 @@ def _channels(value: Any, from_text: bool) -> tuple[int, ...]:
     return tuple(value)
 
 
+#: How a camera of a board is named: ``[cameras.NAME]``; a one-camera board's ``[camera]`` is "main".
+CAMERA_NAME = r"[A-Za-z][A-Za-z0-9_-]{0,31}"
+#: The name of the ``[camera]`` of a board written in the one-sensor form.
+MAIN_CAMERA = "main"
+
+
+def _region(value: Any, from_text: bool) -> tuple[int, ...]:
+    if from_text and isinstance(value, str):
+        try:
+            value = [int(part.strip(), 0) for part in value.split(",") if part.strip()]
+        except ValueError:
+            raise _Bad(f"must be x, y, width, height in px (e.g. '0,20,440,360'), got {value!r}") from None
+    if isinstance(value, tuple):
+        value = list(value)
+    if not isinstance(value, list) or len(value) not in (0, 4):
+        raise _Bad(f"must be [x, y, width, height] in px, or [] for the whole frame, got {_show(value)}")
+    if any(isinstance(v, bool) or not isinstance(v, int) for v in value):
+        raise _Bad(f"must be 4 integers [x, y, width, height], got {value!r}")
+    if value and (value[0] < 0 or value[1] < 0 or value[2] < 16 or value[3] < 16):
+        raise _Bad(f"needs x, y >= 0 and a width and height of at least 16 px, got {value!r}")
+    return tuple(value)
+
+
 def _scalar(value: Any, from_text: bool) -> Scalar:
     if from_text and isinstance(value, str):
         try:  # a TOML literal (number, boolean, quoted string), else the text itself
@@ -200,6 +223,11 @@ class SensorConfig:
     id: int = _opt(_int(0, 255), 0, "sensor number sent to the MCU in every message")
     name: str = _opt(_str(64, pattern=r"[A-Za-z0-9_.-]+", empty=False), "optitac",
                      "short name for logs (letters, digits, _ . -)")
+    camera: str = _opt(_str(32, pattern=CAMERA_NAME, empty=False), MAIN_CAMERA,
+                       "the camera that reads this sensor's fibers: a [cameras.NAME] of the board "
+                       "('main' is the [camera] of a one-camera board)")
+    region: tuple[int, ...] = _opt(_region, (), "x, y, width, height of the camera frame holding this sensor's "
+                                   "fibers, px ([] = the whole frame; several sensors on one camera each need one)")
 
 
 @dataclass(frozen=True)
@@ -321,11 +349,36 @@ _SECTIONS: dict[str, type] = {
 _PATH_KEYS = {("camera", "device"), ("camera", "recording"), ("calibration", "bundle"),
               ("calibration", "layout")}
 _TOP_LEVEL = {"config_version", "description"}
+#: The tables of a board with several sensors: ``[cameras.NAME]`` and ``[[sensors]]``.
+_LISTS = ("cameras", "sensors")
+#: ``[calibration]`` keys a ``[[sensors]]`` entry sets for its sensor (the rest are board-wide).
+SENSOR_CALIBRATION_KEYS = ("bundle", "layout", "rotation_deg", "mirror")
+
+
+@dataclass(frozen=True)
+class BoardSensor:
+    """One sensor of a board: its id, name, camera and region (``sensor``) and its calibration."""
+
+    sensor: SensorConfig
+    calibration: CalibrationConfig
+
+    @property
+    def label(self) -> str:
+        """How errors and logs name it: ``sensor 2 'palm'``."""
+        return f"sensor {self.sensor.id} {self.sensor.name!r}"
 
 
 @dataclass(frozen=True)
 class BoardConfig:
-    """A validated board configuration (all sections, defaults filled in)."""
+    """A validated board configuration (all sections, defaults filled in).
+
+    A board written in the one-sensor form (``[sensor]``, ``[camera]``,
+    ``[calibration]``) has one sensor on the camera named ``main``. A board with
+    ``[cameras.NAME]`` tables and ``[[sensors]]`` entries lists them in
+    :attr:`sensors` and :attr:`cameras`; its ``sensor``, ``camera`` and
+    ``calibration`` are then its first sensor's, and :meth:`for_sensor` narrows
+    the board to any one of them (what ``--sensor ID`` does).
+    """
 
     source: str = "(defaults)"
     description: str = ""
@@ -339,21 +392,88 @@ class BoardConfig:
     rig: RigConfig = field(default_factory=RigConfig)
     #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
     origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
+    #: The ``[[sensors]]`` of a board with several (empty in the one-sensor form).
+    listed_sensors: tuple[BoardSensor, ...] = ()
+    #: The ``[cameras.NAME]`` of a board with several sensors (empty when it has one ``[camera]``).
+    named_cameras: Mapping[str, CameraConfig] = field(default_factory=lambda: MappingProxyType({}))
+    #: The sensor :meth:`for_sensor` narrowed the board to (None: all of them).
+    selected: int | None = None
 
-    def as_dict(self) -> dict[str, dict[str, Any]]:
-        """Plain ``{section: {key: value}}`` (for ``--print-config`` and logs)."""
-        out: dict[str, dict[str, Any]] = {}
+    @property
+    def all_sensors(self) -> tuple[BoardSensor, ...]:
+        """Every sensor of the board in file order, also when narrowed to one."""
+        return self.listed_sensors or (BoardSensor(self.sensor, self.calibration),)
+
+    @property
+    def sensors(self) -> tuple[BoardSensor, ...]:
+        """The sensors this config runs: all of the board's, or the one it was narrowed to."""
+        return tuple(s for s in self.all_sensors if self.selected is None or s.sensor.id == self.selected)
+
+    @property
+    def cameras(self) -> Mapping[str, CameraConfig]:
+        """The cameras the :attr:`sensors` are read by, by name (``main`` for a board with one ``[camera]``)."""
+        if not self.named_cameras:
+            return MappingProxyType({MAIN_CAMERA: self.camera})
+        used = {s.sensor.camera for s in self.sensors}
+        return MappingProxyType({k: v for k, v in self.named_cameras.items() if k in used})
+
+    def sensors_of(self, camera: str) -> tuple[BoardSensor, ...]:
+        """The sensors of :attr:`sensors` that ``camera`` reads, in file order."""
+        return tuple(s for s in self.sensors if s.sensor.camera == camera)
+
+    def regions_of(self, camera: str) -> tuple[tuple[int, ...], ...]:
+        """The regions of every sensor of the board on ``camera`` (also when narrowed to one), file order."""
+        return tuple(s.sensor.region for s in self.all_sensors if s.sensor.camera == camera)
+
+    def for_sensor(self, sensor_id: int | None = None) -> BoardConfig:
+        """This board narrowed to one sensor: its ``sensor``, ``camera`` and ``calibration`` are that sensor's.
+
+        ``None`` is the board's only sensor.
+
+        Raises
+        ------
+        ConfigError
+            No such sensor, or ``None`` on a board with several.
+        """
+        sensors = self.sensors
+        ids = ", ".join(str(s.sensor.id) for s in sensors)
+        if sensor_id is None:
+            if len(sensors) == 1:
+                return self
+            raise ConfigError(f"{self.source}: the board has {len(sensors)} sensors (ids {ids}): "
+                              "choose one with --sensor ID")
+        for s in sensors:
+            if s.sensor.id == sensor_id:
+                if not self.listed_sensors:
+                    return self
+                return replace(self, sensor=s.sensor, camera=self.named_cameras.get(s.sensor.camera, self.camera),
+                               calibration=s.calibration, selected=sensor_id)
+        raise ConfigError(f"{self.source}: no sensor with id {sensor_id} (the board's: {ids})")
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain ``{section: {key: value}}`` (for ``--print-config`` and logs); a board with several
+        sensors adds ``cameras`` ({name: {key: value}}) and ``sensors`` (a list of {key: value})."""
+        out: dict[str, Any] = {}
         for name in _SECTIONS:
-            section = getattr(self, name)
-            out[name] = {}
-            for f in fields(section):
-                value = getattr(section, f.name)
-                if isinstance(value, Mapping):
-                    value = dict(value)
-                elif isinstance(value, tuple):
-                    value = list(value)
-                out[name][f.name] = value
+            out[name] = _plain(getattr(self, name))
+        if self.listed_sensors:
+            out["cameras"] = {name: _plain(cam) for name, cam in self.named_cameras.items()}
+            out["sensors"] = [{**_plain(s.sensor), **{k: v for k, v in _plain(s.calibration).items()
+                                                       if k in SENSOR_CALIBRATION_KEYS}}
+                              for s in self.listed_sensors]
         return out
+
+
+def _plain(section: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in fields(section):
+        value = getattr(section, f.name)
+        if isinstance(value, Mapping):
+            value = dict(value)
+        elif isinstance(value, tuple):
+            value = list(value)
+        out[f.name] = value
+    return out
 
 
 # --------------------------------------------------------------------------- loading
@@ -426,18 +546,29 @@ def _read_toml(path: Path) -> dict[str, Any]:
 
 
 class _Layers:
-    """Values of every section/key with their source, applied in precedence order."""
+    """Values of every section/key with their source, applied in precedence order.
+
+    Sections are stored by target: ``camera`` for the one-sensor form's
+    ``[camera]``, ``cameras.NAME`` for a named camera (checked as a ``[camera]``).
+    """
 
     def __init__(self) -> None:
         self.values: dict[str, dict[str, Any]] = {name: {} for name in _SECTIONS}
-        self.options: dict[str, Scalar] = {}
+        self.options: dict[str, dict[str, Scalar]] = {"camera": {}}
         self.origins: dict[str, str] = {}
 
+    def add_camera(self, name: str) -> str:
+        target = f"cameras.{name}"
+        self.values.setdefault(target, {})
+        self.options.setdefault(target, {})
+        return target
+
     def set(self, source: str, section: str, key: str, value: Any, *, from_text: bool,
-            base_dir: Path | None) -> None:
-        where = f"{section}.{key}"
+            base_dir: Path | None, target: str | None = None) -> None:
+        target = section if target is None else target
+        where = f"{target}.{key}"
         if section not in _SECTIONS:
-            raise ConfigError(f"{source}: {section}: unknown section (known: {', '.join(_SECTIONS)})")
+            raise ConfigError(f"{source}: {section}: unknown section (known: {', '.join((*_SECTIONS, *_LISTS))})")
         cls = _SECTIONS[section]
         spec = {f.name: f for f in fields(cls)}
         if section == "camera" and key.startswith("options."):
@@ -445,7 +576,7 @@ class _Layers:
             if not re.fullmatch(r"[a-z][a-z0-9_]*", name):
                 raise ConfigError(f"{source}: {where}: option names are lower-case identifiers")
             try:
-                self.options[name] = _scalar(value, from_text)
+                self.options[target][name] = _scalar(value, from_text)
             except _Bad as exc:
                 raise ConfigError(f"{source}: {where}: {exc}") from None
             self.origins[where] = source
@@ -458,27 +589,52 @@ class _Layers:
             if not isinstance(value, dict):
                 raise ConfigError(f"{source}: {where}: must be a table, got {_type_name(value)}")
             for name, item in value.items():
-                self.set(source, section, f"options.{name}", item, from_text=from_text, base_dir=base_dir)
+                self.set(source, section, f"options.{name}", item, from_text=from_text, base_dir=base_dir,
+                         target=target)
             return
-        try:
-            converted = spec[key].metadata["check"](value, from_text)
-        except _Bad as exc:
-            raise ConfigError(f"{source}: {where}: {exc}") from None
-        if (section, key) in _PATH_KEYS and converted and base_dir is not None:
-            expanded = Path(os.path.expanduser(converted))
-            converted = str(expanded if expanded.is_absolute() else base_dir / expanded)
-        self.values[section][key] = converted
+        self.values[target][key] = _check(spec[key], section, key, value, from_text, base_dir,
+                                          f"{source}: {where}")
         self.origins[where] = source
 
+    def camera(self, target: str) -> CameraConfig:
+        return CameraConfig(**{**self.values[target], "options": MappingProxyType(dict(self.options[target]))})
 
-def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Path) -> str:
+
+def _check(spec: Any, section: str, key: str, value: Any, from_text: bool, base_dir: Path | None,
+           where: str) -> Any:
+    """``value`` checked by ``spec``'s checker (paths resolved against ``base_dir``); errors name ``where``."""
+    try:
+        converted = spec.metadata["check"](value, from_text)
+    except _Bad as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    if (section, key) in _PATH_KEYS and converted and base_dir is not None:
+        expanded = Path(os.path.expanduser(converted))
+        converted = str(expanded if expanded.is_absolute() else base_dir / expanded)
+    return converted
+
+
+@dataclass
+class _Entry:
+    """One ``[[sensors]]`` entry as read: its sensor keys, its calibration keys, how errors name it."""
+
+    sensor: dict[str, Any]
+    calibration: dict[str, Any]
+    label: str
+
+
+def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Path) -> tuple[str, list[_Entry]]:
     description = ""
+    entries: list[_Entry] = []
     for name, value in data.items():
         if name in _SECTIONS:
             if not isinstance(value, dict):
                 raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {_type_name(value)}")
             for key, item in value.items():
                 layers.set(shown, name, key, item, from_text=False, base_dir=base_dir)
+        elif name == "cameras":
+            _apply_cameras(layers, value, shown, base_dir)
+        elif name == "sensors":
+            entries = _read_sensors(value, shown, base_dir)
         elif name == "config_version":
             if isinstance(value, bool) or value != CONFIG_VERSION:
                 raise ConfigError(f"{shown}: config_version: must be {CONFIG_VERSION}, got {value!r}")
@@ -489,14 +645,60 @@ def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Pat
                 raise ConfigError(f"{shown}: description: {exc}") from None
         else:
             kind = "section" if isinstance(value, dict) else "key"
-            raise ConfigError(f"{shown}: {name}: unknown {kind} (known sections: {', '.join(_SECTIONS)})")
-    return description
+            raise ConfigError(f"{shown}: {name}: unknown {kind} (known sections: "
+                              f"{', '.join((*_SECTIONS, *_LISTS))})")
+    return description, entries
+
+
+def _apply_cameras(layers: _Layers, value: Any, shown: str, base_dir: Path) -> None:
+    if not isinstance(value, dict) or not value:
+        raise ConfigError(f"{shown}: cameras: must hold [cameras.NAME] tables, got {_type_name(value)}")
+    for cam_name, table in value.items():
+        if not re.fullmatch(CAMERA_NAME, cam_name):
+            raise ConfigError(f"{shown}: cameras.{cam_name}: camera names are a letter then letters, digits, "
+                              "_ or - (at most 32)")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{shown}: cameras.{cam_name}: must be a table [cameras.{cam_name}], "
+                              f"got {_type_name(table)}")
+        target = layers.add_camera(cam_name)
+        for key, item in table.items():
+            layers.set(shown, "camera", key, item, from_text=False, base_dir=base_dir, target=target)
+
+
+def _read_sensors(value: Any, shown: str, base_dir: Path) -> list[_Entry]:
+    if not isinstance(value, list) or not value or not all(isinstance(v, dict) for v in value):
+        raise ConfigError(f"{shown}: sensors: must be [[sensors]] tables (one per sensor)")
+    sensor_spec = {f.name: f for f in fields(SensorConfig)}
+    cal_spec = {f.name: f for f in fields(CalibrationConfig) if f.name in SENSOR_CALIBRATION_KEYS}
+    entries = []
+    for k, table in enumerate(value):
+        label = f"sensors[{k}]"
+        if isinstance(table.get("id"), int) and not isinstance(table.get("id"), bool):
+            label += f" (id {table['id']})"
+        entry = _Entry({}, {}, label)
+        for key, item in table.items():
+            where = f"{shown}: {label}: {key}"
+            if key in sensor_spec:
+                entry.sensor[key] = _check(sensor_spec[key], "sensor", key, item, False, base_dir, where)
+            elif key in cal_spec:
+                entry.calibration[key] = _check(cal_spec[key], "calibration", key, item, False, base_dir, where)
+            else:
+                known = ", ".join((*sensor_spec, *cal_spec))
+                raise ConfigError(f"{where}: unknown key (known: {known}; board-wide calibration keys go in "
+                                  "[calibration])")
+        if "id" not in entry.sensor:
+            raise ConfigError(f"{shown}: {label}: id: required (0..255, what the MCU hears)")
+        entries.append(entry)
+    return entries
 
 
 def _env_key(var: str) -> tuple[str, str] | None:
     """``OPTITAC_LINK_SERIAL_URL`` -> ("link", "serial_url"); None if no section matches."""
     rest = var[len(ENV_PREFIX):].lower()
     section, _, key = rest.partition("_")
+    if section in _LISTS:
+        raise ConfigError(f"environment {var}: cameras and sensors are set in the board file "
+                          "(or on the command line as cameras.NAME.KEY)")
     if section not in _SECTIONS:
         return None
     if section == "camera" and key.startswith("options_"):
@@ -526,10 +728,12 @@ def load_board_config(
     env
         Environment (default ``os.environ``): ``OPTITAC_<SECTION>_<KEY>`` variables
         override file values (text parsed to the key's type: ``0x40``, ``true``,
-        ``0,1,2`` for channels). Variables whose SECTION is not a config section are ignored.
+        ``0,1,2`` for channels). Variables whose SECTION is not a config section are ignored;
+        ``OPTITAC_CAMERAS_*`` and ``OPTITAC_SENSORS_*`` are refused (those are set in the file).
     overrides
-        From the command line, ``{"section.key": value}`` (e.g. ``{"camera.fps": 30}``);
-        values may be typed or text. They override the environment.
+        From the command line, ``{"section.key": value}`` (e.g. ``{"camera.fps": 30}``,
+        ``{"cameras.palm.fps": 30}`` for a named camera); values may be typed or text.
+        They override the environment.
 
     Relative paths are resolved against the file's directory when set in the file,
     against the working directory when set by the environment or command line.
@@ -537,14 +741,16 @@ def load_board_config(
     Raises
     ------
     ConfigError
-        One line naming the file (or variable, or "command line") and the key.
+        One line naming the file (or variable, or "command line"), the key, and
+        for a ``[[sensors]]`` entry the sensor.
     """
     env = os.environ if env is None else env
     path = resolve_board_config(name_or_path)
     shown = _display(path)
     layers = _Layers()
     data = _read_toml(path)
-    description = _apply_file(layers, data, shown, path.resolve().parent)
+    description, entries = _apply_file(layers, data, shown, path.resolve().parent)
+    named = sorted(t[len("cameras."):] for t in layers.values if t.startswith("cameras."))
 
     state_dir = env.get("STATE_DIRECTORY", "").split(":")[0]
     if state_dir and "calibration.bundle" not in layers.origins:
@@ -562,14 +768,57 @@ def load_board_config(
 
     for dotted, value in (overrides or {}).items():
         section, key = _split_override(dotted)
-        layers.set("command line", section, key, value, from_text=isinstance(value, str), base_dir=cwd)
+        into: str | None = None
+        if section == "cameras":
+            cam_name, _, key = key.partition(".")
+            if cam_name not in named or not key:
+                raise ConfigError(f"command line: {dotted}: no camera {cam_name!r} on this board "
+                                  f"(its cameras: {', '.join(named) or 'one [camera]: write camera.KEY'})")
+            section, into = "camera", f"cameras.{cam_name}"
+        layers.set("command line", section, key, value, from_text=isinstance(value, str), base_dir=cwd,
+                   target=into)
 
     sections = {name: cls(**layers.values[name]) for name, cls in _SECTIONS.items()}
-    sections["camera"] = replace(sections["camera"], options=MappingProxyType(dict(layers.options)))
+    sections["camera"] = layers.camera("camera")
     config = BoardConfig(source=shown, description=description, origins=MappingProxyType(layers.origins),
                          **sections)
+    if entries or named:
+        config = _with_sensors(config, layers, entries, named, shown, state_dir)
     _check_consistency(config, shown)
     return config
+
+
+def _with_sensors(config: BoardConfig, layers: _Layers, entries: list[_Entry], named: list[str], shown: str,
+                  state_dir: str) -> BoardConfig:
+    """The board with its ``[[sensors]]`` and ``[cameras.NAME]``; keys of the one-sensor form are refused."""
+    origins = config.origins
+    if not entries:
+        raise ConfigError(f"{shown}: cameras: [cameras.NAME] tables need [[sensors]] entries naming them")
+    for key, source in origins.items():
+        section, _, rest = key.partition(".")
+        if section == "sensor":
+            raise ConfigError(f"{source}: {key}: this board lists [[sensors]]; set {rest} in each entry")
+        if section == "calibration" and rest in SENSOR_CALIBRATION_KEYS:
+            raise ConfigError(f"{source}: {key}: this board lists [[sensors]]; set {rest} per sensor in its entry")
+        if section == "camera" and named:
+            raise ConfigError(f"{source}: {key}: this board names its cameras ({', '.join(named)}); "
+                              f"set cameras.NAME.{rest}")
+    cameras = {name: layers.camera(f"cameras.{name}") for name in named}
+    board_cal = {k: v for k, v in layers.values["calibration"].items() if k not in SENSOR_CALIBRATION_KEYS}
+    home = Path(state_dir or DEFAULT_STATE_DIR)
+    sensors = []
+    for entry in entries:
+        try:
+            sensor = SensorConfig(**entry.sensor)
+        except TypeError as exc:  # cannot happen: keys were checked against the fields
+            raise ConfigError(f"{shown}: {entry.label}: {exc}") from None
+        cal = {"bundle": str(home / f"calibration-{sensor.name}.npz"), **board_cal, **entry.calibration}
+        sensors.append(BoardSensor(sensor, CalibrationConfig(**cal)))
+    first = sensors[0]
+    return replace(config, sensor=first.sensor,
+                   camera=cameras.get(first.sensor.camera, config.camera if not named else CameraConfig()),
+                   calibration=first.calibration, listed_sensors=tuple(sensors),
+                   named_cameras=MappingProxyType(cameras))
 
 
 def _check_consistency(config: BoardConfig, shown: str) -> None:
@@ -583,22 +832,74 @@ def _check_consistency(config: BoardConfig, shown: str) -> None:
         sources = [config.origins.get(k, shown) for k in (key, *involved)]
         raise ConfigError(f"{max(sources, key=rank)}: {key}: {message}")
 
-    cam, link = config.camera, config.link
-    if cam.backend == "v4l2" and bool(cam.device) == bool(cam.pipeline):
-        fail("camera.device" if not cam.pipeline else "camera.pipeline",
-             "backend 'v4l2' needs exactly one of camera.device and camera.pipeline", "camera.backend")
-    if cam.backend == "recording" and not cam.recording:
-        fail("camera.recording", "backend 'recording' needs camera.recording (a recording directory)", "camera.backend")
-    if cam.pipeline and cam.backend != "v4l2":
-        fail("camera.pipeline", f"only the v4l2 backend takes a pipeline, not {cam.backend!r}", "camera.backend")
-    if cam.pipeline and "appsink" not in cam.pipeline:
-        fail("camera.pipeline", "a GStreamer pipeline must end in an appsink")
-    if cam.pixel_format == "yuv420" and (cam.width % 2 or cam.height % 2):
-        fail("camera.pixel_format", "yuv420 needs an even width and height", "camera.width", "camera.height")
+    for name, cam in config.cameras.items():
+        p = f"cameras.{name}." if config.named_cameras else "camera."
+        if cam.backend == "v4l2" and bool(cam.device) == bool(cam.pipeline):
+            fail(p + ("device" if not cam.pipeline else "pipeline"),
+                 f"backend 'v4l2' needs exactly one of {p}device and {p}pipeline", p + "backend")
+        if cam.backend == "recording" and not cam.recording:
+            fail(p + "recording", f"backend 'recording' needs {p}recording (a recording directory)", p + "backend")
+        if cam.pipeline and cam.backend != "v4l2":
+            fail(p + "pipeline", f"only the v4l2 backend takes a pipeline, not {cam.backend!r}", p + "backend")
+        if cam.pipeline and "appsink" not in cam.pipeline:
+            fail(p + "pipeline", "a GStreamer pipeline must end in an appsink")
+        if cam.pixel_format == "yuv420" and (cam.width % 2 or cam.height % 2):
+            fail(p + "pixel_format", "yuv420 needs an even width and height", p + "width", p + "height")
+    link = config.link
     if link.transport == "serial" and not link.serial_url:
         fail("link.serial_url", "required when link.transport is 'serial'", "link.transport")
     if link.transport == "can" and not link.can_channel:
         fail("link.can_channel", "required when link.transport is 'can'", "link.transport")
+    _check_sensors(config, shown)
+
+
+def _check_sensors(config: BoardConfig, shown: str) -> None:
+    """Every sensor on a camera of the board, inside its frame, alone in its region; ids, names and bundles
+    unique; every camera read by some sensor. The error names the sensor."""
+    listed = bool(config.listed_sensors)
+
+    def fail(s: BoardSensor, key: str, message: str) -> None:
+        where = config.origins.get(f"sensor.{key}", shown)
+        raise ConfigError(f"{where}: {s.label}: {key}: {message}" if listed else f"{where}: sensor.{key}: {message}")
+
+    seen: list[BoardSensor] = []
+    cameras = config.named_cameras or {MAIN_CAMERA: config.camera}
+    for s in config.sensors:
+        sensor = s.sensor
+        cam = cameras.get(sensor.camera)
+        if cam is None:
+            fail(s, "camera", f"no camera {sensor.camera!r} on this board (its cameras: {', '.join(cameras)})")
+            return
+        if sensor.region:
+            x, y, w, h = sensor.region
+            if x + w > cam.width or y + h > cam.height:
+                fail(s, "region", f"[{x}, {y}, {w}, {h}] leaves camera {sensor.camera!r}'s "
+                                  f"{cam.width}x{cam.height} frame")
+        for other in seen:
+            o = other.sensor
+            if o.id == sensor.id:
+                fail(s, "id", f"{sensor.id} is also {other.label}'s (each sensor needs its own id)")
+            if o.name == sensor.name:
+                fail(s, "name", f"{sensor.name!r} is also sensor {o.id}'s (names must differ)")
+            if s.calibration.bundle and s.calibration.bundle == other.calibration.bundle:
+                fail(s, "bundle", f"{s.calibration.bundle} is also {other.label}'s bundle")
+            if o.camera == sensor.camera:
+                if not sensor.region or not o.region:
+                    fail(s, "region", f"camera {sensor.camera!r} reads several sensors: each needs its region "
+                                      f"(x, y, width, height), {other.label if sensor.region else 'this one'} "
+                                      "has none")
+                if _overlap(sensor.region, o.region):
+                    fail(s, "region", f"{list(sensor.region)} overlaps {other.label}'s {list(o.region)} "
+                                      f"on camera {sensor.camera!r}")
+        seen.append(s)
+    for name in config.named_cameras:
+        if not config.sensors_of(name):
+            raise ConfigError(f"{shown}: cameras.{name}: no sensor reads this camera (set camera = "
+                              f"{name!r} in a [[sensors]] entry, or remove it)")
+
+
+def _overlap(a: tuple[int, ...], b: tuple[int, ...]) -> bool:
+    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
 
 
 def describe_schema() -> str:
@@ -611,11 +912,15 @@ def describe_schema() -> str:
             if isinstance(default, Mapping):
                 default = dict(default)
             lines.append(f"  {f.name} = {default!r}  # {f.metadata.get('doc', '')}")
+    lines.append("[cameras.NAME]  # a board with several cameras: each takes the keys of [camera]")
+    lines.append("[[sensors]]  # a board with several sensors, one entry each: the keys of [sensor] and")
+    lines.append(f"  # of [calibration] {', '.join(SENSOR_CALIBRATION_KEYS)} (bundle default: "
+                 f"{DEFAULT_STATE_DIR}/calibration-NAME.npz)")
     return "\n".join(lines)
 
 
 __all__ = [
-    "BoardConfig", "CalibrationConfig", "CameraConfig", "LedConfig", "LinkConfig", "SensorConfig",
+    "BoardConfig", "BoardSensor", "CalibrationConfig", "CameraConfig", "LedConfig", "LinkConfig", "SensorConfig",
     "StatusConfig", "WatchdogConfig", "available_boards", "describe_schema", "load_board_config",
     "packaged_config_dirs", "resolve_board_config",
 ]

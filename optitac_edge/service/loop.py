@@ -22,19 +22,17 @@ import gc
 import logging
 import sys
 import threading
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
-from optitac_edge.core.frame_check import FrameCheck
-from optitac_edge.core.options import MAX_CONTACTS
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
-from optitac_edge.io.protocol.announce import ContactAnnouncer
 from optitac_edge.io.protocol.messages import (
     STATE_BASELINE_READY,
     STATE_CALIBRATION_UNSAVED,
@@ -46,15 +44,13 @@ from optitac_edge.io.protocol.messages import (
     TEMP_UNKNOWN,
     Command,
     CommandType,
-    ContactMessage,
-    ContactV2Message,
-    ReleaseMessage,
     StatusMessage,
 )
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
-from optitac_edge.service.board_config import BoardConfig
+from optitac_edge.service.board_config import BoardConfig, CameraConfig, SensorConfig
+from optitac_edge.service.channel import SensorChannel
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +78,9 @@ class ServiceStats:
 
     ``camera_errors`` counts every frame fault (read errors and timeouts, wrong
     frames, dark and saturated frames); the other counters split it by kind.
+    With several sensors on the camera, ``frames`` counts camera frames some
+    sensor processed, ``contacts`` every sensor's frames with a contact, and a
+    dark or saturated patch counts once per sensor it hides.
     """
 
     frames: int = 0
@@ -130,7 +129,7 @@ class _Backoff:
 
 
 class Service:
-    """Runs the frame loop with one camera, one pipeline and one transport.
+    """Runs the frame loop of one camera: every sensor the camera reads, one transport.
 
     ``camera`` is opened by the caller (it stays the caller's to close); with
     ``camera_factory`` the service can also reopen the camera after a failure
@@ -138,11 +137,21 @@ class Service:
     a factory is given: the factory opens the first one. Every time the loop
     reads or waits goes through ``clock`` (a
     :class:`~optitac_edge.io.clock.VirtualClock` makes a run deterministic).
+
+    ``sensors`` lists the camera's sensors with their bundles (default: the
+    board's ``[sensor]`` with ``bundle``); ``camera_config`` is the camera's
+    section (default: the board's ``[camera]``). A board with several cameras
+    runs one service per camera (:mod:`optitac_edge.service.session`): the
+    first is the lead, which alone polls the MCU's commands (passing each to
+    its :attr:`peers`), kicks systemd's watchdog while every peer's loop is
+    alive, and says READY once each has processed a frame.
     """
 
-    def __init__(self, config: BoardConfig, bundle: CalibrationBundle, camera: Camera | None,
+    def __init__(self, config: BoardConfig, bundle: CalibrationBundle | None, camera: Camera | None,
                  transport: Transport, notifier: Notifier | None = None, *,
-                 camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
+                 camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK,
+                 sensors: Sequence[tuple[SensorConfig, CalibrationBundle]] | None = None,
+                 camera_config: CameraConfig | None = None) -> None:
         if camera is None:
             if camera_factory is None:
                 raise ValueError("Service needs a camera or a camera_factory")
@@ -150,34 +159,35 @@ class Service:
             self._owned: Camera | None = camera
         else:
             self._owned = None
-        bundle.fibers.check_frame_shape(camera.frame_shape, camera.pixel_format)
+        if sensors is None:
+            if bundle is None:
+                raise ValueError("Service needs a bundle or sensors")
+            sensors = [(config.sensor, bundle)]
+        for sensor, b in sensors:
+            b.fibers.check_frame_shape(camera.frame_shape, camera.pixel_format)
         self.config = config
-        self.bundle = bundle
+        self.camera_config = camera_config or config.camera
         self.clock = clock
         self.camera: Camera | None = camera
         self.camera_factory = camera_factory
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
-        self.pipeline = Pipeline(bundle)
+        #: One per sensor the camera reads, in the board's order.
+        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.frame_shape) for sensor, b in sensors]
+        #: The services of the board's other cameras (this one is the lead when it has any).
+        self.peers: list[Service] = []
+        #: This service is one of a lead's peers: it takes commands from its inbox and leaves systemd alone.
+        self.is_peer = False
         #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
         self.view: Any = None
-        self.frame_check = FrameCheck(bundle.fibers, camera.frame_shape)
         self.streaming = True
         self.rate_divider = config.link.rate_divider
         self.stats = ServiceStats()
-        self._message = ContactMessage(sensor_id=config.sensor.id)
         #: The protocol the MCU asked for with SET_PROTOCOL (1 until it does).
         self.protocol = 1
-        self._messages_v2 = [ContactV2Message(sensor_id=config.sensor.id) for _ in range(MAX_CONTACTS)]
-        self._release = ReleaseMessage(sensor_id=config.sensor.id)
-        self._announcer = ContactAnnouncer()
-        self._status = StatusMessage(sensor_id=config.sensor.id,
-                                     calibration_id=int(bundle.calibration_id[:8] or "0", 16))
-        self._degraded = bool(bundle.fibers.dead.any())
+        self._inbox: deque[Command] = deque()
         self._pixel_format = camera.pixel_format
         self._frame_shape = camera.frame_shape
-        self._fault_since_status = False
-        self._light_since_status = False
         #: The bundle could not be saved (the service runs on it from memory): STATUS bit5.
         self.calibration_unsaved = False
         gap_s = config.watchdog.max_frame_gap_s
@@ -186,37 +196,67 @@ class Service:
         self._status_period_ns = int(config.status.period_s * 1e9)
         self._reopen_at_ns = 0
         self._last_good_ns = 0
+        #: When the loop last went round (peers: what the lead's watchdog kick checks).
+        self.heartbeat_ns = 0
         self._next_status_ns = 0
         self._ready = False
+        #: The lead told systemd READY.
+        self.notifier_ready = False
+
+    @property
+    def pipeline(self) -> Pipeline:
+        """The first sensor's pipeline (the only one on a one-sensor camera)."""
+        return self.channels[0].pipeline
+
+    @property
+    def bundle(self) -> CalibrationBundle:
+        """The first sensor's bundle."""
+        return self.channels[0].bundle
 
     # -- commands ----------------------------------------------------------------------------
 
     def handle(self, command: Command) -> None:
-        """Act on one validated command from the MCU (already acknowledged by the transport)."""
+        """Act on one validated command from the MCU (already acknowledged by the transport).
+
+        Commands carry no sensor id: each applies to every sensor of the board
+        (the lead passes it on to its peers, which act on it in their own loop).
+        """
         name = command.type.name
         self.stats.commands[name] = self.stats.commands.get(name, 0) + 1
+        for peer in self.peers:
+            peer.post(command)
         if command.type == CommandType.TARE:
-            self.pipeline.reset_baseline()
+            for ch in self.channels:
+                ch.pipeline.reset_baseline()
         elif command.type == CommandType.STREAM:
             self.streaming = command.stream_on
             self.rate_divider = max(int(command.rate_divider), 1)
         elif command.type == CommandType.SET_THRESHOLD:
-            self.pipeline.set_contact_level(command.threshold * THRESHOLD_UNIT)
+            for ch in self.channels:
+                ch.pipeline.set_contact_level(command.threshold * THRESHOLD_UNIT)
         elif command.type == CommandType.SET_PROTOCOL:
             if command.version in self.transport.protocols:
-                if command.version != self.protocol:
+                if command.version != self.protocol and not self.is_peer:
                     log.info("the MCU switched to protocol v%d", command.version)
                 self.protocol = command.version
-                self._announcer.reset()  # a new session: every contact is news to the MCU
+                for ch in self.channels:
+                    ch.announcer.reset()  # a new session: every contact is news to the MCU
             else:
                 self.stats.protocol_refused += 1
-                log.warning("SET_PROTOCOL %d ignored: this link speaks %s", command.version,
-                            ", ".join(f"v{v}" for v in self.transport.protocols))
+                if not self.is_peer:  # the lead says it once for the board
+                        log.warning("SET_PROTOCOL %d ignored: this link speaks %s", command.version,
+                                ", ".join(f"v{v}" for v in self.transport.protocols))
+
+    def post(self, command: Command) -> None:
+        """From the lead's thread: a command for this service's loop (acted on before its next frame)."""
+        self._inbox.append(command)
 
     # -- status ------------------------------------------------------------------------------
 
-    def status_message(self, now_ns: int) -> StatusMessage:
-        s, st = self._status, self.stats
+    def status_message(self, now_ns: int, index: int = 0) -> StatusMessage:
+        """The STATUS of sensor ``index`` of this camera (its flags since its last STATUS, then cleared)."""
+        ch, st = self.channels[index], self.stats
+        s = ch.status
         s.t_us = now_ns // 1000
         s.fps_x10 = round(st.fps(now_ns) * 10)
         s.frames_dropped = st.frames_dropped
@@ -225,15 +265,24 @@ class Service:
         s.link_errors = c.send_errors + c.rx_errors
         temp = cpu_temperature_c()
         s.cpu_temp_c_x10 = TEMP_UNKNOWN if temp is None else round(temp * 10)
-        fault = self._fault_since_status or self.camera is None
+        fault = ch.fault_since_status or self.camera is None
         s.state = ((STATE_STREAMING if self.streaming else 0)
-                   | (STATE_BASELINE_READY if self.pipeline.baseline_ready else 0)
-                   | (STATE_DEGRADED if self._degraded else 0) | (STATE_CAMERA_FAULT if fault else 0)
-                   | (STATE_LIGHT_CHANGE if self._light_since_status else 0)
+                   | (STATE_BASELINE_READY if ch.pipeline.baseline_ready else 0)
+                   | (STATE_DEGRADED if ch.degraded else 0) | (STATE_CAMERA_FAULT if fault else 0)
+                   | (STATE_LIGHT_CHANGE if ch.light_since_status else 0)
                    | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0)
                    | (STATE_PROTOCOL_V2 if self.protocol == 2 else 0))
-        self._fault_since_status = self._light_since_status = False
+        ch.fault_since_status = ch.light_since_status = False
         return s
+
+    def send_status(self, now_ns: int) -> None:
+        """A STATUS for every sensor of the camera."""
+        for k in range(len(self.channels)):
+            self.transport.send_status(self.status_message(now_ns, k))
+
+    def _flag_fault(self) -> None:
+        for ch in self.channels:
+            ch.fault_since_status = True
 
     # -- camera faults -----------------------------------------------------------------------
 
@@ -284,7 +333,7 @@ class Service:
             st.read_errors += 1
         else:
             st.unexpected_errors += 1
-        self._fault_since_status = True
+        self._flag_fault()
         if st.camera_errors == 1 or st.camera_errors % 100 == 0:
             log.warning("camera error %d: %s: %s", st.camera_errors, type(exc).__name__, exc)
         if self.camera_factory is not None:
@@ -294,8 +343,9 @@ class Service:
             self.clock.wait(stop, min(self._backoff.delay, IDLE_WAIT_S))
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
-        """Use ``pipeline`` from the next frame (a bundle re-oriented from the view; built off the frame thread)."""
-        self.pipeline = pipeline
+        """The first sensor uses ``pipeline`` from the next frame (a bundle re-oriented from the view; built off
+        the frame thread)."""
+        self.channels[0].replace_pipeline(pipeline)
 
     def close(self) -> None:
         """Close the camera the service opened itself (idempotent)."""
@@ -330,12 +380,12 @@ class Service:
 
     def _run(self, stop: threading.Event, duration_s: float | None, on_result: OnResult | None) -> ServiceStats:
         st = self.stats
-        st.started_ns = self._last_good_ns = self.clock.monotonic_ns()
+        st.started_ns = self._last_good_ns = self.heartbeat_ns = self.clock.monotonic_ns()
         end_ns = None if duration_s is None else st.started_ns + int(duration_s * 1e9)
         self._next_status_ns = st.started_ns + self._status_period_ns
         try:
             while not stop.is_set():
-                now_ns = self.clock.monotonic_ns()
+                now_ns = self.heartbeat_ns = self.clock.monotonic_ns()
                 if end_ns is not None and now_ns >= end_ns:
                     break
                 self._check_frame_gap(now_ns)
@@ -367,7 +417,7 @@ class Service:
             return None
         dropped = camera.frames_dropped  # the camera counts its sequence gaps
         try:
-            captured = camera.read(self.config.camera.timeout_s)
+            captured = camera.read(self.camera_config.timeout_s)
         except Exception as exc:  # noqa: BLE001 - one bad read never ends the service
             self._camera_failed(stop, exc)
             return None
@@ -385,101 +435,126 @@ class Service:
         """READY once, the watchdog kick, the MCU's commands, the caller's hook, STATUS when due."""
         if est is not None and not self._ready:
             self._ready = True
-            self.notifier.ready("processing frames")
-            log.info("first frame processed; %s", "streaming to the MCU" if self.transport.delivers
-                     else "no link to an MCU: nothing is sent")
-        if self.config.watchdog.enabled:
-            # from the loop itself: a stuck loop stops kicking
-            self.notifier.watchdog(self.clock.monotonic_ns() / 1e9)
-        for command in self.transport.poll_commands():
-            self.handle(command)
+        if not self.is_peer:
+            self._tell_systemd()
+            for command in self.transport.poll_commands():
+                self.handle(command)
+        while self._inbox:
+            self.handle(self._inbox.popleft())
         if est is not None and on_result is not None:
             on_result(est, self.stats)
         now_ns = self.clock.monotonic_ns()
         if now_ns >= self._next_status_ns:
             self._next_status_ns = now_ns + self._status_period_ns
-            self.transport.send_status(self.status_message(now_ns))
+            self.send_status(now_ns)
+
+    def _tell_systemd(self) -> None:
+        """The lead: READY once every camera processed a frame; the watchdog kick while every loop goes round."""
+        if self._ready and not self.notifier_ready and all(p._ready for p in self.peers):
+            self.notifier_ready = True
+            self.notifier.ready("processing frames")
+            log.info("first frame processed; %s", "streaming to the MCU" if self.transport.delivers
+                     else "no link to an MCU: nothing is sent")
+        if self.config.watchdog.enabled:
+            now_ns = self.clock.monotonic_ns()
+            # from the loop itself: a stuck loop (or a peer's, stuck in its camera driver) stops kicking
+            if all(now_ns - p.heartbeat_ns <= self._max_gap_ns for p in self.peers):
+                self.notifier.watchdog(now_ns / 1e9)
 
     def _shut_down(self) -> None:
         try:  # a last STATUS: the MCU sees the final counters
-            self.transport.send_status(self.status_message(self.clock.monotonic_ns()))
+            self.send_status(self.clock.monotonic_ns())
         except Exception as exc:  # noqa: BLE001 - shutting down anyway
             log.warning("final status not sent: %s", exc)
-        self.notifier.stopping()
+        if not self.is_peer:
+            self.notifier.stopping()
         self.close()
 
     def _process(self, captured: CapturedFrame) -> tuple[ContactEstimate | None, bool]:
-        """Check and process one captured frame: (its estimate or None when skipped, device fault)."""
+        """Check and process one captured frame for every sensor: (the first estimate, None when no sensor
+        processed the frame; a device fault)."""
+        st = self.stats
+        first: ContactEstimate | None = None
+        processed = device_fault = False
+        send = self.streaming and (st.frames + 1) % self.rate_divider == 0 and self.transport.delivers
+        for ch in self.channels:
+            est, fault = self._process_sensor(ch, captured, send)
+            device_fault |= fault is not None
+            if fault == "bad":
+                break  # a frame of the wrong shape or type is wrong for every sensor: counted once
+            if est is not None and not processed:
+                processed, first = True, est
+        if processed:
+            st.frames += 1
+            st.sent += int(send)
+        return first, device_fault
+
+    def _process_sensor(self, ch: SensorChannel, captured: CapturedFrame,
+                        send: bool) -> tuple[ContactEstimate | None, str | None]:
+        """One sensor's part of a frame: its check, its pipeline, its messages. Returns its estimate (None:
+        skipped) and the device fault: None, "bad" (a wrong frame) or "failed" (the pipeline failed)."""
         st = self.stats
         try:
-            why = self.frame_check(captured.frame)
+            why = ch.frame_check(captured.frame)
         except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
             why = "bad"
         if why is not None:
-            self._frame_skipped(why)
-            return None, why == "bad"
+            self._frame_skipped(ch, why)
+            return None, "bad" if why == "bad" else None
         try:
-            est = self.pipeline.process(captured.frame, captured.t_ns)
+            est = ch.pipeline.process(captured.frame, captured.t_ns)
         except Exception as exc:  # noqa: BLE001 - a per-frame failure never ends the service
-            self._processing_failed(exc)
-            return None, True  # a loop failing on every frame counts towards the frame gap
-        st.frames += 1
+            self._processing_failed(ch, exc)
+            return None, "failed"  # a loop failing on every frame counts towards the frame gap
+        ch.frames += 1
+        ch.contacts += int(est.contact)
         st.contacts += int(est.contact)
-        if self.pipeline.light_changed:
-            self._light_changed()
-        saturated = self.frame_check.saturated
+        if ch.pipeline.light_changed:
+            self._light_changed(ch)
+        saturated = ch.frame_check.saturated
         st.saturated_sent += int(saturated)
-        if self.streaming and st.frames % self.rate_divider == 0 and self.transport.delivers:
+        if send:
             alongside = self.transport.v2_alongside_v1
             if self.protocol == 1 or alongside:
-                self._message.fill(est, captured.t_ns, self.clock.monotonic_ns(), self.pipeline.calibrated,
-                                   saturated=saturated, degraded=self._degraded)
-                self.transport.send_contact(self._message)
+                self.transport.send_contact(ch.fill_v1(est, captured.t_ns, self.clock.monotonic_ns(), saturated))
             if self.protocol == 2 or alongside:
-                self._send_v2(est, captured.t_ns, saturated)
-            st.sent += 1
-        return est, False
+                self._send_v2(ch, est, captured.t_ns, saturated)
+        return est, None
 
-    def _send_v2(self, est: ContactEstimate, t_ns: int, saturated: bool) -> None:
+    def _send_v2(self, ch: SensorChannel, est: ContactEstimate, t_ns: int, saturated: bool) -> None:
         """Protocol v2: a RELEASE for every contact the MCU was told of that is gone, then a CONTACT2 for
         every contact of the frame (one with no contact when there is none)."""
-        contacts = self.pipeline.contacts
-        n = est.n_contacts if est.contact else 0
-        released = self._announcer.update(contacts, n)
         t_us = t_ns // 1000
-        r = self._release
-        for cid, touch in released:
+        r = ch.release
+        for cid, touch in ch.releases(est):
             r.contact_id, r.touch_frame, r.frame, r.t_us = cid, touch, est.frame, t_us
             self.transport.send_release(r)
-        now_ns, calibrated = self.clock.monotonic_ns(), self.pipeline.calibrated
-        touched = self._announcer.touched
-        for k in range(max(n, 1)):
-            msg = self._messages_v2[k].fill(contacts[k] if n else est, k, t_ns, now_ns, calibrated, saturated,
-                                             self._degraded, touch=touched[k] if n else None)
-            self.transport.send_contact_v2(msg)
+        now_ns = self.clock.monotonic_ns()
+        for k in range(max(est.n_contacts if est.contact else 0, 1)):
+            self.transport.send_contact_v2(ch.fill_v2(est, k, t_ns, now_ns, saturated))
 
-    def _light_changed(self) -> None:
+    def _light_changed(self, ch: SensorChannel) -> None:
         st = self.stats
         st.light_changes += 1
-        self._light_since_status = True
+        ch.light_since_status = True
         if st.light_changes == 1 or st.light_changes % 100 == 0:
             log.warning("common-mode change of the light %d (LED dimming or brightening to %.3f of the "
-                        "baseline): not a contact", st.light_changes, self.pipeline.gain)
+                        "baseline, sensor %d): not a contact", st.light_changes, ch.pipeline.gain, ch.sensor_id)
 
-    def _processing_failed(self, exc: Exception) -> None:
+    def _processing_failed(self, ch: SensorChannel, exc: Exception) -> None:
         """Count a frame the pipeline failed on, flag it, and start its state afresh (a new baseline)."""
         st = self.stats
         st.processing_errors += 1
-        self._fault_since_status = True
+        ch.fault_since_status = True
         if st.processing_errors == 1 or st.processing_errors % 100 == 0:
-            log.error("processing error %d: %s: %s; the baseline is taken again", st.processing_errors,
-                      type(exc).__name__, exc)
-        self.pipeline.reset_baseline()
+            log.error("processing error %d (sensor %d): %s: %s; the baseline is taken again", st.processing_errors,
+                      ch.sensor_id, type(exc).__name__, exc)
+        ch.pipeline.reset_baseline()
 
-    def _frame_skipped(self, why: str) -> None:
+    def _frame_skipped(self, ch: SensorChannel, why: str) -> None:
         st = self.stats
         st.camera_errors += 1
-        self._fault_since_status = True
+        ch.fault_since_status = True
         if why == "bad":
             st.bad_frames += 1
         elif why == "dark":
@@ -487,4 +562,4 @@ class Service:
         else:
             st.saturated_frames += 1
         if st.camera_errors == 1 or st.camera_errors % 100 == 0:
-            log.warning("camera fault %d: %s frame skipped", st.camera_errors, why)
+            log.warning("camera fault %d: %s frame skipped (sensor %d)", st.camera_errors, why, ch.sensor_id)

@@ -1,4 +1,4 @@
-"""One board's service, start to end: open its devices, get the bundle, run the loop, close everything.
+"""One board's service, start to end: open its devices, get the bundles, run the loops, close everything.
 
 ``optitac-edge run`` is this plus a status line::
 
@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import functools
+import threading
 from contextlib import ExitStack, closing
 from pathlib import Path
 from threading import Event
@@ -22,31 +24,30 @@ from optitac_edge.io.led import LedRing, NoLed
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig
+from optitac_edge.service.bundles import SensorBundle, obtain_bundles
 from optitac_edge.service.loop import OnResult, Service, ServiceStats
-from optitac_edge.service.wiring import (
-    log_config_warnings,
-    obtain_bundle,
-    open_board_camera,
-    open_board_transport,
-    open_led,
-)
+from optitac_edge.service.wiring import log_config_warnings, open_board_camera, open_board_transport, open_led
 
 if TYPE_CHECKING:
     from typing_extensions import Self
 
 
 class BoardSession:
-    """The LED ring, camera and link of one board config, open for one run of the service.
+    """The LED ring, cameras and link of one board config, open for one run of the service.
+
+    A board with several cameras runs one frame loop per camera: the first
+    sensor's camera in the calling thread (the lead), every other in a thread
+    of its own (see :class:`~optitac_edge.service.loop.Service`).
 
     Parameters
     ----------
     config : BoardConfig
     cal_path : path, optional
-        A bundle to use instead of the board's ``calibration.bundle`` (must exist).
+        A bundle to use instead of the board's ``calibration.bundle`` (must exist; one sensor only).
     notifier : Notifier, optional
         systemd notifications (default: from the environment; closed with the session).
     clock : Clock
-        The loop's clock.
+        The loops' clock.
     """
 
     def __init__(self, config: BoardConfig, cal_path: Path | None = None, notifier: Notifier | None = None,
@@ -56,16 +57,35 @@ class BoardSession:
         self.clock = clock
         self._notifier = notifier
         self._stack = ExitStack()
-        self._bundle: CalibrationBundle | None = None
-        #: Why the bundle calibrated at start could not be saved (None: saved or loaded).
-        self.unsaved: str | None = None
-        #: The service of the last :meth:`run`.
-        self.service: Service | None = None
+        self._bundles: dict[str, list[SensorBundle]] | None = None
+        #: The services of the last :meth:`run`, the lead's first.
+        self.services: list[Service] = []
         self.led: LedRing | NoLed | None = None
-        self.camera: Camera | None = None
+        #: The open cameras by name, the lead's first.
+        self.cameras: dict[str, Camera] = {}
         self.transport: Transport | None = None
         #: The live view, when :meth:`open_view` was called.
         self.view: Any = None
+
+    @property
+    def camera(self) -> Camera | None:
+        """The lead camera (the first sensor's)."""
+        return self.cameras.get(self.config.sensor.camera)
+
+    @property
+    def service(self) -> Service | None:
+        """The lead service of the last :meth:`run`."""
+        return self.services[0] if self.services else None
+
+    @property
+    def unsaved(self) -> str | None:
+        """Why a bundle calibrated at start could not be saved (None: all saved or loaded)."""
+        found = [b.unsaved for group in (self._bundles or {}).values() for b in group if b.unsaved]
+        return found[0] if found else None
+
+    def _camera_names(self) -> list[str]:
+        lead = self.config.sensor.camera
+        return [lead, *(name for name in self.config.cameras if name != lead)]
 
     def __enter__(self) -> Self:
         log_config_warnings(self.config)
@@ -75,7 +95,8 @@ class BoardSession:
             self._stack.callback(led.close)
             led.set_brightness(self.config.led.brightness)
             self.led = led
-            self.camera = self._stack.enter_context(open_board_camera(self.config))
+            for name in self._camera_names():
+                self.cameras[name] = self._stack.enter_context(open_board_camera(self.config, name))
             self.transport = self._stack.enter_context(open_board_transport(self.config))
         except BaseException:
             self._stack.close()
@@ -87,24 +108,33 @@ class BoardSession:
         self.close()
 
     def close(self) -> None:
-        """Close the link, the camera and the LED ring (idempotent)."""
+        """Close the link, the cameras and the LED ring (idempotent)."""
         self._stack.close()
 
     @property
     def calibrates(self) -> bool:
-        """:meth:`bundle` will calibrate the fiber map from the camera (no bundle to load)."""
-        path = self.cal_path if self.cal_path is not None else self.config.calibration.bundle_path
-        return path is None or (self.cal_path is None and not Path(path).exists())
+        """:meth:`bundles` will calibrate some sensor's fiber map from its camera (no bundle to load)."""
+        if self.cal_path is not None:
+            return False
+        return any(s.calibration.bundle_path is None or not s.calibration.bundle_path.exists()
+                   for s in self.config.sensors)
+
+    def bundles(self) -> dict[str, list[SensorBundle]]:
+        """Every sensor's bundle by camera (loaded, or calibrated from the camera's rest frames; once)."""
+        if self._bundles is None:
+            assert self.cameras, "open the session first (with BoardSession(...) as session)"
+            self._bundles = {name: obtain_bundles(self.config, name, cam, self.cal_path,
+                                                  self.led if k == 0 else None)
+                             for k, (name, cam) in enumerate(self.cameras.items())}
+        return self._bundles
 
     def bundle(self) -> CalibrationBundle:
-        """The calibration bundle (loaded, or calibrated from the camera's rest frames; once)."""
-        if self._bundle is None:
-            assert self.camera is not None, "open the session first (with BoardSession(...) as session)"
-            self._bundle, self.unsaved = obtain_bundle(self.config, self.camera, self.cal_path, self.led)
-        return self._bundle
+        """The first sensor's bundle."""
+        return self.bundles()[self.config.sensor.camera][0].bundle
 
     def open_view(self, bind: str) -> str:
-        """Serve the live view on ``bind`` (``HOST:PORT``) while the session runs; returns its URL.
+        """Serve the live view of the first sensor on ``bind`` (``HOST:PORT``) while the session runs; returns
+        its URL.
 
         Everything the view does runs in its own threads: the frame loop only
         hands over a copy when an update is due and never waits for a viewer.
@@ -122,16 +152,59 @@ class BoardSession:
         return server.url
 
     def run(self, stop: Event, duration_s: float | None = None, on_result: OnResult | None = None) -> ServiceStats:
-        """Run the frame loop until ``stop``, ``duration_s`` or the camera's end (see :meth:`Service.run`)."""
+        """Run the frame loops until ``stop``, ``duration_s`` or the lead camera's end (see :meth:`Service.run`);
+        the lead's counters.
+
+        With several cameras, ``on_result`` is called from each camera's loop; when
+        the lead's loop ends it sets ``stop`` so the others end too, and a loop that
+        failed (e.g. :class:`~optitac_edge.service.loop.ServiceStalled`) sets ``stop``
+        and its exception is raised here.
+        """
         assert self.transport is not None, "open the session first (with BoardSession(...) as session)"
         config = self.config
-        self.service = service = Service(config, self.bundle(), self.camera, self.transport, self.notifier,
-                                         camera_factory=lambda: open_board_camera(config), clock=self.clock)
-        service.calibration_unsaved = self.unsaved is not None
+        bundles = self.bundles()
+        self.services = []
+        for name, camera in self.cameras.items():
+            group = bundles[name]
+            service = Service(config, None, camera, self.transport, self.notifier,
+                              camera_factory=functools.partial(open_board_camera, config, name), clock=self.clock,
+                              sensors=[(b.sensor.sensor, b.bundle) for b in group],
+                              camera_config=config.cameras[name])
+            service.calibration_unsaved = any(b.unsaved is not None for b in group)
+            self.services.append(service)
+        lead, peers = self.services[0], self.services[1:]
+        lead.peers = peers
+        for peer in peers:
+            peer.is_peer = True
         if self.view is not None:
-            service.view = self.view
-            self.view.swap_pipeline = service.replace_pipeline
-        return service.run(stop, duration_s=duration_s, on_result=on_result)
+            lead.view = self.view
+            self.view.swap_pipeline = lead.replace_pipeline
+        failures: list[BaseException] = []
+        threads = [threading.Thread(target=_run_peer, args=(peer, stop, duration_s, on_result, failures),
+                                    name=f"optitac-camera-{name}", daemon=True)
+                   for peer, name in zip(peers, list(self.cameras)[1:])]
+        for thread in threads:
+            thread.start()
+        try:
+            stats = lead.run(stop, duration_s=duration_s, on_result=on_result)
+        finally:
+            if threads:
+                stop.set()
+                for thread in threads:
+                    thread.join()
+        if failures:
+            raise failures[0]
+        return stats
+
+
+def _run_peer(service: Service, stop: Event, duration_s: float | None, on_result: OnResult | None,
+              failures: list[BaseException]) -> None:
+    """A peer camera's loop in its own thread; a failure stops the board and is raised by the lead's thread."""
+    try:
+        service.run(stop, duration_s=duration_s, on_result=on_result)
+    except BaseException as exc:  # noqa: BLE001 - handed to the session's thread, which raises it
+        failures.append(exc)
+        stop.set()
 
 
 def _link_state(transport: Transport) -> str:

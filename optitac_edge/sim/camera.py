@@ -6,16 +6,19 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 
+from optitac_edge.core.region import Region
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
 from optitac_edge.io.clock import Clock
 from optitac_edge.sim.optics import CameraOptics
+from optitac_edge.sim.patches import PatchFrames
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
 
@@ -111,6 +114,11 @@ class SimCamera(Camera):
     program : PressSource, optional
         What presses the skin at each frame (default: random presses,
         :class:`PressProgram`); the simulated rig drives it instead.
+    regions : sequence of (x, y, width, height), optional
+        Several fiber patches in one frame, one per region (a board whose
+        sensors share this camera, :class:`~optitac_edge.sim.patches.PatchFrames`):
+        patch ``k`` is its own simulated sensor with its own random presses
+        (``program`` then presses patch 0). Default: one sensor filling the frame.
     clock : Clock, optional
         Not realtime: frame ``k`` is due at ``k / fps`` on this clock; a read
         sleeps on it until then and stamps the frame with that time, in the
@@ -122,7 +130,8 @@ class SimCamera(Camera):
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
                  realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None,
-                 program: PressSource | None = None) -> None:
+                 program: PressSource | None = None,
+                 regions: Sequence[tuple[int, int, int, int]] | None = None) -> None:
         super().__init__()
         if realtime and clock is not None:
             raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
@@ -137,6 +146,14 @@ class SimCamera(Camera):
         self.rest_frames = rest_frames
         self._program: PressSource = program or PressProgram(self.fps, rest_frames, seed,
                                                              self.sensor.layout.radius_mm)
+        self.patches: PatchFrames | None = None
+        self._patch_programs: list[PressSource] = []
+        if regions:
+            self.patches = PatchFrames([Region(*r) for r in regions], width, height,
+                                       optics=CameraOptics(width=width, height=height, rgb=rgb), seed=seed)
+            self._patch_programs = [self._program] + [
+                PressProgram(self.fps, rest_frames, seed + 7919 * k, s.layout.radius_mm)
+                for k, s in enumerate(self.patches.sensors[1:], start=1)]
         self._realtime = realtime
         self._seq = 0
         # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)
@@ -152,6 +169,9 @@ class SimCamera(Camera):
         self.truth: Indenter | None = None
 
     def _render(self, seq: int) -> tuple[np.ndarray, Indenter | None]:
+        if self.patches is not None:
+            presses = [program.at(seq) for program in self._patch_programs]
+            return self.patches.frame([() if p is None else (p,) for p in presses]), presses[0]
         press = self._program.at(seq)
         return self.sensor.frame(() if press is None else (press,)), press
 

@@ -14,8 +14,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from optitac_edge.calibration.region import Region
 from optitac_edge.core.layout import FiberLayout
+from optitac_edge.core.region import Region
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.render import SENSOR_SEED
 from optitac_edge.sim.sensor import SimulatedSensor

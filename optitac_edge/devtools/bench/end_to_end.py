@@ -52,7 +52,7 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     else:
         camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11,
                            queue_frames=config.camera.queue_frames)
-    transport = SerialTransport(path, baudrate=921600, sensor_id=config.sensor.id)
+    transport = SerialTransport(path, baudrate=921600)
     steal0 = steal_jiffies()
     live = server = None
     try:

@@ -2,7 +2,8 @@
 
 Every processed frame becomes two 8-byte frames, CONTACT_A and CONTACT_B, with
 the same 4-bit rolling counter; STATUS has a counter of its own. Identifiers are
-``base_id + 0x10 * sensor_id`` (+0 A, +1 B, +2 STATUS). See docs/can.md.
+``base_id + 0x10 * sensor_id`` (+0 A, +1 B, +2 STATUS); one link carries every
+sensor of a board, each on its own identifiers. See docs/can.md.
 
 A send never blocks and never raises: ``bus.send(..., timeout=0)``; a full
 transmit queue (ENOBUFS), bus-off or any other CAN/OS error is counted in
@@ -17,6 +18,7 @@ from __future__ import annotations
 import errno
 import logging
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +26,7 @@ from typing import Any
 import can
 
 from optitac_edge.errors import TransportError
-from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
+from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec, message_ids
 from optitac_edge.io.protocol.messages import (
     PROTOCOL_VERSIONS,
     ContactMessage,
@@ -52,6 +54,7 @@ class CanStats:
     link_down: int = 0  # times the bus was declared down and closed
     dropped_link_down: int = 0  # frames dropped while the bus was closed
     open_failures: int = 0  # failed reopen attempts
+    unknown_sensor: int = 0  # messages of a sensor the link does not carry (dropped)
 
 
 def _errno_of(exc: BaseException) -> int | None:
@@ -64,6 +67,16 @@ def _errno_of(exc: BaseException) -> int | None:
     return code if isinstance(code, int) else None
 
 
+@dataclass
+class _Lane:
+    """One sensor on the bus: its identifiers and rolling counters."""
+
+    ids: dict[str, int]
+    contact_counter: int = 0
+    frame_counter: int = 0  # the counter of the last CONTACT pair: v2 frames of that frame carry it
+    status_counter: int = 0
+
+
 class CanTransport(Transport):
     """Sends CONTACT_A/B and STATUS frames on a python-can bus.
 
@@ -73,8 +86,10 @@ class CanTransport(Transport):
         python-can channel (``can0``; any name for ``virtual``).
     interface : str
         python-can interface (``socketcan``, ``virtual``, ...).
-    sensor_id : int
-        Selects the identifiers; 0..79 with the default base id.
+    sensor_id : int or sequence of int
+        The sensors the link carries (a board's several sensors share one bus); each message goes
+        out on its own sensor's identifiers with that sensor's rolling counters. 0..79 with the
+        default base id. A message of a sensor not listed is counted as a send error.
     bitrate : int, optional
         Passed to python-can when given (socketcan ignores it: set it with ``ip link``).
     dbc_path : str or Path, optional
@@ -95,18 +110,24 @@ class CanTransport(Transport):
         A bad configuration or a bus that cannot be opened at construction.
     """
 
-    def __init__(self, channel: str = "can0", interface: str = "socketcan", sensor_id: int = 0,
+    def __init__(self, channel: str = "can0", interface: str = "socketcan", sensor_id: int | Sequence[int] = 0,
                  bitrate: int | None = None, dbc_path: str | Path | None = None, *,
                  base_id: int = BASE_ID, backoff_s: tuple[float, float] = (0.1, 5.0),
                  down_after: int = 100, bus_kwargs: dict[str, Any] | None = None, protocol: int = 1) -> None:
         super().__init__()
         if protocol not in PROTOCOL_VERSIONS:
             raise TransportError(f"CAN protocol must be one of {PROTOCOL_VERSIONS}, got {protocol!r}")
-        self.codec = CanCodec(sensor_id, dbc_path, base_id, protocol=protocol)
+        sensor_ids = [int(sensor_id)] if isinstance(sensor_id, int) else [int(i) for i in sensor_id]
+        if not sensor_ids or len(set(sensor_ids)) != len(sensor_ids):
+            raise TransportError(f"CAN link needs distinct sensor ids, got {sensor_ids}")
+        self.codec = CanCodec(sensor_ids[0], dbc_path, base_id, protocol=protocol)
         #: Protocol 2: CONTACT2 and RELEASE frames on their own ids besides the v1 frames (a v1 MCU
         #: filters them out and never notices).
         self.v2_alongside_v1 = protocol == 2
-        self.ids = self.codec.ids
+        #: Each sensor's identifiers and rolling counters.
+        self.lanes = {sid: _Lane(message_ids(sid, self.codec.base_id)) for sid in sensor_ids}
+        #: The first sensor's identifiers.
+        self.ids = self.lanes[sensor_ids[0]].ids
         self.channel, self.interface, self.bitrate = channel, interface, bitrate
         self.stats = CanStats()
         self._bus_kwargs = dict(bus_kwargs or {})
@@ -114,18 +135,17 @@ class CanTransport(Transport):
         self._backoff = self._backoff_min
         self._down_after = max(int(down_after), 1)
         self._consecutive_errors = 0
-        self._contact_counter = 0
-        self._frame_counter = 0  # the counter of the last CONTACT pair: v2 frames of that frame carry it
-        self._status_counter = 0
         self._lock = threading.Lock()  # guards _bus swaps and the reconnect thread
+        self._send_lock = threading.Lock()  # several cameras' loops may send: counters stay exact
         self._stop = threading.Event()
         self._reconnector: threading.Thread | None = None
         try:
             self._bus: Any = self._open_bus()
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise TransportError(f"cannot open CAN {interface} channel {channel!r}: {exc}") from exc
-        log.info("CAN %s/%s open: sensor %d, ids %s", interface, channel, self.codec.sensor_id,
-                 ", ".join(f"{k}={v:#x}" for k, v in self.ids.items()))
+        for sid, lane in self.lanes.items():
+            log.info("CAN %s/%s open: sensor %d, ids %s", interface, channel, sid,
+                     ", ".join(f"{k}={v:#x}" for k, v in lane.ids.items()))
 
     # -- bus handling -------------------------------------------------------------------------
 
@@ -186,6 +206,16 @@ class CanTransport(Transport):
 
     # -- sending ------------------------------------------------------------------------------
 
+    def _lane(self, sensor_id: int) -> _Lane | None:
+        lane = self.lanes.get(sensor_id)
+        if lane is None:
+            self.counters.send_errors += 1
+            self.stats.unknown_sensor += 1
+            if self.stats.unknown_sensor == 1:
+                log.error("CAN: a message of sensor %d, which this link does not carry (%s): dropped, counting",
+                          sensor_id, ", ".join(map(str, self.lanes)))
+        return lane
+
     def _send(self, arbitration_id: int, payload: bytes) -> bool:
         """Send one frame without blocking; count and drop on any failure."""
         bus = self._bus
@@ -218,37 +248,52 @@ class CanTransport(Transport):
         return True
 
     def send_contact(self, message: ContactMessage) -> None:
-        """Send CONTACT_A then CONTACT_B with the same rolling counter.
+        """Send CONTACT_A then CONTACT_B of the message's sensor with the same rolling counter.
 
         If CONTACT_A fails, CONTACT_B is not attempted (an unpaired half is useless) and
         both count as send errors. The counter advances even for dropped frames, so the
         MCU sees the gap.
         """
-        counter = self._frame_counter = self._contact_counter
-        self._contact_counter = (counter + 1) % COUNTER_MODULO
-        payload_a, payload_b = self.codec.contact_payloads(message, counter)
-        if self._send(self.ids["CONTACT_A"], payload_a):
-            self._send(self.ids["CONTACT_B"], payload_b)
-        else:
-            self.counters.send_errors += 1  # CONTACT_B, not attempted
+        with self._send_lock:
+            lane = self._lane(message.sensor_id)
+            if lane is None:
+                return
+            counter = lane.frame_counter = lane.contact_counter
+            lane.contact_counter = (counter + 1) % COUNTER_MODULO
+            payload_a, payload_b = self.codec.contact_payloads(message, counter)
+            if self._send(lane.ids["CONTACT_A"], payload_a):
+                self._send(lane.ids["CONTACT_B"], payload_b)
+            else:
+                self.counters.send_errors += 1  # CONTACT_B, not attempted
 
     def send_contact_v2(self, message: ContactV2Message) -> None:
         """Protocol v2 (``protocol=2``): the three CONTACT2 parts of one contact, with the counter of the
         frame's CONTACT pair (sent first); a message without contact sends nothing (the pair says so)."""
         if message.n_contacts == 0:
             return
-        for payload in self.codec.contact2_payloads(message, self._frame_counter):
-            if not self._send(self.ids["CONTACT2"], payload):
-                break
+        with self._send_lock:
+            lane = self._lane(message.sensor_id)
+            if lane is None:
+                return
+            for payload in self.codec.contact2_payloads(message, lane.frame_counter):
+                if not self._send(lane.ids["CONTACT2"], payload):
+                    break
 
     def send_release(self, message: ReleaseMessage) -> None:
         """Protocol v2: a RELEASE with the counter of the frame's CONTACT pair."""
-        self._send(self.ids["RELEASE"], self.codec.release_payload(message.contact_id, self._frame_counter))
+        with self._send_lock:
+            lane = self._lane(message.sensor_id)
+            if lane is not None:
+                self._send(lane.ids["RELEASE"], self.codec.release_payload(message.contact_id, lane.frame_counter))
 
     def send_status(self, message: StatusMessage) -> None:
-        counter = self._status_counter
-        self._status_counter = (counter + 1) % COUNTER_MODULO
-        self._send(self.ids["STATUS"], self.codec.status_payload(message, counter))
+        with self._send_lock:
+            lane = self._lane(message.sensor_id)
+            if lane is None:
+                return
+            counter = lane.status_counter
+            lane.status_counter = (counter + 1) % COUNTER_MODULO
+            self._send(lane.ids["STATUS"], self.codec.status_payload(message, counter))
 
     def _close_internal(self) -> None:
         self._stop.set()

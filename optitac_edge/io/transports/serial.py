@@ -94,8 +94,6 @@ class SerialTransport(Transport):
     queue_size : int
         Outgoing CONTACT/STATUS frames kept while the writer is busy or the port is gone
         (oldest dropped when full); ACKs have their own queue of the same size.
-    sensor_id : int
-        0..255, written into every CONTACT and STATUS (overrides the messages' own).
     require_port : bool
         True: raise :class:`TransportError` when the port cannot be opened at start.
         False: when the port is not present (no such device), start disconnected and
@@ -114,7 +112,7 @@ class SerialTransport(Transport):
         above); a fake port or one a test unplugs goes in here.
     """
 
-    def __init__(self, url: str, baudrate: int = 921600, queue_size: int = 8, sensor_id: int = 0,
+    def __init__(self, url: str, baudrate: int = 921600, queue_size: int = 8,
                  *, require_port: bool = True, read_timeout: float = 0.05,
                  write_timeout: float = 0.2, backoff_min: float = 0.05, backoff_max: float = 1.0,
                  on_frame: Callable[[Frame], None] | None = None,
@@ -122,13 +120,10 @@ class SerialTransport(Transport):
         super().__init__()
         if serial is None:
             raise TransportError("the serial transport needs pyserial (pip install pyserial)")
-        if not 0 <= int(sensor_id) <= 255:
-            raise TransportError(f"sensor_id {sensor_id} outside 0..255")
         if queue_size < 1:
             raise TransportError(f"queue_size must be >= 1, got {queue_size}")
         self.url = url
         self.baudrate = int(baudrate)
-        self.sensor_id = int(sensor_id)
         self.read_timeout = float(read_timeout)
         self.write_timeout = float(write_timeout)
         self.backoff_min = float(backoff_min)
@@ -209,11 +204,11 @@ class SerialTransport(Transport):
         """Queue one STATUS; never blocks, never raises."""
         self._send(MsgType.STATUS, message, wire.status_payload)
 
-    def _send(self, msg_type: MsgType, message: Any, payload_of: Callable[[Any, int], bytes]) -> None:
-        """Encode ``message`` with this link's sensor id and queue (or write) it; a message that
-        cannot be encoded is logged and counted, never raised to the frame loop."""
+    def _send(self, msg_type: MsgType, message: Any, payload_of: Callable[[Any], bytes]) -> None:
+        """Encode ``message`` (with its own sensor id: one link carries every sensor of a board) and queue
+        (or write) it; a message that cannot be encoded is logged and counted, never raised to the frame loop."""
         try:
-            self._enqueue(msg_type, int(message.t_us), payload_of(message, self.sensor_id))
+            self._enqueue(msg_type, int(message.t_us), payload_of(message))
         except Exception:
             log.exception("%s not encodable", msg_type.name)
             self.counters.send_errors += 1

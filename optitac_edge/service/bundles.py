@@ -1,0 +1,196 @@
+"""Each sensor's calibration bundle at start: loaded and checked, or calibrated from its camera's rest frames.
+
+A bundle is loaded when its file exists and checked against the board: a
+sensor that the board places in a region of its camera's frame needs a bundle
+placed in that same region (``calibrate fibers --sensor ID``), and a sensor
+that fills its frame a bundle that does too. Without a bundle, the sensors of
+one camera are calibrated from the same rest frames (each on its region's
+crop, then placed in the frame); only then is the offline calibration code,
+and with it scipy, imported.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.region import Region, bundle_region
+from optitac_edge.errors import BundleError, CameraError, ConfigError, OptiTacError, OutputError
+from optitac_edge.io.bundle_file import load_bundle, save_bundle
+from optitac_edge.io.cameras.base import Camera
+from optitac_edge.io.layout_csv import load_layout_csv
+from optitac_edge.io.led import LedRing, NoLed
+from optitac_edge.service.board_config import BoardConfig, BoardSensor
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SensorBundle:
+    """A sensor of the board with its bundle, and why a bundle calibrated at start was not saved (or None)."""
+
+    sensor: BoardSensor
+    bundle: CalibrationBundle
+    unsaved: str | None = None
+
+
+def _describe(region: Region | None) -> str:
+    if region is None:
+        return "the whole frame"
+    return f"region [{region.x}, {region.y}, {region.width}, {region.height}]"
+
+
+def check_bundle_region(bundle: CalibrationBundle, sensor: BoardSensor, path: Path | str) -> CalibrationBundle:
+    """``bundle``, when it was placed where the board puts ``sensor``.
+
+    Raises
+    ------
+    BundleError
+        One line naming the file and the sensor: the bundle was built for another region.
+    """
+    want = Region(*sensor.sensor.region) if sensor.sensor.region else None
+    try:
+        got = bundle_region(bundle)
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{path}: {sensor.label}: the bundle's region is not valid ({exc})") from None
+    if got != want:
+        raise BundleError(f"{path}: {sensor.label}: the bundle was built for {_describe(got)}, the board puts the "
+                          f"sensor in {_describe(want)} (calibrate it with --sensor {sensor.sensor.id})")
+    return bundle
+
+
+def obtain_bundles(config: BoardConfig, camera_name: str, camera: Camera, cal_path: Path | None = None,
+                   led: LedRing | NoLed | None = None) -> list[SensorBundle]:
+    """The bundle of every sensor ``camera`` reads (``config.sensors_of(camera_name)``), in the board's order.
+
+    ``cal_path`` (the command line's ``--cal``) must exist and serves a board
+    with one sensor only. A sensor's missing ``calibration.bundle`` is
+    calibrated from the camera's rest frames and saved, unless
+    ``calibration.if_missing = "fail"``. A bundle that cannot be saved is still
+    used (see :class:`SensorBundle`): a full or read-only state directory does
+    not take the service down; the failure is logged once and goes into STATUS.
+    """
+    sensors = config.sensors_of(camera_name)
+    if cal_path is not None and len(config.sensors) > 1:
+        raise ConfigError(f"--cal {cal_path}: the board has {len(config.sensors)} sensors; "
+                          "give --sensor ID with --cal, or set each sensor's bundle in the board config")
+    rest: list[np.ndarray] | None = None
+    out = []
+    for sensor in sensors:
+        path = cal_path if cal_path is not None else sensor.calibration.bundle_path
+        if path is not None and Path(path).exists():
+            out.append(SensorBundle(sensor, check_bundle_region(load_bundle(path), sensor, path)))
+            continue
+        if path is not None and cal_path is not None:
+            raise BundleError(f"{path}: calibration bundle not found")
+        if sensor.calibration.if_missing == "fail":
+            who = f"{sensor.label}: " if config.listed_sensors else ""
+            raise OptiTacError(f"{who}no calibration bundle at {path} and calibration.if_missing = 'fail'")
+        if rest is None:
+            rest = read_rest_frames(config, camera, led)
+        bundle = calibrate_sensor(sensor, rest, camera.pixel_format)
+        out.append(SensorBundle(sensor, *_save(bundle, path, sensor)))
+    return out
+
+
+def _save(bundle: CalibrationBundle, path: Path | None, sensor: BoardSensor) -> tuple[CalibrationBundle, str | None]:
+    if path is None:
+        return bundle, None
+    try:
+        bundle = save_bundle(bundle, path)
+    except OutputError as exc:
+        log.error("%s: calibration bundle not saved (%s); running on it from memory, it will be calibrated "
+                  "again at the next start", sensor.label, exc)
+        return bundle, str(exc)
+    log.info("%s: saved the calibration bundle to %s", sensor.label, path)
+    return bundle, None
+
+
+def obtain_bundle(config: BoardConfig, camera: Camera, cal_path: Path | None,
+                  led: LedRing | NoLed | None = None) -> tuple[CalibrationBundle, str | None]:
+    """The bundle of a board's only sensor (or the one ``config`` was narrowed to), and why it was not saved.
+
+    Raises
+    ------
+    ConfigError
+        The board has several sensors and ``config`` was not narrowed to one.
+    """
+    one = config.for_sensor(config.selected)
+    found = obtain_bundles(one, one.sensor.camera, camera, cal_path, led)[0]
+    return found.bundle, found.unsaved
+
+
+def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None,
+                      led: LedRing | NoLed | None = None) -> CalibrationBundle:
+    """The bundle of the board's only sensor: loaded if it exists, else calibrated from the camera's rest
+    frames (see :func:`obtain_bundles`)."""
+    return obtain_bundle(config, camera, cal_path, led)[0]
+
+
+def read_rest_frames(config: BoardConfig, camera: Camera, led: LedRing | NoLed | None = None) -> list[np.ndarray]:
+    """``calibration.rest_frames`` frames of ``camera`` (nothing may touch the skins), copied.
+
+    With an LED ring (``led``) and ``led.adjust_at_calibration``, its
+    brightness is first lowered until no fiber saturates.
+    """
+    if led is not None and config.led.enabled and config.led.adjust_at_calibration:
+        adjust_led(config, camera, led)
+    n = config.calibration.rest_frames
+    log.info("calibrating the fiber map from %d rest frames", n)
+    frames: list[np.ndarray] = []
+    while len(frames) < n:
+        captured = camera.read(config.camera.timeout_s)
+        if captured is None:
+            raise CameraError("camera ended before the rest frames were captured")
+        frames.append(captured.frame.copy())
+    return frames
+
+
+def calibrate_sensor(sensor: BoardSensor, rest: list[np.ndarray], pixel_format: str) -> CalibrationBundle:
+    """The fiber map of ``sensor`` from its camera's rest frames: of its region's crop, placed in the frame
+    (or of the whole frame when it has no region)."""
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.calibration.region import calibrate_region
+
+    cal = sensor.calibration
+    layout = load_layout_csv(cal.layout_path) if cal.layout_path is not None else None
+    if sensor.sensor.region:
+        return calibrate_region(rest, pixel_format, Region(*sensor.sensor.region), layout=layout,
+                                rotation_hint_deg=cal.rotation_deg, mirror=cal.mirror)
+    return calibrate_fibers(rest, pixel_format, layout=layout, rotation_hint_deg=cal.rotation_deg, mirror=cal.mirror)
+
+
+def calibrate_from_camera(config: BoardConfig, camera: Camera,
+                          led: LedRing | NoLed | None = None) -> CalibrationBundle:
+    """The fiber map of the board's only sensor from ``calibration.rest_frames`` frames of ``camera``."""
+    one = config.for_sensor(config.selected)
+    return calibrate_sensor(one.sensors[0], read_rest_frames(one, camera, led), camera.pixel_format)
+
+
+def adjust_led(config: BoardConfig, camera: Camera, led: LedRing | NoLed) -> float:
+    """Lower the LED ring until the brightest fibers stay below saturation; returns the brightness.
+
+    Each trial sets the brightness, lets two frames expose, and takes the
+    ``led.peak_percentile`` of the third frame's gray levels.
+    """
+    from optitac_edge.calibration.led_brightness import adjust_brightness_for_saturation, fiber_peak
+    from optitac_edge.core.frames import to_gray
+
+    def read_peak(brightness: float) -> float:
+        led.set_brightness(brightness)
+        for _ in range(2):
+            camera.read(config.camera.timeout_s)
+        captured = camera.read(config.camera.timeout_s)
+        if captured is None:
+            raise CameraError("camera ended while adjusting the LED brightness")
+        return fiber_peak(to_gray(captured.frame, camera.pixel_format), None, config.led.peak_percentile)
+
+    result = adjust_brightness_for_saturation(read_peak, max_peak=config.led.max_peak,
+                                              start=config.led.brightness)
+    log.info("LED brightness %.3f (peak %.0f after %d trials%s)", result.brightness, result.peak,
+             result.measurements, "" if result.ok else ", still saturated at the lowest setting")
+    return result.brightness
