@@ -69,7 +69,7 @@ def test_the_service_sends_every_contact_beside_an_unchanged_v1_stream(bundle_pa
     """Two presses held for 30 frames: a v1 MCU (ids 0x300-0x302) sees one CONTACT pair per frame as before;
     a v2 MCU also gets three CONTACT2 parts per contact with stable ids, and both releases."""
     import can
-    from test_protocol_v2 import ListCamera
+    from fakes.list_camera import ListCamera
 
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.service.board_config import load_board_config

@@ -7,11 +7,13 @@ import threading
 
 import numpy as np
 import pytest
+
+# -- the messages ------------------------------------------------------------------------------
+from fakes.list_camera import ListCamera
 from hypothesis import given
 from hypothesis import strategies as st
 
 from optitac_edge.core.contact import ContactEstimate
-from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.protocol.announce import ContactAnnouncer
 from optitac_edge.io.protocol.messages import (
     STATE_PROTOCOL_V2,
@@ -33,8 +35,6 @@ from optitac_edge.io.protocol.wire_v2 import (
     encode_contact2,
     release_payload,
 )
-
-# -- the messages ------------------------------------------------------------------------------
 
 
 @given(x=st.floats(-300, 300), y=st.floats(-300, 300), depth=st.floats(0, 60), force=st.floats(0, 60),
@@ -108,33 +108,10 @@ def test_touches_and_releases_are_relative_to_the_frames_sent():
 # -- the service over a serial line ------------------------------------------------------------
 
 
-class ListCamera(Camera):
-    """A finite camera: the given frames, one every 1/240 s of the frame clock."""
-
-    def __init__(self, frames: list[np.ndarray]) -> None:
-        super().__init__()
-        self.frames, self.k = frames, 0
-        self.height, self.width = frames[0].shape[:2]
-        self.pixel_format, self.fps = "gray", 240.0
-
-    @property
-    def frame_shape(self) -> tuple[int, ...]:
-        return self.frames[0].shape
-
-    def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
-        if self.k >= len(self.frames):
-            return None
-        self.k += 1
-        return CapturedFrame(self.frames[self.k - 1], self.k * 4_166_667, self.k)
-
-    def _close_internal(self) -> None:
-        pass
-
-
 def test_two_presses_reach_the_mcu_in_every_frame_with_stable_ids_after_it_asks_for_v2(bundle_path):
     """Issue 16: after SET_PROTOCOL 2 every contact of every frame is on the wire as CONTACT2 with a stable id
     through 100 frames; the release of both is announced; STATUS says v2."""
-    from test_serial import FakeMcu
+    from fakes.mcu import FakeMcu
 
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport

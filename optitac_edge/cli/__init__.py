@@ -32,6 +32,7 @@ from optitac_edge.cli.common import (
     board_config,
     frame_size,
     number,
+    one_sensor_config,
 )
 from optitac_edge.errors import EXTRA_OF_MODULE, OptiTacError, missing_extra
 from optitac_edge.io.logs import NonBlockingLogging
@@ -88,12 +89,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "sets its own rotation and mirror")
     p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
     _add_orientation(p)
+    add_board(p, default=None)  # --board B --sensor ID: the sensor's patch in whole frames of its sim camera
 
     cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
         dest="step", required=True, parser_class=Parser)
     p = cal.add_parser("fibers", help="build a calibration bundle from a recording's rest frames")
     p.add_argument("recording", type=Path)
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="CAL")
+    p.add_argument("-o", "--output", type=Path, default=None, metavar="CAL",
+                   help="the bundle to write (required, unless --sensor: that sensor's bundle)")
+    add_board(p, default=None)
     p.add_argument("--layout", type=Path, default=None, metavar="CSV", help="custom layout (fiber,x_mm,y_mm)")
     _add_orientation(p)
 
@@ -105,7 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
                        ("depth", "depth (and force, with a load cell's force_n column) from known depths")):
         p = cal.add_parser(step, help=text)
         p.add_argument("recording", type=Path)
-        p.add_argument("--cal", type=Path, required=True, metavar="CAL", help="bundle to update in place")
+        p.add_argument("--cal", type=Path, default=None, metavar="CAL",
+                       help="bundle to update in place (required, unless --sensor: that sensor's bundle)")
+        add_board(p, default=None)
         if step == "shapes":
             p.add_argument("--seed", type=SEED, default=0, help="seed of the held-out split and the fits")
         if step == "width":
@@ -233,6 +239,15 @@ def _log_level(args: argparse.Namespace) -> int:
     return logging.INFO if args.verbose == 1 else logging.DEBUG if args.verbose > 1 else logging.WARNING
 
 
+def _board_sensor(args: argparse.Namespace) -> Any:
+    """The board config narrowed to ``--sensor`` for an offline command (None without ``--board``)."""
+    if args.board is None:
+        if args.sensor is not None:
+            raise OptiTacError("--sensor needs --board (the board config that lists the sensor)")
+        return None
+    return one_sensor_config(args)
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
     from optitac_edge.core.layout import hex_layout
     from optitac_edge.sim.optics import CameraOptics
@@ -245,10 +260,15 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         raise OptiTacError(f"--dark-fibers must be comma-separated integers, got {args.dark_fibers!r}") from None
     if any(not 0 <= i < n_fibers for i in dark) or len(set(dark)) != len(dark):
         raise OptiTacError(f"--dark-fibers must be distinct fiber indices in 0..{n_fibers - 1}")
-    optics = CameraOptics(width=args.width, height=args.height, rgb=args.rgb,
-                          rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
+    config = _board_sensor(args)
+    patch = None
+    if config is None:
+        optics = CameraOptics(width=args.width, height=args.height, rgb=args.rgb,
+                              rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
+    else:
+        optics, patch = _sim_board_sensor(args, config, dark)
     path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
-                          day=args.day, variant=args.variant, warmup=args.warmup)
+                          day=args.day, variant=args.variant, warmup=args.warmup, patch=patch)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
@@ -257,33 +277,92 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sim_board_sensor(args: argparse.Namespace, config: Any, dark: tuple[int, ...]) -> tuple[Any, Any]:
+    """``sim --board B --sensor ID``: the optics of the sensor as its simulated camera shows it, and its patch
+    (None when it fills the frame). The camera sets size, pixel format and orientation: flags that would
+    make another sensor are refused."""
+    from optitac_edge.core.region import Region
+    from optitac_edge.sim.optics import CameraOptics
+    from optitac_edge.sim.patches import PatchFrames, PatchPlacement
+
+    cam, name = config.camera, config.sensor.camera
+    if cam.backend != "sim":
+        raise OptiTacError(f"--board {args.board}: sensor {config.sensor.id}'s camera {name!r} is not simulated "
+                           f"(backend {cam.backend!r})")
+    given = [flag for flag, on in (("--width", args.width != 640), ("--height", args.height != 480),
+                                   ("--rgb", args.rgb), ("--variant", args.variant != 0),
+                                   ("--rotation-deg", args.rotation_deg != 0), ("--mirror", args.mirror)) if on]
+    if given:
+        raise OptiTacError(f"{', '.join(given)}: with --board the sensor's camera sets these")
+    optics = CameraOptics(width=cam.width, height=cam.height, rgb=cam.pixel_format == "rgb", dark_fibers=dark)
+    if not config.sensor.region:
+        return optics, None
+    regions = config.regions_of(name)
+    frames = PatchFrames([Region(*r) for r in regions], cam.width, cam.height, optics=optics, seed=args.seed)
+    return optics, PatchPlacement(frames, regions.index(config.sensor.region))
+
+
 def _cmd_calibrate_fibers(args: argparse.Namespace) -> int:
     from optitac_edge.calibration.fibers import calibrate_fibers
     from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.io.layout_csv import load_layout_csv
     from optitac_edge.io.recording import Recording
 
+    config = _board_sensor(args)
+    output = args.output or (config.calibration.bundle_path if config is not None else None)
+    if output is None:
+        raise OptiTacError("calibrate fibers: give -o CAL (or --board B --sensor ID: that sensor's bundle)")
     rec = Recording(args.recording)
-    layout = load_layout_csv(args.layout) if args.layout else None
-    bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
-                              rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
-    bundle = save_bundle(bundle, args.output)
+    layout_path = args.layout or (config.calibration.layout_path if config is not None else None)
+    layout = load_layout_csv(layout_path) if layout_path else None
+    region = config.sensor.region if config is not None else ()
+    if region:
+        from optitac_edge.calibration.region import Region, calibrate_region
+
+        cam = config.camera
+        if (rec.width, rec.height) != (cam.width, cam.height):
+            raise OptiTacError(f"{args.recording}: frames are {rec.width}x{rec.height}, sensor "
+                               f"{config.sensor.id}'s camera {config.sensor.camera!r} delivers "
+                               f"{cam.width}x{cam.height}")
+        bundle = calibrate_region(rec.rest_frames(), rec.pixel_format, Region(*region), layout=layout,
+                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+    else:
+        bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
+                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+    bundle = save_bundle(bundle, output)
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
-    print(f"wrote {args.output} (id {bundle.calibration_id}): "
+    placed = f" in region {list(region)}" if region else ""
+    print(f"wrote {output} (id {bundle.calibration_id}){placed}: "
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
           f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs; "
           f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
     return 0
 
 
+def _step_bundle(args: argparse.Namespace) -> tuple[Path, Any]:
+    """The bundle a calibration step updates: ``--cal``, or ``--sensor``'s (checked against its region)."""
+    from optitac_edge.io.bundle_file import load_bundle
+
+    config = _board_sensor(args)
+    cal = args.cal or (config.calibration.bundle_path if config is not None else None)
+    if cal is None:
+        raise OptiTacError(f"calibrate {args.step}: give --cal CAL (or --board B --sensor ID: that sensor's bundle)")
+    bundle = load_bundle(cal)
+    if config is not None:
+        from optitac_edge.service.bundles import check_bundle_region
+
+        check_bundle_region(bundle, config.sensors[0], cal)
+    return Path(cal), bundle
+
+
 def _cmd_calibrate_model(args: argparse.Namespace) -> int:
     from optitac_edge.calibration import steps as calibrate_steps
-    from optitac_edge.io.bundle_file import load_bundle, save_bundle
+    from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
-    bundle = load_bundle(args.cal)
+    args.cal, bundle = _step_bundle(args)
     if args.step == "orientation":
         bundle, fit = calibrate_steps.calibrate_orientation(rec, bundle)
         assert fit.symmetry is not None
@@ -387,6 +466,16 @@ def _status_line(est: Any, fps: float | None) -> str:
             f"{est.angle_deg:+.0f}°  s {est.strength:.0f}{shape}")
 
 
+def _fps_overrides(args: argparse.Namespace) -> dict[str, float]:
+    """``run --fps``: the frame rate of every camera of the board."""
+    if args.fps is None:
+        return {}
+    from optitac_edge.service.board_config import load_board_config
+
+    named = load_board_config(args.board, env=os.environ).named_cameras
+    return {f"cameras.{name}.fps": args.fps for name in named} or {"camera.fps": args.fps}
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise OptiTacError("--duration must be positive")
@@ -395,7 +484,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "serial", "link.serial_url": args.serial}
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
-    config = board_config(args, **link, **{"camera.fps": args.fps})
+    config = board_config(args, **link, **_fps_overrides(args))
     stop = threading.Event()
     received: list[int] = []
 
@@ -408,13 +497,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     console = NonBlockingLogging(logging.INFO, sys.stdout, logger="optitac_edge.console", fmt="%(message)s",
                                  always=True).start()
     try:
-        stats = _run_service(args, config, stop, logging.getLogger("optitac_edge.console").info)
-        sent = f"sent {stats.sent}" if config.link.transport != "none" else "no link"
-        commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
-        logging.getLogger("optitac_edge.console").info(
-            "processed %d frames, %d with contact, %s, dropped %d, camera errors %d, processing errors %d, "
-            "commands %s", stats.frames, stats.contacts, sent, stats.frames_dropped, stats.camera_errors,
-            stats.processing_errors, commands)
+        say = logging.getLogger("optitac_edge.console").info
+        services = _run_service(args, config, stop, say)
+        several = len(services) > 1
+        for service in services:
+            stats = service.stats
+            sent = f"sent {stats.sent}" if config.link.transport != "none" else "no link"
+            commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
+            say("%sprocessed %d frames, %d with contact, %s, dropped %d, camera errors %d, processing errors %d, "
+                "commands %s", f"camera {service.camera_name}: " if several else "", stats.frames, stats.contacts,
+                sent, stats.frames_dropped, stats.camera_errors, stats.processing_errors, commands)
+            if len(config.sensors) > 1:
+                for ch in service.channels:
+                    say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
     finally:
         console.stop()
         for signum, handler in previous.items():
@@ -480,7 +575,9 @@ class _StatusLine:
             sys.stdout.write("\n")
 
 
-def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event, say: Callable[[str], None]) -> Any:
+def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
+                 say: Callable[..., None]) -> list[Any]:
+    """Run the board's session; its services (the lead's first)."""
     from optitac_edge.service.session import BoardSession
 
     max_frames = args.frames
@@ -494,8 +591,17 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event, s
         if getattr(args, "view", None):
             url = session.open_view(args.view)
             say(f"view: {url}")
-        say(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
-            f"({config.camera.backend} camera, {link if link == 'no link' else link + ' link'}; Ctrl-C to stop)")
+        via = link if link == "no link" else link + " link"
+        if len(config.sensors) == 1:
+            say(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
+                f"({config.camera.backend} camera, {via}; Ctrl-C to stop)")
+        else:
+            for name, group in session.bundles().items():
+                for found in group:
+                    b, where = found.bundle, list(found.sensor.sensor.region) or "the whole frame"
+                    say(f"{found.sensor.label} on camera {name!r} ({where}): "
+                        f"{int((~b.fibers.dead).sum())}/{b.layout.n_fibers} fibers")
+            say(f"running {len(config.sensors)} sensors on {len(config.cameras)} camera(s) ({via}; Ctrl-C to stop)")
 
         def on_result(est: Any, stats: Any) -> None:
             if max_frames is not None and stats.frames >= max_frames:
@@ -503,13 +609,14 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event, s
             if line is not None:
                 line.offer(est, stats)
 
-        return session.run(stop, duration_s=args.duration, on_result=on_result)
+        session.run(stop, duration_s=args.duration, on_result=on_result)
+        return session.services
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from optitac_edge.service.recorder import record_board
 
-    rec = record_board(board_config(args), args.output, args.frames, args.rest_frames)
+    rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames)
     print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
     return 0
 

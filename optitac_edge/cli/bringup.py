@@ -7,7 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import add_board, board_config, number
+from optitac_edge.cli.common import add_board, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
 
@@ -81,7 +81,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.wiring import open_board_camera
 
-    config = board_config(args)
+    config = one_sensor_config(args)
     with ExitStack() as stack:
         rig, camera = open_rig(config, args.rig)
         stack.enter_context(rig)
@@ -140,7 +140,7 @@ def _cmd_snapshot(args: argparse.Namespace) -> int:
     from optitac_edge.service.view.render import encode_png, render_published
     from optitac_edge.service.wiring import open_board_camera
 
-    config = board_config(args)
+    config = one_sensor_config(args)
     with open_board_camera(config) as camera:
         bundle, _ = obtain_bundle(config, camera, args.cal)
         pipeline = Pipeline(bundle)
@@ -176,7 +176,7 @@ def _cmd_orient(args: argparse.Namespace) -> int:
     from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.wiring import open_board_camera
 
-    config = board_config(args)
+    config = one_sensor_config(args)
     target = args.output or args.cal or config.calibration.bundle_path
     if target is None:
         raise OptiTacError(f"board {config.source} keeps no bundle (calibration.bundle is empty): "

@@ -52,13 +52,28 @@ SEED = number(0, 2**32 - 1, integer=True)
 FPS = number(1, 1000)
 
 
-def add_board(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--board", default="sim", metavar="NAME|PATH",
-                   help="board config: a name in board_configs/ or a TOML file (default: sim)")
+SENSOR_ID = number(0, 255, integer=True)
+
+
+def add_board(p: argparse.ArgumentParser, default: str | None = "sim") -> None:
+    """``--board`` and ``--sensor`` (one sensor of a board with several)."""
+    p.add_argument("--board", default=default, metavar="NAME|PATH",
+                   help="board config: a name in board_configs/ or a TOML file"
+                        + (f" (default: {default})" if default else ""))
+    p.add_argument("--sensor", type=SENSOR_ID, default=None, metavar="ID",
+                   help="the board's sensor with this id (a board with several sensors)")
 
 
 def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
+    """The board config of ``--board`` (with ``overrides``), narrowed to ``--sensor`` when given."""
     from optitac_edge.service.board_config import load_board_config
 
-    return load_board_config(args.board, env=os.environ,
-                             overrides={k: v for k, v in overrides.items() if v is not None})
+    config = load_board_config(args.board, env=os.environ,
+                               overrides={k: v for k, v in overrides.items() if v is not None})
+    sensor = getattr(args, "sensor", None)
+    return config if sensor is None else config.for_sensor(sensor)
+
+
+def one_sensor_config(args: argparse.Namespace, **overrides: Any) -> Any:
+    """:func:`board_config` of a command that serves one sensor: a board with several needs ``--sensor``."""
+    return board_config(args, **overrides).for_sensor(getattr(args, "sensor", None))

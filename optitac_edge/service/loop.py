@@ -151,7 +151,7 @@ class Service:
                  transport: Transport, notifier: Notifier | None = None, *,
                  camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK,
                  sensors: Sequence[tuple[SensorConfig, CalibrationBundle]] | None = None,
-                 camera_config: CameraConfig | None = None) -> None:
+                 camera_config: CameraConfig | None = None, camera_name: str | None = None) -> None:
         if camera is None:
             if camera_factory is None:
                 raise ValueError("Service needs a camera or a camera_factory")
@@ -167,6 +167,8 @@ class Service:
             b.fibers.check_frame_shape(camera.frame_shape, camera.pixel_format)
         self.config = config
         self.camera_config = camera_config or config.camera
+        #: The camera's name in the board config (for logs).
+        self.camera_name = camera_name or config.sensor.camera
         self.clock = clock
         self.camera: Camera | None = camera
         self.camera_factory = camera_factory
@@ -396,8 +398,8 @@ class Service:
                 self._after_step(est, on_result)
         finally:
             self._shut_down()
-        log.info("stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
-                 "%d processing errors)", st.frames, st.contacts, st.frames_dropped, st.camera_errors, st.reopens,
+        log.info("camera %s stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
+                 "%d processing errors)", self.camera_name, st.frames, st.contacts, st.frames_dropped, st.camera_errors, st.reopens,
                  st.processing_errors)
         return st
 

@@ -10,7 +10,7 @@ patch on its region's crop and place its bundle in the frame
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -83,3 +83,27 @@ class PatchFrames:
 def crop(frames: np.ndarray, region: Region) -> np.ndarray:
     """``frames`` (shape (F, H, W[, 3])) cut to ``region``, C-contiguous (what a patch's calibration reads)."""
     return np.ascontiguousarray(frames[:, region.y:region.y + region.height, region.x:region.x + region.width])
+
+
+@dataclass(frozen=True)
+class PatchPlacement:
+    """Patch ``index`` of ``frames``: a scenario rendered on it goes into whole camera frames
+    (:func:`~optitac_edge.sim.scenarios.write_scenario`), the other patches at rest."""
+
+    frames: PatchFrames
+    index: int
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.index < len(self.frames.regions):
+            raise ValueError(f"patch {self.index} of {len(self.frames.regions)}")
+
+    @property
+    def region(self) -> Region:
+        return self.frames.regions[self.index]
+
+    def paste(self, patch_frame: np.ndarray) -> np.ndarray:
+        """A whole camera frame: ``patch_frame`` in this patch's region, every other patch at rest."""
+        out = self.frames.frame()
+        r = self.region
+        out[r.y:r.y + r.height, r.x:r.x + r.width] = patch_frame
+        return out

@@ -57,6 +57,7 @@ from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.io.recording import SHAPES, RecordingMeta, RecordingWriter
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
+from optitac_edge.sim.patches import PatchPlacement
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import (
     DEFAULT_SKIN,
@@ -293,6 +294,7 @@ def write_scenario(
     variant: int = 0,
     drift: SessionDrift | None = None,
     warmup: float = DRIFT_WARMUP,
+    patch: PatchPlacement | None = None,
 ) -> Path:
     """Simulate scenario ``name`` and stream it into the recording directory ``out_dir``.
 
@@ -332,6 +334,12 @@ def write_scenario(
         ``drift`` scenario only: relative LED brightness change from the first
         to the last frame (default :data:`DRIFT_WARMUP` = +0.03; -0.03 dims,
         the harder case for baseline tracking: it looks like a faint press).
+    patch : PatchPlacement or None
+        The sensor is one patch of a camera reading several
+        (:class:`~optitac_edge.sim.patches.PatchFrames`): the scenario is
+        rendered at the patch's region size and pasted into whole camera
+        frames where the other patches rest. ``optics`` then sets only ``rgb``
+        (the size is the region's) and the sensor is the patch's.
 
     Returns
     -------
@@ -345,6 +353,10 @@ def write_scenario(
         commanded depth).
     """
     layout = hex_layout() if layout is None else layout
+    if patch is not None:
+        region = patch.region
+        optics = replace(optics, width=region.width, height=region.height)
+        sensor_seed = patch.frames.sensors[patch.index].sensor_seed
     overrides, variant_skin = sensor_variant(variant, optics.width, optics.height, layout)
     optics = replace(optics, **overrides) if overrides else optics
     skin = variant_skin if skin is None else skin
@@ -371,6 +383,13 @@ def write_scenario(
         "rest_peak_gray": np.round(sensor.rest_peak, 3).tolist(),
         "fiber_centres_px": np.round(sensor.fiber_centres_px, 4).tolist(),
     }
+    frame_shape = sensor.frame_shape
+    if patch is not None:  # the ground truth in whole-frame pixels
+        offset = np.array([patch.region.x, patch.region.y])
+        simulator["centre_px"] = [proj.cx + patch.region.x, proj.cy + patch.region.y]
+        simulator["fiber_centres_px"] = np.round(sensor.fiber_centres_px + offset, 4).tolist()
+        simulator["region"] = patch.region.to_dict()
+        frame_shape = patch.frames.frame_shape
     meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra={"simulator": simulator})
     out = Path(out_dir)
     log.info(
@@ -380,14 +399,14 @@ def write_scenario(
         day,
         variant,
         len(plan),
-        sensor.frame_shape,
+        frame_shape,
         out,
     )
     real_depths: list[list[float]] = []
     load_cell = name == "depths"
     clamp_r = clamp_radius_mm(layout.xy_mm, skin)
     force = math.nan
-    with RecordingWriter(out, len(plan), sensor.frame_shape, meta, with_truth=True,
+    with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
                          force_column=load_cell) as writer:
         last: Frame = None
         dark = sensor.darkening(())
@@ -399,7 +418,10 @@ def write_scenario(
                     real_depths.append([i, round(real, 5)])
                     force = contact_force_n(sensor.last_real_indenters[0], clamp_r, skin)
                 last = press
-            writer.write(i, sensor.frame_from_darkening(dark, t_s=i / FPS), round(i * 1e9 / FPS))
+            frame = sensor.frame_from_darkening(dark, t_s=i / FPS)
+            if patch is not None:
+                frame = patch.paste(frame)
+            writer.write(i, frame, round(i * 1e9 / FPS))
             if press is None:
                 writer.write_truth(i, False)
             else:
