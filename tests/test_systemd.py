@@ -13,6 +13,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 UNIT = REPO / "systemd" / "optitac-edge.service"
+TEMPLATE = REPO / "systemd" / "optitac-edge@.service"
 MAX_EXPOSURE = 2.5
 
 
@@ -115,18 +116,36 @@ def analyze_exposure(unit_path: Path) -> float:
     return float(match.group(1))
 
 
+def test_the_template_unit_is_the_unit_but_for_its_instance_lines():
+    """optitac-edge@ID.service runs one sensor (``--sensor %i``) with the same sandbox as the whole board's."""
+    lines = TEMPLATE.read_text().splitlines()
+    instance = {i + 1 for i, line in enumerate(lines) if line.startswith("# instance")}
+    kept = [line for i, line in enumerate(lines) if i not in instance and not line.startswith("# instance")
+            and not (line.startswith("#") and i < 6)]
+    replaced = ("Description=", "ExecStart=")  # the instance's own versions of these
+    unit_lines = [line for i, line in enumerate(UNIT.read_text().splitlines())
+                  if not (line.startswith("#") and i < 3) and not line.startswith(replaced)]
+    assert kept == unit_lines
+    template = parse_unit(TEMPLATE)
+    assert one(template, "ExecStart").endswith("run --board /etc/optitac-edge/board.toml --sensor %i")
+    assert template["Service"]["EnvironmentFile"] == ["-/etc/optitac-edge/environment", "-/etc/optitac-edge/%i.env"]
+    assert one(template, "Conflicts", "Unit") == "optitac-edge.service"
+
+
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
-def test_systemd_analyze_security_exposure(tmp_path):
-    copy = tmp_path / UNIT.name
-    copy.write_text(UNIT.read_text())
+@pytest.mark.parametrize(("source", "name"), [(UNIT, UNIT.name), (TEMPLATE, "optitac-edge@1.service")])
+def test_systemd_analyze_security_exposure(tmp_path, source, name):
+    copy = tmp_path / name
+    copy.write_text(source.read_text())
     exposure = analyze_exposure(copy)
     assert exposure <= MAX_EXPOSURE, f"exposure {exposure} > {MAX_EXPOSURE}"
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
-def test_systemd_analyze_verify_has_no_syntax_errors(tmp_path):
-    copy = tmp_path / UNIT.name
-    copy.write_text(UNIT.read_text())
+@pytest.mark.parametrize(("source", "name"), [(UNIT, UNIT.name), (TEMPLATE, "optitac-edge@1.service")])
+def test_systemd_analyze_verify_has_no_syntax_errors(tmp_path, source, name):
+    copy = tmp_path / name
+    copy.write_text(source.read_text())
     proc = subprocess.run(check=False, args=["systemd-analyze", "verify", "--man=no", str(copy)], capture_output=True,
                           text=True, timeout=120)
     # The only acceptable complaint off a board: the venv's executable does not exist here.
@@ -156,7 +175,7 @@ def test_install_dry_run(board):
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
     assert f"install -m 0644 {REPO}/board_configs/{board}.toml /etc/optitac-edge/board.toml" in out
-    assert "/etc/systemd/system/optitac-edge.service" in out
+    assert "/etc/systemd/system/optitac-edge.service" in out and "/etc/systemd/system/optitac-edge@.service" in out
     assert "/etc/udev/rules.d/99-optitac-edge.rules" in out
     assert "systemctl enable optitac-edge.service" in out
     assert ("jetson-csi.conf" in out) == (board == "jetson-csi")

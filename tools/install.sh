@@ -18,6 +18,7 @@ PREFIX=/opt/optitac-edge
 VENV="$PREFIX/venv"
 ETC=/etc/optitac-edge
 SERVICE=optitac-edge.service
+TEMPLATE=optitac-edge@.service
 UNIT_DIR=/etc/systemd/system
 RULES_DIR=/etc/udev/rules.d
 USER_NAME=optitac
@@ -179,14 +180,17 @@ if [ ! -f "$ETC/environment" ]; then
 fi
 
 # --- systemd unit, drop-in, udev rule ---------------------------------------------------------
-run install -m 0644 "$REPO/systemd/$SERVICE" "$UNIT_DIR/$SERVICE"
-DROP_IN_DIR="$UNIT_DIR/$SERVICE.d"
-if [ "$camera_kind" = pipeline ] && [ "$PLATFORM" != raspberrypi ]; then
-    run install -d -m 0755 "$DROP_IN_DIR"
-    run install -m 0644 "$REPO/systemd/jetson-csi.conf" "$DROP_IN_DIR/jetson-csi.conf"
-elif [ -f "$DROP_IN_DIR/jetson-csi.conf" ]; then
-    run rm -f "$DROP_IN_DIR/jetson-csi.conf"
-fi
+# optitac-edge.service runs the whole board; optitac-edge@ID.service one sensor of it (docs/deploy.md)
+for unit in "$SERVICE" "$TEMPLATE"; do
+    run install -m 0644 "$REPO/systemd/$unit" "$UNIT_DIR/$unit"
+    DROP_IN_DIR="$UNIT_DIR/$unit.d"
+    if [ "$camera_kind" = pipeline ] && [ "$PLATFORM" != raspberrypi ]; then
+        run install -d -m 0755 "$DROP_IN_DIR"
+        run install -m 0644 "$REPO/systemd/jetson-csi.conf" "$DROP_IN_DIR/jetson-csi.conf"
+    elif [ -f "$DROP_IN_DIR/jetson-csi.conf" ]; then
+        run rm -f "$DROP_IN_DIR/jetson-csi.conf"
+    fi
+done
 run install -m 0644 "$REPO/systemd/99-optitac-edge.rules" "$RULES_DIR/99-optitac-edge.rules"
 if command -v udevadm > /dev/null; then
     run udevadm control --reload-rules
