@@ -44,6 +44,10 @@ Sections (all on the same frames, one process unless noted; see docs/performance
     minus the frame's timestamp in the packet. Frames dropped (camera
     sequence gaps), packets lost (sequence gaps seen by the reader plus
     frames the transport's queue dropped).
+``patches_end_to_end``
+    The same with ``--patches`` patches of 217 fibers on one ``--patch-frame``
+    camera: one service, a sensor per patch (ids 1..N), every patch's pipeline
+    and CONTACT on each frame, one patch pressed at a time.
 ``startup``
     ``optitac-edge run --cal BUNDLE`` started as a new process, time from the
     spawn to the first packet read from the pty; and, separately, the time to
@@ -171,6 +175,20 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
                 f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs"
                 + (f"; main-thread CPU {e['main_thread']['cpu_us_per_frame']} µs/frame" if e.get("main_thread") else "")
                 + (f"; view updates {e['view']['updates']}, skipped {e['view']['skipped']}" if "view" in e else ""))
+    if e2e_seconds > 0 and patches > 0 and source == "sim" and not rgb:
+        from optitac_edge.devtools.bench.patches import patch_pipelines
+
+        pipes, patch_rest, patch_presses = patch_pipelines(patches, *patch_frame)
+        res["patches_end_to_end"] = pe = measure_end_to_end(
+            None, fps, e2e_seconds, False, patch_rest + patch_presses, len(patch_rest), queue_frames,
+            bundles=[p.bundle for p in pipes])
+        pe["patches"], pe["frame_size"] = patches, list(patch_frame)
+        log(f"  end to end, {patches} patches on one {patch_frame[0]}x{patch_frame[1]} camera @ {fps} fps, "
+            f"{e2e_seconds} s: {pe['frames']} frames, dropped {pe['frames_dropped']}"
+            + (f" (by the pipeline {pe['frames_dropped_by_pipeline']})" if "frames_dropped_by_pipeline" in pe else "")
+            + f", lost {pe['packets_lost']}, latency p50/p99 {pe['latency_us']['p50']}/{pe['latency_us']['p99']} µs"
+            + (f"; main-thread CPU {pe['main_thread']['cpu_us_per_frame']} µs/frame" if pe.get("main_thread")
+               else ""))
     if startup:
         if source != "sim" or fmt != "gray":
             res["startup"] = {"skipped": "needs --source sim and gray frames (the sim board's camera)"}

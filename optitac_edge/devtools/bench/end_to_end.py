@@ -20,27 +20,32 @@ from optitac_edge.devtools.bench.replay_camera import drop_causes, paced_replay_
 from optitac_edge.devtools.bench.samples import summary
 
 
-def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
+def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
                        frames: list[np.ndarray] | None = None, rest: int = 10,
                        queue_frames: int | None = None, view: str | None = None,
-                       on_view: Any = None) -> dict[str, Any]:
+                       on_view: Any = None, bundles: list[Any] | None = None) -> dict[str, Any]:
     """The service loop paced at ``fps`` into a pty, read by a separate process.
 
     With ``frames``, the camera replays them (pre-rendered, see ``paced_replay_camera``);
     otherwise it is the live simulated camera (rendering ~1 ms a frame in its own thread).
     ``queue_frames`` overrides the sim board's ``camera.queue_frames``. With ``view``
     (``HOST:PORT``) the live view is served during the run (``on_view`` gets its URL),
-    so the cost of a browser on it is in the figures.
+    so the cost of a browser on it is in the figures. With ``bundles`` (instead of ``cal``)
+    the camera reads one sensor per bundle (patches of one frame, ids 1, 2, ...), as a board
+    with several sensors on one camera runs.
     """
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.service.board_config import SensorConfig, load_board_config
     from optitac_edge.service.loop import Service
     from optitac_edge.sim.camera import SimCamera
 
     master, slave, path = open_pty()
     out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "e2e.json"
-    bundle = load_bundle(cal)
+    if bundles is None:
+        assert cal is not None, "measure_end_to_end needs cal or bundles"
+        bundles = [load_bundle(cal)]
+    bundle = bundles[0]
     overrides: dict[str, Any] = {"camera.fps": fps, "link.transport": "serial", "link.serial_url": path}
     if queue_frames is not None:
         overrides["camera.queue_frames"] = queue_frames
@@ -56,7 +61,8 @@ def measure_end_to_end(cal: Path, fps: float, seconds: float, rgb: bool,
     steal0 = steal_jiffies()
     live = server = None
     try:
-        service = Service(config, bundle, camera, transport)
+        sensors = [(SensorConfig(id=k + 1, name=f"patch{k + 1}"), b) for k, b in enumerate(bundles)]
+        service = Service(config, bundle, camera, transport, sensors=sensors if len(bundles) > 1 else None)
         if view is not None:
             from optitac_edge.service.view.live import LiveView
             from optitac_edge.service.view.server import ViewServer
