@@ -60,6 +60,9 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> N
     assert {"p50", "p99", "max"} == set(e2e["latency_us"])
     assert e2e["received"] <= e2e["sent"] <= e2e["frames"]
     assert e2e["contacts_pressed"] == 2 and e2e["main_thread"]["cpu_us_per_frame"] > 0
+    pe = res["patches_end_to_end"]  # one service, a sensor per patch: each frame's CONTACTs of both patches
+    assert pe["patches"] == 2 and pe["frames"] > 0 and pe["received"] > pe["frames"]
+    assert pe["received"] <= 2 * pe["sent"] and pe["sent"] <= pe["frames"]
     st = res["startup"]
     assert st["start_to_first_packet_s"] is not None and st["start_to_first_packet_s"] > 0
     assert st["heavy_modules_imported"] == []  # the runtime imports neither scipy nor scikit-learn

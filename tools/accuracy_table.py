@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from board_accuracy import board_table  # tools/: run as python tools/accuracy_table.py
 
 from optitac_edge.calibration.evaluation import (
     centroid_accuracy,
@@ -351,6 +352,15 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
         for name, r in ablation.items():
             lines.append(f"* {name}: {json.dumps(r['shapes_fit'])}")
     lines += extra
+    lines += ["", "## Several sensors on one board (`sim-hand`)", "",
+              ("Two fingertip patches on one 960×400 camera and the palm on a second 640×480 camera "
+               "(`board_configs/sim-hand.toml`). Each sensor is calibrated as `optitac-edge calibrate fibers|centroid "
+               "--board sim-hand --sensor ID` does (the fiber map on its region's crop, placed in the frame; the "
+               f"centroid map from `seen` presses in whole camera frames, day {CAL_DAY}) and evaluated on unseen presses "
+               f"of day {EVAL_DAY} (seed 5) in whole frames where the other patches rest. \"Alone\": the same sensor "
+               "recorded, calibrated and evaluated on a camera the size of its region. Cross-talk: the camera's other "
+               "sensors process the pressed sensor's recording (`python tools/board_accuracy.py`)."), "",
+              *board_table("sim-hand", args.workdir / "board")]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")

@@ -79,35 +79,39 @@ def evaluate(rec: Recording, bundle: Any) -> dict[str, Any]:
     return {"centroid": centroid_accuracy(m, rec.truth), "detection": detection(m, rec.truth)}
 
 
+def board_table(board: str, workdir: Path) -> list[str]:
+    """The markdown table: one row per sensor of ``board``."""
+    config = load_board_config(board, env={})
+    bundles = {s.sensor.id: calibrate(workdir, config, s, alone=False) for s in config.sensors}
+    header = ("| sensor | camera | region | unseen RMSE x / y, mm | alone: RMSE x / y, mm | detected | false contacts "
+              "| contacts on the camera's other sensors |")
+    rows = [header, "|---|---|---|---|---|---|---|---|"]
+    for s in config.sensors:
+        sid = s.sensor.id
+        unseen = record(workdir, config, s, "unseen", EVAL_DAY, EVAL_SEED, alone=False)
+        board_eval = evaluate(unseen, bundles[sid])
+        alone = evaluate(record(workdir, config, s, "unseen", EVAL_DAY, EVAL_SEED, alone=True),
+                         calibrate(workdir, config, s, alone=True))
+        others = []
+        for o in config.sensors_of(s.sensor.camera):
+            if o.sensor.id != sid:
+                m = measure_recording(unseen, bundles[o.sensor.id], corrected=True, progress=False)
+                others.append(f"sensor {o.sensor.id}: {int(m.contact.sum())}/{len(m.contact)} frames")
+        c, a, d = board_eval["centroid"], alone["centroid"], board_eval["detection"]
+        region = list(s.sensor.region) if s.sensor.region else "whole frame"
+        rows.append(f"| {sid} {s.sensor.name} | {s.sensor.camera} | {region} | {c.rmse_x:.3f} / {c.rmse_y:.3f} "
+                    f"| {a.rmse_x:.3f} / {a.rmse_y:.3f} | {d.detected}/{d.contact_frames} | "
+                    f"{d.false_contacts}/{d.rest_frames} | {'; '.join(others) or '(alone on its camera)'} |")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--board", default="sim-hand")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/optitac-board-accuracy"))
     ap.add_argument("-o", "--output", type=Path, default=None, help="write the markdown table here")
     args = ap.parse_args()
-    config = load_board_config(args.board, env={})
-    bundles = {s.sensor.id: calibrate(args.workdir, config, s, alone=False) for s in config.sensors}
-    header = ("| sensor | camera | region | unseen RMSE x / y, mm | alone: RMSE x / y, mm | detected | false contacts "
-              "| contacts on the camera's other sensors |")
-    rows = [header, "|---|---|---|---|---|---|---|---|"]
-    for s in config.sensors:
-        sid = s.sensor.id
-        unseen = record(args.workdir, config, s, "unseen", EVAL_DAY, EVAL_SEED, alone=False)
-        board = evaluate(unseen, bundles[sid])
-        alone = evaluate(record(args.workdir, config, s, "unseen", EVAL_DAY, EVAL_SEED, alone=True),
-                         calibrate(args.workdir, config, s, alone=True))
-        others = []
-        for o in config.sensors_of(s.sensor.camera):
-            if o.sensor.id != sid:
-                m = measure_recording(unseen, bundles[o.sensor.id], corrected=True, progress=False)
-                others.append(f"sensor {o.sensor.id}: {int(m.contact.sum())}/{len(m.contact)} frames")
-        c, a, d = board["centroid"], alone["centroid"], board["detection"]
-        region = list(s.sensor.region) if s.sensor.region else "whole frame"
-        rows.append(f"| {sid} {s.sensor.name} | {s.sensor.camera} | {region} | {c.rmse_x:.3f} / {c.rmse_y:.3f} "
-                    f"| {a.rmse_x:.3f} / {a.rmse_y:.3f} | {d.detected}/{d.contact_frames} | "
-                    f"{d.false_contacts}/{d.rest_frames} | {'; '.join(others) or '(alone on its camera)'} |")
-        print(rows[-1], flush=True)
-    text = "\n".join(rows) + "\n"
+    text = "\n".join(board_table(args.board, args.workdir)) + "\n"
     if args.output:
         args.output.write_text(text)
     else:
