@@ -267,7 +267,7 @@ def test_a_board_of_two_cameras_streams_every_sensor_over_one_link_and_the_mcu_c
     assert status == {1, 2, 3}
     v1 = [decode_contact(f.payload, f.t_us) for f in frames if f.type == MsgType.CONTACT]
     v2 = [decode_contact2(f.payload, f.t_us) for f in frames if f.type == MsgType.CONTACT2]
-    assert {m.sensor_id for m in v1} == {1, 2, 3}  # v1 until the MCU asked
+    assert v1  # v1 until the MCU asked (it asks once the first frame arrived, from whichever camera)
     by_sensor = {sid: [m for m in v2 if m.sensor_id == sid] for sid in (1, 2, 3)}
     assert all(len(ms) > 40 for ms in by_sensor.values()), {k: len(v) for k, v in by_sensor.items()}
     touched = {sid: sum(m.n_contacts > 0 for m in ms) for sid, ms in by_sensor.items()}

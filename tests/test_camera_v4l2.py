@@ -14,7 +14,7 @@ from fakes.install import install_cv2
 
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras import open_camera
-from optitac_edge.io.cameras.v4l2 import argus_pipeline, fourcc_code
+from optitac_edge.io.cameras.v4l2 import argus_pipeline, fourcc_code, msec_to_ns
 
 FAST = {"width": 96, "height": 64, "fps": 200.0}
 
@@ -271,3 +271,12 @@ def test_real_opencv_reports_gstreamer_support_honestly():
     from optitac_edge.io.cameras.v4l2 import has_gstreamer
 
     assert isinstance(has_gstreamer(), bool)
+
+
+@pytest.mark.parametrize("t_us", [67355058851, 8410816565, 8675169542, 1, 0, 86_400_123_456_789, 1_700_000_000_123_456])
+def test_driver_timestamp_is_the_drivers_microsecond(t_us):
+    # POS_MSEC is the buffer's timeval in ms; int(msec * 1e6) lost a nanosecond on about
+    # one frame in seventy (a CI failure: frames no longer matched the driver's timestamps)
+    t_ns = t_us * 1000
+    assert msec_to_ns(t_ns / 1e6) == t_ns
+    assert msec_to_ns(t_us / 1e3) == t_ns  # as OpenCV computes it: sec * 1e3 + usec / 1e3

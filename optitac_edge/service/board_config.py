@@ -153,14 +153,18 @@ def _path(value: Any, from_text: bool) -> str:
     return _str(4096)(value, from_text)
 
 
-def _channels(value: Any, from_text: bool) -> tuple[int, ...]:
+def _int_list(value: Any, from_text: bool, what: str) -> Any:
+    """Text ``'0,1,2'`` (environment, command line) as a list of integers, a tuple as a list; else ``value``."""
     if from_text and isinstance(value, str):
         try:
-            value = [int(part.strip(), 0) for part in value.split(",") if part.strip()]
+            return [int(part.strip(), 0) for part in value.split(",") if part.strip()]
         except ValueError:
-            raise _Bad(f"must be a list of channel numbers 0..15 (e.g. '0,1,2'), got {value!r}") from None
-    if isinstance(value, tuple):
-        value = list(value)
+            raise _Bad(f"must be {what}, got {value!r}") from None
+    return list(value) if isinstance(value, tuple) else value
+
+
+def _channels(value: Any, from_text: bool) -> tuple[int, ...]:
+    value = _int_list(value, from_text, "a list of channel numbers 0..15 (e.g. '0,1,2')")
     if isinstance(value, (bool, int)):
         value = [value]
     if not isinstance(value, list) or not value:
@@ -180,13 +184,7 @@ MAIN_CAMERA = "main"
 
 
 def _region(value: Any, from_text: bool) -> tuple[int, ...]:
-    if from_text and isinstance(value, str):
-        try:
-            value = [int(part.strip(), 0) for part in value.split(",") if part.strip()]
-        except ValueError:
-            raise _Bad(f"must be x, y, width, height in px (e.g. '0,20,440,360'), got {value!r}") from None
-    if isinstance(value, tuple):
-        value = list(value)
+    value = _int_list(value, from_text, "x, y, width, height in px (e.g. '0,20,440,360')")
     if not isinstance(value, list) or len(value) not in (0, 4):
         raise _Bad(f"must be [x, y, width, height] in px, or [] for the whole frame, got {_show(value)}")
     if any(isinstance(v, bool) or not isinstance(v, int) for v in value):

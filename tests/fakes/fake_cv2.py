@@ -177,7 +177,7 @@ class VideoCapture:
                 self._next_ns += period
                 continue
             break
-        t = self._next_ns
+        t = self._next_ns // 1000 * 1000  # a V4L2 buffer's timestamp is a timeval (microseconds)
         self._next_ns += period
         h, w = self.height, self.width
         y = ((np.arange(h)[:, None] * 5 + np.arange(w)[None, :] + self._n * 3) % 253).astype(np.uint8)

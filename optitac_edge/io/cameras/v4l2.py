@@ -39,6 +39,16 @@ _V4L2_EXPOSURE_AUTO = 3  # V4L2_EXPOSURE_APERTURE_PRIORITY (UVC auto)
 _FAIL_LIMIT = 20  # consecutive failed grabs before the device counts as gone
 
 
+def msec_to_ns(msec: float) -> int:
+    """A driver timestamp in milliseconds (``CAP_PROP_POS_MSEC``) as integer nanoseconds.
+
+    A V4L2 buffer's timestamp is a ``timeval`` (whole microseconds), so it is
+    rounded to the microsecond: exact for any uptime, where ``int(msec * 1e6)``
+    fell a nanosecond short for about one timestamp in seventy.
+    """
+    return round(msec * 1e3) * 1000
+
+
 def fourcc_code(fourcc: str) -> int:
     return int(cv2.VideoWriter.fourcc(*fourcc))
 
@@ -299,7 +309,7 @@ class V4L2Camera(Camera):
                     np.copyto(back, src)
                 t = now
                 if use_driver is not False:
-                    driver_ns = int(cap.get(cv2.CAP_PROP_POS_MSEC) * 1e6)
+                    driver_ns = msec_to_ns(cap.get(cv2.CAP_PROP_POS_MSEC))
                     if use_driver is None:  # auto: trust it if it is on CLOCK_MONOTONIC
                         use_driver = driver_ns > 0 and abs(now - driver_ns) < 1_000_000_000
                         log.info("v4l2: %r timestamps from %s", self.source, "the driver" if use_driver else "grab()")
