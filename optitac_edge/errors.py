@@ -43,6 +43,10 @@ class TransportError(OptiTacError):
     """A link to the MCU (serial, CAN) cannot be opened or is misconfigured."""
 
 
+class PublishError(OptiTacError):
+    """A network publisher (Zenoh) cannot be opened or is misconfigured."""
+
+
 class RigError(OptiTacError):
     """An indentation rig refused a move, raised an alarm, or stopped answering."""
 
@@ -60,7 +64,7 @@ class MissingExtraError(OptiTacError):
 EXTRA_OF_MODULE = {
     "sklearn": "calibrate", "threadpoolctl": "calibrate", "matplotlib": "calibrate", "onnx": "calibrate",
     "onnxruntime": "onnx", "can": "can", "cantools": "can", "smbus2": "board", "rtde_control": "ur",
-    "rtde_receive": "ur",
+    "rtde_receive": "ur", "zenoh": "zenoh", "xxhash": "zenoh",
 }
 
 

@@ -63,7 +63,8 @@ def test_run_with_an_existing_bundle_imports_no_simulator_and_no_offline_library
 
 
 #: Optional packages (the ``board`` and ``onnx`` extras): ``pip install .`` has none of them.
-EXTRAS = ("cobs", "serial", "can", "cantools", "smbus2", "onnxruntime", "picamera2")
+EXTRAS = ("cobs", "serial", "can", "cantools", "smbus2", "onnxruntime", "picamera2", "zenoh", "xxhash", "rosbags",
+          "mcap", "mcap_ros2")
 
 
 def test_the_default_run_needs_no_optional_package(tmp_path) -> None:

@@ -154,6 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=FPS, default=None, help="camera frame rate (overrides the board)")
     p.add_argument("--view", default=None, metavar="HOST:PORT",
                    help="serve the live view here (off by default; e.g. 127.0.0.1:8080, see docs/bring-up.md)")
+    p.add_argument("--publish", default=None, metavar="zenoh[:CONFIG]",
+                   help="publish every sensor's contacts and status on Zenoh as ROS 2 topics (rmw_zenoh), with "
+                        "this Zenoh JSON5 config if given; 'none' turns the board's [publish] off (docs/network.md)")
 
     p = sub.add_parser("record", help="save frames of a live source as a recording")
     add_board(p)
@@ -476,6 +479,16 @@ def _fps_overrides(args: argparse.Namespace) -> dict[str, float]:
     return {f"cameras.{name}.fps": args.fps for name in named} or {"camera.fps": args.fps}
 
 
+def _publish_overrides(value: str | None) -> dict[str, str]:
+    """``--publish zenoh[:CONFIG]`` (or ``none``) as board config overrides."""
+    if value is None:
+        return {}
+    backend, _, path = value.partition(":")
+    if backend not in ("zenoh", "none") or (backend == "none" and path):
+        raise OptiTacError(f"--publish must be zenoh, zenoh:CONFIG or none, got {value!r}")
+    return {"publish.backend": backend, **({"publish.config": path} if path else {})}
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise OptiTacError("--duration must be positive")
@@ -484,7 +497,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "serial", "link.serial_url": args.serial}
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
-    config = board_config(args, **link, **_fps_overrides(args))
+    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args.publish))
     stop = threading.Event()
     received: list[int] = []
 
@@ -510,6 +523,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
             if len(config.sensors) > 1:
                 for ch in service.channels:
                     say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
+            network = service.network
+            if network is not None:
+                for ch in service.channels:
+                    published, dropped = network.counters(ch.sensor_id)
+                    say("  sensor %d %r on the network: %d messages published, %d dropped (publishing errors %d)",
+                        ch.sensor_id, ch.name, published, dropped, network.errors)
     finally:
         console.stop()
         for signum, handler in previous.items():

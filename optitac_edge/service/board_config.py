@@ -333,6 +333,45 @@ class RigConfig:
         return self.x_min < self.x_max and self.y_min < self.y_max and self.z_min < self.z_max
 
 
+def _endpoints(value: Any, from_text: bool) -> tuple[str, ...]:
+    if from_text and isinstance(value, str):
+        value = [part.strip() for part in value.split(",") if part.strip()]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise _Bad(f"must be a list of Zenoh endpoints such as 'tcp/192.168.1.10:7447', got {_show(value)}")
+    for v in value:
+        if not re.fullmatch(r"[a-z][a-z0-9-]*/\S+", v):
+            raise _Bad(f"{v!r} is not a Zenoh endpoint (PROTOCOL/ADDRESS, e.g. 'tcp/192.168.1.10:7447')")
+    return tuple(value)
+
+
+ROS_NAME = r"[A-Za-z](_?[A-Za-z0-9])*"
+
+
+@dataclass(frozen=True)
+class PublishConfig:
+    """Contacts on the robot's network (``run --publish``; docs/network.md). Off by default."""
+
+    backend: str = _opt(_choice("none", "zenoh", "virtual"), "none",
+                        "publish every sensor's contacts, status and signal: 'zenoh' (ROS 2 topics via rmw_zenoh); "
+                        "'virtual' keeps them in memory (tests)")
+    config: str = _opt(_path, "", "zenoh: a Zenoh JSON5 config file (endpoints, scouting, TLS); '' = Zenoh's defaults")
+    mode: str = _opt(_choice("", "peer", "client", "router"), "",
+                     "zenoh: session mode ('' = the config file's, else peer)")
+    connect: tuple[str, ...] = _opt(_endpoints, (), "zenoh: endpoints to connect to, e.g. ['tcp/192.168.1.10:7447']")
+    listen: tuple[str, ...] = _opt(_endpoints, (), "zenoh: endpoints to listen on, e.g. ['tcp/0.0.0.0:7447']")
+    domain_id: int = _opt(_int(0, 232), 0, "ROS 2 domain id (ROS_DOMAIN_ID)")
+    namespace: str = _opt(_str(200, pattern=f"(/{ROS_NAME})*"), "",
+                          "ROS 2 namespace of the topics, e.g. '/robot1' ('' = none: /optitac/SENSOR/...)")
+    node: str = _opt(_str(64, pattern=ROS_NAME, empty=False), "optitac_edge", "ROS 2 node name")
+    signal_hz: float = _opt(_num(0, 1000), 0.0, "per-fiber signal messages per second and sensor (0: none)")
+    queue: int = _opt(_int(8, 1_000_000), 256,
+                      "messages held for the publishing thread before the oldest is dropped (and counted)")
+
+    @property
+    def config_path(self) -> Path | None:
+        return Path(self.config) if self.config else None
+
+
 _SECTIONS: dict[str, type] = {
     "sensor": SensorConfig,
     "camera": CameraConfig,
@@ -342,10 +381,11 @@ _SECTIONS: dict[str, type] = {
     "status": StatusConfig,
     "watchdog": WatchdogConfig,
     "rig": RigConfig,
+    "publish": PublishConfig,
 }
 #: Keys holding paths, resolved against the directory of the file that set them.
 _PATH_KEYS = {("camera", "device"), ("camera", "recording"), ("calibration", "bundle"),
-              ("calibration", "layout")}
+              ("calibration", "layout"), ("publish", "config")}
 _TOP_LEVEL = {"config_version", "description"}
 #: The tables of a board with several sensors: ``[cameras.NAME]`` and ``[[sensors]]``.
 _LISTS = ("cameras", "sensors")
@@ -388,6 +428,7 @@ class BoardConfig:
     status: StatusConfig = field(default_factory=StatusConfig)
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     rig: RigConfig = field(default_factory=RigConfig)
+    publish: PublishConfig = field(default_factory=PublishConfig)
     #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
     origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
     #: The ``[[sensors]]`` of a board with several (empty in the one-sensor form).

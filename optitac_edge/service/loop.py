@@ -25,7 +25,7 @@ import threading
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
@@ -51,6 +51,9 @@ from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig, CameraConfig, SensorConfig
 from optitac_edge.service.channel import SensorChannel
+
+if TYPE_CHECKING:
+    from optitac_edge.service.network import NetworkOutput
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +185,8 @@ class Service:
         self.is_peer = False
         #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
         self.view: Any = None
+        #: The network publisher's frame-loop side (``[publish]``): ``offer_*`` copy and return, never blocking.
+        self.network: NetworkOutput | None = None
         self.streaming = True
         self.rate_divider = config.link.rate_divider
         self.stats = ServiceStats()
@@ -279,8 +284,12 @@ class Service:
 
     def send_status(self, now_ns: int) -> None:
         """A STATUS for every sensor of the camera."""
-        for k in range(len(self.channels)):
-            self.transport.send_status(self.status_message(now_ns, k))
+        for k, ch in enumerate(self.channels):
+            status = self.status_message(now_ns, k)
+            self.transport.send_status(status)
+            if self.network is not None:
+                self.network.offer_status(ch.sensor_id, status, ch.frames, ch.contacts, self.stats.fps(now_ns),
+                                          self.protocol)
 
     def _flag_fault(self) -> None:
         for ch in self.channels:
@@ -515,6 +524,10 @@ class Service:
             self._light_changed(ch)
         saturated = ch.frame_check.saturated
         st.saturated_sent += int(saturated)
+        if self.network is not None:
+            p = ch.pipeline
+            self.network.offer_frame(ch.sensor_id, est, p.contacts, captured.t_ns, p.calibrated, saturated,
+                                     ch.degraded, p.signal)
         if send:
             alongside = self.transport.v2_alongside_v1
             if self.protocol == 1 or alongside:

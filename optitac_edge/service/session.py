@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import functools
+import logging
 import threading
 from contextlib import ExitStack, closing
 from pathlib import Path
@@ -21,15 +22,25 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.led import LedRing, NoLed
+from optitac_edge.io.publishers import Publisher
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.service.bundles import SensorBundle, obtain_bundles
 from optitac_edge.service.loop import OnResult, Service, ServiceStats
-from optitac_edge.service.wiring import log_config_warnings, open_board_camera, open_board_transport, open_led
+from optitac_edge.service.network import NetworkOutput, NetworkSensor
+from optitac_edge.service.wiring import (
+    log_config_warnings,
+    open_board_camera,
+    open_board_publisher,
+    open_board_transport,
+    open_led,
+)
 
 if TYPE_CHECKING:
     from typing_extensions import Self
+
+log = logging.getLogger(__name__)
 
 
 class BoardSession:
@@ -66,6 +77,9 @@ class BoardSession:
         self.transport: Transport | None = None
         #: The live view, when :meth:`open_view` was called.
         self.view: Any = None
+        #: The board's network publisher (``[publish]``; None when off), and its publishing thread once running.
+        self.publisher: Publisher | None = None
+        self.network: NetworkOutput | None = None
 
     @property
     def camera(self) -> Camera | None:
@@ -98,6 +112,10 @@ class BoardSession:
             for name in self._camera_names():
                 self.cameras[name] = self._stack.enter_context(open_board_camera(self.config, name))
             self.transport = self._stack.enter_context(open_board_transport(self.config))
+            self.publisher = open_board_publisher(self.config)
+            if self.publisher is not None:
+                self._stack.callback(self.publisher.close)
+                log.info("publishing on %s", self.publisher.where)
         except BaseException:
             self._stack.close()
             raise
@@ -151,6 +169,17 @@ class BoardSession:
         self.view = view
         return server.url
 
+    def open_network(self) -> NetworkOutput | None:
+        """The publishing thread for every sensor of the board (once; None when publishing is off)."""
+        if self.publisher is None or self.network is not None:
+            return self.network
+        p = self.config.publish
+        sensors = [network_sensor(found.sensor.sensor, found.bundle)
+                   for group in self.bundles().values() for found in group]
+        self.network = NetworkOutput(self.publisher, sensors, queue=p.queue, signal_hz=p.signal_hz)
+        self._stack.callback(self.network.close)
+        return self.network
+
     def run(self, stop: Event, duration_s: float | None = None, on_result: OnResult | None = None) -> ServiceStats:
         """Run the frame loops until ``stop``, ``duration_s`` or the lead camera's end (see :meth:`Service.run`);
         the lead's counters.
@@ -179,6 +208,9 @@ class BoardSession:
         if self.view is not None:
             lead.view = self.view
             self.view.swap_pipeline = lead.replace_pipeline
+        network = self.open_network()
+        for service in self.services:
+            service.network = network
         failures: list[BaseException] = []
         threads = [threading.Thread(target=_run_peer, args=(peer, stop, duration_s, on_result, failures),
                                     name=f"optitac-camera-{name}", daemon=True)
@@ -195,6 +227,13 @@ class BoardSession:
         if failures:
             raise failures[0]
         return stats
+
+
+def network_sensor(sensor: Any, bundle: CalibrationBundle) -> NetworkSensor:
+    """A sensor as the network sees it: its id, name, fiber centres, dead fibers and calibration."""
+    xy = bundle.layout.xy_mm
+    return NetworkSensor(sensor.id, sensor.name, xy[:, 0].astype("float32"), xy[:, 1].astype("float32"),
+                         bundle.fibers.dead.copy(), bundle.calibration_id)
 
 
 def _run_peer(service: Service, stop: Event, duration_s: float | None, on_result: OnResult | None,

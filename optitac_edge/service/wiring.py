@@ -18,6 +18,7 @@ from optitac_edge.io.cameras import BACKENDS, open_camera
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.device import load_backend
 from optitac_edge.io.led import I2CBus, LedRing, NoLed, pwm_period_us
+from optitac_edge.io.publishers import Publisher, open_publisher
 from optitac_edge.io.transports import open_transport
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig, LedConfig
@@ -137,3 +138,12 @@ def open_board_transport(config: BoardConfig) -> Transport:
                               sensor_id=[s.sensor.id for s in config.sensors], protocol=link.can_protocol,
                               bitrate=link.can_bitrate if link.can_interface == "socketcan" else None)
     return open_transport("null")
+
+
+def open_board_publisher(config: BoardConfig) -> Publisher | None:
+    """The board's network publisher (``[publish]``), or None when publishing is off."""
+    p = config.publish
+    if p.backend == "none":
+        return None
+    return open_publisher(p.backend, config=p.config_path, mode=p.mode, connect=p.connect, listen=p.listen,
+                          domain_id=p.domain_id, namespace=p.namespace, node=p.node)

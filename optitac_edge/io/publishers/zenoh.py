@@ -1,0 +1,128 @@
+"""Publish on Zenoh the way rmw_zenoh does, so that ROS 2 nodes see ROS 2 topics.
+
+Needs the ``zenoh`` extra (``eclipse-zenoh``, ``xxhash``), imported when this
+backend is opened. The names, tokens and attachments are built by
+:mod:`optitac_edge.io.ros2.rmw_zenoh`; see docs/network.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from optitac_edge.errors import PublishError
+from optitac_edge.io.publishers.base import Publisher
+from optitac_edge.io.ros2 import rmw_zenoh
+from optitac_edge.io.ros2.messages import TYPE_HASHES, dds_type_name
+
+log = logging.getLogger(__name__)
+
+#: The QoS the topics are declared with: reliable, volatile, keep last 10.
+TOPIC_QOS = rmw_zenoh.Qos(depth=10)
+
+
+def session_config(config: str | Path | None, mode: str, connect: tuple[str, ...],
+                   listen: tuple[str, ...]) -> Any:
+    """A ``zenoh.Config``: the file ``config`` (JSON5) if given, then ``mode``, ``connect`` and ``listen``
+    where set."""
+    import json
+
+    if config and not Path(config).is_file():
+        raise PublishError(f"Zenoh config {config}: no such file")
+    try:
+        cfg = zenoh.Config.from_file(str(config)) if config else zenoh.Config()
+        if mode:
+            cfg.insert_json5("mode", json.dumps(mode))
+        if connect:
+            cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        if listen:
+            cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    except Exception as exc:  # noqa: BLE001 - zenoh raises ZError or ValueError: one line either way
+        where = f"Zenoh config {config}" if config else "Zenoh settings"
+        raise PublishError(f"{where}: {_one_line(exc)}") from None
+    return cfg
+
+
+def _one_line(exc: Exception) -> str:
+    """Zenoh's error text on one line, without the Rust source location it ends with."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return re.sub(r"\s+at\s+\S+\.rs:\d+", "", text)
+
+
+class ZenohPublisher(Publisher):
+    """One Zenoh session, one ROS 2 node (``node`` in ``namespace``) with a publisher per topic.
+
+    Parameters
+    ----------
+    config : path, optional
+        A Zenoh JSON5 configuration file (endpoints, scouting, TLS, ...).
+    mode : {"", "peer", "client", "router"}
+        Overrides the file's mode ("" keeps it; Zenoh's default is peer).
+    connect, listen : tuple of str
+        Endpoints (``tcp/192.168.1.10:7447``), overriding the file's when given.
+    domain_id : int
+        The ROS 2 domain (``ROS_DOMAIN_ID``).
+    namespace : str
+        The node's ROS 2 namespace ("" or ``/robot1``); the topics are under it.
+    node : str
+        The node's name.
+    """
+
+    def __init__(self, config: str | Path | None = None, mode: str = "", connect: tuple[str, ...] = (),
+                 listen: tuple[str, ...] = (), domain_id: int = 0, namespace: str = "",
+                 node: str = "optitac_edge") -> None:
+        super().__init__()
+        try:
+            self.namespace = rmw_zenoh.check_namespace(namespace)
+            self.node = rmw_zenoh.check_ros_name(node, "node name")
+        except ValueError as exc:
+            raise PublishError(f"publish: {exc}") from None
+        self.domain_id = domain_id
+        cfg = session_config(config, mode, connect, listen)
+        try:
+            self._session = zenoh.open(cfg)
+        except Exception as exc:  # noqa: BLE001 - a bad endpoint, a port in use: one line
+            raise PublishError(f"cannot open a Zenoh session: {_one_line(exc)}") from None
+        self.zid = str(self._session.zid())
+        self._next_id = 1  # entity ids: 0 is the node's
+        self._tokens: list[Any] = [self._session.liveliness().declare_token(
+            rmw_zenoh.node_token(domain_id, self.zid, 0, self.namespace, self.node))]
+        self._publishers: list[tuple[Any, bytes]] = []
+        self._seq: list[int] = []
+        self.keyexprs: list[str] = []
+        self.liveliness: list[str] = []
+
+    def advertise(self, topic: str, type_name: str) -> int:
+        type_hash, dds_type = TYPE_HASHES[type_name], dds_type_name(type_name)
+        eid, self._next_id = self._next_id, self._next_id + 1
+        key = rmw_zenoh.topic_keyexpr(self.domain_id, topic, dds_type, type_hash)
+        token = rmw_zenoh.publisher_token(self.domain_id, self.zid, 0, eid, self.namespace, self.node, topic,
+                                          dds_type, type_hash, TOPIC_QOS)
+        publisher = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self._tokens.append(self._session.liveliness().declare_token(token))
+        self._publishers.append((publisher, rmw_zenoh.entity_gid(token)))
+        self._seq.append(0)
+        self.keyexprs.append(key)
+        self.liveliness.append(token)
+        return len(self._publishers) - 1
+
+    def publish(self, handle: int, payload: bytes, source_ns: int) -> None:
+        publisher, gid = self._publishers[handle]
+        self._seq[handle] += 1
+        publisher.put(payload, attachment=rmw_zenoh.attachment(self._seq[handle], source_ns, gid))
+
+    @property
+    def where(self) -> str:
+        return f"Zenoh session {self.zid} (ROS 2 domain {self.domain_id}, node {self.namespace}/{self.node})"
+
+    def _close_internal(self) -> None:
+        for entity in [*self._tokens, *(p for p, _ in self._publishers)]:
+            try:
+                entity.undeclare()
+            except Exception as exc:  # noqa: BLE001 - closing anyway
+                log.debug("zenoh: undeclare failed: %s", exc)
+        self._session.close()

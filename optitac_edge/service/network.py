@@ -1,0 +1,261 @@
+"""Contacts, status and the fiber signal on the robot's network, off the frame thread.
+
+The frame loop calls :meth:`NetworkOutput.offer_frame` and
+:meth:`NetworkOutput.offer_status`: each copies a few values into a bounded
+queue and returns (no encoding, no I/O, no lock held against the network). One
+thread takes them out, encodes them as optitac_msgs (CDR) and hands them to a
+:class:`~optitac_edge.io.publishers.Publisher`. A full queue drops its oldest
+entry; the drops are counted per sensor (from gaps in each sensor's sequence)
+and reported in every SensorStatus. A slow or absent subscriber costs the loop
+nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from optitac_edge.errors import PublishError
+from optitac_edge.io.protocol.messages import (
+    STATE_BASELINE_READY,
+    STATE_CALIBRATION_UNSAVED,
+    STATE_CAMERA_FAULT,
+    STATE_DEGRADED,
+    STATE_LIGHT_CHANGE,
+    STATE_STREAMING,
+    TEMP_UNKNOWN,
+    StatusMessage,
+)
+from optitac_edge.io.publishers.base import Publisher
+from optitac_edge.io.ros2 import messages as msgs
+from optitac_edge.io.ros2.rmw_zenoh import check_ros_name
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+log = logging.getLogger(__name__)
+
+#: Entries the queue holds before it drops the oldest (about a second at 240 fps with 1 sensor).
+DEFAULT_QUEUE = 256
+
+_CONTACTS, _STATUS, _SIGNAL = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class NetworkSensor:
+    """A sensor as the network sees it.
+
+    Attributes
+    ----------
+    sensor_id : int
+    name : str
+        The board config's name; its topics are ``<namespace>/optitac/<topic_name>/...``.
+    x_mm, y_mm : ndarray, shape (N,)
+        Fiber centres (the layout), for FiberSignal.
+    dead : ndarray, shape (N,), bool
+    calibration_id : str
+    """
+
+    sensor_id: int
+    name: str
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    dead: np.ndarray
+    calibration_id: str = ""
+
+    @property
+    def topic_name(self) -> str:
+        """The sensor's name as a ROS 2 name token (``-`` and ``.`` become ``_``)."""
+        return self.name.replace("-", "_").replace(".", "_")
+
+
+def check_topic_names(sensors: Sequence[NetworkSensor]) -> None:
+    """Every sensor's name makes a ROS 2 name token of its own.
+
+    Raises
+    ------
+    PublishError
+        Naming the sensor.
+    """
+    seen: dict[str, NetworkSensor] = {}
+    for s in sensors:
+        try:
+            check_ros_name(s.topic_name, "its topic name")
+        except ValueError as exc:
+            raise PublishError(f"sensor {s.sensor_id} {s.name!r}: {exc}: rename the sensor to publish it") from None
+        other = seen.setdefault(s.topic_name, s)
+        if other is not s:
+            raise PublishError(f"sensor {s.sensor_id} {s.name!r}: its topics would be sensor {other.sensor_id} "
+                               f"{other.name!r}'s ({s.topic_name}): rename one of them")
+
+
+def topic_of(namespace: str, sensor: NetworkSensor, what: str) -> str:
+    """The fully qualified topic: ``<namespace>/optitac/<sensor>/<what>``."""
+    return f"{namespace}/optitac/{sensor.topic_name}/{what}"
+
+
+class _Slot:
+    """One sensor's topics and counters (counters written by the publishing thread only)."""
+
+    def __init__(self, sensor: NetworkSensor, handles: tuple[int, int, int | None], frame_id: str) -> None:
+        self.sensor = sensor
+        self.contacts_topic, self.status_topic, self.signal_topic = handles
+        self.frame_id = frame_id
+        self.offered = 0  # frame thread: entries offered
+        self.taken = 0  # publishing thread: the last sequence taken
+        self.published = 0
+        self.dropped = 0
+        self.previous_ids: set[int] = set()
+        self.next_signal_ns = 0
+
+
+class NetworkOutput:
+    """Publishes every sensor's contacts (every processed frame), status and signal from its own thread.
+
+    Parameters
+    ----------
+    publisher : Publisher
+        Opened by the caller; closed by :meth:`close`.
+    sensors : sequence of NetworkSensor
+    queue : int
+        Entries held for the publishing thread before the oldest is dropped.
+    signal_hz : float
+        FiberSignal messages per second and sensor (0: none).
+    """
+
+    def __init__(self, publisher: Publisher, sensors: Sequence[NetworkSensor], queue: int = DEFAULT_QUEUE,
+                 signal_hz: float = 0.0) -> None:
+        self.publisher = publisher
+        ns = publisher.namespace
+        self._slots: dict[int, _Slot] = {}
+        check_topic_names(sensors)
+        for s in sensors:
+            handles = (publisher.advertise(topic_of(ns, s, "contacts"), msgs.CONTACTS),
+                       publisher.advertise(topic_of(ns, s, "status"), msgs.STATUS),
+                       publisher.advertise(topic_of(ns, s, "signal"), msgs.SIGNAL) if signal_hz > 0 else None)
+            self._slots[s.sensor_id] = _Slot(s, handles, f"optitac_{s.topic_name}")
+        self._signal_period_ns = int(1e9 / signal_hz) if signal_hz > 0 else 0
+        self._queue: deque[tuple[Any, ...]] = deque(maxlen=queue)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self.errors = 0
+        self._thread = threading.Thread(target=self._run, name="optitac-publish", daemon=True)
+        self._thread.start()
+
+    # -- the frame loop's side: copy and return ----------------------------------
+
+    def offer_frame(self, sensor_id: int, est: Any, contacts: Sequence[Any], t_ns: int, calibrated: bool,
+                    saturated: bool, degraded: bool, signal: np.ndarray | None = None) -> None:
+        """Every contact of a sensor's frame (``contacts[:est.n_contacts]`` when ``est.contact``), and the
+        signal when one is due. Never blocks."""
+        slot = self._slots[sensor_id]
+        n = est.n_contacts if est.contact else 0
+        values = tuple((c.contact_id, c.touch_frame == c.frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
+                        c.minor_mm, c.angle_deg, c.strength, c.depth_mm, c.force_n, c.shape or "", c.confidence)
+                       for c in contacts[:n])
+        slot.offered += 1
+        self._queue.append((_CONTACTS, slot, slot.offered, est.frame, t_ns, calibrated, saturated, degraded, values))
+        if self._signal_period_ns and signal is not None and t_ns >= slot.next_signal_ns:
+            slot.next_signal_ns = t_ns + self._signal_period_ns
+            slot.offered += 1
+            self._queue.append((_SIGNAL, slot, slot.offered, est.frame, t_ns, signal.copy()))
+        self._wake.set()
+
+    def offer_status(self, sensor_id: int, status: StatusMessage, frames: int, contacts: int, fps: float,
+                     protocol: int) -> None:
+        """A sensor's STATUS (as the MCU gets it) with its frame counts. Never blocks."""
+        slot = self._slots[sensor_id]
+        slot.offered += 1
+        s = status
+        self._queue.append((_STATUS, slot, slot.offered, s.t_us * 1000, frames, contacts, fps, s.frames_dropped,
+                            s.camera_errors, s.link_errors, s.cpu_temp_c_x10, s.state, protocol))
+        self._wake.set()
+
+    # -- the publishing thread ----------------------------------------------------
+
+    def _run(self) -> None:
+        queue, wake = self._queue, self._wake
+        while True:
+            wake.wait(0.5)
+            wake.clear()
+            while queue:
+                self._send(queue.popleft())
+            if self._stop.is_set() and not queue:
+                return
+
+    def _send(self, item: tuple[Any, ...]) -> None:
+        kind, slot, seq = item[0], item[1], item[2]
+        slot.dropped += seq - slot.taken - 1
+        slot.taken = seq
+        wall = time.time_ns() - time.monotonic_ns()  # the frame clock (CLOCK_MONOTONIC) on the system clock
+        try:
+            if kind == _CONTACTS:
+                handle, payload = slot.contacts_topic, self._contacts_payload(slot, item, wall)
+            elif kind == _SIGNAL:
+                s = slot.sensor
+                sample = msgs.SignalSample(s.sensor_id, item[3], s.x_mm, s.y_mm, item[5], s.dead)
+                handle, payload = slot.signal_topic or 0, msgs.encode_signal(sample, item[4] + wall, slot.frame_id)
+            else:
+                handle, payload = slot.status_topic, self._status_payload(slot, item, wall)
+            self.publisher.publish(handle, payload, time.time_ns())
+            slot.published += 1
+        except Exception as exc:  # noqa: BLE001 - the network never stops the service
+            self.errors += 1
+            if self.errors == 1:
+                log.warning("publishing on %s failed: %s (counted; later failures at debug level)",
+                            self.publisher.where, exc)
+            else:
+                log.debug("publishing failed: %s", exc)
+
+    def _contacts_payload(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> bytes:
+        _, _, _, frame, t_ns, calibrated, saturated, degraded, values = item
+        contacts = [msgs.ContactValues(*v) for v in values]
+        ids = {c.id for c in contacts}
+        released = sorted(slot.previous_ids - ids)
+        slot.previous_ids = ids
+        sample = msgs.ContactsSample(slot.sensor.sensor_id, frame, t_ns, calibrated, saturated, degraded,
+                                     contacts, released)
+        return msgs.encode_contacts(sample, t_ns + wall, slot.frame_id)
+
+    def _status_payload(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> bytes:
+        (_, _, _, t_ns, frames, contacts, fps, dropped, camera_errors, link_errors, temp_x10, state,
+         protocol) = item
+        s = slot.sensor
+        sample = msgs.StatusSample(
+            s.sensor_id, s.name, s.calibration_id, fps, frames, contacts, dropped, camera_errors, link_errors,
+            slot.published, slot.dropped, math.nan if temp_x10 == TEMP_UNKNOWN else temp_x10 / 10, protocol,
+            bool(state & STATE_STREAMING), bool(state & STATE_BASELINE_READY), bool(state & STATE_DEGRADED),
+            bool(state & STATE_CAMERA_FAULT), bool(state & STATE_LIGHT_CHANGE),
+            bool(state & STATE_CALIBRATION_UNSAVED))
+        return msgs.encode_status(sample, t_ns + wall, slot.frame_id)
+
+    # -- counters and closing ------------------------------------------------------
+
+    def counters(self, sensor_id: int) -> tuple[int, int]:
+        """(messages published, messages dropped by the queue) of a sensor so far."""
+        slot = self._slots[sensor_id]
+        return slot.published, slot.dropped
+
+    def close(self) -> None:
+        """Send what is queued, stop the thread, close the publisher (idempotent)."""
+        if not self._stop.is_set():
+            self._stop.set()
+            self._wake.set()
+            self._thread.join(timeout=5.0)
+            if self._thread.is_alive():
+                log.warning("the publishing thread did not end within 5 s")
+        self.publisher.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

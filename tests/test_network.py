@@ -1,0 +1,213 @@
+"""The service on the network: the publishing thread (queue, drops, events) with the virtual publisher,
+and `optitac-edge run --publish zenoh` received by a subscriber in another process."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from fakes.net import free_port
+from optitac_edge.errors import PublishError
+from optitac_edge.io.protocol.messages import STATE_BASELINE_READY, STATE_STREAMING, StatusMessage
+from optitac_edge.io.publishers import open_publisher
+from optitac_edge.io.publishers.virtual import VirtualPublisher
+from optitac_edge.io.ros2 import messages as msgs
+from optitac_edge.service.network import NetworkOutput, NetworkSensor
+
+ROOT = Path(__file__).resolve().parent.parent
+SUBSCRIBER = ROOT / "examples" / "zenoh_subscriber.py"
+
+
+@pytest.fixture(scope="module")
+def store():
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    for path in sorted((ROOT / "ros2" / "optitac_msgs" / "msg").glob("*.msg")):
+        ts.register(get_types_from_msg(path.read_text(), f"optitac_msgs/msg/{path.stem}"))
+    return ts
+
+
+def sensor(sensor_id: int = 1, name: str = "thumb") -> NetworkSensor:
+    n = 7
+    return NetworkSensor(sensor_id, name, np.arange(n, dtype=np.float32), -np.arange(n, dtype=np.float32),
+                         np.zeros(n, bool), "c0ffee")
+
+
+def contact(cid: int, frame: int, touch_frame: int, x: float = 1.0) -> SimpleNamespace:
+    return SimpleNamespace(contact_id=cid, frame=frame, touch_frame=touch_frame, x_mm=x, y_mm=-x, major_mm=3.0,
+                           minor_mm=2.0, angle_deg=10.0, strength=5.0, depth_mm=math.nan, force_n=0.5,
+                           shape="", confidence=math.nan)
+
+
+def frame(index: int, *contacts: SimpleNamespace) -> tuple[SimpleNamespace, list[SimpleNamespace]]:
+    est = SimpleNamespace(contact=bool(contacts), n_contacts=len(contacts), frame=index)
+    return est, [*contacts, *(contact(0, index, 0) for _ in range(4 - len(contacts)))]
+
+
+def test_every_contact_with_touch_and_release_events(store):
+    pub = VirtualPublisher()
+    with NetworkOutput(pub, [sensor()]) as net:
+        frames = [frame(0), frame(1, contact(1, 1, 1)), frame(2, contact(1, 2, 1), contact(2, 2, 2, x=5.0)),
+                  frame(3, contact(2, 3, 2, x=5.0)), frame(4)]
+        for k, (est, contacts) in enumerate(frames):
+            net.offer_frame(1, est, contacts, 1000 + k, True, False, False)
+    got = [store.deserialize_cdr(m.payload, msgs.CONTACTS) for m in pub.taken("/optitac/thumb/contacts")]
+    assert [m.frame for m in got] == [0, 1, 2, 3, 4] and [m.t_ns for m in got] == [1000, 1001, 1002, 1003, 1004]
+    assert [[c.id for c in m.contacts] for m in got] == [[], [1], [1, 2], [2], []]
+    assert [[c.touch for c in m.contacts] for m in got] == [[], [True], [False, True], [False], []]
+    assert [list(m.released) for m in got] == [[], [], [], [1], [2]]
+    assert got[2].contacts[1].x_mm == 5.0 and math.isnan(got[2].contacts[1].depth_mm)
+    assert got[2].contacts[1].force_n == 0.5 and got[0].header.frame_id == "optitac_thumb"
+
+
+class StuckPublisher(VirtualPublisher):
+    """A network that takes nothing until :attr:`release` is set (a subscriber gone, a full link)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.release = threading.Event()
+
+    def publish(self, handle: int, payload: bytes, source_ns: int) -> None:
+        self.release.wait()
+        super().publish(handle, payload, source_ns)
+
+
+def test_a_stuck_network_costs_the_frame_loop_nothing_and_every_drop_is_counted(store):
+    pub = StuckPublisher()
+    net = NetworkOutput(pub, [sensor(4)], queue=16)
+    offered = 1000
+
+    def loop() -> None:
+        for k in range(offered):
+            net.offer_frame(4, *frame(k, contact(1, k, 0)), k, True, False, False)
+
+    t = threading.Thread(target=loop)
+    t.start()
+    t.join(30)
+    assert not t.is_alive(), "the frame loop waited for the network"
+    pub.release.set()
+    net.close()
+    published, dropped = net.counters(4)
+    assert published == len(pub.taken()) and published + dropped == offered
+    assert published <= 16 + 1 and dropped >= offered - 17
+    frames = [store.deserialize_cdr(m.payload, msgs.CONTACTS).frame for m in pub.taken()]
+    assert frames == sorted(frames) and frames[-1] == offered - 1  # the newest kept, the oldest dropped
+
+
+def test_status_reports_the_sensor_and_the_publishers_counters(store):
+    pub = VirtualPublisher()
+    with NetworkOutput(pub, [sensor(2, "index-1")], signal_hz=10) as net:
+        for k in range(3):
+            net.offer_frame(2, *frame(k), k * 50_000_000, False, False, False, signal=np.full(7, k, np.float32))
+        status = StatusMessage(sensor_id=2, t_us=5, fps_x10=2400, frames_dropped=3, camera_errors=1,
+                               link_errors=2, cpu_temp_c_x10=455, state=STATE_STREAMING | STATE_BASELINE_READY)
+        net.offer_status(2, status, frames=3, contacts=0, fps=240.0, protocol=2)
+    (m,) = [store.deserialize_cdr(x.payload, msgs.STATUS) for x in pub.taken("/optitac/index_1/status")]
+    assert (m.sensor_id, m.sensor_name, m.calibration_id, m.frames, m.frames_dropped, m.protocol) == \
+        (2, "index-1", "c0ffee", 3, 3, 2)
+    assert m.cpu_temp_c == pytest.approx(45.5) and m.streaming and m.baseline_ready and not m.camera_fault
+    assert m.published == 5 and m.publish_dropped == 0  # 3 contacts and 2 signals (every 100 ms of 150)
+    signals = [store.deserialize_cdr(x.payload, msgs.SIGNAL) for x in pub.taken("/optitac/index_1/signal")]
+    assert [s.frame for s in signals] == [0, 2] and list(signals[1].signal) == [2.0] * 7
+    assert list(signals[0].y_mm) == [-float(i) for i in range(7)]
+
+
+@pytest.mark.parametrize(("names", "message"), [
+    (["1st"], "sensor 1 '1st': its topic name '1st' is not a ROS 2 name"),
+    (["a-b", "a.b"], "sensor 2 'a.b': its topics would be sensor 1 'a-b''s (a_b)"),
+])
+def test_sensor_names_that_make_no_topic_are_refused_naming_the_sensor(names, message):
+    with pytest.raises(PublishError) as info:
+        NetworkOutput(VirtualPublisher(), [sensor(k + 1, n) for k, n in enumerate(names)])
+    assert message in str(info.value)
+
+
+def test_an_unknown_publisher_is_refused_by_name():
+    with pytest.raises(PublishError, match="unknown publisher 'mqtt'"):
+        open_publisher("mqtt")
+
+
+# -- the service on Zenoh, a subscriber in another process --------------------------------------
+
+
+def _subscriber(port: int, out: Path) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, str(SUBSCRIBER), "--listen", f"tcp/127.0.0.1:{port}", "--json",
+                             "--idle", "3", "--seconds", "120"], stdout=out.open("w"), stderr=subprocess.PIPE,
+                            text=True)
+    assert "listening" in proc.stderr.readline()
+    return proc
+
+
+def _board(tmp_path: Path, name: str, camera: str, port: int, extra: str = "") -> Path:
+    cfg = tmp_path / f"{name}.json5"
+    cfg.write_text('{ mode: "peer", connect: { endpoints: ["tcp/127.0.0.1:%d"] }, '
+                   'scouting: { multicast: { enabled: false } } }' % port)
+    board = tmp_path / f"{name}.toml"
+    board.write_text(f'{camera}\n[publish]\nbackend = "zenoh"\nconfig = "{cfg}"\n{extra}')
+    return board
+
+
+def _received(out: Path) -> list[dict]:
+    return [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
+
+
+def test_run_publishes_every_frame_equal_to_the_contacts_csv(tmp_path, unseen_rec, bundle_path):
+    port = free_port()
+    out = tmp_path / "received.jsonl"
+    sub = _subscriber(port, out)
+    board = _board(tmp_path, "board", f'[sensor]\nname = "thumb"\n[camera]\nbackend = "recording"\n'
+                   f'recording = "{unseen_rec}"\n[calibration]\nbundle = "{bundle_path}"', port)
+    run = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(board)],
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0, run.stderr[-2000:]
+    sub.wait(60)
+    csv_path = tmp_path / "contacts.csv"
+    replay = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "replay", str(unseen_rec), "--cal",
+                             str(bundle_path), "-o", str(csv_path)], capture_output=True, text=True, check=False)
+    assert replay.returncode == 0, replay.stderr
+    rows = list(csv.DictReader(csv_path.open()))
+    got = [m for m in _received(out) if m["topic"] == "/optitac/thumb/contacts"]
+    assert len(rows) == 448 and [m["message"]["frame"] for m in got] == list(range(len(rows)))
+    assert "sensor 0 'thumb' on the network: " in run.stdout and ", 0 dropped" in run.stdout
+    assert [m["seq"] for m in got] == list(range(1, len(rows) + 1))
+    pressed = 0
+    for row, m in zip(rows, got):
+        msg = m["message"]
+        assert len(msg["contacts"]) == (int(row["n_contacts"]) if row["contact"] == "1" else 0)
+        if msg["contacts"]:
+            pressed += 1
+            c = msg["contacts"][0]
+            for key, digits in (("x_mm", 4), ("y_mm", 4), ("major_mm", 4), ("minor_mm", 4), ("angle_deg", 3),
+                                ("strength", 3), ("depth_mm", 4), ("force_n", 4)):
+                shown = "" if c[key] is None else f"{c[key]:.{digits}f}"
+                assert shown == row[key], (row["frame"], key)
+            assert c["id"] == int(row["contact_id"]) and c["shape"] == row["shape"]
+    assert pressed > 100
+    status = [m for m in _received(out) if m["topic"] == "/optitac/thumb/status"]
+    assert status and status[-1]["message"]["frames"] == 448
+
+
+def test_two_boards_are_two_peers_and_a_subscriber_sees_both_robots(tmp_path):
+    port = free_port()
+    out = tmp_path / "received.jsonl"
+    sub = _subscriber(port, out)
+    runs = [subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--board",
+                              str(_board(tmp_path, robot, '[sensor]\nname = "hand"', port, f'namespace = "/{robot}"\n')),
+                              "--frames", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            for robot in ("robot1", "robot2")]
+    for r in runs:
+        _, err = r.communicate(timeout=120)
+        assert r.returncode == 0, err[-2000:]
+    sub.wait(60)
+    topics = {m["topic"] for m in _received(out)}
+    assert {"/robot1/optitac/hand/contacts", "/robot2/optitac/hand/contacts",
+            "/robot1/optitac/hand/status", "/robot2/optitac/hand/status"} <= topics
