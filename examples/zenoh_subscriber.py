@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import queue
 import signal
 import struct
 import sys
@@ -82,20 +83,25 @@ def main(argv: list[str] | None = None) -> int:
 
     stop = threading.Event()
     last: list[float | None] = [None]  # when the last message came (None: none yet)
-    out_lock = threading.Lock()
+
+    received: queue.SimpleQueue[tuple[int, str, bytes, bytes] | None] = queue.SimpleQueue()
 
     def on_sample(sample: Any) -> None:
-        received_ns = time.monotonic_ns()
-        key = str(sample.key_expr)
-        chunks = key.split("/")
-        pkg, kind, _, name = chunks[-2].split("::")
-        type_name = f"{pkg}/{kind}/{name.rstrip('_')}"
-        msg = store.deserialize_cdr(bytes(sample.payload), type_name)
-        att = bytes(sample.attachment) if sample.attachment is not None else b""
-        seq, source_ns = struct.unpack_from("<qq", att) if len(att) >= 16 else (None, None)
-        topic = "/" + "/".join(chunks[1:-2])
-        with out_lock:
-            last[0] = time.monotonic()
+        # Zenoh's callback only notes the time and hands over: decoding here would hold up the next sample
+        att = sample.attachment
+        received.put((time.monotonic_ns(), str(sample.key_expr), bytes(sample.payload),
+                      bytes(att) if att is not None else b""))
+        last[0] = time.monotonic()
+
+    def decode_and_print() -> None:
+        while (item := received.get()) is not None:
+            received_ns, key, payload, att = item
+            chunks = key.split("/")
+            pkg, kind, _, name = chunks[-2].split("::")
+            type_name = f"{pkg}/{kind}/{name.rstrip('_')}"
+            msg = store.deserialize_cdr(payload, type_name)
+            seq, source_ns = struct.unpack_from("<qq", att) if len(att) >= 16 else (None, None)
+            topic = "/" + "/".join(chunks[1:-2])
             if args.json:
                 line = json.dumps({"topic": topic, "type": type_name, "received_ns": received_ns, "seq": seq,
                                    "source_ns": source_ns, "message": plain(msg)})
@@ -104,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
                 line = f"{topic} {type_name} seq {seq}" + (f": {n} contact(s)" if n is not None else "")
             print(line, flush=True)
 
+    printer = threading.Thread(target=decode_and_print)
+    printer.start()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     session = zenoh.open(cfg)
@@ -118,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
             break
     subscriber.undeclare()
     session.close()
+    received.put(None)
+    printer.join()
     return 0
 
 

@@ -14,9 +14,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from fakes.net import free_port
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from fakes.net import free_port
 from optitac_edge.errors import PublishError
 from optitac_edge.io.protocol.messages import STATE_BASELINE_READY, STATE_STREAMING, StatusMessage
 from optitac_edge.io.publishers import open_publisher
@@ -149,8 +149,8 @@ def _subscriber(port: int, out: Path) -> subprocess.Popen:
 
 def _board(tmp_path: Path, name: str, camera: str, port: int, extra: str = "") -> Path:
     cfg = tmp_path / f"{name}.json5"
-    cfg.write_text('{ mode: "peer", connect: { endpoints: ["tcp/127.0.0.1:%d"] }, '
-                   'scouting: { multicast: { enabled: false } } }' % port)
+    cfg.write_text(f'{{ mode: "peer", connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, '
+                   'scouting: { multicast: { enabled: false } } }')
     board = tmp_path / f"{name}.toml"
     board.write_text(f'{camera}\n[publish]\nbackend = "zenoh"\nconfig = "{cfg}"\n{extra}')
     return board
