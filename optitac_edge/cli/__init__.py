@@ -157,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--publish", default=None, metavar="zenoh[:CONFIG]",
                    help="publish every sensor's contacts and status on Zenoh as ROS 2 topics (rmw_zenoh), with "
                         "this Zenoh JSON5 config if given; 'none' turns the board's [publish] off (docs/network.md)")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write every sensor's contacts and status to this MCAP file (rotation: [mcap] max_mb, "
+                        "max_minutes)")
 
     p = sub.add_parser("record", help="save frames of a live source as a recording")
     add_board(p)
@@ -497,7 +500,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "serial", "link.serial_url": args.serial}
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
-    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args.publish))
+    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args.publish),
+                          **({"mcap.path": args.mcap} if args.mcap else {}))
     stop = threading.Event()
     received: list[int] = []
 
@@ -527,8 +531,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             if network is not None:
                 for ch in service.channels:
                     published, dropped = network.counters(ch.sensor_id)
-                    say("  sensor %d %r on the network: %d messages published, %d dropped (publishing errors %d)",
-                        ch.sensor_id, ch.name, published, dropped, network.errors)
+                    say("  sensor %d %r: %d messages published, %d dropped (publishing errors %d; %s)",
+                        ch.sensor_id, ch.name, published, dropped, network.errors, network.publisher.where)
     finally:
         console.stop()
         for signum, handler in previous.items():

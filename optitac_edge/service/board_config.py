@@ -372,6 +372,19 @@ class PublishConfig:
         return Path(self.config) if self.config else None
 
 
+@dataclass(frozen=True)
+class McapConfig:
+    """A recording of what is published, in MCAP files (``run --mcap``; docs/network.md). Off by default."""
+
+    path: str = _opt(_path, "", "write every sensor's contacts, status and signal to this MCAP file ('' = none)")
+    max_mb: float = _opt(_num(0, 1e7), 0.0, "start a new file (NAME-0001.mcap, ...) after this many MB of messages (0: never)")
+    max_minutes: float = _opt(_num(0, 1e6), 0.0, "start a new file after this many minutes (0: never)")
+
+    @property
+    def file(self) -> Path | None:
+        return Path(self.path) if self.path else None
+
+
 _SECTIONS: dict[str, type] = {
     "sensor": SensorConfig,
     "camera": CameraConfig,
@@ -382,10 +395,11 @@ _SECTIONS: dict[str, type] = {
     "watchdog": WatchdogConfig,
     "rig": RigConfig,
     "publish": PublishConfig,
+    "mcap": McapConfig,
 }
 #: Keys holding paths, resolved against the directory of the file that set them.
 _PATH_KEYS = {("camera", "device"), ("camera", "recording"), ("calibration", "bundle"),
-              ("calibration", "layout"), ("publish", "config")}
+              ("calibration", "layout"), ("publish", "config"), ("mcap", "path")}
 _TOP_LEVEL = {"config_version", "description"}
 #: The tables of a board with several sensors: ``[cameras.NAME]`` and ``[[sensors]]``.
 _LISTS = ("cameras", "sensors")
@@ -429,6 +443,7 @@ class BoardConfig:
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     rig: RigConfig = field(default_factory=RigConfig)
     publish: PublishConfig = field(default_factory=PublishConfig)
+    mcap: McapConfig = field(default_factory=McapConfig)
     #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
     origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
     #: The ``[[sensors]]`` of a board with several (empty in the one-sensor form).

@@ -141,9 +141,23 @@ def open_board_transport(config: BoardConfig) -> Transport:
 
 
 def open_board_publisher(config: BoardConfig) -> Publisher | None:
-    """The board's network publisher (``[publish]``), or None when publishing is off."""
-    p = config.publish
-    if p.backend == "none":
-        return None
-    return open_publisher(p.backend, config=p.config_path, mode=p.mode, connect=p.connect, listen=p.listen,
-                          domain_id=p.domain_id, namespace=p.namespace, node=p.node)
+    """Where the board's contacts go besides the MCU: the network (``[publish]``) and an MCAP recording
+    (``[mcap]``), one publisher for both; None when neither is on."""
+    p, m = config.publish, config.mcap
+    opened: list[Publisher] = []
+    try:
+        if p.backend != "none":
+            opened.append(open_publisher(p.backend, config=p.config_path, mode=p.mode, connect=p.connect,
+                                         listen=p.listen, domain_id=p.domain_id, namespace=p.namespace, node=p.node))
+        if m.file is not None:
+            opened.append(open_publisher("mcap", path=m.file, max_bytes=int(m.max_mb * 1e6),
+                                         max_ns=int(m.max_minutes * 60e9), namespace=p.namespace))
+    except BaseException:
+        for publisher in opened:
+            publisher.close()
+        raise
+    if len(opened) > 1:
+        from optitac_edge.io.publishers.fanout import FanoutPublisher
+
+        return FanoutPublisher(opened)
+    return opened[0] if opened else None

@@ -10,11 +10,12 @@ from optitac_edge.io.publishers.base import Publisher
 PUBLISHERS: dict[str, str] = {
     "zenoh": "optitac_edge.io.publishers.zenoh:ZenohPublisher",
     "virtual": "optitac_edge.io.publishers.virtual:VirtualPublisher",
+    "mcap": "optitac_edge.io.publishers.mcap:McapPublisher",
 }
 
 
 def open_publisher(name: str, **kwargs: Any) -> Publisher:
-    """Open the publisher called ``name`` (``zenoh`` or ``virtual``)."""
+    """Open the publisher called ``name`` (``zenoh``, ``mcap`` or ``virtual``)."""
     from optitac_edge.errors import PublishError
     from optitac_edge.io.device import load_backend
 

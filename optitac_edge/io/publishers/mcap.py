@@ -1,0 +1,133 @@
+"""Write the messages to MCAP files (ROS 2 profile, CDR with ros2msg schemas), rotated by size or time.
+
+Needs the ``mcap`` extra (the ``mcap`` package), imported when this backend is
+opened. Files open in Foxglove, Lichtblick and the ``mcap`` libraries
+(``mcap-ros2-support`` decodes them); see docs/network.md.
+
+A file is written as ``NAME.part`` and renamed to ``NAME`` when it is complete
+(rotation or close); after a crash the ``.part`` file holds every chunk written so
+far (``mcap recover`` restores its index).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import IO
+
+from mcap.writer import CompressionType, Writer
+
+from optitac_edge.errors import OutputError
+from optitac_edge.io.publishers.base import Publisher
+from optitac_edge.io.ros2.messages import ros2msg_schema
+
+log = logging.getLogger(__name__)
+
+#: The version written in each file's header.
+LIBRARY = "optitac-edge"
+
+
+def rotated_name(path: Path, index: int) -> Path:
+    """The ``index``-th file of a rotated recording: ``run.mcap`` -> ``run-0003.mcap``."""
+    return path.with_name(f"{path.stem}-{index:04d}{path.suffix or '.mcap'}")
+
+
+class McapPublisher(Publisher):
+    """Every message in MCAP files.
+
+    Parameters
+    ----------
+    path : path
+        The file; with rotation, ``STEM-0000.mcap``, ``STEM-0001.mcap``, ...
+    max_bytes : int
+        Start a new file after this many bytes of messages, before compression (0: never).
+    max_ns : int
+        Start a new file after this long of messages, ns (0: never).
+    namespace : str
+        The ROS 2 namespace of the topics (as the network's).
+    """
+
+    def __init__(self, path: str | Path, max_bytes: int = 0, max_ns: int = 0, namespace: str = "",
+                 **_network: object) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.namespace = namespace
+        self.max_bytes, self.max_ns = max_bytes, max_ns
+        self.rotating = bool(max_bytes or max_ns)
+        self._topics: list[tuple[str, str]] = []
+        self._index = 0
+        self._seq: list[int] = []
+        #: The files completed so far.
+        self.files: list[Path] = []
+        self._open()
+
+    def _open(self) -> None:
+        final = rotated_name(self.path, self._index) if self.rotating else self.path
+        part = final.with_name(final.name + ".part")
+        try:
+            if final.exists() and not final.is_file():
+                raise OutputError(f"{final}: exists and is not a regular file")
+            self._stream: IO[bytes] = open(part, "wb")  # noqa: SIM115 - closed by _finish
+        except OSError as exc:
+            raise OutputError(f"cannot write {part}: {exc.strerror or exc}") from None
+        self._final, self._part = final, part
+        self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
+        self._writer.start(profile="ros2", library=LIBRARY)
+        self._channels: list[int] = []
+        self._schemas: dict[str, int] = {}
+        for topic, type_name in self._topics:
+            self._channels.append(self._channel(topic, type_name))
+        self._first_ns: int | None = None
+        self._bytes = 0
+
+    def _channel(self, topic: str, type_name: str) -> int:
+        schema = self._schemas.get(type_name)
+        if schema is None:
+            schema = self._writer.register_schema(type_name, "ros2msg", ros2msg_schema(type_name).encode())
+            self._schemas[type_name] = schema
+        return int(self._writer.register_channel(topic, "cdr", schema))
+
+    def advertise(self, topic: str, type_name: str) -> int:
+        self._topics.append((topic, type_name))
+        self._channels.append(self._channel(topic, type_name))
+        self._seq.append(0)
+        return len(self._topics) - 1
+
+    def publish(self, handle: int, payload: bytes, source_ns: int) -> None:
+        if self._first_ns is None:
+            self._first_ns = source_ns
+        elif (self.max_ns and source_ns - self._first_ns >= self.max_ns) or \
+                (self.max_bytes and self._bytes >= self.max_bytes):
+            self._finish()
+            self._index += 1
+            self._open()
+            self._first_ns = source_ns
+        self._seq[handle] += 1
+        self._bytes += len(payload)
+        try:
+            self._writer.add_message(self._channels[handle], source_ns, payload, source_ns, self._seq[handle])
+        except OSError as exc:
+            raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
+
+    def _finish(self) -> None:
+        try:
+            self._writer.finish()
+            self._stream.flush()
+            os.fsync(self._stream.fileno())
+            self._stream.close()
+            os.replace(self._part, self._final)
+        except OSError as exc:
+            self._stream.close()
+            raise OutputError(f"cannot complete {self._final}: {exc.strerror or exc} (the data is in {self._part})") \
+                from None
+        self.files.append(self._final)
+        log.info("MCAP: wrote %s", self._final)
+
+    @property
+    def where(self) -> str:
+        return f"MCAP {self.path}" + (" (rotated)" if self.rotating else "")
+
+    def _close_internal(self) -> None:
+        self._finish()
+
