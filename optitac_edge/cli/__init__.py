@@ -166,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
     p.add_argument("--frames", type=COUNT, default=300)
     p.add_argument("--rest-frames", type=COUNT, default=10, help="leading contact-free frames (meta.json)")
+    p.add_argument("--mcap", action="store_true",
+                   help="write REC as one MCAP file (frames as sensor_msgs/Image; the default when REC ends in "
+                        ".mcap); replay, calibrate and evaluate read it like a recording directory")
 
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
     p.add_argument("--minutes", type=number(0, 1e6, lo_open=True), required=True, metavar="M")
@@ -273,11 +276,23 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                               rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
     else:
         optics, patch = _sim_board_sensor(args, config, dark)
-    path = write_scenario(args.out_dir, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
+    mcap = args.out_dir.suffix == ".mcap"
+    out = args.out_dir.with_name(args.out_dir.name + ".dir.part") if mcap else args.out_dir
+    path = write_scenario(out, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
                           day=args.day, variant=args.variant, warmup=args.warmup, patch=patch)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
+    if mcap:  # the recording, its times and truth in one MCAP file
+        import shutil
+
+        from optitac_edge.io.recording import Recording
+        from optitac_edge.io.recording_mcap import recording_to_mcap
+
+        try:
+            path = recording_to_mcap(Recording(path), args.out_dir)
+        finally:
+            shutil.rmtree(out, ignore_errors=True)
     mirror = " --mirror" if sim_optics["mirror"] else ""
     print(f"wrote {path} (orientation hint: --rotation-deg {sim_optics['rotation_deg']:.0f}{mirror})")
     return 0
@@ -500,8 +515,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "serial", "link.serial_url": args.serial}
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
-    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args.publish),
-                          **({"mcap.path": args.mcap} if args.mcap else {}))
+    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(getattr(args, "publish", None)),
+                          **({"mcap.path": args.mcap} if getattr(args, "mcap", None) else {}))
     stop = threading.Event()
     received: list[int] = []
 
@@ -639,7 +654,10 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
 def _cmd_record(args: argparse.Namespace) -> int:
     from optitac_edge.service.recorder import record_board
 
-    rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames)
+    mcap = args.mcap or args.output.suffix == ".mcap"
+    if mcap and args.output.suffix != ".mcap":
+        raise OptiTacError(f"--mcap: the recording's name must end in .mcap, got {args.output}")
+    rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames, mcap=mcap)
     print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
     return 0
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import io
 import json
 import math
 import os
@@ -152,6 +153,12 @@ def read_meta(path: Path) -> RecordingMeta:
         raise RecordingError(f"{path}: garbled meta.json ({why})") from None
     if not isinstance(raw, dict):
         raise RecordingError(f"{path}: meta.json must hold an object")
+    return _checked_meta(raw, path)
+
+
+def _checked_meta(raw: dict[str, Any], path: Path) -> RecordingMeta:
+    """A recording's meta from its keys (meta.json's, or an MCAP recording's metadata)."""
+    raw = dict(raw)
     rest = raw.pop("rest_frames", None)
     fps = raw.pop("fps", None)
     if not isinstance(rest, int) or isinstance(rest, bool) or not MIN_REST_FRAMES <= rest <= 1_000_000_000:
@@ -190,8 +197,9 @@ def read_truth(path: Path, n_frames: int) -> Truth:
     return read_truth_file(path, n_frames)[0]
 
 
-def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
-    """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames.
+def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple[Truth, RigPoses | None]:
+    """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames (``text``: its
+    contents, kept elsewhere than ``path``, e.g. in an MCAP recording; ``path`` then names it).
 
     Returns the truth of the scored rows -- every row, or with the rig columns
     the ``rest`` and ``hold`` frames (during approach and release the depth
@@ -206,10 +214,15 @@ def read_truth_file(path: Path, n_frames: int) -> tuple[Truth, RigPoses | None]:
         unknown shape or phase.
     """
     try:
-        if path.stat().st_size > MAX_TRUTH_BYTES:
-            raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
-        with path.open(newline="", encoding="utf-8-sig") as f:
-            rows = list(csv.reader(f))
+        if text is not None:
+            if len(text) > MAX_TRUTH_BYTES:
+                raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
+            rows = list(csv.reader(io.StringIO(text.removeprefix("\ufeff"), newline="")))
+        else:
+            if path.stat().st_size > MAX_TRUTH_BYTES:
+                raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
+            with path.open(newline="", encoding="utf-8-sig") as f:
+                rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise RecordingError(f"{path}: cannot read truth ({exc})") from None
     header = tuple(c.strip() for c in rows[0]) if rows else ()
@@ -290,6 +303,9 @@ class Recording:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        if self.path.suffix == ".mcap" and self.path.is_file():
+            self._open_mcap()
+            return
         if not self.path.is_dir():
             raise RecordingError(f"{self.path}: recording directory not found")
         if (self.path / INCOMPLETE_MARKER).exists():
@@ -326,6 +342,23 @@ class Recording:
         #: Capture time of each frame, int64 ns, shape (N,).
         self.t_ns: np.ndarray = (read_timestamps(stamps, len(frames)) if self.timestamped else
                                  np.round(np.arange(len(frames)) * (1e9 / self.meta.fps)).astype(np.int64))
+
+    def _open_mcap(self) -> None:
+        """A recording in one MCAP file (:mod:`optitac_edge.io.recording_mcap`), with its truth if it holds one."""
+        from optitac_edge.io.recording_mcap import read_mcap_recording
+
+        frames, t_ns, raw, truth = read_mcap_recording(self.path)
+        self.meta = _checked_meta(raw, self.path)
+        self.pixel_format = infer_pixel_format(frames.shape[1:])
+        self.frames = frames
+        if self.meta.rest_frames > len(frames):
+            raise RecordingError(f"{self.path}: rest_frames={self.meta.rest_frames} but only {len(frames)} frames")
+        self.truth = None
+        self.rig_poses = None
+        if truth is not None:
+            self.truth, self.rig_poses = read_truth_file(Path(f"{self.path}#truth.csv"), len(frames), text=truth)
+        self.timestamped = True
+        self.t_ns = t_ns
 
     def __len__(self) -> int:
         return int(self.frames.shape[0])

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta, RecordingWriter
@@ -21,8 +21,10 @@ class Recorded(NamedTuple):
     meta: RecordingMeta
 
 
-def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames: int) -> Recorded:
-    """Write ``frames`` frames of the board's camera to the recording directory ``path``.
+def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames: int,
+                 mcap: bool = False) -> Recorded:
+    """Write ``frames`` frames of the board's camera to the recording directory ``path`` (with ``mcap``:
+    to the MCAP file ``path``, frames as sensor_msgs/Image, :mod:`optitac_edge.io.recording_mcap`).
 
     The first ``rest_frames`` must be contact-free (``meta.json`` says so).
 
@@ -34,12 +36,16 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
     """
     if frames < rest_frames or rest_frames < MIN_REST_FRAMES:
         raise OptiTacError(f"--frames must be >= --rest-frames >= {MIN_REST_FRAMES}")
+    if mcap:
+        from optitac_edge.io.recording_mcap import McapRecordingWriter
     with open_board_camera(config) as camera:
         if camera.pixel_format == "yuv420":
             raise OptiTacError("recordings hold gray or RGB frames: set camera.pixel_format = 'gray'")
         meta = RecordingMeta(rest_frames=rest_frames, fps=camera.fps,
                              extra={"board": config.source, "camera": config.camera.backend})
-        with RecordingWriter(path, frames, camera.frame_shape, meta) as writer:
+        writer: Any = (McapRecordingWriter(path, meta.to_json()) if mcap else
+                       RecordingWriter(path, frames, camera.frame_shape, meta))
+        with writer:
             for i in range(frames):
                 captured = camera.read(config.camera.timeout_s)
                 if captured is None:

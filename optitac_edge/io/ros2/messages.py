@@ -30,6 +30,7 @@ TYPE_HASHES: dict[str, str] = {
     "optitac_msgs/msg/SensorStatus": "RIHS01_60cd59e3130ed38da4209a3ec0b2c9068f8a3fabd7db03a0ca9b36a8e394ccd2",
 }
 
+IMAGE = "sensor_msgs/msg/Image"
 CONTACTS = "optitac_msgs/msg/Contacts"
 STATUS = "optitac_msgs/msg/SensorStatus"
 SIGNAL = "optitac_msgs/msg/FiberSignal"
@@ -45,6 +46,8 @@ def msg_definition(type_name: str) -> str:
 _STANDARD = {
     "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "sensor_msgs/Image": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
+                          "uint8 is_bigendian\nuint32 step\nuint8[] data\n"),
 }
 #: The messages each message refers to, in the order a ros2msg schema lists them.
 _DEPENDENCIES = {
@@ -52,14 +55,15 @@ _DEPENDENCIES = {
     "Contacts": ("std_msgs/Header", "builtin_interfaces/Time", "optitac_msgs/Contact"),
     "SensorStatus": ("std_msgs/Header", "builtin_interfaces/Time"),
     "FiberSignal": ("std_msgs/Header", "builtin_interfaces/Time"),
+    "Image": ("std_msgs/Header", "builtin_interfaces/Time"),
 }
 
 
 def ros2msg_schema(type_name: str) -> str:
     """The ``ros2msg`` schema of a message (MCAP, Foxglove): its definition, then every message it uses,
     each after a line of 80 ``=`` and ``MSG: pkg/Name``."""
-    name = type_name.rsplit("/", 1)[-1]
-    parts = [msg_definition(type_name)]
+    pkg, _, name = type_name.split("/")
+    parts = [_STANDARD.get(f"{pkg}/{name}") or msg_definition(type_name)]
     for dep in _DEPENDENCIES[name]:
         body = _STANDARD.get(dep) or msg_definition(dep.replace("/", "/msg/"))
         parts.append("=" * 80 + f"\nMSG: {dep}\n{body}")
@@ -203,3 +207,19 @@ def encode_signal(sample: SignalSample, stamp_ns: int, frame_id: str) -> bytes:
     w.array_sequence(sample.signal, "<f4")
     w.array_sequence(np.asarray(sample.dead, dtype=bool), "u1")
     return w.payload()
+
+
+def encode_image(frame: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """The CDR payload of a sensor_msgs/Image of a camera frame: (H, W) uint8 as ``mono8``,
+    (H, W, 3) uint8 as ``rgb8``."""
+    h, w = frame.shape[:2]
+    encoding = "mono8" if frame.ndim == 2 else "rgb8"
+    wr = CdrWriter()
+    _header(wr, stamp_ns, frame_id)
+    wr.u32(h)
+    wr.u32(w)
+    wr.string(encoding)
+    wr.u8(0)
+    wr.u32(w * (1 if frame.ndim == 2 else 3))
+    wr.array_sequence(frame.reshape(-1), "u1")
+    return wr.payload()

@@ -1,0 +1,177 @@
+"""Recordings as MCAP files: camera frames as sensor_msgs/Image, the recording's meta as MCAP metadata.
+
+``optitac-edge record --mcap`` writes them; :class:`~optitac_edge.io.recording.Recording`
+opens a ``*.mcap`` file as it opens a recording directory (``replay``, ``calibrate``,
+``evaluate`` take either). Frames are on :data:`IMAGE_TOPIC` (``mono8`` for gray,
+``rgb8`` for RGB), each stamped with its capture time (CLOCK_MONOTONIC ns in the
+header, as in ``timestamps.npy``); the metadata record :data:`META_NAME` holds
+``meta.json``'s keys as JSON text, and a simulated or rig-collected recording's
+``truth.csv`` is an attachment of that name. Needs the ``mcap`` extra.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+import numpy as np
+
+from optitac_edge.errors import OutputError, RecordingError
+from optitac_edge.io.ros2.messages import IMAGE, encode_image, ros2msg_schema
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+IMAGE_TOPIC = "/optitac/camera/image"
+META_NAME = "optitac.recording"
+TRUTH_NAME = "truth.csv"
+
+
+class McapRecordingWriter:
+    """Write frames to ``path`` (``path.part`` until :meth:`close`; :meth:`abort` removes it).
+
+    Parameters
+    ----------
+    path : path
+    meta : dict
+        ``meta.json``'s keys (``rest_frames``, ``fps``, ...).
+    truth_csv : bytes, optional
+        The recording's ``truth.csv``.
+    """
+
+    def __init__(self, path: str | Path, meta: dict[str, Any], truth_csv: bytes | None = None) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self._part = self.path.with_name(self.path.name + ".part")
+        if self.path.exists() and not self.path.is_file():
+            raise OutputError(f"{self.path}: exists and is not a regular file")
+        try:
+            self._stream: IO[bytes] = open(self._part, "wb")  # noqa: SIM115 - closed by close/abort
+        except OSError as exc:
+            raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
+        self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
+        self._writer.start(profile="ros2", library="optitac-edge")
+        self._writer.add_metadata(META_NAME, {k: json.dumps(v) for k, v in meta.items()})
+        if truth_csv is not None:
+            self._writer.add_attachment(0, 0, TRUTH_NAME, "text/csv", truth_csv)
+        schema = self._writer.register_schema(IMAGE, "ros2msg", ros2msg_schema(IMAGE).encode())
+        self._channel = self._writer.register_channel(IMAGE_TOPIC, "cdr", schema)
+        self.frames_written = 0
+        self._done = False
+
+    def write(self, index: int, frame: np.ndarray, t_ns: int) -> None:
+        """Frame ``index`` (written in order) captured at ``t_ns``."""
+        if index != self.frames_written:
+            raise ValueError(f"frames must be written in order: {index} after {self.frames_written}")
+        try:
+            self._writer.add_message(self._channel, int(t_ns), encode_image(frame, t_ns, "optitac_camera"),
+                                     int(t_ns), index)
+        except OSError as exc:
+            raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
+        self.frames_written += 1
+
+    def close(self) -> None:
+        """Complete the file at ``path`` (idempotent)."""
+        if self._done:
+            return
+        self._done = True
+        try:
+            self._writer.finish()
+            self._stream.flush()
+            os.fsync(self._stream.fileno())
+            self._stream.close()
+            os.replace(self._part, self.path)
+        except OSError as exc:
+            self._stream.close()
+            raise OutputError(f"cannot complete {self.path}: {exc.strerror or exc}") from None
+
+    def abort(self) -> None:
+        """Drop what was written (idempotent)."""
+        if self._done:
+            return
+        self._done = True
+        self._stream.close()
+        self._part.unlink(missing_ok=True)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def read_mcap_recording(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any], str | None]:
+    """(frames (N, H, W[, 3]) uint8, capture times (N,) int64 ns, meta, truth.csv's text or None) of an
+    MCAP recording.
+
+    Raises
+    ------
+    RecordingError
+        Naming the file: not MCAP, no frames on :data:`IMAGE_TOPIC`, frames of
+        another encoding or size than the first, no recording metadata.
+    """
+    try:
+        from mcap.reader import make_reader
+        from mcap_ros2.decoder import DecoderFactory
+    except ModuleNotFoundError as exc:
+        from optitac_edge.errors import missing_extra
+
+        raise missing_extra(exc.name or "mcap", "MCAP recordings") from None
+    frames: list[np.ndarray] = []
+    stamps: list[int] = []
+    meta: dict[str, Any] | None = None
+    truth: str | None = None
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            for record in reader.iter_metadata():
+                if record.name == META_NAME:
+                    meta = {k: json.loads(v) for k, v in record.metadata.items()}
+            f.seek(0)
+            for attachment in make_reader(f).iter_attachments():
+                if attachment.name == TRUTH_NAME:
+                    truth = attachment.data.decode("utf-8")
+            f.seek(0)
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            for _, _, message, image in reader.iter_decoded_messages(topics=[IMAGE_TOPIC], log_time_order=False):
+                frames.append(_image_array(image, path, len(frames)))
+                stamps.append(int(message.log_time))
+    except RecordingError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - mcap raises many kinds on a damaged file: one line
+        raise RecordingError(f"{path}: not a readable MCAP recording ({type(exc).__name__}: {exc})") from None
+    if meta is None:
+        raise RecordingError(f"{path}: no {META_NAME!r} metadata (not written by optitac-edge record --mcap)")
+    if not frames:
+        raise RecordingError(f"{path}: no frames on {IMAGE_TOPIC}")
+    if any(f.shape != frames[0].shape for f in frames):
+        raise RecordingError(f"{path}: frames of several sizes")
+    return np.stack(frames), np.asarray(stamps, dtype=np.int64), meta, truth
+
+
+def recording_to_mcap(rec: Any, path: str | Path) -> Path:
+    """Write a :class:`~optitac_edge.io.recording.Recording` (frames, times, meta, truth) as one MCAP file."""
+    truth = rec.path / TRUTH_NAME if rec.path.is_dir() else None
+    data = truth.read_bytes() if truth is not None and truth.exists() else None
+    with McapRecordingWriter(path, rec.meta.to_json(), truth_csv=data) as writer:
+        for i in range(len(rec)):
+            writer.write(i, rec.frame(i), int(rec.t_ns[i]))
+    return Path(path)
+
+
+def _image_array(image: Any, path: Path, index: int) -> np.ndarray:
+    channels = {"mono8": 1, "rgb8": 3}.get(image.encoding)
+    if channels is None:
+        raise RecordingError(f"{path}: frame {index} is {image.encoding!r}, not mono8 or rgb8")
+    data = np.frombuffer(bytes(image.data), dtype=np.uint8)
+    if image.step != image.width * channels or data.size != image.height * image.step:
+        raise RecordingError(f"{path}: frame {index}: {data.size} bytes for {image.width}x{image.height} "
+                             f"{image.encoding}")
+    shape = (image.height, image.width) if channels == 1 else (image.height, image.width, 3)
+    return data.reshape(shape)
