@@ -27,7 +27,7 @@ def test_packaged_boards_load(name):
     assert Path(cfg.source).name == f"{name}.toml"
     assert config_warnings(cfg) == []
     assert set(cfg.as_dict()) == {"sensor", "camera", "calibration", "link", "led", "status", "watchdog", "rig",
-                                 "publish"}
+                                 "publish", "mcap"}
 
 
 def test_available_boards_and_repo_dir():

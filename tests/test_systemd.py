@@ -179,7 +179,57 @@ def test_install_dry_run(board):
     assert "/etc/udev/rules.d/99-optitac-edge.rules" in out
     assert "systemctl enable optitac-edge.service" in out
     assert ("jetson-csi.conf" in out) == (board == "jetson-csi")
+    assert "zenoh.conf" not in out and f"{REPO}[board]" in out  # no board here publishes: no IP
     assert "could not check the config" not in out
+
+
+def test_install_a_publishing_board_gets_the_zenoh_drop_in_and_extras(tmp_path):
+    board = tmp_path / "robot.toml"
+    board.write_text('[publish]\nbackend = "zenoh"\nconnect = ["tcp/192.168.1.10:7447"]\n[mcap]\npath = "/var/lib/x.mcap"\n')
+    proc = subprocess.run(check=False, args=["bash", str(INSTALL), "--dry-run", str(board)], capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "OPTITAC_PYTHON": sys.executable,
+                                                       "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    assert f"{REPO}[board,zenoh,mcap]" in out
+    for unit in ("optitac-edge.service", "optitac-edge@.service"):
+        assert f"install -m 0644 {REPO}/systemd/zenoh.conf /etc/systemd/system/{unit}.d/zenoh.conf" in out
+
+
+DROP_IN = REPO / "systemd" / "zenoh.conf"
+
+
+def _with_drop_in(tmp_path: Path) -> Path:
+    """The unit as systemd reads it with the Zenoh drop-in: the drop-in's lines added to [Service]."""
+    body = DROP_IN.read_text().replace("[Service]\n", "")
+    merged = tmp_path / UNIT.name
+    merged.write_text(UNIT.read_text().replace("\n[Install]", "\n" + body + "\n[Install]"))
+    return merged
+
+
+def test_the_zenoh_drop_in_opens_ip_and_nothing_else():
+    drop_in = parse_unit(DROP_IN)
+    assert set(drop_in) == {"Service"}
+    assert set(drop_in["Service"]) == {"RestrictAddressFamilies", "IPAddressAllow"}
+    assert drop_in["Service"]["RestrictAddressFamilies"] == ["AF_INET AF_INET6"]
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_with_the_zenoh_drop_in_only_the_network_items_change(tmp_path):
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / UNIT.name).write_text(UNIT.read_text())
+
+    def items(path: Path) -> set[str]:
+        proc = subprocess.run(check=False, args=["systemd-analyze", "security", "--offline=yes", "--no-pager",
+                                                 path.name], cwd=path.parent, capture_output=True, text=True,
+                              timeout=120)
+        return {" ".join(line.split()[:2]) for line in proc.stdout.splitlines() if line[:1] in "✓✗"}
+
+    before, after = items(plain / UNIT.name), items(_with_drop_in(tmp_path))
+    changed = {i.split()[1].split("=")[0] for i in before ^ after}
+    assert changed == {"RestrictAddressFamilies", "IPAddressDeny"}, before ^ after
+    assert analyze_exposure(plain / UNIT.name) < analyze_exposure(_with_drop_in(tmp_path)) <= MAX_EXPOSURE
 
 
 def test_install_unknown_board_fails_in_one_line():

@@ -90,8 +90,11 @@ try:
     c = load_board_config(sys.argv[1], env={})
 except OptiTacError as exc:
     sys.exit(f"install.sh: {exc}")
-print("pipeline" if c.camera.pipeline else "device")'
-camera_kind="$(cd / && PYTHONPATH="$REPO" "$CHECK_PY" -c "$CHECK" "$BOARD_FILE")" || exit 2
+extras = ["board"] + (["zenoh"] if c.publish.backend == "zenoh" else []) + (["mcap"] if c.mcap.path else [])
+print("pipeline" if c.camera.pipeline else "device", "zenoh" if c.publish.backend == "zenoh" else "none",
+      ",".join(extras))'
+checked="$(cd / && PYTHONPATH="$REPO" "$CHECK_PY" -c "$CHECK" "$BOARD_FILE")" || exit 2
+read -r camera_kind publish_kind extras <<< "$checked"
 
 # --- platform ---------------------------------------------------------------------------------
 PLATFORM=generic
@@ -149,7 +152,7 @@ else
     CONSTRAINTS=""
 fi
 run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CONSTRAINTS:+--constraint "$CONSTRAINTS"} \
-    "${REPO}[board]"
+    "${REPO}[${extras}]"
 
 PY="$VENV/bin/python"
 [ -x "$PY" ] || PY="$CHECK_PY"  # dry run before the venv exists
@@ -189,6 +192,13 @@ for unit in "$SERVICE" "$TEMPLATE"; do
         run install -m 0644 "$REPO/systemd/jetson-csi.conf" "$DROP_IN_DIR/jetson-csi.conf"
     elif [ -f "$DROP_IN_DIR/jetson-csi.conf" ]; then
         run rm -f "$DROP_IN_DIR/jetson-csi.conf"
+    fi
+    # IP networking only for a board that publishes on Zenoh (docs/network.md)
+    if [ "$publish_kind" = zenoh ]; then
+        run install -d -m 0755 "$DROP_IN_DIR"
+        run install -m 0644 "$REPO/systemd/zenoh.conf" "$DROP_IN_DIR/zenoh.conf"
+    elif [ -f "$DROP_IN_DIR/zenoh.conf" ]; then
+        run rm -f "$DROP_IN_DIR/zenoh.conf"
     fi
 done
 run install -m 0644 "$REPO/systemd/99-optitac-edge.rules" "$RULES_DIR/99-optitac-edge.rules"
