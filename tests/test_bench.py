@@ -26,7 +26,7 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> N
     assert main(["bench", "--frames", "40", "--cal", str(bundle_path), "--fps", "120",
                  "--reference-frames", "3", "--memory-frames", "20", "--e2e-seconds", "1",
                  "--paced-frames", "4", "--cpu-seconds", "0", "--patches", "2", "--patch-frame", "960x400",
-                 "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--json", str(out)]) == 0
+                 "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--e2e-publish", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| whole_frame |" in text
     res = json.loads(out.read_text())
@@ -60,9 +60,14 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> N
     assert {"p50", "p99", "max"} == set(e2e["latency_us"])
     assert e2e["received"] <= e2e["sent"] <= e2e["frames"]
     assert e2e["contacts_pressed"] == 2 and e2e["main_thread"]["cpu_us_per_frame"] > 0
+    pub = e2e["publish"]  # every frame's Contacts (and status, signal) on Zenoh to a subscriber and in the MCAP
+    assert pub["published"] >= e2e["frames"] and pub["errors"] == 0
+    assert pub["published"] + pub["dropped"] >= pub["mcap_messages"] == pub["published"]
+    assert 0 < pub["received_by_subscriber"] <= pub["published"]
     pe = res["patches_end_to_end"]  # one service, a sensor per patch: each frame's CONTACTs of both patches
     assert pe["patches"] == 2 and pe["frames"] > 0 and pe["received"] > pe["frames"]
     assert pe["received"] <= 2 * pe["sent"] and pe["sent"] <= pe["frames"]
+    assert pe["publish"]["topics"] >= 4 and pe["publish"]["published"] >= 2 * pe["frames"]  # contacts, status x2
     st = res["startup"]
     assert st["start_to_first_packet_s"] is not None and st["start_to_first_packet_s"] > 0
     assert st["heavy_modules_imported"] == []  # the runtime imports neither scipy nor scikit-learn

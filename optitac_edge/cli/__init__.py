@@ -209,6 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="service main-thread CPU: seconds per run with 0, 1, 2 and 4 contacts (0: skip)")
     p.add_argument("--cpu-rounds", type=number(1, 100, integer=True), default=2, metavar="R",
                    help="service main-thread CPU: interleaved passes over the contact counts (default 2)")
+    p.add_argument("--e2e-publish", action="store_true",
+                   help="end to end with every sensor's contacts, status and signal on Zenoh (to a subscriber "
+                        "process on loopback) and in an MCAP file (needs the zenoh and mcap extras)")
     p.add_argument("--e2e-contacts", type=number(0, 4, integer=True), default=2, metavar="K",
                    help="end to end: indenters pressed throughout the run (default 2)")
     p.add_argument("--patches", type=number(0, 16, integer=True), default=4, metavar="N",
@@ -694,7 +697,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
                     startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view,
                     paced_frames=args.paced_frames, cpu_seconds=args.cpu_seconds, cpu_rounds=args.cpu_rounds,
-                    e2e_contacts=args.e2e_contacts, patches=args.patches, patch_frame=args.patch_frame, log=print)
+                    e2e_contacts=args.e2e_contacts, patches=args.patches, patch_frame=args.patch_frame,
+                    publish=args.e2e_publish, log=print)
     print(format_table(res))
     write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")

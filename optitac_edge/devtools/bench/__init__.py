@@ -85,12 +85,17 @@ __all__ = ["STAGES", "format_table", "run_bench"]
 logger = logging.getLogger(__name__)
 
 
+def _published(p: dict[str, Any]) -> str:
+    return (f"; published {p['published']} (dropped {p['dropped']}, errors {p['errors']}), the subscriber got "
+            f"{p['received_by_subscriber']}, MCAP {p['mcap_messages']} messages")
+
+
 def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,
               rgb: bool = False, workdir: Path | None = None, reference_frames: int = 300,
               memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
               unique_frames: int = 600, queue_frames: int | None = None, view: str | None = None,
               paced_frames: int = 2000, cpu_seconds: float = 10.0, cpu_rounds: int = 2, e2e_contacts: int = 2,
-              patches: int = 4, patch_frame: tuple[int, int] = (1280, 720),
+              patches: int = 4, patch_frame: tuple[int, int] = (1280, 720), publish: bool = False,
               log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run every section; returns the results (see the module docstring).
 
@@ -162,7 +167,8 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
 
             res["end_to_end"] = e = measure_end_to_end(cal_path, fps, e2e_seconds, rgb,
                                                        contact_frames(e2e_contacts, rgb, fps), REST_FRAMES,
-                                                       queue_frames, view, lambda url: log(f"  view: {url}"))
+                                                       queue_frames, view, lambda url: log(f"  view: {url}"),
+                                                       publish=publish)
             e["contacts_pressed"] = e2e_contacts
             why = ""
             if "frames_dropped_by_pipeline" in e:
@@ -174,21 +180,22 @@ def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal:
                 f"{e['frames_dropped']}{why}, lost {e['packets_lost']}, latency p50/p99/max "
                 f"{e['latency_us']['p50']}/{e['latency_us']['p99']}/{e['latency_us']['max']} µs"
                 + (f"; main-thread CPU {e['main_thread']['cpu_us_per_frame']} µs/frame" if e.get("main_thread") else "")
-                + (f"; view updates {e['view']['updates']}, skipped {e['view']['skipped']}" if "view" in e else ""))
+                + (f"; view updates {e['view']['updates']}, skipped {e['view']['skipped']}" if "view" in e else "")
+                + (_published(e["publish"]) if "publish" in e else ""))
     if e2e_seconds > 0 and patches > 0 and source == "sim" and not rgb:
         from optitac_edge.devtools.bench.patches import patch_pipelines
 
         pipes, patch_rest, patch_presses = patch_pipelines(patches, *patch_frame)
         res["patches_end_to_end"] = pe = measure_end_to_end(
             None, fps, e2e_seconds, False, patch_rest + patch_presses, len(patch_rest), queue_frames,
-            bundles=[p.bundle for p in pipes])
+            bundles=[p.bundle for p in pipes], publish=publish)
         pe["patches"], pe["frame_size"] = patches, list(patch_frame)
         log(f"  end to end, {patches} patches on one {patch_frame[0]}x{patch_frame[1]} camera @ {fps} fps, "
             f"{e2e_seconds} s: {pe['frames']} frames, dropped {pe['frames_dropped']}"
             + (f" (by the pipeline {pe['frames_dropped_by_pipeline']})" if "frames_dropped_by_pipeline" in pe else "")
             + f", lost {pe['packets_lost']}, latency p50/p99 {pe['latency_us']['p50']}/{pe['latency_us']['p99']} µs"
             + (f"; main-thread CPU {pe['main_thread']['cpu_us_per_frame']} µs/frame" if pe.get("main_thread")
-               else ""))
+               else "") + (_published(pe["publish"]) if "publish" in pe else ""))
     if startup:
         if source != "sim" or fmt != "gray":
             res["startup"] = {"skipped": "needs --source sim and gray frames (the sim board's camera)"}

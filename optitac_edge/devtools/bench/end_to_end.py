@@ -23,7 +23,8 @@ from optitac_edge.devtools.bench.samples import summary
 def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
                        frames: list[np.ndarray] | None = None, rest: int = 10,
                        queue_frames: int | None = None, view: str | None = None,
-                       on_view: Any = None, bundles: list[Any] | None = None) -> dict[str, Any]:
+                       on_view: Any = None, bundles: list[Any] | None = None,
+                       publish: bool = False) -> dict[str, Any]:
     """The service loop paced at ``fps`` into a pty, read by a separate process.
 
     With ``frames``, the camera replays them (pre-rendered, see ``paced_replay_camera``);
@@ -32,7 +33,9 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
     (``HOST:PORT``) the live view is served during the run (``on_view`` gets its URL),
     so the cost of a browser on it is in the figures. With ``bundles`` (instead of ``cal``)
     the camera reads one sensor per bundle (patches of one frame, ids 1, 2, ...), as a board
-    with several sensors on one camera runs.
+    with several sensors on one camera runs. With ``publish`` every sensor's contacts, status
+    and signal also go on Zenoh to a subscriber process and into an MCAP file
+    (:mod:`optitac_edge.devtools.bench.network`).
     """
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
@@ -59,10 +62,18 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
                            queue_frames=config.camera.queue_frames)
     transport = SerialTransport(path, baudrate=921600)
     steal0 = steal_jiffies()
-    live = server = None
+    live = server = net = None
+    net_stats: dict[str, Any] = {}
     try:
         sensors = [(SensorConfig(id=k + 1, name=f"patch{k + 1}"), b) for k, b in enumerate(bundles)]
         service = Service(config, bundle, camera, transport, sensors=sensors if len(bundles) > 1 else None)
+        if publish:
+            from optitac_edge.devtools.bench.network import BenchNetwork
+            from optitac_edge.service.session import network_sensor
+
+            named = sensors if len(bundles) > 1 else [(config.sensor, bundle)]
+            net = BenchNetwork([network_sensor(s, b) for s, b in named])
+            service.network = net.output
         if view is not None:
             from optitac_edge.service.view.live import LiveView
             from optitac_edge.service.view.server import ViewServer
@@ -80,6 +91,8 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
         transport.wait_idle(1.0)
         t_stats = dict(transport.stats())
     finally:
+        if net is not None:
+            net_stats = net.close()
         view_stats = {}
         if server is not None and live is not None:
             view_stats = {"updates": live.published.seq if live.published else 0, "skipped": live.skipped,
@@ -112,7 +125,8 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
             # the part before the message was filled (camera delivery + processing), from its age field
             "frame_to_fill_us": {"p50": a["median_us"], "p99": a["p99_us"], "max": a["max_us"]},
             "transport": {k: v for k, v in t_stats.items() if isinstance(v, (int, float, str, bool))},
-            **({"view": view_stats} if view is not None else {})}
+            **({"view": view_stats} if view is not None else {}),
+            **({"publish": net_stats} if publish else {})}
 
 
 class MainThreadCpu:
