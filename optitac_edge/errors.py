@@ -64,7 +64,7 @@ class MissingExtraError(OptiTacError):
 EXTRA_OF_MODULE = {
     "sklearn": "calibrate", "threadpoolctl": "calibrate", "matplotlib": "calibrate", "onnx": "calibrate",
     "onnxruntime": "onnx", "can": "can", "cantools": "can", "smbus2": "board", "rtde_control": "ur",
-    "rtde_receive": "ur", "zenoh": "zenoh", "xxhash": "zenoh", "mcap": "mcap", "mcap_ros2": "mcap",
+    "rtde_receive": "ur", "zenoh": "zenoh", "xxhash": "zenoh", "mcap": "mcap", "mcap_ros2": "mcap", "foxglove": "foxglove",
 }
 
 

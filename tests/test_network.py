@@ -49,7 +49,7 @@ def contact(cid: int, frame: int, touch_frame: int, x: float = 1.0) -> SimpleNam
                            shape="", confidence=math.nan)
 
 
-def frame(index: int, *contacts: SimpleNamespace) -> tuple[SimpleNamespace, list[SimpleNamespace]]:
+def frame_(index: int, *contacts: SimpleNamespace) -> tuple[SimpleNamespace, list[SimpleNamespace]]:
     est = SimpleNamespace(contact=bool(contacts), n_contacts=len(contacts), frame=index)
     return est, [*contacts, *(contact(0, index, 0) for _ in range(4 - len(contacts)))]
 
@@ -57,8 +57,8 @@ def frame(index: int, *contacts: SimpleNamespace) -> tuple[SimpleNamespace, list
 def test_every_contact_with_touch_and_release_events(store):
     pub = VirtualPublisher()
     with NetworkOutput(pub, [sensor()]) as net:
-        frames = [frame(0), frame(1, contact(1, 1, 1)), frame(2, contact(1, 2, 1), contact(2, 2, 2, x=5.0)),
-                  frame(3, contact(2, 3, 2, x=5.0)), frame(4)]
+        frames = [frame_(0), frame_(1, contact(1, 1, 1)), frame_(2, contact(1, 2, 1), contact(2, 2, 2, x=5.0)),
+                  frame_(3, contact(2, 3, 2, x=5.0)), frame_(4)]
         for k, (est, contacts) in enumerate(frames):
             net.offer_frame(1, est, contacts, 1000 + k, True, False, False)
     got = [store.deserialize_cdr(m.payload, msgs.CONTACTS) for m in pub.taken("/optitac/thumb/contacts")]
@@ -89,7 +89,7 @@ def test_a_stuck_network_costs_the_frame_loop_nothing_and_every_drop_is_counted(
 
     def loop() -> None:
         for k in range(offered):
-            net.offer_frame(4, *frame(k, contact(1, k, 0)), k, True, False, False)
+            net.offer_frame(4, *frame_(k, contact(1, k, 0)), k, True, False, False)
 
     t = threading.Thread(target=loop)
     t.start()
@@ -108,7 +108,7 @@ def test_status_reports_the_sensor_and_the_publishers_counters(store):
     pub = VirtualPublisher()
     with NetworkOutput(pub, [sensor(2, "index-1")], signal_hz=10) as net:
         for k in range(3):
-            net.offer_frame(2, *frame(k), k * 50_000_000, False, False, False, signal=np.full(7, k, np.float32))
+            net.offer_frame(2, *frame_(k), k * 50_000_000, False, False, False, signal=np.full(7, k, np.float32))
         status = StatusMessage(sensor_id=2, t_us=5, fps_x10=2400, frames_dropped=3, camera_errors=1,
                                link_errors=2, cpu_temp_c_x10=455, state=STATE_STREAMING | STATE_BASELINE_READY)
         net.offer_status(2, status, frames=3, contacts=0, fps=240.0, protocol=2)
@@ -213,3 +213,29 @@ def test_two_boards_are_two_peers_and_a_subscriber_sees_both_robots(tmp_path):
     topics = {m["topic"] for m in _received(out)}
     assert {"/robot1/optitac/hand/contacts", "/robot2/optitac/hand/contacts",
             "/robot1/optitac/hand/status", "/robot2/optitac/hand/status"} <= topics
+
+
+def test_pictures_are_the_sensors_region_its_surface_and_the_overlay(store):
+    for name in (msgs.IMAGE, msgs.ANNOTATIONS):
+        store.register(get_types_from_msg(msgs.ros2msg_schema(name), name))
+    s = sensor(5, "index")
+    region = (10, 20, 30, 40)
+    px = np.column_stack([5 + 2 * s.x_mm, 7 - 2 * s.y_mm]).astype(np.float64)
+    placed = NetworkSensor(5, "index", s.x_mm, s.y_mm, s.dead, fiber_px=px, region=region, image_rows=100)
+    frame = (np.arange(150 * 80) % 251).astype(np.uint8).reshape(150, 80)  # a YUV420 frame: 100 luma rows
+    pub = VirtualPublisher()
+    with NetworkOutput(pub, [placed], picture_hz=5) as net:
+        for k in range(3):  # at 5 per second, frames 100 ms apart: pictures of frames 0 and 2
+            net.offer_frame(5, *frame_(k, contact(1, k, 0)), k * 100_000_000, True, False, False,
+                            frame=frame, surface=np.full((4, 4), k, np.float32))
+    images = [store.deserialize_cdr(m.payload, msgs.IMAGE) for m in pub.taken("/optitac/index/image")]
+    assert len(images) == 2 and (images[0].width, images[0].height) == (30, 40)
+    np.testing.assert_array_equal(np.frombuffer(bytes(images[0].data), np.uint8).reshape(40, 30),
+                                  frame[20:60, 10:40])
+    surfaces = [store.deserialize_cdr(m.payload, msgs.IMAGE) for m in pub.taken("/optitac/index/surface")]
+    assert [np.frombuffer(bytes(x.data), "<f4")[0] for x in surfaces] == [0.0, 2.0]
+    (overlay, _) = [store.deserialize_cdr(m.payload, msgs.ANNOTATIONS) for m in pub.taken("/optitac/index/annotations")]
+    assert len(overlay.points[0].points) == 7 and overlay.texts[0].text == "1"
+    cx, cy = overlay.texts[0].position.x, overlay.texts[0].position.y
+    assert (cx, cy) == pytest.approx((5 + 2 * 1.0, 7 - 2 * -1.0))  # the contact at (1, -1) mm
+    assert net.counters(5) == (3 + 2 * 3, 0)  # 3 Contacts, 2 pictures of 3 messages

@@ -43,9 +43,16 @@ def test_type_hashes_are_what_ros2_computes_from_the_definitions(store):
     # rosbags computes REP 2011's RIHS01; checked first on a hash ROS 2 itself publishes
     assert store.hash_rihs01("std_msgs/msg/String") == \
         "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
-    for name, expected in msgs.TYPE_HASHES.items():
-        assert store.hash_rihs01(name) == expected, f"{name}: update TYPE_HASHES (the .msg changed)"
-    assert set(msgs.TYPE_HASHES) == {f"optitac_msgs/msg/{p.stem}" for p in MSG_DIR.glob("*.msg")}
+    ours = {f"optitac_msgs/msg/{p.stem}" for p in MSG_DIR.glob("*.msg")}
+    for name in ours:
+        assert store.hash_rihs01(name) == msgs.TYPE_HASHES[name], f"{name}: update TYPE_HASHES (the .msg changed)"
+    assert set(msgs.TYPE_HASHES) == ours | {msgs.IMAGE, msgs.ANNOTATIONS}
+    # the standard ones from the schemas the service writes: Image's is ROS 2 Jazzy's own
+    assert store.hash_rihs01(msgs.IMAGE) == msgs.TYPE_HASHES[msgs.IMAGE]
+    for name in (msgs.IMAGE, msgs.ANNOTATIONS):
+        own = get_typestore(Stores.EMPTY)
+        own.register(get_types_from_msg(msgs.ros2msg_schema(name), name))
+        assert own.hash_rihs01(name) == msgs.TYPE_HASHES[name], name
 
 
 def test_the_definitions_are_package_data():
@@ -94,7 +101,7 @@ class _Schema:
         self.id, self.name, self.encoding, self.data = 1, name, "ros2msg", msgs.ros2msg_schema(name).encode()
 
 
-@pytest.mark.parametrize("name", [msgs.CONTACTS, msgs.STATUS, msgs.SIGNAL])
+@pytest.mark.parametrize("name", [msgs.CONTACTS, msgs.STATUS, msgs.SIGNAL, msgs.IMAGE])
 def test_the_mcap_schema_is_the_definition_rosbags_reads(store, name):
     # the schema's dependencies, read back by rosbags, are the types it knows for the same names
     from rosbags.typesys.msg import get_types_from_msg as from_schema
@@ -141,3 +148,28 @@ def test_cdr_aligns_from_the_end_of_the_encapsulation_header():
     w.string("ab")
     assert w.payload() == b"\x00\x01\x00\x00" + b"\x01" + b"\x00" * 7 + np.float64(2.0).tobytes() + \
         b"\x03\x00\x00\x00ab\x00"
+
+
+def test_images_and_the_overlay_decode_with_their_schemas():
+    store = get_typestore(Stores.EMPTY)
+    for name in (msgs.IMAGE, msgs.ANNOTATIONS):
+        store.register(get_types_from_msg(msgs.ros2msg_schema(name), name))
+    gray = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    rgb = np.arange(24, dtype=np.uint8).reshape(2, 4, 3)
+    surface = np.linspace(-1, 1, 6, dtype=np.float32).reshape(2, 3)
+    for image, encoding, step, dtype in ((gray, "mono8", 4, np.uint8), (rgb, "rgb8", 12, np.uint8),
+                                         (surface, "32FC1", 12, "<f4")):
+        m = store.deserialize_cdr(msgs.encode_image(image, 7, "f"), msgs.IMAGE)
+        assert (m.height, m.width, m.encoding, m.step, m.is_bigendian) == (*image.shape[:2], encoding, step, 0)
+        np.testing.assert_array_equal(np.frombuffer(bytes(m.data), dtype).reshape(image.shape), image)
+    fibers = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    outline = msgs.Outline(np.array([[0.0, 0.0], [4.0, 0.0], [2.0, 3.0]]), "2 circle", (2.0, 1.0))
+    a = store.deserialize_cdr(msgs.encode_annotations(3_000_000_005, fibers, np.array([False, True, False]),
+                                                      [outline]), msgs.ANNOTATIONS)
+    assert [p.type for p in a.points] == [1, 1, 2] and len(a.circles) == 0
+    assert [(q.x, q.y) for q in a.points[0].points] == [(1.0, 2.0), (5.0, 6.0)]
+    assert [(q.x, q.y) for q in a.points[1].points] == [(3.0, 4.0)]  # the dead fiber, in its own colour
+    assert a.points[1].outline_color.r == 1.0 and a.points[1].outline_color.g < 0.5
+    assert [(q.x, q.y) for q in a.points[2].points] == [(0.0, 0.0), (4.0, 0.0), (2.0, 3.0)]
+    assert a.texts[0].text == "2 circle" and (a.texts[0].position.x, a.texts[0].position.y) == (2.0, 1.0)
+    assert (a.texts[0].timestamp.sec, a.texts[0].timestamp.nanosec) == (3, 5)

@@ -160,6 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mcap", default=None, metavar="FILE",
                    help="also write every sensor's contacts and status to this MCAP file (rotation: [mcap] max_mb, "
                         "max_minutes)")
+    p.add_argument("--foxglove", default=None, metavar="HOST:PORT",
+                   help="serve contacts, status, each sensor's image, surface and overlay live to Foxglove or "
+                        "Lichtblick (e.g. 127.0.0.1:8765; needs the foxglove extra)")
 
     p = sub.add_parser("record", help="save frames of a live source as a recording")
     add_board(p)
@@ -519,7 +522,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
     config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(getattr(args, "publish", None)),
-                          **({"mcap.path": args.mcap} if getattr(args, "mcap", None) else {}))
+                          **({"mcap.path": args.mcap} if getattr(args, "mcap", None) else {}),
+                          **({"publish.foxglove": args.foxglove} if getattr(args, "foxglove", None) else {}))
     stop = threading.Event()
     received: list[int] = []
 

@@ -364,6 +364,11 @@ class PublishConfig:
                           "ROS 2 namespace of the topics, e.g. '/robot1' ('' = none: /optitac/SENSOR/...)")
     node: str = _opt(_str(64, pattern=ROS_NAME, empty=False), "optitac_edge", "ROS 2 node name")
     signal_hz: float = _opt(_num(0, 1000), 0.0, "per-fiber signal messages per second and sensor (0: none)")
+    foxglove: str = _opt(_str(256, pattern=r"\S+:\d{1,5}"), "",
+                         "serve everything live to Foxglove / Lichtblick on HOST:PORT ('' = off; run --foxglove)")
+    picture_hz: float = _opt(_num(0, 120), 0.0,
+                             "each sensor's camera image, surface and overlay per second (0: none; 10 with foxglove "
+                             "when left at 0)")
     queue: int = _opt(_int(8, 1_000_000), 256,
                       "messages held for the publishing thread before the oldest is dropped (and counted)")
 

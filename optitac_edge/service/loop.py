@@ -527,7 +527,7 @@ class Service:
         if self.network is not None:
             p = ch.pipeline
             self.network.offer_frame(ch.sensor_id, est, p.contacts, captured.t_ns, p.calibrated, saturated,
-                                     ch.degraded, p.signal)
+                                     ch.degraded, p.signal, captured.frame, p.surface)
         if send:
             alongside = self.transport.v2_alongside_v1
             if self.protocol == 1 or alongside:

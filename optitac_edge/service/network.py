@@ -46,7 +46,9 @@ log = logging.getLogger(__name__)
 #: Entries the queue holds before it drops the oldest (about a second at 240 fps with 1 sensor).
 DEFAULT_QUEUE = 256
 
-_CONTACTS, _STATUS, _SIGNAL = 0, 1, 2
+_CONTACTS, _STATUS, _SIGNAL, _PICTURE = 0, 1, 2, 3
+#: Points of a contact's outline on the image.
+_OUTLINE_POINTS = 24
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,12 @@ class NetworkSensor:
         Fiber centres (the layout), for FiberSignal.
     dead : ndarray, shape (N,), bool
     calibration_id : str
+    fiber_px : ndarray, shape (N, 2), optional
+        Fiber centres (col, row) in the sensor's image (its region of the camera frame), for the overlay.
+    region : tuple of int
+        (x, y, width, height) of the sensor in the camera frame; () for the whole frame.
+    image_rows : int
+        The camera image's rows (a YUV420 frame holds more: its chroma planes).
     """
 
     sensor_id: int
@@ -70,7 +78,25 @@ class NetworkSensor:
     y_mm: np.ndarray
     dead: np.ndarray
     calibration_id: str = ""
+    fiber_px: np.ndarray | None = None
+    region: tuple[int, ...] = ()
+    image_rows: int = 0
 
+    def mm_to_px(self) -> np.ndarray:
+        """The affine map (2, 3) from the sensor's surface (mm) to its image (px), fitted to the fibers."""
+        assert self.fiber_px is not None
+        mm = np.column_stack([self.x_mm, self.y_mm, np.ones_like(self.x_mm)]).astype(np.float64)
+        live = ~self.dead
+        coef, *_ = np.linalg.lstsq(mm[live], self.fiber_px[live], rcond=None)
+        return np.asarray(coef.T)
+
+    def crop(self, frame: np.ndarray) -> np.ndarray:
+        """A copy of the sensor's image from a camera frame (the luma plane of a YUV420 frame)."""
+        image = frame[:self.image_rows] if self.image_rows else frame
+        if self.region:
+            x, y, w, h = self.region
+            image = image[y:y + h, x:x + w]
+        return image.copy()
     @property
     def topic_name(self) -> str:
         """The sensor's name as a ROS 2 name token (``-`` and ``.`` become ``_``)."""
@@ -97,6 +123,19 @@ def check_topic_names(sensors: Sequence[NetworkSensor]) -> None:
                                f"{other.name!r}'s ({s.topic_name}): rename one of them")
 
 
+def contact_outline(mm_to_px: np.ndarray, values: tuple[Any, ...]) -> msgs.Outline:
+    """A contact's ellipse (FWHM widths at its angle) in image pixels, labelled with its id and shape."""
+    cid, x, y, major, minor, angle, shape = values[0], values[3], values[4], values[5], values[6], values[7], values[11]
+    t = np.linspace(0.0, 2 * np.pi, _OUTLINE_POINTS, endpoint=False)
+    a = np.deg2rad(angle)
+    ex, ey = major / 2 * np.cos(t), minor / 2 * np.sin(t)
+    mm = np.column_stack([x + ex * np.cos(a) - ey * np.sin(a), y + ex * np.sin(a) + ey * np.cos(a),
+                          np.ones_like(t)])
+    px = mm @ mm_to_px.T
+    cx, cy = mm_to_px @ np.array([x, y, 1.0])
+    return msgs.Outline(px, f"{cid} {shape}".strip(), (float(cx), float(cy)))
+
+
 def topic_of(namespace: str, sensor: NetworkSensor, what: str) -> str:
     """The fully qualified topic: ``<namespace>/optitac/<sensor>/<what>``."""
     return f"{namespace}/optitac/{sensor.topic_name}/{what}"
@@ -115,6 +154,9 @@ class _Slot:
         self.dropped = 0
         self.previous_ids: set[int] = set()
         self.next_signal_ns = 0
+        self.next_picture_ns = 0
+        self.picture_topics: tuple[int, int, int] | None = None
+        self.mm_to_px: np.ndarray | None = None
 
 
 class NetworkOutput:
@@ -129,10 +171,13 @@ class NetworkOutput:
         Entries held for the publishing thread before the oldest is dropped.
     signal_hz : float
         FiberSignal messages per second and sensor (0: none).
+    picture_hz : float
+        The sensor's camera image, its surface (both sensor_msgs/Image) and the fibers and contacts drawn
+        over them (foxglove_msgs/ImageAnnotations) per second and sensor (0: none).
     """
 
     def __init__(self, publisher: Publisher, sensors: Sequence[NetworkSensor], queue: int = DEFAULT_QUEUE,
-                 signal_hz: float = 0.0) -> None:
+                 signal_hz: float = 0.0, picture_hz: float = 0.0) -> None:
         self.publisher = publisher
         ns = publisher.namespace
         self._slots: dict[int, _Slot] = {}
@@ -141,8 +186,14 @@ class NetworkOutput:
             handles = (publisher.advertise(topic_of(ns, s, "contacts"), msgs.CONTACTS),
                        publisher.advertise(topic_of(ns, s, "status"), msgs.STATUS),
                        publisher.advertise(topic_of(ns, s, "signal"), msgs.SIGNAL) if signal_hz > 0 else None)
-            self._slots[s.sensor_id] = _Slot(s, handles, f"optitac_{s.topic_name}")
+            slot = self._slots[s.sensor_id] = _Slot(s, handles, f"optitac_{s.topic_name}")
+            if picture_hz > 0:
+                slot.picture_topics = (publisher.advertise(topic_of(ns, s, "image"), msgs.IMAGE),
+                                       publisher.advertise(topic_of(ns, s, "surface"), msgs.IMAGE),
+                                       publisher.advertise(topic_of(ns, s, "annotations"), msgs.ANNOTATIONS))
+                slot.mm_to_px = s.mm_to_px() if s.fiber_px is not None else None
         self._signal_period_ns = int(1e9 / signal_hz) if signal_hz > 0 else 0
+        self._picture_period_ns = int(1e9 / picture_hz) if picture_hz > 0 else 0
         self._queue: deque[tuple[Any, ...]] = deque(maxlen=queue)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -153,9 +204,10 @@ class NetworkOutput:
     # -- the frame loop's side: copy and return ----------------------------------
 
     def offer_frame(self, sensor_id: int, est: Any, contacts: Sequence[Any], t_ns: int, calibrated: bool,
-                    saturated: bool, degraded: bool, signal: np.ndarray | None = None) -> None:
+                    saturated: bool, degraded: bool, signal: np.ndarray | None = None,
+                    frame: np.ndarray | None = None, surface: np.ndarray | None = None) -> None:
         """Every contact of a sensor's frame (``contacts[:est.n_contacts]`` when ``est.contact``), and the
-        signal when one is due. Never blocks."""
+        signal and the picture (the camera ``frame``, the ``surface``) when due. Never blocks."""
         slot = self._slots[sensor_id]
         n = est.n_contacts if est.contact else 0
         values = tuple((c.contact_id, c.touch_frame == c.frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
@@ -167,6 +219,11 @@ class NetworkOutput:
             slot.next_signal_ns = t_ns + self._signal_period_ns
             slot.offered += 1
             self._queue.append((_SIGNAL, slot, slot.offered, est.frame, t_ns, signal.copy()))
+        if self._picture_period_ns and frame is not None and t_ns >= slot.next_picture_ns:
+            slot.next_picture_ns = t_ns + self._picture_period_ns
+            slot.offered += 1
+            self._queue.append((_PICTURE, slot, slot.offered, t_ns, slot.sensor.crop(frame),
+                                None if surface is None else surface.copy(), values))
         self._wake.set()
 
     def offer_status(self, sensor_id: int, status: StatusMessage, frames: int, contacts: int, fps: float,
@@ -199,6 +256,9 @@ class NetworkOutput:
         try:
             if kind == _CONTACTS:
                 handle, payload = slot.contacts_topic, self._contacts_payload(slot, item, wall)
+            elif kind == _PICTURE:
+                self._send_picture(slot, item, wall)
+                return
             elif kind == _SIGNAL:
                 s = slot.sensor
                 sample = msgs.SignalSample(s.sensor_id, item[3], s.x_mm, s.y_mm, item[5], s.dead)
@@ -214,6 +274,23 @@ class NetworkOutput:
                             self.publisher.where, exc)
             else:
                 log.debug("publishing failed: %s", exc)
+
+    def _send_picture(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> None:
+        """The sensor's image, its surface and the overlay, as three messages."""
+        _, _, _, t_ns, image, surface, values = item
+        assert slot.picture_topics is not None
+        image_topic, surface_topic, overlay_topic = slot.picture_topics
+        stamp, now, s = t_ns + wall, time.time_ns(), slot.sensor
+        self.publisher.publish(image_topic, msgs.encode_image(image, stamp, slot.frame_id), now)
+        slot.published += 1
+        if surface is not None:
+            self.publisher.publish(surface_topic, msgs.encode_image(np.asarray(surface, np.float32), stamp,
+                                                                    slot.frame_id), now)
+            slot.published += 1
+        if s.fiber_px is not None and slot.mm_to_px is not None:
+            outlines = [contact_outline(slot.mm_to_px, v) for v in values]
+            self.publisher.publish(overlay_topic, msgs.encode_annotations(stamp, s.fiber_px, s.dead, outlines), now)
+            slot.published += 1
 
     def _contacts_payload(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> bytes:
         _, _, _, frame, t_ns, calibrated, saturated, degraded, values = item
@@ -240,7 +317,8 @@ class NetworkOutput:
     # -- counters and closing ------------------------------------------------------
 
     def counters(self, sensor_id: int) -> tuple[int, int]:
-        """(messages published, messages dropped by the queue) of a sensor so far."""
+        """(messages published, entries dropped by the queue) of a sensor so far (a picture is up to three
+        messages: image, surface, overlay)."""
         slot = self._slots[sensor_id]
         return slot.published, slot.dropped
 

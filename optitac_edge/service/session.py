@@ -42,6 +42,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: Pictures (image, surface, overlay) per second and sensor for Foxglove when [publish] picture_hz is 0.
+DEFAULT_PICTURE_HZ = 10.0
+
 
 class BoardSession:
     """The LED ring, cameras and link of one board config, open for one run of the service.
@@ -176,7 +179,8 @@ class BoardSession:
         p = self.config.publish
         sensors = [network_sensor(found.sensor.sensor, found.bundle)
                    for group in self.bundles().values() for found in group]
-        self.network = NetworkOutput(self.publisher, sensors, queue=p.queue, signal_hz=p.signal_hz)
+        self.network = NetworkOutput(self.publisher, sensors, queue=p.queue, signal_hz=p.signal_hz,
+                                     picture_hz=p.picture_hz or (DEFAULT_PICTURE_HZ if p.foxglove else 0.0))
         self._stack.callback(self.network.close)
         return self.network
 
@@ -232,8 +236,11 @@ class BoardSession:
 def network_sensor(sensor: Any, bundle: CalibrationBundle) -> NetworkSensor:
     """A sensor as the network sees it: its id, name, fiber centres, dead fibers and calibration."""
     xy = bundle.layout.xy_mm
+    region = tuple(sensor.region)
+    px = bundle.fibers.centroid_px - (region[:2] if region else (0, 0))
     return NetworkSensor(sensor.id, sensor.name, xy[:, 0].astype("float32"), xy[:, 1].astype("float32"),
-                         bundle.fibers.dead.copy(), bundle.calibration_id)
+                         bundle.fibers.dead.copy(), bundle.calibration_id, fiber_px=px, region=region,
+                         image_rows=bundle.fibers.height)
 
 
 def _run_peer(service: Service, stop: Event, duration_s: float | None, on_result: OnResult | None,

@@ -87,7 +87,8 @@ logger = logging.getLogger(__name__)
 
 def _published(p: dict[str, Any]) -> str:
     return (f"; published {p['published']} (dropped {p['dropped']}, errors {p['errors']}), the subscriber got "
-            f"{p['received_by_subscriber']}, MCAP {p['mcap_messages']} messages")
+            f"{p['received_by_subscriber']}, the Foxglove client {p['received_by_foxglove_client']}, MCAP "
+            f"{p['mcap_messages']} messages")
 
 
 def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,

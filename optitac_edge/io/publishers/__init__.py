@@ -11,11 +11,12 @@ PUBLISHERS: dict[str, str] = {
     "zenoh": "optitac_edge.io.publishers.zenoh:ZenohPublisher",
     "virtual": "optitac_edge.io.publishers.virtual:VirtualPublisher",
     "mcap": "optitac_edge.io.publishers.mcap:McapPublisher",
+    "foxglove": "optitac_edge.io.publishers.foxglove:FoxglovePublisher",
 }
 
 
 def open_publisher(name: str, **kwargs: Any) -> Publisher:
-    """Open the publisher called ``name`` (``zenoh``, ``mcap`` or ``virtual``)."""
+    """Open the publisher called ``name`` (``zenoh``, ``mcap``, ``foxglove`` or ``virtual``)."""
     from optitac_edge.errors import PublishError
     from optitac_edge.io.device import load_backend
 

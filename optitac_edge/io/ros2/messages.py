@@ -28,9 +28,14 @@ TYPE_HASHES: dict[str, str] = {
     "optitac_msgs/msg/Contacts": "RIHS01_9d37f383a6d70c297aade3ada785efcbab4da1b30aac3768c41057d2896e4cfd",
     "optitac_msgs/msg/FiberSignal": "RIHS01_b3eede3f07963d7b1583573e07524ddb55b8c37d84425c98e5cccd72167f3016",
     "optitac_msgs/msg/SensorStatus": "RIHS01_60cd59e3130ed38da4209a3ec0b2c9068f8a3fabd7db03a0ca9b36a8e394ccd2",
+    # standard messages the pictures use: sensor_msgs/Image as ROS 2 Jazzy defines it, and foxglove_msgs'
+    # ImageAnnotations from the definitions below (the tests recompute both)
+    "sensor_msgs/msg/Image": "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47",
+    "foxglove_msgs/msg/ImageAnnotations": "RIHS01_47c6c0891ba263ec1b20d9b785c4261d4bc41051cbcc01668130e36aa2dcaee3",
 }
 
 IMAGE = "sensor_msgs/msg/Image"
+ANNOTATIONS = "foxglove_msgs/msg/ImageAnnotations"
 CONTACTS = "optitac_msgs/msg/Contacts"
 STATUS = "optitac_msgs/msg/SensorStatus"
 SIGNAL = "optitac_msgs/msg/FiberSignal"
@@ -48,6 +53,23 @@ _STANDARD = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
     "sensor_msgs/Image": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
                           "uint8 is_bigendian\nuint32 step\nuint8[] data\n"),
+    # Foxglove's image annotations as ROS 2 messages (foxglove_msgs), drawn over an Image by Foxglove/Lichtblick
+    "foxglove_msgs/ImageAnnotations": ("foxglove_msgs/CircleAnnotation[] circles\n"
+                                       "foxglove_msgs/PointsAnnotation[] points\n"
+                                       "foxglove_msgs/TextAnnotation[] texts\n"),
+    "foxglove_msgs/CircleAnnotation": ("builtin_interfaces/Time timestamp\nfoxglove_msgs/Point2 position\n"
+                                       "float64 diameter\nfloat64 thickness\nfoxglove_msgs/Color fill_color\n"
+                                       "foxglove_msgs/Color outline_color\n"),
+    "foxglove_msgs/PointsAnnotation": ("uint8 UNKNOWN=0\nuint8 POINTS=1\nuint8 LINE_LOOP=2\nuint8 LINE_STRIP=3\n"
+                                       "uint8 LINE_LIST=4\nbuiltin_interfaces/Time timestamp\nuint8 type\n"
+                                       "foxglove_msgs/Point2[] points\nfoxglove_msgs/Color outline_color\n"
+                                       "foxglove_msgs/Color[] outline_colors\nfoxglove_msgs/Color fill_color\n"
+                                       "float64 thickness\n"),
+    "foxglove_msgs/TextAnnotation": ("builtin_interfaces/Time timestamp\nfoxglove_msgs/Point2 position\n"
+                                     "string text\nfloat64 font_size\nfoxglove_msgs/Color text_color\n"
+                                     "foxglove_msgs/Color background_color\n"),
+    "foxglove_msgs/Point2": "float64 x\nfloat64 y\n",
+    "foxglove_msgs/Color": "float64 r\nfloat64 g\nfloat64 b\nfloat64 a\n",
 }
 #: The messages each message refers to, in the order a ros2msg schema lists them.
 _DEPENDENCIES = {
@@ -56,6 +78,8 @@ _DEPENDENCIES = {
     "SensorStatus": ("std_msgs/Header", "builtin_interfaces/Time"),
     "FiberSignal": ("std_msgs/Header", "builtin_interfaces/Time"),
     "Image": ("std_msgs/Header", "builtin_interfaces/Time"),
+    "ImageAnnotations": ("foxglove_msgs/CircleAnnotation", "builtin_interfaces/Time", "foxglove_msgs/Point2",
+                         "foxglove_msgs/Color", "foxglove_msgs/PointsAnnotation", "foxglove_msgs/TextAnnotation"),
 }
 
 
@@ -210,16 +234,81 @@ def encode_signal(sample: SignalSample, stamp_ns: int, frame_id: str) -> bytes:
 
 
 def encode_image(frame: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
-    """The CDR payload of a sensor_msgs/Image of a camera frame: (H, W) uint8 as ``mono8``,
-    (H, W, 3) uint8 as ``rgb8``."""
+    """The CDR payload of a sensor_msgs/Image: (H, W) uint8 as ``mono8``, (H, W, 3) uint8 as ``rgb8``,
+    (H, W) float32 as ``32FC1`` (little endian)."""
     h, w = frame.shape[:2]
-    encoding = "mono8" if frame.ndim == 2 else "rgb8"
+    if frame.dtype == np.float32:
+        encoding, dtype, step = "32FC1", "<f4", 4 * w
+    else:
+        encoding, dtype, step = ("mono8", "u1", w) if frame.ndim == 2 else ("rgb8", "u1", 3 * w)
     wr = CdrWriter()
     _header(wr, stamp_ns, frame_id)
     wr.u32(h)
     wr.u32(w)
     wr.string(encoding)
     wr.u8(0)
-    wr.u32(w * (1 if frame.ndim == 2 else 3))
-    wr.array_sequence(frame.reshape(-1), "u1")
+    wr.u32(step)
+    data = np.ascontiguousarray(frame, dtype=dtype).view(np.uint8).reshape(-1)
+    wr.array_sequence(data, "u1")
     return wr.payload()
+
+
+#: RGBA colours of the overlay.
+LIVE_FIBER = (0.2, 0.9, 0.3, 0.9)
+DEAD_FIBER = (1.0, 0.2, 0.2, 1.0)
+CONTACT = (1.0, 0.8, 0.0, 1.0)
+_NONE = (0.0, 0.0, 0.0, 0.0)
+POINTS, LINE_LOOP = 1, 2
+
+
+@dataclass(slots=True)
+class Outline:
+    """A contact drawn on an image: its outline (K, 2) px and a label at ``at`` (x, y) px."""
+
+    points: np.ndarray
+    label: str
+    at: tuple[float, float]
+
+
+def encode_annotations(stamp_ns: int, fibers_px: np.ndarray, dead: np.ndarray, outlines: list[Outline]) -> bytes:
+    """The CDR payload of a foxglove_msgs/ImageAnnotations: every fiber as a point (live green, dead red),
+    every contact as a closed outline with its label."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    w = CdrWriter()
+
+    def time() -> None:
+        w.i32(sec)
+        w.u32(nanosec)
+
+    def color(c: tuple[float, float, float, float]) -> None:
+        for v in c:
+            w.f64(v)
+
+    def points(kind: int, xy: np.ndarray, c: tuple[float, float, float, float], thickness: float) -> None:
+        time()
+        w.u8(kind)
+        w.u32(len(xy))
+        for x, y in xy:
+            w.f64(float(x))
+            w.f64(float(y))
+        color(c)
+        w.u32(0)
+        color(c if kind == POINTS else _NONE)
+        w.f64(thickness)
+
+    w.u32(0)  # circles
+    groups = [(POINTS, fibers_px[~dead], LIVE_FIBER, 4.0), (POINTS, fibers_px[dead], DEAD_FIBER, 6.0)]
+    groups = [g for g in groups if len(g[1])] + [(LINE_LOOP, o.points, CONTACT, 2.0) for o in outlines]
+    w.u32(len(groups))
+    for kind, xy, c, thickness in groups:
+        points(kind, xy, c, thickness)
+    w.u32(len(outlines))
+    for o in outlines:
+        time()
+        w.f64(o.at[0])
+        w.f64(o.at[1])
+        w.string(o.label)
+        w.f64(14.0)
+        color(CONTACT)
+        color((0.0, 0.0, 0.0, 0.6))
+    return w.payload()
