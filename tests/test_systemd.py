@@ -183,15 +183,19 @@ def test_install_dry_run(board):
     assert "could not check the config" not in out
 
 
-def test_install_a_publishing_board_gets_the_zenoh_drop_in_and_extras(tmp_path):
+@pytest.mark.parametrize(("publish", "extras"), [
+    ('backend = "zenoh"\nconnect = ["tcp/192.168.1.10:7447"]\n', "board,zenoh,mcap"),
+    ('foxglove = "0.0.0.0:8765"\n', "board,mcap,foxglove"),
+])
+def test_install_a_publishing_board_gets_the_zenoh_drop_in_and_extras(tmp_path, publish, extras):
     board = tmp_path / "robot.toml"
-    board.write_text('[publish]\nbackend = "zenoh"\nconnect = ["tcp/192.168.1.10:7447"]\n[mcap]\npath = "/var/lib/x.mcap"\n')
+    board.write_text(f'[publish]\n{publish}[mcap]\npath = "/var/lib/x.mcap"\n')
     proc = subprocess.run(check=False, args=["bash", str(INSTALL), "--dry-run", str(board)], capture_output=True,
                           text=True, timeout=120, env={**os.environ, "OPTITAC_PYTHON": sys.executable,
                                                        "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
-    assert f"{REPO}[board,zenoh,mcap]" in out
+    assert f"{REPO}[{extras}]" in out
     for unit in ("optitac-edge.service", "optitac-edge@.service"):
         assert f"install -m 0644 {REPO}/systemd/zenoh.conf /etc/systemd/system/{unit}.d/zenoh.conf" in out
 

@@ -91,8 +91,9 @@ try:
 except OptiTacError as exc:
     sys.exit(f"install.sh: {exc}")
 extras = ["board"] + (["zenoh"] if c.publish.backend == "zenoh" else []) + (["mcap"] if c.mcap.path else [])
-print("pipeline" if c.camera.pipeline else "device", "zenoh" if c.publish.backend == "zenoh" else "none",
-      ",".join(extras))'
+extras += ["foxglove"] if c.publish.foxglove else []
+net = c.publish.backend == "zenoh" or bool(c.publish.foxglove)
+print("pipeline" if c.camera.pipeline else "device", "zenoh" if net else "none", ",".join(extras))'
 checked="$(cd / && PYTHONPATH="$REPO" "$CHECK_PY" -c "$CHECK" "$BOARD_FILE")" || exit 2
 read -r camera_kind publish_kind extras <<< "$checked"
 
@@ -193,7 +194,7 @@ for unit in "$SERVICE" "$TEMPLATE"; do
     elif [ -f "$DROP_IN_DIR/jetson-csi.conf" ]; then
         run rm -f "$DROP_IN_DIR/jetson-csi.conf"
     fi
-    # IP networking only for a board that publishes on Zenoh (docs/network.md)
+    # IP networking only for a board that publishes on Zenoh or serves Foxglove (docs/network.md)
     if [ "$publish_kind" = zenoh ]; then
         run install -d -m 0755 "$DROP_IN_DIR"
         run install -m 0644 "$REPO/systemd/zenoh.conf" "$DROP_IN_DIR/zenoh.conf"
