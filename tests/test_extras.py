@@ -75,3 +75,22 @@ def test_the_serial_link_is_in_the_base_install(command):
     proc = _without("sklearn,matplotlib,onnx,onnxruntime,can,cantools,smbus2,threadpoolctl", *command)
     assert proc.returncode == 0, proc.stderr
     assert "processed 30 frames" in proc.stdout
+
+
+@pytest.mark.parametrize(("hidden", "argv", "extra"), [
+    ("zenoh", ["--publish", "zenoh"], "zenoh"),
+    ("xxhash", ["--publish", "zenoh"], "zenoh"),
+    ("mcap", ["--mcap", "run.mcap"], "mcap"),
+    ("foxglove", ["--foxglove", "127.0.0.1:0"], "foxglove"),
+])
+def test_publishing_without_its_extra(tmp_path, hidden, argv, extra):
+    proc = subprocess.run([sys.executable, "-c", HIDE, hidden, "run", *argv, "--frames", "3"], capture_output=True,
+                          text=True, timeout=300, check=False, cwd=tmp_path)
+    assert _one_line(proc).endswith(f"which is not installed: pip install 'optitac-edge[{extra}]'"), proc.stderr
+
+
+def test_reading_an_mcap_recording_without_the_mcap_extra(tmp_path, bundle_path):
+    rec = tmp_path / "r.mcap"
+    rec.write_bytes(b"\x89MCAP0\r\n")
+    line = _one_line(_without("mcap_ros2", "replay", str(rec), "--cal", str(bundle_path), "-o", str(tmp_path / "c")))
+    assert line.endswith("needs mcap_ros2, which is not installed: pip install 'optitac-edge[mcap]'")
