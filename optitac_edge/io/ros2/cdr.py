@@ -95,5 +95,16 @@ class CdrWriter:
             self._align(arr.itemsize)
             self._buf += arr.tobytes()
 
-    def payload(self) -> bytes:
-        return bytes(self._buf)
+    def struct_sequence(self, values: np.ndarray, align: int) -> None:
+        """A sequence of structs of equal numbers laid out as the rows of ``values`` (e.g. Point2[] as an
+        (N, 2) float64 array): the count, then the rows' bytes, aligned to ``align`` when there are any."""
+        arr = np.ascontiguousarray(values)
+        self.u32(len(arr))
+        if len(arr):
+            self._align(align)
+            self._buf += arr.astype(arr.dtype.newbyteorder("<"), copy=False).tobytes()
+
+    def payload(self, tail: bytes | memoryview = b"") -> bytes:
+        """The payload: what was written, then ``tail`` (bytes that need no alignment, e.g. a uint8[]'s
+        data after its count) without copying them twice."""
+        return b"".join((self._buf, tail)) if tail else bytes(self._buf)

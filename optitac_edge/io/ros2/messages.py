@@ -248,9 +248,9 @@ def encode_image(frame: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
     wr.string(encoding)
     wr.u8(0)
     wr.u32(step)
-    data = np.ascontiguousarray(frame, dtype=dtype).view(np.uint8).reshape(-1)
-    wr.array_sequence(data, "u1")
-    return wr.payload()
+    data = memoryview(np.ascontiguousarray(frame, dtype=dtype)).cast("B")
+    wr.u32(data.nbytes)  # uint8[]: its count, then the bytes (no alignment)
+    return wr.payload(data)
 
 
 #: RGBA colours of the overlay.
@@ -287,10 +287,7 @@ def encode_annotations(stamp_ns: int, fibers_px: np.ndarray, dead: np.ndarray, o
     def points(kind: int, xy: np.ndarray, c: tuple[float, float, float, float], thickness: float) -> None:
         time()
         w.u8(kind)
-        w.u32(len(xy))
-        for x, y in xy:
-            w.f64(float(x))
-            w.f64(float(y))
+        w.struct_sequence(np.asarray(xy, dtype=np.float64).reshape(-1, 2), 8)  # Point2[]: (x, y) float64
         color(c)
         w.u32(0)
         color(c if kind == POINTS else _NONE)
