@@ -248,7 +248,7 @@ def encode_image(frame: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
     wr.string(encoding)
     wr.u8(0)
     wr.u32(step)
-    data = memoryview(np.ascontiguousarray(frame, dtype=dtype)).cast("B")
+    data = np.ascontiguousarray(frame, dtype=dtype).data.cast("B")
     wr.u32(data.nbytes)  # uint8[]: its count, then the bytes (no alignment)
     return wr.payload(data)
 
