@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import math
 import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -173,3 +175,33 @@ def test_images_and_the_overlay_decode_with_their_schemas():
     assert [(q.x, q.y) for q in a.points[2].points] == [(0.0, 0.0), (4.0, 0.0), (2.0, 3.0)]
     assert a.texts[0].text == "2 circle" and (a.texts[0].position.x, a.texts[0].position.y) == (2.0, 1.0)
     assert (a.texts[0].timestamp.sec, a.texts[0].timestamp.nanosec) == (3, 5)
+
+
+PARSE_IDL = """
+import sys
+from pathlib import Path
+from rosidl_parser.definition import IdlLocator, Message
+from rosidl_parser.parser import parse_idl_file
+root = Path(sys.argv[1])
+for f in sorted(root.rglob("*.idl")):
+    m = parse_idl_file(IdlLocator(root, f.relative_to(root))).content.get_elements_of_type(Message)[0]
+    print(m.structure.namespaced_type.name, ",".join(x.name for x in m.structure.members))
+"""
+
+
+@pytest.mark.skipif(shutil.which("rosidl") is None, reason="ROS 2's rosidl tools not installed (.ci/run installs "
+                    "Debian's python3-rosidl and rosidl-tools)")
+def test_ros2s_own_tools_translate_and_parse_the_definitions(tmp_path):
+    """What colcon runs first on the package: rosidl_adapter (.msg -> .idl) and rosidl_parser (Debian's
+    rosidl 3.3, the Humble release); a field name, type or constant ROS 2 refuses fails here."""
+    files = [f"msg/{p.name}" for p in sorted(MSG_DIR.glob("*.msg"))]
+    out = subprocess.run(["rosidl", "translate", "--to", "idl", "-o", str(tmp_path), "optitac_msgs", *files],
+                         cwd=ROS_PACKAGE, capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 0 and "No translate extensions" not in out.stderr, out.stderr
+    parsed = subprocess.run(["/usr/bin/python3", "-c", PARSE_IDL, str(tmp_path)], capture_output=True, text=True,
+                            timeout=120, check=False)
+    assert parsed.returncode == 0, parsed.stderr
+    members = dict(line.split(" ", 1) for line in parsed.stdout.splitlines())
+    assert set(members) == {"Contact", "Contacts", "FiberSignal", "SensorStatus"}
+    assert members["Contact"].split(",") == list(msgs.ContactValues.__slots__)
+    assert members["Contacts"].split(",")[:4] == ["header", "sensor_id", "frame", "t_ns"]
