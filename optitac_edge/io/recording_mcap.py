@@ -12,13 +12,13 @@ header, as in ``timestamps.npy``); the metadata record :data:`META_NAME` holds
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.errors import OutputError, RecordingError
+from optitac_edge.io.mcap_file import complete, open_part
 from optitac_edge.io.ros2.messages import IMAGE, encode_image, ros2msg_schema
 
 if TYPE_CHECKING:
@@ -45,13 +45,7 @@ class McapRecordingWriter:
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
-        self._part = self.path.with_name(self.path.name + ".part")
-        if self.path.exists() and not self.path.is_file():
-            raise OutputError(f"{self.path}: exists and is not a regular file")
-        try:
-            self._stream: IO[bytes] = open(self._part, "wb")  # noqa: SIM115 - closed by close/abort
-        except OSError as exc:
-            raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
+        self._stream, self._part = open_part(self.path)
         self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
         self._writer.start(profile="ros2", library="optitac-edge")
         self._writer.add_metadata(META_NAME, {k: json.dumps(v) for k, v in meta.items()})
@@ -78,15 +72,7 @@ class McapRecordingWriter:
         if self._done:
             return
         self._done = True
-        try:
-            self._writer.finish()
-            self._stream.flush()
-            os.fsync(self._stream.fileno())
-            self._stream.close()
-            os.replace(self._part, self.path)
-        except OSError as exc:
-            self._stream.close()
-            raise OutputError(f"cannot complete {self.path}: {exc.strerror or exc}") from None
+        complete(self._writer, self._stream, self._part, self.path)
 
     def abort(self) -> None:
         """Drop what was written (idempotent)."""

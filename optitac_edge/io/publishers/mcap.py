@@ -12,13 +12,12 @@ far (``mcap recover`` restores its index).
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
-from typing import IO
 
 from mcap.writer import CompressionType, Writer
 
 from optitac_edge.errors import OutputError
+from optitac_edge.io.mcap_file import complete, open_part
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2.messages import ros2msg_schema
 
@@ -64,14 +63,8 @@ class McapPublisher(Publisher):
 
     def _open(self) -> None:
         final = rotated_name(self.path, self._index) if self.rotating else self.path
-        part = final.with_name(final.name + ".part")
-        try:
-            if final.exists() and not final.is_file():
-                raise OutputError(f"{final}: exists and is not a regular file")
-            self._stream: IO[bytes] = open(part, "wb")  # noqa: SIM115 - closed by _finish
-        except OSError as exc:
-            raise OutputError(f"cannot write {part}: {exc.strerror or exc}") from None
-        self._final, self._part = final, part
+        self._stream, self._part = open_part(final)
+        self._final = final
         self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
         self._writer.start(profile="ros2", library=LIBRARY)
         self._channels: list[int] = []
@@ -111,16 +104,7 @@ class McapPublisher(Publisher):
             raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
 
     def _finish(self) -> None:
-        try:
-            self._writer.finish()
-            self._stream.flush()
-            os.fsync(self._stream.fileno())
-            self._stream.close()
-            os.replace(self._part, self._final)
-        except OSError as exc:
-            self._stream.close()
-            raise OutputError(f"cannot complete {self._final}: {exc.strerror or exc} (the data is in {self._part})") \
-                from None
+        complete(self._writer, self._stream, self._part, self._final)
         self.files.append(self._final)
         log.info("MCAP: wrote %s", self._final)
 
