@@ -16,8 +16,14 @@ def _check_stats(d: dict) -> None:
         assert 0 <= d["median_us"] <= d["p99_us"] <= d["max_us"]
 
 
-def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> None:
+def test_bench_sim_all_sections(tmp_path, bundle_path, capfd, monkeypatch) -> None:
+    import tempfile
+
     from optitac_edge.devtools.bench import scaling
+
+    scratch = tmp_path / "tmp"  # where the end-to-end runs keep their figures and the MCAP file
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
 
     # small arrays and few distinct frames: the structure of every section, quickly
     monkeypatch.setattr(scaling, "FIBER_RINGS", (2, 3))
@@ -27,8 +33,10 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capsys, monkeypatch) -> N
                  "--reference-frames", "3", "--memory-frames", "20", "--e2e-seconds", "1",
                  "--paced-frames", "4", "--cpu-seconds", "0", "--patches", "2", "--patch-frame", "960x400",
                  "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--e2e-publish", "--json", str(out)]) == 0
-    text = capsys.readouterr().out
+    text, err = capfd.readouterr()
     assert "| whole_frame |" in text
+    assert "Traceback" not in err  # the subscriber process's threads end cleanly too
+    assert list(scratch.iterdir()) == []  # nothing left behind (an MCAP file is 100s of MB a minute)
     res = json.loads(out.read_text())
     assert {"machine", "pipeline", "reference", "memory", "end_to_end", "startup"} <= set(res)
     stages = res["pipeline"]["stages"]
@@ -126,6 +134,27 @@ def test_the_replay_camera_queues_frames_like_the_hardware_ring() -> None:
         else:
             assert cam.frames_dropped >= 2
             assert [seq for seq, _ in cam.overwritten if seq > first][:2] == [first + 1, first + 2]
+
+
+def test_the_replay_camera_starts_at_the_first_read_so_a_slow_start_keeps_the_rest_frames() -> None:
+    """Building the service (publishers, a subscriber process) may take longer than the queue holds:
+    the rest frames must still reach the loop, or its baseline is taken over presses."""
+    import time
+
+    import numpy as np
+
+    from optitac_edge.devtools.bench.replay_camera import paced_replay_camera
+
+    frames = [np.full((8, 8), i, np.uint8) for i in range(20)]
+    cam = paced_replay_camera(frames, rest=4, fps=200.0, pixel_format="gray", queue_frames=2)
+    try:
+        time.sleep(0.1)  # 20 periods before the loop reads
+        got = [cam.read(2.0) for _ in range(4)]
+    finally:
+        cam.close()
+    assert [c.seq for c in got] == [1, 2, 3, 4] and [int(c.frame[0, 0]) for c in got] == [0, 1, 2, 3]
+    cam.close()  # idempotent, and a camera never read closes too
+    paced_replay_camera(frames, rest=4, fps=200.0, pixel_format="gray", queue_frames=2).close()
 
 
 def test_drops_are_blamed_on_the_loop_only_when_the_capture_thread_was_on_time() -> None:

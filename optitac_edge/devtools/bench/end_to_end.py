@@ -37,6 +37,15 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
     and signal also go on Zenoh to a subscriber process and into an MCAP file
     (:mod:`optitac_edge.devtools.bench.network`).
     """
+    with tempfile.TemporaryDirectory(prefix="optitac-bench-") as tmp:
+        return _end_to_end(Path(tmp) / "e2e.json", cal, fps, seconds, rgb, frames, rest, queue_frames, view,
+                           on_view, bundles, publish)
+
+
+def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bool,
+                frames: list[np.ndarray] | None, rest: int, queue_frames: int | None, view: str | None,
+                on_view: Any, bundles: list[Any] | None, publish: bool) -> dict[str, Any]:
+    """:func:`measure_end_to_end`, the reader writing its figures to ``out``."""
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
     from optitac_edge.service.board_config import SensorConfig, load_board_config
@@ -44,7 +53,6 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
     from optitac_edge.sim.camera import SimCamera
 
     master, slave, path = open_pty()
-    out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "e2e.json"
     if bundles is None:
         assert cal is not None, "measure_end_to_end needs cal or bundles"
         bundles = [load_bundle(cal)]
@@ -167,8 +175,12 @@ class MainThreadCpu:
 
 def measure_startup(cal: Path, fps: float) -> dict[str, Any]:
     """Process start to first packet (``optitac-edge run --cal``), and the runtime's import time."""
+    with tempfile.TemporaryDirectory(prefix="optitac-bench-") as tmp:
+        return _startup(Path(tmp) / "startup.json", cal, fps)
+
+
+def _startup(out: Path, cal: Path, fps: float) -> dict[str, Any]:
     master, slave, path = open_pty()
-    out = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "startup.json"
     reader = start_reader(master, 30.0, str(out))
     time.sleep(0.5)
     code = "import sys; from optitac_edge.cli import main; raise SystemExit(main())"

@@ -44,6 +44,8 @@ def read():
             continue
         except Exception:
             return
+        if not m:  # the server closed the connection
+            return
         if isinstance(m, str):
             d = json.loads(m)
             if d["op"] == "advertise":
@@ -80,7 +82,8 @@ class BenchNetwork:
         self.subscriber = subprocess.Popen([sys.executable, "-c", _CLIENT, endpoint], stdin=subprocess.PIPE,
                                            stdout=subprocess.PIPE, text=True)
         assert self.subscriber.stdout is not None and self.subscriber.stdout.readline().strip() == "ready"
-        self.mcap_path = Path(tempfile.mkdtemp(prefix="optitac-bench-")) / "e2e.mcap"
+        self._dir = tempfile.TemporaryDirectory(prefix="optitac-bench-")  # the MCAP file: 100s of MB a minute
+        self.mcap_path = Path(self._dir.name) / "e2e.mcap"
         zenoh = ZenohPublisher(mode="peer", connect=(endpoint,), listen=("tcp/127.0.0.1:0",))
         foxglove = FoxglovePublisher("127.0.0.1:0")
         self.publisher = FanoutPublisher([zenoh, foxglove, McapPublisher(self.mcap_path)])
@@ -94,16 +97,20 @@ class BenchNetwork:
         """Stop publishing; the figures."""
         from mcap.reader import make_reader
 
-        self.output.close()
-        out, _ = self.subscriber.communicate("", timeout=30)
+        try:
+            self.output.close()
+            out, _ = self.subscriber.communicate("", timeout=30)
+            with open(self.mcap_path, "rb") as f:
+                summary = make_reader(f).get_summary()
+            size = self.mcap_path.stat().st_size
+        finally:
+            self._dir.cleanup()
         got = json.loads(out.strip().splitlines()[-1])
         received = got["zenoh"]
-        with open(self.mcap_path, "rb") as f:
-            summary = make_reader(f).get_summary()
         written = summary.statistics.message_count if summary is not None and summary.statistics else 0
         counters = [self.output.counters(i) for i in self.sensor_ids]
         return {"published": sum(p for p, _ in counters), "dropped": sum(d for _, d in counters),
                 "errors": self.output.errors, "received_by_subscriber": sum(received.values()),
                 "received_by_foxglove_client": got["foxglove"],
                 "topics": len(received), "mcap_messages": int(written),
-                "mcap_bytes": self.mcap_path.stat().st_size}
+                "mcap_bytes": size}

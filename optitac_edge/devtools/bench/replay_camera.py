@@ -33,7 +33,10 @@ def paced_replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_f
     class PacedReplayCamera(Camera):
         """Frames (rest first, then the rest cycled) published at ``k / fps`` by a capture thread.
 
-        The thread queues each frame, stamped when published, as the hardware
+        The thread starts at the loop's first read, so the rest frames reach the
+        baseline however long the service takes to be built (a run whose first
+        frames were lost would take its baseline over presses and measure another
+        workload). It queues each frame, stamped when published, as the hardware
         backends' frame ring does: up to ``queue_frames`` wait, and when one more
         comes the oldest is dropped (a gap in ``seq``, counted as dropped). Like a
         camera whose driver delivers by DMA: the source costs the loop nothing, so
@@ -54,7 +57,6 @@ def paced_replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_f
             self._cond = threading.Condition()
             self._stop = threading.Event()
             self._thread = threading.Thread(target=self._capture, name="bench-capture", daemon=True)
-            self._thread.start()
 
         def _capture(self) -> None:
             period = 1e9 / fps
@@ -80,6 +82,8 @@ def paced_replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_f
         def _read_internal(self, timeout_s: float) -> CapturedFrame:
             deadline = time.monotonic() + timeout_s
             with self._cond:
+                if self._thread.ident is None and not self._stop.is_set():
+                    self._thread.start()
                 while not self._waiting:
                     left = deadline - time.monotonic()
                     if left <= 0:
@@ -88,8 +92,10 @@ def paced_replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_f
                 return self._waiting.popleft()
 
         def _close_internal(self) -> None:
-            self._stop.set()
-            self._thread.join(timeout=1.0)
+            with self._cond:
+                self._stop.set()
+            if self._thread.ident is not None:
+                self._thread.join(timeout=1.0)
 
     return PacedReplayCamera()
 
