@@ -75,6 +75,14 @@ class Baseline:
         np.maximum(self.level, self._one, out=self.level)
         np.reciprocal(self.level, out=self.inv_level)
 
+    def raise_to(self, rest: np.ndarray, signal: np.ndarray, level: float, common: float = 0.0) -> int:
+        """Set the baseline of the fibers brighter than it (``signal <= common - level``) to ``rest`` (their
+        light now, gray levels, shape (N,)); returns how many (see :class:`BrightFibers`)."""
+        bright = signal <= common - level
+        self.values[bright] = rest[bright]
+        self._updated()
+        return int(np.count_nonzero(bright))
+
     def track(self, means: np.ndarray, signal: np.ndarray, off_level: float, now_ns: int, dt_ns: int,
               contact_end_ns: int | None) -> bool:
         """Follow ``means`` on a quiet contact-free frame; whether the baseline moved.
@@ -99,4 +107,84 @@ class Baseline:
         diff *= self._alpha
         self.values += diff
         self._updated()
+        return True
+
+
+#: Fibers brighter than their baseline for this long mean the baseline was taken over a press, s.
+BRIGHT_HOLD_S = 0.25
+
+
+class BrightFibers:
+    """Fibers brighter than their baseline: a baseline taken while the skin was pressed.
+
+    A press only darkens the fibers under it, so a fiber whose light stays above
+    its baseline by the contact-off level cannot be explained by the skin: its
+    baseline was taken while something pressed there (the service started, or
+    was tared, during a grasp) and the press has gone. Such fibers read as
+    negative signal, hide a new press at the same place, bias the gain estimate
+    (the brightest fibers are no longer the rest light) and keep the baseline
+    from tracking (it tracks only quiet frames). When some fiber has been that
+    bright for :data:`BRIGHT_HOLD_S` and the frame has no contact, :meth:`check`
+    says so, and :meth:`Baseline.raise_to` raises those fibers' baseline to
+    their light (a fiber brighter than its baseline is not pressed now; the
+    others keep theirs).
+
+    Brighter than what: with the LED gain divided out (``compensate_gain``)
+    the rest light is 0 signal; without it, a uniform change of the light moves
+    every fiber alike and is no press, so brightness is measured from the
+    common (median) level instead. Costs one ``minMaxLoc`` of N values per frame
+    (with the common level, one sort of them too); allocates nothing but when it
+    acts.
+
+    Parameters
+    ----------
+    n_fibers : int
+        N.
+    from_common : bool
+        Measure brightness from the signal's median, not from 0 (no gain compensation).
+    hold_s : float
+        How long some fiber must stay that bright, s (frame timestamps).
+    """
+
+    def __init__(self, n_fibers: int, from_common: bool, hold_s: float = BRIGHT_HOLD_S) -> None:
+        self._hold_ns = int(hold_s * 1e9)
+        self._since_ns: int | None = None
+        self._from_common = from_common
+        self._sorted = np.zeros((1, max(n_fibers, 1)), dtype=np.float32)
+        self._mid = n_fibers // 2
+        #: The level brightness was measured from in the last :meth:`check` (signal units).
+        self.common = 0.0
+
+    def reset(self) -> None:
+        """A new baseline: nothing is bright."""
+        self._since_ns = None
+
+    def check(self, signal: np.ndarray, level: float, now_ns: int, contact_free: bool) -> bool:
+        """Whether some fiber has been brighter than its baseline by ``level`` for the hold, and the frame
+        has no contact (then the timer starts again).
+
+        Parameters
+        ----------
+        signal : ndarray, shape (N,), float32
+            The frame's inverted signal (positive where fibers darkened), signal units.
+        level : float
+            Brighter than the baseline (or the common level) by this much is not noise: the off level, signal units.
+        now_ns : int
+            The frame's time, ns.
+        contact_free : bool
+            The frame has no contact (its light is the skin at rest but where the baseline is wrong).
+        """
+        if self._from_common:
+            cv2.sort(signal.reshape(1, -1), cv2.SORT_EVERY_ROW | cv2.SORT_ASCENDING, dst=self._sorted)
+            lowest, self.common = float(self._sorted[0, 0]), float(self._sorted[0, self._mid])
+        else:
+            lowest = cv2.minMaxLoc(signal)[0]
+        if lowest > self.common - level:
+            self._since_ns = None
+            return False
+        if self._since_ns is None:
+            self._since_ns = now_ns
+        if not contact_free or now_ns - self._since_ns < self._hold_ns:
+            return False
+        self._since_ns = None
         return True

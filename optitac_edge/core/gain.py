@@ -75,6 +75,7 @@ class GainCompensation:
         self._significant = 0.0
         #: The last frame's gain was a common-mode change of the light, taken at once.
         self.light_changed = False
+        self._held = False  # the last frame's own estimate was out of the band, and held to it
         #: Common-mode changes of the light taken since construction.
         self.light_changes = 0
 
@@ -104,8 +105,12 @@ class GainCompensation:
         return int(np.count_nonzero(self._below))
 
     def contact_free(self, now_ns: int) -> None:
-        """The last frame had no contact: its own gain estimate is the reference from now on."""
-        self.reference, self.reference_ns = self.frame_gain, now_ns
+        """The last frame had no contact: its own gain estimate is the reference from now on, unless
+        that estimate was held to the band for a change that could make a contact and that most fibers
+        did not share: then the brightest cluster was not the rest light (fibers brighter than their
+        baseline, :class:`~optitac_edge.core.baseline.BrightFibers`), and the reference stays."""
+        if not self._held:
+            self.reference, self.reference_ns = self.frame_gain, now_ns
 
     def signal(self, means: np.ndarray, baseline: Baseline, now_ns: int, out: np.ndarray) -> np.ndarray:
         """The inverted signal of ``means`` with the frame's gain divided out, into ``out`` (shape (N,)).
@@ -130,12 +135,15 @@ class GainCompensation:
         self.light_changed = False
         band = self._tolerance + self._rate * float(now_ns - self.reference_ns)
         change = abs(g - self.reference)
+        self._held = False
         if change > band and change > self._significant and self._agree(g) >= COMMON_MODE_FRACTION * n:
             self.reference, self.reference_ns = g, now_ns  # the light changed, not the skin
             self.light_changed = True
             self.light_changes += 1
-        else:
-            g = min(max(g, self.reference - band), self.reference + band)
+        elif change > band:
+            g = self.reference - band if g < self.reference else self.reference + band
+            # a change that could make a contact, and not common-mode: not the rest light
+            self._held = change > self._significant
         self.gain = g = max(g, 1e-3)
         self._scale.fill(-1.0 / g)
         np.multiply(ratio, self._scale, out=out)

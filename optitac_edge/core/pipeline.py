@@ -37,7 +37,13 @@ switchable improvements beyond the paper noted in brackets):
    (:class:`~optitac_edge.core.tracking.ContactTracker`; ``pipeline.released``);
 9. [track_baseline: without contact, on quiet frames, the baseline follows
    the fiber means with a time constant of seconds (LED warm-up, drift; with
-   compensate_gain the gain-compensated means: per-fiber drift)].
+   compensate_gain the gain-compensated means: per-fiber drift)];
+10. fibers brighter than their baseline by the off level, which no press can
+   make, for :data:`~optitac_edge.core.baseline.BRIGHT_HOLD_S` and a frame
+   without contact: the baseline was taken while the skin was pressed there (a
+   start or a tare during a grasp); those fibers' baseline is raised to their
+   light (:class:`~optitac_edge.core.baseline.BrightFibers`;
+   ``pipeline.baseline_raised``, ``pipeline.raised_fibers``).
 
 The steps are named parts, each with its own buffers and public methods (the
 benchmark times them one by one): :class:`~optitac_edge.core.fiber_table.FiberSampler`
@@ -65,7 +71,7 @@ from contextlib import contextmanager
 import cv2
 import numpy as np
 
-from optitac_edge.core.baseline import Baseline
+from optitac_edge.core.baseline import Baseline, BrightFibers
 from optitac_edge.core.blob import BlobMeasurer
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
@@ -134,8 +140,14 @@ class Pipeline:
         live_idx = np.flatnonzero(self._live)
         #: Step 2: the fiber means of a frame.
         self.sampler = FiberSampler(table)
-        #: Step 3 and 8: the rest light, averaged then tracked.
+        #: Step 3 and 9: the rest light, averaged then tracked.
         self.baseline = Baseline(n_fibers, bundle.baseline_frames, o.black_level, o.baseline_tau_s, o.holdoff_s)
+        #: Step 10: a baseline taken over a press, found from fibers brighter than it.
+        self.bright_fibers = BrightFibers(n_fibers, from_common=not o.compensate_gain)
+        #: The last frame raised the baseline of fibers brighter than it (it had been taken over a press).
+        self.baseline_raised = False
+        #: How many fibers the last raise moved.
+        self.raised_fibers = 0
         #: The truncation, off and on levels.
         self.levels = ContactLevels(o, bundle.thresholds.threshold)
         #: Step 4 with ``compensate_gain``: the frame's LED gain divided out (None when off).
@@ -240,6 +252,7 @@ class Pipeline:
     def reset_baseline(self) -> None:
         """Tare: re-baseline from the next ``baseline_frames`` frames."""
         self.baseline.reset()
+        self.bright_fibers.reset()
         self._in_contact = False
         self._contact_end_ns = None
         if self.gain_compensation is not None:
@@ -290,6 +303,7 @@ class Pipeline:
             If the frame's shape, dtype or format does not match the bundle.
         """
         self.sampler.table.check_frame(frame, self._pixel_format)
+        self.baseline_raised = False
         est = self._estimate
         est.frame = self._frame
         est.t_ns = now_ns
@@ -320,6 +334,12 @@ class Pipeline:
         elif self._in_contact:
             self._in_contact = False
             self._contact_end_ns = now_ns
+        if self.bright_fibers.check(signal, float(self.levels.off), now_ns, n == 0):
+            rest = means if gain is None else gain.rest_means(baseline)
+            self.raised_fibers = baseline.raise_to(rest, signal, float(self.levels.off), self.bright_fibers.common)
+            self._levels_changed()
+            self.baseline_raised = True
+            return est
         if n == 0 and gain is not None:
             gain.contact_free(now_ns)
         if n == 0 and self.options.track_baseline and dt_ns > 0:

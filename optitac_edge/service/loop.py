@@ -98,6 +98,7 @@ class ServiceStats:
     saturated_frames: int = 0  # skipped: most fibers at full scale
     saturated_sent: int = 0  # processed frames with some fiber at full scale (SATURATED flag)
     light_changes: int = 0  # common-mode changes of the light (LED dimming), not reported as contacts
+    baseline_raises: int = 0  # fibers brighter than their baseline (taken over a press): raised to their light
     processing_errors: int = 0  # frames the pipeline failed on (a bug): counted, flagged, baseline re-taken
     protocol_refused: int = 0  # SET_PROTOCOL for a version the link cannot speak: ignored
     reopens: int = 0  # successful camera reopens
@@ -408,8 +409,9 @@ class Service:
         finally:
             self._shut_down()
         log.info("camera %s stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
-                 "%d processing errors)", self.camera_name, st.frames, st.contacts, st.frames_dropped, st.camera_errors, st.reopens,
-                 st.processing_errors)
+                 "%d processing errors, %d light changes, %d baseline raises)", self.camera_name, st.frames,
+                 st.contacts, st.frames_dropped, st.camera_errors, st.reopens, st.processing_errors,
+                 st.light_changes, st.baseline_raises)
         return st
 
     def _check_frame_gap(self, now_ns: int) -> None:
@@ -522,6 +524,8 @@ class Service:
         st.contacts += int(est.contact)
         if ch.pipeline.light_changed:
             self._light_changed(ch)
+        if ch.pipeline.baseline_raised:
+            self._baseline_raised(ch)
         saturated = ch.frame_check.saturated
         st.saturated_sent += int(saturated)
         if self.network is not None:
@@ -555,6 +559,15 @@ class Service:
         if st.light_changes == 1 or st.light_changes % 100 == 0:
             log.warning("common-mode change of the light %d (LED dimming or brightening to %.3f of the "
                         "baseline, sensor %d): not a contact", st.light_changes, ch.pipeline.gain, ch.sensor_id)
+
+    def _baseline_raised(self, ch: SensorChannel) -> None:
+        st = self.stats
+        st.baseline_raises += 1
+        if st.baseline_raises == 1 or st.baseline_raises % 100 == 0:
+            log.warning("baseline raised %d (sensor %d): %d fibers stayed brighter than their baseline, which no "
+                        "press can make: it was taken while the skin was pressed there (a start or a tare during "
+                        "a grasp); their baseline is now their light", st.baseline_raises, ch.sensor_id,
+                        ch.pipeline.raised_fibers)
 
     def _processing_failed(self, ch: SensorChannel, exc: Exception) -> None:
         """Count a frame the pipeline failed on, flag it, and start its state afresh (a new baseline)."""
