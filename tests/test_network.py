@@ -20,6 +20,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from optitac_edge.errors import PublishError
 from optitac_edge.io.protocol.messages import STATE_BASELINE_READY, STATE_STREAMING, StatusMessage
+from optitac_edge.io.protocol.wire import MsgType
 from optitac_edge.io.publishers import open_publisher
 from optitac_edge.io.publishers.virtual import VirtualPublisher
 from optitac_edge.io.ros2 import messages as msgs
@@ -239,3 +240,76 @@ def test_pictures_are_the_sensors_region_its_surface_and_the_overlay(store):
     cx, cy = overlay.texts[0].position.x, overlay.texts[0].position.y
     assert (cx, cy) == pytest.approx((5 + 2 * 1.0, 7 - 2 * -1.0))  # the contact at (1, -1) mm
     assert net.counters(5) == (3 + 2 * 3, 0)  # 3 Contacts, 2 pictures of 3 messages
+
+
+def _router(endpoint: str):
+    import zenoh
+
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"router"')
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+def test_a_router_that_is_not_up_yet_is_joined_when_it_comes_and_nothing_waits_for_it():
+    """The edge board boots before the robot's main computer: a Zenoh client cannot open its session yet.
+    That must not stop the service (it used to exit 2, so systemd restarted it in a loop and the MCU
+    heard nothing): the session is tried again from the publishing thread, 1 s, then 2 s, ... later."""
+    import time
+
+    from optitac_edge.io.clock import VirtualClock
+    from optitac_edge.io.publishers.zenoh import ZenohPublisher
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    clock = VirtualClock()
+    pub = ZenohPublisher(mode="client", connect=(endpoint,), clock=clock)
+    router = None
+    try:
+        assert not pub.connected and pub.attempts == 1 and "Unable to connect" in pub.failure
+        handle = pub.advertise("/optitac/thumb/contacts", msgs.CONTACTS)
+        with pytest.raises(PublishError, match="no Zenoh session yet"):
+            pub.publish(handle, b"\x00\x01\x00\x00", 0)
+        assert pub.attempts == 1  # not again before its time
+        clock.advance(1.0)
+        with pytest.raises(PublishError):
+            pub.publish(handle, b"\x00\x01\x00\x00", 0)
+        assert pub.attempts == 2  # tried at 1 s; the next wait is 2 s
+        clock.advance(1.5)
+        with pytest.raises(PublishError):
+            pub.publish(handle, b"\x00\x01\x00\x00", 0)
+        assert pub.attempts == 2
+        router = _router(endpoint)
+        got: list[str] = []
+        router.declare_subscriber("**", lambda sample: got.append(str(sample.key_expr)))
+        clock.advance(0.5)
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:  # the subscription reaches the client asynchronously
+            pub.publish(handle, b"\x00\x01\x00\x00", 0)
+            time.sleep(0.05)
+        assert pub.connected and pub.attempts == 3 and pub.zid in pub.where
+        assert got and got[0] == pub.keyexprs[handle]  # the topic declared when the session opened
+    finally:
+        pub.close()
+        if router is not None:
+            router.close()
+
+
+def test_run_streams_to_the_mcu_while_the_router_is_not_up(tmp_path):
+    from fakes.mcu import FakeMcu
+
+    board = tmp_path / "client.toml"
+    board.write_text(f'[link]\ntransport = "serial"\n[publish]\nbackend = "zenoh"\nmode = "client"\n'
+                     f'connect = ["tcp/127.0.0.1:{free_port()}"]\n')
+    mcu = FakeMcu()
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(board), "--serial",
+                                 mcu.path, "--frames", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        frames = mcu.read_until(lambda fr: sum(f.type == MsgType.CONTACT for f in fr) >= 120, timeout=90)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        mcu.close()
+    assert proc.returncode == 0, err[-2000:]
+    assert sum(f.type == MsgType.CONTACT for f in frames) == 120  # every frame reached the MCU
+    assert "cannot open a session yet" in err and "0 messages published" in out

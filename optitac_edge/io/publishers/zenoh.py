@@ -3,6 +3,14 @@
 Needs the ``zenoh`` extra (``eclipse-zenoh``, ``xxhash``), imported when this
 backend is opened. The names, tokens and attachments are built by
 :mod:`optitac_edge.io.ros2.rmw_zenoh`; see docs/network.md.
+
+The robot's network is not the sensor's first job: a session that cannot open
+yet (a client whose router is not up, a port still in use) does not stop the
+service. It is tried again from the publishing thread, 1 s after the first
+attempt and then twice as long each time, up to :data:`RETRY_MAX_S`; until it
+opens, :meth:`ZenohPublisher.publish` refuses every message (counted by the
+caller). A configuration that cannot be right (file, endpoint, name) is still
+refused at once.
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ from typing import Any
 import zenoh
 
 from optitac_edge.errors import PublishError
+from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2 import rmw_zenoh
 from optitac_edge.io.ros2.messages import TYPE_HASHES, dds_type_name
@@ -23,6 +32,9 @@ log = logging.getLogger(__name__)
 
 #: The QoS the topics are declared with: reliable, volatile, keep last 10.
 TOPIC_QOS = rmw_zenoh.Qos(depth=10)
+#: The first wait before opening a session again, and the longest, s.
+RETRY_FIRST_S = 1.0
+RETRY_MAX_S = 30.0
 
 
 def session_config(config: str | Path | None, mode: str, connect: tuple[str, ...],
@@ -70,11 +82,18 @@ class ZenohPublisher(Publisher):
         The node's ROS 2 namespace ("" or ``/robot1``); the topics are under it.
     node : str
         The node's name.
+    clock : Clock
+        When to try a session that could not open again.
+
+    Raises
+    ------
+    PublishError
+        A configuration file, endpoint or name that cannot be right.
     """
 
     def __init__(self, config: str | Path | None = None, mode: str = "", connect: tuple[str, ...] = (),
                  listen: tuple[str, ...] = (), domain_id: int = 0, namespace: str = "",
-                 node: str = "optitac_edge") -> None:
+                 node: str = "optitac_edge", clock: Clock = SYSTEM_CLOCK) -> None:
         super().__init__()
         try:
             self.namespace = rmw_zenoh.check_namespace(namespace)
@@ -82,44 +101,87 @@ class ZenohPublisher(Publisher):
         except ValueError as exc:
             raise PublishError(f"publish: {exc}") from None
         self.domain_id = domain_id
-        cfg = session_config(config, mode, connect, listen)
-        try:
-            self._session = zenoh.open(cfg)
-        except Exception as exc:  # noqa: BLE001 - a bad endpoint, a port in use: one line
-            raise PublishError(f"cannot open a Zenoh session: {_one_line(exc)}") from None
-        self.zid = str(self._session.zid())
-        self._next_id = 1  # entity ids: 0 is the node's
-        self._tokens: list[Any] = [self._session.liveliness().declare_token(
-            rmw_zenoh.node_token(domain_id, self.zid, 0, self.namespace, self.node))]
+        self._config = session_config(config, mode, connect, listen)
+        self._clock = clock
+        self._session: Any = None
+        self.zid = ""
+        self._tokens: list[Any] = []
         self._publishers: list[tuple[Any, bytes]] = []
+        self._topics: list[tuple[str, str]] = []
         self._seq: list[int] = []
         self.keyexprs: list[str] = []
         self.liveliness: list[str] = []
+        #: Attempts to open the session so far, and why the last one failed ("" once open).
+        self.attempts = 0
+        self.failure = ""
+        self._retry_s = RETRY_FIRST_S
+        self._next_ns = 0
+        if not self._try_open():
+            log.warning("Zenoh: cannot open a session yet (%s): nothing is published until it opens; trying again "
+                        "from the publishing thread every %g-%g s (the MCU link does not wait)", self.failure,
+                        RETRY_FIRST_S, RETRY_MAX_S)
 
-    def advertise(self, topic: str, type_name: str) -> int:
+    @property
+    def connected(self) -> bool:
+        """The session is open."""
+        return self._session is not None
+
+    def _try_open(self) -> bool:
+        """Open the session and declare the node and every topic advertised so far; False if it cannot yet."""
+        self.attempts += 1
+        try:
+            session = zenoh.open(self._config)
+        except Exception as exc:  # noqa: BLE001 - a router not up, a port in use: tried again later
+            self.failure = _one_line(exc)
+            now = self._clock.monotonic_ns()
+            self._next_ns = now + int(self._retry_s * 1e9)
+            self._retry_s = min(self._retry_s * 2, RETRY_MAX_S)
+            return False
+        self._session, self.zid, self.failure = session, str(session.zid()), ""
+        self._tokens.append(session.liveliness().declare_token(
+            rmw_zenoh.node_token(self.domain_id, self.zid, 0, self.namespace, self.node)))
+        for topic, type_name in self._topics:
+            self._declare(topic, type_name)
+        if self.attempts > 1:
+            log.info("Zenoh: session %s open (attempt %d)", self.zid, self.attempts)
+        return True
+
+    def _declare(self, topic: str, type_name: str) -> None:
         type_hash, dds_type = TYPE_HASHES[type_name], dds_type_name(type_name)
-        eid, self._next_id = self._next_id, self._next_id + 1
+        eid = len(self._publishers) + 1  # entity ids: 0 is the node's
         key = rmw_zenoh.topic_keyexpr(self.domain_id, topic, dds_type, type_hash)
         token = rmw_zenoh.publisher_token(self.domain_id, self.zid, 0, eid, self.namespace, self.node, topic,
                                           dds_type, type_hash, TOPIC_QOS)
         publisher = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
         self._tokens.append(self._session.liveliness().declare_token(token))
         self._publishers.append((publisher, rmw_zenoh.entity_gid(token)))
-        self._seq.append(0)
         self.keyexprs.append(key)
         self.liveliness.append(token)
-        return len(self._publishers) - 1
+
+    def advertise(self, topic: str, type_name: str) -> int:
+        self._topics.append((topic, type_name))
+        self._seq.append(0)
+        if self._session is not None:
+            self._declare(topic, type_name)
+        return len(self._topics) - 1
 
     def publish(self, handle: int, payload: bytes, source_ns: int) -> None:
+        if self._session is None and (self._clock.monotonic_ns() < self._next_ns or not self._try_open()):
+            raise PublishError("no Zenoh session yet")
         publisher, gid = self._publishers[handle]
         self._seq[handle] += 1
         publisher.put(payload, attachment=rmw_zenoh.attachment(self._seq[handle], source_ns, gid))
 
     @property
     def where(self) -> str:
+        if self._session is None:
+            return (f"Zenoh, no session yet after {self.attempts} attempt(s): {self.failure} "
+                    f"(ROS 2 domain {self.domain_id}, node {self.namespace}/{self.node})")
         return f"Zenoh session {self.zid} (ROS 2 domain {self.domain_id}, node {self.namespace}/{self.node})"
 
     def _close_internal(self) -> None:
+        if self._session is None:
+            return
         for entity in [*self._tokens, *(p for p, _ in self._publishers)]:
             try:
                 entity.undeclare()
