@@ -384,6 +384,8 @@ class McapConfig:
     path: str = _opt(_path, "", "write every sensor's contacts, status and signal to this MCAP file ('' = none)")
     max_mb: float = _opt(_num(0, 1e7), 0.0, "start a new file (NAME-0001.mcap, ...) after this many MB of messages (0: never)")
     max_minutes: float = _opt(_num(0, 1e6), 0.0, "start a new file after this many minutes (0: never)")
+    keep_mb: float = _opt(_num(0, 1e9), 0.0, "delete the recording's oldest complete files once they hold more than "
+                          "this many MB (0: keep all)")
 
     @property
     def file(self) -> Path | None:

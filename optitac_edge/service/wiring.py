@@ -153,7 +153,8 @@ def open_board_publisher(config: BoardConfig) -> Publisher | None:
             opened.append(open_publisher("foxglove", bind=p.foxglove, namespace=p.namespace))
         if m.file is not None:
             opened.append(open_publisher("mcap", path=m.file, max_bytes=int(m.max_mb * 1e6),
-                                         max_ns=int(m.max_minutes * 60e9), namespace=p.namespace))
+                                         max_ns=int(m.max_minutes * 60e9), namespace=p.namespace,
+                                         keep_bytes=int(m.keep_mb * 1e6)))
     except BaseException:
         for publisher in opened:
             publisher.close()
