@@ -335,17 +335,23 @@ class Pipeline:
             self._in_contact = False
             self._contact_end_ns = now_ns
         if self.bright_fibers.check(signal, float(self.levels.off), now_ns, n == 0):
-            rest = means if gain is None else gain.rest_means(baseline)
-            self.raised_fibers = baseline.raise_to(rest, signal, float(self.levels.off), self.bright_fibers.common)
+            self.raised_fibers = baseline.raise_to(self._rest_light(means), signal, float(self.levels.off),
+                                                   self.bright_fibers.common)
             self._levels_changed()
             self.baseline_raised = True
             return est
         if n == 0 and gain is not None:
             gain.contact_free(now_ns)
         if n == 0 and self.options.track_baseline and dt_ns > 0:
-            rest = means if gain is None else gain.rest_means(baseline)  # per-fiber drift, not the LED gain
-            baseline.track(rest, signal, float(self.levels.off), now_ns, dt_ns, self._contact_end_ns)
+            baseline.track(self._rest_light(means), signal, float(self.levels.off), now_ns, dt_ns,
+                           self._contact_end_ns)
         return est
+
+    def _rest_light(self, means: np.ndarray) -> np.ndarray:
+        """The frame's fiber means (shape (N,), gray levels) as the baseline takes them: with gain compensation,
+        the LED gain divided out (per-fiber drift, not the LED's); a view valid until the next frame."""
+        gain = self.gain_compensation
+        return means if gain is None else gain.rest_means(self.baseline)
 
     def compute_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:
         """Step 4: the inverted signal of ``means`` (shape (N,)) into :attr:`signal` (see there)."""
