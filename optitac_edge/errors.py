@@ -11,6 +11,15 @@ class OptiTacError(Exception):
     """Base class of every expected, user-facing error."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (a stop, a closed SSH session) ends a command as Ctrl-C does: the rig is retracted,
+    what was written is kept or marked incomplete."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
 class ConfigError(OptiTacError):
     """A configuration or layout file is malformed (message names file and key)."""
 

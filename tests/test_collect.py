@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from optitac_edge.bringup.collect import Collector, CollectSettings
-from optitac_edge.bringup.experiments import EXPERIMENTS, plan
+from optitac_edge.bringup.experiments import EXPERIMENTS, plan, spread
 from optitac_edge.bringup.rig_frame import fit_rig_frame
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.orientation import layout_symmetries
@@ -46,7 +46,7 @@ def test_every_experiment_collects_over_the_virtual_rig(experiment, tmp_path) ->
     assert truth is not None and poses is not None and rec.timestamped
     assert len(poses.frame) == len(rec) and set(poses.phase) == {"rest", "approach", "hold", "release", "move"}
     held = np.flatnonzero(poses.phase == "hold")
-    presses = plan(experiment, hex_layout())[:3]
+    presses = spread(plan(experiment, hex_layout()), 3)
     hold = FAST.hold_frames
     # the three presses' hold frames: the planned position and depth, in the sensor frame
     last = truth.contact & (np.isin(truth.frame, held))
@@ -167,3 +167,17 @@ def test_ctrl_c_retracts_and_exits_130_saying_how_to_continue(tmp_path) -> None:
 
     with pytest.raises(RecordingError, match="interrupted collection"):
         Recording(out)
+
+
+def test_limit_spreads_the_presses_over_the_whole_experiment() -> None:
+    """--limit 40 took the first 40: shapes held only edges, unseen only the x axis."""
+    layout = hex_layout()
+    shapes = spread(plan("shapes", layout), 40)
+    assert len(shapes) == 40 and {p.shape for p in shapes} == {"edge", "circle", "square", "ellipse", "triangle"}
+    unseen = spread(plan("unseen", layout), 40)
+    assert any(p.y_mm != 0 for p in unseen) and any(p.x_mm != 0 for p in unseen)
+    full = plan("seen", layout)
+    assert spread(full, None) == full and spread(full, 10**6) == full
+    picked = spread(full, 7)
+    assert len(picked) == 7 and picked[0] == full[0] and picked[-1] == full[-1]
+    assert [full.index(p) for p in picked] == sorted(full.index(p) for p in picked)

@@ -64,9 +64,75 @@ def test_moves_status_and_limits(grbl) -> None:
 def test_an_alarm_is_one_line_and_stops_the_rig(grbl) -> None:
     with GcodeRig(grbl.port, LIMITS) as rig:
         grbl.inject_alarm(1)
-        with pytest.raises(RigError, match="ALARM:1 \\(hard limit triggered\\)"):
+        with pytest.raises(RigError, match="ALARM:1 \\(hard limit: a limit switch was hit\\)"):
             for _ in range(50):
                 rig.status()
+
+
+def test_after_a_soft_limit_grbl_is_silent_until_reset_then_unlocked_and_the_tip_retracted(grbl) -> None:
+    """GRBL's critical event: nothing answered until Ctrl-X, then alarm until $X. The position is kept, so
+    the retract resets, unlocks and lifts. Before: the retract waited for a status report that never came."""
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        rig.move_to((100.0, 80.0, 1.0))
+        rig.wait_until_at((100.0, 80.0, 1.0), 5.0)
+        grbl.travel = ((0.0, 200.0), (0.0, 200.0), (-10.0, 5.0))  # the machine's travel is less than our limits
+        with pytest.raises(RigError, match=r"ALARM:2 \(soft limit.*rig limits must lie inside the machine's travel"):
+            rig.move_to((100.0, 80.0, 6.0))
+        assert grbl.critical  # the fake is silent now: '?' gets no answer
+        sent = len(grbl.realtime)
+        grbl.travel = ((0.0, 200.0), (0.0, 200.0), (-10.0, 40.0))
+        rig.retract()
+        assert b"\x18" in grbl.realtime[sent:] and "$X" in grbl.lines
+        assert grbl.state == "Idle" and grbl.position() == pytest.approx((100.0, 80.0, 12.0))
+
+
+def test_after_a_hard_limit_the_tip_is_not_moved_and_the_message_says_what_to_do(grbl) -> None:
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        rig.move_to((100.0, 80.0, -2.0), 2.0)
+        grbl.inject_alarm(1)
+        moves = [line for line in grbl.lines if line.startswith("G1")]
+        with pytest.raises(RigError, match=r"ALARM:1 .*position is lost, so the tip was not moved: jog it clear of "
+                                           r"the skin, home the machine \(\$H\)"):
+            rig.retract()
+        assert [line for line in grbl.lines if line.startswith("G1")] == moves  # no move after the alarm
+        assert "$X" not in grbl.lines
+
+
+def test_the_retract_lifts_straight_up_whatever_a_report_says(grbl) -> None:
+    """A report of x = 190 outside the travel, nan, 1e999 or a 309-digit work offset sent the tip there
+    (G1 X190, G1 Xnan, G1 Xinf); now the lift carries Z alone and garbled reports are polled again."""
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        rig.move_to((100.0, 80.0, 1.0))
+        rig.wait_until_at((100.0, 80.0, 1.0), 5.0)
+        grbl.garble("<Idle|MPos:190.000,10.000,5.000|FS:0,0>", "<Idle|MPos:nan,80.000,1.000|FS:0,0>",
+                    "<Idle|MPos:1e999,80.000,1.000|FS:0,0>", "<Idle|MPos:100.000,80.000,1.000|WCO:1e308,0,0>",
+                    "ok")
+        rig.retract()
+        moves = [line for line in grbl.lines if line.startswith("G1")]
+        assert moves[-1] == "G1 Z12.000 F600.0"
+        assert all("nan" not in m and "inf" not in m and "X190" not in m for m in moves)
+        assert grbl.position() == pytest.approx((100.0, 80.0, 12.0))
+        assert rig.garbled_reports >= 4
+
+
+def test_a_run_of_garbled_reports_is_one_line_not_a_traceback(grbl) -> None:
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        grbl.garble(*["<Idle|MPos:nan,0,0>"] * 10)
+        with pytest.raises(RigError, match="5 garbled status reports in a row .* check the cable"):
+            rig.status()
+
+
+@pytest.mark.parametrize("state, message", [
+    ("Tool", "waiting for a tool change"), ("Door:1", "safety door is open"), ("Sleep", "asleep"),
+    ("Bogus", "a state this program does not know"),
+])
+def test_states_that_stop_the_machine_end_a_wait_at_once(grbl, state, message) -> None:
+    """grblHAL's Tool, Door and Sleep were waited on for 34 s; now they end the wait with what to do."""
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        grbl.set_state(state)
+        assert rig.status().raw_state == state
+        with pytest.raises(RigError, match=message):
+            rig.wait_until_at((100.6, 79.6, 5.0), 30.0)
 
 
 def test_a_locked_machine_is_refused_unless_homing_is_allowed(grbl) -> None:
@@ -88,7 +154,8 @@ def test_retract_holds_resets_and_lifts_without_losing_the_position(grbl) -> Non
         rig.retract()
         assert grbl.realtime.count(b"!") == 1 and b"\x18" in grbl.realtime
         assert grbl.state == "Idle"  # held before the reset: no ALARM:3
-        assert grbl.lines[-1].startswith("G1 X100.6") and grbl.lines[-1].endswith("Z12.000 F600.0")
+        assert grbl.lines[-1] == "G1 Z12.000 F600.0"  # straight up, x and y left where the machine is
+        assert grbl.position()[:2] == pytest.approx((100.6, 79.6))
 
 
 class InterruptDuringPress:
@@ -128,6 +195,9 @@ def test_collect_seen_through_grbl_interrupted_retracted_and_continued(grbl, tmp
         result = Collector(camera, rig, bundle, settings, prompt=lines.append).run("seen", out, limit=14)
     assert result.resumed_at == done and result.presses == 14
     assert f"continuing seen after press {done} of 14" in lines
+    # parked at the safe height over the start point (before: over the last press, off-centre for the next run)
+    assert grbl.position() == pytest.approx((100.6, 79.6, 12.0))
+    assert lines[-1] == "parked the tip at z = 12 mm over the start point (100.60, 79.60)"
     rec = Recording(out)
     assert rec.timestamped and rec.rig_poses is not None and len(rec.rig_poses.frame) == len(rec)
     assert np.all(np.diff(rec.t_ns) >= 0)
@@ -136,3 +206,20 @@ def test_collect_seen_through_grbl_interrupted_retracted_and_continued(grbl, tmp
     assert not (out / JOURNAL).exists()
     _, summary = calibrate_centroid(rec, calibrate_fibers(rec.rest_frames(), rec.pixel_format))
     assert summary["frames"] >= 14 * settings.hold_frames
+
+
+def test_a_soft_limit_during_a_collection_is_recovered_and_the_tip_retracted(grbl, tmp_path) -> None:
+    """Before: after ALARM:2 the tip stayed where it stopped (GRBL answered nothing to the retract's status
+    polls) and the message did not say what GRBL needs."""
+    settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
+    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+    grbl.travel = ((0.0, 200.0), (0.0, 200.0), (1.5, 40.0))  # the machine ends above the registration depth
+    lines: list[str] = []
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        with pytest.raises(RigError) as caught:
+            Collector(camera, rig, bundle, settings, prompt=lines.append).run("seen", tmp_path / "r", limit=3)
+    message = str(caught.value)
+    assert "ALARM:2 (soft limit" in message and "rig limits must lie inside the machine's travel" in message
+    assert lines[-1] == "retracted the tip to z = 12 mm" and "$X" in grbl.lines
+    assert grbl.position()[2] == pytest.approx(12.0) and not grbl.critical

@@ -67,7 +67,8 @@ def test_limits_protective_stop_and_retract() -> None:
         rig.move_to((400.0, 0.0, 10.0))
     assert not ur.calls
     rig.move_to((400.0, 0.0, 100.0))
-    rig.retract(sleep=lambda s: None)
+    rig.sleep = lambda s: None
+    rig.retract()
     assert ("stopL", 2.0) in ur.calls and rig.status().xyz_mm[2] == pytest.approx(250.0)
     ur.protective = True
     with pytest.raises(RigError, match="protective or emergency stop"):

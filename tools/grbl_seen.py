@@ -102,7 +102,7 @@ def main() -> None:
     cal, summary = calibrate_centroid(rec, cal)
     report["orientation"] = fit.symmetry.label if fit.symmetry else fit.reason
     report["centroid_fit"] = summary
-    unseen = Recording(write_scenario(args.workdir / "unseen", "unseen", seed=21))
+    unseen = Recording(write_scenario(args.workdir / "unseen", "unseen", seed=21, fresh=True))
     m = measure_recording(unseen, cal)
     c, d = centroid_accuracy(m, unseen.truth), detection(m, unseen.truth)
     report["unseen_rmse_mm"] = [round(c.rmse_x, 4), round(c.rmse_y, 4)]

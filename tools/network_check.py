@@ -56,8 +56,8 @@ def _free_port() -> int:
 
 def prepare(work: Path, fps: float) -> tuple[Path, Path]:
     """(the presses restamped at ``fps``, the bundle)."""
-    presses = write_scenario(work / "unseen", "unseen", seed=1)
-    rest = Recording(write_scenario(work / "rest", "rest", seed=2))
+    presses = write_scenario(work / "unseen", "unseen", seed=1, fresh=True)
+    rest = Recording(write_scenario(work / "rest", "rest", seed=2, fresh=True))
     bundle = work / "cal.npz"
     save_bundle(calibrate_fibers(rest.rest_frames(), rest.pixel_format), bundle)
     n = len(Recording(presses))

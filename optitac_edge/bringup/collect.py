@@ -13,11 +13,18 @@ One loop at the edge: read a frame, poll the rig, write both. The steps:
 4. **The experiment's presses** (:mod:`optitac_edge.bringup.experiments`):
    every target is checked against the rig's limits before the first moves;
    each press is rest frames at the hover height, approach, hold, release.
-   A journal line is appended after each press, so an interrupted
-   collection continues after its last complete press.
+   A journal line is appended after each press (its frames made durable
+   first), so an interrupted collection -- Ctrl-C, SIGTERM, a dropped SSH
+   session, a kill or a power cut -- continues after its last complete press.
+5. **Park**: the tip ends at the safe height over the start point, where the
+   next collection starts.
 
 Every frame gets a truth row with its phase and the rig's pose; on Ctrl-C, a
-rig alarm, a lost connection or any error the tip is retracted first.
+rig alarm, a lost connection or any error the tip is retracted first. A
+continued collection first lifts the tip straight up (a kill or a power cut
+leaves it where it was, maybe in the skin); its frames may carry a clock that
+restarted (a reboot, the simulator's virtual clock): the recording's segments
+say so, and its times stay in order (:class:`~optitac_edge.io.recording.RecordingWriter`).
 """
 
 from __future__ import annotations
@@ -33,19 +40,23 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.bringup.experiments import PlannedPress, plan
+from optitac_edge.bringup.experiments import PlannedPress, plan, spread
 from optitac_edge.bringup.rig_frame import RigFrame, fit_rig_frame
 from optitac_edge.calibration.orientation import Symmetry, layout_symmetries
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.pipeline import Pipeline
-from optitac_edge.errors import CameraError, RigError
+from optitac_edge.errors import CameraError, RecordingError, RigError
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.recording import COLLECT_JOURNAL, INCOMPLETE_MARKER, RecordingMeta, RecordingWriter
-from optitac_edge.io.rigs.base import Rig
+from optitac_edge.io.rigs.base import STOPPED_STATES, Rig
 
 log = logging.getLogger(__name__)
 
 JOURNAL = COLLECT_JOURNAL
+#: Registration fit RMS (mm) above which the operator is warned (docs/bring-up.md: good is <= 0.3 mm) ...
+REGISTER_WARN_MM = 0.3
+#: ... and above which the collection is refused: the rig frame would misplace every press.
+REGISTER_REFUSE_MM = 0.6
 
 
 @dataclass(frozen=True)
@@ -134,6 +145,8 @@ class Collector:
         self._rows: list[dict[str, Any]] = []
         self._times: list[int] = []
         self._mounted = ""
+        #: Where the operator left the tip (the park position is the safe height over it), and the last target.
+        self._start = self._at = (math.nan, math.nan, math.nan)
 
     # -- the loop's one step: a frame, the rig's pose, a row ---------------------------------
 
@@ -142,10 +155,13 @@ class Collector:
         if captured is None:
             raise CameraError("the camera ended during the collection")
         st = self.rig.status()
+        if st.state in STOPPED_STATES:
+            raise RigError(f"the rig is {STOPPED_STATES[st.state]} ({st.raw_state or st.state}); the collection "
+                           "stopped: run the same command to continue")
         assert self.writer is not None
-        self.writer.write(self._index, captured.frame, captured.t_ns)
+        t_ns = self.writer.write(self._index, captured.frame, captured.t_ns)
         self._rows.append(self._row(phase, press, st.xyz_mm))
-        self._times.append(int(captured.t_ns))
+        self._times.append(int(captured.t_ns if t_ns is None else t_ns))
         self._index += 1
         est = self.pipeline.process(captured.frame, captured.t_ns)
         return est, st
@@ -174,6 +190,7 @@ class Collector:
               feed_mm_s: float | None = None) -> list[Any]:
         """Move the tip, recording every frame until the rig is idle there."""
         self.rig.move_to(xyz, feed_mm_s)
+        self._at = xyz
         feed = min(feed_mm_s or self.rig.limits.feed_mm_s, self.rig.limits.feed_mm_s)
         budget = max(5, int((20.0 + 3.0 * math.dist(xyz, self._pose()) / feed) * self.camera.fps))
         estimates = []
@@ -186,6 +203,17 @@ class Collector:
 
     def _pose(self) -> tuple[float, float, float]:
         return self.rig.status().xyz_mm
+
+    def _start_pose(self) -> tuple[float, float, float]:
+        """Where the operator left the tip: two reports in a row that agree (no single report is trusted)."""
+        last = self._pose()
+        for _ in range(10):
+            pose = self._pose()
+            if math.dist(pose, last) < 0.01:
+                return pose
+            last = pose
+        raise RigError("the rig reports a different position every time although it should stand still "
+                       f"(last {last}); is it moving, or is the line noisy?")
 
     # -- setup: rest, touch-off, registration --------------------------------------------------
 
@@ -256,39 +284,61 @@ class Collector:
             fresh: bool = False) -> CollectResult:
         """Collect ``experiment`` into the recording ``out`` (continuing an interrupted one unless ``fresh``).
 
+        ``limit`` takes that many presses spread over the whole experiment. A complete recording at
+        ``out`` is refused, or with ``fresh`` replaced once the new one is complete.
+
         Raises
         ------
-        RigError, CameraError, OutputError
+        RigError, CameraError, OutputError, RecordingError
             After retracting the tip; the recording is left incomplete and can be continued.
         """
-        presses = plan(experiment, self.bundle.layout, seed)[:limit]
-        journal = out / JOURNAL
-        setup, done = ({}, []) if fresh else _read_journal(journal, experiment, seed, len(presses))
+        presses = spread(plan(experiment, self.bundle.layout, seed), limit)
+        setup, done = ({}, []) if fresh else _read_journal(out / JOURNAL, experiment, seed, len(presses))
         meta = RecordingMeta(rest_frames=self.settings.initial_rest_frames, fps=self.camera.fps,
                              extra={"collect": {"experiment": experiment, "seed": seed}})
-        kept = done[-1]["end_frame"] if done else setup.get("end_frame", 0)
         entries = ([setup] if setup else []) + done
+        kept = entries[-1]["end_frame"] if entries else 0
         kept_rows = [r for entry in entries for r in entry["rows"]]
         kept_t = [t for entry in entries for t in entry["t_ns"]]
+        segments = next((e["segments"] for e in reversed(entries) if "segments" in e), None)
         self.writer = RecordingWriter(out, None, self.camera.frame_shape, meta, rig_columns=True,
-                                      keep_frames=kept, kept_t_ns=np.asarray(kept_t, np.int64) if kept else None)
+                                      keep_frames=kept, kept_t_ns=np.asarray(kept_t, np.int64) if kept else None,
+                                      kept_segments=segments, replace=fresh)
+        journal = self.writer.path / JOURNAL
         try:
             result = self._run(experiment, presses, setup, done, journal, kept_rows, seed)
+            self._park()
         except BaseException as exc:
-            self._retract_after(exc)
+            unsafe = self._retract_after(exc)
             self.writer.abort("interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {exc}")
+            if unsafe is not None and isinstance(exc, Exception):
+                raise RigError(f"{exc}; {unsafe}") from None
             raise
         meta.extra["collect"] = result.to_json()
         self.writer.close()
-        journal.unlink(missing_ok=True)
+        (self.writer.target / JOURNAL).unlink(missing_ok=True)
         return result
 
-    def _retract_after(self, exc: BaseException) -> None:
+    def _retract_after(self, exc: BaseException) -> str | None:
+        """Retract the tip after ``exc``; None, or why the tip was not retracted (for the one line)."""
         try:
             self.rig.retract()
+        except Exception as err:  # noqa: BLE001 - the original error is what the user must see first
+            log.debug("could not retract the tip after %s: %s", type(exc).__name__, err)
+            return f"the tip was NOT retracted: {err}"
+        try:
             self.prompt(f"retracted the tip to z = {self.rig.limits.safe_z_mm:g} mm")
-        except Exception as err:  # noqa: BLE001 - the original error is what the user must see
-            log.error("could not retract the tip after %s: %s", type(exc).__name__, err)
+        except Exception:  # noqa: BLE001 - a terminal gone with the SSH session that sent SIGHUP
+            pass
+        return None
+
+    def _park(self) -> None:
+        """The tip to the safe height over the start point, where the next collection starts."""
+        x0, y0, _ = self._start
+        safe = self.rig.limits.safe_z_mm
+        self.rig.lift(safe)
+        self.rig.move_and_wait((x0, y0, safe))
+        self.prompt(f"parked the tip at z = {safe:g} mm over the start point ({x0:.2f}, {y0:.2f})")
 
     def _run(self, experiment: str, presses: list[PlannedPress], setup: dict[str, Any],
              done: list[dict[str, Any]], journal: Path, kept_rows: list[dict[str, Any]], seed: int) -> CollectResult:
@@ -304,13 +354,19 @@ class Collector:
                                   fit_rms_mm=float(saved["fit_rms_mm"]))
             symmetry = setup["bundle_orientation"]
             touch = setup.get("touch_off", {})
+            start = setup.get("start_xyz_mm") or setup["rows"][0]["rig"]
+            self._start = (float(start[0]), float(start[1]), float(start[2]))
+            self._at = self._start
             self.prompt(f"continuing {experiment} after press {len(done)} of {len(presses)}")
+            # a kill or a power cut left the tip where it was, maybe in the skin: straight up first
+            self.rig.retract()
             self._frames(s.rest_frames, "rest", None)  # a fresh baseline
         else:
-            x0, y0, z0 = self._pose()
+            x0, y0, z0 = self._start = self._at = self._start_pose()
             self.prompt(f"rest at the start point ({x0:.2f}, {y0:.2f}, {z0:.2f}); nothing may touch the skin")
             self._frames(s.initial_rest_frames, "rest", None)
-            first = presses[0]
+            # registration presses with the experiment's first circle (an edge's centroid along it is ill-defined)
+            first = next((p for p in presses if p.shape == "circle"), presses[0])
             tip = PlannedPress(0.0, 0.0, s.register_depth_mm, first.shape, first.size_mm, first.angle_deg)
             if tip.indenter != self._mounted:
                 self._change_indenter(tip)
@@ -319,18 +375,27 @@ class Collector:
             surface, touch = self._touch_off(x0, y0, z0, tip)
             self.prompt(f"registration: 5 presses around ({x0:.2f}, {y0:.2f})")
             frame, h = self._register(x0, y0, surface, tip)
+            if frame.fit_rms_mm > REGISTER_REFUSE_MM:
+                raise RigError(f"registration fit RMS {frame.fit_rms_mm:.2f} mm is too poor (good: <= "
+                               f"{REGISTER_WARN_MM} mm): every press would be misplaced; check that the indenter sits "
+                               "tight, the start point is over the middle of the skin and the bundle is this sensor's")
             self.frame = frame
             symmetry = h.label
             self._rows = [self._complete(r, r.pop("_press")) for r in self._rows]
             setup = {"kind": "setup", "experiment": experiment, "seed": seed, "presses": len(presses),
                      "rig_frame": asdict(frame), "bundle_orientation": symmetry, "touch_off": touch,
-                     "end_frame": self._index, "rows": self._rows, "t_ns": self._times}
+                     "start_xyz_mm": [x0, y0, z0], "end_frame": self._index, "rows": self._rows,
+                     "t_ns": self._times, "segments": self.writer.segments}
             self._flush_rows()
+            self.writer.sync()
             _append(journal, setup, new=True)
             self._rows, self._times = [], []
             self.prompt(f"sensor origin at rig ({frame.origin_xy_mm[0]:.2f}, {frame.origin_xy_mm[1]:.2f}), "
                         f"+x at {frame.rotation_deg:+.1f}° from the rig's +X, surface z {frame.surface_z_mm:.2f}, "
                         f"fit RMS {frame.fit_rms_mm:.2f} mm")
+            if frame.fit_rms_mm > REGISTER_WARN_MM:
+                self.prompt(f"warning: registration fit RMS {frame.fit_rms_mm:.2f} mm (good: <= {REGISTER_WARN_MM} mm): "
+                            "check that the indenter sits tight and the bundle's fiber map is this sensor's")
             if not h.is_identity:
                 self.prompt(f"warning: the bundle's fiber map is {h.label} from the rig's presses; after this "
                             "collection run: optitac-edge calibrate orientation REC --cal CAL")
@@ -355,8 +420,9 @@ class Collector:
             self._frames(s.hold_frames, "hold", p)
             self._move((tx, ty, hover), "release", p, s.approach_feed_mm_s)
             self._flush_rows()
+            self.writer.sync()
             _append(journal, {"kind": "press", "index": k, "end_frame": self._index, "rows": self._rows,
-                              "t_ns": self._times})
+                              "t_ns": self._times, "segments": self.writer.segments})
             self._rows, self._times = [], []
             if (k + 1) % 25 == 0:
                 log.info("press %d of %d", k + 1, len(presses))
@@ -365,7 +431,7 @@ class Collector:
 
     def _change_indenter(self, p: PlannedPress) -> None:
         if not self.rig.changes_indenters:
-            x, y, _ = self._pose()
+            x, y, _ = self._at  # where the last move went: no report's x or y goes into a target
             self._move((x, y, self.rig.limits.safe_z_mm), "move", None)
             self.confirm(f"mount the {p.shape} indenter, {p.size_mm:g} mm, at {p.angle_deg:g}° from the rig's +X; "
                          "then press Enter")
@@ -398,25 +464,103 @@ def _read_journal(journal: Path, experiment: str, seed: int, n_presses: int
                   ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The setup and the completed presses of an interrupted collection ({} and [] when there is none).
 
+    A last line cut short by the interruption is dropped (that press is made again); any other line
+    is checked (:func:`_check_entry`): the journal decides which frames are kept.
+
     Raises
     ------
     RigError
         If the recording was collected with another experiment, seed or number of presses.
+    RecordingError
+        If a line is not what ``collect`` writes (edited or damaged), naming the line.
     """
     if not journal.exists() or not (journal.parent / INCOMPLETE_MARKER).exists():
         return {}, []
-    entries = []
-    for line in journal.read_text(encoding="utf-8").splitlines():
+    try:
+        lines = journal.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{journal}: cannot read the journal ({exc}); --fresh starts the collection again") \
+            from None
+    entries: list[dict[str, Any]] = []
+    for n, line in enumerate(lines, start=1):
         try:
-            entries.append(json.loads(line))
-        except ValueError:
-            break  # a line cut short by the interruption: the press is done again
-    if not entries or entries[0].get("kind") != "setup":
+            entry = json.loads(line)
+        except (ValueError, RecursionError):
+            if n == len(lines):
+                break  # a line cut short by the interruption: the press is done again
+            entry = None
+        if n == 1 and isinstance(entry, dict) and entry.get("kind") == "setup":
+            made = (entry.get("experiment"), entry.get("seed"), entry.get("presses"))
+            if made != (experiment, seed, n_presses):
+                raise RigError(f"{journal.parent}: an interrupted collection of {made[0]} (seed {made[1]}, "
+                               f"{made[2]} presses); continue it with the same arguments, or use --fresh to start "
+                               "again")
+        why = _check_entry(entry, n == 1, entries[-1]["end_frame"] if entries else 0, len(entries) - 1)
+        if why:
+            raise RecordingError(f"{journal}: line {n}: {why} (edited or damaged?); --fresh starts the collection "
+                                 "again")
+        entries.append(entry)
+    if not entries:
         return {}, []
-    setup, presses = entries[0], [e for e in entries[1:] if e.get("kind") == "press"]
-    if (setup.get("experiment"), setup.get("seed"), setup.get("presses")) != (experiment, seed, n_presses):
-        raise RigError(f"{journal.parent}: an interrupted collection of {setup.get('experiment')} "
-                       f"(seed {setup.get('seed')}, {setup.get('presses')} presses); continue it with the same "
-                       "arguments, or use --fresh to start again")
-    presses = [e for k, e in enumerate(presses) if e.get("index") == k]
-    return setup, presses
+    return entries[0], entries[1:]
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_entry(entry: Any, first: bool, start_frame: int, index: int) -> str:
+    """Why ``entry`` is not the journal line ``collect`` writes there ('' when it is)."""
+    if not isinstance(entry, dict):
+        return "not a JSON object"
+    kind = "setup" if first else "press"
+    if entry.get("kind") != kind:
+        return f"expected a {kind} entry"
+    if first:
+        frame = entry.get("rig_frame")
+        if not (isinstance(entry.get("experiment"), str) and _is_int(entry.get("seed"))
+                and _is_int(entry.get("presses")) and isinstance(entry.get("bundle_orientation"), str)
+                and isinstance(entry.get("touch_off", {}), dict) and isinstance(frame, dict)):
+            return "a setup without its experiment, seed, presses, rig frame or orientation"
+        origin = frame.get("origin_xy_mm")
+        if not (isinstance(origin, list) and len(origin) == 2 and all(map(_is_num, origin))
+                and all(_is_num(frame.get(k)) for k in ("rotation_deg", "surface_z_mm", "fit_rms_mm"))):
+            return "a rig frame that is not finite numbers"
+        start = entry.get("start_xyz_mm", [0.0, 0.0, 0.0])
+        if not (isinstance(start, list) and len(start) == 3 and all(map(_is_num, start))):
+            return "a start point that is not three finite numbers"
+    elif entry.get("index") != index:
+        return f"press {entry.get('index')!r} where press {index} comes"
+    end, rows, times = entry.get("end_frame"), entry.get("rows"), entry.get("t_ns")
+    if not (_is_int(end) and isinstance(rows, list) and isinstance(times, list)
+            and end - start_frame == len(rows) == len(times)):
+        return "frames, rows and times that do not add up"
+    if not all(_is_int(t) for t in times) or any(b < a for a, b in zip(times, times[1:])):
+        return "frame times that are not integers in order"
+    for k, row in enumerate(rows):
+        why = _check_row(row, start_frame + k)
+        if why:
+            return why
+    segments = entry.get("segments", [])
+    if not (isinstance(segments, list) and all(
+            isinstance(g, dict) and _is_int(g.get("first_frame")) and _is_int(g.get("offset_ns")) for g in segments)):
+        return "segments that are not frame numbers and shifts"
+    return ""
+
+
+def _check_row(row: Any, frame: int) -> str:
+    from optitac_edge.io.recording import PHASES, SHAPES
+
+    if not isinstance(row, dict) or row.get("frame") != frame:
+        return f"the row of frame {frame} is missing"
+    rig = row.get("rig")
+    if row.get("phase") not in PHASES or not (isinstance(rig, list) and len(rig) == 3 and all(map(_is_num, rig))):
+        return f"frame {frame}: a phase or rig pose that collect does not write"
+    if row.get("contact") is True and not (row.get("shape") in SHAPES and all(
+            _is_num(row.get(k)) for k in ("x", "y", "angle", "size", "depth"))):
+        return f"frame {frame}: a contact without its shape, position, angle, size or depth"
+    return ""

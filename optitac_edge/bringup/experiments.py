@@ -7,7 +7,7 @@
             half the radius out at 45, 135, 225, 315 degrees).
 ``widths``  circles of ``WIDTHS_MM``, 3 mm deep, 5 presses each at random positions
             fully on the array; one block per indenter (the operator changes it).
-``shapes``  5 shapes, each in 4 blocks of angles across its symmetry period, 10
+``shapes``  5 shapes (the circle first), each in 4 blocks of angles across its symmetry period, 10
             presses a block at random positions fully on the array, 3 mm deep.
 ``depths``  a 5 mm circle at the centre and 6 points half the radius out, at
             ``DEPTHS_MM``, twice each, in random order (for depth calibration).
@@ -27,7 +27,8 @@ from optitac_edge.core.layout import FiberLayout
 EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths")
 WIDTHS_MM: tuple[float, ...] = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0)
 DEPTHS_MM: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
-SHAPE_SIZE_MM = {"edge": 1.5, "circle": 6.0, "square": 6.0, "ellipse": 7.0, "triangle": 7.0}
+#: The circle first: the collection's registration presses use the experiment's first circle.
+SHAPE_SIZE_MM = {"circle": 6.0, "edge": 1.5, "square": 6.0, "ellipse": 7.0, "triangle": 7.0}
 ANGLE_PERIOD_DEG = {"circle": 0.0, "square": 90.0, "triangle": 120.0, "ellipse": 180.0, "edge": 180.0}
 #: How far an indenter's outline reaches beyond its size/2 (edge: its length), mm.
 EDGE_LENGTH_MM = 12.0
@@ -84,6 +85,18 @@ def _random_on_array(rng: np.random.Generator, layout: FiberLayout, shape: str, 
         return 0.0, 0.0
     r, t = room * math.sqrt(rng.uniform()), rng.uniform(0.0, 2 * math.pi)
     return r * math.cos(t), r * math.sin(t)
+
+
+def spread(presses: list[PlannedPress], limit: int | None) -> list[PlannedPress]:
+    """``limit`` presses spread evenly over the experiment, in its order (all of them without a limit).
+
+    The first N would hold only the experiment's first block (``shapes``: only edges; ``unseen``: only
+    the x axis).
+    """
+    if limit is None or limit >= len(presses):
+        return list(presses)
+    picks = np.unique(np.round(np.linspace(0, len(presses) - 1, max(limit, 1))).astype(int))
+    return [presses[int(k)] for k in picks]
 
 
 def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPress]:

@@ -34,7 +34,7 @@ from optitac_edge.cli.common import (
     number,
     one_sensor_config,
 )
-from optitac_edge.errors import EXTRA_OF_MODULE, OptiTacError, missing_extra
+from optitac_edge.errors import EXTRA_OF_MODULE, Interrupted, OptiTacError, missing_extra
 from optitac_edge.io.logs import NonBlockingLogging
 from optitac_edge.text import fields
 
@@ -66,6 +66,11 @@ class _Scenarios:
         return iter(self._names())
 
 
+def _add_fresh(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--fresh", action="store_true",
+                   help="replace a complete recording at the output (it is kept until the new one is complete)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -88,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="another simulated sensor (optics and skin drawn from seed N; 0 = default); "
                         "sets its own rotation and mirror")
     p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
+    _add_fresh(p)
     _add_orientation(p)
     add_board(p, default=None)  # --board B --sensor ID: the sensor's patch in whole frames of its sim camera
 
@@ -172,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mcap", action="store_true",
                    help="write REC as one MCAP file (frames as sensor_msgs/Image; the default when REC ends in "
                         ".mcap); replay, calibrate and evaluate read it like a recording directory")
+    _add_fresh(p)
 
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
     p.add_argument("--minutes", type=number(0, 1e6, lo_open=True), required=True, metavar="M")
@@ -282,10 +289,18 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                               rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
     else:
         optics, patch = _sim_board_sensor(args, config, dark)
+    from optitac_edge.io.recording import check_writable_recording
+
+    check_writable_recording(args.out_dir, args.fresh)  # refused now, not after the simulation
     mcap = args.out_dir.suffix == ".mcap"
     out = args.out_dir.with_name(args.out_dir.name + ".dir.part") if mcap else args.out_dir
+    if mcap:
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)  # a conversion that did not finish
     path = write_scenario(out, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
-                          day=args.day, variant=args.variant, warmup=args.warmup, patch=patch)
+                          day=args.day, variant=args.variant, warmup=args.warmup, patch=patch,
+                          fresh=args.fresh and not mcap)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
@@ -296,7 +311,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         from optitac_edge.io.recording_mcap import recording_to_mcap
 
         try:
-            path = recording_to_mcap(Recording(path), args.out_dir)
+            path = recording_to_mcap(Recording(path), args.out_dir, replace=args.fresh)
         finally:
             shutil.rmtree(out, ignore_errors=True)
     mirror = " --mirror" if sim_optics["mirror"] else ""
@@ -664,7 +679,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
     mcap = args.mcap or args.output.suffix == ".mcap"
     if mcap and args.output.suffix != ".mcap":
         raise OptiTacError(f"--mcap: the recording's name must end in .mcap, got {args.output}")
-    rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames, mcap=mcap)
+    rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames, mcap=mcap,
+                       replace=args.fresh)
     print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
     return 0
 
@@ -713,7 +729,10 @@ def _left_after_interrupt(args: argparse.Namespace) -> str:
     """What an interrupted command left behind, for its one line."""
     command = args.command
     if command in ("sim", "record"):
-        return f"recording {getattr(args, 'out_dir', None) or args.output} is incomplete (not usable; record it again)"
+        out = getattr(args, "out_dir", None) or args.output
+        if getattr(args, "replacing", False):
+            return f"recording {out} unchanged (the new one was not complete)"
+        return f"recording {out} is incomplete (not usable; record it again)"
     if command == "calibrate":
         target = args.output if args.step == "fibers" else args.cal
         return f"bundle {target} unchanged"
@@ -726,6 +745,9 @@ def _left_after_interrupt(args: argparse.Namespace) -> str:
     if command == "soak":
         return "soak stopped early: no verdict"
     if command == "collect":
+        if getattr(args, "replacing", False):
+            return (f"tip retracted; recording {args.output} unchanged (the new collection in "
+                    f"{args.output}.new is incomplete; --fresh starts it again)")
         return (f"tip retracted; recording {args.output} is incomplete: run the same command again to continue "
                 "after the last complete press")
     if command == "orient":
@@ -751,13 +773,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         "run": _cmd_run, "record": _cmd_record, "soak": _cmd_soak, "bench": _cmd_bench,
         **bringup.HANDLERS}
     handler = handlers[f"{args.command} {args.step}" if args.command == "calibrate" else args.command]
+    if getattr(args, "fresh", False):  # for the line an interrupt ends with: was a complete recording there?
+        from optitac_edge.io.recording import holds_recording
+
+        args.replacing = holds_recording(Path(getattr(args, "out_dir", None) or args.output))
     message, code = None, EXIT_ERROR
+    restore = {} if args.command == "run" else _interrupt_on_signals()  # run stops cleanly on its own
     try:
         code = handler(args)
     except OptiTacError as exc:
         message = f"error: {exc}"
-    except KeyboardInterrupt:
-        message, code = f"interrupted: {_left_after_interrupt(args)}", EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+        by = "" if signum == signal.SIGINT else f" by {signal.Signals(signum).name}"
+        message, code = f"interrupted{by}: {_left_after_interrupt(args)}", 128 + signum
     except OSError as exc:  # e.g. an output path that cannot be written
         where = f"{exc.filename}: " if exc.filename else ""
         message = f"error: {where}{exc.strerror or exc}"
@@ -769,7 +798,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = "error: out of memory"
     finally:
         logs.stop()  # the queued log lines first, then the verdict
+        for signum, previous in restore.items():
+            signal.signal(signum, previous)
     if message is not None:
-        print(f"{chr(10) if code == EXIT_INTERRUPTED and sys.stderr.isatty() else ''}optitac-edge: {message}",
-              file=sys.stderr)
+        try:
+            print(f"{chr(10) if code == EXIT_INTERRUPTED and sys.stderr.isatty() else ''}optitac-edge: {message}",
+                  file=sys.stderr)
+        except OSError:  # the terminal went with the SSH session
+            pass
     return code
+
+
+def _interrupt_on_signals() -> dict[int, Any]:
+    """SIGINT, SIGTERM and SIGHUP raise :class:`Interrupted` (a KeyboardInterrupt) in the main thread, once:
+    every command then cleans up as on Ctrl-C (``collect`` retracts the tip). A second signal during that
+    cleanup is ignored, so it cannot cut a retract short. A signal ignored at start (``nohup``, a background
+    job's SIGINT) stays ignored. Returns the handlers to restore."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    fired: list[int] = []
+
+    def interrupt(signum: int, frame: object) -> None:
+        if fired:
+            return
+        fired.append(signum)
+        raise Interrupted(signum)
+
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, interrupt)
+    return previous

@@ -70,7 +70,9 @@ def _add_collect(sub: Any) -> None:
                    help="seed of the experiment's random positions")
     p.add_argument("--limit", type=number(1, 10**6, integer=True), default=None, metavar="N",
                    help="only the first N presses of the experiment")
-    p.add_argument("--fresh", action="store_true", help="start again instead of continuing an interrupted collection")
+    p.add_argument("--fresh", action="store_true",
+                   help="start again instead of continuing an interrupted collection; replaces a complete recording "
+                        "at REC once the new one is complete")
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
@@ -81,7 +83,10 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.wiring import open_board_camera
 
+    from optitac_edge.io.recording import check_writable_recording
+
     config = one_sensor_config(args)
+    check_writable_recording(args.output, args.fresh)  # before anything opens or moves
     with ExitStack() as stack:
         rig, camera = open_rig(config, args.rig)
         stack.enter_context(rig)

@@ -23,6 +23,7 @@ import io
 import json
 import math
 import os
+import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -389,6 +390,52 @@ class Recording:
         return np.ascontiguousarray(self.frames[index])
 
 
+def holds_recording(path: Path) -> bool:
+    """``path`` is a complete recording: a directory with ``meta.json``, or an MCAP file."""
+    return (path / "meta.json").is_file() if path.is_dir() else path.suffix == ".mcap" and path.is_file()
+
+
+def staging_path(target: Path) -> Path:
+    """Where a recording that replaces ``target`` is written until it is complete: ``TARGET.new``."""
+    return target.with_name(target.name + ".new")
+
+
+def check_writable_recording(path: str | Path, replace: bool) -> Path:
+    """``path`` as a Path, refused when it holds a complete recording and ``replace`` is not given.
+
+    The one rule of every recording writer (``sim``, ``record``, ``collect``, directories and MCAP
+    files): a complete recording is never overwritten by a run that may not finish.
+
+    Raises
+    ------
+    OutputError
+        One line naming the recording and ``--fresh``.
+    """
+    target = Path(path)
+    if holds_recording(target) and not replace:
+        raise OutputError(f"{target}: holds a complete recording; give another output, or --fresh to replace it "
+                          "(it is kept until the new one is complete)")
+    return target
+
+
+def swap_in(staging: Path, target: Path) -> None:
+    """Put the complete recording ``staging`` in the place of the complete recording ``target``.
+
+    ``target`` is renamed aside first, so at every moment one complete recording is at one of the
+    two names, then removed.
+    """
+    aside = target.with_name(target.name + ".old")
+    try:
+        shutil.rmtree(aside, ignore_errors=True)
+        os.rename(target, aside)
+        os.rename(staging, target)
+        fsync_directory(target.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot put {staging} in the place of {target}: {exc.strerror or exc} "
+                          f"(the new recording is complete in {staging})") from None
+    shutil.rmtree(aside, ignore_errors=True)
+
+
 #: An open-ended writer grows ``frames.npy`` by this many frames at a time.
 GROW_FRAMES = 256
 #: Digits reserved in an open-ended ``frames.npy`` header for the frame count.
@@ -434,12 +481,25 @@ class RecordingWriter:
         Open-ended only: continue an existing incomplete recording of this
         frame shape after its first ``keep_frames`` frames (their times in
         ``kept_t_ns``, their truth rows given again with :meth:`write_truth`).
+        The frames written from then on are a new *segment*: their clock may
+        have restarted (a reboot restarts CLOCK_MONOTONIC; the simulator's
+        virtual clock starts at 0 in every process), so when the first new
+        time is not after the last kept one, every new time is shifted to
+        follow it by one frame period. ``meta.json`` lists the segments
+        (``segments``: first frame and the shift, ns), :attr:`segments`.
+    kept_segments : list of dict, optional
+        The segments of the kept frames (default: one, from frame 0, unshifted).
+    replace : bool
+        ``path`` may hold a complete recording: it is replaced when this one
+        is complete (written beside it as ``PATH.new`` until then), never
+        before. Without ``replace`` a complete recording is refused.
 
     Raises
     ------
     OutputError
         If the directory or a file in it cannot be written (full disk, I/O
-        error, a target that is not a regular file), naming the file.
+        error, a target that is not a regular file), naming the file; if
+        ``path`` holds a complete recording and ``replace`` is not given.
     RecordingError
         If ``keep_frames`` asks for frames the existing recording does not hold.
     """
@@ -455,14 +515,28 @@ class RecordingWriter:
         keep_frames: int = 0,
         kept_t_ns: np.ndarray | None = None,
         force_column: bool = False,
+        kept_segments: list[dict[str, int]] | None = None,
+        replace: bool = False,
     ) -> None:
         if n_frames is not None and n_frames < 1:
             raise ValueError(f"a recording needs at least one frame, got {n_frames}")
         if keep_frames and n_frames is not None:
             raise ValueError("only an open-ended recording can be continued")
         infer_pixel_format(frame_shape)
-        self.path = check_output_path(path, directory=True)
+        #: Where the recording will be once complete; :attr:`path` is where it is written until then.
+        self.target = check_writable_recording(path, replace)
+        self.replacing = holds_recording(self.target)
+        self.path = staging_path(self.target) if self.replacing else self.target
+        if self.replacing:
+            check_output_path(self.path, directory=True)
+            shutil.rmtree(self.path, ignore_errors=True)  # an earlier replacement that did not complete
         self.meta = meta
+        #: The segments written with one clock each: ``{"first_frame": i, "offset_ns": shift}``.
+        self.segments: list[dict[str, int]] = [dict(s) for s in kept_segments] if kept_segments else [
+            {"first_frame": 0, "offset_ns": 0}]
+        self._new_segment = bool(keep_frames)
+        self._shift_ns = 0 if keep_frames else self.segments[-1]["offset_ns"]
+        self._period_ns = max(1, round(1e9 / meta.fps))
         self.open_ended = n_frames is None
         self.n_frames = GROW_FRAMES if n_frames is None else int(n_frames)
         self.frame_shape = tuple(int(v) for v in frame_shape)
@@ -561,11 +635,12 @@ class RecordingWriter:
     def frames_written(self) -> int:
         return self._written
 
-    def write(self, index: int, frame: np.ndarray, t_ns: int | None = None) -> None:
+    def write(self, index: int, frame: np.ndarray, t_ns: int | None = None) -> int | None:
         """Write frame ``index`` (0 .. n_frames-1; open-ended: any) of the recording's frame shape, uint8.
 
         ``t_ns`` is the frame's capture time (ns); when every frame has one they
-        are saved in ``timestamps.npy``, else frames are at ``i / fps``.
+        are saved in ``timestamps.npy``, else frames are at ``i / fps``. Returns
+        the time saved (``t_ns`` shifted as its segment is, see ``keep_frames``).
         """
         if index < 0 or (index >= self.n_frames and not self.open_ended):
             raise IndexError(f"frame {index} outside 0..{self.n_frames - 1}")
@@ -582,9 +657,25 @@ class RecordingWriter:
             self.abort(f"failed: {exc.strerror or exc}")
             raise OutputError(f"{self.path / 'frames.npy'}: {exc.strerror or exc}") from None
         self._written = max(self._written, index + 1)
-        if t_ns is not None:
-            self._t_ns[index] = t_ns
-            self._stamped[index] = True
+        if t_ns is None:
+            return None
+        if self._new_segment:  # the first frame after continuing: does its clock follow the kept frames'?
+            self._new_segment = False
+            last = int(self._t_ns[index - 1]) if index > 0 and self._stamped[index - 1] else None
+            self._shift_ns = 0 if last is None or t_ns > last else last + self._period_ns - int(t_ns)
+            self.segments.append({"first_frame": index, "offset_ns": self._shift_ns})
+        stamped = int(t_ns) + self._shift_ns
+        self._t_ns[index] = stamped
+        self._stamped[index] = True
+        return stamped
+
+    def sync(self) -> None:
+        """Make every frame written so far durable (before a journal says they are there)."""
+        try:
+            os.fsync(self._fd)
+        except OSError as exc:
+            self.abort(f"failed: {exc.strerror or exc}")
+            raise OutputError(f"{self.path / 'frames.npy'}: {exc.strerror or exc}") from None
 
     def write_truth(
         self,
@@ -663,12 +754,17 @@ class RecordingWriter:
                     w.writerow(TRUTH_HEADER + (RIG_COLUMNS if self._rig else ())
                                + ((FORCE_COLUMN,) if self._force else ()))
                     w.writerows(self._truth_rows)
-            write_file_atomic(self.path / "meta.json", json.dumps(self.meta.to_json(), indent=2))
+            meta = self.meta.to_json()
+            if len(self.segments) > 1:
+                meta["segments"] = self.segments
+            write_file_atomic(self.path / "meta.json", json.dumps(meta, indent=2))
         except OutputError as exc:
             self._mark_failed(exc)
             raise
         (self.path / INCOMPLETE_MARKER).unlink(missing_ok=True)
         fsync_directory(self.path)
+        if self.replacing:
+            swap_in(self.path, self.target)
 
     def _mark_failed(self, exc: BaseException) -> None:
         try:

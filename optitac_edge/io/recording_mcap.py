@@ -39,12 +39,22 @@ class McapRecordingWriter:
         ``meta.json``'s keys (``rest_frames``, ``fps``, ...).
     truth_csv : bytes, optional
         The recording's ``truth.csv``.
+    replace : bool
+        ``path`` may be a complete recording; it is replaced when this one is complete (never before).
+
+    Raises
+    ------
+    OutputError
+        ``path`` is a complete recording and ``replace`` is not given, or cannot be written.
     """
 
-    def __init__(self, path: str | Path, meta: dict[str, Any], truth_csv: bytes | None = None) -> None:
+    def __init__(self, path: str | Path, meta: dict[str, Any], truth_csv: bytes | None = None,
+                 replace: bool = False) -> None:
         from mcap.writer import CompressionType, Writer
 
-        self.path = Path(path)
+        from optitac_edge.io.recording import check_writable_recording
+
+        self.path = check_writable_recording(path, replace)
         self._stream, self._part = open_part(self.path)
         self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
         self._writer.start(profile="ros2", library="optitac-edge")
@@ -141,11 +151,11 @@ def read_mcap_recording(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, A
     return np.stack(frames), np.asarray(stamps, dtype=np.int64), meta, truth
 
 
-def recording_to_mcap(rec: Any, path: str | Path) -> Path:
+def recording_to_mcap(rec: Any, path: str | Path, replace: bool = False) -> Path:
     """Write a :class:`~optitac_edge.io.recording.Recording` (frames, times, meta, truth) as one MCAP file."""
     truth = rec.path / TRUTH_NAME if rec.path.is_dir() else None
     data = truth.read_bytes() if truth is not None and truth.exists() else None
-    with McapRecordingWriter(path, rec.meta.to_json(), truth_csv=data) as writer:
+    with McapRecordingWriter(path, rec.meta.to_json(), truth_csv=data, replace=replace) as writer:
         for i in range(len(rec)):
             writer.write(i, rec.frame(i), int(rec.t_ns[i]))
     return Path(path)

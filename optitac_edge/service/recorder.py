@@ -22,11 +22,12 @@ class Recorded(NamedTuple):
 
 
 def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames: int,
-                 mcap: bool = False) -> Recorded:
+                 mcap: bool = False, replace: bool = False) -> Recorded:
     """Write ``frames`` frames of the board's camera to the recording directory ``path`` (with ``mcap``:
     to the MCAP file ``path``, frames as sensor_msgs/Image, :mod:`optitac_edge.io.recording_mcap`).
 
-    The first ``rest_frames`` must be contact-free (``meta.json`` says so).
+    The first ``rest_frames`` must be contact-free (``meta.json`` says so). A complete recording at
+    ``path`` is refused unless ``replace`` (then replaced once the new one is complete).
 
     Raises
     ------
@@ -38,13 +39,16 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
         raise OptiTacError(f"--frames must be >= --rest-frames >= {MIN_REST_FRAMES}")
     if mcap:
         from optitac_edge.io.recording_mcap import McapRecordingWriter
+    from optitac_edge.io.recording import check_writable_recording
+
+    check_writable_recording(path, replace)  # refused before the camera opens
     with open_board_camera(config) as camera:
         if camera.pixel_format == "yuv420":
             raise OptiTacError("recordings hold gray or RGB frames: set camera.pixel_format = 'gray'")
         meta = RecordingMeta(rest_frames=rest_frames, fps=camera.fps,
                              extra={"board": config.source, "camera": config.camera.backend})
-        writer: Any = (McapRecordingWriter(path, meta.to_json()) if mcap else
-                       RecordingWriter(path, frames, camera.frame_shape, meta))
+        writer: Any = (McapRecordingWriter(path, meta.to_json(), replace=replace) if mcap else
+                       RecordingWriter(path, frames, camera.frame_shape, meta, replace=replace))
         with writer:
             for i in range(frames):
                 captured = camera.read(config.camera.timeout_s)

@@ -56,14 +56,16 @@ def build_sim_bundle(path: str | Path, *, rgb: bool = False, models: Sequence[st
     work = Path(workdir) if workdir is not None else path.parent
     tag = "rgb" if rgb else "gray"
     optics = CameraOptics(rgb=rgb)
-    rest = write_scenario(work / f"rest-{tag}", "rest", seed=seed, optics=optics)
+    # the work directory's recordings are this function's own, made again from the same seeds
+    rest = write_scenario(work / f"rest-{tag}", "rest", seed=seed, optics=optics, fresh=True)
     rec = Recording(rest)
     bundle = save_bundle(calibrate_fibers(rec.rest_frames(), rec.pixel_format), path)
     for model, scenario, offset in MODEL_STEPS:
         if model not in models:
             continue
         log.info("simulated bundle: fitting the %s model", model)
-        rec = Recording(write_scenario(work / f"{scenario}-{tag}", scenario, seed=seed + offset, optics=optics))
+        rec = Recording(write_scenario(work / f"{scenario}-{tag}", scenario, seed=seed + offset, optics=optics,
+                                       fresh=True))
         if model == "centroid":
             bundle, _ = steps.calibrate_centroid(rec, bundle)
         elif model == "width":

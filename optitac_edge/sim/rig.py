@@ -12,7 +12,6 @@ from presses, as on a real rig.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from urllib.parse import parse_qs, urlsplit
 
@@ -67,7 +66,7 @@ class SimRig(Rig):
 
     def __init__(self, limits: RigLimits, clock: Clock, mount: SimMount = SimMount(),
                  start_xyz_mm: tuple[float, float, float] | None = None) -> None:
-        super().__init__(limits)
+        super().__init__(limits, sleep=clock.sleep)
         self.clock = clock
         self.mount = mount
         start = start_xyz_mm or (mount.origin_xy_mm[0] + 0.6, mount.origin_xy_mm[1] - 0.4, mount.surface_z_mm + 3.0)
@@ -123,10 +122,6 @@ class SimRig(Rig):
         size, _, angle = rest.partition("@")
         self.indenter = (shape, float(size), float(angle or 0.0))
         return True
-
-    def retract(self, sleep: Callable[[float], None] | None = None) -> None:
-        """Stop and lift to the safe height on the virtual clock."""
-        super().retract(sleep or self.clock.sleep)
 
     def at(self, frame: int) -> Indenter | None:  # the camera's PressSource: frames render at the clock's now
         return self.indenter_at(self.clock.monotonic_ns())

@@ -295,14 +295,15 @@ def write_scenario(
     drift: SessionDrift | None = None,
     warmup: float = DRIFT_WARMUP,
     patch: PatchPlacement | None = None,
+    fresh: bool = False,
 ) -> Path:
     """Simulate scenario ``name`` and stream it into the recording directory ``out_dir``.
 
     Parameters
     ----------
     out_dir : path-like
-        Recording directory to create (or overwrite); the recording is written
-        directly into it.
+        Recording directory to create; a complete recording there is refused
+        unless ``fresh`` (then replaced once the new one is complete).
     name : str
         One of :data:`SCENARIOS`.
     seed : int
@@ -407,7 +408,7 @@ def write_scenario(
     clamp_r = clamp_radius_mm(layout.xy_mm, skin)
     force = math.nan
     with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
-                         force_column=load_cell) as writer:
+                         force_column=load_cell, replace=fresh) as writer:
         last: Frame = None
         dark = sensor.darkening(())
         for i, press in enumerate(plan):

@@ -3,9 +3,25 @@
 Line commands are answered ``ok`` or ``error:N``; realtime bytes: ``?`` status
 report ``<Idle|MPos:x,y,z|FS:f,0>``, ``!`` feed hold (``Hold:1`` then
 ``Hold:0``), ``~`` resume, Ctrl-X soft reset (a reset while moving, not held,
-loses the position: ``ALARM:3``). Moves beyond the travel raise ``ALARM:2``
-(soft limits). ``$H`` homes, ``$X`` unlocks. Motion runs in real time,
-``speed`` times faster than commanded (to keep tests short).
+loses the position: ``ALARM:3``). ``$H`` homes, ``$X`` unlocks. Motion runs in
+real time, ``speed`` times faster than commanded (to keep tests short).
+
+Alarms follow the firmware (gnea/grbl: grbl/protocol.c, grbl/limits.c,
+doc/markdown/realtime_cmds.md, doc/csv/alarm_codes_en_US.csv):
+
+* a move beyond the travel is a soft limit: ``ALARM:2`` (the position kept);
+  an injected hard limit stops at once: ``ALARM:1``. Both are critical events:
+  ``[MSG:Reset to continue]``, then *nothing* is answered -- no ``ok``, no
+  status report (realtime_cmds.md: ``?`` is executed "at any time, except ...
+  when critical alarm (hard/soft limit error) is thrown") -- until Ctrl-X;
+* after the reset GRBL is still in alarm (its banner, then
+  ``[MSG:'$H'|'$X' to unlock]``), answers status reports ``<Alarm|...>`` and
+  refuses G-code with ``error:9`` until ``$X`` (``[MSG:Caution: Unlocked]``)
+  or ``$H``.
+
+For the backend's robustness: :meth:`garble` replaces the next status reports
+with given lines (noise on a real serial line), :meth:`set_state` reports a
+state by name (grblHAL's ``Tool``, ``Door:1``, ``Sleep``).
 """
 
 from __future__ import annotations
@@ -34,6 +50,10 @@ class FakeGrbl:
         self._t0 = self._t1 = time.monotonic()
         self._held_at: float | None = None
         self.state = "Alarm" if locked else "Idle"
+        #: A critical alarm (hard or soft limit) was raised and no reset came since: nothing is answered.
+        self.critical = False
+        self._garbled: list[str] = []
+        self._forced_state: str | None = None
         self.lines: list[str] = []
         self.realtime: list[bytes] = []
         self._stop = threading.Event()
@@ -61,8 +81,12 @@ class FakeGrbl:
         now = time.monotonic()
         with self._lock:
             pos = self._position(now)
+            if self._garbled:
+                return (self._garbled.pop(0) + "\r\n").encode()
             if self.state == "Alarm":
                 state = "Alarm"
+            elif self._forced_state is not None:
+                state = self._forced_state
             elif self._held_at is not None:
                 state = "Hold:0" if now - self._held_at > 0.02 else "Hold:1"
             else:
@@ -77,13 +101,28 @@ class FakeGrbl:
         except OSError:
             pass
 
+    def garble(self, *reports: str) -> None:
+        """Answer the next ``?`` with these lines instead of the status report, one each."""
+        with self._lock:
+            self._garbled.extend(reports)
+
+    def set_state(self, state: str | None) -> None:
+        """Report this state name (e.g. ``Tool``, ``Door:1``) instead of Idle/Run; None: back to normal."""
+        with self._lock:
+            self._forced_state = state
+
     def inject_alarm(self, code: int = 1) -> None:
+        """Raise ``ALARM:code`` now: motion stops where it is (a hard limit: the switch halts it at once)."""
         with self._lock:
             now = time.monotonic()
             self._from = self._to = self._position(now)
             self._t0 = self._t1 = now
+            self._held_at = None
             self.state = "Alarm"
+            self.critical = code in (1, 2)
         self._send(f"ALARM:{code}\r\n".encode())
+        if code in (1, 2):
+            self._send(b"[MSG:Reset to continue]\r\n")
 
     def _serve(self) -> None:
         line = b""
@@ -96,7 +135,13 @@ class FakeGrbl:
                 b = bytes([byte])
                 if b in (b"?", b"!", b"~", b"\x18"):
                     self.realtime.append(b)
+                    if self.critical and b != b"\x18":
+                        continue  # a critical event blocks everything but a reset
+                    if b == b"\x18":
+                        line = b""  # serial_reset_read_buffer()
                     self._realtime(b)
+                elif self.critical:
+                    continue
                 elif b in (b"\n", b"\r"):
                     if line.strip():
                         self._line(line.decode("ascii", "replace").strip())
@@ -125,6 +170,7 @@ class FakeGrbl:
                 self._from = self._to = pos
                 self._t0 = self._t1 = now
                 self._held_at = None
+                self.critical = False
                 if lost:
                     self.state = "Alarm"
             if lost:
@@ -156,7 +202,10 @@ class FakeGrbl:
         if self.state == "Alarm":
             self._send(b"error:9\r\n")  # G-code locked out during alarm
             return
-        words = dict(re.findall(r"([A-Z])\s*(-?[0-9.]+)", upper))
+        if re.search(r"[A-Z](?![-+]?[0-9]*\.?[0-9])", upper.replace(" ", "")):
+            self._send(b"error:2\r\n")  # a word without a number GRBL reads (read_float: no 'nan', no exponent)
+            return
+        words = dict(re.findall(r"([A-Z])\s*([-+]?[0-9]*\.?[0-9]+)", upper))
         if upper.startswith(("G21", "G90", "G4")) and "X" not in words:
             self._send(b"ok\r\n")
             return
@@ -166,11 +215,12 @@ class FakeGrbl:
                 pos = self._position(now)
                 target = tuple(float(words.get(axis, pos[k])) for k, axis in enumerate("XYZ"))
                 feed = float(words.get("F", getattr(self, "_feed", 600.0)))
-                if any(not lo <= v <= hi for v, (lo, hi) in zip(target, self.travel)):
-                    self.state = "Alarm"
-                    self._send(b"ALARM:2\r\n")
-                    return
-                self._start_move(pos, target, feed, now)
+                beyond = any(not lo <= v <= hi for v, (lo, hi) in zip(target, self.travel))
+                if not beyond:
+                    self._start_move(pos, target, feed, now)
+            if beyond:  # limits_soft_check(): the position is kept, then the critical event
+                self.inject_alarm(2)
+                return
             self._send(b"ok\r\n")
             return
         self._send(b"error:20\r\n")  # unsupported or invalid g-code command

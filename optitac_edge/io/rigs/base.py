@@ -2,6 +2,13 @@
 
 Coordinates are the rig's own, mm, with +z away from the skin (up). Every
 target is checked against :class:`RigLimits` before anything moves.
+
+No single status report is trusted (a serial line picks up electrical noise):
+a report that cannot be parsed, or holds a position that is not finite or
+absurdly far away, is counted and polled again (:data:`GARBLED_TRIES` in a
+row before it is an error); a retract lifts the tip straight up without a
+reported x or y in its command, and is done only when two reports in a row
+agree that the tip is idle at the safe height.
 """
 
 from __future__ import annotations
@@ -15,8 +22,27 @@ from dataclasses import dataclass
 from optitac_edge.errors import RigError
 from optitac_edge.io.device import Device
 
-#: Rig states reported by :meth:`Rig.status`.
-STATES = ("idle", "moving", "hold", "alarm", "homing", "offline")
+#: Rig states reported by :meth:`Rig.status`: ``hold`` (a feed hold, stopping or stopped), ``door`` (a safety
+#: door open), ``sleep``, ``tool`` (a tool change waits), ``check`` (G-code check mode: nothing moves) and
+#: ``unknown`` (a state this backend does not know) all mean the rig will not go on by itself.
+STATES = ("idle", "moving", "hold", "alarm", "homing", "offline", "door", "sleep", "tool", "check", "unknown")
+#: Why each state that stops a collection does, and what the operator does about it.
+STOPPED_STATES = {
+    "hold": "in a feed hold (its hold button, or '!')",
+    "door": "its safety door is open: close it",
+    "sleep": "asleep: reset it",
+    "tool": "waiting for a tool change: finish it on the machine",
+    "check": "in G-code check mode, where nothing moves: turn it off ($C)",
+    "unknown": "in a state this program does not know",
+}
+#: Garbled or implausible status reports in a row before the rig is taken as lost.
+GARBLED_TRIES = 5
+#: A reported coordinate farther than this from the origin (mm) is a garbled report, not a position.
+ABSURD_MM = 100_000.0
+
+
+class GarbledReport(RigError):
+    """One status report could not be read (noise on the line): poll again."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +90,13 @@ class RigStatus:
     state: str
     xyz_mm: tuple[float, float, float]
     alarm: str = ""
+    #: The backend's own name of the state (e.g. GRBL's ``Door:1``), for messages.
+    raw_state: str = ""
+
+    @property
+    def plausible(self) -> bool:
+        """The position is finite and not absurdly far (an alarm may carry no position)."""
+        return self.state == "alarm" or all(math.isfinite(v) and abs(v) < ABSURD_MM for v in self.xyz_mm)
 
 
 class Rig(Device, ABC):
@@ -77,9 +110,13 @@ class Rig(Device, ABC):
     #: True when the rig can swap indenters itself (the simulator); else the operator is asked.
     changes_indenters: bool = False
 
-    def __init__(self, limits: RigLimits) -> None:
+    def __init__(self, limits: RigLimits, sleep: Callable[[float], None] = time.sleep) -> None:
         Device.__init__(self)
         self.limits = limits
+        #: How waits on the rig pass time (the simulator's rig: its virtual clock).
+        self.sleep = sleep
+        #: Status reports refused as garbled or implausible so far.
+        self.garbled_reports = 0
 
     @abstractmethod
     def _move(self, xyz: tuple[float, float, float], feed_mm_s: float) -> None:
@@ -107,7 +144,7 @@ class Rig(Device, ABC):
         self._move(xyz, self.limits.feed_mm_s if feed_mm_s is None else min(feed_mm_s, self.limits.feed_mm_s))
 
     def status(self) -> RigStatus:
-        """The rig's state and position.
+        """The rig's state and position (a garbled report is polled again, see :meth:`poll`).
 
         Raises
         ------
@@ -116,33 +153,101 @@ class Rig(Device, ABC):
         """
         if self._closed:
             raise RigError("rig is closed")
-        st = self._status()
+        st = self.poll()
         if st.state == "alarm":
             raise RigError(f"rig alarm{': ' + st.alarm if st.alarm else ''}")
         return st
 
-    def retract(self, sleep: Callable[[float], None] = time.sleep) -> None:
-        """Stop, then lift the tip straight up to ``limits.safe_z_mm`` and wait until it is there.
+    def poll(self) -> RigStatus:
+        """One status report that can be read and holds a plausible position, alarms included.
 
         Raises
         ------
         RigError
-            If the rig cannot stop or lift, or is not up within the move's time plus 5 s.
+            After :data:`GARBLED_TRIES` garbled or implausible reports in a row, or when the rig does not answer.
+        """
+        last = ""
+        for _ in range(GARBLED_TRIES):
+            try:
+                st = self._status()
+            except GarbledReport as exc:
+                last = str(exc)
+            else:
+                if st.plausible:
+                    return st
+                last = f"implausible position {st.xyz_mm}"
+            self.garbled_reports += 1
+        raise RigError(f"{GARBLED_TRIES} garbled status reports in a row (the last: {last}); check the cable")
+
+    def _lift(self, z_mm: float, feed_mm_s: float) -> None:
+        """Start a move straight up (or down) to ``z_mm``, x and y unchanged.
+
+        Backends whose controller can move one axis alone override this, so that no reported x
+        or y goes into the command; this one moves to the reported x and y, checked against the
+        limits like every target.
+        """
+        x, y, _ = self.poll().xyz_mm
+        self.limits.check((x, y, z_mm))
+        self._move((x, y, z_mm), feed_mm_s)
+
+    def wait_until_at(self, xyz: tuple[float | None, float | None, float], timeout_s: float) -> None:
+        """Wait until two status reports in a row say the rig is idle at ``xyz`` (None: any x or y).
+
+        Raises
+        ------
+        RigError
+            On an alarm, a state that stops the rig, or not there within ``timeout_s`` (seconds of
+            :attr:`sleep`).
+        """
+        agreed = 0
+        waited = 0.0
+        while waited <= timeout_s:
+            st = self.poll()
+            if st.state == "alarm":
+                raise RigError(f"rig alarm{': ' + st.alarm if st.alarm else ''}")
+            if st.state in STOPPED_STATES and st.state != "hold":
+                raise RigError(f"the rig is {STOPPED_STATES[st.state]} ({st.raw_state or st.state})")
+            there = st.state == "idle" and all(want is None or abs(got - want) < 0.01
+                                               for got, want in zip(st.xyz_mm, xyz))
+            agreed = agreed + 1 if there else 0
+            if agreed >= 2:
+                return
+            self.sleep(0.01)
+            waited += 0.01
+        where = ", ".join("any" if v is None else f"{v:g}" for v in xyz)
+        raise RigError(f"the tip did not reach ({where}) mm within {timeout_s:.0f} s")
+
+    def _travel_s(self) -> float:
+        """The longest a move inside the limits may take, plus 5 s."""
+        reach = max(hi - lo for lo, hi in (self.limits.x_mm, self.limits.y_mm, self.limits.z_mm))
+        return min(reach, 1000.0) / self.limits.feed_mm_s + 5.0
+
+    def lift(self, z_mm: float) -> None:
+        """Move the tip straight to ``z_mm`` (x and y unchanged) and wait until two reports agree it is there."""
+        if self._closed:
+            raise RigError("rig is closed")
+        self._lift(z_mm, self.limits.feed_mm_s)
+        self.wait_until_at((None, None, z_mm), self._travel_s())
+
+    def retract(self) -> None:
+        """Stop, then move the tip straight to ``limits.safe_z_mm`` and wait until it is there.
+
+        The lift is commanded whatever height the tip reports (a garbled report must not keep it in
+        the skin; at or above the safe height the move is harmless), and is done when two reports in
+        a row agree.
+
+        Raises
+        ------
+        RigError
+            If the rig cannot stop or lift (the message says what to do), or is not up in time.
         """
         self._stop()
-        x, y, z = self._status().xyz_mm
-        if z >= self.limits.safe_z_mm:
-            return
-        self._move((x, y, self.limits.safe_z_mm), self.limits.feed_mm_s)
-        deadline = time.monotonic() + (self.limits.safe_z_mm - z) / self.limits.feed_mm_s + 5.0
-        while time.monotonic() < deadline:
-            st = self._status()
-            if st.state == "idle" and abs(st.xyz_mm[2] - self.limits.safe_z_mm) < 0.01:
-                return
-            if st.state == "alarm":
-                raise RigError(f"rig alarm while retracting ({st.alarm})")
-            sleep(0.01)
-        raise RigError(f"the tip did not reach the safe height z = {self.limits.safe_z_mm:g} mm")
+        self.lift(self.limits.safe_z_mm)
+
+    def move_and_wait(self, xyz: tuple[float, float, float]) -> None:
+        """Move the tip to ``xyz`` (checked against the limits) and wait until it is idle there."""
+        self.move_to(xyz)
+        self.wait_until_at(xyz, self._travel_s())
 
     def change_indenter(self, label: str) -> bool:
         """Mount the indenter ``label`` (True), or False when the operator must do it."""

@@ -1,29 +1,45 @@
 """A GRBL machine (3D printer, CNC, pen plotter) with the indenter on its tool head, over pyserial.
 
 The port is opened with ``serial.serial_for_url`` (a device, ``socket://``,
-``rfc2217://``...), exclusively. Protocol (GRBL 1.1): a line command is
+``rfc2217://``...), exclusively. Protocol (GRBL 1.1, gnea/grbl doc/markdown/
+interface.md and realtime_cmds.md; grblHAL adds states): a line command is
 answered ``ok`` or ``error:N``; ``?`` asks for a status report
 ``<Idle|WPos:x,y,z|...>`` (or ``MPos`` with ``WCO``); ``!`` holds the feed,
 Ctrl-X resets; ``ALARM:N`` reports an alarm, ``$H`` homes, ``$X`` unlocks.
 Positions are work coordinates (``WPos``): set the work zero where you like.
+
+Alarms, as the firmware has them (grbl/protocol.c, doc/csv/alarm_codes_en_US.csv):
+a hard limit (``ALARM:1``) or a soft limit (``ALARM:2``) is a *critical event*:
+GRBL prints ``[MSG:Reset to continue]`` and answers nothing, status reports
+included, until a soft reset (Ctrl-X); after the reset it is still in alarm and
+refuses G-code (``error:9``) until ``$X`` or ``$H``. After a soft limit the
+position is kept (GRBL holds the feed before it stops), so this backend resets,
+unlocks and retracts; after a hard limit or a reset in motion (``ALARM:3``) it
+is lost, so the tip is not moved and the message says what to do.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from typing import Any
 
 from optitac_edge.errors import RigError
-from optitac_edge.io.rigs.base import Rig, RigLimits, RigStatus
+from optitac_edge.io.rigs.base import ABSURD_MM, GarbledReport, Rig, RigLimits, RigStatus
 
-#: GRBL state names -> :data:`~optitac_edge.io.rigs.base.STATES`.
+#: GRBL's and grblHAL's state names -> :data:`~optitac_edge.io.rigs.base.STATES` (anything else: ``unknown``).
 _STATES = {"idle": "idle", "run": "moving", "jog": "moving", "hold": "hold", "alarm": "alarm",
-           "home": "homing", "door": "hold", "check": "hold", "sleep": "hold"}
+           "home": "homing", "door": "door", "check": "check", "sleep": "sleep", "tool": "tool"}
 #: GRBL's alarm codes (grbl/doc/csv/alarm_codes_en_US.csv), for one-line messages.
-ALARMS = {1: "hard limit triggered", 2: "soft limit: the target is beyond the machine's travel",
-          3: "reset while in motion: position lost, home again", 4: "probe fail", 5: "probe fail",
-          6: "homing fail: reset", 7: "homing fail: door", 8: "homing fail: pull off", 9: "homing fail: no switch"}
+ALARMS = {1: "hard limit: a limit switch was hit", 2: "soft limit: a target beyond the machine's travel",
+          3: "reset while in motion", 4: "probe fail", 5: "probe fail", 6: "homing fail: reset",
+          7: "homing fail: door", 8: "homing fail: pull off", 9: "homing fail: no switch",
+          10: "homing fail: second switch"}
+#: Alarms after which GRBL answers nothing until a soft reset (grbl/protocol.c: hard and soft limits).
+CRITICAL_ALARMS = (1, 2)
+#: Alarms after which the machine's position is lost (alarm_codes_en_US.csv: "re-homing is highly recommended").
+POSITION_LOST = (1, 3)
 
 
 class GcodeRig(Rig):
@@ -51,6 +67,10 @@ class GcodeRig(Rig):
         self._lines: deque[str] = deque()
         self._buffer = b""
         self._wco = (0.0, 0.0, 0.0)
+        #: The last ``ALARM:N`` read and not yet cleared by ``$X`` / ``$H`` (0: none).
+        self._alarm_code = 0
+        #: A critical alarm was read and no reset sent since: GRBL answers nothing.
+        self._silent = False
         if port is None:
             import serial
 
@@ -62,12 +82,13 @@ class GcodeRig(Rig):
         self._port = port
         try:
             self._reset()
-            st = self._status()
+            st = self.poll()
             if st.state == "alarm":
                 if not home:
                     raise RigError(f"gcode rig {url}: the machine is in alarm ({st.alarm or 'locked'}); home it "
                                    "(rig.home = true, or $H) before collecting")
                 self.command("$H", timeout_s=60.0)
+                self._alarm_code = 0
             self.command("G21")  # mm
             self.command("G90")  # absolute
         except BaseException:
@@ -96,16 +117,23 @@ class GcodeRig(Rig):
             *done, self._buffer = self._buffer.split(b"\n")
             for raw in done:
                 line = raw.decode("ascii", "replace").strip()
+                if line.startswith("ALARM:"):
+                    self._alarm_code = _alarm_code(line)
+                    self._silent = self._silent or self._alarm_code in CRITICAL_ALARMS
                 if line:
                     self._lines.append(line)
         return self._lines.popleft()
 
-    def _alarm(self, line: str) -> RigError:
-        try:
-            code = int(line.split(":", 1)[1])
-        except (IndexError, ValueError):
-            code = 0
-        return RigError(f"gcode rig {self.url}: ALARM:{code} ({ALARMS.get(code, 'unknown alarm')})")
+    def _alarm_error(self, code: int) -> RigError:
+        what = ALARMS.get(code, "unknown alarm")
+        if code in POSITION_LOST:
+            todo = ("the machine's position is lost, so the tip was not moved: jog it clear of the skin, home the "
+                    "machine ($H), then run the same command to continue")
+        elif code == 2:
+            todo = "the board's rig limits must lie inside the machine's travel ($130-$132)"
+        else:
+            todo = "reset the machine and home it ($H)"
+        return RigError(f"gcode rig {self.url}: ALARM:{code} ({what}); {todo}")
 
     def command(self, line: str, timeout_s: float | None = None) -> None:
         """Send one line and wait for ``ok``.
@@ -120,6 +148,8 @@ class GcodeRig(Rig):
         while True:
             reply = self._readline(deadline)
             if reply is None:
+                if self._silent:
+                    raise self._alarm_error(self._alarm_code)
                 raise RigError(f"gcode rig {self.url}: no answer to {line!r} within "
                                f"{self.timeout_s if timeout_s is None else timeout_s:g} s")
             if reply == "ok":
@@ -127,12 +157,13 @@ class GcodeRig(Rig):
             if reply.startswith("error:"):
                 raise RigError(f"gcode rig {self.url}: {line!r} refused ({reply})")
             if reply.startswith("ALARM:"):
-                raise self._alarm(reply)
+                raise self._alarm_error(_alarm_code(reply))
 
     def _reset(self) -> None:
-        """Ctrl-X and wait for the ``Grbl`` banner."""
+        """Ctrl-X and wait for the ``Grbl`` banner (an ``ALARM:3`` before it is noted)."""
         self._lines.clear()
         self._write(b"\x18")
+        self._silent = False
         deadline = time.monotonic() + max(self.timeout_s, 3.0)
         while True:
             line = self._readline(deadline)
@@ -147,60 +178,94 @@ class GcodeRig(Rig):
         x, y, z = xyz
         self.command(f"G1 X{x:.3f} Y{y:.3f} Z{z:.3f} F{feed_mm_s * 60.0:.1f}")
 
+    def _lift(self, z_mm: float, feed_mm_s: float) -> None:
+        """``G1 Z..`` alone: x and y stay where the machine is, whatever a report said."""
+        lo, hi = self.limits.z_mm
+        if not (math.isfinite(z_mm) and lo <= z_mm <= hi):
+            raise RigError(f"rig target z = {z_mm:.3f} mm is outside the limits {lo:g}..{hi:g} mm; nothing moved")
+        self.command(f"G1 Z{z_mm:.3f} F{feed_mm_s * 60.0:.1f}")
+
     def _status(self) -> RigStatus:
+        if self._silent:  # GRBL answers nothing until a reset
+            return RigStatus("alarm", (math.nan,) * 3, str(self._alarm_error(self._alarm_code)).split(": ", 1)[1])
         self._write(b"?")
         deadline = time.monotonic() + self.timeout_s
         while True:
             line = self._readline(deadline)
             if line is None:
-                raise RigError(f"gcode rig {self.url}: no status report within {self.timeout_s:g} s")
+                if self._silent:
+                    return self._status()
+                raise GarbledReport(f"gcode rig {self.url}: no status report within {self.timeout_s:g} s")
             if line.startswith("ALARM:"):
-                alarm = self._alarm(line)
-                return RigStatus("alarm", (float("nan"),) * 3, str(alarm).split(": ", 1)[1])
+                return self._status()
             if line.startswith("<") and line.endswith(">"):
                 return self._parse_status(line[1:-1])
+            if not line.startswith(("[", "Grbl")):  # not a message or a banner: the report, garbled
+                raise GarbledReport(f"gcode rig {self.url}: garbled status report {line!r}")
 
     def _parse_status(self, body: str) -> RigStatus:
         fields = body.split("|")
-        state = _STATES.get(fields[0].split(":")[0].lower(), "hold")
-        held_done = fields[0].lower() == "hold:0"
+        raw_state = fields[0]
+        name = raw_state.split(":")[0].lower()
+        state = _STATES.get(name, "unknown")
         pos: tuple[float, float, float] | None = None
         machine = False
         for f in fields[1:]:
             key, _, value = f.partition(":")
             if key in ("MPos", "WPos", "WCO"):
                 try:
-                    xyz = tuple(float(v) for v in value.split(",")[:3])
+                    xyz = tuple(float(v) for v in value.split(","))
                 except ValueError:
-                    raise RigError(f"gcode rig {self.url}: garbled status report <{body}>") from None
-                if len(xyz) != 3:
-                    raise RigError(f"gcode rig {self.url}: garbled status report <{body}>")
+                    raise GarbledReport(f"gcode rig {self.url}: garbled status report <{body}>") from None
+                if len(xyz) < 3 or not all(math.isfinite(v) and abs(v) < ABSURD_MM for v in xyz):
+                    raise GarbledReport(f"gcode rig {self.url}: garbled status report <{body}>")
                 if key == "WCO":
                     self._wco = (xyz[0], xyz[1], xyz[2])
                 else:
                     pos, machine = (xyz[0], xyz[1], xyz[2]), key == "MPos"
         if pos is None:
-            raise RigError(f"gcode rig {self.url}: status report without a position <{body}>")
+            raise GarbledReport(f"gcode rig {self.url}: status report without a position <{body}>")
         if machine:
             pos = (pos[0] - self._wco[0], pos[1] - self._wco[1], pos[2] - self._wco[2])
-        return RigStatus("idle" if held_done else state, pos)
+        return RigStatus(state, pos, raw_state=raw_state)
 
     def _stop(self) -> None:
-        """Feed hold, wait until stopped (position kept), then reset to drop the rest of the move."""
-        self._write(b"!")
-        deadline = time.monotonic() + 10.0
-        while True:
-            st = self._status()
-            if st.state in ("idle", "alarm"):
-                break
-            if time.monotonic() > deadline:
-                raise RigError(f"gcode rig {self.url}: did not stop within 10 s of a feed hold")
-            time.sleep(0.02)
+        """Stop with the position kept, and leave the machine ready for a move.
+
+        Not in alarm: feed hold, wait until stopped, then reset to drop the rest of the move. In a
+        soft-limit alarm (position kept): reset, then unlock (``$X``). After a hard limit or a reset in
+        motion (position lost): reset, and refuse to move (the message says what the operator does).
+        """
+        if not self._silent:
+            self._write(b"!")
+            deadline = time.monotonic() + 10.0
+            while True:
+                try:
+                    st = self.poll()
+                except RigError:  # silent (an alarm whose line was lost?): the reset below tells
+                    break
+                if st.state == "alarm" or st.state == "idle" or st.raw_state.lower() == "hold:0":
+                    break
+                if time.monotonic() > deadline:
+                    raise RigError(f"gcode rig {self.url}: did not stop within 10 s of a feed hold")
+                time.sleep(0.02)
         self._reset()
-        if self._status().state == "alarm":
-            raise RigError(f"gcode rig {self.url}: alarm after stopping; home it again")
+        if self.poll().state == "alarm":
+            code = self._alarm_code
+            if code not in (2,):
+                raise self._alarm_error(code)
+            self.command("$X")  # a soft limit: the position was kept
+        self._alarm_code = 0
         self.command("G21")
         self.command("G90")
 
     def _close_internal(self) -> None:
         self._port.close()
+
+
+def _alarm_code(line: str) -> int:
+    """N of ``ALARM:N`` (0 if garbled)."""
+    try:
+        return int(line.split(":", 1)[1])
+    except (IndexError, ValueError):
+        return 0

@@ -1,0 +1,142 @@
+"""Nothing a collection collected is lost: a complete recording is never overwritten, an interrupted one
+(SIGINT, SIGTERM, SIGHUP, SIGKILL, a clock that restarted) continues into a recording that calibrates, and
+the tip is retracted on every way out but SIGKILL, and parked at the end."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from optitac_edge.bringup.collect import JOURNAL
+from optitac_edge.cli import main
+from optitac_edge.io.recording import Recording
+
+#: Starts the CLI as from a terminal: SIGINT raises, as Ctrl-C does (background jobs start with it ignored).
+START = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+         "sys.argv = ['optitac-edge', *sys.argv[1:]]; runpy.run_module('optitac_edge.cli', run_name='__main__')")
+
+
+def _interrupt(out, signum: int, after_presses: int, limit: int = 8) -> tuple[int, str, str]:
+    """Run ``collect seen`` on sim:// in a process of its own and send ``signum`` once ``after_presses``
+    presses are in the journal; (exit status, stdout, stderr)."""
+    proc = subprocess.Popen([sys.executable, "-c", START, "collect", "seen", "--rig", "sim://", "-o", str(out),
+                             "--limit", str(limit)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if line.startswith("sensor origin at rig"):
+            break
+    journal = out / JOURNAL
+    while proc.poll() is None:
+        if journal.exists() and len(journal.read_text().splitlines()) > after_presses:
+            break
+    proc.send_signal(signum)
+    rest, err = proc.communicate(timeout=60)
+    return proc.returncode, "".join(lines) + rest, err
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL])
+def test_an_interrupted_collection_continues_into_a_recording_that_calibrates(signum, tmp_path, capsys) -> None:
+    """Before: SIGTERM and SIGHUP left the tip pressed (no retract); the continued collection ended 'frame
+    times go backwards' (the simulator's clock starts again in a new process, as CLOCK_MONOTONIC does after a
+    reboot) and every later try said the same."""
+    out = tmp_path / "seen"
+    code, stdout, err = _interrupt(out, signum, after_presses=3)
+    if signum == signal.SIGKILL:
+        assert code == -signal.SIGKILL
+    else:
+        assert code == 128 + signum
+        assert "retracted the tip to z = 12 mm" in stdout
+        name = "" if signum == signal.SIGINT else f" by {signal.Signals(signum).name}"
+        assert err.strip().splitlines()[-1].startswith(f"optitac-edge: interrupted{name}: tip retracted; recording")
+    kept = len((out / JOURNAL).read_text().splitlines()) - 1
+    assert kept >= 3
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "8"]) == 0
+    said = capsys.readouterr().out
+    assert f"continuing seen after press {kept} of 8" in said and "parked the tip at z = 12 mm" in said
+    rec = Recording(out)
+    assert rec.timestamped and np.all(np.diff(rec.t_ns) > 0)
+    segments = rec.meta.extra["segments"]
+    assert len(segments) == 2 and segments[0] == {"first_frame": 0, "offset_ns": 0}
+    assert segments[1]["offset_ns"] > 0  # the virtual clock started again at 0
+    assert rec.rig_poses is not None and len(rec.rig_poses.frame) == len(rec)
+    assert not (out / JOURNAL).exists()
+    cal = tmp_path / "cal.npz"
+    assert main(["calibrate", "fibers", str(out), "-o", str(cal)]) == 0
+    assert main(["calibrate", "centroid", str(out), "--cal", str(cal)]) == 0
+    said = capsys.readouterr().out
+    fitted = [float(v) for v in said.split("fitted rmse mm ")[1].split()[0].split("/")]
+    assert max(fitted) < 0.05
+    assert int(np.sum(rec.rig_poses.phase == "hold")) == (5 + 8) * 8  # registration and presses, none twice
+
+
+def test_a_complete_recording_is_never_overwritten(tmp_path, capsys) -> None:
+    """Before: collect (and record, sim) with -o on a finished recording started over at once; an interrupt
+    then left only frames.npy and incomplete.json, the recording's meta, truth and times gone."""
+    out = tmp_path / "seen"
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "2"]) == 0
+    before = {f.name: f.read_bytes() for f in out.iterdir()}
+    capsys.readouterr()
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds a complete recording" in err[0] and "--fresh" in err[0]
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+    # --fresh, interrupted: the old recording is still there, whole
+    proc = subprocess.Popen([sys.executable, "-c", START, "collect", "seen", "--rig", "sim://", "-o", str(out),
+                             "--limit", "4", "--fresh"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        if line.startswith("sensor origin at rig"):
+            break
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and f"recording {out} unchanged" in err.strip().splitlines()[-1]
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+    # --fresh to the end: replaced only now
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "3", "--fresh"]) == 0
+    assert Recording(out).meta.extra["collect"]["presses"] == 3
+    assert not (tmp_path / "seen.new").exists() and not (tmp_path / "seen.old").exists()
+
+
+def test_sim_and_record_follow_the_same_rule(tmp_path, capsys) -> None:
+    rest = tmp_path / "rest"
+    assert main(["sim", str(rest), "--scenario", "rest", "--frames", "12"]) == 0
+    meta = (rest / "meta.json").read_bytes()
+    for argv in (["sim", str(rest), "--scenario", "rest", "--frames", "20"],
+                 ["record", "-o", str(rest), "--frames", "20"]):
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "holds a complete recording" in err[0] and "--fresh" in err[0]
+        assert (rest / "meta.json").read_bytes() == meta
+    assert main(["record", "-o", str(rest), "--frames", "20", "--fresh"]) == 0
+    assert len(Recording(rest)) == 20
+    mcap = tmp_path / "rest.mcap"
+    assert main(["record", "-o", str(mcap), "--frames", "10"]) == 0
+    before = mcap.read_bytes()
+    assert main(["record", "-o", str(mcap), "--frames", "12"]) == 2
+    assert "holds a complete recording" in capsys.readouterr().err and mcap.read_bytes() == before
+    assert main(["sim", str(mcap), "--scenario", "rest", "--frames", "12"]) == 2
+    assert mcap.read_bytes() == before
+
+
+def test_an_edited_journal_is_one_line_not_a_traceback(tmp_path, capsys) -> None:
+    out = tmp_path / "seen"
+    _interrupt(out, signal.SIGKILL, after_presses=2, limit=6)
+    journal = out / JOURNAL
+    lines = journal.read_text().splitlines()
+    press = json.loads(lines[1])
+    press["rows"][0]["rig"] = [1, "x", 3]
+    journal.write_text("\n".join([lines[0], json.dumps(press), *lines[2:]]) + "\n")
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "6"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "collect.jsonl: line 2:" in err[0] and "--fresh" in err[0]
+    journal.write_text("\n".join([lines[0], "[1, 2]", *lines[2:]]) + "\n")
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "6"]) == 2
+    assert "line 2: not a JSON object" in capsys.readouterr().err
