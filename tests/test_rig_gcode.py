@@ -216,9 +216,8 @@ def test_a_soft_limit_during_a_collection_is_recovered_and_the_tip_retracted(grb
     bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
     grbl.travel = ((0.0, 200.0), (0.0, 200.0), (1.5, 40.0))  # the machine ends above the registration depth
     lines: list[str] = []
-    with GcodeRig(grbl.port, LIMITS) as rig:
-        with pytest.raises(RigError) as caught:
-            Collector(camera, rig, bundle, settings, prompt=lines.append).run("seen", tmp_path / "r", limit=3)
+    with GcodeRig(grbl.port, LIMITS) as rig, pytest.raises(RigError) as caught:
+        Collector(camera, rig, bundle, settings, prompt=lines.append).run("seen", tmp_path / "r", limit=3)
     message = str(caught.value)
     assert "ALARM:2 (soft limit" in message and "rig limits must lie inside the machine's travel" in message
     assert lines[-1] == "retracted the tip to z = 12 mm" and "$X" in grbl.lines

@@ -29,6 +29,7 @@ say so, and its times stay in order (:class:`~optitac_edge.io.recording.Recordin
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -328,8 +329,8 @@ class Collector:
             return f"the tip was NOT retracted: {err}"
         try:
             self.prompt(f"retracted the tip to z = {self.rig.limits.safe_z_mm:g} mm")
-        except Exception:  # noqa: BLE001 - a terminal gone with the SSH session that sent SIGHUP
-            pass
+        except OSError as err:  # a terminal gone with the SSH session that sent SIGHUP
+            log.debug("could not say the tip was retracted: %s", err)
         return None
 
     def _park(self) -> None:
@@ -536,10 +537,10 @@ def _check_entry(entry: Any, first: bool, start_frame: int, index: int) -> str:
     elif entry.get("index") != index:
         return f"press {entry.get('index')!r} where press {index} comes"
     end, rows, times = entry.get("end_frame"), entry.get("rows"), entry.get("t_ns")
-    if not (_is_int(end) and isinstance(rows, list) and isinstance(times, list)
+    if not (isinstance(end, int) and isinstance(rows, list) and isinstance(times, list)
             and end - start_frame == len(rows) == len(times)):
         return "frames, rows and times that do not add up"
-    if not all(_is_int(t) for t in times) or any(b < a for a, b in zip(times, times[1:])):
+    if not all(_is_int(t) for t in times) or any(b < a for a, b in itertools.pairwise(times)):
         return "frame times that are not integers in order"
     for k, row in enumerate(rows):
         why = _check_row(row, start_frame + k)

@@ -824,7 +824,7 @@ def _interrupt_on_signals() -> dict[int, Any]:
         fired.append(signum)
         raise Interrupted(signum)
 
-    previous = {}
+    previous: dict[int, Any] = {}
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(signum) is not signal.SIG_IGN:
             previous[signum] = signal.signal(signum, interrupt)
