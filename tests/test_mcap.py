@@ -103,15 +103,46 @@ def test_a_second_run_never_replaces_the_first(tmp_path):
     assert third.files == [tmp_path / "run-0001.mcap"]
 
 
+def _killed(path, frames, **kw):
+    """A run that ended without closing its publisher (a kill, a power cut): its file stays a .part."""
+    pub = open_publisher("mcap", path=path, **kw)
+    h = pub.advertise("/optitac/thumb/contacts", msgs.CONTACTS)
+    for k in frames:
+        pub.publish(h, msgs.encode_contacts(sample(k), k * 10**7, "f"), k * 10**7)
+    pub._stream.flush()
+    return pub._part
+
+
 def test_a_part_file_a_crash_left_is_kept_and_named(tmp_path, caplog):
     path = tmp_path / "run.mcap"
-    part = tmp_path / "run-0004.mcap.part"
-    part.write_bytes(b"\x89MCAP0\r\n what a power cut left")
+    _write(path, range(3), max_bytes=10**9)
+    part = _killed(path, range(300), max_bytes=10**9)
+    assert part == tmp_path / "run-0001.mcap.part"
+    before = part.read_bytes()
     with caplog.at_level("WARNING", logger="optitac_edge.io.publishers.mcap"):
         pub = _write(path, range(3), max_bytes=10**9)
-    assert part.read_bytes() == b"\x89MCAP0\r\n what a power cut left"  # was truncated by the next start
-    assert pub.files == [tmp_path / "run-0005.mcap"]
-    assert any("run-0004.mcap.part" in r.getMessage() and "mcap recover" in r.getMessage() for r in caplog.records)
+    assert part.read_bytes() == before  # was truncated by the next start
+    assert pub.files == [tmp_path / "run-0002.mcap"]
+    assert any("run-0001.mcap.part" in r.getMessage() and "mcap recover" in r.getMessage() for r in caplog.records)
+
+
+def test_keep_deletes_only_what_the_service_wrote_and_numbers_after_its_own_files(tmp_path):
+    """Before: keep_mb deleted any run-*.mcap in the directory (a user's run-1999.mcap holding "precious"),
+    and numbering went on after foreign names (run-20250101.mcap -> run-20250102.mcap)."""
+    path = tmp_path / "run.mcap"
+    precious = tmp_path / "run-1999.mcap"
+    precious.write_bytes(b"precious")
+    dated = tmp_path / "run-20250101.mcap"
+    dated.write_bytes(b"a user's recording")
+    taken = tmp_path / "run-0001.mcap"
+    taken.write_bytes(b"a user's file where the service would write next")
+    pub = _write(path, range(3000), max_bytes=20_000, keep_bytes=40_000)
+    assert pub.files[0] == tmp_path / "run-0000.mcap" and taken not in pub.files
+    assert all(len(f.stem.split("-")[1]) == 4 for f in pub.files)
+    assert precious.read_bytes() == b"precious" and dated.exists() and taken.read_bytes().startswith(b"a user")
+    assert pub.deleted and all(f in pub.files for f in pub.deleted)
+    again = _write(path, range(10), max_bytes=20_000)
+    assert again.files == [rotated_name(path, int(pub.files[-1].stem.split("-")[1]) + 1)]
 
 
 def test_keep_deletes_the_oldest_complete_files_and_never_a_part(tmp_path):
@@ -137,3 +168,91 @@ def test_run_twice_with_the_same_mcap_path_keeps_both_runs(tmp_path):
     second = [m.frame for t, *_, m in decoded(tmp_path / "run-0000.mcap") if t.endswith("/contacts")]
     assert first == list(range(40)) and second == list(range(20))
     assert "run-0000.mcap" in out.stderr  # said where this run went
+
+
+def test_a_kill_loses_at_most_a_second_of_messages(tmp_path):
+    """With the default chunking the .part stayed 0 bytes for the first 120 s of a run: a kill at 220 s
+    lost ~100 s. Now the chunk is closed, written and synced every second of message time."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    path = tmp_path / "run.mcap"
+    # 250 s of contacts at 100 Hz (message time), then the process dies without closing the file
+    part = _killed(path, range(25_000))
+    times = []
+    with open(part, "rb") as f:  # as far as it reads (the last chunk is cut short)
+        try:
+            for r in StreamReader(f, validate_crcs=True).records:
+                if isinstance(r, Message):
+                    times.append(r.log_time)
+        except Exception:  # noqa: BLE001, S110
+            pass
+    assert times and times[0] == 0
+    assert 249e9 - times[-1] <= 1.0e9 + 1e7  # at most about a second lost
+    assert times == [k * 10**7 for k in range(len(times))]  # everything before it, none missing
+    from optitac_edge.io.mcap_file import part_contents
+
+    held = part_contents(part)
+    assert (held.messages, held.first_ns, held.last_ns) == (len(times), 0, times[-1])
+
+
+class _FillingDisk:
+    """A file whose writes fail with ENOSPC once ``room`` bytes were written (a disk filling up)."""
+
+    def __init__(self, f, room: int) -> None:
+        self._f, self.room = f, room
+
+    def write(self, data) -> int:
+        import errno
+
+        if self.room < len(data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(data)
+        return self._f.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+
+def test_a_full_disk_is_counted_and_the_stop_stays_clean(tmp_path, caplog):
+    """Before: a full disk under run --mcap turned the clean stop into exit 2 (the file's completion
+    raised); now the run warns once, counts what it could not write and says what the file holds."""
+    from optitac_edge.io.mcap_file import open_part
+
+    def filling(final):
+        stream, part = open_part(final)
+        return _FillingDisk(stream, 60_000), part
+
+    path = tmp_path / "run.mcap"
+    with caplog.at_level("WARNING", logger="optitac_edge.io.publishers.mcap"):
+        pub = open_publisher("mcap", path=path, open_file=filling)
+        h = pub.advertise("/optitac/thumb/contacts", msgs.CONTACTS)
+        for k in range(20_000):
+            pub.publish(h, msgs.encode_contacts(sample(k), k * 10**7, "f"), k * 10**7)
+        pub.close()  # no exception
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("No space left on device" in w and "run.mcap.part" in w for w in warnings)
+    assert pub.lost > 0 and pub.written[0].messages > 0
+    summary = pub.summary
+    assert summary[0].startswith(f"{tmp_path / 'run.mcap.part'}: ") and "failed write (No space left" in summary[0]
+    assert "'mcap recover' restores its index" in summary[0]
+    assert summary[-1].endswith("messages not written (failed writes)")
+    from optitac_edge.io.mcap_file import part_contents
+
+    assert part_contents(tmp_path / "run.mcap.part").messages > 0  # what was written before is readable
+
+
+def test_run_with_a_full_disk_ends_cleanly_naming_the_file(tmp_path, monkeypatch, capsys):
+    from optitac_edge.cli import main
+    from optitac_edge.io import mcap_file
+    from optitac_edge.io.publishers import mcap as mcap_publisher
+
+    def filling(final):
+        stream, part = mcap_file.open_part(final)
+        return _FillingDisk(stream, 4_000), part
+
+    monkeypatch.setattr(mcap_publisher, "open_part", filling)
+    path = tmp_path / "run.mcap"
+    assert main(["run", "--frames", "200", "--mcap", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert f"wrote {tmp_path / 'run.mcap.part'}: " in out and "No space left on device" in out

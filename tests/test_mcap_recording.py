@@ -67,3 +67,21 @@ def test_what_is_not_an_mcap_recording_is_refused_in_one_line(tmp_path, capsys, 
 def test_record_mcap_needs_the_mcap_suffix(tmp_path, capsys):
     assert main(["record", "-o", str(tmp_path / "rec"), "--mcap", "--frames", "20"]) == 2
     assert "must end in .mcap" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("where", ["frames", "truth"])
+def test_a_flipped_byte_is_refused_not_replayed(where, tmp_path, capsys) -> None:
+    """Before: a flipped byte in a recording's MCAP replayed silently with a changed angle (mcap's reader
+    skips chunk CRCs unless asked, and never checks an attachment's)."""
+    from optitac_edge.cli import main
+
+    path = tmp_path / "u.mcap"
+    assert main(["sim", str(path), "--scenario", "unseen", "--frames", "30"]) == 0
+    data = bytearray(path.read_bytes())
+    at = data.find(b"frame,contact") + 200 if where == "truth" else len(data) // 2
+    data[at] ^= 0x04
+    path.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main(["replay", str(path), "--cal", str(tmp_path / "none.npz"), "-o", str(tmp_path / "c.csv")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and ("CRC" in err[0] or "damaged" in err[0] or "readable" in err[0])

@@ -570,6 +570,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
                     published, dropped = network.counters(ch.sensor_id)
                     say("  sensor %d %r: %d messages published, %d dropped (publishing errors %d; %s)",
                         ch.sensor_id, ch.name, published, dropped, network.errors, network.publisher.where)
+
+        network = services[0].network if services else None
+        for line in network.publisher.summary if network is not None else ():
+            say("wrote %s", line)
     finally:
         console.stop()
         for signum, handler in previous.items():

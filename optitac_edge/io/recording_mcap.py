@@ -12,6 +12,7 @@ header, as in ``timestamps.npy``); the metadata record :data:`META_NAME` holds
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -65,6 +66,7 @@ class McapRecordingWriter:
         self._channel = self._writer.register_channel(IMAGE_TOPIC, "cdr", schema)
         self.frames_written = 0
         self._done = False
+        self._synced_ns: int | None = None
 
     def write(self, index: int, frame: np.ndarray, t_ns: int) -> None:
         """Frame ``index`` (written in order) captured at ``t_ns``."""
@@ -73,6 +75,12 @@ class McapRecordingWriter:
         try:
             self._writer.add_message(self._channel, int(t_ns), encode_image(frame, t_ns, "optitac_camera"),
                                      int(t_ns), index)
+            if self._synced_ns is None:
+                self._synced_ns = int(t_ns)
+            elif t_ns - self._synced_ns >= 1_000_000_000:  # a power cut loses at most about a second
+                self._synced_ns = int(t_ns)
+                self._writer.flush()
+                os.fsync(self._stream.fileno())
         except OSError as exc:
             raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
         self.frames_written += 1
@@ -106,11 +114,13 @@ def read_mcap_recording(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, A
     """(frames (N, H, W[, 3]) uint8, capture times (N,) int64 ns, meta, truth.csv's text or None) of an
     MCAP recording.
 
+    Every chunk's CRC and the truth attachment's are checked: a flipped byte is refused, never replayed.
+
     Raises
     ------
     RecordingError
-        Naming the file: not MCAP, no frames on :data:`IMAGE_TOPIC`, frames of
-        another encoding or size than the first, no recording metadata.
+        Naming the file: not MCAP, damaged (a CRC that does not match), no frames on
+        :data:`IMAGE_TOPIC`, frames of another encoding or size than the first, no recording metadata.
     """
     try:
         from mcap.reader import make_reader
@@ -134,7 +144,9 @@ def read_mcap_recording(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, A
                 if attachment.name == TRUTH_NAME:
                     truth = attachment.data.decode("utf-8")
             f.seek(0)
-            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            _check_attachment_crcs(f, make_reader(f).get_summary(), path)
+            f.seek(0)
+            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
             for _, _, message, image in reader.iter_decoded_messages(topics=[IMAGE_TOPIC], log_time_order=False):
                 frames.append(_image_array(image, path, len(frames)))
                 stamps.append(int(message.log_time))
@@ -171,3 +183,18 @@ def _image_array(image: Any, path: Path, index: int) -> np.ndarray:
                              f"{image.encoding}")
     shape = (image.height, image.width) if channels == 1 else (image.height, image.width, 3)
     return data.reshape(shape)
+
+
+def _check_attachment_crcs(f: Any, summary: Any, path: Path) -> None:
+    """Each attachment record's CRC (the ``mcap`` reader skips it): over the record after its opcode and
+    length, up to the CRC; 0 means none was written."""
+    import zlib
+
+    for index in getattr(summary, "attachment_indexes", None) or ():
+        f.seek(index.offset)
+        raw = f.read(index.length)
+        if len(raw) != index.length or len(raw) < 13:
+            raise RecordingError(f"{path}: attachment {index.name!r} is cut short")
+        crc = int.from_bytes(raw[-4:], "little")
+        if crc and zlib.crc32(raw[9:-4]) != crc:
+            raise RecordingError(f"{path}: attachment {index.name!r} is damaged (its CRC does not match)")

@@ -31,3 +31,8 @@ class Publisher(Device):
     def where(self) -> str:
         """A few words on where the messages go, for logs."""
         return type(self).__name__
+
+    @property
+    def summary(self) -> list[str]:
+        """Lines on what was written where (a recording's files), for the run's summary; none by default."""
+        return []

@@ -38,6 +38,10 @@ class FanoutPublisher(Publisher):
     def where(self) -> str:
         return " and ".join(p.where for p in self.publishers)
 
+    @property
+    def summary(self) -> list[str]:
+        return [line for p in self.publishers for line in p.summary]
+
     def _close_internal(self) -> None:
         for p in self.publishers:
             p.close()
