@@ -30,7 +30,8 @@ from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras import BACKENDS, open_camera
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
-from optitac_edge.io.recording import RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 
 
 @dataclass

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from optitac_edge.cli import main
-from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import Recording, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 
 
 def _one_line_error(capsys, argv, *needles):

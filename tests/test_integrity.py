@@ -20,7 +20,8 @@ import pytest
 from optitac_edge.cli import main
 from optitac_edge.errors import OutputError, RecordingError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
-from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import Recording, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.camera import SimCamera
 from optitac_edge.sim.sensor import SimulatedSensor
 
@@ -200,7 +201,7 @@ def test_a_failed_write_of_the_recordings_metadata_leaves_it_incomplete(tmp_path
     def full(*args, **kwargs):
         raise OutputError(f"{path / 'meta.json'}: No space left on device")
 
-    monkeypatch.setattr("optitac_edge.io.recording.write_file_atomic", full)
+    monkeypatch.setattr("optitac_edge.io.recording_writer.write_file_atomic", full)
     with pytest.raises(OutputError, match="No space left"):
         w.close()
     assert not (path / "meta.json").exists() and (path / "incomplete.json").exists()

@@ -8,7 +8,8 @@ from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.orientation import is_verified
 from optitac_edge.cli import main
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
-from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import Recording, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
 

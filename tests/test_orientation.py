@@ -125,7 +125,8 @@ def test_calibrate_centroid_refuses_a_wrong_orientation_and_says_how_to_fix_it(p
 
 
 def test_calibrate_orientation_refuses_presses_that_cannot_tell(tmp_path, capsys) -> None:
-    from optitac_edge.io.recording import RecordingMeta, RecordingWriter
+    from optitac_edge.io.recording import RecordingMeta
+    from optitac_edge.io.recording_writer import RecordingWriter
     from optitac_edge.sim.sensor import SimulatedSensor
     from optitac_edge.sim.skin import Indenter
 

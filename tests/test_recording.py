@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from optitac_edge.errors import RecordingError
-from optitac_edge.io.recording import Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import Recording, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 
 
 def _write(path, n=8, shape=(12, 16), rest=5, truth=True):

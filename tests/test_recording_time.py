@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from optitac_edge.errors import RecordingError
-from optitac_edge.io.recording import TIMESTAMPS, Recording, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import TIMESTAMPS, Recording, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 
 META = RecordingMeta(rest_frames=5, fps=50.0)
 

@@ -48,7 +48,8 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.errors import CameraError, RecordingError, RigError
 from optitac_edge.io.cameras.base import Camera
-from optitac_edge.io.recording import COLLECT_JOURNAL, INCOMPLETE_MARKER, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import COLLECT_JOURNAL, INCOMPLETE_MARKER, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.io.rigs.base import STOPPED_STATES, Rig
 
 log = logging.getLogger(__name__)

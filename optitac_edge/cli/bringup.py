@@ -80,7 +80,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
     from optitac_edge.bringup.collect import Collector
     from optitac_edge.bringup.rigs import open_rig
-    from optitac_edge.io.recording import check_writable_recording
+    from optitac_edge.io.recording_writer import check_writable_recording
     from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.wiring import open_board_camera
 

@@ -6,7 +6,8 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from optitac_edge.errors import OptiTacError
-from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter, check_writable_recording
 from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.service.wiring import open_board_camera
 
@@ -39,8 +40,6 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
         raise OptiTacError(f"--frames must be >= --rest-frames >= {MIN_REST_FRAMES}")
     if mcap:
         from optitac_edge.io.recording_mcap import McapRecordingWriter
-    from optitac_edge.io.recording import check_writable_recording
-
     check_writable_recording(path, replace)  # refused before the camera opens
     with open_board_camera(config) as camera:
         if camera.pixel_format == "yuv420":

@@ -54,7 +54,8 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from optitac_edge.core.layout import FiberLayout, hex_layout
-from optitac_edge.io.recording import SHAPES, RecordingMeta, RecordingWriter
+from optitac_edge.io.recording import SHAPES, RecordingMeta
+from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.patches import PatchPlacement

@@ -1,0 +1,208 @@
+"""The frames of a recording kept as fiber sums (:mod:`optitac_edge.io.frame_store`), given back as frames.
+
+A frame after the rest frames is made from the rest frames' mean and the
+frame's sum of every fiber's gray levels:
+
+* each pixel of a fiber's group gets its rest level scaled by the fiber's
+  light (its sum over its sum at rest), rounded so that the group's pixels add
+  up to the recorded sum *exactly*: a fiber map whose pixel groups are the
+  recording's own (a bundle calibrated from its rest frames) reads exactly the
+  fiber light of the raw frames, and gives the same figures;
+* the pixels around a group (up to half a fiber's radius, :data:`ZONE_FRACTION`)
+  are scaled the same way, so that a fiber map found elsewhere, whose groups
+  are a pixel larger or smaller, reads nearly the same light
+  (:meth:`FiberSumFrames.exact_for` tells which case it is);
+* everything else is the rest frames' mean. RGB recordings give gray frames
+  in three channels (their BT.601 gray is the gray level itself).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.frames import infer_pixel_format
+from optitac_edge.errors import FrameMismatchError, RecordingError
+from optitac_edge.io.frame_store import REST_FRAMES, SPOTS, SUMS
+
+#: Pixels around a fiber's group, up to this fraction of its radius, follow its light.
+ZONE_FRACTION = 0.5
+
+
+def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
+    """The fiber pixel groups a recording's sums are over (``spots.npz``), checked.
+
+    Raises
+    ------
+    RecordingError
+        Naming the file, when it is garbled or does not fit the frames.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: np.array(z[k]) for k in ("pixel_index", "pixel_start", "centroid_px", "dead")}
+        h, w = frame_shape[:2]
+        return FiberTable(height=int(h), width=int(w), pixel_format=infer_pixel_format(frame_shape),
+                          pixel_index=arrays["pixel_index"].astype(np.int32),
+                          pixel_start=arrays["pixel_start"].astype(np.int64),
+                          centroid_px=arrays["centroid_px"].astype(np.float64), dead=arrays["dead"].astype(bool),
+                          unmatched_px=np.zeros((0, 2)))
+    except (OSError, ValueError, KeyError, TypeError, FrameMismatchError) as exc:
+        raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
+
+
+def _load(path: Path, what: str) -> np.ndarray:
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except FileNotFoundError:
+        raise RecordingError(f"{path.parent}: a recording of fiber sums without {path.name}") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise RecordingError(f"{path}: garbled or truncated {what} ({exc})") from None
+
+
+class FiberSumFrames:
+    """The frames of a fiber-sums recording, as an array-like of shape (N, H, W[, 3]), uint8.
+
+    Indexing with an integer makes that frame (a new array); a slice within the rest frames is a view of
+    them. ``np.asarray`` makes every frame (small recordings only).
+
+    Parameters
+    ----------
+    directory : Path
+    rest_frames : int
+        The recording's rest frames (``meta.json``), kept as they are in ``rest.npy``.
+
+    Raises
+    ------
+    RecordingError
+        Naming the file that is missing, garbled, or does not fit the others.
+    """
+
+    def __init__(self, directory: Path, rest_frames: int) -> None:
+        rest = _load(directory / REST_FRAMES, "rest frames")
+        if rest.dtype != np.uint8 or rest.ndim not in (3, 4) or rest.shape[0] != rest_frames:
+            raise RecordingError(f"{directory / REST_FRAMES}: must hold the {rest_frames} rest frames, uint8 "
+                                 f"(K,H,W) or (K,H,W,3), got {rest.dtype} {rest.shape}")
+        frame_shape = tuple(int(v) for v in rest.shape[1:])
+        try:
+            infer_pixel_format(frame_shape)
+        except FrameMismatchError:
+            raise RecordingError(f"{directory / REST_FRAMES}: frames of shape {frame_shape} are not gray or RGB") \
+                from None
+        self.table = read_spots(directory / SPOTS, frame_shape)
+        sums = _load(directory / SUMS, "fiber sums")
+        n = self.table.n_fibers
+        if sums.dtype not in (np.uint16, np.uint32) or sums.ndim != 2 or sums.shape[1] != n:
+            raise RecordingError(f"{directory / SUMS}: must be uint16 or uint32 of shape (frames, {n}), got "
+                                 f"{sums.dtype} {sums.shape}")
+        counts = self.table.pixel_count
+        if sums.shape[0] and np.any(np.asarray(sums).max(axis=0) > 255 * counts):
+            raise RecordingError(f"{directory / SUMS}: a sum larger than its fiber's pixels can hold")
+        self._rest, self._sums = rest, sums
+        self.rest_frames = rest_frames
+        self.shape: tuple[int, ...] = (rest_frames + int(sums.shape[0]), *frame_shape)
+        self.dtype = np.dtype(np.uint8)
+        self.ndim = len(self.shape)
+        self._prepare(frame_shape, counts)
+
+    def _prepare(self, frame_shape: tuple[int, ...], counts: np.ndarray) -> None:
+        """The rest level of every pixel, the groups' weights and the zones around them."""
+        from scipy import ndimage
+
+        h, w = frame_shape[:2]
+        level = np.zeros((h, w), dtype=np.float64)
+        for frame in self._rest:
+            level += frame if frame.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+        level /= len(self._rest)
+        flat = level.reshape(-1)
+        self._base = np.clip(np.rint(flat), 0, 255).astype(np.uint8)
+        t = self.table
+        self._index = t.pixel_index.astype(np.intp)
+        self._fiber = np.repeat(np.arange(t.n_fibers), counts)
+        self._starts = t.pixel_start[:-1].astype(np.intp)
+        self._ends = t.pixel_start[1:].astype(np.intp) - 1
+        weight = flat[self._index]
+        rest_sum = np.add.reduceat(weight, self._starts)
+        dark = rest_sum <= 0  # no light at rest (a dead fiber on black): share equally
+        weight[dark[self._fiber]] = 1.0
+        rest_sum = np.where(dark, counts.astype(np.float64), rest_sum)
+        self._weight, self._rest_sum, self._counts = weight, rest_sum, counts
+        label = np.full(h * w, -1, dtype=np.int64)
+        label[self._index] = self._fiber
+        distance, (rows, cols) = ndimage.distance_transform_edt(label.reshape(h, w) < 0, return_indices=True)
+        reach = ZONE_FRACTION * float(np.median(np.sqrt(counts / np.pi)))
+        zone = np.flatnonzero((distance.reshape(-1) > 0) & (distance.reshape(-1) <= reach))
+        self._zone = zone
+        self._zone_fiber = label[(rows.reshape(-1) * w + cols.reshape(-1))[zone]]
+        self._zone_level = flat[zone]
+        self._label = label
+
+    # -- array-like ------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        if isinstance(key, slice):
+            start, stop, step = key.indices(len(self))
+            if stop <= self.rest_frames and step > 0:
+                return self._rest[key]
+            return np.stack([self.frame(i) for i in range(start, stop, step)]) if len(range(start, stop, step)) \
+                else np.zeros((0, *self.shape[1:]), np.uint8)
+        index = int(key)
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame {key} outside 0..{len(self) - 1}")
+        return self.frame(index)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = np.stack([self.frame(i) for i in range(len(self))])
+        return out if dtype is None else out.astype(dtype)
+
+    # -- frames ------------------------------------------------------------------------
+
+    def frame(self, index: int) -> np.ndarray:
+        """Frame ``index`` (0 .. N-1) as a new C-contiguous array."""
+        if index < self.rest_frames:
+            return np.array(self._rest[index])
+        sums = np.asarray(self._sums[index - self.rest_frames], dtype=np.float64)
+        ratio = sums / self._rest_sum
+        out = self._base.copy()
+        out[self._zone] = np.clip(np.rint(self._zone_level * ratio[self._zone_fiber]), 0, 255)
+        out[self._index] = self._share(sums, ratio)
+        gray = out.reshape(self.shape[1:3])
+        return gray if len(self.shape) == 3 else np.repeat(gray[:, :, None], 3, axis=2)
+
+    def _share(self, sums: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+        """Each group's pixels, in proportion to their rest level, adding up to the group's sum exactly."""
+        part = self._weight * ratio[self._fiber]
+        total = np.cumsum(part)
+        before = np.concatenate([[0.0], total[self._ends[:-1]]])
+        within = total - before[self._fiber]
+        within[self._ends] = sums  # the group's total, exact (no float drift)
+        rounded = np.floor(within + 0.5)
+        prev = np.empty_like(rounded)
+        prev[1:] = rounded[:-1]
+        prev[self._starts] = 0.0
+        values = rounded - prev
+        bad = (values < 0) | (values > 255)
+        if bad.any():  # a group brighter than its rest level allows: equal shares, still exact
+            for f in np.unique(self._fiber[bad]):
+                lo, n = int(self._starts[f]), int(self._counts[f])
+                q, r = divmod(int(sums[f]), n)
+                values[lo:lo + n] = q + (np.arange(n) < r)
+        return values.astype(np.uint8)
+
+    def exact_for(self, table: FiberTable) -> bool:
+        """True when every fiber of ``table`` reads exactly one of the recording's pixel groups (a bundle
+        calibrated from this recording's rest frames): its fiber light is then the raw frames'."""
+        if (table.height, table.width) != self.shape[1:3]:
+            return False
+        lab = self._label[table.pixel_index.astype(np.intp)]
+        starts = table.pixel_start[:-1].astype(np.intp)
+        lo, hi = np.minimum.reduceat(lab, starts), np.maximum.reduceat(lab, starts)
+        return bool(np.all(lo == hi) and np.all(lo >= 0) and np.array_equal(self._counts[lo], table.pixel_count))

@@ -1,0 +1,266 @@
+"""How a recording keeps its frames on disk: raw, or compact as each fiber's light (the default of a rig).
+
+``raw``
+    ``frames.npy``: every frame as the camera gave it (uint8, (N, H, W) or
+    (N, H, W, 3)). About 300 kB a frame at 640x480: 70 MB/s at 240 fps, which
+    no SD card sustains, and 5 GB for a ``seen`` collection.
+
+``fibers``
+    ``rest.npy``: the recording's rest frames as they are, so the fiber map can
+    be found again from them; ``spots.npz``: the pixels of every fiber found in
+    those rest frames (the fiber map's pixel groups, the same
+    :func:`~optitac_edge.calibration.fibers.calibrate_fibers` finds there);
+    ``sums.npy``: for every later frame, the sum of each fiber's gray levels
+    (uint16, 434 bytes a frame for 217 fibers: 100 kB/s at 240 fps). The
+    per-frame loop reads nothing of a frame but those pixels, so a bundle
+    whose fiber map is the recording's own sees exactly the fiber light it
+    would see in the raw frames (:mod:`optitac_edge.io.fiber_sums` gives the
+    frames back). The fibers are found in a thread while the frames after the
+    rest wait in memory, so the camera is not held up.
+
+Both write with ``pwrite`` into space allocated ahead (:class:`~optitac_edge.io.npy_rows.NpyRows`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from optitac_edge.core.fiber_table import FiberSampler, FiberTable
+from optitac_edge.core.frames import infer_pixel_format
+from optitac_edge.errors import OutputError, RecordingError
+from optitac_edge.io.files import AtomicFile
+from optitac_edge.io.npy_rows import NpyRows
+
+log = logging.getLogger(__name__)
+
+#: The storages a recording's frames may be in.
+STORAGES = ("fibers", "raw")
+RAW_FRAMES = "frames.npy"
+REST_FRAMES = "rest.npy"
+SPOTS = "spots.npz"
+SUMS = "sums.npy"
+#: Frames waiting in memory for the fiber map before the writer waits for it instead, bytes.
+PENDING_BYTES = 256 << 20
+
+#: Finds the fibers in rest frames ((K, H, W[, 3]) uint8) of a pixel format: a table whose pixel groups are kept.
+FindFibers = Callable[[np.ndarray, str], FiberTable]
+
+
+class FrameStore(ABC):
+    """Where a recording writer puts its frames. Errors are :class:`OutputError` naming the file."""
+
+    #: The storage's name (:data:`STORAGES`).
+    storage: str
+
+    @abstractmethod
+    def write(self, index: int, frame: np.ndarray) -> None:
+        """Frame ``index``."""
+
+    @abstractmethod
+    def sync(self) -> None:
+        """Every frame written so far onto the disk."""
+
+    @abstractmethod
+    def finish(self, n_frames: int) -> dict[str, Any]:
+        """The store holds frames ``0 .. n_frames - 1``, synced; what ``meta.json`` says of it."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the files (idempotent); what was written stays."""
+
+
+class RawFrameStore(FrameStore):
+    """``frames.npy``, every frame as it is.
+
+    Parameters
+    ----------
+    directory : Path
+    frame_shape : tuple of int
+    n_frames : int or None
+        None: open-ended.
+    keep_frames : int
+        Continue an open-ended store after its first ``keep_frames`` frames.
+    """
+
+    storage = "raw"
+
+    def __init__(self, directory: Path, frame_shape: tuple[int, ...], n_frames: int | None,
+                 keep_frames: int = 0) -> None:
+        path = directory / RAW_FRAMES
+        if keep_frames and not path.exists():
+            raise RecordingError(f"{directory}: holds no raw frames to continue (collected with --storage "
+                                 "fibers? continue it with the same storage)")
+        self._rows = NpyRows(path, frame_shape, np.uint8, n_frames, keep_rows=keep_frames)
+
+    def write(self, index: int, frame: np.ndarray) -> None:
+        self._rows.write(index, frame)
+
+    def sync(self) -> None:
+        self._rows.sync()
+
+    def finish(self, n_frames: int) -> dict[str, Any]:
+        self._rows.finish(n_frames)
+        return {}
+
+    def close(self) -> None:
+        self._rows.close()
+
+
+class FiberSumStore(FrameStore):
+    """``rest.npy``, ``spots.npz`` and ``sums.npy`` (see the module docstring). Frames are written in order.
+
+    Parameters
+    ----------
+    directory : Path
+    frame_shape : tuple of int
+    rest_frames : int
+        The recording's leading rest frames, kept as they are.
+    find_fibers : callable
+        Finds the fibers in the rest frames (run in a thread of its own).
+    keep_frames : int
+        Continue a store after its first ``keep_frames`` frames (at least the rest frames).
+    """
+
+    storage = "fibers"
+
+    def __init__(self, directory: Path, frame_shape: tuple[int, ...], rest_frames: int, find_fibers: FindFibers,
+                 keep_frames: int = 0) -> None:
+        self.directory = directory
+        self.frame_shape = tuple(int(v) for v in frame_shape)
+        self.pixel_format = infer_pixel_format(self.frame_shape)
+        self.rest_frames = rest_frames
+        self._find_fibers = find_fibers
+        self._written = keep_frames
+        self._rest_copies: list[np.ndarray] = []
+        self._pending: list[tuple[int, np.ndarray]] = []
+        self._finder: threading.Thread | None = None
+        self._found: FiberTable | BaseException | None = None
+        self._sampler: FiberSampler | None = None
+        self._sums: NpyRows | None = None
+        self._rest: NpyRows | None = None
+        if keep_frames:
+            self._resume(keep_frames)
+        else:
+            self._rest = NpyRows(directory / REST_FRAMES, self.frame_shape, np.uint8, rest_frames)
+
+    def _resume(self, keep: int) -> None:
+        if keep < self.rest_frames or not (self.directory / SPOTS).exists():
+            raise RecordingError(f"{self.directory}: holds no fiber sums to continue after frame {keep} (collected "
+                                 "with --storage raw? continue it with the same storage)")
+        from optitac_edge.io.fiber_sums import read_spots
+
+        table = read_spots(self.directory / SPOTS, self.frame_shape)
+        self._use(table, keep_rows=keep - self.rest_frames)
+
+    def _use(self, table: FiberTable, keep_rows: int = 0) -> None:
+        """Sum every later frame over ``table``'s pixel groups."""
+        most = int(table.pixel_count.max(initial=1))
+        dtype = np.uint16 if 255 * most <= 0xFFFF else np.uint32
+        self._sums = NpyRows(self.directory / SUMS, (table.n_fibers,), dtype, None, keep_rows=keep_rows)
+        self._sampler = FiberSampler(table)
+        self._starts = table.pixel_start[:-1].astype(np.intp)
+        self._row = np.zeros(table.n_fibers, dtype=np.uint32)
+        self._wide = np.zeros(table.pixel_index.size, dtype=np.uint32)
+        self._found = table
+
+    # -- finding the fibers off the frame thread -------------------------------------
+
+    def _start_finder(self) -> None:
+        rest = np.stack(self._rest_copies)
+
+        def find() -> None:
+            try:
+                self._found = self._find_fibers(rest, self.pixel_format)
+            except BaseException as exc:  # noqa: BLE001 - raised on the writer's thread
+                self._found = exc
+
+        self._finder = threading.Thread(target=find, name="optitac-find-fibers", daemon=True)
+        self._finder.start()
+
+    def _ready(self, wait: bool) -> bool:
+        """True once the fiber map is there and in use (waiting for it with ``wait``)."""
+        if self._sampler is not None:
+            return True
+        if self._finder is None:
+            if len(self._rest_copies) < self.rest_frames:
+                return False
+            self._start_finder()
+        assert self._finder is not None
+        if self._finder.is_alive() and not wait:
+            return False
+        self._finder.join()
+        found = self._found
+        if isinstance(found, BaseException):
+            raise OutputError(f"{self.directory}: cannot find the fibers in the rest frames to keep each fiber's "
+                              f"light ({found}); record the frames as they are with --storage raw") from None
+        assert isinstance(found, FiberTable)
+        with AtomicFile(self.directory / SPOTS, "wb") as f:
+            np.savez(f, pixel_index=found.pixel_index, pixel_start=found.pixel_start,
+                     centroid_px=found.centroid_px, dead=found.dead)
+        self._use(found)
+        self._rest_copies = []
+        pending, self._pending = self._pending, []
+        for index, frame in pending:
+            self._sum(index, frame)
+        return True
+
+    # -- FrameStore ---------------------------------------------------------------------
+
+    def _sum(self, index: int, frame: np.ndarray) -> None:
+        assert self._sampler is not None and self._sums is not None
+        np.copyto(self._wide, self._sampler.gather(np.ascontiguousarray(frame)))
+        np.add.reduceat(self._wide, self._starts, out=self._row)
+        self._sums.write(index - self.rest_frames, self._row)
+
+    def write(self, index: int, frame: np.ndarray) -> None:
+        if index != self._written:
+            raise ValueError(f"frames are kept as fiber sums in order: frame {index} after {self._written}")
+        if frame.shape != self.frame_shape:
+            raise ValueError(f"frame of shape {frame.shape}, the recording holds {self.frame_shape}")
+        self._written += 1
+        if index < self.rest_frames:
+            assert self._rest is not None
+            self._rest.write(index, frame)
+            self._rest_copies.append(np.array(frame, dtype=np.uint8))
+            if index == self.rest_frames - 1:
+                self._start_finder()  # the frames go on while the fibers are found
+            return
+        if self._ready(wait=False):
+            self._sum(index, frame)
+            return
+        self._pending.append((index, np.array(frame, dtype=np.uint8)))
+        if len(self._pending) * frame.nbytes > PENDING_BYTES:
+            log.warning("waiting for the fiber map of %s (%d frames in memory)", self.directory, len(self._pending))
+            self._ready(wait=True)
+
+    def sync(self) -> None:
+        self._ready(wait=True)
+        if self._rest is not None:
+            self._rest.sync()
+        if self._sums is not None:
+            self._sums.sync()
+
+    def finish(self, n_frames: int) -> dict[str, Any]:
+        if n_frames < self.rest_frames:
+            raise RecordingError(f"{self.directory}: {n_frames} frames, fewer than its {self.rest_frames} rest "
+                                 "frames")
+        self._ready(wait=True)
+        assert self._sums is not None and self._found is not None and isinstance(self._found, FiberTable)
+        if self._rest is not None:
+            self._rest.finish(self.rest_frames)
+        self._sums.finish(n_frames - self.rest_frames)
+        return {"storage": "fibers", "frame_shape": list(self.frame_shape), "fibers": self._found.n_fibers}
+
+    def close(self) -> None:
+        if self._finder is not None and self._finder.is_alive():
+            self._finder.join()
+        for rows in (self._rest, self._sums):
+            if rows is not None:
+                rows.close()
