@@ -170,11 +170,12 @@ def _cli_limited(args: list[str], limit: int) -> subprocess.CompletedProcess:
                           timeout=300, check=False, preexec_fn=_limit_file_size(limit))
 
 
-def test_record_onto_a_full_disk_fails_in_one_line_at_once(tmp_path):
+@pytest.mark.parametrize("storage, limit, file", [("raw", 2 << 20, "frames.npy"), ("fibers", 2 << 20, "rest.npy")])
+def test_record_onto_a_full_disk_fails_in_one_line_at_once(storage, limit, file, tmp_path):
     out = tmp_path / "r"
-    proc = _cli_limited(["record", "--board", "sim", "-o", str(out), "--frames", "3000"], 2 << 20)
+    proc = _cli_limited(["record", "--board", "sim", "-o", str(out), "--frames", "3000", "--storage", storage], limit)
     assert proc.returncode == 2, proc.stderr
-    assert _one_line(proc.stderr) == f"optitac-edge: error: {out / 'frames.npy'}: File too large"
+    assert _one_line(proc.stderr) == f"optitac-edge: error: {out / file}: File too large"
     assert not (out / "meta.json").exists()
 
 

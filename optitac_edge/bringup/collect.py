@@ -48,6 +48,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.errors import CameraError, RecordingError, RigError
 from optitac_edge.io.cameras.base import Camera
+from optitac_edge.io.frame_store import FindFibers
 from optitac_edge.io.recording import COLLECT_JOURNAL, INCOMPLETE_MARKER, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.io.rigs.base import STOPPED_STATES, Rig
@@ -130,12 +131,17 @@ class Collector:
         Shows one line and waits until the operator is ready (indenter changes).
     read_timeout_s : float
         Longest wait for a frame.
+    storage : {"raw", "fibers"}
+        How the recording keeps its frames (:mod:`optitac_edge.io.frame_store`); ``fibers`` needs ``find_fibers``.
+    find_fibers : callable, optional
+        Finds the fibers in the recording's rest frames (e.g. :func:`optitac_edge.service.bundles.fiber_finder`).
     """
 
     def __init__(self, camera: Camera, rig: Rig, bundle: CalibrationBundle, settings: CollectSettings = CollectSettings(),
                  prompt: Callable[[str], None] = print, confirm: Callable[[str], None] | None = None,
-                 read_timeout_s: float = 2.0) -> None:
+                 read_timeout_s: float = 2.0, storage: str = "raw", find_fibers: FindFibers | None = None) -> None:
         self.camera, self.rig, self.bundle, self.settings = camera, rig, bundle, settings
+        self.storage, self.find_fibers = storage, find_fibers
         self.prompt = prompt
         self.confirm = confirm or prompt
         self.read_timeout_s = read_timeout_s
@@ -305,7 +311,8 @@ class Collector:
         segments = next((e["segments"] for e in reversed(entries) if "segments" in e), None)
         self.writer = RecordingWriter(out, None, self.camera.frame_shape, meta, rig_columns=True,
                                       keep_frames=kept, kept_t_ns=np.asarray(kept_t, np.int64) if kept else None,
-                                      kept_segments=segments, replace=fresh)
+                                      kept_segments=segments, replace=fresh, storage=self.storage,
+                                      find_fibers=self.find_fibers)
         journal = self.writer.path / JOURNAL
         try:
             result = self._run(experiment, presses, setup, done, journal, kept_rows, seed)

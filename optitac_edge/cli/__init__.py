@@ -71,6 +71,10 @@ def _add_fresh(p: argparse.ArgumentParser) -> None:
                    help="replace a complete recording at the output (it is kept until the new one is complete)")
 
 
+def _add_storage(p: argparse.ArgumentParser, default: str | None, text: str) -> None:
+    p.add_argument("--storage", choices=("fibers", "raw"), default=default, help=f"how the frames are kept: {text}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -94,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "sets its own rotation and mirror")
     p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
     _add_fresh(p)
+    _add_storage(p, "raw", "raw (default): every frame as it is; fibers: the rest frames and each fiber's light")
     _add_orientation(p)
     add_board(p, default=None)  # --board B --sensor ID: the sensor's patch in whole frames of its sim camera
 
@@ -179,6 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write REC as one MCAP file (frames as sensor_msgs/Image; the default when REC ends in "
                         ".mcap); replay, calibrate and evaluate read it like a recording directory")
     _add_fresh(p)
+    _add_storage(p, None, "fibers (default for a directory): the rest frames and each fiber's light, ~0.4 kB a "
+                          "frame; raw (an MCAP file's): every frame as it is")
 
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
     p.add_argument("--minutes", type=number(0, 1e6, lo_open=True), required=True, metavar="M")
@@ -298,9 +305,11 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         import shutil
 
         shutil.rmtree(out, ignore_errors=True)  # a conversion that did not finish
+    if mcap and args.storage == "fibers":
+        raise OptiTacError("--storage fibers: an MCAP recording holds raw frames (simulate into a directory)")
     path = write_scenario(out, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
                           day=args.day, variant=args.variant, warmup=args.warmup, patch=patch,
-                          fresh=args.fresh and not mcap)
+                          fresh=args.fresh and not mcap, storage=args.storage)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
@@ -683,8 +692,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
     mcap = args.mcap or args.output.suffix == ".mcap"
     if mcap and args.output.suffix != ".mcap":
         raise OptiTacError(f"--mcap: the recording's name must end in .mcap, got {args.output}")
+    if mcap and args.storage == "fibers":
+        raise OptiTacError("--storage fibers: an MCAP recording holds raw frames (record into a directory)")
     rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames, mcap=mcap,
-                       replace=args.fresh)
+                       replace=args.fresh, storage=args.storage or "fibers")
     print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
     return 0
 

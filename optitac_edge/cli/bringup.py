@@ -73,6 +73,9 @@ def _add_collect(sub: Any) -> None:
     p.add_argument("--fresh", action="store_true",
                    help="start again instead of continuing an interrupted collection; replaces a complete recording "
                         "at REC once the new one is complete")
+    p.add_argument("--storage", choices=("fibers", "raw"), default="fibers",
+                   help="fibers (default): the rest frames and each fiber's light, ~0.4 kB a frame; raw: every "
+                        "frame as it is, ~300 kB a frame at 640x480")
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
@@ -81,7 +84,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from optitac_edge.bringup.collect import Collector
     from optitac_edge.bringup.rigs import open_rig
     from optitac_edge.io.recording_writer import check_writable_recording
-    from optitac_edge.service.bundles import obtain_bundle
+    from optitac_edge.service.bundles import fiber_finder, obtain_bundle
     from optitac_edge.service.wiring import open_board_camera
 
     config = one_sensor_config(args)
@@ -92,7 +95,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
         camera = stack.enter_context(camera if camera is not None else open_board_camera(config))
         bundle, _ = obtain_bundle(config, camera, args.cal)
         collector = Collector(camera, rig, bundle, prompt=lambda line: print(line, flush=True),
-                              confirm=_wait_for_enter)
+                              confirm=_wait_for_enter, storage=args.storage, find_fibers=fiber_finder(config))
         result = collector.run(args.experiment, args.output, seed=args.seed, limit=args.limit, fresh=args.fresh)
     f = result.rig_frame
     print(f"wrote {args.output}: {result.experiment}, {result.presses} presses, {result.frames} frames"

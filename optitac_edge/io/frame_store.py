@@ -23,6 +23,7 @@ Both write with ``pwrite`` into space allocated ahead (:class:`~optitac_edge.io.
 
 from __future__ import annotations
 
+import io
 import logging
 import threading
 from abc import ABC, abstractmethod
@@ -201,9 +202,11 @@ class FiberSumStore(FrameStore):
             raise OutputError(f"{self.directory}: cannot find the fibers in the rest frames to keep each fiber's "
                               f"light ({found}); record the frames as they are with --storage raw") from None
         assert isinstance(found, FiberTable)
+        packed = io.BytesIO()
+        np.savez(packed, pixel_index=found.pixel_index, pixel_start=found.pixel_start,
+                 centroid_px=found.centroid_px, dead=found.dead)
         with AtomicFile(self.directory / SPOTS, "wb") as f:
-            np.savez(f, pixel_index=found.pixel_index, pixel_start=found.pixel_start,
-                     centroid_px=found.centroid_px, dead=found.dead)
+            f.write(packed.getvalue())
         self._use(found)
         self._rest_copies = []
         pending, self._pending = self._pending, []

@@ -12,12 +12,14 @@ and with it scipy, imported.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.region import Region, bundle_region
 from optitac_edge.errors import BundleError, CameraError, ConfigError, OptiTacError, OutputError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
@@ -162,6 +164,18 @@ def calibrate_sensor(sensor: BoardSensor, rest: list[np.ndarray], pixel_format: 
         return calibrate_region(rest, pixel_format, Region(*sensor.sensor.region), layout=layout,
                                 rotation_hint_deg=cal.rotation_deg, mirror=cal.mirror)
     return calibrate_fibers(rest, pixel_format, layout=layout, rotation_hint_deg=cal.rotation_deg, mirror=cal.mirror)
+
+
+def fiber_finder(config: BoardConfig) -> Callable[[np.ndarray, str], FiberTable]:
+    """How a recording of the board's only (or selected) sensor finds its fibers in its rest frames, to keep
+    each fiber's light (``--storage fibers``): as :func:`calibrate_sensor` does, so a bundle calibrated from
+    the recording's rest frames has the very pixel groups the recording kept."""
+    sensor = config.for_sensor(config.selected).sensors[0]
+
+    def find(rest: np.ndarray, pixel_format: str) -> FiberTable:
+        return calibrate_sensor(sensor, list(rest), pixel_format).fibers
+
+    return find
 
 
 def calibrate_from_camera(config: BoardConfig, camera: Camera,

@@ -9,6 +9,7 @@ from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter, check_writable_recording
 from optitac_edge.service.board_config import BoardConfig
+from optitac_edge.service.bundles import fiber_finder
 from optitac_edge.service.wiring import open_board_camera
 
 
@@ -23,12 +24,14 @@ class Recorded(NamedTuple):
 
 
 def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames: int,
-                 mcap: bool = False, replace: bool = False) -> Recorded:
+                 mcap: bool = False, replace: bool = False, storage: str = "fibers") -> Recorded:
     """Write ``frames`` frames of the board's camera to the recording directory ``path`` (with ``mcap``:
     to the MCAP file ``path``, frames as sensor_msgs/Image, :mod:`optitac_edge.io.recording_mcap`).
 
     The first ``rest_frames`` must be contact-free (``meta.json`` says so). A complete recording at
-    ``path`` is refused unless ``replace`` (then replaced once the new one is complete).
+    ``path`` is refused unless ``replace`` (then replaced once the new one is complete). ``storage``:
+    a directory's frames as ``fibers`` (the rest frames and each fiber's light after them) or ``raw``
+    (:mod:`optitac_edge.io.frame_store`); an MCAP file holds raw frames.
 
     Raises
     ------
@@ -47,7 +50,8 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
         meta = RecordingMeta(rest_frames=rest_frames, fps=camera.fps,
                              extra={"board": config.source, "camera": config.camera.backend})
         writer: Any = (McapRecordingWriter(path, meta.to_json(), replace=replace) if mcap else
-                       RecordingWriter(path, frames, camera.frame_shape, meta, replace=replace))
+                       RecordingWriter(path, frames, camera.frame_shape, meta, replace=replace, storage=storage,
+                                       find_fibers=fiber_finder(config)))
         with writer:
             for i in range(frames):
                 captured = camera.read(config.camera.timeout_s)

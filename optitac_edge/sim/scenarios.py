@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.io.recording import SHAPES, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
@@ -282,6 +283,18 @@ def scenario_drift(
     )
 
 
+def _find_fibers(layout: FiberLayout, optics: CameraOptics) -> Callable[[np.ndarray, str], FiberTable]:
+    """The fibers of a simulated recording's rest frames, as ``calibrate fibers`` finds them with the
+    orientation hint ``sim`` prints."""
+    from optitac_edge.calibration.fibers import calibrate_fibers
+
+    def find(rest: np.ndarray, pixel_format: str) -> FiberTable:
+        return calibrate_fibers(rest, pixel_format, layout=layout, rotation_hint_deg=optics.rotation_deg,
+                                mirror=optics.mirror).fibers
+
+    return find
+
+
 def write_scenario(
     out_dir: str | Path,
     name: str,
@@ -297,6 +310,7 @@ def write_scenario(
     warmup: float = DRIFT_WARMUP,
     patch: PatchPlacement | None = None,
     fresh: bool = False,
+    storage: str = "raw",
 ) -> Path:
     """Simulate scenario ``name`` and stream it into the recording directory ``out_dir``.
 
@@ -305,6 +319,9 @@ def write_scenario(
     out_dir : path-like
         Recording directory to create; a complete recording there is refused
         unless ``fresh`` (then replaced once the new one is complete).
+    storage : {"raw", "fibers"}
+        How the recording keeps its frames (:mod:`optitac_edge.io.frame_store`); ``fibers`` finds the
+        fibers in the rest frames with :func:`~optitac_edge.calibration.fibers.calibrate_fibers`.
     name : str
         One of :data:`SCENARIOS`.
     seed : int
@@ -409,7 +426,8 @@ def write_scenario(
     clamp_r = clamp_radius_mm(layout.xy_mm, skin)
     force = math.nan
     with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
-                         force_column=load_cell, replace=fresh) as writer:
+                         force_column=load_cell, replace=fresh, storage=storage,
+                         find_fibers=_find_fibers(layout, optics) if storage == "fibers" else None) as writer:
         last: Frame = None
         dark = sensor.darkening(())
         for i, press in enumerate(plan):
