@@ -85,7 +85,7 @@ def test_precedence_file_env_command_line(tmp_path):
     path.write_text('[camera]\nfps = 30\nwidth = 320\n[link]\ntransport = "serial"\nserial_url = "/dev/ttyACM0"\n')
     env = {"OPTITAC_CAMERA_FPS": "45", "OPTITAC_LINK_SERIAL_URL": "loop://", "OPTITAC_LED_ADDRESS": "0x41",
            "OPTITAC_LED_CHANNELS": "0, 1,2", "OPTITAC_LED_ENABLED": "yes", "OPTITAC_CAMERA_OPTIONS_HDR": "true",
-           "OPTITAC_UNRELATED_THING": "ignored", "PATH": "/usr/bin"}
+           "PATH": "/usr/bin"}
     cfg = load_board_config(path, env=env, overrides={"camera.fps": 90, "sensor.id": "7"})
     assert cfg.camera.fps == 90.0  # command line beats environment
     assert cfg.camera.width == 320  # file
@@ -213,7 +213,11 @@ def test_unknown_board_lists_known():
 
 
 BAD_ENV = [
-    ("OPTITAC_CAMERA_FPS", "fast", "camera.fps", "must be a number in 1..1000, got 'fast'"),
+    ("OPTITAC_CAMERA_FPS", "fast", "camera.fps", "must be a number in 1..1000 (ASCII digits), got 'fast'"),
+    # Python's int() and float() take these: 30_0 as 300, an Arabic-Indic three as 3
+    ("OPTITAC_CAMERA_FPS", "30_0", "camera.fps", "got '30_0'"),
+    ("OPTITAC_CAMERA_WIDTH", "\u0663\u0662\u0660", "camera.width", "ASCII digits"),
+    ("OPTITAC_LED_CHANNELS", "0,1_0", "led.channels", "channel numbers"),
     ("OPTITAC_CAMERA_FRAMERATE", "30", "camera.framerate", "unknown key"),
     ("OPTITAC_LED_ADDRESS", "sixty-four", "led.address", "7-bit"),
     ("OPTITAC_LED_CHANNELS", "0,x", "led.channels", "channel numbers"),
@@ -223,7 +227,7 @@ BAD_ENV = [
 ]
 
 
-@pytest.mark.parametrize(("var", "value", "key", "words"), BAD_ENV, ids=[v for v, *_ in BAD_ENV])
+@pytest.mark.parametrize(("var", "value", "key", "words"), BAD_ENV, ids=[f"{v}={x}" for v, x, *_ in BAD_ENV])
 def test_bad_environment_names_the_variable(var, value, key, words):
     with pytest.raises(ConfigError) as info:
         load_board_config("sim", env={var: value})
@@ -254,3 +258,26 @@ def test_warnings_for_led_flicker(tmp_path):
     assert len(warnings) == 1 and "flicker" in warnings[0]
     path.write_text("[camera]\nexposure_us = 30000\nfps = 60\n")
     assert "longer than a frame" in config_warnings(load_board_config(path, env={}))[0]
+
+
+def test_a_misspelt_section_in_the_environment_is_refused_not_ignored():
+    """OPTITAC_LNK_TRANSPORT=serial ran the service with no link, without a word."""
+    with pytest.raises(ConfigError, match=r"environment OPTITAC_LNK_TRANSPORT: no section 'lnk' \(sections: "):
+        load_board_config("sim", env={"OPTITAC_LNK_TRANSPORT": "serial"})
+    load_board_config("sim", env={"OPTITAC_PYTHON": "/usr/bin/python3"})  # tools/install.sh's, not config
+
+
+def test_a_deeply_nested_board_file_is_one_line(tmp_path):
+    path = tmp_path / "deep.toml"
+    path.write_text("[camera]\nwidth = " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        load_board_config(path, env={})
+
+
+@pytest.mark.parametrize("text", ["30_0", "\u0663", "1e3", ""])
+def test_command_line_numbers_are_ascii_digits(text, capsys):
+    from optitac_edge.cli import main
+
+    with pytest.raises(SystemExit) as ex:
+        main(["sim", "x", "--scenario", "rest", "--frames", text])
+    assert ex.value.code == 2 and "is not an integer" in capsys.readouterr().err

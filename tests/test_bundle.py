@@ -296,6 +296,14 @@ def _all_dead(arrays):
     ("frame size 0", {"meta": lambda m: m["frame"].__setitem__("width", 0)}, "frame width must be"),
     ("nan transform", {"meta": lambda m: m["transform"].__setitem__("scale_px_per_mm", float("nan"))},
      "scale_px_per_mm must be a finite"),
+    # before: an AttributeError in run; replay dropping the depth model silently; an AttributeError in evaluate
+    ("depth model 5", {"meta": lambda m: m["extra"].__setitem__("depth", 5)}, "invalid depth model"),
+    ("width model list", {"meta": lambda m: m["extra"].__setitem__("width", [1, 2])}, "invalid width model"),
+    ("extra a list", {"meta": lambda m: m.__setitem__("extra", [1, 2])}, "'extra' must be an object"),
+    ("report a string", {"meta": lambda m: m.__setitem__("fiber_map_report", "x")},
+     "'fiber_map_report' must be an object"),
+    ("orientation 5", {"meta": lambda m: m["extra"].__setitem__("orientation", 5)}, "'extra.orientation' must be"),
+    ("shape model 'x'", {"meta": lambda m: m["extra"].__setitem__("shapes", "x")}, "invalid shape model"),
 ])
 def test_a_crafted_bundle_with_a_valid_digest_is_refused_in_one_line(tmp_path, bundle_path, capsys, name, edit,
                                                                        message):

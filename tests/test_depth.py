@@ -12,7 +12,7 @@ from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.depth_model import DepthForceModel, RadialMonotoneMap
 from optitac_edge.core.width_model import AxisMap
 from optitac_edge.errors import RecordingError
-from optitac_edge.io.recording import FORCE_COLUMN, TRUTH_HEADER, read_truth
+from optitac_edge.io.recording import FORCE_COLUMN, TRUTH_HEADER, Recording, read_truth
 from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, contact_force_n, footprint_area_mm2
 
 # -- the simulator's force model -------------------------------------------------------------
@@ -218,3 +218,18 @@ def test_the_simulated_depths_scenario_presses_where_and_as_deep_as_the_rig_expe
     assert Counter(key(p.shape, p.size_mm, p.x_mm, p.y_mm, p.depth_mm) for p in sim) == \
         Counter(key(p.shape, p.size_mm, p.x_mm, p.y_mm, p.depth_mm) for p in rig)
     assert len(sim) == 7 * 8 * 2
+
+
+def test_depth_calibrates_without_a_load_cell(tmp_path, capsys):
+    """Every rig without a load cell: calibrate depth on a 'collect depths' recording (no force_n column)
+    ended in a traceback (the report's per-press array held the missing forces as NaN)."""
+    from optitac_edge.cli import main
+
+    rec, cal = tmp_path / "depths", tmp_path / "cal.npz"
+    assert main(["collect", "depths", "--rig", "sim://", "-o", str(rec), "--limit", "12"]) == 0
+    assert Recording(rec).truth.force_n is None
+    assert main(["calibrate", "fibers", str(rec), "-o", str(cal)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "depth", str(rec), "--cal", str(cal)]) == 0
+    out = capsys.readouterr().out
+    assert "with the depth calibration" in out and "force" not in out

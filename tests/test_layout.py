@@ -44,6 +44,11 @@ def test_layout_csv_round_trip(tmp_path):
         ("fiber,x_mm,y_mm\n1,2,zz\n", "not a number"),
         ("fiber,x_mm,y_mm\n" + "1,0,0\n" * 8, "duplicate"),
         ("fiber,x_mm,y_mm\n1,0,0\n2,1,0\n", "at least 7"),
+        # a layout x 1e300 or x 1e-300 ended in a traceback deep in the fiber map
+        ("fiber,x_mm,y_mm\n" + "".join(f"{i},{x * 1e300},{y * 1e300}\n" for i, (x, y) in
+                                      enumerate(hex_layout().xy_mm)), "within 1000 mm of the centre"),
+        ("fiber,x_mm,y_mm\n" + "".join(f"{i},{x * 1e-300},{y * 1e-300}\n" for i, (x, y) in
+                                      enumerate(hex_layout().xy_mm)), "at least 0.01 mm apart"),
     ],
 )
 def test_bad_layout_csv_names_file_and_problem(tmp_path, text, message):

@@ -54,6 +54,20 @@ def test_rgb_recording(tmp_path):
             "frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm\n99,1,circle,0,0,0,5,3\n"), "out of range"),
         (lambda p: (p / "truth.csv").write_text(
             "frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm\n1,1,blob,0,0,0,5,3\n"), "unknown shape"),
+        # implausible values: depths x 1e300 gave "fitted rmse inf", a force of 1e308 N the wrong reason
+        (lambda p: (p / "truth.csv").write_text(
+            "frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm\n1,1,circle,0,0,0,5,3e300\n"),
+         r"line 2: depth_mm 3e\+300 is outside 0..1000"),
+        (lambda p: (p / "truth.csv").write_text(
+            "frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm\n1,1,circle,1e300,0,0,5,3\n"),
+         "x_mm 1e\\+300 is outside"),
+        (lambda p: (p / "truth.csv").write_text(
+            "frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm,force_n\n1,1,circle,0,0,0,5,3,1e308\n"),
+         "force_n must be a force of 0..100000 N"),
+        # a rig's collection has a row for every frame: lost rows were scored without a word
+        (lambda p: (p / "truth.csv").write_text(
+            "frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm,phase,rig_x_mm,rig_y_mm,rig_z_mm\n"
+            + "".join(f"{i},0,,,,,,,rest,1,2,3\n" for i in range(7))), "rows for 7 of the recording's 8 frames"),
     ],
 )
 def test_damaged_recording_is_refused_with_a_reason(tmp_path, damage, message):
@@ -66,3 +80,18 @@ def test_damaged_recording_is_refused_with_a_reason(tmp_path, damage, message):
 def test_missing_directory(tmp_path):
     with pytest.raises(RecordingError, match="not found"):
         Recording(tmp_path / "absent")
+
+
+def test_a_blank_angle_does_not_make_every_frame_a_press(tmp_path):
+    """A circle's angle may be blank (the format allows it): NaN != NaN made every frame a press of its own
+    (224 presses instead of 112)."""
+    from optitac_edge.calibration.evaluation import press_ids
+
+    path = tmp_path / "truth.csv"
+    rows = ["frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm"]
+    rows += [f"{i},0,,,,,," for i in range(3)] + [f"{i},1,circle,1,2,,5,3" for i in range(3, 7)]
+    rows += ["7,0,,,,,,"] + [f"{i},1,circle,1,2,,5,3" for i in range(8, 10)]
+    path.write_text("\n".join(rows) + "\n")
+    from optitac_edge.io.recording import read_truth
+
+    assert press_ids(read_truth(path, 10)).tolist() == [-1, -1, -1, 0, 0, 0, 0, -1, 1, 1]

@@ -9,6 +9,7 @@ presses used to group repeated positions.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,7 +169,10 @@ def press_ids(truth: Truth) -> np.ndarray:
         if not truth.contact[k]:
             previous = None
             continue
-        pose = (truth.shape[k], truth.x_mm[k], truth.y_mm[k], truth.angle_deg[k], truth.size_mm[k])
+        # a blank cell (NaN, e.g. a circle's angle) is None: NaN != NaN made every frame a press of its own
+        pose = tuple(None if isinstance(v, float) and math.isnan(v) else v for v in (
+            str(truth.shape[k]), float(truth.x_mm[k]), float(truth.y_mm[k]), float(truth.angle_deg[k]),
+            float(truth.size_mm[k])))
         if pose != previous:
             press += 1
             previous = pose

@@ -221,5 +221,7 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str = "w
                         "force_radial": force_fit.model.radial, "fitted_force_rmse_n": round(force_fit.rmse, 4),
                         "fitted_force_rmse_pct_of_range": round(100 * force_fit.rmse / span, 2) if span else None})
     bundle = with_depth_model(bundle, model)
-    bundle = _with_report_arrays(bundle, depth_presses=means, depth_press_frames=counts)
+    # per press: feature, rho^2, depth, and the force where a load cell measured it (a bundle holds finite values)
+    bundle = _with_report_arrays(bundle, depth_presses=means if with_force else means[:, :3],
+                                 depth_press_frames=counts)
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "depth_fit": summary}), summary

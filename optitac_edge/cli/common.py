@@ -8,6 +8,8 @@ import os
 from collections.abc import Callable
 from typing import Any, NoReturn
 
+from optitac_edge.text import parse_float, parse_int
+
 EXIT_ERROR = 2
 #: Exit status of work interrupted by Ctrl-C (128 + SIGINT, as a shell reports it).
 EXIT_INTERRUPTED = 130
@@ -24,7 +26,7 @@ def number(lo: float, hi: float, *, integer: bool = False, lo_open: bool = False
     """An argparse type: a finite number (an integer with ``integer``) in ``lo..hi``; one-line errors."""
     def parse(text: str) -> float | int:
         try:
-            value: float | int = int(text) if integer else float(text)
+            value: float | int = parse_int(text) if integer else parse_float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if integer else 'a number'}") from None
         low_ok = value > lo if lo_open else value >= lo
@@ -39,7 +41,7 @@ def frame_size(text: str) -> tuple[int, int]:
     """An argparse type: ``WxH``, a frame size of 64..8192 px a side; one-line errors."""
     parts = text.lower().split("x")
     try:
-        width, height = (int(v) for v in parts)
+        width, height = (parse_int(v) for v in parts)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a frame size WxH (e.g. 1280x720)") from None
     if not (64 <= width <= 8192 and 64 <= height <= 8192):

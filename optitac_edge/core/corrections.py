@@ -31,8 +31,30 @@ def load_shape_model(bundle: CalibrationBundle) -> Any:
     arrays = {k[len(SHAPES_KEY) + 1:]: v for k, v in _arrays_with_prefix(bundle, SHAPES_KEY).items()}
     try:
         return ShapeModel.from_bundle(bundle.extra_meta[SHAPES_KEY], arrays)
-    except (KeyError, ValueError, TypeError) as exc:
-        raise BundleError(f"bundle has an invalid shape model ({exc})") from None
+    except (KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
+        raise BundleError(f"bundle has an invalid shape model ({type(exc).__name__}: {exc})") from None
+
+
+def read_models(bundle: CalibrationBundle) -> tuple[CentroidErrorMap | None, WidthModel | None,
+                                                    DepthForceModel | None, Any]:
+    """The bundle's centroid map, width model, depth model and shape model (None where absent).
+
+    Raises
+    ------
+    BundleError
+        Naming the model that is not what ``calibrate`` writes (a crafted or damaged bundle).
+    """
+    meta = bundle.extra_meta
+    parsers: dict[str, Any] = {
+        CENTROID_KEY: lambda v: CentroidErrorMap.from_bundle(v, dict(bundle.extra_arrays)),
+        WIDTH_KEY: WidthModel.from_bundle, DEPTH_KEY: DepthForceModel.from_bundle}
+    models: dict[str, Any] = {}
+    for key, parse in parsers.items():
+        try:
+            models[key] = parse(meta[key]) if key in meta else None
+        except (KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
+            raise BundleError(f"bundle has an invalid {key} model ({type(exc).__name__}: {exc})") from None
+    return models[CENTROID_KEY], models[WIDTH_KEY], models[DEPTH_KEY], load_shape_model(bundle)
 
 
 class ContactCorrector:
@@ -49,15 +71,7 @@ class ContactCorrector:
 
     def __init__(self, bundle: CalibrationBundle, shape_backend: str = "numpy",
                  onnx_path: str | None = None) -> None:
-        meta = bundle.extra_meta
-        try:
-            self.centroid = (CentroidErrorMap.from_bundle(meta[CENTROID_KEY], dict(bundle.extra_arrays))
-                             if CENTROID_KEY in meta else None)
-            self.width = WidthModel.from_bundle(meta[WIDTH_KEY]) if WIDTH_KEY in meta else None
-            self.depth = DepthForceModel.from_bundle(meta[DEPTH_KEY]) if DEPTH_KEY in meta else None
-        except (KeyError, ValueError, TypeError) as exc:
-            raise BundleError(f"bundle has an invalid calibration model ({exc})") from None
-        shape_model = load_shape_model(bundle)
+        self.centroid, self.width, self.depth, shape_model = read_models(bundle)
         self.shapes: Any = None
         if shape_model is not None:
             if shape_backend == "onnx":

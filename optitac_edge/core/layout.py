@@ -12,6 +12,20 @@ import numpy as np
 
 #: Fewest fibers a layout may have (the surface needs a triangulation).
 MIN_FIBERS = 7
+#: A fiber farther from the centre than this (mm) is a layout in other units (or garbage).
+MAX_EXTENT_MM = 1000.0
+#: Fibers closer than this (mm) are a layout in other units: no fiber array is that dense.
+MIN_SPACING_MM = 0.01
+
+
+def _closest_pair_mm(xy: np.ndarray) -> float:
+    """The smallest distance between two of the points, mm (in blocks: no N x N matrix at once)."""
+    best = np.inf
+    for k in range(0, xy.shape[0], 256):
+        d = np.hypot(xy[k:k + 256, None, 0] - xy[None, :, 0], xy[k:k + 256, None, 1] - xy[None, :, 1])
+        d[np.arange(d.shape[0]), np.arange(k, k + d.shape[0])] = np.inf
+        best = min(best, float(d.min()))
+    return best
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,10 +56,16 @@ class FiberLayout:
             raise ValueError(f"a layout needs at least {MIN_FIBERS} fibers, got {self.xy_mm.shape[0]}")
         if not np.all(np.isfinite(self.xy_mm)):
             raise ValueError("fiber positions must be finite")
+        if np.abs(self.xy_mm).max() > MAX_EXTENT_MM:
+            raise ValueError(f"fiber positions must lie within {MAX_EXTENT_MM:g} mm of the centre (mm, not um?)")
         if np.unique(self.ids).size != self.ids.size:
             raise ValueError("fiber ids must be unique")
         if np.unique(self.xy_mm, axis=0).shape[0] != self.xy_mm.shape[0]:
             raise ValueError("two fibers at the same position")
+        nearest = _closest_pair_mm(self.xy_mm)
+        if nearest < MIN_SPACING_MM:
+            raise ValueError(f"two fibers {nearest:.3g} mm apart: fibers are at least {MIN_SPACING_MM:g} mm apart "
+                             "(mm, not m?)")
         if self.fiducial is not None and (self.fiducial.shape != self.ids.shape
                                           or not np.all(np.isin(self.fiducial, (-1, 0, 1)))):
             raise ValueError("fiducial must have shape (N,) and values -1 (dark), 0 or +1 (bright)")

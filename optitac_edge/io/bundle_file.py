@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.corrections import read_models
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.image_transform import ImageTransform
@@ -228,6 +229,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
     if _digest(meta_bytes, members) != stored:
         raise BundleError(f"{path}: calibration bundle is corrupted (checksum mismatch)")
     factors = _load_factors(path, members)
+    _check_meta_kinds(path, meta)
     try:
         frame = meta["frame"]
         fibers = FiberTable(
@@ -236,7 +238,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
             centroid_px=members["fiber_centroid_px"], dead=members["fiber_dead"].astype(bool),
             unmatched_px=members["fiber_unmatched_px"],
         )
-        return CalibrationBundle(
+        bundle = CalibrationBundle(
             layout=FiberLayout(ids=members["layout_ids"], xy_mm=members["layout_xy_mm"]),
             transform=ImageTransform(**meta["transform"]),
             fibers=fibers,
@@ -252,5 +254,28 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
             calibration_id=stored[:16],
             surface_factors=factors,
         )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise BundleError(f"{path}: inconsistent calibration bundle ({exc})") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise BundleError(f"{path}: inconsistent calibration bundle ({type(exc).__name__}: {exc})") from None
+    try:
+        read_models(bundle)
+    except BundleError as exc:
+        raise BundleError(f"{path}: {exc}") from None
+    return bundle
+
+
+#: Members of the bundle's ``extra`` that, when present, are objects (the steps' summaries, the orientation
+#: record, the region a sensor's bundle was placed in).
+_OBJECT_EXTRAS = ("centroid_fit", "width_fit", "shapes_fit", "depth_fit", "orientation", "region")
+
+
+def _check_meta_kinds(path: Path, meta: Mapping[str, Any]) -> None:
+    """The meta's parts are of the kinds the readers expect (a crafted bundle with a valid digest is refused
+    here in one line, not with an AttributeError later)."""
+    extra = meta.get("extra")
+    if not isinstance(extra, dict) or not all(isinstance(k, str) for k in extra):
+        raise BundleError(f"{path}: inconsistent calibration bundle ('extra' must be an object)")
+    if not isinstance(meta.get("fiber_map_report"), dict):
+        raise BundleError(f"{path}: inconsistent calibration bundle ('fiber_map_report' must be an object)")
+    for key in _OBJECT_EXTRAS:
+        if key in extra and not isinstance(extra[key], dict):
+            raise BundleError(f"{path}: inconsistent calibration bundle ('extra.{key}' must be an object)")

@@ -99,6 +99,11 @@ class RigPoses:
     xyz_mm: np.ndarray
 
 
+#: The values a contact's truth may take (mm, degrees): anything else is not a press on a fingertip sensor.
+TRUTH_RANGES = {"x_mm": (-1000.0, 1000.0), "y_mm": (-1000.0, 1000.0), "angle_deg": (-3600.0, 3600.0),
+                "size_mm": (0.0, 1000.0), "depth_mm": (0.0, 1000.0)}
+#: The largest force a truth row may hold, N.
+MAX_FORCE_N = 100_000.0
 #: Largest truth.csv read, bytes (a row a frame).
 MAX_TRUTH_BYTES = 64 << 20
 #: Largest meta.json read, bytes (it holds a few numbers and the simulator's parameters).
@@ -265,8 +270,13 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
             missing = [TRUTH_HEADER[3 + i] for i, v in enumerate(values)
                        if not math.isfinite(v) and TRUTH_HEADER[3 + i] != "angle_deg"]
             raise RecordingError(f"{path}: line {line_no}: a contact without {', '.join(missing)}")
-        if force and (math.isinf(force_n) or force_n < 0):
-            raise RecordingError(f"{path}: line {line_no}: force_n must be a force >= 0 N or empty")
+        if contact:
+            for name, v in zip(TRUTH_HEADER[3:], values):
+                lo, hi = TRUTH_RANGES[name]
+                if not (math.isnan(v) and name == "angle_deg") and not lo <= v <= hi:
+                    raise RecordingError(f"{path}: line {line_no}: {name} {v:g} is outside {lo:g}..{hi:g}")
+        if force and (math.isinf(force_n) or not (math.isnan(force_n) or 0 <= force_n <= MAX_FORCE_N)):
+            raise RecordingError(f"{path}: line {line_no}: force_n must be a force of 0..{MAX_FORCE_N:g} N or empty")
         if rig:
             rig_cols[0].append(frame)
             rig_cols[1].append(phase)
@@ -276,6 +286,9 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
         for col, value in zip(cols, [frame, bool(contact), shape if contact else "", *values]):
             col.append(value)
         forces.append(force_n)
+    if rig and len(seen) != n_frames:
+        raise RecordingError(f"{path}: rows for {len(seen)} of the recording's {n_frames} frames; a rig's "
+                             "collection has a row for every frame (rows lost?)")
     truth = Truth(
         frame=np.asarray(cols[0], dtype=np.int64),
         contact=np.asarray(cols[1], dtype=bool),

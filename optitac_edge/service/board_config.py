@@ -35,6 +35,7 @@ else:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
 
 from optitac_edge.errors import ConfigError
 from optitac_edge.io.cameras import MAX_QUEUE_FRAMES
+from optitac_edge.text import parse_float, parse_int
 
 #: Where systemd's ``StateDirectory=optitac-edge`` lives (the calibration bundle's home).
 DEFAULT_STATE_DIR = "/var/lib/optitac-edge"
@@ -74,9 +75,9 @@ def _int(lo: int, hi: int, what: str = "an integer") -> Checker:
     def check(value: Any, from_text: bool) -> int:
         if from_text and isinstance(value, str):
             try:
-                value = int(value.strip(), 0)
+                value = parse_int(value)
             except ValueError:
-                raise _Bad(f"must be {what} in {lo}..{hi}, got {value!r}") from None
+                raise _Bad(f"must be {what} in {lo}..{hi} (ASCII digits), got {value!r}") from None
         if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
             raise _Bad(f"must be {what} in {lo}..{hi}, got {_show(value)}")
         return value
@@ -89,9 +90,9 @@ def _num(lo: float, hi: float, *, lo_open: bool = False) -> Checker:
     def check(value: Any, from_text: bool) -> float:
         if from_text and isinstance(value, str):
             try:
-                value = float(value.strip())
+                value = parse_float(value)
             except ValueError:
-                raise _Bad(f"must be a number in {rng}, got {value!r}") from None
+                raise _Bad(f"must be a number in {rng} (ASCII digits), got {value!r}") from None
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
         if ok:
             ok = (lo < value if lo_open else lo <= value) and value <= hi
@@ -157,7 +158,7 @@ def _int_list(value: Any, from_text: bool, what: str) -> Any:
     """Text ``'0,1,2'`` (environment, command line) as a list of integers, a tuple as a list; else ``value``."""
     if from_text and isinstance(value, str):
         try:
-            return [int(part.strip(), 0) for part in value.split(",") if part.strip()]
+            return [parse_int(part) for part in value.split(",") if part.strip()]
         except ValueError:
             raise _Bad(f"must be {what}, got {value!r}") from None
     return list(value) if isinstance(value, tuple) else value
@@ -197,9 +198,15 @@ def _region(value: Any, from_text: bool) -> tuple[int, ...]:
 def _scalar(value: Any, from_text: bool) -> Scalar:
     if from_text and isinstance(value, str):
         try:  # a TOML literal (number, boolean, quoted string), else the text itself
+            text = value
             value = tomllib.loads(f"v = {value}")["v"]
         except tomllib.TOMLDecodeError:
             return value
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            try:  # TOML takes 30_0 as 300: a number from the environment is written plainly
+                value = parse_int(text) if isinstance(value, int) else parse_float(text)
+            except ValueError:
+                raise _Bad(f"a number must be written with ASCII digits and no '_', got {text!r}") from None
     if not isinstance(value, (str, int, float, bool)):
         raise _Bad(f"must be a scalar (string, number or boolean), got {_type_name(value)}")
     if isinstance(value, float) and not math.isfinite(value):
@@ -596,6 +603,8 @@ def _read_toml(path: Path) -> dict[str, Any]:
     try:
         with path.open("rb") as fh:
             return tomllib.load(fh)
+    except RecursionError:
+        raise ConfigError(f"{shown}: not a board config (arrays or tables nested too deeply)") from None
     except FileNotFoundError:
         raise ConfigError(f"{shown}: board config not found") from None
     except OSError as exc:
@@ -753,15 +762,27 @@ def _read_sensors(value: Any, shown: str, base_dir: Path) -> list[_Entry]:
     return entries
 
 
+#: Variables with the prefix that are not config overrides (tools/install.sh's, the tests' soak length).
+NOT_CONFIG_VARS = frozenset({"OPTITAC_PYTHON", "OPTITAC_SOAK_MINUTES"})
+
+
 def _env_key(var: str) -> tuple[str, str] | None:
-    """``OPTITAC_LINK_SERIAL_URL`` -> ("link", "serial_url"); None if no section matches."""
+    """``OPTITAC_LINK_SERIAL_URL`` -> ("link", "serial_url"); None for :data:`NOT_CONFIG_VARS`.
+
+    Raises
+    ------
+    ConfigError
+        For a section that does not exist (``OPTITAC_LNK_TRANSPORT`` was ignored without a word).
+    """
+    if var in NOT_CONFIG_VARS:
+        return None
     rest = var[len(ENV_PREFIX):].lower()
     section, _, key = rest.partition("_")
     if section in _LISTS:
         raise ConfigError(f"environment {var}: cameras and sensors are set in the board file "
                           "(or on the command line as cameras.NAME.KEY)")
     if section not in _SECTIONS:
-        return None
+        raise ConfigError(f"environment {var}: no section {section!r} (sections: {', '.join(sorted(_SECTIONS))})")
     if section == "camera" and key.startswith("options_"):
         return section, "options." + key[len("options_"):]
     return section, key
@@ -789,7 +810,8 @@ def load_board_config(
     env
         Environment (default ``os.environ``): ``OPTITAC_<SECTION>_<KEY>`` variables
         override file values (text parsed to the key's type: ``0x40``, ``true``,
-        ``0,1,2`` for channels). Variables whose SECTION is not a config section are ignored;
+        ``0,1,2`` for channels; numbers in ASCII digits). A SECTION that is not a config section is
+        refused (a misspelling must not go unnoticed), but for :data:`NOT_CONFIG_VARS`;
         ``OPTITAC_CAMERAS_*`` and ``OPTITAC_SENSORS_*`` are refused (those are set in the file).
     overrides
         From the command line, ``{"section.key": value}`` (e.g. ``{"camera.fps": 30}``,
