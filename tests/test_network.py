@@ -295,6 +295,26 @@ def test_a_router_that_is_not_up_yet_is_joined_when_it_comes_and_nothing_waits_f
             router.close()
 
 
+@pytest.mark.parametrize("endpoint, words", [
+    ("tcp/127.0.0.1:70000", "port 70000 is outside 1..65535"), ("foo/bar", "unknown protocol 'foo'"),
+    ("tcp/127.0.0.1", "HOST:PORT"), ("tcp/:7447", "HOST:PORT"), ("tcp/::1:7447", "in brackets"),
+])
+def test_an_endpoint_that_can_never_work_is_refused_at_start(endpoint, words, tmp_path, capsys):
+    """tcp/127.0.0.1:70000 and foo/bar were tried again for ever (every 30 s) instead of refused."""
+    from optitac_edge.cli import main
+    from optitac_edge.io.publishers.zenoh import ZenohPublisher, endpoint_problem
+
+    with pytest.raises(PublishError, match=words):
+        ZenohPublisher(mode="client", connect=(endpoint,))
+    board = tmp_path / "b.toml"
+    board.write_text(f'[publish]\nbackend = "zenoh"\nmode = "client"\nconnect = ["{endpoint}"]\n')
+    assert main(["run", "--board", str(board), "--duration", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0]
+    assert endpoint_problem("tcp/[::1]:7447") == "" and endpoint_problem("tcp/0.0.0.0:0", listen=True) == ""
+    assert endpoint_problem("udp/robot.local:7447") == "" and endpoint_problem("serial//dev/ttyUSB0") == ""
+
+
 def test_run_streams_to_the_mcu_while_the_router_is_not_up(tmp_path):
     from fakes.mcu import FakeMcu
 

@@ -56,7 +56,55 @@ def session_config(config: str | Path | None, mode: str, connect: tuple[str, ...
     except Exception as exc:  # noqa: BLE001 - zenoh raises ZError or ValueError: one line either way
         where = f"Zenoh config {config}" if config else "Zenoh settings"
         raise PublishError(f"{where}: {_one_line(exc)}") from None
+    for kind in ("connect", "listen"):
+        for endpoint in _endpoints(cfg, kind):
+            why = endpoint_problem(endpoint, listen=kind == "listen")
+            if why:
+                where = f"Zenoh config {config}" if config else "publish"
+                raise PublishError(f"{where}: {kind} endpoint {endpoint!r}: {why}")
     return cfg
+
+
+#: Zenoh's link protocols (zenoh-link crates); the first group's address is HOST:PORT.
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+
+
+def _endpoints(cfg: Any, kind: str) -> list[str]:
+    """The endpoints of ``connect`` or ``listen`` in a zenoh.Config (a list, or a list per mode)."""
+    import json
+
+    try:
+        value = json.loads(cfg.get_json(f"{kind}/endpoints"))
+    except Exception:  # noqa: BLE001 - not set
+        return []
+    lists = value.values() if isinstance(value, dict) else [value]
+    return [e for items in lists if isinstance(items, list) for e in items if isinstance(e, str)]
+
+
+def endpoint_problem(endpoint: str, listen: bool = False) -> str:
+    """Why a Zenoh endpoint (``PROTO/ADDRESS[?metadata][#config]``) can never work ('' when it may).
+
+    Before, ``tcp/127.0.0.1:70000`` and ``foo/bar`` were tried again for ever instead of refused at start.
+    """
+    proto, slash, rest = endpoint.partition("/")
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if not slash or not address:
+        return "not PROTOCOL/ADDRESS (e.g. tcp/192.168.1.10:7447)"
+    if proto not in IP_PROTOCOLS + OTHER_PROTOCOLS:
+        return f"unknown protocol {proto!r} (known: {', '.join(IP_PROTOCOLS + OTHER_PROTOCOLS)})"
+    if proto not in IP_PROTOCOLS:
+        return ""
+    host, colon, port = address.rpartition(":")
+    if not colon or not host or not port.isascii() or not port.isdigit():
+        return "the address must be HOST:PORT"
+    lowest = 0 if listen else 1  # a listener may take port 0: any free port
+    if not lowest <= int(port) <= 65535:
+        return f"port {port} is outside {lowest}..65535"
+    bracketed = host.startswith("[") and host.endswith("]")
+    if (":" in host or "[" in host or "]" in host) and not bracketed:
+        return "an IPv6 address goes in brackets: [::1]:7447"
+    return ""
 
 
 def _one_line(exc: Exception) -> str:
