@@ -111,6 +111,8 @@ def test_actions_need_the_header_and_reach_the_loop(fed_view) -> None:
     (b"PUT /api/tare HTTP/1.1\r\nHost: localhost\r\n\r\n", b"405"),
     (b"\x16\x03\x01\x02\x00garbage\r\n\r\n", b"400"),
     (b"GET /api/state?after=abc HTTP/1.1\r\nHost: localhost\r\n\r\n", b"400"),
+    # '\u00b2' is a digit to str.isdigit() and not to int(): a ValueError traceback closed the connection
+    (b"GET /api/state?after=%C2%B2 HTTP/1.1\r\nHost: localhost\r\n\r\n", b"400"),
 ])
 def test_malformed_or_oversized_requests_are_refused_and_the_server_goes_on(fed_view, request_bytes, status) -> None:
     _, server, _ = fed_view
@@ -132,6 +134,76 @@ def test_bound_beyond_localhost_actions_need_the_token(fed_view) -> None:
         assert _get(base + "/api/tare", "POST", {"X-OptiTac": "1", "X-OptiTac-Token": "wrong"})[0] == 403
         assert _get(base + "/api/tare", "POST", {"X-OptiTac": "1", "X-OptiTac-Token": server.token})[0] == 200
     view.actions.clear()
+
+
+def test_slow_clients_neither_hold_a_connection_for_ever_nor_keep_others_from_an_answer(fed_view, monkeypatch) -> None:
+    """16 clients sending a header line every 2 s took every slot for ever (the 5 s timeout was per read):
+    now a request has 5 s in all, and clients still sending do not keep others from being answered."""
+    import threading
+
+    from optitac_edge.service.view import server as view_server
+
+    _, server, _ = fed_view
+    monkeypatch.setattr(view_server, "TIMEOUT_S", 1.5)  # a line every 0.6 s: each read well within it
+    slow = [socket.create_connection(("127.0.0.1", server.port), timeout=10) for _ in range(16)]
+    stop = threading.Event()
+
+    def dribble() -> None:
+        for s in slow:
+            s.sendall(b"GET /api/state HTTP/1.1\r\nHost: localhost\r\n")
+        while not stop.wait(0.6):
+            for s in slow:
+                try:
+                    s.sendall(b"X-Slow: 1\r\n")
+                except OSError:
+                    pass
+
+    thread = threading.Thread(target=dribble, daemon=True)
+    thread.start()
+    try:
+        time.sleep(0.5)
+        started = time.monotonic()
+        assert _get(f"http://127.0.0.1:{server.port}/api/layout")[0] == 200
+        assert time.monotonic() - started < 2.0
+        closed = 0
+        for s in slow:  # cut off once their 5 s are up
+            s.settimeout(view_server.TIMEOUT_S + 3)
+            try:
+                closed += s.recv(1) == b""
+            except OSError:
+                closed += 1
+        assert closed == 16
+    finally:
+        stop.set()
+        for s in slow:
+            s.close()
+
+
+def test_a_client_that_goes_away_is_counted_not_a_traceback(fed_view, capfd) -> None:
+    _, server, _ = fed_view
+    before = getattr(server._server, "client_errors", 0)
+    for _ in range(20):
+        with socket.create_connection(("127.0.0.1", server.port), timeout=5) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")  # RST
+            s.sendall(b"GET /api/frame.jpg HTTP/1.1\r\nHost: localhost\r\n\r\n")
+    time.sleep(0.5)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "BrokenPipe" not in err and "ConnectionReset" not in err
+    assert _get(f"http://127.0.0.1:{server.port}/api/layout")[0] == 200
+    assert server._server.client_errors > before
+
+
+@pytest.mark.parametrize("bind, host", [("127.0.0.2:0", "127.0.0.2"), ("[::1]:0", "[::1]")])
+def test_the_view_answers_its_own_printed_url(fed_view, bind, host) -> None:
+    """--bind 127.0.0.2:P answered 403 to its own URL (only 127.0.0.1 and ::1 were taken as this host), and
+    --bind [::1]:P could not listen (an IPv4 server)."""
+    if host == "[::1]" and not socket.has_ipv6:
+        pytest.skip("no IPv6 on this machine")
+    view, _, _ = fed_view
+    with ViewServer(view, bind) as server:
+        assert server.url.startswith(f"http://{host}:{server.port}/")
+        assert _get(server.url + "api/layout")[0] == 200
+        assert _get(server.url.split("?")[0] + "api/state", headers={"Host": f"evil.example:{server.port}"})[0] == 403
 
 
 def test_the_frame_loop_never_waits_for_the_view(fed_view) -> None:

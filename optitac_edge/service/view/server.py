@@ -12,21 +12,31 @@ Routes (anything else is 404; other methods 405):
 
 Requests are checked before anything else: the request target at most
 ``MAX_TARGET`` characters, a body at most ``MAX_BODY`` bytes, a ``Host`` that
-names this server (no DNS rebinding), POSTs with the ``X-OptiTac`` header
-(no cross-site requests) and, when bound to anything but localhost, the
-token printed at start. At most ``MAX_CLIENTS`` connections are served at
-once; each has ``TIMEOUT_S`` to send its request. All of it runs in the
+names this server (no DNS rebinding: on a loopback address, ``localhost`` or a
+loopback IP), POSTs with the ``X-OptiTac`` header (no cross-site requests)
+and, when bound to anything but localhost, the token printed at start.
+
+A connection has ``TIMEOUT_S`` in all to send each request (a client that
+sends a header line every 2 s is cut off after 5 s, not kept for ever by a
+timeout per read); at most ``MAX_CONNECTIONS`` connections are open at once
+and at most ``MAX_CLIENTS`` requests answered at once, so slow clients that
+hold connections do not keep requests from being answered. A client that
+goes away (a closed tab) is counted, never a traceback. All of it runs in the
 server's threads: the frame loop never waits for a viewer.
 """
 
 from __future__ import annotations
 
 import hmac
+import io
 import ipaddress
 import json
 import logging
 import secrets
+import socket
+import sys
 import threading
+import time
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
@@ -44,7 +54,10 @@ log = logging.getLogger(__name__)
 
 MAX_TARGET = 256
 MAX_BODY = 1024
+#: Requests answered at once, and connections open at once (most of them may still be sending a request).
 MAX_CLIENTS = 16
+MAX_CONNECTIONS = 64
+#: The time a connection has to send a whole request (request line, headers, body), s.
 TIMEOUT_S = 5.0
 ASSETS = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("index.html", "text/html; charset=utf-8"),
           "/app.js": ("app.js", "text/javascript; charset=utf-8"), "/style.css": ("style.css", "text/css; charset=utf-8"),
@@ -76,6 +89,44 @@ def is_loopback(host: str) -> bool:
     return host == "localhost" or ipaddress.ip_address(host).is_loopback
 
 
+def host_of(header: str) -> str:
+    """The host of a ``Host`` header: ``[::1]:8080`` -> ``::1``, ``127.0.0.2:8080`` -> ``127.0.0.2``."""
+    header = header.strip()
+    if header.startswith("["):
+        return header[1:header.find("]")] if "]" in header else ""
+    return header.rsplit(":", 1)[0] if ":" in header else header
+
+
+def names_loopback(host: str) -> bool:
+    """``host`` (from a Host header) is ``localhost`` or a loopback IP literal: what a page served on a
+    loopback address may be asked for (any other name may be a DNS rebinding)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class _DeadlineSocketReader(io.RawIOBase):
+    """A socket's reads, each with the time left until :attr:`deadline` (monotonic s) as its timeout."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        super().__init__()
+        self._sock = sock
+        self.deadline = time.monotonic() + TIMEOUT_S
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the request took too long")
+        self._sock.settimeout(left)
+        return self._sock.recv_into(buffer)
+
+
 def _assets() -> dict[str, bytes]:
     root = resources.files("optitac_edge.service.view") / "assets"
     return {name: (root / name).read_bytes() for name, _ in set(ASSETS.values())}
@@ -89,20 +140,24 @@ class _Server(ThreadingHTTPServer):
     def __init__(self, address: tuple[str, int], view: LiveView, token: str | None) -> None:
         self.view, self.token = view, token
         self.assets = _assets()
-        self.slots = threading.BoundedSemaphore(MAX_CLIENTS)
+        self.connections = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self.answering = threading.BoundedSemaphore(MAX_CLIENTS)
         self.refused = 0
         self.bad_requests = 0
+        #: Clients that went away while being answered, or took too long to ask (counted, not logged).
+        self.client_errors = 0
+        self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
         super().__init__(address, _Handler)
 
     def process_request(self, request: Any, client_address: Any) -> None:
-        if not self.slots.acquire(blocking=False):  # too many clients: close at once, count it
+        if not self.connections.acquire(blocking=False):  # too many connections: close at once, count it
             self.refused += 1
             self.shutdown_request(request)
             return
         try:
             super().process_request(request, client_address)
         except BaseException:
-            self.slots.release()
+            self.connections.release()
             raise
 
     def process_request_thread(self, request: Any, client_address: Any) -> None:
@@ -110,7 +165,17 @@ class _Server(ThreadingHTTPServer):
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self.slots.release()
+            self.connections.release()
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that went away or stalled is counted; anything else is one line (never a traceback)."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError, OSError)):
+            self.client_errors += 1
+            log.debug("view %s: %s", client_address[0] if client_address else "?", exc)
+        else:
+            log.warning("view: a request from %s failed: %s: %s", client_address[0] if client_address else "?",
+                        type(exc).__name__, exc)
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -122,6 +187,36 @@ class _Handler(BaseHTTPRequestHandler):
 
     def log_message(self, format: str, *args: Any) -> None:
         log.debug("view %s: %s", self.client_address[0], format % args)
+
+    def setup(self) -> None:
+        super().setup()
+        self._reader = _DeadlineSocketReader(self.connection)
+        self.rfile = io.BufferedReader(self._reader)
+
+    def handle_one_request(self) -> None:
+        """One request within ``TIMEOUT_S`` in all, answered while one of ``MAX_CLIENTS`` slots is free."""
+        self._reader.deadline = time.monotonic() + TIMEOUT_S
+        try:
+            super().handle_one_request()
+        except TimeoutError:
+            self.server.client_errors += 1
+            self.close_connection = True
+        finally:
+            self._release()
+
+    def parse_request(self) -> bool:
+        ok = super().parse_request()  # the headers are in: now the request waits for a slot to be answered
+        self.connection.settimeout(TIMEOUT_S)  # for the answer's writes (the reads had what was left)
+        if ok and not self.server.answering.acquire(timeout=TIMEOUT_S):
+            self._refuse(HTTPStatus.SERVICE_UNAVAILABLE, "too many requests at once")
+            return False
+        self._answering = ok
+        return ok
+
+    def _release(self) -> None:
+        if getattr(self, "_answering", False):
+            self._answering = False
+            self.server.answering.release()
 
     # -- checks ---------------------------------------------------------------------------------
 
@@ -147,9 +242,9 @@ class _Handler(BaseHTTPRequestHandler):
         if len(self.path) > MAX_TARGET:
             self._refuse(HTTPStatus.REQUEST_URI_TOO_LONG, "request target too long")
             return None
-        host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]")
+        host = host_of(self.headers.get("Host") or "")
         bound = str(self.server.server_address[0])
-        if is_loopback(bound) and host not in ("localhost", "127.0.0.1", "::1"):
+        if is_loopback(bound) and not names_loopback(host):
             self._refuse(HTTPStatus.FORBIDDEN, "unexpected Host")
             return None
         try:
@@ -195,7 +290,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._send(HTTPStatus.OK, view.layout_json(), "application/json")
         elif path == "/api/state":
             after = query.get("after", ["0"])[0]
-            if not after.isdigit() or len(after) > 12:
+            if not (after.isascii() and after.isdigit()) or len(after) > 12:  # '²' is a digit to isdigit()
                 self._refuse(HTTPStatus.BAD_REQUEST, "after must be a number")
                 return
             p = view.wait_published(int(after), timeout_s=1.0) or view.published
