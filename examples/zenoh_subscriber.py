@@ -8,7 +8,7 @@ message with the ``.msg`` definitions shipped in ``ros2/optitac_msgs/msg`` and
 prints it, one line per message (``--json``: one JSON object per line, with the
 receive time on CLOCK_MONOTONIC and the sample's attachment)::
 
-    pip install eclipse-zenoh rosbags
+    pip install 'optitac-edge[zenoh]'      # or: pip install eclipse-zenoh rosbags
     python examples/zenoh_subscriber.py --connect tcp/192.168.1.20:7447
     python examples/zenoh_subscriber.py --listen tcp/0.0.0.0:7447 --json > contacts.jsonl
 
@@ -29,8 +29,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-import zenoh
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+try:
+    import zenoh
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+except ModuleNotFoundError as exc:  # one line, not a traceback
+    sys.exit(f"zenoh_subscriber: needs {exc.name}: pip install 'optitac-edge[zenoh]' (or eclipse-zenoh rosbags)")
 
 MSG_DIR = Path(__file__).resolve().parent.parent / "ros2" / "optitac_msgs" / "msg"
 #: Every optitac_msgs topic of any domain and namespace.
@@ -93,22 +96,37 @@ def main(argv: list[str] | None = None) -> int:
                       bytes(att) if att is not None else b""))
         last[0] = time.monotonic()
 
+    failures = [0]
+
     def decode_and_print() -> None:
         while (item := received.get()) is not None:
             received_ns, key, payload, att = item
-            chunks = key.split("/")
-            pkg, kind, _, name = chunks[-2].split("::")
-            type_name = f"{pkg}/{kind}/{name.rstrip('_')}"
-            msg = store.deserialize_cdr(payload, type_name)
-            seq, source_ns = struct.unpack_from("<qq", att) if len(att) >= 16 else (None, None)
-            topic = "/" + "/".join(chunks[1:-2])
-            if args.json:
-                line = json.dumps({"topic": topic, "type": type_name, "received_ns": received_ns, "seq": seq,
-                                   "source_ns": source_ns, "message": plain(msg)})
-            else:
-                n = len(msg.contacts) if hasattr(msg, "contacts") else None
-                line = f"{topic} {type_name} seq {seq}" + (f": {n} contact(s)" if n is not None else "")
+            try:
+                line = describe(received_ns, key, payload, att)
+            except Exception as exc:  # noqa: BLE001 - one message that cannot be decoded: say so, go on
+                failures[0] += 1
+                print(f"cannot decode a message on {key}: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+                continue
             print(line, flush=True)
+
+    def describe(received_ns: int, key: str, payload: bytes, att: bytes) -> str:
+        chunks = key.split("/")
+        pkg, kind, _, name = chunks[-2].split("::")
+        type_name = f"{pkg}/{kind}/{name.rstrip('_')}"
+        msg = store.deserialize_cdr(payload, type_name)
+        seq, source_ns = struct.unpack_from("<qq", att) if len(att) >= 16 else (None, None)
+        topic = "/" + "/".join(chunks[1:-2])
+        if args.json:
+            return json.dumps({"topic": topic, "type": type_name, "received_ns": received_ns, "seq": seq,
+                               "source_ns": source_ns, "message": plain(msg)})
+        line = f"{topic} {type_name} seq {seq}"
+        contacts = getattr(msg, "contacts", None)
+        if type_name.endswith("/Contacts") and isinstance(contacts, (list, tuple)):
+            line += f": {len(contacts)} contact(s)" + "".join(
+                f" [id {c.id} at {c.x_mm:+.2f},{c.y_mm:+.2f} mm]" for c in contacts)
+        elif type_name.endswith("/SensorStatus"):  # its `contacts` is a count of frames with contact
+            line += f": {msg.fps:.1f} fps, {msg.frames} frames, {msg.contacts} with contact"
+        return line
 
     printer = threading.Thread(target=decode_and_print)
     printer.start()
@@ -128,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     session.close()
     received.put(None)
     printer.join()
-    return 0
+    return 1 if failures[0] else 0
 
 
 if __name__ == "__main__":

@@ -162,6 +162,28 @@ def _received(out: Path) -> list[dict]:
     return [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
 
 
+def test_the_example_subscriber_prints_contacts_and_status_in_its_default_mode(tmp_path, unseen_rec, bundle_path):
+    """Its default (line) mode died at the first status message (len() of SensorStatus.contacts, a count),
+    its thread with it, and the script still exited 0."""
+    port = free_port()
+    sub = subprocess.Popen([sys.executable, str(SUBSCRIBER), "--listen", f"tcp/127.0.0.1:{port}", "--idle", "1",
+                            "--seconds", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert sub.stderr is not None and "listening" in sub.stderr.readline()
+    board = _board(tmp_path, "board", f'[sensor]\nname = "thumb"\n[camera]\nbackend = "recording"\n'
+                   f'recording = "{unseen_rec}"\n[calibration]\nbundle = "{bundle_path}"\n[status]\nperiod_s = 0.5',
+                   port)
+    run = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(board), "--frames", "120"],
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out, err = sub.communicate(timeout=60)
+    assert sub.returncode == 0 and "cannot decode" not in err, err
+    lines = out.splitlines()
+    contacts = [x for x in lines if x.startswith("/optitac/thumb/contacts optitac_msgs/msg/Contacts")]
+    status = [x for x in lines if x.startswith("/optitac/thumb/status optitac_msgs/msg/SensorStatus")]
+    assert len(contacts) == 120 and any(" 1 contact(s) [id " in x for x in contacts)
+    assert status and re.search(r": \d+\.\d fps, \d+ frames, \d+ with contact$", status[-1])
+
+
 def test_run_publishes_every_frame_equal_to_the_contacts_csv(tmp_path, unseen_rec, bundle_path):
     port = free_port()
     out = tmp_path / "received.jsonl"
