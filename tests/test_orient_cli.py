@@ -79,3 +79,21 @@ def test_orient_gives_up_after_its_time_limit(tmp_path) -> None:
 def test_orient_on_a_board_that_keeps_no_bundle_needs_an_output(capsys) -> None:
     assert main(["orient", "--board", "sim"]) == 2
     assert "give -o CAL" in capsys.readouterr().err
+
+
+def test_orient_runs_on_the_simulated_camera_and_fixes_a_mirrored_map(tmp_path, capsys) -> None:
+    """docs/bring-up.md: every step runs on the simulator. orient did not: the simulator's presses ignored the
+    prompts ('not decided' after 32 s). Now a simulated operator presses where the prompts ask."""
+    from optitac_edge.sim.camera import SimCamera
+
+    with SimCamera(realtime=False) as camera:
+        rest = [camera.read().frame.copy() for _ in range(8)]
+    cal = tmp_path / "cal.npz"
+    save_bundle(calibrate_fibers(rest, "gray", rotation_hint_deg=240.0, mirror=True), cal)
+    board = tmp_path / "board.toml"
+    board.write_text('[camera]\nbackend = "sim"\n')
+    assert main(["orient", "--board", str(board), "--cal", str(cal), "--timeout", "30"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "simulated camera: a simulated operator presses where the prompts ask"
+    assert "done: the fiber map is rotated 240°, mirrored" in out
+    assert is_verified(load_bundle(cal)) and not load_bundle(cal).transform.mirror

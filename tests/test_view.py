@@ -337,3 +337,41 @@ def test_the_guided_orientation_in_the_view_corrects_the_bundle_and_swaps_the_lo
         assert (tmp_path / "cal.npz").exists()
     finally:
         view.close()
+
+
+def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> None:
+    """On the simulated camera a simulated operator does what the view's prompts ask (the simulator's own
+    presses ignored them)."""
+    from types import SimpleNamespace
+
+    from optitac_edge.cli import _simulated_operator_for_the_view
+    from optitac_edge.sim.camera import SimCamera
+
+    with SimCamera(realtime=False) as camera:
+        rest = [camera.read().frame.copy() for _ in range(8)]
+        wrong = calibrate_fibers(rest, "gray", rotation_hint_deg=120.0)
+        pipeline = Pipeline(wrong)
+        view = LiveView(wrong, "gray", rate_hz=1e9)
+        view.bundle_path = tmp_path / "cal.npz"
+        session = SimpleNamespace(camera=camera, view=view)
+        _simulated_operator_for_the_view(session)
+        stats = Stats()
+        try:
+            for _ in range(12):  # the baseline (the simulator's rest frames)
+                captured = camera.read()
+                pipeline.process(captured.frame, captured.t_ns)
+            assert pipeline.process(camera.read().frame, captured.t_ns + 1).baseline_ready
+            view.start_orientation()
+            for _ in range(600):
+                captured = camera.read()
+                pipeline.process(captured.frame, captured.t_ns)
+                stats.frames += 1
+                before = view.published.seq if view.published else 0
+                view._next_ns = 0
+                view.observe(captured.frame, captured.t_ns, pipeline, stats)
+                view.wait_published(before)
+                if view.procedure is None:
+                    break
+            assert view.message.startswith("orientation corrected (the fiber map was rotated")
+        finally:
+            view.close()

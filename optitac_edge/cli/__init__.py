@@ -664,6 +664,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
         if getattr(args, "view", None):
             url = session.open_view(args.view)
             say(f"view: {url}")
+            _simulated_operator_for_the_view(session)
         via = link if link == "no link" else link + " link"
         if len(config.sensors) == 1:
             say(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
@@ -684,6 +685,23 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
 
         session.run(stop, duration_s=args.duration, on_result=on_result)
         return session.services
+
+
+def _simulated_operator_for_the_view(session: Any) -> None:
+    """On the simulated camera, a simulated operator does what the view's guided orientation asks (the
+    simulator's own presses ignore its prompts)."""
+    from optitac_edge.sim.camera import SimCamera
+    from optitac_edge.sim.operator import PromptFollower
+
+    if isinstance(session.camera, SimCamera) and session.view is not None:
+        operator = PromptFollower(session.camera.sensor.layout.radius_mm)
+        previous = session.camera.program
+
+        def follow(prompt: str) -> None:
+            operator.follow(prompt)
+            session.camera.press_with(operator if prompt else previous)
+
+        session.view.on_prompt = follow
 
 
 def _cmd_record(args: argparse.Namespace) -> int:

@@ -190,7 +190,8 @@ def _cmd_orient(args: argparse.Namespace) -> int:
                            "give -o CAL to write the oriented bundle")
     with open_board_camera(config) as camera:
         bundle, _ = obtain_bundle(config, camera, args.cal)
-        fit = orient_live(camera, bundle, args.timeout, lambda prompt: print(prompt, flush=True))
+        say = _simulated_operator(camera, bundle)
+        fit = orient_live(camera, bundle, args.timeout, say)
     assert fit.symmetry is not None
     evidence = f"edge presses, RMS {fit.best_rmse_mm:.1f} mm"
     bundle = reorient_bundle(bundle, fit.symmetry, evidence)
@@ -199,6 +200,26 @@ def _cmd_orient(args: argparse.Namespace) -> int:
             f"corrected (the fiber map was {fit.symmetry.label}; centroid, width and shape models were removed)")
     print(f"wrote {target} (id {bundle.calibration_id}): orientation {what}")
     return 0
+
+
+def _simulated_operator(camera: Any, bundle: Any) -> Callable[[str], None]:
+    """Show each prompt; on the simulated camera a simulated operator also does what it asks (its own
+    presses ignore prompts)."""
+    from optitac_edge.sim.camera import SimCamera
+
+    if not isinstance(camera, SimCamera):
+        return lambda prompt: print(prompt, flush=True)
+    from optitac_edge.sim.operator import PromptFollower
+
+    operator = PromptFollower(camera.sensor.layout.radius_mm)
+    camera.press_with(operator)
+    print("simulated camera: a simulated operator presses where the prompts ask", flush=True)
+
+    def say(prompt: str) -> None:
+        print(prompt, flush=True)
+        operator.follow(prompt)
+
+    return say
 
 
 HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {

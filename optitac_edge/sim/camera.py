@@ -175,6 +175,17 @@ class SimCamera(Camera):
         press = self._program.at(seq)
         return self.sensor.frame(() if press is None else (press,)), press
 
+    @property
+    def program(self) -> PressSource:
+        """What presses the skin (of the first patch)."""
+        return self._program
+
+    def press_with(self, program: PressSource) -> None:
+        """From now on (the frames not yet rendered), ``program`` presses the skin (of the first patch)."""
+        self._program = program
+        if self._patch_programs:
+            self._patch_programs[0] = program
+
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:
         if self._realtime:
             return self._read_paced(timeout_s)

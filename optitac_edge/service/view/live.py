@@ -127,6 +127,8 @@ class LiveView:
         self.bundle_path: Any = None
         #: Called by the frame loop with a new pipeline (the service sets it).
         self.swap_pipeline: Callable[[Any], None] | None = None
+        #: Told every prompt of the guided orientation ("" when it ends), e.g. a simulated operator's.
+        self.on_prompt: Callable[[str], None] | None = None
         self._thread = threading.Thread(target=self._work, name="optitac-view", daemon=True)
         self._thread.start()
 
@@ -208,12 +210,16 @@ class LiveView:
         n = self.bundle.grid.n
         surface = b.surface.reshape(n, n).copy()
         contacts = [self._contact(b, k) for k in range(b.n_contacts)]
-        if self.procedure is not None and b.baseline_ready:
+        procedure = self.procedure
+        if procedure is not None and b.baseline_ready:
             c = contacts[0] if contacts else None
-            self.procedure.feed(c is not None, c["x_mm"] if c else math.nan, c["y_mm"] if c else math.nan, b.t_ns)
-            if self.procedure.done:
-                self.message = self._oriented(self.procedure.fit)
+            before = procedure.prompt
+            procedure.feed(c is not None, c["x_mm"] if c else math.nan, c["y_mm"] if c else math.nan, b.t_ns)
+            if procedure.done:
+                self.message = self._oriented(procedure.fit)
                 self.procedure = None
+            if procedure.prompt != before:
+                self._tell(procedure.prompt)
         self._seq += 1
         state = self._state(b, surface, contacts)
         published = Published(self._seq, json.dumps(state, separators=(",", ":")).encode(),
@@ -281,11 +287,17 @@ class LiveView:
         from optitac_edge.calibration.edge_presses import EdgePresses
 
         self.procedure = EdgePresses(self.bundle.layout)
+        self._tell(self.procedure.prompt)
         return "orientation: " + self.procedure.prompt
 
     def cancel_orientation(self) -> str:
         self.procedure = None
+        self._tell("")
         return "orientation cancelled"
+
+    def _tell(self, prompt: str) -> None:
+        if self.on_prompt is not None:
+            self.on_prompt(prompt)
 
     def _oriented(self, fit: Any) -> str:
         """Write the result into the bundle (file, when there is one) and hand the loop the new fiber map."""
