@@ -33,7 +33,7 @@ def test_counts_rates_gaps_and_errors_from_the_wire() -> None:
     assert lines[0] == "#1 CONTACT t=5 us contact at +1.50, -2.25 mm, 4.00 x 3.00 mm, +30.0°, strength 12.0, shape none"
     assert lines[3].startswith("#6 STATUS 60.0 fps") and lines[4] == "#7 ACK of #7: OK"
     t = mon.tally
-    assert t.counts == {"CONTACT": 3, "STATUS": 1, "ACK": 1, "other": 0} and (t.gaps, t.lost) == (1, 2)
+    assert t.counts == {"CONTACT": 3, "STATUS": 1, "ACK": 1, "RELEASE": 0, "other": 0} and (t.gaps, t.lost) == (1, 2)
     assert mon.decoder.counters.crc == 1
     assert "CONTACT    3.0/s" in mon.summary(now_ns=1_000_000_000) and "crc 1" in mon.summary(1)
 
@@ -49,7 +49,8 @@ def test_rates_are_over_the_last_period() -> None:
 
 @pytest.mark.parametrize("text, kind", [("ping", CommandType.PING), ("tare", CommandType.TARE),
                                         ("stream on 3", CommandType.STREAM), ("stream off", CommandType.STREAM),
-                                        ("threshold 0.05", CommandType.SET_THRESHOLD)])
+                                        ("threshold 0.05", CommandType.SET_THRESHOLD),
+                                        ("protocol 2", CommandType.SET_PROTOCOL)])
 def test_typed_commands_are_valid_on_the_wire(text, kind) -> None:
     data, _ = command_frame(text, 9)
     (frame,) = FrameDecoder().feed(data + b"\x00")
@@ -59,9 +60,11 @@ def test_typed_commands_are_valid_on_the_wire(text, kind) -> None:
         assert cmd.stream_on and cmd.rate_divider == 3
     if text.startswith("threshold"):
         assert cmd.threshold == 500
+    if text.startswith("protocol"):
+        assert cmd.version == 2
 
 
-@pytest.mark.parametrize("text", ["reboot", "stream on 0", "stream maybe", "threshold 7", "threshold x"])
+@pytest.mark.parametrize("text", ["reboot", "stream on 0", "stream maybe", "threshold 7", "threshold x", "protocol 3"])
 def test_bad_commands_are_one_line(text, capsys) -> None:
     from optitac_edge.cli import main
 
@@ -139,3 +142,27 @@ def test_monitoring_the_can_bus_decodes_and_finds_counter_gaps() -> None:
     assert mon.tally.gaps == 2  # CONTACT_A and CONTACT_B each skip counter 2
     assert any(line.startswith("sensor 0 CONTACT_A: X 1.5") for line in lines)
     assert lines[-1].startswith("CONTACT") and "undecodable 0" in lines[-1]
+
+
+def test_the_mcu_team_can_switch_the_service_to_protocol_v2_from_the_monitor() -> None:
+    """monitor could not send SET_PROTOCOL 2, so v2 could not be tried from the host; it now decodes what v2
+    sends (CONTACT2 for every contact, RELEASE)."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    service = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--serial", path, "--fps", "60",
+                                "--duration", "30"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    lines: list[str] = []
+    try:
+        os.read(master, 65536) if select.select([master], [], [], 15)[0] else None  # the service is up
+        mon = monitor_serial(path, 921600, 3.0, ["protocol 2"], lines.append, every=True,
+                             serial_port=MasterEnd(master))
+    finally:
+        service.terminate()
+        service.wait(timeout=10)
+        os.close(master)
+        os.close(slave)
+    assert lines[0] == "sent SET_PROTOCOL 2" and any("ACK of #1: OK" in line for line in lines)
+    contact2 = [line for line in lines if " CONTACT2 " in line]
+    assert contact2 and any(" contact 1 of " in line for line in contact2)
+    assert mon.decoder.counters.crc == 0 and mon.tally.bad_payloads == 0

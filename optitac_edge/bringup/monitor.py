@@ -32,10 +32,11 @@ from optitac_edge.io.protocol.wire import (
     decode_status,
     encode_command,
 )
+from optitac_edge.io.protocol.wire_v2 import decode_contact2, decode_release
 
 #: Commands the monitor sends, as typed: ``ping``, ``tare``, ``stream on [DIVIDER]``, ``stream off``,
-#: ``threshold LEVEL`` (relative units, 0.001..0.5).
-COMMAND_HELP = "ping | tare | stream on [DIVIDER] | stream off | threshold LEVEL (0.001..0.5)"
+#: ``threshold LEVEL`` (relative units, 0.001..0.5), ``protocol 1|2`` (SET_PROTOCOL).
+COMMAND_HELP = "ping | tare | stream on [DIVIDER] | stream off | threshold LEVEL (0.001..0.5) | protocol 1|2"
 
 
 def command_frame(text: str, seq: int) -> tuple[bytes, str]:
@@ -66,6 +67,10 @@ def command_frame(text: str, seq: int) -> tuple[bytes, str]:
         if not THRESHOLD_MIN <= level <= THRESHOLD_MAX:
             raise OptiTacError(f"command {text!r}: the level must be a number in 0.001..0.5")
         return encode_command(CommandType.SET_THRESHOLD, seq, threshold=level), "SET_THRESHOLD"
+    if words[:1] == ["protocol"] and len(words) == 2:
+        if words[1] not in ("1", "2"):
+            raise OptiTacError(f"command {text!r}: the protocol version is 1 or 2")
+        return encode_command(CommandType.SET_PROTOCOL, seq, version=int(words[1])), f"SET_PROTOCOL {words[1]}"
     raise OptiTacError(f"unknown command {text!r} (commands: {COMMAND_HELP})")
 
 
@@ -73,7 +78,8 @@ def command_frame(text: str, seq: int) -> tuple[bytes, str]:
 class LinkTally:
     """Counts of what arrived, rates over the last report period, sequence gaps; pure (no I/O, no clock)."""
 
-    counts: dict[str, int] = field(default_factory=lambda: {"CONTACT": 0, "STATUS": 0, "ACK": 0, "other": 0})
+    counts: dict[str, int] = field(default_factory=lambda: {"CONTACT": 0, "STATUS": 0, "ACK": 0, "RELEASE": 0,
+                                                            "other": 0})
     gaps: int = 0
     lost: int = 0
     bad_payloads: int = 0
@@ -117,6 +123,14 @@ def _contact_text(msg: Any) -> str:
             f"{msg.angle_deg:+.1f}°, strength {msg.strength:.1f}, shape {msg.shape.name.lower()}")
 
 
+def _contact2_text(msg: Any) -> str:
+    if not msg.n_contacts:
+        return f"sensor {msg.sensor_id}: no contact"
+    return (f"sensor {msg.sensor_id} contact {msg.index + 1} of {msg.n_contacts} (id {msg.contact_id}) at "
+            f"{msg.x_mm:+.2f}, {msg.y_mm:+.2f} mm, {msg.major_mm:.2f} x {msg.minor_mm:.2f} mm, {msg.angle_deg:+.1f}°, "
+            f"strength {msg.strength:.1f}, depth {msg.depth_mm:.2f} mm, force {msg.force_n:.2f} N")
+
+
 class SerialMonitor:
     """Decodes a serial link as the MCU would (:class:`FrameDecoder`) and tallies what arrives."""
 
@@ -146,6 +160,16 @@ class SerialMonitor:
                                  f"camera errors {st.camera_errors}, link errors {st.link_errors}, "
                                  f"calibration {st.calibration_id:08x}")
                 return f"#{frame.seq} STATUS {t.last_status}"
+            if frame.type == MsgType.CONTACT2:  # protocol v2: one a contact of the frame
+                c2 = decode_contact2(frame.payload, frame.t_us)
+                t.add("CONTACT", frame.seq, now_ns)
+                t.last_contact = _contact2_text(c2)
+                return f"#{frame.seq} CONTACT2 t={frame.t_us} us frame {c2.frame} {t.last_contact}"
+            if frame.type == MsgType.RELEASE:
+                rel = decode_release(frame.payload, frame.t_us)
+                t.add("RELEASE", frame.seq, now_ns)
+                return (f"#{frame.seq} RELEASE of contact {rel.contact_id} (sensor {rel.sensor_id}, touched in frame "
+                        f"{rel.touch_frame}) at frame {rel.frame}")
             if frame.type == MsgType.ACK:
                 ack = decode_ack(frame.payload)
                 t.add("ACK", frame.seq, now_ns)

@@ -33,7 +33,7 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--can-interface", default="socketcan", help="python-can interface (default socketcan)")
     p.add_argument("--send", action="append", default=[], metavar="CMD",
                    help="send a command at start (serial): ping, tare, 'stream on [DIV]', 'stream off', "
-                        "'threshold LEVEL'; repeatable")
+                        "'threshold LEVEL', 'protocol 1|2' (SET_PROTOCOL: v2 sends CONTACT2 and RELEASE); repeatable")
     p.add_argument("--duration", type=number(0, 1e8, lo_open=True), default=None, metavar="S")
     p.add_argument("--all", action="store_true", help="print every message, not only a summary a second")
 
