@@ -132,3 +132,44 @@ def test_run_on_a_full_state_directory_keeps_streaming(tmp_path):
     assert "processed 100 frames" in proc.stdout
     assert "calibration bundle not saved" in proc.stderr and "File too large" in proc.stderr
     assert not (tmp_path / "calibration.npz").exists()
+
+
+def test_status_says_the_frame_rate_of_its_last_period_not_the_average_since_the_start() -> None:
+    """The frames queued while the service started come at once, and the average since the start
+    over-read for long after (85, then 62 fps on a 60-fps camera): STATUS now says the last period's rate."""
+    import threading
+
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.io.cameras.base import CapturedFrame
+    from optitac_edge.io.clock import VirtualClock
+    from optitac_edge.io.transports import open_transport
+    from optitac_edge.service.loop import Service
+    from optitac_edge.sim.camera import SimCamera
+
+    clock = VirtualClock()
+    camera = SimCamera(realtime=False, clock=clock, fps=60.0)
+    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(10)], "gray")
+
+    class Queued:
+        """25 frames waiting in the camera's queue at the start, then one every 1/60 s."""
+
+        def __getattr__(self, name):
+            return getattr(camera, name)
+
+        def __init__(self) -> None:
+            self.backlog = [camera.read() for _ in range(25)]
+
+        def read(self, timeout_s=1.0):
+            if self.backlog:
+                f = self.backlog.pop(0)
+                return CapturedFrame(f.frame, clock.monotonic_ns(), f.seq)
+            return camera.read(timeout_s)
+
+    config = load_board_config("sim", env={}, overrides={"status.period_s": 1.0})
+    transport = open_transport("null")
+    sent = []
+    transport.send_status = lambda m: sent.append((m.t_us, m.fps_x10 / 10))  # the message is reused
+    service = Service(config, bundle, Queued(), transport, clock=clock)
+    service.run(threading.Event(), duration_s=4.0)
+    rates = [fps for _, fps in sent]
+    assert len(rates) >= 3 and abs(rates[1] - 60.0) < 1.0 and abs(rates[2] - 60.0) < 1.0, rates
