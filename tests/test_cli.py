@@ -265,3 +265,61 @@ def test_no_raw_python_dict_or_list_in_the_lines_a_person_reads(caplog, capsys, 
     lines = [r.getMessage() for r in caplog.records] + capsys.readouterr().out.splitlines()
     assert any("fiber calibration of" in x for x in lines)
     assert not [x for x in lines if "{'" in x or "': " in x or "[0." in x or "], " in x]
+
+
+def test_the_status_line_rates_one_cameras_frames() -> None:
+    """With two cameras the line took its rate from both cameras' counters in turn: -89.7 fps."""
+    from types import SimpleNamespace
+
+    from optitac_edge.cli import _StatusLine
+
+    now = [0]
+    line = _StatusLine(0.1, "no link", clock=lambda: now[0])
+    lead, peer = SimpleNamespace(frames=0), SimpleNamespace(frames=0)
+    est = SimpleNamespace(copy=lambda: "est")
+    rates = []
+    for k in range(1, 30):
+        now[0] = k * 100_000_000  # a line due at every offer, the two cameras' loops in turn
+        lead.frames, peer.frames = 6 * k, 600 + 6 * k
+        line.offer(est, peer if k % 2 else lead)
+        if line._latest is not None:
+            rates.append(line._latest[1])
+            line._latest = None
+    assert rates[0] is None and len(rates) == 15 and all(r is not None and abs(r - 60.0) < 1e-6 for r in rates[1:])
+
+
+def test_a_log_record_clears_the_status_line_first() -> None:
+    """INFO lines were glued onto the end of the status line."""
+    import io
+    import logging
+
+    from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    out = Terminal()
+    logs = NonBlockingLogging(logging.INFO, out, logger="optitac_edge.test_live_line", always=True).start()
+    LIVE_LINE.active = True
+    try:
+        out.write("\r\x1b[2K[no link]  60.0 fps  no contact")
+        logging.getLogger("optitac_edge.test_live_line").info("first frame processed")
+    finally:
+        logs.stop()
+        LIVE_LINE.active = False
+    assert out.getvalue().endswith("no contact\r\x1b[2KINFO optitac_edge.test_live_line: first frame processed\n")
+
+
+def test_run_says_what_reached_the_mcu_and_what_each_camera_and_sensor_saw(capsys) -> None:
+    """run --serial /dev/ttyNOPE reported every frame 'sent'; with two patches on a camera the camera's line
+    said more frames with contact than frames (752 frames, 978 with contact)."""
+    assert main(["run", "--serial", "/dev/optitac-no-such-port", "--frames", "30"]) == 0
+    out = capsys.readouterr().out
+    assert "link: 0 messages written" in out and "the port was never open" in out and ", sent " not in out
+    assert main(["run", "--board", "sim-hand", "--frames", "30"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    fingers = next(x for x in out if x.startswith("camera fingers: processed"))
+    assert "with contact" not in fingers
+    assert any(x.startswith("  sensor 1 'thumb': ") and "with contact" in x for x in out)
+    assert "no link: nothing was sent" in out

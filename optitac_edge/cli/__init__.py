@@ -35,7 +35,7 @@ from optitac_edge.cli.common import (
     one_sensor_config,
 )
 from optitac_edge.errors import EXTRA_OF_MODULE, Interrupted, OptiTacError, missing_extra
-from optitac_edge.io.logs import NonBlockingLogging
+from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
 from optitac_edge.text import fields
 
 if TYPE_CHECKING:
@@ -559,20 +559,24 @@ def _cmd_run(args: argparse.Namespace) -> int:
     # run's own lines go to stdout through a queue too: a stdout nobody reads never holds up the service
     console = NonBlockingLogging(logging.INFO, sys.stdout, logger="optitac_edge.console", fmt="%(message)s",
                                  always=True).start()
+    services: list[Any] = []
     try:
         say = logging.getLogger("optitac_edge.console").info
         services = _run_service(args, config, stop, say)
         several = len(services) > 1
         for service in services:
             stats = service.stats
-            sent = f"sent {stats.sent}" if config.link.transport != "none" else "no link"
             commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
-            say("%sprocessed %d frames, %d with contact, %s, dropped %d, camera errors %d, processing errors %d, "
-                "commands %s", f"camera {service.camera_name}: " if several else "", stats.frames, stats.contacts,
-                sent, stats.frames_dropped, stats.camera_errors, stats.processing_errors, commands)
+            # with several sensors on a camera, the contacts are each sensor's (below): a camera's frame is one
+            contacts = f", {stats.contacts} with contact" if len(service.channels) == 1 else ""
+            say("%sprocessed %d frames%s, dropped %d, camera errors %d, processing errors %d, commands %s",
+                f"camera {service.camera_name}: " if several else "", stats.frames, contacts,
+                stats.frames_dropped, stats.camera_errors, stats.processing_errors, commands)
             if len(config.sensors) > 1:
                 for ch in service.channels:
                     say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
+        if services:
+            say("%s", _link_summary(services[0].transport))
             network = service.network
             if network is not None:
                 for ch in service.channels:
@@ -588,9 +592,28 @@ def _cmd_run(args: argparse.Namespace) -> int:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if received and received[0] == signal.SIGINT:
-        print("optitac-edge: interrupted: the service stopped cleanly (final STATUS sent)", file=sys.stderr)
+        final = " (final STATUS sent)" if services and _delivered(services[0].transport) else ""
+        print(f"optitac-edge: interrupted: the service stopped cleanly{final}", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0  # SIGTERM / SIGHUP: a requested stop (systemd counts it as success)
+
+
+def _delivered(transport: Any) -> bool:
+    """The link wrote something to the MCU (not the null link, not a port that never opened)."""
+    return bool(transport.delivers and transport.counters.sent)
+
+
+def _link_summary(transport: Any) -> str:
+    """What went over the link: messages written and those that could not be (from the link's own counters;
+    frames handed to a port that was never there are not "sent")."""
+    if not transport.delivers:
+        return "no link: nothing was sent"
+    c = transport.counters
+    stats = transport.stats() if hasattr(transport, "stats") else {}
+    absent = " (the port was never open: is it plugged in, is the name right?)" \
+        if not c.sent and not stats.get("connected", True) else ""
+    return (f"link: {c.sent} messages written, {c.send_errors} not sent{absent}, {c.received} received, "
+            f"{c.rx_errors} bad, {c.reconnects} reconnects")
 
 
 class _StatusLine:
@@ -598,20 +621,28 @@ class _StatusLine:
     hands over a copy of the estimate when a line is due, and never waits on the terminal. The rate is
     over the last interval; the line is cut to the terminal's width so it never wraps."""
 
-    def __init__(self, period_s: float, link: str, clock: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(self, period_s: float, link: str, clock: Callable[[], int] = time.monotonic_ns,
+                 label: str = "") -> None:
         self._clock = clock
         self._period_ns = int(period_s * 1e9)
         self._link = link
+        self._label = label
         self._due_ns = 0
         self._last: tuple[int, int] | None = None  # (ns, frames) of the previous line
         self._latest: tuple[Any, float | None] | None = None
+        self._stats: Any = None
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._print_loop, name="optitac-status-line", daemon=True)
 
     def offer(self, est: Any, stats: Any) -> None:
-        """From the frame loop: keep a copy of ``est`` when a line is due."""
+        """From the frame loop of the first camera that offers (the others' go by): keep a copy of ``est``
+        when a line is due. One camera's counters make the rate (two cameras' made it -89.7 fps)."""
+        if self._stats is None:
+            self._stats = stats
+        elif stats is not self._stats:
+            return
         now = self._clock()
         if now < self._due_ns:
             return
@@ -632,11 +663,13 @@ class _StatusLine:
                 latest, self._latest = self._latest, None
             if latest is not None:
                 width = max(shutil.get_terminal_size((80, 24)).columns - 1, 20)
-                line = f"[{self._link}] {_status_line(*latest)}"
-                sys.stdout.write("\r\x1b[2K" + line[:width])
-                sys.stdout.flush()
+                line = f"[{self._link}] {self._label}{_status_line(*latest)}"
+                with LIVE_LINE.lock:  # a log record clears the line first (it is drawn again here)
+                    sys.stdout.write("\r\x1b[2K" + line[:width])
+                    sys.stdout.flush()
 
     def __enter__(self) -> Self:
+        LIVE_LINE.active = True
         self._thread.start()
         return self
 
@@ -644,6 +677,7 @@ class _StatusLine:
         self._stop.set()
         self._wake.set()
         self._thread.join(timeout=2.0)
+        LIVE_LINE.active = False
         if not self._thread.is_alive():  # (a terminal stuck in write(): leave it alone)
             sys.stdout.write("\n")
 
@@ -657,7 +691,9 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
     link = "no link" if config.link.transport == "none" else config.link.transport
     with BoardSession(config, args.cal) as session, ExitStack() as stack:
         # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
-        line = stack.enter_context(_StatusLine(0.1, link)) if sys.stdout.isatty() else None
+        first = config.sensors[0]  # the lead camera's first sensor: the one the status line shows
+        label = f"{first.sensor.name}: " if len(config.sensors) > 1 else ""
+        line = stack.enter_context(_StatusLine(0.1, link, label=label)) if sys.stdout.isatty() else None
         if session.calibrates:
             say("calibrating fibers from the first rest frames...")
         bundle = session.bundle()
@@ -680,7 +716,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
         def on_result(est: Any, stats: Any) -> None:
             if max_frames is not None and stats.frames >= max_frames:
                 stop.set()
-            if line is not None:
+            if line is not None and stats is session.services[0].stats:  # the lead camera's first sensor
                 line.offer(est, stats)
 
         session.run(stop, duration_s=args.duration, on_result=on_result)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import queue
 import sys
+import threading
 from logging.handlers import QueueHandler, QueueListener
 from typing import IO, TYPE_CHECKING
 
@@ -38,6 +39,20 @@ class DroppingQueueHandler(QueueHandler):
             self.dropped += 1
 
 
+class LiveLine:
+    """A line redrawn in place on the terminal (``run``'s status line): a log record written to a terminal
+    while it shows clears it first, so that the record starts a line of its own (the line is drawn again
+    on its next tick). Writers of the line and of records take :attr:`lock`."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.active = False
+
+
+#: The process's live line (one terminal).
+LIVE_LINE = LiveLine()
+
+
 class _Writer(logging.StreamHandler):  # type: ignore[type-arg,unused-ignore]
     """The listener's handler: writes records, and says how many were dropped before the next one."""
 
@@ -47,6 +62,12 @@ class _Writer(logging.StreamHandler):  # type: ignore[type-arg,unused-ignore]
         self._reported = 0
 
     def emit(self, record: logging.LogRecord) -> None:
+        with LIVE_LINE.lock:
+            if LIVE_LINE.active and _is_terminal(self.stream):
+                self.stream.write("\r\x1b[2K")
+            self._emit(record)
+
+    def _emit(self, record: logging.LogRecord) -> None:
         dropped = self._source.dropped
         if dropped > self._reported:
             lost = logging.makeLogRecord({"name": __name__, "levelno": logging.WARNING, "levelname": "WARNING",
@@ -55,6 +76,13 @@ class _Writer(logging.StreamHandler):  # type: ignore[type-arg,unused-ignore]
             self._reported = dropped
             super().emit(lost)
         super().emit(record)
+
+
+def _is_terminal(stream: IO[str]) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError, OSError):
+        return False
 
 
 class NonBlockingLogging:
