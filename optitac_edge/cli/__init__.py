@@ -34,6 +34,7 @@ from optitac_edge.cli.common import (
     number,
     one_sensor_config,
 )
+from optitac_edge.cli.help import describe
 from optitac_edge.errors import EXTRA_OF_MODULE, Interrupted, OptiTacError, missing_extra
 from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
 from optitac_edge.text import fields
@@ -238,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the patches' camera frame (default 1280x720)")
     bringup.add_parsers(sub)
     _add_verbosity_to_commands(parser)
+    describe(parser)
     return parser
 
 

@@ -69,7 +69,7 @@ def _add_collect(sub: Any) -> None:
     p.add_argument("--seed", type=number(0, 2**32 - 1, integer=True), default=0,
                    help="seed of the experiment's random positions")
     p.add_argument("--limit", type=number(1, 10**6, integer=True), default=None, metavar="N",
-                   help="only the first N presses of the experiment")
+                   help="only N presses, spread over the whole experiment")
     p.add_argument("--fresh", action="store_true",
                    help="start again instead of continuing an interrupted collection; replaces a complete recording "
                         "at REC once the new one is complete")
