@@ -82,3 +82,26 @@ def test_error_map_colours_are_on_the_scale_of_the_array() -> None:
     data[20, 25] = 0.3  # inside the array (5 mm from the centre)
     data[0, 0] = 9.0  # the extrapolated corner
     assert array_colour_limit(data, cm, radius_mm=12.0) == pytest.approx(0.3)
+
+
+def test_the_error_maps_grey_out_what_no_press_measured_and_mark_the_presses(calibrated, tmp_path) -> None:
+    """The report's error maps painted corrections over areas never pressed, without marking the presses."""
+    import cv2
+
+    _, fibers, _, _ = calibrated
+    lines = Recording(write_scenario(tmp_path / "u", "unseen", seed=5))  # presses along x and y only
+    bundle, _ = calibrate_centroid(lines, fibers)
+    cal = tmp_path / "lines.npz"
+    save_bundle(bundle, cal)
+    assert main(["report", str(cal), "-o", str(tmp_path / "report")]) == 0
+    picture = cv2.imread(str(tmp_path / "report" / "error_maps.png"))
+    grey = np.all(np.abs(picture.astype(int) - 0xD8) <= 2, axis=2)
+    assert grey.mean() > 0.15  # most of the map: no press there
+    from optitac_edge.calibration.report import _near_presses
+    from optitac_edge.core.corrections import ContactCorrector
+
+    cm = ContactCorrector(bundle).centroid
+    near = _near_presses(cm, np.array([[0.0, 0.0]]), 1.5)
+    centre = np.unravel_index(np.argmin(np.hypot(cm.x0_mm + cm.step_mm * np.arange(cm.n)[None, :],
+                                                 cm.y0_mm + cm.step_mm * np.arange(cm.n)[:, None])), near.shape)
+    assert near[centre] and near.sum() < 0.05 * near.size

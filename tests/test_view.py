@@ -235,7 +235,15 @@ def test_snapshot_writes_the_picture(tmp_path) -> None:
     import cv2
 
     picture = cv2.imread(str(out))
-    assert picture is not None and picture.shape[1] > 1280
+    assert picture is not None and picture.shape[1] > 1100
+    # the view's picture, not the camera frame beside a black square: 40 % of it was black (0..4)
+    assert (picture.max(axis=2) <= 4).mean() < 0.15
+    # the surface's colour scale: a column of the colour map's colours, bright at the top, black at the bottom
+    bar = np.array([[[v]] for v in np.linspace(255, 0, 40)], np.uint8)
+    ramp = cv2.applyColorMap(bar, cv2.COLORMAP_INFERNO)[:, 0]
+    found = any(np.abs(picture[:, x].astype(int)[:, None] - ramp[None].astype(int)).max(axis=2).min(axis=0).max() < 12
+                for x in range(picture.shape[1] - 1, picture.shape[1] // 2, -1))
+    assert found
 
 
 # -- a real browser -----------------------------------------------------------------------------------
@@ -300,7 +308,21 @@ def test_a_headless_browser_shows_217_fibers_and_a_press_as_a_contact(view_proce
                 break
             time.sleep(0.05)
         assert 640 in widths
+        # the sensor's axes on the camera picture, the dark and saturated levels with the fibers' light
+        assert [t.text for t in driver.find_elements(By.CSS_SELECTOR, "#axes text")] == ["+x", "+y"]
+        levels = driver.execute_script("const c = document.getElementById('levels');"
+                                       "return [c.dataset.darkLevel, c.dataset.saturatedLevel]")
+        assert 10 < float(levels[0]) < 120 and float(levels[1]) == 250.0
+        assert float(driver.execute_script("return document.getElementById('surface').dataset.max")) >= 0
         driver.find_element(By.ID, "tare").click()
+        driver.find_element(By.ID, "snapshot").click()  # it says what happened
+        note = ""
+        for _ in range(100):
+            note = driver.find_element(By.ID, "note").text
+            if note.startswith("snapshot saved as optitac-snapshot-"):
+                break
+            time.sleep(0.05)
+        assert note.startswith("snapshot saved as optitac-snapshot-"), note
         errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
         assert errors == []
     finally:

@@ -49,6 +49,20 @@ def array_colour_limit(data: np.ndarray, cm: Any, radius_mm: float) -> float:
     return float(np.abs(data[inside]).max(initial=0.0)) or 1.0
 
 
+def _near_presses(cm: Any, presses: np.ndarray | None, reach_mm: float) -> np.ndarray | None:
+    """The error map's cells within ``reach_mm`` of a calibration press, shape (n, n) (None: no presses kept)."""
+    if presses is None or presses.size == 0:
+        return None
+    from scipy.spatial import cKDTree
+
+    xs = cm.x0_mm + cm.step_mm * np.arange(cm.n)
+    ys = cm.y0_mm + cm.step_mm * np.arange(cm.n)
+    xx, yy = np.meshgrid(xs, ys)
+    distance, _ = cKDTree(np.asarray(presses, np.float64).reshape(-1, 2)).query(np.column_stack([xx.ravel(),
+                                                                                                  yy.ravel()]))
+    return np.asarray(distance <= reach_mm).reshape(cm.n, cm.n)
+
+
 def _error_maps(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, out: Path) -> str | None:
     cm = corrector.centroid
     if cm is None:
@@ -56,12 +70,23 @@ def _error_maps(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), constrained_layout=True)
     extent = [cm.x0_mm, cm.x0_mm + cm.step_mm * (cm.n - 1), cm.y0_mm, cm.y0_mm + cm.step_mm * (cm.n - 1)]
     # the colour scale is that of the array: the map is extrapolated beyond the outermost fibers,
-    # where its values can be far larger and would wash out the part that matters
+    # where its values can be far larger and would wash out the part that matters. Where no press was
+    # made (farther than a pitch from every calibration press) the map is a guess: grey, and the
+    # presses are marked, so nobody reads a correction where nothing was measured.
+    presses = bundle.extra_arrays.get("report/centroid_true")
+    pressed = _near_presses(cm, None if presses is None else np.asarray(presses), bundle.layout.pitch_mm)
+    cmap = plt.get_cmap("RdBu_r").copy()
+    cmap.set_bad("#d8d8d8")
     for ax, data, name in zip(axes, (cm.error_x, cm.error_y), ("x", "y")):
         lim = array_colour_limit(data, cm, bundle.layout.radius_mm)
-        im = ax.imshow(data, origin="lower", extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        shown = data if pressed is None else np.ma.masked_where(~pressed, data)
+        im = ax.imshow(shown, origin="lower", extent=extent, cmap=cmap, vmin=-lim, vmax=lim)
         _fibers(ax, bundle)
-        ax.set_title(f"{name} error map (measured − true; colours: the array)")
+        if presses is not None:
+            unique = np.unique(np.round(np.asarray(presses), 3), axis=0)
+            ax.scatter(unique[:, 0], unique[:, 1], s=4, c="k", marker=".", label="calibration presses")
+            ax.legend(loc="upper right", fontsize=7)
+        ax.set_title(f"{name} error map (measured − true; grey: no press within a pitch)", fontsize=10)
         fig.colorbar(im, ax=ax, label="mm")
     path = out / "error_maps.png"
     _save(plt, fig, path)

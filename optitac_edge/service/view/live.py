@@ -31,6 +31,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frames import to_gray
 from optitac_edge.core.pipeline import MAX_CONTACTS
 from optitac_edge.errors import OptiTacError
+from optitac_edge.service.view.render import DARK_FRACTION, SATURATED_LEVEL
 
 log = logging.getLogger(__name__)
 
@@ -38,9 +39,6 @@ log = logging.getLogger(__name__)
 CONTACT_FIELDS = ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength", "confidence", "area_mm2")
 #: Service counters shown (from ServiceStats).
 STAT_FIELDS = ("frames", "contacts", "frames_dropped", "camera_errors", "light_changes", "processing_errors")
-#: A fiber darker than this fraction of the median fiber is flagged dark; this bright (gray level) saturated.
-DARK_FRACTION = 0.25
-SATURATED_LEVEL = 250.0
 #: JPEG quality of the camera picture.
 JPEG_QUALITY = 80
 
@@ -259,6 +257,7 @@ class LiveView:
             "link": self.link(), "baseline_ready": b.baseline_ready, "truncation": round(b.trunc, 4),
             "levels": base64.b64encode(np.clip(np.rint(means), 0, 255).astype(np.uint8).tobytes()).decode(),
             "dark": dark, "saturated": saturated,
+            "dark_level": round(DARK_FRACTION * median, 1), "saturated_level": SATURATED_LEVEL,
             "surface": {"n": int(surface.shape[0]), "max": round(top, 4),
                         "values": base64.b64encode(scaled.tobytes()).decode()},
             "contacts": contacts, "message": self.message,
@@ -273,9 +272,13 @@ class LiveView:
         fibers = [{"id": int(i), "u": round(float(c[0]), 1), "v": round(float(c[1]), 1), "r": round(float(r), 1),
                    "dead": bool(d)} for i, c, r, d in zip(self.bundle.layout.ids, t.centroid_px, radius, t.dead)]
         grid = self.bundle.grid
+        reach = 0.45 * self.bundle.layout.radius_mm  # the sensor's +x and +y, drawn from its centre
+        origin, ex, ey = self.bundle.transform.layout_to_image(np.array([[0.0, 0.0], [reach, 0.0], [0.0, reach]]))
         return json.dumps({"width": t.width, "height": t.height, "fibers": fibers,
                            "unmatched": np.round(t.unmatched_px, 1).tolist(),
                            "calibration_id": self.bundle.calibration_id,
+                           "axes": {"origin": np.round(origin, 1).tolist(), "x": np.round(ex, 1).tolist(),
+                                    "y": np.round(ey, 1).tolist()},
                            "grid": {"n": grid.n, "x0_mm": grid.x0_mm, "y0_mm": grid.y0_mm,
                                     "step_mm": grid.step_mm}},
                           separators=(",", ":")).encode()
