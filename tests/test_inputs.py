@@ -138,14 +138,14 @@ def test_a_bad_serial_url_is_one_line(capsys, url):
 # -- command-line values ---------------------------------------------------------------------------------
 
 @pytest.mark.parametrize(("argv", "message"), [
-    (["run", "--duration", "inf"], "argument --duration: inf is outside"),
+    (["run", "--duration", "inf"], "argument --duration: 'inf' is not a number"),
     (["run", "--frames", "0"], "argument --frames: 0 is outside 1.."),
-    (["sim", "x", "--scenario", "rest", "--rotation-deg", "nan"], "argument --rotation-deg: nan is outside"),
+    (["sim", "x", "--scenario", "rest", "--rotation-deg", "nan"], "argument --rotation-deg: 'nan' is not a number"),
     (["sim", "x", "--scenario", "rest", "--width", "0"], "argument --width: 0 is outside 64..8192"),
     (["sim", "x", "--scenario", "rest", "--dark-fibers", "9999"], "--dark-fibers must be distinct fiber indices"),
     (["sim", "x", "--scenario", "rest", "--variant", "-1"], "argument --variant: -1 is outside"),
     (["sim", "x", "--scenario", "rest", "--frames", "0"], "argument --frames: 0 is outside"),
-    (["soak", "--minutes", "nan"], "argument --minutes: nan is outside"),
+    (["soak", "--minutes", "nan"], "argument --minutes: 'nan' is not a number"),
     (["bench", "--fps", "0"], "argument --fps: 0 is outside"),
 ])
 def test_bad_command_line_values_are_one_line(tmp_path, capsys, argv, message):

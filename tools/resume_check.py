@@ -83,7 +83,7 @@ def sim_rig(work: Path, presses: int, unseen: Path) -> dict[str, Any]:
         out = work / f"sim-{name}"
         code, text = _interrupt(cmd(out), out, signum, presses // 3)
         kept = _journal_presses(out)
-        again = subprocess.run(cmd(out), capture_output=True, text=True)
+        again = subprocess.run(cmd(out), check=False, capture_output=True, text=True)
         report[name] = {"exit": code, "retracted": "retracted the tip" in text, "kept_presses": kept,
                         "continued": f"continuing seen after press {kept}" in again.stdout,
                         "parked": "parked the tip" in again.stdout, **figures(out, unseen)}
@@ -95,6 +95,8 @@ def sim_rig(work: Path, presses: int, unseen: Path) -> dict[str, Any]:
 def grbl_child(port: str, out: Path, bundle: Path, presses: int) -> int:
     """The collection's process: GRBL on ``port``, a camera whose skin follows the machine's reports and
     whose times start at 0 in this process (a reboot's CLOCK_MONOTONIC)."""
+    from test_rig_gcode import LIMITS, MOUNT
+
     from optitac_edge.bringup.collect import Collector, CollectSettings
     from optitac_edge.calibration.fibers import calibrate_fibers
     from optitac_edge.cli import _interrupt_on_signals
@@ -104,7 +106,6 @@ def grbl_child(port: str, out: Path, bundle: Path, presses: int) -> int:
     from optitac_edge.io.rigs.gcode import GcodeRig
     from optitac_edge.sim.camera import SimCamera
     from optitac_edge.sim.skin import Indenter
-    from test_rig_gcode import LIMITS, MOUNT
 
     class Follows:
         """The skin pressed where the machine last said its tip is."""
@@ -187,7 +188,7 @@ def grbl_rig(work: Path, presses: int, unseen: Path) -> dict[str, Any]:
             time.sleep(0.2)
             z_after = machine.position()[2]
             kept = _journal_presses(out)
-            again = subprocess.run(cmd(machine.port, out), capture_output=True, text=True)
+            again = subprocess.run(cmd(machine.port, out), check=False, capture_output=True, text=True)
             report[name] = {"exit": code, "tip_z_after_mm": round(z_after, 3), "kept_presses": kept,
                             "retracted": "retracted the tip" in text, "parked_at": [round(v, 3) for v in
                                                                                    machine.position()],

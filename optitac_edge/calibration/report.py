@@ -75,8 +75,7 @@ def _error_maps(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector
     # presses are marked, so nobody reads a correction where nothing was measured.
     presses = bundle.extra_arrays.get("report/centroid_true")
     pressed = _near_presses(cm, None if presses is None else np.asarray(presses), bundle.layout.pitch_mm)
-    cmap = plt.get_cmap("RdBu_r").copy()
-    cmap.set_bad("#d8d8d8")
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad="#d8d8d8")
     for ax, data, name in zip(axes, (cm.error_x, cm.error_y), ("x", "y")):
         lim = array_colour_limit(data, cm, bundle.layout.radius_mm)
         shown = data if pressed is None else np.ma.masked_where(~pressed, data)
