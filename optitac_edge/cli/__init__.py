@@ -298,7 +298,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                               rotation_deg=args.rotation_deg, mirror=args.mirror, dark_fibers=dark)
     else:
         optics, patch = _sim_board_sensor(args, config, dark)
-    from optitac_edge.io.recording_writer import check_writable_recording
+    from optitac_edge.io.recording_paths import check_writable_recording
 
     check_writable_recording(args.out_dir, args.fresh)  # refused now, not after the simulation
     mcap = args.out_dir.suffix == ".mcap"
@@ -845,7 +845,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         **bringup.HANDLERS}
     handler = handlers[f"{args.command} {args.step}" if args.command == "calibrate" else args.command]
     if getattr(args, "fresh", False):  # for the line an interrupt ends with: was a complete recording there?
-        from optitac_edge.io.recording_writer import holds_recording
+        from optitac_edge.io.recording_paths import holds_recording
 
         args.replacing = holds_recording(Path(getattr(args, "out_dir", None) or args.output))
     message, code = None, EXIT_ERROR

@@ -83,7 +83,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
     from optitac_edge.bringup.collect import Collector
     from optitac_edge.bringup.rigs import open_rig
-    from optitac_edge.io.recording_writer import check_writable_recording
+    from optitac_edge.io.recording_paths import check_writable_recording
     from optitac_edge.service.bundles import fiber_finder, obtain_bundle
     from optitac_edge.service.wiring import open_board_camera
 

@@ -27,31 +27,10 @@ import numpy as np
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, RecordingError
-from optitac_edge.io.frame_store import REST_FRAMES, SPOTS, SUMS
+from optitac_edge.io.frame_store import REST_FRAMES, SPOTS, SUMS, read_spots
 
 #: Pixels around a fiber's group, up to this fraction of its radius, follow its light.
 ZONE_FRACTION = 0.5
-
-
-def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
-    """The fiber pixel groups a recording's sums are over (``spots.npz``), checked.
-
-    Raises
-    ------
-    RecordingError
-        Naming the file, when it is garbled or does not fit the frames.
-    """
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: np.array(z[k]) for k in ("pixel_index", "pixel_start", "centroid_px", "dead")}
-        h, w = frame_shape[:2]
-        return FiberTable(height=int(h), width=int(w), pixel_format=infer_pixel_format(frame_shape),
-                          pixel_index=arrays["pixel_index"].astype(np.int32),
-                          pixel_start=arrays["pixel_start"].astype(np.int64),
-                          centroid_px=arrays["centroid_px"].astype(np.float64), dead=arrays["dead"].astype(bool),
-                          unmatched_px=np.zeros((0, 2)))
-    except (OSError, ValueError, KeyError, TypeError, FrameMismatchError) as exc:
-        raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
 
 
 def _load(path: Path, what: str) -> np.ndarray:

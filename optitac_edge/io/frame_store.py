@@ -35,7 +35,7 @@ import numpy as np
 
 from optitac_edge.core.fiber_table import FiberSampler, FiberTable
 from optitac_edge.core.frames import infer_pixel_format
-from optitac_edge.errors import OutputError, RecordingError
+from optitac_edge.errors import FrameMismatchError, OutputError, RecordingError
 from optitac_edge.io.files import AtomicFile
 from optitac_edge.io.npy_rows import NpyRows
 
@@ -52,6 +52,27 @@ PENDING_BYTES = 256 << 20
 
 #: Finds the fibers in rest frames ((K, H, W[, 3]) uint8) of a pixel format: a table whose pixel groups are kept.
 FindFibers = Callable[[np.ndarray, str], FiberTable]
+
+
+def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
+    """The fiber pixel groups a recording's sums are over (``spots.npz``), checked.
+
+    Raises
+    ------
+    RecordingError
+        Naming the file, when it is garbled or does not fit the frames.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: np.array(z[k]) for k in ("pixel_index", "pixel_start", "centroid_px", "dead")}
+        h, w = frame_shape[:2]
+        return FiberTable(height=int(h), width=int(w), pixel_format=infer_pixel_format(frame_shape),
+                          pixel_index=arrays["pixel_index"].astype(np.int32),
+                          pixel_start=arrays["pixel_start"].astype(np.int64),
+                          centroid_px=arrays["centroid_px"].astype(np.float64), dead=arrays["dead"].astype(bool),
+                          unmatched_px=np.zeros((0, 2)))
+    except (OSError, ValueError, KeyError, TypeError, FrameMismatchError) as exc:
+        raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
 
 
 class FrameStore(ABC):
@@ -155,8 +176,6 @@ class FiberSumStore(FrameStore):
         if keep < self.rest_frames or not (self.directory / SPOTS).exists():
             raise RecordingError(f"{self.directory}: holds no fiber sums to continue after frame {keep} (collected "
                                  "with --storage raw? continue it with the same storage)")
-        from optitac_edge.io.fiber_sums import read_spots
-
         table = read_spots(self.directory / SPOTS, self.frame_shape)
         self._use(table, keep_rows=keep - self.rest_frames)
 

@@ -53,7 +53,7 @@ class McapRecordingWriter:
                  replace: bool = False) -> None:
         from mcap.writer import CompressionType, Writer
 
-        from optitac_edge.io.recording_writer import check_writable_recording
+        from optitac_edge.io.recording_paths import check_writable_recording
 
         self.path = check_writable_recording(path, replace)
         self._stream, self._part = open_part(self.path)

@@ -7,7 +7,8 @@ from typing import Any, NamedTuple
 
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta
-from optitac_edge.io.recording_writer import RecordingWriter, check_writable_recording
+from optitac_edge.io.recording_paths import check_writable_recording
+from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.service.bundles import fiber_finder
 from optitac_edge.service.wiring import open_board_camera
