@@ -96,7 +96,8 @@ class MasterEnd:
         pass
 
 
-def test_monitoring_the_running_service_and_commanding_it() -> None:
+def _monitor_the_service(commands: list[str], duration_s: float, every: bool = False) -> tuple[list[str], object]:
+    """The service on a pty, the monitor at the MCU's end sending ``commands``: (its lines, the monitor)."""
     master, slave = pty.openpty()
     tty.setraw(slave)
     path = os.ttyname(slave)
@@ -105,13 +106,18 @@ def test_monitoring_the_running_service_and_commanding_it() -> None:
     lines: list[str] = []
     try:
         os.read(master, 65536) if select.select([master], [], [], 15)[0] else None  # the service is up
-        mon = monitor_serial(path, 921600, 2.0, ["stream on 2", "tare", "threshold 0.05"], lines.append,
+        mon = monitor_serial(path, 921600, duration_s, commands, lines.append, every=every,
                              serial_port=MasterEnd(master))
     finally:
         service.terminate()
         service.wait(timeout=10)
         os.close(master)
         os.close(slave)
+    return lines, mon
+
+
+def test_monitoring_the_running_service_and_commanding_it() -> None:
+    lines, mon = _monitor_the_service(["stream on 2", "tare", "threshold 0.05"], 2.0)
     assert lines[:3] == ["sent STREAM", "sent TARE", "sent SET_THRESHOLD"]
     acks = [line for line in lines if "ACK of" in line]
     assert all(any(f"ACK of #{k}: OK" in a for a in acks) for k in (1, 2, 3)), acks
@@ -147,21 +153,7 @@ def test_monitoring_the_can_bus_decodes_and_finds_counter_gaps() -> None:
 def test_the_mcu_team_can_switch_the_service_to_protocol_v2_from_the_monitor() -> None:
     """monitor could not send SET_PROTOCOL 2, so v2 could not be tried from the host; it now decodes what v2
     sends (CONTACT2 for every contact, RELEASE)."""
-    master, slave = pty.openpty()
-    tty.setraw(slave)
-    path = os.ttyname(slave)
-    service = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--serial", path, "--fps", "60",
-                                "--duration", "30"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    lines: list[str] = []
-    try:
-        os.read(master, 65536) if select.select([master], [], [], 15)[0] else None  # the service is up
-        mon = monitor_serial(path, 921600, 3.0, ["protocol 2"], lines.append, every=True,
-                             serial_port=MasterEnd(master))
-    finally:
-        service.terminate()
-        service.wait(timeout=10)
-        os.close(master)
-        os.close(slave)
+    lines, mon = _monitor_the_service(["protocol 2"], 3.0, every=True)
     assert lines[0] == "sent SET_PROTOCOL 2" and any("ACK of #1: OK" in line for line in lines)
     contact2 = [line for line in lines if " CONTACT2 " in line]
     assert contact2 and any(" contact 1 of " in line for line in contact2)

@@ -160,7 +160,7 @@ class SerialMonitor:
                                  f"camera errors {st.camera_errors}, link errors {st.link_errors}, "
                                  f"calibration {st.calibration_id:08x}")
                 return f"#{frame.seq} STATUS {t.last_status}"
-            if frame.type == MsgType.CONTACT2:  # protocol v2: one a contact of the frame
+            if frame.type == MsgType.CONTACT2:  # protocol v2: one for each contact of the frame
                 c2 = decode_contact2(frame.payload, frame.t_us)
                 t.add("CONTACT", frame.seq, now_ns)
                 t.last_contact = _contact2_text(c2)
