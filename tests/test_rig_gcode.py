@@ -222,3 +222,30 @@ def test_a_soft_limit_during_a_collection_is_recovered_and_the_tip_retracted(grb
     assert "ALARM:2 (soft limit" in message and "rig limits must lie inside the machine's travel" in message
     assert lines[-1] == "retracted the tip to z = 12 mm" and "$X" in grbl.lines
     assert grbl.position()[2] == pytest.approx(12.0) and not grbl.critical
+
+
+def test_an_interrupt_whose_retract_fails_says_the_tip_was_not_retracted(grbl, tmp_path) -> None:
+    """Ctrl-C after a hard limit: the line must not say 'tip retracted' (the position is lost, the tip stays)."""
+    settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
+    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+
+    class HardLimitThenCtrlC:
+        def __init__(self) -> None:
+            self.frames = 0
+
+        def __getattr__(self, name):
+            return getattr(camera, name)
+
+        def read(self, timeout_s=1.0):
+            self.frames += 1
+            if self.frames == 40:
+                grbl.inject_alarm(1)
+                raise KeyboardInterrupt
+            return camera.read(timeout_s)
+
+    with GcodeRig(grbl.port, LIMITS) as rig, pytest.raises(RigError) as caught:
+        Collector(HardLimitThenCtrlC(), rig, bundle, settings, prompt=lambda line: None).run("seen", tmp_path / "r",
+                                                                                              limit=3)
+    assert str(caught.value).startswith("interrupted; the tip was NOT retracted: ")
+    assert "home the machine ($H)" in str(caught.value)

@@ -320,8 +320,8 @@ class Collector:
         except BaseException as exc:
             unsafe = self._retract_after(exc)
             self.writer.abort("interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {exc}")
-            if unsafe is not None and isinstance(exc, Exception):
-                raise RigError(f"{exc}; {unsafe}") from None
+            if unsafe is not None:  # never "tip retracted" when it was not
+                raise RigError(f"{exc if isinstance(exc, Exception) else 'interrupted'}; {unsafe}") from None
             raise
         meta.extra["collect"] = result.to_json()
         self.writer.close()
