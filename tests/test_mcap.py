@@ -253,6 +253,6 @@ def test_run_with_a_full_disk_ends_cleanly_naming_the_file(tmp_path, monkeypatch
 
     monkeypatch.setattr(mcap_publisher, "open_part", filling)
     path = tmp_path / "run.mcap"
-    assert main(["run", "--frames", "200", "--mcap", str(path)]) == 0
+    assert main(["run", "--frames", "60", "--mcap", str(path)]) == 0
     out = capsys.readouterr().out
     assert f"wrote {tmp_path / 'run.mcap.part'}: " in out and "No space left on device" in out

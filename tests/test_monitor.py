@@ -153,7 +153,7 @@ def test_monitoring_the_can_bus_decodes_and_finds_counter_gaps() -> None:
 def test_the_mcu_team_can_switch_the_service_to_protocol_v2_from_the_monitor() -> None:
     """monitor could not send SET_PROTOCOL 2, so v2 could not be tried from the host; it now decodes what v2
     sends (CONTACT2 for every contact, RELEASE)."""
-    lines, mon = _monitor_the_service(["protocol 2"], 3.0, every=True)
+    lines, mon = _monitor_the_service(["protocol 2"], 2.5, every=True)
     assert lines[0] == "sent SET_PROTOCOL 2" and any("ACK of #1: OK" in line for line in lines)
     contact2 = [line for line in lines if " CONTACT2 " in line]
     assert contact2 and any(" contact 1 of " in line for line in contact2)
