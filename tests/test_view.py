@@ -367,9 +367,11 @@ def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> 
     from types import SimpleNamespace
 
     from optitac_edge.cli import _simulated_operator_for_the_view
+    from optitac_edge.io.clock import VirtualClock
     from optitac_edge.sim.camera import SimCamera
 
-    with SimCamera(realtime=False) as camera:
+    # frames 1/60 s apart on a virtual clock (the presses are held and released for so many seconds)
+    with SimCamera(realtime=False, clock=VirtualClock()) as camera:
         rest = [camera.read().frame.copy() for _ in range(8)]
         wrong = calibrate_fibers(rest, "gray", rotation_hint_deg=120.0)
         pipeline = Pipeline(wrong)
