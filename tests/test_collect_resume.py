@@ -8,6 +8,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -36,6 +37,7 @@ def _interrupt(out, signum: int, after_presses: int, limit: int = 8) -> tuple[in
     while proc.poll() is None:
         if journal.exists() and len(journal.read_text().splitlines()) > after_presses:
             break
+        time.sleep(0.01)  # (not a busy loop: it would take a core from the collection)
     proc.send_signal(signum)
     rest, err = proc.communicate(timeout=60)
     return proc.returncode, "".join(lines) + rest, err

@@ -106,6 +106,7 @@ def test_a_collection_continues_in_the_storage_it_began_in(tmp_path, capsys) -> 
     import signal
     import subprocess
     import sys
+    import time
 
     from optitac_edge.bringup.collect import JOURNAL
 
@@ -115,7 +116,7 @@ def test_a_collection_continues_in_the_storage_it_began_in(tmp_path, capsys) -> 
     proc = subprocess.Popen([sys.executable, "-c", start, "collect", "seen", "--rig", "sim://", "-o", str(out),
                              "--limit", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     while proc.poll() is None and not ((out / JOURNAL).exists() and len((out / JOURNAL).read_text().splitlines()) > 1):
-        pass
+        time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
     proc.communicate(timeout=60)
     assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "4", "--storage", "raw"]) == 2
