@@ -191,10 +191,20 @@ class FiberSampler:
             flat.take(self._index, out=self._gathered, mode="wrap")
         return self._gathered
 
-    def reduce(self, out: np.ndarray) -> np.ndarray:
-        """Per-fiber means of the last :meth:`gather` into ``out`` (one segmented sum)."""
+    def sums(self) -> np.ndarray:
+        """Per-fiber sums of the gray levels of the last :meth:`gather`, exact, in an internal buffer:
+        shape (N,), uint16 (uint32 for fibers of more than 257 pixels, :attr:`sum_dtype`)."""
         np.copyto(self._wide, self._gathered)
         np.add.reduceat(self._wide, self._starts, out=self._sums)
-        np.copyto(self._sums32, self._sums)
+        return self._sums
+
+    @property
+    def sum_dtype(self) -> np.dtype:
+        """The dtype of :meth:`sums`: the narrowest unsigned integer that holds every fiber's sum."""
+        return self._sums.dtype
+
+    def reduce(self, out: np.ndarray) -> np.ndarray:
+        """Per-fiber means of the last :meth:`gather` into ``out`` (one segmented sum)."""
+        np.copyto(self._sums32, self.sums())
         np.multiply(self._sums32, self._inv_count, out=out)
         return out

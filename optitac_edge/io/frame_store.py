@@ -180,14 +180,10 @@ class FiberSumStore(FrameStore):
         self._use(table, keep_rows=keep - self.rest_frames)
 
     def _use(self, table: FiberTable, keep_rows: int = 0) -> None:
-        """Sum every later frame over ``table``'s pixel groups."""
-        most = int(table.pixel_count.max(initial=1))
-        dtype = np.uint16 if 255 * most <= 0xFFFF else np.uint32
-        self._sums = NpyRows(self.directory / SUMS, (table.n_fibers,), dtype, None, keep_rows=keep_rows)
+        """Sum every later frame over ``table``'s pixel groups (as the per-frame loop does, exactly)."""
         self._sampler = FiberSampler(table)
-        self._starts = table.pixel_start[:-1].astype(np.intp)
-        self._row = np.zeros(table.n_fibers, dtype=np.uint32)
-        self._wide = np.zeros(table.pixel_index.size, dtype=np.uint32)
+        self._sums = NpyRows(self.directory / SUMS, (table.n_fibers,), self._sampler.sum_dtype, None,
+                             keep_rows=keep_rows)
         self._found = table
 
     # -- finding the fibers off the frame thread -------------------------------------
@@ -208,11 +204,8 @@ class FiberSumStore(FrameStore):
         """True once the fiber map is there and in use (waiting for it with ``wait``)."""
         if self._sampler is not None:
             return True
-        if self._finder is None:
-            if len(self._rest_copies) < self.rest_frames:
-                return False
-            self._start_finder()
-        assert self._finder is not None
+        if self._finder is None:  # (started by the last rest frame's write)
+            return False
         if self._finder.is_alive() and not wait:
             return False
         self._finder.join()
@@ -237,9 +230,8 @@ class FiberSumStore(FrameStore):
 
     def _sum(self, index: int, frame: np.ndarray) -> None:
         assert self._sampler is not None and self._sums is not None
-        np.copyto(self._wide, self._sampler.gather(np.ascontiguousarray(frame)))
-        np.add.reduceat(self._wide, self._starts, out=self._row)
-        self._sums.write(index - self.rest_frames, self._row)
+        self._sampler.gather(frame)
+        self._sums.write(index - self.rest_frames, self._sampler.sums())
 
     def write(self, index: int, frame: np.ndarray) -> None:
         if index != self._written:
