@@ -12,14 +12,13 @@ header, as in ``timestamps.npy``); the metadata record :data:`META_NAME` holds
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.errors import OutputError, RecordingError
-from optitac_edge.io.mcap_file import complete, open_part
+from optitac_edge.io.mcap_file import PeriodicSync, complete, open_part
 from optitac_edge.io.ros2.messages import IMAGE, encode_image, ros2msg_schema
 
 if TYPE_CHECKING:
@@ -66,7 +65,7 @@ class McapRecordingWriter:
         self._channel = self._writer.register_channel(IMAGE_TOPIC, "cdr", schema)
         self.frames_written = 0
         self._done = False
-        self._synced_ns: int | None = None
+        self._sync = PeriodicSync()
 
     def write(self, index: int, frame: np.ndarray, t_ns: int) -> None:
         """Frame ``index`` (written in order) captured at ``t_ns``."""
@@ -75,12 +74,7 @@ class McapRecordingWriter:
         try:
             self._writer.add_message(self._channel, int(t_ns), encode_image(frame, t_ns, "optitac_camera"),
                                      int(t_ns), index)
-            if self._synced_ns is None:
-                self._synced_ns = int(t_ns)
-            elif t_ns - self._synced_ns >= 1_000_000_000:  # a power cut loses at most about a second
-                self._synced_ns = int(t_ns)
-                self._writer.flush()
-                os.fsync(self._stream.fileno())
+            self._sync.after(self._writer, self._stream, int(t_ns))  # a power cut loses at most about a second
         except OSError as exc:
             raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
         self.frames_written += 1

@@ -40,7 +40,7 @@ from typing import IO, Any
 from mcap.writer import CompressionType, Writer
 
 from optitac_edge.errors import OutputError
-from optitac_edge.io.mcap_file import complete, open_part
+from optitac_edge.io.mcap_file import SYNC_NS, PeriodicSync, complete, open_part
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2.messages import ros2msg_schema
 
@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 #: The version written in each file's header.
 LIBRARY = "optitac-edge"
 #: The chunk being written is closed, written and synced after this long of messages (their time), ns.
-FLUSH_NS = 1_000_000_000
+FLUSH_NS = SYNC_NS
 #: After a failed write, a new file is tried after this long (message time), ns.
 RETRY_NS = 60_000_000_000
 
@@ -150,7 +150,8 @@ class McapPublisher(Publisher):
         if self.path.exists() and not self.path.is_file():
             raise OutputError(f"{self.path}: exists and is not a regular file")
         self.namespace = namespace
-        self.max_bytes, self.max_ns, self.keep_bytes, self.flush_ns = max_bytes, max_ns, keep_bytes, flush_ns
+        self.max_bytes, self.max_ns, self.keep_bytes = max_bytes, max_ns, keep_bytes
+        self._sync = PeriodicSync(flush_ns)
         self._open_file = open_file or open_part
         self._topics: list[tuple[str, str]] = []
         self._seq: list[int] = []
@@ -205,8 +206,7 @@ class McapPublisher(Publisher):
         self._schemas: dict[str, int] = {}
         for topic, type_name in self._topics:
             self._channels.append(self._channel(topic, type_name))
-        self._first_ns: int | None = None
-        self._flushed_ns: int | None = None
+        self._sync.restart()
         self._bytes = 0
 
     def _channel(self, topic: str, type_name: str) -> int:
@@ -234,32 +234,21 @@ class McapPublisher(Publisher):
             self.lost += 1
             return
         try:
-            if self._first_ns is None:
-                self._first_ns = self._flushed_ns = source_ns
-            elif (self.max_ns and source_ns - self._first_ns >= self.max_ns) or \
-                    (self.max_bytes and self._bytes >= self.max_bytes):
+            first = self._file.first_ns
+            if first is not None and ((self.max_ns and source_ns - first >= self.max_ns) or
+                                      (self.max_bytes and self._bytes >= self.max_bytes)):
                 self._finish()
                 self._index += 1
                 self._open()
-                self._first_ns = self._flushed_ns = source_ns
             self._bytes += len(payload)
             self._writer.add_message(self._channels[handle], source_ns, payload, source_ns, self._seq[handle])
             f = self._file
             f.messages += 1
             f.first_ns = source_ns if f.first_ns is None else f.first_ns
             f.last_ns = source_ns
-            if self._flushed_ns is not None and source_ns - self._flushed_ns >= self.flush_ns:
-                self._flushed_ns = source_ns
-                self._sync()
-        except OSError as exc:
+            self._sync.after(self._writer, self._stream, source_ns)
+        except (OSError, OutputError) as exc:  # OutputError: a rotation that could not complete or open a file
             self._fail(exc, source_ns)
-        except OutputError as exc:  # a rotation that could not complete or open a file
-            self._fail(exc, source_ns)
-
-    def _sync(self) -> None:
-        """The chunk being written onto the disk: a power cut after this loses nothing before it."""
-        self._writer.flush()
-        os.fsync(self._stream.fileno())
 
     def _fail(self, exc: BaseException, source_ns: int) -> None:
         """A write failed: leave the file as it is, count, warn once per file, try a new file later."""
