@@ -77,10 +77,15 @@ class RigLimits:
 
     def check(self, xyz: tuple[float, float, float]) -> None:
         """Raise :class:`RigError` naming the axis if ``xyz`` is outside the limits (before any move)."""
-        for axis, value, (lo, hi) in zip("xyz", xyz, (self.x_mm, self.y_mm, self.z_mm)):
-            if not (math.isfinite(value) and lo <= value <= hi):
-                raise RigError(f"rig target {axis} = {value:.3f} mm is outside the limits {lo:g}..{hi:g} mm; "
-                               "nothing moved")
+        for axis, value in zip("xyz", xyz):
+            self.check_axis(axis, value)
+
+    def check_axis(self, axis: str, value: float) -> None:
+        """Raise :class:`RigError` if ``value`` is outside the limits of ``axis`` (``x``, ``y`` or ``z``)."""
+        lo, hi = getattr(self, f"{axis}_mm")
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise RigError(f"rig target {axis} = {value:.3f} mm is outside the limits {lo:g}..{hi:g} mm; "
+                           "nothing moved")
 
 
 @dataclass(frozen=True)
@@ -155,7 +160,7 @@ class Rig(Device, ABC):
             raise RigError("rig is closed")
         st = self.poll()
         if st.state == "alarm":
-            raise RigError(f"rig alarm{': ' + st.alarm if st.alarm else ''}")
+            raise _alarm_error(st)
         return st
 
     def poll(self) -> RigStatus:
@@ -204,7 +209,7 @@ class Rig(Device, ABC):
         while waited <= timeout_s:
             st = self.poll()
             if st.state == "alarm":
-                raise RigError(f"rig alarm{': ' + st.alarm if st.alarm else ''}")
+                raise _alarm_error(st)
             if st.state in STOPPED_STATES and st.state != "hold":
                 raise RigError(f"the rig is {STOPPED_STATES[st.state]} ({st.raw_state or st.state})")
             there = st.state == "idle" and all(want is None or abs(got - want) < 0.01
@@ -252,3 +257,8 @@ class Rig(Device, ABC):
     def change_indenter(self, label: str) -> bool:
         """Mount the indenter ``label`` (True), or False when the operator must do it."""
         return False
+
+
+def _alarm_error(st: RigStatus) -> RigError:
+    """The one line of a rig in alarm."""
+    return RigError(f"rig alarm{': ' + st.alarm if st.alarm else ''}")

@@ -180,9 +180,7 @@ class GcodeRig(Rig):
 
     def _lift(self, z_mm: float, feed_mm_s: float) -> None:
         """``G1 Z..`` alone: x and y stay where the machine is, whatever a report said."""
-        lo, hi = self.limits.z_mm
-        if not (math.isfinite(z_mm) and lo <= z_mm <= hi):
-            raise RigError(f"rig target z = {z_mm:.3f} mm is outside the limits {lo:g}..{hi:g} mm; nothing moved")
+        self.limits.check_axis("z", z_mm)
         self.command(f"G1 Z{z_mm:.3f} F{feed_mm_s * 60.0:.1f}")
 
     def _status(self) -> RigStatus:

@@ -86,7 +86,14 @@ def parse_bind(text: str) -> tuple[str, int]:
 
 
 def is_loopback(host: str) -> bool:
-    return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    """``host`` (an address to bind, or a Host header's host) is ``localhost`` or a loopback IP literal: what
+    a page served on a loopback address may be asked for (any other name may be a DNS rebinding)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def host_of(header: str) -> str:
@@ -95,17 +102,6 @@ def host_of(header: str) -> str:
     if header.startswith("["):
         return header[1:header.find("]")] if "]" in header else ""
     return header.rsplit(":", 1)[0] if ":" in header else header
-
-
-def names_loopback(host: str) -> bool:
-    """``host`` (from a Host header) is ``localhost`` or a loopback IP literal: what a page served on a
-    loopback address may be asked for (any other name may be a DNS rebinding)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class _DeadlineSocketReader(io.RawIOBase):
@@ -244,7 +240,7 @@ class _Handler(BaseHTTPRequestHandler):
             return None
         host = host_of(self.headers.get("Host") or "")
         bound = str(self.server.server_address[0])
-        if is_loopback(bound) and not names_loopback(host):
+        if is_loopback(bound) and not is_loopback(host):
             self._refuse(HTTPStatus.FORBIDDEN, "unexpected Host")
             return None
         try:
