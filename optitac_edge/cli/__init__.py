@@ -29,6 +29,7 @@ from optitac_edge.cli.common import (
     SEED,
     Parser,
     add_board,
+    add_storage,
     board_config,
     frame_size,
     number,
@@ -72,10 +73,6 @@ def _add_fresh(p: argparse.ArgumentParser) -> None:
                    help="replace a complete recording at the output (it is kept until the new one is complete)")
 
 
-def _add_storage(p: argparse.ArgumentParser, default: str | None, text: str) -> None:
-    p.add_argument("--storage", choices=("fibers", "raw"), default=default, help=f"how the frames are kept: {text}")
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="optitac-edge", description="OptiTac tactile sensor processing.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -99,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "sets its own rotation and mirror")
     p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
     _add_fresh(p)
-    _add_storage(p, "raw", "raw (default): every frame as it is; fibers: the rest frames and each fiber's light")
+    add_storage(p, "raw", "raw (default): every frame as it is; fibers: the rest frames and each fiber's light")
     _add_orientation(p)
     add_board(p, default=None)  # --board B --sensor ID: the sensor's patch in whole frames of its sim camera
 
@@ -185,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write REC as one MCAP file (frames as sensor_msgs/Image; the default when REC ends in "
                         ".mcap); replay, calibrate and evaluate read it like a recording directory")
     _add_fresh(p)
-    _add_storage(p, None, "fibers (default for a directory): the rest frames and each fiber's light, ~0.4 kB a "
+    add_storage(p, None, "fibers (default for a directory): the rest frames and each fiber's light, ~0.4 kB a "
                           "frame; raw (an MCAP file's): every frame as it is")
 
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import add_board, number, one_sensor_config
+from optitac_edge.cli.common import add_board, add_storage, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
 
@@ -73,9 +73,8 @@ def _add_collect(sub: Any) -> None:
     p.add_argument("--fresh", action="store_true",
                    help="start again instead of continuing an interrupted collection; replaces a complete recording "
                         "at REC once the new one is complete")
-    p.add_argument("--storage", choices=("fibers", "raw"), default="fibers",
-                   help="fibers (default): the rest frames and each fiber's light, ~0.4 kB a frame; raw: every "
-                        "frame as it is, ~300 kB a frame at 640x480")
+    add_storage(p, "fibers", "fibers (default): the rest frames and each fiber's light, ~0.4 kB a frame; raw: "
+                             "every frame as it is, ~300 kB a frame at 640x480")
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:

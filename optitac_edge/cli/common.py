@@ -66,6 +66,11 @@ def add_board(p: argparse.ArgumentParser, default: str | None = "sim") -> None:
                    help="the board's sensor with this id (a board with several sensors)")
 
 
+def add_storage(p: argparse.ArgumentParser, default: str | None, text: str) -> None:
+    """``--storage``: how a recording keeps its frames (:mod:`optitac_edge.io.frame_store`), ``text`` its help."""
+    p.add_argument("--storage", choices=("fibers", "raw"), default=default, help=f"how the frames are kept: {text}")
+
+
 def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
     """The board config of ``--board`` (with ``overrides``), narrowed to ``--sensor`` when given."""
     from optitac_edge.service.board_config import load_board_config

@@ -37,6 +37,7 @@ import numpy as np
 
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, RecordingError
+from optitac_edge.io.frame_store import STORAGES
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
 #: Optional columns after TRUTH_HEADER: the phase of the press and the rig's pose (rig frame, mm).
@@ -327,7 +328,7 @@ class Recording:
         self.meta = read_meta(self.path / "meta.json")
         frames_path = self.path / "frames.npy"
         storage = self.meta.extra.get("frame_storage")
-        if storage is not None and not (isinstance(storage, dict) and storage.get("storage") in ("fibers", "raw")):
+        if storage is not None and not (isinstance(storage, dict) and storage.get("storage") in STORAGES):
             raise RecordingError(f"{self.path / 'meta.json'}: 'frame_storage' must be {{\"storage\": \"fibers\"}} "
                                  "or \"raw\"")
         try:
