@@ -1,5 +1,5 @@
 """Fit the depth and force model (:class:`~optitac_edge.core.depth_model.DepthForceModel`) from presses
-of known depth, and force when the rig carries a load cell.
+of known depth, and force when the rig carries a load cell; choose its input by held-out presses.
 
 Each target is ``h(feature * (1 + radial * rho^2))`` (see
 :mod:`optitac_edge.core.depth_model`). The rig presses at a few commanded
@@ -10,6 +10,17 @@ with the smallest RMSE over the presses (each press one point, the mean of
 its frames) wins. Knots at the levels, not at quantiles of the data: the
 curve passes through what every level measured on average, whatever the
 number of presses at each.
+
+Which feature (:data:`~optitac_edge.core.depth_model.DEPTH_FEATURES`) a
+real skin's depth follows is not known in advance, so every candidate is
+fitted on some presses and judged on the others (:func:`select_feature`:
+folds grouped by press, ``GroupKFold``; a press is never split). The
+calibration recording is one day: it cannot show how the skin's response
+changes until the next, so each candidate's held-out predictions are also
+taken with the darkening-proportional features scaled by ``1 ± drift``
+(:data:`RESPONSE_DRIFT`, a prior stated in docs/calibration.md, not a
+figure of our simulator), and the candidate with the smallest
+``sqrt(held-out² + drift²)`` wins.
 """
 
 from __future__ import annotations
@@ -18,11 +29,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from optitac_edge.core.depth_model import RadialMonotoneMap
+from optitac_edge.core.depth_model import GAIN_EXPONENT, RadialMonotoneMap
 from optitac_edge.core.width_model import AxisMap
 
 #: The radial gains tried.
 RADIAL_GRID = tuple(float(v) for v in np.round(np.linspace(-0.8, 2.0, 57), 3))
+#: How much the skin's response may change between days, relative (a gain on every fiber's darkening that
+#: the rest frames cannot see, unlike the LED's): the prior the choice of feature guards against.
+RESPONSE_DRIFT = 0.05
+#: Folds of the held-out choice (fewer with fewer presses).
+MAX_FOLDS = 8
+#: Presses the held-out choice needs at the least (each fold must keep 3 depths to fit).
+MIN_SELECTION_PRESSES = 8
 
 
 @dataclass(frozen=True)
@@ -104,3 +122,129 @@ def fit_radial_monotone(feature: np.ndarray, rho2: np.ndarray, target: np.ndarra
     if best is None or not np.ptp(best.model.curve.knots_true) > 0:
         raise ValueError("the target does not increase with the contact's feature")
     return best
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate input's error on presses held out of its fit (target units).
+
+    Attributes
+    ----------
+    feature : str
+    heldout_rmse : float
+        RMSE of the held-out presses against their target, pooled over the folds (inf: could not be fitted).
+    heldout_spread : float
+        Standard deviation of the folds' RMSEs.
+    drift_rmse : float
+        RMS change of the held-out predictions when the skin's response is ``1 ± drift`` times as strong.
+    """
+
+    feature: str
+    heldout_rmse: float
+    heldout_spread: float
+    drift_rmse: float
+
+    @property
+    def expected_rmse(self) -> float:
+        """What to expect on presses of another day: ``sqrt(held-out² + drift²)``."""
+        return float(np.hypot(self.heldout_rmse, self.drift_rmse))
+
+    def to_dict(self) -> dict[str, float | str]:
+        return {"feature": self.feature, "heldout_rmse": round(self.heldout_rmse, 4),
+                "heldout_spread": round(self.heldout_spread, 4), "drift_rmse": round(self.drift_rmse, 4),
+                "expected_rmse": round(self.expected_rmse, 4)}
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The chosen input, its fit on every press, and every candidate's held-out figures."""
+
+    feature: str
+    fit: RadialFit
+    candidates: tuple[Candidate, ...]
+    folds: int
+
+    @property
+    def chosen(self) -> Candidate:
+        return next(c for c in self.candidates if c.feature == self.feature)
+
+
+def _predict(model: RadialMonotoneMap, feature: np.ndarray, rho2: np.ndarray) -> np.ndarray:
+    r = np.sqrt(np.minimum(rho2, 1.0)) * model.radius_mm
+    return np.array([model(float(f), float(x), 0.0) for f, x in zip(feature, r)])
+
+
+def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_mm: float, level: np.ndarray,
+             weight: np.ndarray, groups: np.ndarray, exponent: float, drift: float = RESPONSE_DRIFT,
+             folds: int = MAX_FOLDS, name: str = "") -> Candidate:
+    """One candidate's held-out error: ``GroupKFold`` over ``groups`` (one group per press).
+
+    Parameters
+    ----------
+    feature, rho2, target, level, weight, groups : ndarray, shape (P,)
+        Per press (see :func:`fit_radial_monotone`); ``groups``: the press each row belongs to.
+    exponent : float
+        How the feature scales with the skin's response (``GAIN_EXPONENT``).
+    drift : float
+        The response change the drift term assumes.
+    """
+    from sklearn.model_selection import GroupKFold
+
+    errors, fold_rmse, moved = [], [], []
+    for train, test in GroupKFold(n_splits=folds).split(feature, groups=groups):
+        try:
+            fit = fit_radial_monotone(feature[train], rho2[train], target[train], radius_mm, level[train],
+                                      weight[train])
+        except ValueError:
+            return Candidate(name, float("inf"), float("inf"), float("inf"))
+        pred = _predict(fit.model, feature[test], rho2[test])
+        err = pred - target[test]
+        errors.append(err)
+        fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
+        for g in (1.0 + drift, 1.0 - drift):
+            moved.append(_predict(fit.model, feature[test] * g ** exponent, rho2[test]) - pred)
+    e, m = np.concatenate(errors), np.concatenate(moved)
+    ok = np.isfinite(e)
+    if not ok.all():
+        return Candidate(name, float("inf"), float("inf"), float("inf"))
+    return Candidate(name, float(np.sqrt(np.mean(e ** 2))), float(np.std(fold_rmse)),
+                     float(np.sqrt(np.mean(m ** 2))))
+
+
+def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np.ndarray, radius_mm: float,
+                   level: np.ndarray, weight: np.ndarray, groups: np.ndarray,
+                   drift: float = RESPONSE_DRIFT) -> Selection:
+    """Choose the input of ``target ~ h(feature * (1 + radial * rho2))`` by presses held out of the fit.
+
+    Parameters
+    ----------
+    features : dict of str to ndarray, shape (P,)
+        Per press: each candidate feature (names of ``GAIN_EXPONENT``), in the order ties are broken.
+    rho2, target, level, weight, groups : ndarray, shape (P,)
+        As for :func:`held_out`.
+
+    Raises
+    ------
+    ValueError
+        Fewer than :data:`MIN_SELECTION_PRESSES` presses, or no candidate could be fitted.
+    """
+    n_groups = np.unique(groups).size
+    if n_groups < MIN_SELECTION_PRESSES:
+        raise ValueError(f"need {MIN_SELECTION_PRESSES} presses or more to choose the model on held-out "
+                         f"presses, got {n_groups}")
+    folds = min(MAX_FOLDS, n_groups)
+    candidates = []
+    for name, value in features.items():
+        v = np.asarray(value, dtype=np.float64)
+        ok = np.isfinite(v) & (v > 0)
+        if not ok.all():  # a candidate that is not defined for every press is not one
+            continue
+        candidates.append(held_out(v, rho2, target, radius_mm, level, weight, groups, GAIN_EXPONENT[name],
+                                   drift, folds, name))
+    finite = [c for c in candidates if np.isfinite(c.expected_rmse)]
+    if not finite:
+        raise ValueError("no candidate model could be fitted on held-out presses")
+    best = min(finite, key=lambda c: c.expected_rmse)  # first of equals: the simpler candidate
+    fit = fit_radial_monotone(np.asarray(features[best.feature], dtype=np.float64), rho2, target, radius_mm,
+                              level, weight)
+    return Selection(best.feature, fit, tuple(candidates), folds)

@@ -37,7 +37,8 @@ def read_contacts_csv(path: str | Path) -> Measurements:
         return Measurements(
             contact=np.array([r["contact"] == "1" for r in rows], dtype=bool),
             x_mm=col("x_mm"), y_mm=col("y_mm"), major_mm=col("major_mm"), minor_mm=col("minor_mm"),
-            angle_deg=col("angle_deg"), strength=col("strength"),
+            angle_deg=col("angle_deg"), strength=col("strength"), area_mm2=col("area_mm2"),
+            peak=np.full(len(rows), np.nan),  # not a CSV column
             hu=np.stack([col(f"hu{k}") for k in range(1, 8)], axis=1) if rows else np.zeros((0, 7)),
             features=np.stack([col(f"hu{k}") for k in range(1, 8)] + [col("q4")], axis=1)
             if rows else np.zeros((0, 8)),

@@ -22,7 +22,7 @@ class Measurements:
     Attributes
     ----------
     contact : ndarray, shape (N,), bool
-    x_mm, y_mm, major_mm, minor_mm, angle_deg, strength : ndarray, shape (N,), float64
+    x_mm, y_mm, major_mm, minor_mm, angle_deg, strength, area_mm2, peak : ndarray, shape (N,), float64
     hu : ndarray, shape (N, 7), float64
         Log-Hu features of the primary contact.
     features : ndarray, shape (N, F), float64
@@ -40,6 +40,8 @@ class Measurements:
     minor_mm: np.ndarray
     angle_deg: np.ndarray
     strength: np.ndarray
+    area_mm2: np.ndarray
+    peak: np.ndarray
     hu: np.ndarray
     features: np.ndarray
     shape: np.ndarray
@@ -97,7 +99,8 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     pipeline.set_corrector(ContactCorrector(bundle, shape_backend, onnx_path) if corrected else None)
     n = len(rec)
     cols = {k: np.full(n, np.nan) for k in ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg",
-                                            "strength", "confidence", "depth_mm", "force_n")}
+                                            "strength", "area_mm2", "peak", "confidence", "depth_mm",
+                                            "force_n")}
     contact = np.zeros(n, dtype=bool)
     hu = np.full((n, 7), np.nan)
     features = np.full((n, pipeline.contacts[0].features.size), np.nan)

@@ -20,7 +20,7 @@ from optitac_edge.calibration.bundle_models import (
     with_width_model,
 )
 from optitac_edge.calibration.centroid_fit import fit_centroid_map
-from optitac_edge.calibration.depth_fit import fit_radial_monotone, grouped_means
+from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, grouped_means, select_feature
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.measure import Measurements, measure_recording
 from optitac_edge.calibration.orientation import (
@@ -33,7 +33,7 @@ from optitac_edge.calibration.orientation import (
 )
 from optitac_edge.calibration.width_fit import fit_width_model
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.depth_model import DepthForceModel, depth_feature
+from optitac_edge.core.depth_model import DEPTH_FEATURES, DepthForceModel, depth_feature
 from optitac_edge.errors import OrientationError, RecordingError
 from optitac_edge.io.recording import SHAPES, Recording, Truth
 
@@ -181,13 +181,16 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": details}), summary
 
 
-def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str = "width"
-                    ) -> tuple[CalibrationBundle, dict[str, Any]]:
+def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | None = None,
+                    drift: float = RESPONSE_DRIFT) -> tuple[CalibrationBundle, dict[str, Any]]:
     """Depth model, and force model when ``truth.csv`` has a load cell's ``force_n``, from presses of known
     depth (the ``depths`` experiment: one indenter, several depths and positions).
 
-    Each press counts once (the mean of its detected frames); the raw estimate's ``feature`` (the
-    mean FWHM width, or the strength) and position are the model's inputs.
+    Each press counts once (the mean of its detected frames). The model's input is chosen among
+    :data:`~optitac_edge.core.depth_model.DEPTH_FEATURES` by presses held out of the fit
+    (:func:`~optitac_edge.calibration.depth_fit.select_feature`, ``drift``: the response change between days
+    it guards against), separately for depth and force; ``feature`` fixes it instead (the held-out figures
+    are still reported).
     """
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
@@ -200,28 +203,45 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str = "w
     rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / radius ** 2
     force = truth.force_n[rows] if truth.force_n is not None else np.full(rows.size, np.nan)
     with_force = bool(np.isfinite(force).all())
-    value = depth_feature(m, feature)
-    means, counts = grouped_means(np.stack([value[frames], rho2, truth.depth_mm[rows], force], axis=1),
-                                press_ids(truth)[rows])
+    names = DEPTH_FEATURES if feature is None else (feature,)
+    values = np.stack([depth_feature(m, f)[frames] for f in names], axis=1)
+    means, counts = grouped_means(np.concatenate([np.stack([rho2, truth.depth_mm[rows], force], axis=1), values],
+                                                 axis=1), press_ids(truth)[rows])
+    per_press = {f: means[:, 3 + k] for k, f in enumerate(names)}
+    groups = np.arange(counts.size)  # one row per press: a fold never splits a press
+    level = means[:, 1]  # the commanded depth of each press
     try:
-        level = means[:, 2]  # the commanded depth of each press
-        depth = fit_radial_monotone(means[:, 0], means[:, 1], level, radius, level, counts)
-        force_fit = (fit_radial_monotone(means[:, 0], means[:, 1], means[:, 3], radius, level, counts)
+        depth = select_feature(per_press, means[:, 0], level, radius, level, counts, groups, drift)
+        force_sel = (select_feature(per_press, means[:, 0], means[:, 2], radius, level, counts, groups, drift)
                      if with_force else None)
     except ValueError as exc:
         raise RecordingError(f"{rec.path}: {exc}") from None
-    model = DepthForceModel(feature, depth.model, None if force_fit is None else force_fit.model)
+    model = DepthForceModel(depth.feature, depth.fit.model, None if force_sel is None else force_sel.fit.model,
+                            "" if force_sel is None else force_sel.feature)
+    chosen = depth.chosen
     summary: dict[str, Any] = {
-        "presses": int(counts.size), "frames": int(rows.size), "feature": feature,
-        "depth_range_mm": [round(float(means[:, 2].min()), 3), round(float(means[:, 2].max()), 3)],
-        "depth_radial": depth.model.radial, "fitted_depth_rmse_mm": round(depth.rmse, 4)}
-    if force_fit is not None:
-        span = float(np.ptp(means[:, 3]))
-        summary.update({"force_range_n": [round(float(means[:, 3].min()), 3), round(float(means[:, 3].max()), 3)],
-                        "force_radial": force_fit.model.radial, "fitted_force_rmse_n": round(force_fit.rmse, 4),
-                        "fitted_force_rmse_pct_of_range": round(100 * force_fit.rmse / span, 2) if span else None})
+        "presses": int(counts.size), "frames": int(rows.size), "feature": depth.feature,
+        "depth_range_mm": [round(float(level.min()), 3), round(float(level.max()), 3)],
+        "depth_radial": depth.fit.model.radial, "fitted_depth_rmse_mm": round(depth.fit.rmse, 4),
+        "heldout_depth_rmse_mm": round(chosen.heldout_rmse, 4),
+        "heldout_depth_spread_mm": round(chosen.heldout_spread, 4),
+        "expected_depth_rmse_mm": round(chosen.expected_rmse, 4)}
+    details: dict[str, Any] = {**summary, "folds": depth.folds, "response_drift": drift,
+                               "depth_candidates": [c.to_dict() for c in depth.candidates]}
+    if force_sel is not None:
+        span = float(np.ptp(means[:, 2]))
+        fc = force_sel.chosen
+        force_summary = {
+            "force_feature": force_sel.feature,
+            "force_range_n": [round(float(means[:, 2].min()), 3), round(float(means[:, 2].max()), 3)],
+            "force_radial": force_sel.fit.model.radial, "fitted_force_rmse_n": round(force_sel.fit.rmse, 4),
+            "heldout_force_rmse_n": round(fc.heldout_rmse, 4),
+            "heldout_force_rmse_pct_of_range": round(100 * fc.heldout_rmse / span, 2) if span else None}
+        summary.update(force_summary)
+        details.update(force_summary, force_candidates=[c.to_dict() for c in force_sel.candidates])
     bundle = with_depth_model(bundle, model)
-    # per press: feature, rho^2, depth, and the force where a load cell measured it (a bundle holds finite values)
-    bundle = _with_report_arrays(bundle, depth_presses=means if with_force else means[:, :3],
+    # per press: the chosen feature, rho^2, depth, and the force where a load cell measured it (finite values)
+    presses = np.stack([per_press[depth.feature], means[:, 0], level, means[:, 2]], axis=1)
+    bundle = _with_report_arrays(bundle, depth_presses=presses if with_force else presses[:, :3],
                                  depth_press_frames=counts)
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, "depth_fit": summary}), summary
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "depth_fit": details}), summary

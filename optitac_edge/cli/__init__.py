@@ -52,11 +52,18 @@ def _add_orientation(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
 
 
-class _Scenarios:
-    """The simulator's scenario names as argparse choices, imported only when ``sim`` is parsed
-    (or its help shown): every other command starts without the simulator and scipy."""
+class _SimNames:
+    """Names the simulator knows (``SCENARIOS`` or ``PHYSICS_NAMES``) as argparse choices, imported only when
+    ``sim`` is parsed (or its help shown): every other command starts without the simulator and scipy."""
+
+    def __init__(self, what: str) -> None:
+        self._what = what
 
     def _names(self) -> tuple[str, ...]:
+        if self._what == "physics":
+            from optitac_edge.sim.physics import PHYSICS_NAMES
+
+            return PHYSICS_NAMES
         from optitac_edge.sim.scenarios import SCENARIOS
 
         return SCENARIOS
@@ -81,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sim", help="write a recording from the built-in simulator")
     p.add_argument("out_dir", type=Path)
-    p.add_argument("--scenario", required=True, choices=_Scenarios(), metavar="NAME", help="%(choices)s")
+    p.add_argument("--scenario", required=True, choices=_SimNames("scenarios"), metavar="NAME", help="%(choices)s")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--frames", type=COUNT, default=None, help="number of frames (scenario default if omitted)")
     p.add_argument("--width", type=number(64, 8192, integer=True), default=640)
@@ -94,6 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", type=number(0, 10_000, integer=True), default=0,
                    help="another simulated sensor (optics and skin drawn from seed N; 0 = default); "
                         "sets its own rotation and mirror")
+    p.add_argument("--physics", choices=_SimNames("physics"), default="default", metavar="NAME",
+                   help="%(choices)s: the simulated skin's physics (docs/simulator.md); default: the simulator's own guess")
     p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
     _add_fresh(p)
     add_storage(p, "raw", "raw (default): every frame as it is; fibers: the rest frames and each fiber's light")
@@ -308,7 +317,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         raise OptiTacError("--storage fibers: an MCAP recording holds raw frames (simulate into a directory)")
     path = write_scenario(out, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
                           day=args.day, variant=args.variant, warmup=args.warmup, patch=patch,
-                          fresh=args.fresh and not mcap, storage=args.storage)
+                          fresh=args.fresh and not mcap, storage=args.storage, physics=args.physics)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]

@@ -78,6 +78,7 @@ class BlobMeasurer:
         if not self.ellipse(weighted, x0, y0, out):
             return False
         out.area_mm2 = cells * self._cell_area
+        out.peak = float(peak)
         self.shape_features(img, shape_level, out)
         out.shape = ""
         out.confidence = math.nan

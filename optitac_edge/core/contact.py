@@ -50,6 +50,9 @@ class ContactEstimate:
         nothing is above the threshold).
     area_mm2 : float
         Area of the surface above the threshold, mm^2.
+    peak : float
+        The largest value of the contact's inverted surface (the signal's units: gray levels, or a
+        fraction of the rest level with the relative signal). NaN without contact.
     hu : ndarray, shape (7,), float64
         Log-scaled Hu invariants ``-sign(h) log10|h|`` of the binarised surface
         (shape features). NaN without contact.
@@ -92,6 +95,7 @@ class ContactEstimate:
     angle_deg: float = math.nan
     strength: float = 0.0
     area_mm2: float = 0.0
+    peak: float = math.nan
     hu: np.ndarray = field(default_factory=_nan_hu)
     features: np.ndarray = field(default_factory=_nan_features)
     shape: str = ""
@@ -106,7 +110,7 @@ class ContactEstimate:
         """Set the geometric fields and shape features to NaN (no contact), in place."""
         self.x_mm = self.y_mm = math.nan
         self.major_mm = self.minor_mm = self.angle_deg = math.nan
-        self.depth_mm = self.force_n = math.nan
+        self.depth_mm = self.force_n = self.peak = math.nan
         self.hu.fill(np.nan)
         self.features.fill(np.nan)
         self.shape = ""
@@ -118,7 +122,7 @@ class ContactEstimate:
             frame=self.frame, t_ns=self.t_ns, baseline_ready=self.baseline_ready,
             contact=self.contact, x_mm=self.x_mm, y_mm=self.y_mm, major_mm=self.major_mm,
             minor_mm=self.minor_mm, angle_deg=self.angle_deg, strength=self.strength,
-            area_mm2=self.area_mm2, hu=self.hu.copy(), features=self.features.copy(),
+            area_mm2=self.area_mm2, peak=self.peak, hu=self.hu.copy(), features=self.features.copy(),
             shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
             depth_mm=self.depth_mm, force_n=self.force_n,
             contact_id=self.contact_id, touch_frame=self.touch_frame,
@@ -129,7 +133,7 @@ class ContactEstimate:
         self.frame, self.t_ns, self.baseline_ready = other.frame, other.t_ns, other.baseline_ready
         self.contact, self.x_mm, self.y_mm = other.contact, other.x_mm, other.y_mm
         self.major_mm, self.minor_mm, self.angle_deg = other.major_mm, other.minor_mm, other.angle_deg
-        self.strength, self.area_mm2 = other.strength, other.area_mm2
+        self.strength, self.area_mm2, self.peak = other.strength, other.area_mm2, other.peak
         np.copyto(self.hu, other.hu)
         np.copyto(self.features, other.features)
         self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
@@ -147,7 +151,7 @@ class ContactEstimate:
             "x_mm": f(self.x_mm), "y_mm": f(self.y_mm),
             "major_mm": f(self.major_mm), "minor_mm": f(self.minor_mm),
             "angle_deg": f(self.angle_deg), "strength": f(self.strength),
-            "area_mm2": f(self.area_mm2), "hu": [f(v) for v in self.hu],
+            "area_mm2": f(self.area_mm2), "peak": f(self.peak), "hu": [f(v) for v in self.hu],
             "features": [f(v) for v in self.features],
             "shape": self.shape, "confidence": f(self.confidence),
             "n_contacts": int(self.n_contacts), "depth_mm": f(self.depth_mm), "force_n": f(self.force_n),

@@ -12,11 +12,13 @@ back harder) the further out the contact is, so each target is
 ``target = h(feature * (1 + radial * rho^2))``,  ``rho = r / radius_mm``
 
 with ``h`` monotone increasing and piecewise linear (linear beyond its end
-knots, clipped at 0) and ``radial`` fitted per target. The feature is the
-raw width (``width``, default) or the strength (``strength``); the model
-reads the raw estimate (before the centroid map and the width model). It
-holds for the indenter it was calibrated with (the ``depths`` experiment
-presses a 5 mm circle): a wider indenter at the same depth reads deeper.
+knots, clipped at 0) and ``radial`` fitted per target. The feature is one
+of :data:`DEPTH_FEATURES`, chosen per target at calibration by presses held
+out of the fit (:mod:`optitac_edge.calibration.depth_fit`): how a real skin
+darkens with depth is not known in advance. The model reads the raw
+estimate (before the centroid map and the width model). It holds for the
+indenter it was calibrated with (the ``depths`` experiment presses a 5 mm
+circle): a wider indenter at the same depth reads deeper.
 
 Per contact: a few float operations and a bisection (no numpy call).
 """
@@ -31,8 +33,22 @@ import numpy as np
 
 from optitac_edge.core.width_model import AxisMap
 
-#: The contact features a depth model may use: the mean of the raw FWHM widths (mm), or the strength.
-DEPTH_FEATURES = ("width", "strength")
+#: The contact features a depth or force model may use, and how each scales when the skin's darkening is
+#: multiplied by a gain ``g`` (the pins' response drifting between days): ``feature * g ** exponent``.
+#:
+#: ``width``            the mean of the raw FWHM widths, mm (relative to the contact's peak: 0)
+#: ``strength``         the truncated surface's ``m00`` (1)
+#: ``peak``             the contact's largest signal (1)
+#: ``area``             the area above the weighting level, mm^2 (peak-relative by default: ~0)
+#: ``fullness``         strength / peak, mm^2: the area of a flat top of the same volume (0)
+#: ``strength_width``   strength * width (1)
+#: ``root_strength_width``  sqrt(strength) * width (0.5)
+#: ``fullness_width``   fullness * width, mm^3 (0)
+GAIN_EXPONENT: dict[str, float] = {
+    "width": 0.0, "strength": 1.0, "peak": 1.0, "area": 0.0, "fullness": 0.0,
+    "strength_width": 1.0, "root_strength_width": 0.5, "fullness_width": 0.0,
+}
+DEPTH_FEATURES = tuple(GAIN_EXPONENT)
 
 
 def depth_feature(est: Any, feature: str) -> Any:
@@ -42,6 +58,18 @@ def depth_feature(est: Any, feature: str) -> Any:
         return 0.5 * (est.major_mm + est.minor_mm)
     if feature == "strength":
         return est.strength
+    if feature == "peak":
+        return est.peak
+    if feature == "area":
+        return est.area_mm2
+    if feature == "fullness":
+        return est.strength / est.peak
+    if feature == "strength_width":
+        return est.strength * 0.5 * (est.major_mm + est.minor_mm)
+    if feature == "root_strength_width":
+        return est.strength ** 0.5 * 0.5 * (est.major_mm + est.minor_mm)
+    if feature == "fullness_width":
+        return est.strength / est.peak * 0.5 * (est.major_mm + est.minor_mm)
     raise ValueError(f"unknown depth feature {feature!r} (known: {', '.join(DEPTH_FEATURES)})")
 
 
@@ -98,34 +126,40 @@ class DepthForceModel:
     Attributes
     ----------
     feature : str
-        One of :data:`DEPTH_FEATURES`.
+        The depth model's input, one of :data:`DEPTH_FEATURES`.
     depth : RadialMonotoneMap
         -> indentation depth, mm.
     force : RadialMonotoneMap or None
         -> normal force, N (None: no load cell in the calibration).
+    force_feature : str
+        The force model's input (default: ``feature``).
     """
 
     feature: str
     depth: RadialMonotoneMap
     force: RadialMonotoneMap | None = None
+    force_feature: str = ""
 
     def __post_init__(self) -> None:
-        if self.feature not in DEPTH_FEATURES:
-            raise ValueError(f"unknown depth feature {self.feature!r} (known: {', '.join(DEPTH_FEATURES)})")
+        if not self.force_feature:
+            object.__setattr__(self, "force_feature", self.feature)
+        for f in (self.feature, self.force_feature):
+            if f not in DEPTH_FEATURES:
+                raise ValueError(f"unknown depth feature {f!r} (known: {', '.join(DEPTH_FEATURES)})")
 
     def apply(self, est: Any) -> None:
         """Set ``est.depth_mm`` and ``est.force_n`` (NaN without a force model) of one raw contact estimate."""
-        f = depth_feature(est, self.feature)
         x, y = est.x_mm, est.y_mm
-        est.depth_mm = self.depth(f, x, y)
-        est.force_n = math.nan if self.force is None else self.force(f, x, y)
+        est.depth_mm = self.depth(depth_feature(est, self.feature), x, y)
+        est.force_n = math.nan if self.force is None else self.force(depth_feature(est, self.force_feature), x, y)
 
     def to_bundle(self) -> dict[str, Any]:
-        return {"feature": self.feature, "depth": self.depth.to_dict(),
+        return {"feature": self.feature, "depth": self.depth.to_dict(), "force_feature": self.force_feature,
                 "force": None if self.force is None else self.force.to_dict()}
 
     @classmethod
     def from_bundle(cls, meta: dict[str, Any]) -> DepthForceModel:
         force = meta.get("force")
         return cls(str(meta["feature"]), RadialMonotoneMap.from_dict(meta["depth"]),
-                   None if force is None else RadialMonotoneMap.from_dict(force))
+                   None if force is None else RadialMonotoneMap.from_dict(force),
+                   str(meta.get("force_feature") or meta["feature"]))

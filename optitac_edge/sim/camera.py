@@ -17,8 +17,10 @@ from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
 from optitac_edge.io.clock import Clock
+from optitac_edge.sim.drift import SessionDrift
 from optitac_edge.sim.optics import CameraOptics
 from optitac_edge.sim.patches import PatchFrames
+from optitac_edge.sim.physics import physics as physics_named
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
 
@@ -125,21 +127,27 @@ class SimCamera(Camera):
         calling thread. With a :class:`~optitac_edge.io.clock.VirtualClock`
         the frames, their times and everything computed from them are the same
         on any machine.
+    physics : str
+        The skin's simulated physics (:data:`~optitac_edge.sim.physics.PHYSICS`, default ``default``).
+    day : int
+        The session's drift (:meth:`~optitac_edge.sim.drift.SessionDrift.for_day`, default 0: none).
     """
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
                  realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None,
                  program: PressSource | None = None,
-                 regions: Sequence[tuple[int, int, int, int]] | None = None) -> None:
+                 regions: Sequence[tuple[int, int, int, int]] | None = None, physics: str = "default",
+                 day: int = 0) -> None:
         super().__init__()
         if realtime and clock is not None:
             raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
         check_queue_frames(queue_frames)
 
+        world = physics_named(physics)
         self.sensor = SimulatedSensor(
             optics=CameraOptics(width=width, height=height, rgb=rgb, rotation_deg=rotation_deg, mirror=mirror),
-            seed=seed,
+            skin=world.skin, seed=seed, drift=SessionDrift.for_day(day, scale=world.day_drift), fps=fps,
         )
         self.pixel_format = "rgb" if rgb else "gray"
         self.height, self.width, self.fps = height, width, float(fps)

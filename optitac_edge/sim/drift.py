@@ -88,7 +88,7 @@ class SessionDrift:
 
     @classmethod
     def for_day(
-        cls, day: int, sensor_seed: int = SENSOR_SEED, led_drift: bool = True
+        cls, day: int, sensor_seed: int = SENSOR_SEED, led_drift: bool = True, scale: float = 1.0
     ) -> SessionDrift:
         """A reproducible random day of the sensor ``sensor_seed``; day 0 is nominal.
 
@@ -101,9 +101,14 @@ class SessionDrift:
         - ``led_drift_per_s``: +-[0.0005, 0.0015] /s (0.5-1.5 % over a 10 s
           recording), 0 when ``led_drift`` is False;
         - ``fiber_drift_per_s``: 0.0003 /s when ``led_drift`` (0.3 % sigma over 10 s).
+
+        ``scale`` multiplies the LED and pin gain changes (a sensor that drifts more between days, see
+        :mod:`optitac_edge.sim.physics`); 1 (default) draws exactly the days above.
         """
         if day < 0:
             raise ValueError("day must be >= 0")
+        if not scale > 0:
+            raise ValueError("scale must be > 0")
         if day == 0:
             return cls()
         rng = np.random.default_rng([sensor_seed, day, 77])
@@ -112,8 +117,8 @@ class SessionDrift:
             return float(rng.choice([-1.0, 1.0]) * rng.uniform(lo, hi))
 
         shift = (signed(0.15, 0.5), signed(0.15, 0.5))
-        led_gain = 1.0 + signed(0.02, 0.05)
-        pin_gain = 1.0 + signed(0.02, 0.05)
+        led_gain = 1.0 + scale * signed(0.02, 0.05)
+        pin_gain = 1.0 + scale * signed(0.02, 0.05)
         jitter = float(rng.uniform(0.03, 0.05))
         drift = signed(0.0005, 0.0015)
         return cls(
@@ -169,6 +174,7 @@ def sensor_variant(
     width: int = 640,
     height: int = 480,
     layout: FiberLayout | None = None,
+    base: SkinModel | None = None,
 ) -> tuple[dict[str, Any], SkinModel]:
     """A reproducible, plausible different sensor; variant 0 is the default one.
 
@@ -180,6 +186,9 @@ def sensor_variant(
         Frame size the variant is drawn for (the centre offset is fitted to it).
     layout : FiberLayout or None
         Fiber layout (default hex_layout()).
+    base : SkinModel or None
+        The skin the variant's is drawn around (default ``SkinModel()``; a simulated physics',
+        :mod:`optitac_edge.sim.physics`): variant 0 is ``base`` itself.
 
     Returns
     -------
@@ -205,8 +214,9 @@ def sensor_variant(
     """
     if variant < 0:
         raise ValueError("variant must be >= 0")
+    base = SkinModel() if base is None else base
     if variant == 0:
-        return {}, SkinModel()
+        return {}, base
     layout = hex_layout() if layout is None else layout
     rng = np.random.default_rng([int(variant), 4242])
     u = rng.uniform
@@ -230,7 +240,6 @@ def sensor_variant(
     offset_frac = u(-1.0, 1.0, 2)
     skin_f = [float(f) for f in u(0.75, 1.25, 7)]
     skin_f[0] = float(u(0.75, 1.1))  # max_darkening 0.64-0.94: a fiber never goes fully dark
-    base = SkinModel()
     skin = replace(
         base,
         max_darkening=base.max_darkening * skin_f[0],

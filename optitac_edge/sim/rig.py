@@ -18,6 +18,7 @@ from urllib.parse import parse_qs, urlsplit
 from optitac_edge.errors import RigError
 from optitac_edge.io.clock import Clock
 from optitac_edge.io.rigs.base import Rig, RigLimits, RigStatus
+from optitac_edge.sim.physics import PHYSICS_NAMES
 from optitac_edge.sim.skin import Indenter
 
 
@@ -35,12 +36,18 @@ class SimMount:
         The sensor's x is negated (a rig whose axes are left-handed over the skin).
     surface_z_mm : float
         Rig z of the skin's surface.
+    physics : str
+        The simulated skin's physics (:data:`~optitac_edge.sim.physics.PHYSICS`).
+    day : int
+        The session's drift (:meth:`~optitac_edge.sim.drift.SessionDrift.for_day`; 0: none).
     """
 
     origin_xy_mm: tuple[float, float] = (100.0, 80.0)
     rotation_deg: float = 7.0
     mirror: bool = False
     surface_z_mm: float = 2.0
+    physics: str = "default"
+    day: int = 0
 
     def to_sensor(self, x: float, y: float) -> tuple[float, float]:
         dx, dy = x - self.origin_xy_mm[0], y - self.origin_xy_mm[1]
@@ -128,7 +135,8 @@ class SimRig(Rig):
 
 
 def parse_sim_url(url: str) -> SimMount:
-    """``sim://?rotation=7&mirror=0&origin=100,80&surface=2``: the virtual rig's mounting (all optional).
+    """``sim://?rotation=7&mirror=0&origin=100,80&surface=2&physics=default&day=0``: the virtual rig's mounting,
+    the skin's physics and the session's drift (all optional).
 
     Raises
     ------
@@ -139,16 +147,22 @@ def parse_sim_url(url: str) -> SimMount:
     if parts.scheme != "sim" or parts.path not in ("", "/") or parts.netloc:
         raise RigError(f"sim rig URL must be sim://?key=value&..., got {url!r}")
     query = parse_qs(parts.query, keep_blank_values=True)
-    known = {"rotation", "mirror", "origin", "surface"}
+    known = {"rotation", "mirror", "origin", "surface", "physics", "day"}
     unknown = sorted(set(query) - known)
     if unknown:
         raise RigError(f"sim rig URL {url!r}: unknown key {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    values = {k: v[-1] for k, v in query.items()}
+    name = values.get("physics", "default")
+    if name not in PHYSICS_NAMES:
+        raise RigError(f"sim rig URL {url!r}: unknown physics {name!r} (known: {', '.join(PHYSICS_NAMES)})")
+    day = values.get("day", "0")
+    if not (day.isascii() and day.isdigit() and int(day) <= 10_000):
+        raise RigError(f"sim rig URL {url!r}: day must be a whole number 0-10000, got {day!r}")
     try:
-        values = {k: v[-1] for k, v in query.items()}
         origin = tuple(float(v) for v in values.get("origin", "100,80").split(","))
         mount = SimMount(origin_xy_mm=(origin[0], origin[1]), rotation_deg=float(values.get("rotation", 7.0)),
                          mirror=values.get("mirror", "0") in ("1", "true", "yes"),
-                         surface_z_mm=float(values.get("surface", 2.0)))
+                         surface_z_mm=float(values.get("surface", 2.0)), physics=name, day=int(day))
         if len(origin) != 2 or not all(math.isfinite(v) for v in (*origin, mount.rotation_deg, mount.surface_z_mm)):
             raise ValueError
     except (ValueError, IndexError):

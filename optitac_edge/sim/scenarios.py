@@ -60,6 +60,7 @@ from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.patches import PatchPlacement
+from optitac_edge.sim.physics import physics as physics_named
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import (
     DEFAULT_SKIN,
@@ -311,6 +312,7 @@ def write_scenario(
     patch: PatchPlacement | None = None,
     fresh: bool = False,
     storage: str = "raw",
+    physics: str = "default",
 ) -> Path:
     """Simulate scenario ``name`` and stream it into the recording directory ``out_dir``.
 
@@ -334,7 +336,7 @@ def write_scenario(
         overrides (geometry, lens, illumination, noise) replace its fields,
         keeping width, height, rgb and dark_fibers.
     skin : SkinModel or None
-        The skin; None (default): the variant's (``SkinModel()`` for variant 0).
+        The skin; None (default): the variant's, drawn around the ``physics``' skin.
     layout : FiberLayout or None
         Fiber layout (default hex_layout()).
     sensor_seed : int or None
@@ -347,6 +349,9 @@ def write_scenario(
     variant : int
         Simulated sensor, see :func:`~optitac_edge.sim.drift.sensor_variant`
         (default 0: the default sensor).
+    physics : str
+        The simulated physics (:data:`~optitac_edge.sim.physics.PHYSICS`, default ``default``): the skin
+        the variant's is drawn around, and how much the ``day`` drifts.
     drift : SessionDrift or None
         Explicit session drift instead of ``day``.
     warmup : float
@@ -364,7 +369,7 @@ def write_scenario(
     -------
     Path
         ``out_dir``. ``meta.json`` holds ``rest_frames``, ``fps`` and a
-        ``simulator`` object: scenario, seed, sensor_seed, day, variant, optics,
+        ``simulator`` object: scenario, seed, sensor_seed, day, variant, physics, optics,
         skin, drift, scale_px_per_mm, centre_px, rest_peak_gray (nominal),
         ``fiber_centres_px`` (N x [col, row], layout order, including the day's
         camera shift: the ground truth of the fiber map) and ``real_depth_mm``
@@ -376,13 +381,14 @@ def write_scenario(
         region = patch.region
         optics = replace(optics, width=region.width, height=region.height)
         sensor_seed = patch.frames.sensors[patch.index].sensor_seed
-    overrides, variant_skin = sensor_variant(variant, optics.width, optics.height, layout)
+    world = physics_named(physics)
+    overrides, variant_skin = sensor_variant(variant, optics.width, optics.height, layout, world.skin)
     optics = replace(optics, **overrides) if overrides else optics
     skin = variant_skin if skin is None else skin
     sensor_seed = variant_sensor_seed(variant) if sensor_seed is None else sensor_seed
     plan = schedule(name, seed, frames, layout, skin)
     if drift is None:
-        drift = SessionDrift.for_day(day, sensor_seed)
+        drift = SessionDrift.for_day(day, sensor_seed, scale=world.day_drift)
     drift = scenario_drift(name, drift, len(plan), warmup)
     sensor = SimulatedSensor(
         layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=FPS
@@ -394,6 +400,7 @@ def write_scenario(
         "sensor_seed": sensor_seed,
         "day": day,
         "variant": variant,
+        "physics": physics,
         "optics": optics.to_dict(),
         "skin": skin.to_dict(),
         "drift": drift.to_dict(),
@@ -412,11 +419,12 @@ def write_scenario(
     meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra={"simulator": simulator})
     out = Path(out_dir)
     log.info(
-        "simulating %s (seed %d, day %d, variant %d): %d frames of %s into %s",
+        "simulating %s (seed %d, day %d, variant %d, %s physics): %d frames of %s into %s",
         name,
         seed,
         day,
         variant,
+        physics,
         len(plan),
         frame_shape,
         out,

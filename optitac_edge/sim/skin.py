@@ -9,15 +9,27 @@ Model (per indenter, on a mm grid covering the clamped skin):
    drapes around the indenter), forced to 0 at the clamped rim by
    ``clamp(r) = tanh(max(Rc - r, 0) / rim_width_mm)`` with ``Rc`` the outermost
    fiber radius plus ``clamp_margin_mm``;
-3. darkening ``d = max_darkening * (1 - exp(-(compression_gain * w + tilt_gain * |grad w|)))``:
+3. darkening ``d = max_darkening * R(s)`` with ``s = compression_gain * w + tilt_gain * |grad w_t|``:
    pins pressed in (``w``) and pins tilted by the skin's slope both turn their
-   white tips away from the fiber; the response saturates.
+   white tips away from the fiber. ``R`` is the pins' response (``response``):
+   ``saturating`` ``1 - exp(-s)`` (default), ``linear`` ``min(s, 1)``, or
+   ``threshold`` ``1 - exp(-max(s - response_threshold, 0))`` (pins that stick
+   until pushed far enough). ``w_t`` is ``w`` smoothed by a further Gaussian of
+   ``tilt_spread_mm`` (0, default: ``w`` itself): a skin whose pins tilt further
+   out than it deflects.
+
+A domed indenter (``dome`` > 0) touches first at its centre: inside its
+outline the skin is pressed to ``max(depth - q^2 / (2 R), 0)`` with ``q`` the
+distance from the indenter's centre and ``R = dome * bounding radius`` (a
+5 mm circle with ``dome = 1`` is a 5 mm ball), so its footprint grows with
+depth; ``dome = 0`` (default) is a flat punch.
 
 Several indenters combine as ``1 - prod(1 - d_i)``.
 
 Normal force (the simulator's load cell, :func:`contact_force_n`): a flat punch
 on an elastic layer, ``F = 2 E* a δ (1 + δ / δs) (1 + k_rim (r / Rc)²)`` with
-``a = sqrt(footprint area / π)`` the equivalent punch radius, ``δ`` the depth,
+``a = sqrt(footprint area / π)`` the equivalent punch radius (a domed indenter:
+``min(a, sqrt(R δ))``, Hertz's contact radius), ``δ`` the depth,
 ``E*`` the skin's effective modulus, ``δs`` the depth at which the stretched
 membrane doubles the stiffness, and the clamped rim stiffening the skin
 towards ``Rc`` (the clamp radius). It is documented in docs/simulator.md;
@@ -102,6 +114,14 @@ class SkinModel:
         Depth ``δs`` at which the membrane doubles the skin's stiffness, mm (default 4).
     rim_stiffening : float
         ``k_rim``: how much stiffer the skin is at the clamp radius than at the centre (default 1: twice).
+    response : str
+        The pins' response ``R``: ``saturating`` (default), ``linear`` or ``threshold``.
+    response_threshold : float
+        ``threshold`` response: the ``s`` below which a pin does not turn (default 0.15).
+    tilt_spread_mm : float
+        Further spread of the slope that tilts the pins, mm (default 0).
+    dome : float
+        The indenter's face: 0 flat (default); > 0 a sphere of ``dome`` times its bounding radius.
     """
 
     max_darkening: float = 0.85
@@ -117,11 +137,24 @@ class SkinModel:
     modulus_mpa: float = 0.12
     stiffening_mm: float = 4.0
     rim_stiffening: float = 1.0
+    response: str = "saturating"
+    response_threshold: float = 0.15
+    tilt_spread_mm: float = 0.0
+    dome: float = 0.0
 
-    def to_dict(self) -> dict[str, float]:
+    def __post_init__(self) -> None:
+        if self.response not in RESPONSES:
+            raise ValueError(f"unknown skin response {self.response!r}; expected one of {RESPONSES}")
+        if not (self.tilt_spread_mm >= 0 and self.dome >= 0 and self.response_threshold >= 0):
+            raise ValueError("tilt_spread_mm, dome and response_threshold must be >= 0")
+
+    def to_dict(self) -> dict[str, float | str]:
         """JSON-able dict of all fields."""
         return asdict(self)
 
+
+#: The pins' responses :class:`SkinModel` knows.
+RESPONSES = ("saturating", "linear", "threshold")
 
 #: The default skin (frozen, safe to share).
 DEFAULT_SKIN = SkinModel()
@@ -219,15 +252,33 @@ def fiber_darkening(
     coords = np.stack([(axis[-1] - xy[:, 1]) / h, (xy[:, 0] - axis[0]) / h])
     for ind in active:
         foot = np.clip(0.5 - signed_distance(ind, gx, gy, skin) / h, 0.0, 1.0)
+        if skin.dome > 0:
+            q2 = (gx - ind.x_mm) ** 2 + (gy - ind.y_mm) ** 2
+            foot = foot * np.maximum(1.0 - q2 / (2.0 * dome_radius_mm(ind, skin) * ind.depth_mm), 0.0)
         spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
         w = ind.depth_mm * clamp * gaussian_filter(foot, spread / h, mode="constant")
-        gr, gc = np.gradient(w, h)
+        tilted = gaussian_filter(w, skin.tilt_spread_mm / h, mode="constant") if skin.tilt_spread_mm > 0 else w
+        gr, gc = np.gradient(tilted, h)
         slope = np.hypot(gr, gc)
         wf = map_coordinates(w, coords, order=1, mode="constant")
         sf = map_coordinates(slope, coords, order=1, mode="constant")
-        d = skin.max_darkening * (1.0 - np.exp(-(skin.compression_gain * wf + skin.tilt_gain * sf)))
+        d = skin.max_darkening * pin_response(skin.compression_gain * wf + skin.tilt_gain * sf, skin)
         keep *= 1.0 - d
     return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+
+
+def pin_response(s: np.ndarray, skin: SkinModel = DEFAULT_SKIN) -> np.ndarray:
+    """The pins' response ``R(s)`` in [0, 1] (see the module docstring), same shape as ``s``."""
+    if skin.response == "linear":
+        return np.clip(s, 0.0, 1.0)
+    if skin.response == "threshold":
+        return 1.0 - np.exp(-np.maximum(s - skin.response_threshold, 0.0))
+    return 1.0 - np.exp(-s)
+
+
+def dome_radius_mm(indenter: Indenter, skin: SkinModel = DEFAULT_SKIN) -> float:
+    """``R``: the radius of a domed indenter's face, mm (``skin.dome`` times its bounding radius)."""
+    return skin.dome * bounding_radius(indenter, skin)
 
 
 def clamp_radius_mm(layout_xy_mm: np.ndarray, skin: SkinModel = DEFAULT_SKIN) -> float:
@@ -261,6 +312,8 @@ def contact_force_n(indenter: Indenter, clamp_r_mm: float, skin: SkinModel = DEF
     if depth <= 0:
         return 0.0
     a = math.sqrt(footprint_area_mm2(indenter, skin) / math.pi)
+    if skin.dome > 0:
+        a = min(a, math.sqrt(dome_radius_mm(indenter, skin) * depth))
     rho = min(math.hypot(indenter.x_mm, indenter.y_mm) / clamp_r_mm, 1.0)
     return (2.0 * skin.modulus_mpa * a * depth * (1.0 + depth / skin.stiffening_mm)
             * (1.0 + skin.rim_stiffening * rho * rho))
