@@ -220,16 +220,40 @@ def test_the_simulated_depths_scenario_presses_where_and_as_deep_as_the_rig_expe
     assert len(sim) == 7 * 8 * 2
 
 
-def test_depth_calibrates_without_a_load_cell(tmp_path, capsys):
-    """Every rig without a load cell: calibrate depth on a 'collect depths' recording (no force_n column)
-    ended in a traceback (the report's per-press array held the missing forces as NaN)."""
+def test_collect_calibrate_and_evaluate_depth_without_a_load_cell(tmp_path, capsys):
+    """Issue 26: the normal case, a rig without a load cell. collect depths on sim:// (no force_n column),
+    calibrate depth on it (it chose its input on held-out presses), evaluate on another day's collection:
+    the verdict's depth check passes with the held-out figure beside the measured one. (A 12-press collection
+    once ended in a traceback: the report's per-press array held the missing forces as NaN.)"""
     from optitac_edge.cli import main
 
-    rec, cal = tmp_path / "depths", tmp_path / "cal.npz"
-    assert main(["collect", "depths", "--rig", "sim://", "-o", str(rec), "--limit", "12"]) == 0
+    rec, other, cal = tmp_path / "depths", tmp_path / "day2", tmp_path / "cal.npz"
+    assert main(["collect", "depths", "--rig", "sim://", "-o", str(rec), "--limit", "56"]) == 0
+    assert "the depth model needs 56 presses" in capsys.readouterr().out
+    assert main(["collect", "depths", "--rig", "sim://?day=2", "--seed", "5", "-o", str(other),
+                 "--limit", "56"]) == 0
     assert Recording(rec).truth.force_n is None
     assert main(["calibrate", "fibers", str(rec), "-o", str(cal)]) == 0
     capsys.readouterr()
     assert main(["calibrate", "depth", str(rec), "--cal", str(cal)]) == 0
     out = capsys.readouterr().out
-    assert "with the depth calibration" in out and "force" not in out
+    assert "with the depth calibration" in out and "heldout depth rmse mm" in out and "force" not in out
+    assert main(["evaluate", str(other), "--cal", str(cal)]) == 0
+    out = capsys.readouterr().out
+    depth_line = next(line for line in out.splitlines() if "] depth:" in line)
+    assert depth_line.startswith("  [ok] depth:") and "held-out RMSE" in depth_line and "here over" in depth_line
+    assert "force" not in out
+
+
+def test_a_depth_model_from_too_few_presses_is_refused_by_the_verdict(tmp_path, capsys):
+    from optitac_edge.cli import main
+
+    rec, cal = tmp_path / "depths", tmp_path / "cal.npz"
+    assert main(["collect", "depths", "--rig", "sim://", "-o", str(rec), "--limit", "12"]) == 0
+    assert "12 collected: too few" in capsys.readouterr().out
+    assert main(["calibrate", "fibers", str(rec), "-o", str(cal)]) == 0
+    assert main(["calibrate", "depth", str(rec), "--cal", str(cal)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(rec), "--cal", str(cal), "--strict"]) == 1
+    out = capsys.readouterr().out
+    assert "[FAIL] depth: 17 presses (need 56)" in out

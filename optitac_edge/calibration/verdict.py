@@ -13,6 +13,10 @@ coverage                       >= 90 % of the live fibers        the centroid ma
 centroid (evaluated presses)   RMSE <= 0.4 mm per axis           the paper's unseen accuracy
 detection (evaluated presses)  >= 99 % of contact frames,        a missed or invented contact reaches
                                0 false contacts                  the gripper
+depth (when calibrated)        >= 56 presses; held-out and       below 56 presses the held-out error has
+                               evaluated RMSE <= 0.25 mm against  not settled (the learning curve in
+                               commanded depths; evaluated       docs/accuracy.md); an evaluated error far
+                               <= 2x held-out + 0.05 mm          above the held-out one: the skin changed
 =============================  ================================  ==========================================
 """
 
@@ -24,11 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from optitac_edge.calibration.evaluation import centroid_accuracy, detection
+from optitac_edge.calibration.evaluation import centroid_accuracy, depth_accuracy, detection
 from optitac_edge.calibration.measure import Measurements
 from optitac_edge.calibration.orientation import is_verified
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.corrections import CENTROID_KEY
+from optitac_edge.core.corrections import CENTROID_KEY, DEPTH_KEY
 from optitac_edge.io.recording import Truth
 
 MAX_RESIDUAL_PITCH = 0.15
@@ -36,6 +40,14 @@ MAX_DEAD_FRACTION = 0.05
 MIN_COVERAGE = 0.90
 MAX_CENTROID_RMSE_MM = 0.4
 MIN_DETECTION = 0.99
+#: Presses a depth model needs (the learning curve on the simulator's physics, docs/accuracy.md).
+MIN_DEPTH_PRESSES = 56
+MAX_DEPTH_RMSE_MM = 0.25
+#: Presses each experiment's model needs for its held-out error to settle: (model, presses).
+PRESSES_NEEDED = {"depths": ("depth", MIN_DEPTH_PRESSES)}
+#: An evaluated depth error above ``DEPTH_AGREEMENT * held-out + DEPTH_AGREEMENT_MM`` disagrees with the
+#: calibration's own held-out figure.
+DEPTH_AGREEMENT, DEPTH_AGREEMENT_MM = 2.0, 0.05
 
 
 @dataclass(frozen=True)
@@ -117,4 +129,32 @@ def judge(bundle: CalibrationBundle, m: Measurements, truth: Truth) -> Verdict:
                         f"{d.detected}/{d.contact_frames} contact frames, {d.false_contacts} false contacts "
                         f"(limits {100 * MIN_DETECTION:g} %, 0)",
                         "check the LED and the rest frames; take the baseline again (tare)"))
+    depth = depth_check(bundle, m, truth)
+    if depth is not None:
+        checks.append(depth)
     return Verdict(tuple(checks))
+
+
+def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth: Truth | None = None
+                ) -> Check | None:
+    """The depth model's check (None: the bundle has none): enough presses, its held-out error at calibration,
+    and, when the evaluated recording presses at several depths, the error measured there agreeing with it."""
+    if DEPTH_KEY not in bundle.extra_meta:
+        return None
+    fit = bundle.extra_meta.get("depth_fit", {})
+    fix = "collect depths (every point at every depth) and calibrate depth again"
+    heldout, presses = fit.get("heldout_depth_rmse_mm"), fit.get("presses", 0)
+    spread = fit.get("heldout_depth_spread_mm", math.nan)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (heldout, presses, spread)):
+        return Check("depth", False, "calibrated without held-out presses (an older calibration)", fix)
+    seen = (f"{presses} presses (need {MIN_DEPTH_PRESSES}), held-out RMSE {heldout:.3f} "
+            f"± {spread:.3f} mm at calibration")
+    ok = presses >= MIN_DEPTH_PRESSES and heldout <= MAX_DEPTH_RMSE_MM
+    report = depth_accuracy(m, truth) if m is not None and truth is not None else None
+    if report is not None:
+        agrees = report.depth_rmse_mm <= DEPTH_AGREEMENT * heldout + DEPTH_AGREEMENT_MM
+        seen += f", {report.depth_rmse_mm:.3f} mm here over {report.n} frames"
+        ok = ok and report.depth_rmse_mm <= MAX_DEPTH_RMSE_MM and agrees
+        if not agrees:
+            fix = "the skin responds differently than when calibrated: " + fix
+    return Check("depth", ok, f"{seen} (limit {MAX_DEPTH_RMSE_MM} mm against commanded depths)", fix)

@@ -101,6 +101,13 @@ def _cmd_collect(args: argparse.Namespace) -> int:
           f"{f' (continued after press {result.resumed_at})' if result.resumed_at else ''}; "
           f"rig frame origin ({f.origin_xy_mm[0]:.2f}, {f.origin_xy_mm[1]:.2f}) mm, +x at {f.rotation_deg:+.2f}°, "
           f"surface z {f.surface_z_mm:.3f} mm; bundle orientation: {result.bundle_symmetry}")
+    from optitac_edge.calibration.verdict import PRESSES_NEEDED
+
+    if args.experiment in PRESSES_NEEDED:
+        model, need = PRESSES_NEEDED[args.experiment]
+        print(f"the {model} model needs {need} presses for its held-out error to settle (docs/accuracy.md); "
+              f"{result.presses} collected" + ("" if result.presses >= need else
+                                               ": too few, evaluate's verdict will refuse the model"))
     return 0
 
 

@@ -1,0 +1,88 @@
+"""Issue 26: the depth/force input is chosen by presses held out of the fit, with a guard against the skin's
+response drifting between days (pure functions on synthetic presses with known answers)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.depth_fit import MIN_SELECTION_PRESSES, held_out, select_feature
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.depth_model import DEPTH_FEATURES, GAIN_EXPONENT, depth_feature
+
+LEVELS = np.array([0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0])
+
+
+def _presses(reps: int = 7, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    depth = np.repeat(LEVELS, reps)
+    rho2 = np.tile(np.linspace(0.0, 0.5, reps), LEVELS.size)
+    return depth, rho2, rng
+
+
+def test_an_uninformative_feature_loses_to_an_informative_one():
+    """Width that does not grow with depth (a skin that drapes tightly) against a strength that does."""
+    depth, rho2, rng = _presses()
+    features = {"width": 5.0 + 0.05 * rng.standard_normal(depth.size),
+                "strength": 20.0 * depth ** 1.3 * (1 + 0.01 * rng.standard_normal(depth.size))}
+    sel = select_feature(features, rho2, depth, 12.0, depth, np.ones_like(depth), np.arange(depth.size))
+    assert sel.feature == "strength"
+    by = {c.feature: c for c in sel.candidates}
+    assert by["width"].heldout_rmse > 0.5 and by["strength"].heldout_rmse < 0.05
+    assert sel.folds == 8 and sel.chosen is by["strength"]
+
+
+def test_equally_informative_features_the_one_the_skins_drift_cannot_move_wins():
+    """Both follow depth exactly; strength moves with the skin's response (exponent 1), fullness does not."""
+    depth, rho2, _ = _presses()
+    features = {"strength": 20.0 * depth ** 1.3, "fullness": 10.0 + 4.0 * depth}
+    sel = select_feature(features, rho2, depth, 12.0, depth, np.ones_like(depth), np.arange(depth.size))
+    assert sel.feature == "fullness"
+    by = {c.feature: c for c in sel.candidates}
+    assert by["fullness"].drift_rmse == pytest.approx(0.0, abs=1e-12)
+    # strength x 1.05: a power law depth = (s/20)^(1/1.3) moves by ~ depth * 0.05 / 1.3
+    assert by["strength"].drift_rmse == pytest.approx(np.sqrt(np.mean(depth ** 2)) * 0.05 / 1.3, rel=0.1)
+    no_drift = select_feature(features, rho2, depth, 12.0, depth, np.ones_like(depth), np.arange(depth.size),
+                              drift=0.0)
+    assert {c.feature: c.drift_rmse for c in no_drift.candidates}["strength"] == 0.0
+
+
+def test_the_held_out_error_measures_the_noise_of_presses_the_fit_never_saw():
+    """Depth = feature exactly, plus press noise of 0.1 mm on the target: the held-out RMSE is ~0.1 mm
+    while the fit's own error is smaller (it partly fits the noise)."""
+    depth, rho2, rng = _presses(reps=14)
+    noisy = depth + 0.1 * rng.standard_normal(depth.size)
+    c = held_out(depth * 3.0, rho2 * 0.0, noisy, 12.0, depth, np.ones_like(depth), np.arange(depth.size),
+                 exponent=0.0)
+    assert 0.08 < c.heldout_rmse < 0.13 and 0.0 < c.heldout_spread < 0.05
+
+
+def test_folds_never_split_a_press_group():
+    """Rows of one group are held out together: a group of identical rows cannot help predict itself."""
+    from sklearn.model_selection import GroupKFold
+
+    groups = np.repeat(np.arange(16), 3)
+    for train, test in GroupKFold(n_splits=8).split(groups, groups=groups):
+        assert not set(groups[train]) & set(groups[test])
+
+
+def test_too_few_presses_are_refused_in_one_line():
+    depth = LEVELS[: MIN_SELECTION_PRESSES - 1]
+    with pytest.raises(ValueError, match=f"need {MIN_SELECTION_PRESSES} presses or more"):
+        select_feature({"width": depth}, depth * 0, depth, 12.0, depth, np.ones_like(depth),
+                       np.arange(depth.size))
+
+
+def test_every_candidate_is_a_feature_of_a_contact_and_scales_as_declared():
+    """Each feature of a contact, and its declared response to a gain g on the darkening (strength, peak
+    x g; widths and peak-relative ratios unchanged)."""
+    est = ContactEstimate(contact=True, major_mm=6.0, minor_mm=4.0, strength=80.0, peak=0.5, area_mm2=20.0)
+    values = {f: depth_feature(est, f) for f in DEPTH_FEATURES}
+    assert values == pytest.approx({"width": 5.0, "strength": 80.0, "peak": 0.5, "area": 20.0, "fullness": 160.0,
+                                    "strength_width": 400.0, "root_strength_width": np.sqrt(80.0) * 5.0,
+                                    "fullness_width": 800.0})
+    g = 1.1
+    gained = ContactEstimate(contact=True, major_mm=6.0, minor_mm=4.0, strength=80.0 * g, peak=0.5 * g,
+                             area_mm2=20.0)
+    for f in DEPTH_FEATURES:
+        assert depth_feature(gained, f) == pytest.approx(values[f] * g ** GAIN_EXPONENT[f]), f
