@@ -73,7 +73,7 @@ def test_an_interrupted_collection_continues_into_a_recording_that_calibrates(si
     assert main(["calibrate", "fibers", str(out), "-o", str(cal)]) == 0
     assert main(["calibrate", "centroid", str(out), "--cal", str(cal)]) == 0
     said = capsys.readouterr().out
-    fitted = [float(v) for v in said.split("fitted rmse mm ")[1].split()[0].split("/")]
+    fitted = [float(v) for v in said.split("fitted rmse mm ")[1].split()[0].rstrip(",").split("/")]
     assert max(fitted) < 0.05
     assert int(np.sum(rec.rig_poses.phase == "hold")) == (5 + 6) * 8  # registration and presses, none twice
 

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python tools/accuracy_table.py [-o docs/accuracy.md] [--workdir DIR] [--variants 0,3,5]
+    python tools/accuracy_table.py [-o docs/accuracy.md] [--workdir DIR] [--variants 0,3,5] [--physics all]
 
 For every simulated sensor (variant) it records, on one day (with that day's
 drift), the calibration set — rest, seen, widths, shapes — and on another day
@@ -10,7 +10,11 @@ fresh evaluation presses with other seeds — seen, unseen, repeat, widths,
 shapes. It calibrates with the same code as ``optitac-edge calibrate`` and
 evaluates with ``optitac-edge evaluate``'s metrics. No model is evaluated on
 the data it was fitted to. Each improvement beyond the paper is switched on
-alone and all together, so its effect is measured.
+alone and all together, so its effect is measured. The default sensor is also
+calibrated and evaluated, with the same code and no setting of its own, under
+every simulated physics (:mod:`optitac_edge.sim.physics`), beside the floor
+the simulator's own truth allows; and the depth model's choice, its
+candidates and its learning curve are shown per physics.
 """
 
 from __future__ import annotations
@@ -30,7 +34,9 @@ from board_accuracy import board_table  # tools/: run as python tools/accuracy_t
 from optitac_edge.calibration.evaluation import (
     centroid_accuracy,
     depth_accuracy,
+    detected_rows,
     detection,
+    press_ids,
     repeatability,
     shape_accuracy,
     width_accuracy,
@@ -38,6 +44,7 @@ from optitac_edge.calibration.evaluation import (
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.measure import measure_recording
 from optitac_edge.calibration.steps import calibrate_centroid, calibrate_depth, calibrate_shapes, calibrate_width
+from optitac_edge.calibration.verdict import MIN_DEPTH_PRESSES, depth_check
 from optitac_edge.core.options import ContactOptions
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.optics import CameraOptics
@@ -79,16 +86,29 @@ def configs(measured: dict[str, float]) -> dict[str, Config]:
         "+ baseline tracking": Config(dataclasses.replace(paper, track_baseline=True)),
         "+ LED gain compensation": Config(dataclasses.replace(paper, compensate_gain=True)),
         "+ monotone width model": Config(paper, width_kind="monotone"),
-        "all (default)": Config(best, width_kind="monotone"),
-        "all + linear error-map fill": Config(best, width_kind="monotone", map_fill="linear"),
+        "+ models chosen by held-out presses": Config(paper, width_kind="auto", map_fill="auto"),
+        "all, paper's fill and width model": Config(best, width_kind="monotone", map_fill="nearest"),
+        "all (default)": Config(best, width_kind="auto", map_fill="auto"),
     }
 
 
-def record(workdir: Path, variant: int, day: int, name: str, seed: int, **kw: Any) -> Recording:
-    path = workdir / f"v{variant}" / f"day{day}" / f"{name}-{seed}"
+def record(workdir: Path, variant: int, day: int, name: str, seed: int, physics: str = "default",
+           **kw: Any) -> Recording:
+    sub = f"v{variant}" if physics == "default" else f"v{variant}-{physics}"
+    path = workdir / sub / f"day{day}" / f"{name}-{seed}"
     if not (path / "meta.json").exists():
-        write_scenario(path, name, seed=seed, day=day, variant=variant, optics=CameraOptics(**kw))
+        write_scenario(path, name, seed=seed, day=day, variant=variant, optics=CameraOptics(**kw), physics=physics)
     return Recording(path)
+
+
+def frame_noise(values: np.ndarray, press: np.ndarray) -> float:
+    """RMS deviation of frames from their press's mean (unbiased per press): what no calibration removes."""
+    keep = np.isfinite(values)
+    v, p = values[keep], press[keep]
+    _, inverse, counts = np.unique(p, return_inverse=True, return_counts=True)
+    means = np.bincount(inverse, weights=v) / counts
+    dof = float(np.sum(counts - 1))
+    return float(np.sqrt(np.sum((v - means[inverse]) ** 2) / dof)) if dof > 0 else float("nan")
 
 
 def real_depths(rec: Recording) -> np.ndarray:
@@ -107,10 +127,12 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
     measured = measured_noise(bundle)
     bundle = bundle.with_updates(options=dataclasses.replace(config.options, **measured))
     bundle, _ = calibrate_centroid(cal["seen"], bundle, fill=config.map_fill)
-    bundle, _ = calibrate_width(cal["widths"], bundle, kind=config.width_kind)
+    bundle, width_fit = calibrate_width(cal["widths"], bundle, kind=config.width_kind)
     bundle, shapes_fit = calibrate_shapes(cal["shapes"], bundle)
-    bundle, depth_fit = calibrate_depth(cal["depths"], bundle)
-    out: dict[str, Any] = {"shapes_fit": shapes_fit, "depth_fit": depth_fit}
+    bundle, _ = calibrate_depth(cal["depths"], bundle)
+    out: dict[str, Any] = {"shapes_fit": shapes_fit, "depth_fit": bundle.extra_meta["depth_fit"],
+                           "width_fit": width_fit, "centroid_fit": bundle.extra_meta["centroid_fit"],
+                           "bundle": bundle}
     missed = false = contact_frames = rest_frames = 0
     for name, rec in ev.items():
         truth = rec.truth
@@ -124,10 +146,17 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
             raw = measure_recording(rec, bundle, corrected=False, progress=False)
             out[f"{name}_raw"] = centroid_accuracy(raw, truth)
             out[f"{name}_cal"] = centroid_accuracy(calibrated, truth)
+            if name == "unseen":
+                rows = np.flatnonzero(detected_rows(calibrated, truth))
+                f, press = truth.frame[rows], press_ids(truth)[rows]
+                out["centroid_floor"] = (frame_noise(calibrated.x_mm[f], press), frame_noise(calibrated.y_mm[f], press))
         elif name == "repeat":
             out["repeat"] = repeatability(calibrated, truth)
         elif name == "widths":
             out["widths"] = width_accuracy(calibrated, truth)
+            rows = np.flatnonzero(detected_rows(calibrated, truth))
+            f, press = truth.frame[rows], press_ids(truth)[rows]
+            out["width_floor"] = (frame_noise(calibrated.major_mm[f], press), frame_noise(calibrated.minor_mm[f], press))
         elif name == "shapes":
             out["shapes"] = shape_accuracy(calibrated, truth)
         elif name == "depths":
@@ -136,6 +165,7 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
             out["depth_commanded"] = depth_accuracy(calibrated, truth)
             pressed = np.isfinite(real)  # the rig's own error: what no estimate can beat on commanded depths
             out["depth_rig_error"] = float(np.sqrt(np.mean((truth.depth_mm[pressed] - real[pressed]) ** 2)))
+            out["depth_verdict"] = depth_check(bundle, calibrated, truth)
     out["detection"] = (missed, contact_frames, false, rest_frames)
     return out
 
@@ -232,6 +262,149 @@ def drift_experiment(workdir: Path) -> list[str]:
     return lines
 
 
+PHYSICS_TARGETS = {
+    "unseen RMSE cal (mm)": "≤ 0.05 / 0.05", "width RMSE (mm)": "≤ 0.20 / 0.20", "shape avg. diagonal": "≥ 0.97",
+    "shape min F1": "≥ 0.95", "false contacts (rest frames)": "0", "depth RMSE, real depths (mm)": "≤ 0.10",
+    "depth RMSE, commanded depths (mm)": "≤ 1.3 × the jitter",
+    "force RMSE (N, % of range)": "≤ 5 %",
+}
+
+
+def physics_rows(r: dict[str, Any]) -> dict[str, str]:
+    """The per-physics table: the default row set, the floors beside them, the depth model's choice and verdict."""
+    full = summary_row(r)
+    fit, check = r["depth_fit"], r["depth_verdict"]
+    jitter = r["depth_rig_error"]
+    cfl, wfl = r["centroid_floor"], r["width_floor"]
+    keep = ("unseen RMSE raw (mm)", "unseen RMSE cal (mm)", "width RMSE (mm)", "shape avg. diagonal",
+            "shape min F1", "missed contact frames", "false contacts (rest frames)")
+    rows = {k: full[k] for k in keep}
+    rows["floor: centroid frame noise (mm)"] = f"{cfl[0]:.3f} / {cfl[1]:.3f}"
+    rows["floor: width frame noise (mm)"] = f"{wfl[0]:.3f} / {wfl[1]:.3f}"
+    rows["centroid map: fill, held-out RMSE at calibration (mm)"] = (
+        f"{r['centroid_fit']['fill']}, {r['centroid_fit']['heldout_rmse_mm'][0]:.3f} / "
+        f"{r['centroid_fit']['heldout_rmse_mm'][1]:.3f}")
+    rows["width model: form, held-out RMSE at calibration (mm)"] = (
+        f"{r['width_fit']['kind']}, {r['width_fit']['heldout_rmse_mm'][0]:.3f} / "
+        f"{r['width_fit']['heldout_rmse_mm'][1]:.3f}")
+    rows["depth RMSE, real depths (mm)"] = full["depth RMSE, real depths (mm)"]
+    rows["floor: real depth (mm)"] = "0 (exact)"
+    cmd = r["depth_commanded"].depth_rmse_mm
+    rows["depth RMSE, commanded depths (mm)"] = f"{cmd:.3f} = {cmd / jitter:.2f} × jitter"
+    rows["floor: commanded − real depth, RMS (jitter, mm)"] = f"{jitter:.3f}"
+    rows["depth model: input, held-out RMSE at calibration (mm)"] = (
+        f"{fit['feature']}, {fit['heldout_depth_rmse_mm']:.3f} ± {fit['heldout_depth_spread_mm']:.3f}")
+    rows["evaluate's depth check"] = ("ok" if check.ok else "FAIL") + (
+        f" ({r['depth_commanded'].depth_rmse_mm:.3f} mm here, limit 0.25)")
+    rows["force RMSE (N, % of range)"] = full["force RMSE (N, % of range)"]
+    rows["force model: input"] = str(fit.get("force_feature", "–"))
+    return rows
+
+
+def candidate_table(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Per physics: every depth candidate's held-out RMSE and drift term at calibration; the chosen one."""
+    names = list(results)
+    features = [c["feature"] for c in next(iter(results.values()))["depth_fit"]["depth_candidates"]]
+    lines = ["| depth input | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for f in features:
+        cells = []
+        for r in results.values():
+            c = next((c for c in r["depth_fit"]["depth_candidates"] if c["feature"] == f), None)
+            if c is None:
+                cells.append("–")
+                continue
+            text = f"{c['heldout_rmse']:.3f} + {c['drift_rmse']:.3f} → {c['expected_rmse']:.3f}"
+            cells.append(f"**{text}**" if r["depth_fit"]["feature"] == f else text)
+        lines.append(f"| {f} | " + " | ".join(cells) + " |")
+    lines.append("| chosen, on another day: RMSE against the real depth (mm) | " + " | ".join(
+        f"{r['depth_fit']['feature']}: {r['depth_real'].depth_rmse_mm:.3f}" for r in results.values()) + " |")
+    return lines
+
+
+def learning_curve(cal: Recording, ev: Recording, bundle: Any, sizes: tuple[int, ...], draws: int = 3
+                   ) -> dict[int, tuple[float, float]]:
+    """Depth RMSE on another day's presses (real depths) of a model calibrated on ``n`` presses drawn at random
+    from the calibration recording: (mean, worst) over ``draws`` draws, per ``n``."""
+    from optitac_edge.calibration.depth_fit import grouped_means, select_feature
+    from optitac_edge.core.depth_model import DEPTH_FEATURES, depth_feature
+
+    radius = float(bundle.layout.radius_mm)
+
+    def per_frame(rec: Recording) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        m = measure_recording(rec, bundle, corrected=False, progress=False)
+        rows = np.flatnonzero(detected_rows(m, rec.truth))
+        f = rec.truth.frame[rows]
+        values = np.stack([depth_feature(m, name)[f] for name in DEPTH_FEATURES], axis=1)
+        rho2 = (m.x_mm[f] ** 2 + m.y_mm[f] ** 2) / radius ** 2
+        return values, rho2, rows, press_ids(rec.truth)[rows]
+
+    values, rho2, rows, press = per_frame(cal)
+    means, counts = grouped_means(np.column_stack([rho2, cal.truth.depth_mm[rows], values]), press)
+    ev_values, ev_rho2, ev_rows, _ = per_frame(ev)
+    ev_real = real_depths(ev)[ev_rows]
+    out = {}
+    for n in sizes:
+        errors = []
+        for draw in range(draws):
+            pick = np.sort(np.random.default_rng([n, draw]).choice(len(counts), min(n, len(counts)), replace=False))
+            feats = {name: means[pick, 2 + k] for k, name in enumerate(DEPTH_FEATURES)}
+            try:
+                sel = select_feature(feats, means[pick, 0], means[pick, 1], radius, means[pick, 1], counts[pick],
+                                     np.arange(pick.size))
+            except ValueError:
+                continue
+            k = DEPTH_FEATURES.index(sel.feature)
+            r = np.sqrt(np.minimum(ev_rho2, 1.0)) * radius
+            pred = np.array([sel.fit.model(v, x, 0.0) for v, x in zip(ev_values[:, k], r)])
+            errors.append(float(np.sqrt(np.mean((pred - ev_real) ** 2))))
+        out[n] = (float(np.mean(errors)), float(np.max(errors))) if errors else (float("nan"), float("nan"))
+    return out
+
+
+LEARNING_SIZES = (16, 24, 32, 48, 56, 84, 112)
+
+
+def physics_section(workdir: Path, names: list[str]) -> list[str]:
+    """The default sensor under every simulated physics: the accuracy table, the depth candidates, the curve."""
+    from optitac_edge.sim.physics import physics as physics_named
+
+    results, curves = {}, {}
+    for name in names:
+        print(f"physics {name} ...", flush=True)
+        cal = {n: record(workdir, 0, CAL_DAY, n, seed=100 + k, physics=name) for k, n in enumerate(CAL_SCENARIOS)}
+        ev = {n: record(workdir, 0, EVAL_DAY, n, seed=200 + k, physics=name) for k, n in enumerate(EVAL_SCENARIOS)}
+        probe = calibrate_fibers(cal["rest"].rest_frames(), "gray")
+        cfg = configs(measured_noise(probe))["all (default)"]
+        results[name] = evaluate_config(cal, ev, cfg, (0.0, False))
+        curves[name] = learning_curve(cal["depths"], ev["depths"], results[name]["bundle"], LEARNING_SIZES)
+    rows = {name: physics_rows(r) for name, r in results.items()}
+    keys = list(next(iter(rows.values())))
+    paper = {**PAPER_FOR_ROW, "unseen RMSE cal (mm)": PAPER["unseen_rmse"]}
+    lines = ["| metric | paper | target | " + " | ".join(names) + " |", "|---|---|---|" + "---|" * len(names)]
+    for k in keys:
+        lines.append(f"| {k} | {paper.get(k, '–')} | {PHYSICS_TARGETS.get(k, '–')} | "
+                     + " | ".join(rows[n][k] for n in names) + " |")
+    lines += ["", "What each physics is (`optitac-edge sim --physics NAME`, `sim://?physics=NAME`):", ""]
+    lines += [f"* `{n}`: {physics_named(n).summary}" for n in names]
+    lines += ["", "### The depth model's input, chosen on held-out presses", "",
+              ("Each cell: the candidate's RMSE on presses held out of its fit (8 folds grouped by press, against "
+               "the commanded depths of the calibration day, so the day's jitter is in it) + the change of its "
+               "held-out predictions when the skin responds ±5 % more or less (the drift between days it guards "
+               "against, `RESPONSE_DRIFT`) → their root sum of squares, the score; the chosen candidate in bold. "
+               "The last row: the chosen model on the evaluation day, against the real depth."), "",
+              *candidate_table(results), "",
+              "### How many presses the depth model needs", "",
+              ("The depth model calibrated on n presses drawn at random from the 112 of the calibration day "
+               "(3 draws each), evaluated on the 112 presses of the other day against the real depth: mean / worst "
+               f"RMSE, mm. The verdict refuses a depth model calibrated on fewer than {MIN_DEPTH_PRESSES} presses "
+               "(every point of the `depths` experiment at every depth once)."), "",
+              "| physics | " + " | ".join(f"n = {n}" for n in LEARNING_SIZES) + " |",
+              "|---|" + "---|" * len(LEARNING_SIZES)]
+    for name, curve in curves.items():
+        lines.append(f"| {name} | " + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in curve.values()) + " |")
+    return lines
+
+
 def summary_row(r: dict[str, Any]) -> dict[str, str]:
     u, ur, s = r["unseen_cal"], r["unseen_raw"], r["seen_cal"]
     sr = r["seen_raw"]
@@ -284,6 +457,8 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=Path("out/accuracy"))
     ap.add_argument("--variants", default="0,3,5", help="simulated sensors (0 = the default sensor)")
     ap.add_argument("--ablation-variant", type=int, default=0)
+    ap.add_argument("--physics", default="all", help="simulated physics for the per-physics table (all, none or a "
+                                                      "comma-separated list)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     variants = [int(v) for v in args.variants.split(",")]
@@ -306,8 +481,19 @@ def main() -> None:
         else:
             print(f"variant {variant}: default ...", flush=True)
             results[f"sensor {variant}"] = evaluate_config(cal, ev, cfgs["all (default)"], hint)
+    extra: list[str] = []
+    if args.physics != "none":
+        from optitac_edge.sim.physics import PHYSICS_NAMES
+
+        names = list(PHYSICS_NAMES) if args.physics == "all" else args.physics.split(",")
+        extra += ["", "## Every simulated physics (sensor 0)", "",
+                  (f"The default sensor, calibrated on day {CAL_DAY} and evaluated on day {EVAL_DAY} as above, under "
+                   "each simulated physics: the same code, the same defaults, no setting of its own. A floor is "
+                   "what the simulator's own truth allows: the frame-to-frame noise of a held press (no "
+                   "calibration removes it) and, for depths against the commanded depth, the day's jitter "
+                   "between commanded and real depth."), "", *physics_section(args.workdir, names)]
     print("dead fibers, two contacts, LED drift ...", flush=True)
-    extra = ["", "## Dead fibers, simultaneous contacts, LED drift", ""]
+    extra += ["", "## Dead fibers, simultaneous contacts, LED drift", ""]
     for experiment in (dead_fiber_experiment, lambda w: dead_fiber_experiment(w, ten_percent=True),
                        two_contact_experiment, drift_experiment):
         extra += experiment(args.workdir) + [""]

@@ -5,9 +5,13 @@ meshes by nearest neighbour through a k-d tree of the measured positions
 (or linearly inside their hull); a Gaussian filter (the paper: sigma = 10
 cells on a 1000-cell mesh) smooths the boundaries. The result,
 :class:`~optitac_edge.core.centroid_map.CentroidErrorMap`, is looked up per contact.
+
+:func:`held_out_fills` judges each fill on presses held out of the fit (``GroupKFold`` over presses).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -68,3 +72,43 @@ def fit_centroid_map(
         x0_mm=float(axis[0]), y0_mm=float(axis[0]), step_mm=float(axis[1] - axis[0]),
         error_x=maps[0].astype(np.float32), error_y=maps[1].astype(np.float32),
     )
+
+
+#: The fills ``calibrate centroid`` chooses among.
+FILLS = ("nearest", "linear")
+#: Folds of the held-out check (fewer with fewer presses).
+MAX_FOLDS = 8
+#: The held-out check builds its maps on a mesh this many times coarser, the filter's sigma in mm unchanged.
+HELD_OUT_COARSENING = 4
+
+
+def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: np.ndarray, half_span_mm: float,
+                   fills: tuple[str, ...] = FILLS) -> list[dict[str, Any]]:
+    """Each fill's error on presses held out of the map (``GroupKFold`` over ``groups``, one per press).
+
+    Returns, per fill: the held-out RMSE per axis (mm, pooled over the folds), the spread (standard
+    deviation) of the folds' RMSEs and their mean (the score). The maps of the check are
+    :data:`HELD_OUT_COARSENING` times coarser than the runtime's (the same smoothing in mm).
+    """
+    from sklearn.model_selection import GroupKFold
+
+    measured, true = np.asarray(measured_xy_mm, dtype=np.float64), np.asarray(true_xy_mm, dtype=np.float64)
+    n_groups = np.unique(groups).size
+    if n_groups < 4:
+        raise ValueError(f"need 4 presses or more to check the centroid map on held-out presses, got {n_groups}")
+    folds = min(MAX_FOLDS, n_groups)
+    cells = MAP_CELLS // HELD_OUT_COARSENING
+    sigma = MAP_SIGMA_CELLS / HELD_OUT_COARSENING
+    out = []
+    for fill in fills:
+        errors, fold_rmse = [], []
+        for train, test in GroupKFold(n_splits=folds).split(measured, groups=groups):
+            m = fit_centroid_map(measured[train], true[train], half_span_mm, cells, sigma, fill)
+            corrected = np.array([m.correct(x, y) for x, y in measured[test]])
+            err = corrected - true[test]
+            errors.append(err)
+            fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
+        rmse = np.sqrt(np.mean(np.concatenate(errors) ** 2, axis=0))
+        out.append({"fill": fill, "heldout_rmse_mm": rmse.round(4).tolist(),
+                    "heldout_spread_mm": round(float(np.std(fold_rmse)), 4), "score_mm": round(float(rmse.mean()), 4)})
+    return out

@@ -19,7 +19,7 @@ from optitac_edge.calibration.bundle_models import (
     with_shape_model,
     with_width_model,
 )
-from optitac_edge.calibration.centroid_fit import fit_centroid_map
+from optitac_edge.calibration.centroid_fit import FILLS, fit_centroid_map, held_out_fills
 from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, grouped_means, select_feature
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.measure import Measurements, measure_recording
@@ -31,7 +31,7 @@ from optitac_edge.calibration.orientation import (
     mark_verified,
     reorient_bundle,
 )
-from optitac_edge.calibration.width_fit import fit_width_model
+from optitac_edge.calibration.width_fit import WIDTH_FORMS, select_width_form
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.depth_model import DEPTH_FEATURES, DepthForceModel, depth_feature
 from optitac_edge.errors import OrientationError, RecordingError
@@ -89,9 +89,10 @@ def calibrate_orientation(rec: Recording, bundle: CalibrationBundle
     return reorient_bundle(bundle, fit.symmetry, evidence), fit
 
 
-def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "nearest",
+def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "auto",
                        bundle_path: str = "CAL") -> tuple[CalibrationBundle, dict[str, Any]]:
-    """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map).
+    """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map;
+    ``auto``, default: the fill with the smaller error on presses held out of the map).
 
     The bundle's orientation is checked against the same presses first.
 
@@ -118,24 +119,38 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "n
     frames = truth.frame[rows]
     measured = np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1)
     true = np.stack([truth.x_mm[rows], truth.y_mm[rows]], axis=1)
-    error_map = fit_centroid_map(measured, true, half_span_mm=bundle.layout.radius_mm + MAP_MARGIN_MM,
-                                 fill=fill)
+    span = bundle.layout.radius_mm + MAP_MARGIN_MM
+    groups = press_ids(truth)[rows]
+    try:
+        candidates = held_out_fills(measured, true, groups, span, FILLS if fill == "auto" else (fill,))
+    except ValueError as exc:
+        raise RecordingError(f"{rec.path}: {exc}") from None
+    chosen = min(candidates, key=lambda c: c["score_mm"])
+    fill = chosen["fill"]
+    error_map = fit_centroid_map(measured, true, half_span_mm=span, fill=fill)
     corrected = np.array([error_map.correct(x, y) for x, y in measured])
     summary = {
-        "frames": int(rows.size), "fill": fill,
+        "frames": int(rows.size), "presses": int(np.unique(groups).size), "fill": fill,
         "raw_rmse_mm": np.sqrt(np.mean((measured - true) ** 2, axis=0)).round(4).tolist(),
         "fitted_rmse_mm": np.sqrt(np.mean((corrected - true) ** 2, axis=0)).round(4).tolist(),
+        "heldout_rmse_mm": chosen["heldout_rmse_mm"], "heldout_spread_mm": chosen["heldout_spread_mm"],
     }
     if fit.symmetry is not None:
         bundle = mark_verified(bundle, f"{fit.presses} presses of {rec.path.name}, RMS {fit.best_rmse_mm:.2f} mm")
     bundle = with_centroid_map(bundle, error_map)
     bundle = _with_report_arrays(bundle, centroid_measured=measured, centroid_true=true)
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": summary}), summary
+    details = {**summary, "candidates": candidates}
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": details}), summary
 
 
-def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "monotone"
+def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto"
                     ) -> tuple[CalibrationBundle, dict[str, Any]]:
-    """Per-axis width model from circular presses of known diameter (``linear``: the paper's)."""
+    """Per-axis width model from circular presses of known diameter.
+
+    ``kind``: ``auto`` (default) chooses among :data:`~optitac_edge.calibration.width_fit.WIDTH_FORMS` by
+    presses held out of the fit; a form's name fits that form (its held-out figures are still reported;
+    ``linear``: the paper's).
+    """
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
     rows = np.flatnonzero(detected_rows(m, truth) & (truth.shape == "circle"))
@@ -143,15 +158,26 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "mono
         raise RecordingError(f"{rec.path}: width calibration needs circles of at least two diameters")
     frames = truth.frame[rows]
     major, minor, true = m.major_mm[frames], m.minor_mm[frames], truth.size_mm[rows]
-    model = fit_width_model(major, minor, true, kind=kind)
-    fitted = np.array([model.correct(a, b) for a, b in zip(major, minor)])
+    radius = float(bundle.layout.radius_mm)
+    rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / radius ** 2
+    forms = WIDTH_FORMS if kind == "auto" else (kind,)
+    try:
+        form, model, candidates = select_width_form(major, minor, rho2, true, press_ids(truth)[rows], radius,
+                                                    forms)
+    except ValueError as exc:
+        raise RecordingError(f"{rec.path}: {exc}") from None
+    fitted = np.array([model.correct(a, b, x, y) for a, b, x, y in
+                       zip(major, minor, m.x_mm[frames], m.y_mm[frames])])
+    chosen = next(c for c in candidates if c["form"] == form)
     summary = {
-        "frames": int(rows.size), "kind": kind,
+        "frames": int(rows.size), "presses": int(np.unique(press_ids(truth)[rows]).size), "kind": form,
         "fitted_rmse_mm": np.sqrt(np.mean((fitted - true[:, None]) ** 2, axis=0)).round(4).tolist(),
+        "heldout_rmse_mm": chosen["heldout_rmse_mm"], "heldout_spread_mm": chosen["heldout_spread_mm"],
     }
     bundle = with_width_model(bundle, model)
     bundle = _with_report_arrays(bundle, width_measured=np.stack([major, minor], axis=1), width_true=true)
-    return bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": summary}), summary
+    details = {**summary, "candidates": candidates}
+    return bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": details}), summary
 
 
 def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0

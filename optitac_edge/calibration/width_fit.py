@@ -1,8 +1,15 @@
 """Fit the width model from circular presses of known diameter: per axis, linear (the paper's)
-or monotone piecewise-linear. The result, :class:`~optitac_edge.core.width_model.WidthModel`,
-is applied per contact."""
+or monotone piecewise-linear, each with or without a radial gain. The result,
+:class:`~optitac_edge.core.width_model.WidthModel`, is applied per contact.
+
+:func:`select_width_form` chooses among :data:`WIDTH_FORMS` by presses held out of the fit (``GroupKFold``
+over presses: the frames of one press are never split between fit and check).
+"""
 
 from __future__ import annotations
+
+import math
+from typing import Any
 
 import numpy as np
 
@@ -56,3 +63,93 @@ def fit_width_model(measured_major: np.ndarray, measured_minor: np.ndarray, true
         return WidthModel("monotone", fit_monotone_axis(measured_major, true_diameter),
                           fit_monotone_axis(measured_minor, true_diameter))
     raise ValueError(f"unknown width model kind {kind!r} (linear or monotone)")
+
+
+#: The forms ``calibrate width`` chooses among.
+WIDTH_FORMS = ("linear", "monotone", "linear-radial", "monotone-radial")
+#: The radial gains a ``-radial`` form tries per axis.
+RADIAL_GAINS = tuple(float(v) for v in np.round(np.arange(-0.3, 0.801, 0.02), 3))
+#: Folds of the held-out choice (fewer with fewer presses).
+MAX_FOLDS = 8
+
+
+def _axis(kind: str, measured: np.ndarray, true: np.ndarray) -> AxisMap:
+    return AxisMap.linear(*fit_axis(measured, true)) if kind == "linear" else fit_monotone_axis(measured, true)
+
+
+def _radial_axis(kind: str, measured: np.ndarray, rho2: np.ndarray, true: np.ndarray) -> tuple[AxisMap, float]:
+    """The axis map and radial gain with the smallest RMSE over the given frames."""
+    best: tuple[float, AxisMap, float] | None = None
+    for gain in RADIAL_GAINS:
+        scaled = measured * (1.0 + gain * rho2)
+        try:
+            m = _axis(kind, scaled, true)
+        except ValueError:
+            continue
+        rmse = float(np.sqrt(np.mean((np.array([m(v) for v in scaled]) - true) ** 2)))
+        if best is None or rmse < best[0] - 1e-12:
+            best = (rmse, m, gain)
+    if best is None:
+        raise ValueError("measured widths do not increase with the diameter")
+    return best[1], best[2]
+
+
+def fit_width_form(form: str, major: np.ndarray, minor: np.ndarray, rho2: np.ndarray, true: np.ndarray,
+                   radius_mm: float) -> WidthModel:
+    """Fit one of :data:`WIDTH_FORMS` (arrays of shape (K,): frames; ``rho2``: squared radius / radius_mm²)."""
+    kind, _, radial = form.partition("-")
+    if form not in WIDTH_FORMS:
+        raise ValueError(f"unknown width model form {form!r} (known: {', '.join(WIDTH_FORMS)})")
+    if not radial:
+        return WidthModel(kind, _axis(kind, major, true), _axis(kind, minor, true), radius_mm=radius_mm)
+    r2 = np.minimum(rho2, 1.0)
+    (major_map, g_major), (minor_map, g_minor) = (_radial_axis(kind, a, r2, true) for a in (major, minor))
+    return WidthModel(kind, major_map, minor_map, g_major, g_minor, radius_mm)
+
+
+def select_width_form(major: np.ndarray, minor: np.ndarray, rho2: np.ndarray, true: np.ndarray,
+                      groups: np.ndarray, radius_mm: float, forms: tuple[str, ...] = WIDTH_FORMS
+                      ) -> tuple[str, WidthModel, list[dict[str, Any]]]:
+    """Choose the width model's form by presses held out of the fit.
+
+    Parameters
+    ----------
+    major, minor, rho2, true : ndarray, shape (K,)
+        Per frame: the raw widths (mm), the squared radius over ``radius_mm`` squared, the true diameter.
+    groups : ndarray, shape (K,)
+        The press of every frame.
+
+    Returns
+    -------
+    form, model, candidates
+        The chosen form, fitted on every frame; each form's held-out RMSE (major, minor; mm, pooled over
+        the folds), the spread of the folds' RMSEs and their mean (the score).
+    """
+    from sklearn.model_selection import GroupKFold
+
+    n_groups = np.unique(groups).size
+    if n_groups < 4:
+        raise ValueError(f"need 4 presses or more to choose the width model on held-out presses, got {n_groups}")
+    folds = min(MAX_FOLDS, n_groups)
+    candidates: list[dict[str, Any]] = []
+    for form in forms:
+        errors, fold_rmse = [], []
+        try:
+            for train, test in GroupKFold(n_splits=folds).split(major, groups=groups):
+                m = fit_width_form(form, major[train], minor[train], rho2[train], true[train], radius_mm)
+                pred = np.array([m.correct(a, b, math.sqrt(min(r, 1.0)) * radius_mm, 0.0)
+                                 for a, b, r in zip(major[test], minor[test], rho2[test])])
+                err = pred - true[test, None]
+                errors.append(err)
+                fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
+        except ValueError:
+            continue
+        e = np.concatenate(errors)
+        rmse = np.sqrt(np.mean(e ** 2, axis=0))
+        candidates.append({"form": form, "heldout_rmse_mm": rmse.round(4).tolist(),
+                           "heldout_spread_mm": round(float(np.std(fold_rmse)), 4),
+                           "score_mm": round(float(rmse.mean()), 4)})
+    if not candidates:
+        raise ValueError("no width model could be fitted on held-out presses")
+    best = min(candidates, key=lambda c: c["score_mm"])  # first of equals: the simpler form
+    return best["form"], fit_width_form(best["form"], major, minor, rho2, true, radius_mm), candidates

@@ -133,11 +133,14 @@ def build_parser() -> argparse.ArgumentParser:
         if step == "shapes":
             p.add_argument("--seed", type=SEED, default=0, help="seed of the held-out split and the fits")
         if step == "width":
-            p.add_argument("--model", choices=("monotone", "linear"), default="monotone",
-                           help="per-axis map: monotone piecewise-linear (default) or the paper's linear")
+            p.add_argument("--model", choices=("auto", "linear", "monotone", "linear-radial", "monotone-radial"),
+                           default="auto",
+                           help="per-axis map: auto (default) chooses by presses held out of the fit; linear is "
+                                "the paper's; -radial reads the width scaled by the distance from the centre")
         if step == "centroid":
-            p.add_argument("--fill", choices=("nearest", "linear"), default="nearest",
-                           help="error between presses: the paper's nearest neighbour, or linear")
+            p.add_argument("--fill", choices=("auto", "nearest", "linear"), default="auto",
+                           help="error between presses: auto (default) chooses by presses held out of the map; "
+                                "the paper's nearest neighbour, or linear")
 
     p = sub.add_parser("evaluate", help="print accuracy metrics of a recording against its truth.csv")
     p.add_argument("recording", type=Path)

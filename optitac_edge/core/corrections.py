@@ -101,10 +101,10 @@ class ContactCorrector:
         """Correct one contact (a :class:`~optitac_edge.core.contact.ContactEstimate` with contact)."""
         if self.depth is not None:  # first: it reads the raw widths and position it was fitted on
             self.depth.apply(est)
+        if self.width is not None:  # before the centroid map: it reads the raw position it was fitted on
+            est.major_mm, est.minor_mm = self.width.correct(est.major_mm, est.minor_mm, est.x_mm, est.y_mm)
         if self.centroid is not None:
             est.x_mm, est.y_mm = self.centroid.correct(est.x_mm, est.y_mm)
-        if self.width is not None:
-            est.major_mm, est.minor_mm = self.width.correct(est.major_mm, est.minor_mm)
         if self.shapes is not None:
             features = est.features if self.shapes.n_inputs == est.features.size else est.hu
             est.shape, est.confidence = self.shapes.classify(features)

@@ -7,10 +7,17 @@ calibration diameter, extended linearly beyond the end knots. The skin's
 response is not linear over 1.85–20 mm (small contacts saturate at the skin's
 spread, large ones at the clamped rim), so a straight line leaves a
 systematic error of about 0.3 mm that the monotone map removes.
+
+Either may read the width scaled by ``1 + radial * rho^2`` (``rho = r /
+radius_mm``, capped at the rim), one gain per axis: the clamped rim squeezes
+a contact's darkening towards it, so the same circle reads narrower the
+further out it is. ``calibrate width`` chooses the form by presses held out
+of the fit (:mod:`optitac_edge.calibration.width_fit`).
 """
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_right
 from dataclasses import dataclass, field
 from typing import Any
@@ -68,18 +75,48 @@ class AxisMap:
 
 @dataclass(frozen=True, eq=False)
 class WidthModel:
-    """Width calibration of the major and minor axes."""
+    """Width calibration of the major and minor axes.
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`WIDTH_KINDS`.
+    major, minor : AxisMap
+        Scaled measured width -> true width, per axis.
+    radial_major, radial_minor : float
+        Each axis' radial gain (> -1; 0, default: the width as measured).
+    radius_mm : float
+        The array's radius, mm (> 0).
+    """
 
     kind: str
     major: AxisMap
     minor: AxisMap
+    radial_major: float = 0.0
+    radial_minor: float = 0.0
+    radius_mm: float = 1.0
 
-    def correct(self, major_mm: float, minor_mm: float) -> tuple[float, float]:
-        """Calibrated widths, mm, clipped at 0."""
-        return self.major(major_mm), self.minor(minor_mm)
+    def __post_init__(self) -> None:
+        for v in (self.radial_major, self.radial_minor):
+            if not (math.isfinite(v) and v > -1.0):
+                raise ValueError(f"width radial gains must be finite and > -1, got {v!r}")
+        if not (math.isfinite(self.radius_mm) and self.radius_mm > 0):
+            raise ValueError(f"width model radius must be finite and > 0 mm, got {self.radius_mm!r}")
+
+    def correct(self, major_mm: float, minor_mm: float, x_mm: float = 0.0, y_mm: float = 0.0
+                ) -> tuple[float, float]:
+        """Calibrated widths, mm, clipped at 0, of a contact at ``(x_mm, y_mm)`` (the raw centroid)."""
+        if self.radial_major == 0.0 and self.radial_minor == 0.0:
+            return self.major(major_mm), self.minor(minor_mm)
+        rho2 = min((x_mm * x_mm + y_mm * y_mm) / (self.radius_mm * self.radius_mm), 1.0)
+        if math.isnan(rho2):  # NaN position: as measured
+            rho2 = 0.0
+        return (self.major(major_mm * (1.0 + self.radial_major * rho2)),
+                self.minor(minor_mm * (1.0 + self.radial_minor * rho2)))
 
     def to_bundle(self) -> dict[str, Any]:
-        return {"kind": self.kind,
+        return {"kind": self.kind, "radial_major": self.radial_major, "radial_minor": self.radial_minor,
+                "radius_mm": self.radius_mm,
                 **{f"{name}_{part}": getattr(getattr(self, name), f"knots_{part}").tolist()
                    for name in ("major", "minor") for part in ("measured", "true")}}
 
@@ -90,6 +127,7 @@ class WidthModel:
         axes = {name: AxisMap(np.asarray(meta[f"{name}_measured"], dtype=np.float64),
                               np.asarray(meta[f"{name}_true"], dtype=np.float64))
                 for name in ("major", "minor")}
-        return cls(kind=meta["kind"], **axes)
+        return cls(kind=meta["kind"], **axes, radial_major=float(meta.get("radial_major", 0.0)),
+                   radial_minor=float(meta.get("radial_minor", 0.0)), radius_mm=float(meta.get("radius_mm", 1.0)))
 
 

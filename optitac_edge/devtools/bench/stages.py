@@ -88,7 +88,7 @@ class StageTimer:
         if self._centroid is not None:
             self._centroid.correct(est.x_mm, est.y_mm)
         if self._width is not None:
-            self._width.correct(est.major_mm, est.minor_mm)
+            self._width.correct(est.major_mm, est.minor_mm, est.x_mm, est.y_mm)
 
     def _encode_frame(self, est: ContactEstimate, t_ns: int) -> None:
         self._msg.fill(est, t_ns, t_ns, True)
