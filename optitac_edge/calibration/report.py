@@ -14,10 +14,26 @@ from optitac_edge.errors import OptiTacError, OutputError, missing_extra
 from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.files import check_output_path, write_file_atomic
 from optitac_edge.io.recording import SHAPES, Recording
-from optitac_edge.text import fields
+from optitac_edge.text import fields, plain
 
 _COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",
             "triangle": "tab:purple"}
+
+
+def _fit_lines(title: str, fit: dict[str, Any], name_key: str) -> list[str]:
+    """A step's summary in one line, and its candidates' held-out figures in another (no raw dicts)."""
+    lists = {k: v for k, v in fit.items() if k.endswith("candidates") and isinstance(v, list)}
+    lines = [f"{title}: {fields({k: v for k, v in fit.items() if k not in lists})}."]
+    for key, candidates in lists.items():
+        parts = []
+        for c in candidates:
+            if not isinstance(c, dict):
+                continue
+            name = c.get(name_key, c.get("fill", c.get("form", "?")))
+            figure = c.get("expected_rmse", c.get("score_mm", c.get("heldout_rmse_mm")))
+            parts.append(f"{name} {plain(figure)}")
+        lines.append(f"{title}, {key.replace('_', ' ')} on held-out presses (score): {', '.join(parts)}.")
+    return lines
 
 
 def _plt() -> Any:
@@ -144,7 +160,7 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Seen presses (calibration data)", _scatter(
             plt, bundle, corrector, arrays["report/centroid_measured"], arrays["report/centroid_true"],
             "seen", out / "seen_scatter.png")))
-        lines.append(f"Centroid calibration: {fields(bundle.extra_meta.get('centroid_fit') or {})}.")
+        lines += _fit_lines("Centroid calibration", bundle.extra_meta.get("centroid_fit") or {}, "fill")
     if unseen is not None:
         m, truth = _measure_truth(unseen, bundle)
         rows = np.flatnonzero(detected_rows(m, truth))
@@ -183,12 +199,17 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         measured, true = arrays["report/width_measured"], arrays["report/width_true"]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
         w = corrector.width
+        xy = arrays.get("report/width_xy")
+        xy = np.zeros((len(measured), 2)) if xy is None or len(xy) != len(measured) else xy
+        calibrated = np.array([w.correct(a, b, x, y) for (a, b), (x, y) in zip(measured, xy)])
         for ax, col, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
             ax.scatter(true, measured[:, col], s=10, label="measured FWHM")
             grid = np.linspace(min(measured[:, col].min(), amap.knots_measured[0]) * 0.95,
                                measured[:, col].max() * 1.05, 100)
-            ax.plot([amap(g) for g in grid], grid, "r-", label=f"{w.kind} width model")
-            fitted = np.array([amap(v) for v in measured[:, col]])
+            radial = w.radial_major if col == 0 else w.radial_minor
+            ax.plot([amap(g) for g in grid], grid, "r-",
+                    label=f"{w.kind} width model" + (f" (at the centre; radial gain {radial:+.2f})" if radial else ""))
+            fitted = calibrated[:, col]
             ax.scatter(true, fitted, s=10, marker="x", c="k", label="calibrated")
             ax.plot([0, true.max()], [0, true.max()], "k:", lw=0.8)
             rmse = float(np.sqrt(np.mean((fitted - true) ** 2)))
@@ -198,7 +219,10 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
             ax.legend(fontsize=7)
         _save(plt, fig, out / "width_fit.png")
         figures.append(("Width calibration", "width_fit.png"))
-        lines.append(f"Width calibration: {fields(bundle.extra_meta.get('width_fit') or {})}.")
+        lines += _fit_lines("Width calibration", bundle.extra_meta.get("width_fit") or {}, "form")
+    depth_fit = bundle.extra_meta.get("depth_fit")
+    if depth_fit:
+        lines += _fit_lines("Depth calibration", depth_fit, "feature")
     shapes_fit = bundle.extra_meta.get("shapes_fit")
     if shapes_fit:
         chosen = next(shapes_fit[k] for k in ("unsupervised", "supervised")

@@ -175,7 +175,8 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto
         "heldout_rmse_mm": chosen["heldout_rmse_mm"], "heldout_spread_mm": chosen["heldout_spread_mm"],
     }
     bundle = with_width_model(bundle, model)
-    bundle = _with_report_arrays(bundle, width_measured=np.stack([major, minor], axis=1), width_true=true)
+    bundle = _with_report_arrays(bundle, width_measured=np.stack([major, minor], axis=1), width_true=true,
+                                 width_xy=np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1))
     details = {**summary, "candidates": candidates}
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": details}), summary
 
