@@ -257,3 +257,9 @@ def test_a_depth_model_from_too_few_presses_is_refused_by_the_verdict(tmp_path, 
     assert main(["evaluate", str(rec), "--cal", str(cal), "--strict"]) == 1
     out = capsys.readouterr().out
     assert "[FAIL] depth: 17 presses (need 56)" in out
+    # the report: the depth model's choice and held-out figures (no raw dicts), and the check from the bundle
+    assert main(["report", str(cal), "-o", str(tmp_path / "rep")]) == 0
+    text = (tmp_path / "rep" / "index.md").read_text()
+    assert "{" not in text and "}" not in text
+    assert "Depth calibration, depth candidates on held-out presses (score): width " in text
+    assert "[FAIL] depth: 17 presses (need 56)" in text

@@ -75,19 +75,6 @@ def test_the_report_has_a_verdict_and_no_raw_dicts(calibrated, tmp_path) -> None
     assert "nearest " in line and "linear " in line and "'" not in line
 
 
-def test_the_report_shows_the_depth_model_and_its_check(tmp_path) -> None:
-    """The depth model's choice and held-out figures, and the verdict's depth check from the bundle alone."""
-    rec, cal = tmp_path / "depths", tmp_path / "cal.npz"
-    assert main(["collect", "depths", "--rig", "sim://", "-o", str(rec), "--limit", "20"]) == 0
-    assert main(["calibrate", "fibers", str(rec), "-o", str(cal)]) == 0
-    assert main(["calibrate", "depth", str(rec), "--cal", str(cal)]) == 0
-    assert main(["report", str(cal), "-o", str(tmp_path / "rep")]) == 0
-    text = (tmp_path / "rep" / "index.md").read_text()
-    assert "{" not in text and "}" not in text
-    assert "Depth calibration, depth candidates on held-out presses (score): width " in text
-    assert "[FAIL] depth: 25 presses (need 56)" in text
-
-
 def test_error_map_colours_are_on_the_scale_of_the_array() -> None:
     from types import SimpleNamespace
 

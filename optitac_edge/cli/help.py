@@ -15,10 +15,12 @@ COMMANDS: dict[str, tuple[str, list[str]]] = {
         ("Write a recording from the built-in simulated sensor: rest frames, then presses with truth.csv. "
         "Scenarios: rest, demo, seen (a press over every fiber), unseen (0.25 mm steps along x and y), repeat, "
         "widths, shapes, drift (the LED dims), depths (known depths, with a load cell's force). --day and "
-        "--variant give another session and another simulated sensor."),
+        "--variant give another session and another simulated sensor; --physics another guess at how the skin "
+        "responds (docs/simulator.md)."),
         ["optitac-edge sim out/rest --scenario rest",
          "optitac-edge sim out/seen --scenario seen --seed 2",
-         "optitac-edge sim out/depths --scenario depths --seed 5 --day 1"]),
+         "optitac-edge sim out/depths --scenario depths --seed 5 --day 1",
+         "optitac-edge sim out/depths-linear --scenario depths --physics linear --day 2"]),
     "calibrate fibers": (
         ("Build a calibration bundle from a recording's rest frames: where every fiber of the layout is in the "
         "image, the surface grid and the noise-derived contact levels."),
@@ -29,10 +31,12 @@ COMMANDS: dict[str, tuple[str, list[str]]] = {
         "layout (this removes the centroid, width and shape models: calibrate them again)."),
         ["optitac-edge calibrate orientation out/unseen --cal out/cal.npz"]),
     "calibrate centroid": (
-        "Centroid error maps from presses of known position (a 'seen' recording or collection).",
+        ("Centroid error maps from presses of known position (a 'seen' recording or collection); the fill between "
+         "presses is chosen by presses held out of the map."),
         ["optitac-edge calibrate centroid out/seen --cal out/cal.npz"]),
     "calibrate width": (
-        "The width model from circles of known diameter (a 'widths' recording or collection).",
+        ("The width model from circles of known diameter (a 'widths' recording or collection); its form is chosen "
+         "by presses held out of the fit."),
         ["optitac-edge calibrate width out/widths --cal out/cal.npz"]),
     "calibrate shapes": (
         ("The shape classifier from labelled presses (a 'shapes' recording or collection); needs the "
@@ -41,6 +45,7 @@ COMMANDS: dict[str, tuple[str, list[str]]] = {
     "calibrate depth": (
         ("The depth model from presses of known depth (a 'depths' recording or collection), and the force model "
         "where truth.csv has a load cell's force_n column; a rig without a load cell calibrates depth alone. "
+        "The contact feature each model reads is chosen by presses held out of the fit; 56 presses or more. "
         "Needs the calibrate extra (scikit-learn)."),
         ["optitac-edge calibrate depth rec/depths --cal cal.npz      # after: collect depths -o rec/depths",
          "optitac-edge calibrate depth out/depths --cal out/cal.npz  # after: sim out/depths --scenario depths"]),
