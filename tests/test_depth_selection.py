@@ -57,13 +57,24 @@ def test_the_held_out_error_measures_the_noise_of_presses_the_fit_never_saw():
     assert 0.08 < c.heldout_rmse < 0.13 and 0.0 < c.heldout_spread < 0.05
 
 
-def test_folds_never_split_a_press_group():
-    """Rows of one group are held out together: a group of identical rows cannot help predict itself."""
+@pytest.mark.parametrize("sizes", [[3] * 16, [1, 2, 3, 4, 5, 6, 7, 8, 9, 10], [2] * 5 + [7] * 3])
+def test_folds_never_split_a_press_and_balance_as_group_k_fold_does(sizes):
+    """Every row held out exactly once, a press never on both sides, fold sizes as scikit-learn's GroupKFold."""
     from sklearn.model_selection import GroupKFold
 
-    groups = np.repeat(np.arange(16), 3)
-    for train, test in GroupKFold(n_splits=8).split(groups, groups=groups):
+    from optitac_edge.calibration.folds import press_folds
+
+    groups = np.repeat(np.arange(len(sizes)) * 7 + 3, sizes)  # labels need not be 0..n-1
+    folds = list(press_folds(groups, 4))
+    held = np.concatenate([test for _, test in folds])
+    assert np.array_equal(np.sort(held), np.arange(groups.size))
+    for train, test in folds:
         assert not set(groups[train]) & set(groups[test])
+        assert np.array_equal(np.sort(np.concatenate([train, test])), np.arange(groups.size))
+    theirs = sorted(len(test) for _, test in GroupKFold(n_splits=4).split(groups, groups=groups))
+    assert sorted(len(test) for _, test in folds) == theirs
+    with pytest.raises(ValueError, match="folds"):
+        next(press_folds(groups, len(sizes) + 1))
 
 
 def test_too_few_presses_are_refused_in_one_line():

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.calibration.folds import press_folds
 from optitac_edge.core.centroid_map import MAP_CELLS, MAP_SIGMA_CELLS, CentroidErrorMap
 
 
@@ -90,8 +91,6 @@ def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: n
     deviation) of the folds' RMSEs and their mean (the score). The maps of the check are
     :data:`HELD_OUT_COARSENING` times coarser than the runtime's (the same smoothing in mm).
     """
-    from sklearn.model_selection import GroupKFold
-
     measured, true = np.asarray(measured_xy_mm, dtype=np.float64), np.asarray(true_xy_mm, dtype=np.float64)
     n_groups = np.unique(groups).size
     if n_groups < 4:
@@ -102,7 +101,7 @@ def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: n
     out = []
     for fill in fills:
         errors, fold_rmse = [], []
-        for train, test in GroupKFold(n_splits=folds).split(measured, groups=groups):
+        for train, test in press_folds(groups, folds):
             m = fit_centroid_map(measured[train], true[train], half_span_mm, cells, sigma, fill)
             corrected = np.array([m.correct(x, y) for x, y in measured[test]])
             err = corrected - true[test]

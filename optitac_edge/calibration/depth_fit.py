@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from optitac_edge.calibration.folds import press_folds
 from optitac_edge.core.depth_model import GAIN_EXPONENT, RadialMonotoneMap
 from optitac_edge.core.width_model import AxisMap
 
@@ -188,10 +189,8 @@ def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_m
     drift : float
         The response change the drift term assumes.
     """
-    from sklearn.model_selection import GroupKFold
-
     errors, fold_rmse, moved = [], [], []
-    for train, test in GroupKFold(n_splits=folds).split(feature, groups=groups):
+    for train, test in press_folds(groups, folds):
         try:
             fit = fit_radial_monotone(feature[train], rho2[train], target[train], radius_mm, level[train],
                                       weight[train])

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.calibration.folds import press_folds
 from optitac_edge.core.width_model import AxisMap, WidthModel
 
 
@@ -125,8 +126,6 @@ def select_width_form(major: np.ndarray, minor: np.ndarray, rho2: np.ndarray, tr
         The chosen form, fitted on every frame; each form's held-out RMSE (major, minor; mm, pooled over
         the folds), the spread of the folds' RMSEs and their mean (the score).
     """
-    from sklearn.model_selection import GroupKFold
-
     n_groups = np.unique(groups).size
     if n_groups < 4:
         raise ValueError(f"need 4 presses or more to choose the width model on held-out presses, got {n_groups}")
@@ -135,7 +134,7 @@ def select_width_form(major: np.ndarray, minor: np.ndarray, rho2: np.ndarray, tr
     for form in forms:
         errors, fold_rmse = [], []
         try:
-            for train, test in GroupKFold(n_splits=folds).split(major, groups=groups):
+            for train, test in press_folds(groups, folds):
                 m = fit_width_form(form, major[train], minor[train], rho2[train], true[train], radius_mm)
                 pred = np.array([m.correct(a, b, math.sqrt(min(r, 1.0)) * radius_mm, 0.0)
                                  for a, b, r in zip(major[test], minor[test], rho2[test])])
