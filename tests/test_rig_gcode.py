@@ -53,9 +53,8 @@ def test_moves_status_and_limits(grbl) -> None:
         assert len(grbl.lines) == sent  # refused before anything was sent
         rig.move_to((101.0, 80.0, 4.0))
         assert grbl.lines[-1] == "G1 X101.000 Y80.000 Z4.000 F600.0"
-        for _ in range(200):
-            if rig.status().state == "idle":
-                break
+        # idle there: the fake moves in real time, so wait on its reports (200 polls were too few on a busy machine)
+        rig.wait_until_at((101.0, 80.0, 4.0), timeout_s=30.0)
         assert rig.status().xyz_mm == pytest.approx((101.0, 80.0, 4.0))
         with pytest.raises(RigError, match=r"'M3' refused \(error:20\)"):
             rig.command("M3")
