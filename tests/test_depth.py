@@ -250,7 +250,7 @@ def test_a_depth_model_from_too_few_presses_is_refused_by_the_verdict(tmp_path, 
 
     rec, cal = tmp_path / "depths", tmp_path / "cal.npz"
     assert main(["collect", "depths", "--rig", "sim://", "-o", str(rec), "--limit", "12"]) == 0
-    assert "12 collected: too few" in capsys.readouterr().out
+    assert "12 presses collected: too few" in capsys.readouterr().out
     assert main(["calibrate", "fibers", str(rec), "-o", str(cal)]) == 0
     assert main(["calibrate", "depth", str(rec), "--cal", str(cal)]) == 0
     capsys.readouterr()

@@ -108,3 +108,28 @@ def test_the_error_maps_grey_out_what_no_press_measured_and_mark_the_presses(cal
     centre = np.unravel_index(np.argmin(np.hypot(cm.x0_mm + cm.step_mm * np.arange(cm.n)[None, :],
                                                  cm.y0_mm + cm.step_mm * np.arange(cm.n)[:, None])), near.shape)
     assert near[centre] and near.sum() < 0.05 * near.size
+
+
+def test_the_width_check_needs_three_presses_a_diameter_and_reads_the_evaluated_widths(calibrated, tmp_path):
+    """Issue 26: a width model is judged by its held-out error at calibration, the presses of its rarest
+    diameter (the learning curve settles at 3) and, on a recording of circles, the error measured there."""
+    from dataclasses import replace as dc_replace
+
+    from optitac_edge.calibration.steps import calibrate_width
+    from optitac_edge.calibration.verdict import width_check
+
+    _, fibers, _, _ = calibrated
+    widths = Recording(write_scenario(tmp_path / "widths", "widths", seed=4))
+    bundle, summary = calibrate_width(widths, fibers)
+    assert summary["presses_per_diameter"] == 5 and len(summary["heldout_rmse_mm"]) == 2
+    check = width_check(bundle)
+    assert check is not None and check.ok and "5 presses of its rarest diameter (need 3)" in check.seen
+    other = Recording(write_scenario(tmp_path / "widths2", "widths", seed=5, day=2))
+    here = width_check(bundle, measure_recording(other, bundle, progress=False), other.truth)
+    assert here is not None and here.ok and "mm here over" in here.seen
+    few = bundle.with_updates(extra_meta={**bundle.extra_meta,
+                                          "width_fit": {**bundle.extra_meta["width_fit"], "presses_per_diameter": 2}})
+    assert not width_check(few).ok
+    old = bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": {"frames": 120, "kind": "monotone"}})
+    assert "older calibration" in width_check(old).seen
+    assert dc_replace(check, ok=False).line().startswith("  [FAIL] width:")

@@ -44,7 +44,12 @@ from optitac_edge.calibration.evaluation import (
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.measure import measure_recording
 from optitac_edge.calibration.steps import calibrate_centroid, calibrate_depth, calibrate_shapes, calibrate_width
-from optitac_edge.calibration.verdict import MIN_DEPTH_PRESSES, depth_check
+from optitac_edge.calibration.verdict import (
+    MIN_DEPTH_PRESSES,
+    MIN_WIDTH_PRESSES_PER_DIAMETER,
+    depth_check,
+    width_check,
+)
 from optitac_edge.core.options import ContactOptions
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.optics import CameraOptics
@@ -157,6 +162,7 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
             rows = np.flatnonzero(detected_rows(calibrated, truth))
             f, press = truth.frame[rows], press_ids(truth)[rows]
             out["width_floor"] = (frame_noise(calibrated.major_mm[f], press), frame_noise(calibrated.minor_mm[f], press))
+            out["width_verdict"] = width_check(bundle, calibrated, truth)
         elif name == "shapes":
             out["shapes"] = shape_accuracy(calibrated, truth)
         elif name == "depths":
@@ -287,6 +293,9 @@ def physics_rows(r: dict[str, Any]) -> dict[str, str]:
     rows["width model: form, held-out RMSE at calibration (mm)"] = (
         f"{r['width_fit']['kind']}, {r['width_fit']['heldout_rmse_mm'][0]:.3f} / "
         f"{r['width_fit']['heldout_rmse_mm'][1]:.3f}")
+    wcheck = r["width_verdict"]
+    rows["evaluate's width check"] = ("ok" if wcheck.ok else "FAIL") + (
+        f" ({max(r['widths'].rmse_major, r['widths'].rmse_minor):.3f} mm here, limit 0.5)")
     rows["depth RMSE, real depths (mm)"] = full["depth RMSE, real depths (mm)"]
     rows["floor: real depth (mm)"] = "0 (exact)"
     cmd = r["depth_commanded"].depth_rmse_mm
@@ -362,13 +371,48 @@ def learning_curve(cal: Recording, ev: Recording, bundle: Any, sizes: tuple[int,
 
 
 LEARNING_SIZES = (16, 24, 32, 48, 56, 84, 112)
+WIDTH_PER_DIAMETER = (1, 2, 3, 4, 5)
+
+
+def width_learning_curve(cal: Recording, ev: Recording, bundle: Any, draws: int = 3
+                         ) -> dict[int, tuple[float, float]]:
+    """Width RMSE (the worse axis) on another day's circles of a model calibrated on ``k`` presses of each
+    diameter drawn at random: (mean, worst) over ``draws`` draws, per ``k``."""
+    from optitac_edge.calibration.width_fit import select_width_form
+
+    radius = float(bundle.layout.radius_mm)
+
+    def per_frame(rec: Recording) -> tuple[np.ndarray, ...]:
+        m = measure_recording(rec, bundle, corrected=False, progress=False)
+        rows = np.flatnonzero(detected_rows(m, rec.truth) & (rec.truth.shape == "circle"))
+        f = rec.truth.frame[rows]
+        return (m.major_mm[f], m.minor_mm[f], m.x_mm[f], m.y_mm[f], rec.truth.size_mm[rows],
+                press_ids(rec.truth)[rows])
+
+    a, e = per_frame(cal), per_frame(ev)
+    out = {}
+    for k in WIDTH_PER_DIAMETER:
+        errors = []
+        for draw in range(draws):
+            rng = np.random.default_rng([k, draw])
+            keep = [p for d in np.unique(a[4]) for p in rng.choice(np.unique(a[5][a[4] == d]), k, replace=False)]
+            sel = np.isin(a[5], keep)
+            rho2 = (a[2][sel] ** 2 + a[3][sel] ** 2) / radius ** 2
+            try:
+                _, model, _ = select_width_form(a[0][sel], a[1][sel], rho2, a[4][sel], a[5][sel], radius)
+            except ValueError:
+                continue
+            pred = np.array([model.correct(*v) for v in zip(*e[:4])])
+            errors.append(float(np.sqrt(np.mean((pred - e[4][:, None]) ** 2, axis=0)).max()))
+        out[k] = (float(np.mean(errors)), float(np.max(errors))) if errors else (float("nan"), float("nan"))
+    return out
 
 
 def physics_section(workdir: Path, names: list[str]) -> list[str]:
     """The default sensor under every simulated physics: the accuracy table, the depth candidates, the curve."""
     from optitac_edge.sim.physics import physics as physics_named
 
-    results, curves = {}, {}
+    results, curves, wcurves = {}, {}, {}
     for name in names:
         print(f"physics {name} ...", flush=True)
         cal = {n: record(workdir, 0, CAL_DAY, n, seed=100 + k, physics=name) for k, n in enumerate(CAL_SCENARIOS)}
@@ -377,6 +421,7 @@ def physics_section(workdir: Path, names: list[str]) -> list[str]:
         cfg = configs(measured_noise(probe))["all (default)"]
         results[name] = evaluate_config(cal, ev, cfg, (0.0, False))
         curves[name] = learning_curve(cal["depths"], ev["depths"], results[name]["bundle"], LEARNING_SIZES)
+        wcurves[name] = width_learning_curve(cal["widths"], ev["widths"], results[name]["bundle"])
     rows = {name: physics_rows(r) for name, r in results.items()}
     keys = list(next(iter(rows.values())))
     paper = {**PAPER_FOR_ROW, "unseen RMSE cal (mm)": PAPER["unseen_rmse"]}
@@ -401,6 +446,15 @@ def physics_section(workdir: Path, names: list[str]) -> list[str]:
               "| physics | " + " | ".join(f"n = {n}" for n in LEARNING_SIZES) + " |",
               "|---|" + "---|" * len(LEARNING_SIZES)]
     for name, curve in curves.items():
+        lines.append(f"| {name} | " + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in curve.values()) + " |")
+    lines += ["", "### How many presses the width model needs", "",
+              ("The width model calibrated on k presses of each diameter drawn at random from the 5 of the "
+               "calibration day (3 draws each), evaluated on the other day's circles: mean / worst RMSE of the "
+               "worse axis, mm. The verdict refuses a width model calibrated on fewer than "
+               f"{MIN_WIDTH_PRESSES_PER_DIAMETER} presses of any diameter."), "",
+              "| physics | " + " | ".join(f"k = {k}" for k in WIDTH_PER_DIAMETER) + " |",
+              "|---|" + "---|" * len(WIDTH_PER_DIAMETER)]
+    for name, curve in wcurves.items():
         lines.append(f"| {name} | " + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in curve.values()) + " |")
     return lines
 

@@ -168,14 +168,13 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Unseen presses", _scatter(
             plt, bundle, corrector, np.stack([m.x_mm[f], m.y_mm[f]], 1),
             np.stack([truth.x_mm[rows], truth.y_mm[rows]], 1), "unseen", out / "unseen_scatter.png")))
-    from optitac_edge.calibration.verdict import Verdict, bundle_checks, depth_check, judge
+    from optitac_edge.calibration.verdict import Verdict, bundle_checks, judge, model_checks
 
     if unseen is not None:
         verdict = judge(bundle, *_measure_truth(unseen, bundle, corrected=True))
         basis = f"the presses of `{Path(unseen).name}`"
     else:
-        depth = depth_check(bundle)
-        verdict = Verdict(tuple(bundle_checks(bundle)) + ((depth,) if depth is not None else ()))
+        verdict = Verdict(tuple(bundle_checks(bundle) + model_checks(bundle)))
         basis = "the bundle alone (give --unseen REC for the centroid and detection checks)"
     head, *checks = verdict.lines()
     lines += ["", "## Verdict", "", f"**{head[len('verdict: '):]}**, from {basis}:", "",

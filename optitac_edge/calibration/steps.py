@@ -169,8 +169,11 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto
     fitted = np.array([model.correct(a, b, x, y) for a, b, x, y in
                        zip(major, minor, m.x_mm[frames], m.y_mm[frames])])
     chosen = next(c for c in candidates if c["form"] == form)
+    presses = press_ids(truth)[rows]
+    per_diameter = min(np.unique(presses[true == d]).size for d in np.unique(true))
     summary = {
-        "frames": int(rows.size), "presses": int(np.unique(press_ids(truth)[rows]).size), "kind": form,
+        "frames": int(rows.size), "presses": int(np.unique(presses).size), "presses_per_diameter": int(per_diameter),
+        "kind": form,
         "fitted_rmse_mm": np.sqrt(np.mean((fitted - true[:, None]) ** 2, axis=0)).round(4).tolist(),
         "heldout_rmse_mm": chosen["heldout_rmse_mm"], "heldout_spread_mm": chosen["heldout_spread_mm"],
     }

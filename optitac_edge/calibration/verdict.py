@@ -17,6 +17,10 @@ depth (when calibrated)        >= 56 presses; held-out and       below 56 presse
                                evaluated RMSE <= 0.25 mm against  not settled (the learning curve in
                                commanded depths; evaluated       docs/accuracy.md); an evaluated error far
                                <= 2x held-out + 0.05 mm          above the held-out one: the skin changed
+width (when calibrated)        >= 3 presses of each diameter;    below 3 a diameter the held-out error has
+                               held-out and evaluated RMSE       not settled (docs/accuracy.md); 0.5 mm is
+                               <= 0.5 mm per axis; evaluated     half the paper's width accuracy
+                               <= 2x held-out + 0.1 mm
 =============================  ================================  ==========================================
 """
 
@@ -28,11 +32,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from optitac_edge.calibration.evaluation import centroid_accuracy, depth_accuracy, detection
+from optitac_edge.calibration.evaluation import centroid_accuracy, depth_accuracy, detection, width_accuracy
 from optitac_edge.calibration.measure import Measurements
 from optitac_edge.calibration.orientation import is_verified
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.corrections import CENTROID_KEY, DEPTH_KEY
+from optitac_edge.core.corrections import CENTROID_KEY, DEPTH_KEY, WIDTH_KEY
 from optitac_edge.io.recording import Truth
 
 MAX_RESIDUAL_PITCH = 0.15
@@ -43,8 +47,15 @@ MIN_DETECTION = 0.99
 #: Presses a depth model needs (the learning curve on the simulator's physics, docs/accuracy.md).
 MIN_DEPTH_PRESSES = 56
 MAX_DEPTH_RMSE_MM = 0.25
-#: Presses each experiment's model needs for its held-out error to settle: (model, presses).
-PRESSES_NEEDED = {"depths": ("depth", MIN_DEPTH_PRESSES)}
+#: Presses of each diameter a width model needs (the learning curve, docs/accuracy.md).
+MIN_WIDTH_PRESSES_PER_DIAMETER = 3
+MAX_WIDTH_RMSE_MM = 0.5
+WIDTH_AGREEMENT, WIDTH_AGREEMENT_MM = 2.0, 0.1
+#: Presses each experiment's model needs for its held-out error to settle: (model, what, how many presses at
+#: the least; of each diameter for widths).
+PRESSES_NEEDED = {"depths": ("depth", f"{MIN_DEPTH_PRESSES} presses", MIN_DEPTH_PRESSES),
+                  "widths": ("width", f"{MIN_WIDTH_PRESSES_PER_DIAMETER} presses of each diameter",
+                             MIN_WIDTH_PRESSES_PER_DIAMETER)}
 #: An evaluated depth error above ``DEPTH_AGREEMENT * held-out + DEPTH_AGREEMENT_MM`` disagrees with the
 #: calibration's own held-out figure.
 DEPTH_AGREEMENT, DEPTH_AGREEMENT_MM = 2.0, 0.05
@@ -129,10 +140,44 @@ def judge(bundle: CalibrationBundle, m: Measurements, truth: Truth) -> Verdict:
                         f"{d.detected}/{d.contact_frames} contact frames, {d.false_contacts} false contacts "
                         f"(limits {100 * MIN_DETECTION:g} %, 0)",
                         "check the LED and the rest frames; take the baseline again (tare)"))
-    depth = depth_check(bundle, m, truth)
-    if depth is not None:
-        checks.append(depth)
+    checks += model_checks(bundle, m, truth)
     return Verdict(tuple(checks))
+
+
+def model_checks(bundle: CalibrationBundle, m: Measurements | None = None, truth: Truth | None = None
+                 ) -> list[Check]:
+    """The width and depth models' checks, where the bundle has them."""
+    return [c for c in (width_check(bundle, m, truth), depth_check(bundle, m, truth)) if c is not None]
+
+
+def _numbers(*values: object) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+
+
+def width_check(bundle: CalibrationBundle, m: Measurements | None = None, truth: Truth | None = None
+                ) -> Check | None:
+    """The width model's check (None: the bundle has none): presses of each diameter, its held-out error at
+    calibration, and, when the evaluated recording presses circles of several diameters, the error there."""
+    if WIDTH_KEY not in bundle.extra_meta:
+        return None
+    fit = bundle.extra_meta.get("width_fit", {})
+    fix = "collect widths (every diameter, 5 presses each) and calibrate width again"
+    heldout, per_diameter = fit.get("heldout_rmse_mm"), fit.get("presses_per_diameter")
+    if not (isinstance(heldout, list) and len(heldout) == 2 and _numbers(*heldout, per_diameter)):
+        return Check("width", False, "calibrated without held-out presses (an older calibration)", fix)
+    worst = max(heldout)
+    seen = (f"{per_diameter} presses of its rarest diameter (need {MIN_WIDTH_PRESSES_PER_DIAMETER}), held-out "
+            f"RMSE {heldout[0]:.3f} / {heldout[1]:.3f} mm at calibration")
+    ok = per_diameter >= MIN_WIDTH_PRESSES_PER_DIAMETER and worst <= MAX_WIDTH_RMSE_MM
+    report = width_accuracy(m, truth) if m is not None and truth is not None else None
+    if report is not None:
+        here = max(report.rmse_major, report.rmse_minor)
+        agrees = here <= WIDTH_AGREEMENT * worst + WIDTH_AGREEMENT_MM
+        seen += f", {report.rmse_major:.3f} / {report.rmse_minor:.3f} mm here over {report.n} frames"
+        ok = ok and here <= MAX_WIDTH_RMSE_MM and agrees
+        if not agrees:
+            fix = "the skin responds differently than when calibrated: " + fix
+    return Check("width", ok, f"{seen} (limit {MAX_WIDTH_RMSE_MM} mm)", fix)
 
 
 def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth: Truth | None = None
@@ -145,7 +190,7 @@ def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth:
     fix = "collect depths (every point at every depth) and calibrate depth again"
     heldout, presses = fit.get("heldout_depth_rmse_mm"), fit.get("presses", 0)
     spread = fit.get("heldout_depth_spread_mm", math.nan)
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (heldout, presses, spread)):
+    if not _numbers(heldout, presses, spread):
         return Check("depth", False, "calibrated without held-out presses (an older calibration)", fix)
     seen = (f"{presses} presses (need {MIN_DEPTH_PRESSES}), held-out RMSE {heldout:.3f} "
             f"± {spread:.3f} mm at calibration")
