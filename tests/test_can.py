@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from optitac_edge.errors import TransportError
+from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.protocol.can_codec import (
     BASE_ID,
     DBC_PATH,
@@ -467,7 +468,7 @@ def test_close_while_reconnecting_stops_the_thread(link):
     tx, _ = link
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
-    tx._backoff = tx._backoff_min = 10.0  # the thread would wait long
+    tx._backoff = Backoff(10.0, 10.0)  # the thread would wait long
     flaky.fail = [OSError(errno.ENETDOWN, "Network is down")]
     tx.send_status(StatusMessage(sensor_id=3))
     thread = tx._reconnector

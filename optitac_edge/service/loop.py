@@ -31,6 +31,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
+from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.protocol.messages import (
@@ -132,22 +133,6 @@ class _CameraEnded(Exception):
     """The camera is a finite source (a recording) and has no more frames."""
 
 
-class _Backoff:
-    """Exponential delays between reopen attempts: ``first``, doubling, at most ``longest``."""
-
-    def __init__(self, first: float, longest: float) -> None:
-        self.first, self.longest = first, max(longest, first)
-        self.delay = first
-
-    def next(self) -> float:
-        """The delay to wait now; the next one doubles."""
-        delay = self.delay
-        self.delay = min(delay * 2, self.longest)
-        return delay
-
-    def reset(self) -> None:
-        self.delay = self.first
-
 
 class Service:
     """Runs the frame loop of one camera: every sensor the camera reads, one transport.
@@ -216,7 +201,7 @@ class Service:
         #: The bundle could not be saved (the service runs on it from memory): STATUS bit5.
         self.calibration_unsaved = False
         gap_s = config.watchdog.max_frame_gap_s
-        self._backoff = _Backoff(REOPEN_BACKOFF_S, min(REOPEN_BACKOFF_MAX_S, gap_s / 4))
+        self._backoff = Backoff(REOPEN_BACKOFF_S, min(REOPEN_BACKOFF_MAX_S, gap_s / 4))
         self._max_gap_ns = int(gap_s * 1e9)
         self._status_period_ns = int(config.status.period_s * 1e9)
         self._reopen_at_ns = 0

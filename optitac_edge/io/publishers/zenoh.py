@@ -23,6 +23,7 @@ from typing import Any
 import zenoh
 
 from optitac_edge.errors import PublishError
+from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2 import rmw_zenoh
@@ -162,7 +163,7 @@ class ZenohPublisher(Publisher):
         #: Attempts to open the session so far, and why the last one failed ("" once open).
         self.attempts = 0
         self.failure = ""
-        self._retry_s = RETRY_FIRST_S
+        self._retry = Backoff(RETRY_FIRST_S, RETRY_MAX_S)
         self._next_ns = 0
         if not self._try_open():
             log.warning("Zenoh: cannot open a session yet (%s): nothing is published until it opens; trying again "
@@ -182,8 +183,7 @@ class ZenohPublisher(Publisher):
         except Exception as exc:  # noqa: BLE001 - a router not up, a port in use: tried again later
             self.failure = _one_line(exc)
             now = self._clock.monotonic_ns()
-            self._next_ns = now + int(self._retry_s * 1e9)
-            self._retry_s = min(self._retry_s * 2, RETRY_MAX_S)
+            self._next_ns = now + int(self._retry.next() * 1e9)
             return False
         self._session, self.zid, self.failure = session, str(session.zid()), ""
         self._tokens.append(session.liveliness().declare_token(

@@ -26,6 +26,7 @@ from typing import Any
 import can
 
 from optitac_edge.errors import TransportError
+from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec, message_ids
 from optitac_edge.io.protocol.messages import (
     PROTOCOL_VERSIONS,
@@ -131,8 +132,7 @@ class CanTransport(Transport):
         self.channel, self.interface, self.bitrate = channel, interface, bitrate
         self.stats = CanStats()
         self._bus_kwargs = dict(bus_kwargs or {})
-        self._backoff_min, self._backoff_max = float(backoff_s[0]), float(backoff_s[1])
-        self._backoff = self._backoff_min
+        self._backoff = Backoff(float(backoff_s[0]), float(backoff_s[1]))
         self._down_after = max(int(down_after), 1)
         self._consecutive_errors = 0
         self._lock = threading.Lock()  # guards _bus swaps and the reconnect thread
@@ -177,8 +177,7 @@ class CanTransport(Transport):
         self._shutdown_quietly(bus)
 
     def _reconnect_loop(self) -> None:
-        while not self._stop.wait(self._backoff):
-            self._backoff = min(self._backoff * 2.0, self._backoff_max)
+        while not self._stop.wait(self._backoff.next()):
             try:
                 bus = self._open_bus()
             except Exception as exc:  # noqa: BLE001 - any driver failure means "try later"
@@ -244,7 +243,7 @@ class CanTransport(Transport):
         if self._consecutive_errors:
             log.info("CAN sends recovered after %d failures", self._consecutive_errors)
         self._consecutive_errors = 0
-        self._backoff = self._backoff_min
+        self._backoff.reset()
         return True
 
     def send_contact(self, message: ContactMessage) -> None:

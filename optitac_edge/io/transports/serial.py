@@ -32,6 +32,7 @@ from collections.abc import Callable
 from typing import Any
 
 from optitac_edge.errors import TransportError
+from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.protocol import wire, wire_v2
 from optitac_edge.io.protocol.decoder import FrameDecoder
 from optitac_edge.io.protocol.messages import (
@@ -456,7 +457,7 @@ class SerialTransport(Transport):
                     log.debug("closing %s: %s", self.url, exc)
 
     def _io_loop(self) -> None:
-        backoff = self.backoff_min
+        backoff = Backoff(self.backoff_min, self.backoff_max)
         while not self._stop.is_set():
             if self._port is None or self._broken.is_set():
                 self._drop_port()
@@ -464,13 +465,12 @@ class SerialTransport(Transport):
                     port = self._open()
                 except Exception as exc:  # noqa: BLE001 - not there (yet): retry later
                     log.debug("serial open %s failed: %s", self.url, exc)
-                    self._stop.wait(backoff)
-                    backoff = min(backoff * 2, self.backoff_max)
+                    self._stop.wait(backoff.next())
                     continue
                 if self._stop.is_set():
                     port.close()
                     break
-                backoff = self.backoff_min
+                backoff.reset()
                 self._set_port(port)
                 log.info("serial port %s open", self.url)
             port = self._port
