@@ -281,3 +281,17 @@ def test_command_line_numbers_are_ascii_digits(text, capsys):
     with pytest.raises(SystemExit) as ex:
         main(["sim", "x", "--scenario", "rest", "--frames", text])
     assert ex.value.code == 2 and "is not an integer" in capsys.readouterr().err
+
+
+def test_the_camera_backends_a_config_may_name_are_the_registrys(tmp_path, monkeypatch):
+    """One list of camera names: the registry (io/cameras BACKENDS); a backend added there is valid in a board
+    config, and the refusal names exactly the registry's names."""
+    from optitac_edge.io import cameras
+
+    path = tmp_path / "board.toml"
+    path.write_text('[camera]\nbackend = "webcam"\n')
+    with pytest.raises(ConfigError) as info:
+        load_board_config(path, env={})
+    assert "must be one of " + ", ".join(repr(n) for n in sorted(cameras.BACKENDS)) in str(info.value)
+    monkeypatch.setitem(cameras.BACKENDS, "webcam", "my_cameras:Webcam")
+    assert load_board_config(path, env={}).camera.backend == "webcam"

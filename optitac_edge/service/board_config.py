@@ -41,8 +41,6 @@ from optitac_edge.text import parse_float, parse_int
 DEFAULT_STATE_DIR = "/var/lib/optitac-edge"
 #: Prefix of the environment variables that override file values.
 ENV_PREFIX = "OPTITAC_"
-#: Camera backends a board config may name (the registry in optitac_edge.io.cameras may add more).
-KNOWN_CAMERA_BACKENDS = ("sim", "recording", "picamera2", "v4l2")
 #: Most rest frames calibrated from at start (each is held in memory: 300 RGB 640x480 frames are 276 MB).
 MAX_REST_FRAMES = 300
 #: The only schema version there is.
@@ -146,7 +144,7 @@ def _choice(*choices: str) -> Checker:
 def _camera_backend(value: Any, from_text: bool) -> str:
     from optitac_edge.io.cameras import BACKENDS
 
-    return _choice(*sorted(set(KNOWN_CAMERA_BACKENDS) | set(BACKENDS)))(value, from_text)
+    return _choice(*sorted(BACKENDS))(value, from_text)  # the registry is the one list of names
 
 
 def _path(value: Any, from_text: bool) -> str:
