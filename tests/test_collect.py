@@ -99,6 +99,8 @@ def test_a_real_rig_without_limits_is_refused(tmp_path, capsys) -> None:
 @pytest.mark.parametrize("url, message", [
     ("sim://?spin=3", "unknown key 'spin'"), ("sim://?rotation=abc", "finite numbers"),
     ("ftp://x", "unknown rig URL"), ("sim://host/path", "sim://?key=value"),
+    ("gcode:/dev/ttyUSB0", "unknown rig URL"), ("ur:host", "unknown rig URL"),
+    ("sim://?physics=rubber", "unknown physics 'rubber'"),
 ])
 def test_bad_rig_urls_are_one_line(url, message, tmp_path, capsys) -> None:
     assert main(["collect", "seen", "--rig", url, "-o", str(tmp_path / "r")]) == 2

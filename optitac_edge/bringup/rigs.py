@@ -12,8 +12,24 @@ from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.rigs.base import Rig, RigLimits
 from optitac_edge.service.board_config import BoardConfig
 
+#: Rig URL scheme -> the prefix a URL of it starts with (the simulator's takes ``sim:`` with or without ``//``).
+RIG_SCHEMES = {"gcode": "gcode://", "ur": "ur://", "sim": "sim:"}
 #: Limits of the simulated rig when the board config sets none (its sensor sits at 100, 80; surface z 2).
 SIM_LIMITS = RigLimits(x_mm=(40.0, 160.0), y_mm=(20.0, 140.0), z_mm=(-6.0, 20.0), feed_mm_s=20.0, safe_z_mm=12.0)
+
+
+def rig_scheme(url: str) -> str:
+    """The scheme of a rig URL (a key of :data:`RIG_SCHEMES`).
+
+    Raises
+    ------
+    RigError
+        For any other URL, in one line naming the known forms.
+    """
+    for scheme, prefix in RIG_SCHEMES.items():
+        if url.startswith(prefix):
+            return scheme
+    raise RigError(f"unknown rig URL {url!r} (gcode://PORT, ur://HOST or sim://)")
 
 
 def rig_limits(config: BoardConfig, url: str) -> RigLimits:
@@ -26,7 +42,7 @@ def rig_limits(config: BoardConfig, url: str) -> RigLimits:
     """
     r = config.rig
     if not r.limits_set:
-        if url.startswith("sim:"):
+        if rig_scheme(url) == "sim":
             return SIM_LIMITS
         raise RigError(f"{config.source}: set the rig's travel limits (rig.x_min, x_max, y_min, y_max, z_min, "
                        "z_max) before moving a real rig")
@@ -48,28 +64,25 @@ def open_rig(config: BoardConfig, url: str | None = None) -> tuple[Rig, Camera |
     url = url or config.rig.url
     if not url:
         raise RigError(f"{config.source}: no rig: give --rig URL or set rig.url")
-    if not url.startswith(("gcode://", "ur://", "sim:")):
-        raise RigError(f"unknown rig URL {url!r} (gcode://PORT, ur://HOST or sim://)")
+    scheme = rig_scheme(url)
     limits = rig_limits(config, url)
-    scheme = url.split(":", 1)[0]
-    if scheme == "gcode" and url.startswith("gcode://"):
+    rest = url[len(RIG_SCHEMES[scheme]):]
+    if scheme == "gcode":
         from optitac_edge.io.rigs.gcode import GcodeRig
 
-        return GcodeRig(url[len("gcode://"):], limits, baudrate=config.rig.baudrate, home=config.rig.home), None
-    if scheme == "ur" and url.startswith("ur://"):
+        return GcodeRig(rest, limits, baudrate=config.rig.baudrate, home=config.rig.home), None
+    if scheme == "ur":
         from optitac_edge.io.rigs.ur import UrRig
 
-        return UrRig(url[len("ur://"):].strip("/"), limits), None
-    if scheme == "sim":
-        from optitac_edge.io.clock import VirtualClock
-        from optitac_edge.sim.camera import SimCamera
-        from optitac_edge.sim.rig import SimRig, parse_sim_url
+        return UrRig(rest.strip("/"), limits), None
+    from optitac_edge.io.clock import VirtualClock
+    from optitac_edge.sim.camera import SimCamera
+    from optitac_edge.sim.rig import SimRig, parse_sim_url
 
-        mount = parse_sim_url(url)
-        clock = VirtualClock()
-        rig = SimRig(limits, clock, mount)
-        cam = config.camera
-        camera = SimCamera(fps=cam.fps, width=cam.width, height=cam.height, rgb=cam.pixel_format == "rgb",
-                           realtime=False, clock=clock, program=rig, physics=mount.physics, day=mount.day)
-        return rig, camera
-    raise RigError(f"unknown rig URL {url!r} (gcode://PORT, ur://HOST or sim://)")
+    mount = parse_sim_url(url)
+    clock = VirtualClock()
+    rig = SimRig(limits, clock, mount)
+    cam = config.camera
+    camera = SimCamera(fps=cam.fps, width=cam.width, height=cam.height, rgb=cam.pixel_format == "rgb",
+                       realtime=False, clock=clock, program=rig, physics=mount.physics, day=mount.day)
+    return rig, camera
