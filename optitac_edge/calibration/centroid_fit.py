@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.calibration.folds import press_folds
+from optitac_edge.calibration.folds import fold_count, held_out_errors
 from optitac_edge.core.centroid_map import MAP_CELLS, MAP_SIGMA_CELLS, CentroidErrorMap
 
 
@@ -77,8 +77,6 @@ def fit_centroid_map(
 
 #: The fills ``calibrate centroid`` chooses among.
 FILLS = ("nearest", "linear")
-#: Folds of the held-out check (fewer with fewer presses).
-MAX_FOLDS = 8
 #: The held-out check builds its maps on a mesh this many times coarser, the filter's sigma in mm unchanged.
 HELD_OUT_COARSENING = 4
 
@@ -92,22 +90,16 @@ def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: n
     :data:`HELD_OUT_COARSENING` times coarser than the runtime's (the same smoothing in mm).
     """
     measured, true = np.asarray(measured_xy_mm, dtype=np.float64), np.asarray(true_xy_mm, dtype=np.float64)
-    n_groups = np.unique(groups).size
-    if n_groups < 4:
-        raise ValueError(f"need 4 presses or more to check the centroid map on held-out presses, got {n_groups}")
-    folds = min(MAX_FOLDS, n_groups)
+    folds = fold_count(groups, 4, "check the centroid map")
     cells = MAP_CELLS // HELD_OUT_COARSENING
     sigma = MAP_SIGMA_CELLS / HELD_OUT_COARSENING
     out = []
     for fill in fills:
-        errors, fold_rmse = [], []
-        for train, test in press_folds(groups, folds):
+        def error(train: np.ndarray, test: np.ndarray, fill: str = fill) -> np.ndarray:
             m = fit_centroid_map(measured[train], true[train], half_span_mm, cells, sigma, fill)
-            corrected = np.array([m.correct(x, y) for x, y in measured[test]])
-            err = corrected - true[test]
-            errors.append(err)
-            fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
-        rmse = np.sqrt(np.mean(np.concatenate(errors) ** 2, axis=0))
-        out.append({"fill": fill, "heldout_rmse_mm": rmse.round(4).tolist(),
-                    "heldout_spread_mm": round(float(np.std(fold_rmse)), 4), "score_mm": round(float(rmse.mean()), 4)})
+            return np.array([m.correct(x, y) for x, y in measured[test]]) - true[test]
+
+        h = held_out_errors(groups, folds, error)
+        out.append({"fill": fill, "heldout_rmse_mm": h.rmse.round(4).tolist(),
+                    "heldout_spread_mm": round(h.spread, 4), "score_mm": round(float(h.rmse.mean()), 4)})
     return out

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from optitac_edge.calibration.folds import press_folds
+from optitac_edge.calibration.folds import MAX_FOLDS, fold_count, held_out_errors
 from optitac_edge.core.depth_model import GAIN_EXPONENT, RadialMonotoneMap
 from optitac_edge.core.width_model import AxisMap
 
@@ -38,8 +38,6 @@ RADIAL_GRID = tuple(float(v) for v in np.round(np.linspace(-0.8, 2.0, 57), 3))
 #: How much the skin's response may change between days, relative (a gain on every fiber's darkening that
 #: the rest frames cannot see, unlike the LED's): the prior the choice of feature guards against.
 RESPONSE_DRIFT = 0.05
-#: Folds of the held-out choice (fewer with fewer presses).
-MAX_FOLDS = 8
 #: Presses the held-out choice needs at the least (each fold must keep 3 depths to fit).
 MIN_SELECTION_PRESSES = 8
 
@@ -189,25 +187,24 @@ def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_m
     drift : float
         The response change the drift term assumes.
     """
-    errors, fold_rmse, moved = [], [], []
-    for train, test in press_folds(groups, folds):
-        try:
-            fit = fit_radial_monotone(feature[train], rho2[train], target[train], radius_mm, level[train],
-                                      weight[train])
-        except ValueError:
-            return Candidate(name, float("inf"), float("inf"), float("inf"))
+    moved: list[np.ndarray] = []
+
+    def error(train: np.ndarray, test: np.ndarray) -> np.ndarray:
+        fit = fit_radial_monotone(feature[train], rho2[train], target[train], radius_mm, level[train],
+                                  weight[train])
         pred = _predict(fit.model, feature[test], rho2[test])
-        err = pred - target[test]
-        errors.append(err)
-        fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
         for g in (1.0 + drift, 1.0 - drift):
             moved.append(_predict(fit.model, feature[test] * g ** exponent, rho2[test]) - pred)
-    e, m = np.concatenate(errors), np.concatenate(moved)
-    ok = np.isfinite(e)
-    if not ok.all():
+        return pred - target[test]
+
+    try:
+        out = held_out_errors(groups, folds, error)
+    except ValueError:  # a fold that cannot be fitted
         return Candidate(name, float("inf"), float("inf"), float("inf"))
-    return Candidate(name, float(np.sqrt(np.mean(e ** 2))), float(np.std(fold_rmse)),
-                     float(np.sqrt(np.mean(m ** 2))))
+    if not np.isfinite(out.errors).all():
+        return Candidate(name, float("inf"), float("inf"), float("inf"))
+    m = np.concatenate(moved)
+    return Candidate(name, float(out.rmse), out.spread, float(np.sqrt(np.mean(m ** 2))))
 
 
 def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np.ndarray, radius_mm: float,
@@ -227,11 +224,7 @@ def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np
     ValueError
         Fewer than :data:`MIN_SELECTION_PRESSES` presses, or no candidate could be fitted.
     """
-    n_groups = np.unique(groups).size
-    if n_groups < MIN_SELECTION_PRESSES:
-        raise ValueError(f"need {MIN_SELECTION_PRESSES} presses or more to choose the model on held-out "
-                         f"presses, got {n_groups}")
-    folds = min(MAX_FOLDS, n_groups)
+    folds = fold_count(groups, MIN_SELECTION_PRESSES, "choose the model")
     candidates = []
     for name, value in features.items():
         v = np.asarray(value, dtype=np.float64)

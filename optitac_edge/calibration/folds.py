@@ -9,9 +9,13 @@ centroid and width steps need no optional package.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
+
+#: Folds of every held-out check (fewer with fewer presses).
+MAX_FOLDS = 8
 
 
 def press_folds(groups: np.ndarray, n_splits: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -42,3 +46,57 @@ def press_folds(groups: np.ndarray, n_splits: int) -> Iterator[tuple[np.ndarray,
     fold = fold_of_group[inverse]
     for f in range(n_splits):
         yield np.flatnonzero(fold != f), np.flatnonzero(fold == f)
+
+
+def fold_count(groups: np.ndarray, min_presses: int, what: str) -> int:
+    """How many folds the presses ``groups`` make (at most :data:`MAX_FOLDS`).
+
+    Raises
+    ------
+    ValueError
+        With fewer than ``min_presses`` presses: ``need N presses or more to {what} on held-out presses``.
+    """
+    n_groups = np.unique(groups).size
+    if n_groups < min_presses:
+        raise ValueError(f"need {min_presses} presses or more to {what} on held-out presses, got {n_groups}")
+    return min(MAX_FOLDS, n_groups)
+
+
+@dataclass(frozen=True, eq=False)
+class HeldOut:
+    """Errors of rows predicted by fits that never saw their press.
+
+    Attributes
+    ----------
+    errors : ndarray, shape (K,) or (K, M)
+        Every held-out row's error (prediction − truth), fold by fold.
+    fold_rmse : ndarray, shape (folds,)
+        Each fold's RMSE over all its errors.
+    """
+
+    errors: np.ndarray
+    fold_rmse: np.ndarray
+
+    @property
+    def rmse(self) -> np.ndarray:
+        """RMSE pooled over the folds, per column (a 0-d array for one)."""
+        return np.sqrt(np.mean(self.errors ** 2, axis=0))
+
+    @property
+    def spread(self) -> float:
+        """Standard deviation of the folds' RMSEs."""
+        return float(np.std(self.fold_rmse))
+
+
+def held_out_errors(groups: np.ndarray, folds: int, error: Callable[[np.ndarray, np.ndarray], np.ndarray]
+                    ) -> HeldOut:
+    """``error(train, test)`` (a fit on rows ``train``, its errors on rows ``test``) over :func:`press_folds`.
+
+    Exceptions of ``error`` (a fold that cannot be fitted) pass through.
+    """
+    errors, fold_rmse = [], []
+    for train, test in press_folds(groups, folds):
+        err = np.asarray(error(train, test), dtype=np.float64)
+        errors.append(err)
+        fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
+    return HeldOut(np.concatenate(errors), np.array(fold_rmse))

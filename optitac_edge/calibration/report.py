@@ -29,7 +29,7 @@ def _fit_lines(title: str, fit: dict[str, Any], name_key: str) -> list[str]:
         for c in candidates:
             if not isinstance(c, dict):
                 continue
-            name = c.get(name_key, c.get("fill", c.get("form", "?")))
+            name = c.get(name_key, "?")
             figure = c.get("expected_rmse", c.get("score_mm", c.get("heldout_rmse_mm")))
             parts.append(f"{name} {plain(figure)}")
         lines.append(f"{title}, {key.replace('_', ' ')} on held-out presses (score): {', '.join(parts)}.")

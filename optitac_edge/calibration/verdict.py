@@ -50,15 +50,14 @@ MAX_DEPTH_RMSE_MM = 0.25
 #: Presses of each diameter a width model needs (the learning curve, docs/accuracy.md).
 MIN_WIDTH_PRESSES_PER_DIAMETER = 3
 MAX_WIDTH_RMSE_MM = 0.5
-WIDTH_AGREEMENT, WIDTH_AGREEMENT_MM = 2.0, 0.1
+#: An error evaluated on other presses above ``AGREEMENT * held-out + slack`` disagrees with the calibration's
+#: own held-out figure (the slack: 0.05 mm for depth, 0.1 mm for width).
+AGREEMENT, DEPTH_AGREEMENT_MM, WIDTH_AGREEMENT_MM = 2.0, 0.05, 0.1
 #: Presses each experiment's model needs for its held-out error to settle: (model, what, how many presses at
 #: the least; of each diameter for widths).
 PRESSES_NEEDED = {"depths": ("depth", f"{MIN_DEPTH_PRESSES} presses", MIN_DEPTH_PRESSES),
                   "widths": ("width", f"{MIN_WIDTH_PRESSES_PER_DIAMETER} presses of each diameter",
                              MIN_WIDTH_PRESSES_PER_DIAMETER)}
-#: An evaluated depth error above ``DEPTH_AGREEMENT * held-out + DEPTH_AGREEMENT_MM`` disagrees with the
-#: calibration's own held-out figure.
-DEPTH_AGREEMENT, DEPTH_AGREEMENT_MM = 2.0, 0.05
 
 
 @dataclass(frozen=True)
@@ -170,14 +169,11 @@ def width_check(bundle: CalibrationBundle, m: Measurements | None = None, truth:
             f"RMSE {heldout[0]:.3f} / {heldout[1]:.3f} mm at calibration")
     ok = per_diameter >= MIN_WIDTH_PRESSES_PER_DIAMETER and worst <= MAX_WIDTH_RMSE_MM
     report = width_accuracy(m, truth) if m is not None and truth is not None else None
-    if report is not None:
-        here = max(report.rmse_major, report.rmse_minor)
-        agrees = here <= WIDTH_AGREEMENT * worst + WIDTH_AGREEMENT_MM
-        seen += f", {report.rmse_major:.3f} / {report.rmse_minor:.3f} mm here over {report.n} frames"
-        ok = ok and here <= MAX_WIDTH_RMSE_MM and agrees
-        if not agrees:
-            fix = "the skin responds differently than when calibrated: " + fix
-    return Check("width", ok, f"{seen} (limit {MAX_WIDTH_RMSE_MM} mm)", fix)
+    here = None if report is None else (
+        max(report.rmse_major, report.rmse_minor),
+        f"{report.rmse_major:.3f} / {report.rmse_minor:.3f} mm here over {report.n} frames")
+    return _model_check("width", ok, seen, fix, worst, here, MAX_WIDTH_RMSE_MM, WIDTH_AGREEMENT_MM,
+                        f"limit {MAX_WIDTH_RMSE_MM} mm")
 
 
 def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth: Truth | None = None
@@ -196,10 +192,21 @@ def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth:
             f"± {spread:.3f} mm at calibration")
     ok = presses >= MIN_DEPTH_PRESSES and heldout <= MAX_DEPTH_RMSE_MM
     report = depth_accuracy(m, truth) if m is not None and truth is not None else None
-    if report is not None:
-        agrees = report.depth_rmse_mm <= DEPTH_AGREEMENT * heldout + DEPTH_AGREEMENT_MM
-        seen += f", {report.depth_rmse_mm:.3f} mm here over {report.n} frames"
-        ok = ok and report.depth_rmse_mm <= MAX_DEPTH_RMSE_MM and agrees
+    here = None if report is None else (report.depth_rmse_mm,
+                                        f"{report.depth_rmse_mm:.3f} mm here over {report.n} frames")
+    return _model_check("depth", ok, seen, fix, heldout, here, MAX_DEPTH_RMSE_MM, DEPTH_AGREEMENT_MM,
+                        f"limit {MAX_DEPTH_RMSE_MM} mm against commanded depths")
+
+
+def _model_check(name: str, ok: bool, seen: str, fix: str, heldout: float, here: tuple[float, str] | None,
+                 limit: float, slack_mm: float, limit_text: str) -> Check:
+    """A model's check from its calibration figures (``ok``, ``seen``) and, when the evaluated recording
+    measured it, the error there (``here``: value, words): within ``limit`` and agreeing with ``heldout``."""
+    if here is not None:
+        value, words = here
+        agrees = value <= AGREEMENT * heldout + slack_mm
+        seen += f", {words}"
+        ok = ok and value <= limit and agrees
         if not agrees:
             fix = "the skin responds differently than when calibrated: " + fix
-    return Check("depth", ok, f"{seen} (limit {MAX_DEPTH_RMSE_MM} mm against commanded depths)", fix)
+    return Check(name, ok, f"{seen} ({limit_text})", fix)

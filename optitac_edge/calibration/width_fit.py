@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.calibration.folds import press_folds
+from optitac_edge.calibration.folds import fold_count, held_out_errors
 from optitac_edge.core.width_model import AxisMap, WidthModel
 
 
@@ -55,27 +55,23 @@ def fit_monotone_axis(measured_mm: np.ndarray, true_mm: np.ndarray) -> AxisMap:
 
 
 def fit_width_model(measured_major: np.ndarray, measured_minor: np.ndarray, true_diameter: np.ndarray,
-                    kind: str = "monotone") -> WidthModel:
-    """Fit both axes from circular presses of known diameter (arrays of shape (K,), mm)."""
-    if kind == "linear":
-        return WidthModel("linear", AxisMap.linear(*fit_axis(measured_major, true_diameter)),
-                          AxisMap.linear(*fit_axis(measured_minor, true_diameter)))
-    if kind == "monotone":
-        return WidthModel("monotone", fit_monotone_axis(measured_major, true_diameter),
-                          fit_monotone_axis(measured_minor, true_diameter))
-    raise ValueError(f"unknown width model kind {kind!r} (linear or monotone)")
+                    kind: str = "monotone", radius_mm: float = 1.0) -> WidthModel:
+    """Fit both axes from circular presses of known diameter (arrays of shape (K,), mm), without a radial gain
+    (``radius_mm``: the array's, kept in the model)."""
+    if kind not in ("linear", "monotone"):
+        raise ValueError(f"unknown width model kind {kind!r} (linear or monotone)")
+    return WidthModel(kind, _axis(kind, measured_major, true_diameter), _axis(kind, measured_minor, true_diameter),
+                      radius_mm=radius_mm)
+
+
+def _axis(kind: str, measured: np.ndarray, true: np.ndarray) -> AxisMap:
+    return AxisMap.linear(*fit_axis(measured, true)) if kind == "linear" else fit_monotone_axis(measured, true)
 
 
 #: The forms ``calibrate width`` chooses among.
 WIDTH_FORMS = ("linear", "monotone", "linear-radial", "monotone-radial")
 #: The radial gains a ``-radial`` form tries per axis.
 RADIAL_GAINS = tuple(float(v) for v in np.round(np.arange(-0.3, 0.801, 0.02), 3))
-#: Folds of the held-out choice (fewer with fewer presses).
-MAX_FOLDS = 8
-
-
-def _axis(kind: str, measured: np.ndarray, true: np.ndarray) -> AxisMap:
-    return AxisMap.linear(*fit_axis(measured, true)) if kind == "linear" else fit_monotone_axis(measured, true)
 
 
 def _radial_axis(kind: str, measured: np.ndarray, rho2: np.ndarray, true: np.ndarray) -> tuple[AxisMap, float]:
@@ -102,7 +98,7 @@ def fit_width_form(form: str, major: np.ndarray, minor: np.ndarray, rho2: np.nda
     if form not in WIDTH_FORMS:
         raise ValueError(f"unknown width model form {form!r} (known: {', '.join(WIDTH_FORMS)})")
     if not radial:
-        return WidthModel(kind, _axis(kind, major, true), _axis(kind, minor, true), radius_mm=radius_mm)
+        return fit_width_model(major, minor, true, kind, radius_mm)
     r2 = np.minimum(rho2, 1.0)
     (major_map, g_major), (minor_map, g_minor) = (_radial_axis(kind, a, r2, true) for a in (major, minor))
     return WidthModel(kind, major_map, minor_map, g_major, g_minor, radius_mm)
@@ -126,28 +122,21 @@ def select_width_form(major: np.ndarray, minor: np.ndarray, rho2: np.ndarray, tr
         The chosen form, fitted on every frame; each form's held-out RMSE (major, minor; mm, pooled over
         the folds), the spread of the folds' RMSEs and their mean (the score).
     """
-    n_groups = np.unique(groups).size
-    if n_groups < 4:
-        raise ValueError(f"need 4 presses or more to choose the width model on held-out presses, got {n_groups}")
-    folds = min(MAX_FOLDS, n_groups)
+    folds = fold_count(groups, 4, "choose the width model")
     candidates: list[dict[str, Any]] = []
     for form in forms:
-        errors, fold_rmse = [], []
+        def error(train: np.ndarray, test: np.ndarray, form: str = form) -> np.ndarray:
+            m = fit_width_form(form, major[train], minor[train], rho2[train], true[train], radius_mm)
+            pred = np.array([m.correct(a, b, math.sqrt(min(r, 1.0)) * radius_mm, 0.0)
+                             for a, b, r in zip(major[test], minor[test], rho2[test])])
+            return pred - true[test, None]
+
         try:
-            for train, test in press_folds(groups, folds):
-                m = fit_width_form(form, major[train], minor[train], rho2[train], true[train], radius_mm)
-                pred = np.array([m.correct(a, b, math.sqrt(min(r, 1.0)) * radius_mm, 0.0)
-                                 for a, b, r in zip(major[test], minor[test], rho2[test])])
-                err = pred - true[test, None]
-                errors.append(err)
-                fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
-        except ValueError:
+            out = held_out_errors(groups, folds, error)
+        except ValueError:  # a fold that cannot be fitted
             continue
-        e = np.concatenate(errors)
-        rmse = np.sqrt(np.mean(e ** 2, axis=0))
-        candidates.append({"form": form, "heldout_rmse_mm": rmse.round(4).tolist(),
-                           "heldout_spread_mm": round(float(np.std(fold_rmse)), 4),
-                           "score_mm": round(float(rmse.mean()), 4)})
+        candidates.append({"form": form, "heldout_rmse_mm": out.rmse.round(4).tolist(),
+                           "heldout_spread_mm": round(out.spread, 4), "score_mm": round(float(out.rmse.mean()), 4)})
     if not candidates:
         raise ValueError("no width model could be fitted on held-out presses")
     best = min(candidates, key=lambda c: c["score_mm"])  # first of equals: the simpler form
