@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.core.width_model import AxisMap
+from optitac_edge.core.width_model import AxisMap, rim_rho2
 
 #: The contact features a depth or force model may use, and how each scales when the skin's darkening is
 #: multiplied by a gain ``g`` (the pins' response drifting between days): ``feature * g ** exponent``.
@@ -49,6 +49,9 @@ GAIN_EXPONENT: dict[str, float] = {
     "strength_width": 1.0, "root_strength_width": 0.5, "fullness_width": 0.0,
 }
 DEPTH_FEATURES = tuple(GAIN_EXPONENT)
+#: The products with the width: feature -> (the other factor, its power).
+_TIMES_WIDTH = {"strength_width": ("strength", 1.0), "root_strength_width": ("strength", 0.5),
+                "fullness_width": ("fullness", 1.0)}
 
 
 def depth_feature(est: Any, feature: str) -> Any:
@@ -64,12 +67,9 @@ def depth_feature(est: Any, feature: str) -> Any:
         return est.area_mm2
     if feature == "fullness":
         return est.strength / est.peak
-    if feature == "strength_width":
-        return est.strength * 0.5 * (est.major_mm + est.minor_mm)
-    if feature == "root_strength_width":
-        return est.strength ** 0.5 * 0.5 * (est.major_mm + est.minor_mm)
-    if feature == "fullness_width":
-        return est.strength / est.peak * 0.5 * (est.major_mm + est.minor_mm)
+    if feature in _TIMES_WIDTH:
+        other, power = _TIMES_WIDTH[feature]
+        return depth_feature(est, other) ** power * depth_feature(est, "width")
     raise ValueError(f"unknown depth feature {feature!r} (known: {', '.join(DEPTH_FEATURES)})")
 
 
@@ -99,8 +99,7 @@ class RadialMonotoneMap:
 
     def scaled(self, feature: float, x_mm: float, y_mm: float) -> float:
         """The feature times the radial factor at ``(x_mm, y_mm)`` (the factor capped at the rim)."""
-        rho2 = min((x_mm * x_mm + y_mm * y_mm) / (self.radius_mm * self.radius_mm), 1.0)
-        return feature * (1.0 + self.radial * rho2)
+        return feature * (1.0 + self.radial * rim_rho2(x_mm, y_mm, self.radius_mm))
 
     def __call__(self, feature: float, x_mm: float, y_mm: float) -> float:
         """The target (>= 0) of a contact; NaN when the feature or position is NaN."""

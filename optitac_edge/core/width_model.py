@@ -73,6 +73,14 @@ class AxisMap:
         return cls(np.array([offset_mm, offset_mm + 10.0]), np.array([0.0, 10.0 * scale]))
 
 
+def rim_rho2(x_mm: float, y_mm: float, radius_mm: float) -> float:
+    """``(r / radius_mm)^2`` of a contact at ``(x_mm, y_mm)``, capped at 1 (the rim); NaN for a NaN position.
+
+    The radial factor ``1 + gain * rho^2`` of the width and depth models reads it (per contact: floats only).
+    """
+    return min((x_mm * x_mm + y_mm * y_mm) / (radius_mm * radius_mm), 1.0)
+
+
 @dataclass(frozen=True, eq=False)
 class WidthModel:
     """Width calibration of the major and minor axes.
@@ -108,7 +116,7 @@ class WidthModel:
         """Calibrated widths, mm, clipped at 0, of a contact at ``(x_mm, y_mm)`` (the raw centroid)."""
         if self.radial_major == 0.0 and self.radial_minor == 0.0:
             return self.major(major_mm), self.minor(minor_mm)
-        rho2 = min((x_mm * x_mm + y_mm * y_mm) / (self.radius_mm * self.radius_mm), 1.0)
+        rho2 = rim_rho2(x_mm, y_mm, self.radius_mm)
         if math.isnan(rho2):  # NaN position: as measured
             rho2 = 0.0
         return (self.major(major_mm * (1.0 + self.radial_major * rho2)),
