@@ -334,37 +334,29 @@ def learning_curve(cal: Recording, ev: Recording, bundle: Any, sizes: tuple[int,
                    ) -> dict[int, tuple[float, float]]:
     """Depth RMSE on another day's presses (real depths) of a model calibrated on ``n`` presses drawn at random
     from the calibration recording: (mean, worst) over ``draws`` draws, per ``n``."""
-    from optitac_edge.calibration.depth_fit import grouped_means, select_feature
-    from optitac_edge.core.depth_model import DEPTH_FEATURES, depth_feature
+    from optitac_edge.calibration.depth_fit import predict, select_feature
+    from optitac_edge.calibration.steps import depth_presses
+    from optitac_edge.core.depth_model import depth_feature
 
     radius = float(bundle.layout.radius_mm)
-
-    def per_frame(rec: Recording) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        m = measure_recording(rec, bundle, corrected=False, progress=False)
-        rows = np.flatnonzero(detected_rows(m, rec.truth))
-        f = rec.truth.frame[rows]
-        values = np.stack([depth_feature(m, name)[f] for name in DEPTH_FEATURES], axis=1)
-        rho2 = (m.x_mm[f] ** 2 + m.y_mm[f] ** 2) / radius ** 2
-        return values, rho2, rows, press_ids(rec.truth)[rows]
-
-    values, rho2, rows, press = per_frame(cal)
-    means, counts = grouped_means(np.column_stack([rho2, cal.truth.depth_mm[rows], values]), press)
-    ev_values, ev_rho2, ev_rows, _ = per_frame(ev)
-    ev_real = real_depths(ev)[ev_rows]
+    p = depth_presses(cal, bundle)
+    m = measure_recording(ev, bundle, corrected=False, progress=False)
+    rows = np.flatnonzero(detected_rows(m, ev.truth))
+    frames = ev.truth.frame[rows]
+    ev_rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / radius ** 2
+    ev_real = real_depths(ev)[rows]
     out = {}
     for n in sizes:
         errors = []
         for draw in range(draws):
-            pick = np.sort(np.random.default_rng([n, draw]).choice(len(counts), min(n, len(counts)), replace=False))
-            feats = {name: means[pick, 2 + k] for k, name in enumerate(DEPTH_FEATURES)}
+            pick = np.sort(np.random.default_rng([n, draw]).choice(len(p.frames), min(n, len(p.frames)),
+                                                                   replace=False))
             try:
-                sel = select_feature(feats, means[pick, 0], means[pick, 1], radius, means[pick, 1], counts[pick],
-                                     np.arange(pick.size))
+                sel = select_feature({f: v[pick] for f, v in p.features.items()}, p.rho2[pick], p.level[pick],
+                                     radius, p.level[pick], p.frames[pick], np.arange(pick.size))
             except ValueError:
                 continue
-            k = DEPTH_FEATURES.index(sel.feature)
-            r = np.sqrt(np.minimum(ev_rho2, 1.0)) * radius
-            pred = np.array([sel.fit.model(v, x, 0.0) for v, x in zip(ev_values[:, k], r)])
+            pred = predict(sel.fit.model, depth_feature(m, sel.feature)[frames], ev_rho2)
             errors.append(float(np.sqrt(np.mean((pred - ev_real) ** 2))))
         out[n] = (float(np.mean(errors)), float(np.max(errors))) if errors else (float("nan"), float("nan"))
     return out

@@ -168,7 +168,8 @@ class Selection:
         return next(c for c in self.candidates if c.feature == self.feature)
 
 
-def _predict(model: RadialMonotoneMap, feature: np.ndarray, rho2: np.ndarray) -> np.ndarray:
+def predict(model: RadialMonotoneMap, feature: np.ndarray, rho2: np.ndarray) -> np.ndarray:
+    """``model`` (the runtime's, per contact) over arrays of features and squared radii (over the array's)."""
     r = np.sqrt(np.minimum(rho2, 1.0)) * model.radius_mm
     return np.array([model(float(f), float(x), 0.0) for f, x in zip(feature, r)])
 
@@ -192,9 +193,9 @@ def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_m
     def error(train: np.ndarray, test: np.ndarray) -> np.ndarray:
         fit = fit_radial_monotone(feature[train], rho2[train], target[train], radius_mm, level[train],
                                   weight[train])
-        pred = _predict(fit.model, feature[test], rho2[test])
+        pred = predict(fit.model, feature[test], rho2[test])
         for g in (1.0 + drift, 1.0 - drift):
-            moved.append(_predict(fit.model, feature[test] * g ** exponent, rho2[test]) - pred)
+            moved.append(predict(fit.model, feature[test] * g ** exponent, rho2[test]) - pred)
         return pred - target[test]
 
     try:

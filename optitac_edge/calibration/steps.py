@@ -9,6 +9,7 @@ bundle; the CLI saves it atomically. The fitted data are kept in the bundle
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -211,16 +212,42 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "shapes_fit": details}), summary
 
 
-def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | None = None,
-                    drift: float = RESPONSE_DRIFT) -> tuple[CalibrationBundle, dict[str, Any]]:
-    """Depth model, and force model when ``truth.csv`` has a load cell's ``force_n``, from presses of known
-    depth (the ``depths`` experiment: one indenter, several depths and positions).
+@dataclass(frozen=True, eq=False)
+class DepthPresses:
+    """A recording's detected presses of known depth, each the mean of its detected frames.
 
-    Each press counts once (the mean of its detected frames). The model's input is chosen among
-    :data:`~optitac_edge.core.depth_model.DEPTH_FEATURES` by presses held out of the fit
-    (:func:`~optitac_edge.calibration.depth_fit.select_feature`, ``drift``: the response change between days
-    it guards against), separately for depth and force; ``feature`` fixes it instead (the held-out figures
-    are still reported).
+    Attributes
+    ----------
+    features : dict of str to ndarray, shape (P,)
+        Each asked feature (:data:`~optitac_edge.core.depth_model.DEPTH_FEATURES`) per press.
+    rho2 : ndarray, shape (P,)
+        Squared radius over the array's squared radius (not capped).
+    level : ndarray, shape (P,)
+        The commanded depth, mm.
+    force : ndarray, shape (P,)
+        The load cell's force, N (NaN without one).
+    frames : ndarray, shape (P,), int
+        Detected frames per press.
+    with_force : bool
+        Every detected frame has a load cell's force.
+    """
+
+    features: dict[str, np.ndarray]
+    rho2: np.ndarray
+    level: np.ndarray
+    force: np.ndarray
+    frames: np.ndarray
+    with_force: bool
+
+
+def depth_presses(rec: Recording, bundle: CalibrationBundle, names: tuple[str, ...] = DEPTH_FEATURES
+                  ) -> DepthPresses:
+    """The raw pipeline's presses of ``rec`` (a ``depths`` recording) with the features ``names``.
+
+    Raises
+    ------
+    RecordingError
+        Without truth, or with detected presses at fewer than 3 depths.
     """
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
@@ -229,28 +256,41 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | No
         raise RecordingError(f"{rec.path}: depth calibration needs detected presses at 3 depths or more "
                              f"(the 'depths' experiment), got {np.unique(truth.depth_mm[rows]).size}")
     frames = truth.frame[rows]
-    radius = float(bundle.layout.radius_mm)
-    rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / radius ** 2
+    rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / float(bundle.layout.radius_mm) ** 2
     force = truth.force_n[rows] if truth.force_n is not None else np.full(rows.size, np.nan)
-    with_force = bool(np.isfinite(force).all())
-    names = DEPTH_FEATURES if feature is None else (feature,)
     values = np.stack([depth_feature(m, f)[frames] for f in names], axis=1)
     means, counts = grouped_means(np.concatenate([np.stack([rho2, truth.depth_mm[rows], force], axis=1), values],
                                                  axis=1), press_ids(truth)[rows])
-    per_press = {f: means[:, 3 + k] for k, f in enumerate(names)}
+    return DepthPresses({f: means[:, 3 + k] for k, f in enumerate(names)}, means[:, 0], means[:, 1], means[:, 2],
+                        counts, bool(np.isfinite(force).all()))
+
+
+def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | None = None,
+                    drift: float = RESPONSE_DRIFT) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """Depth model, and force model when ``truth.csv`` has a load cell's ``force_n``, from presses of known
+    depth (the ``depths`` experiment: one indenter, several depths and positions).
+
+    Each press counts once (the mean of its detected frames, :func:`depth_presses`). The model's input is
+    chosen among :data:`~optitac_edge.core.depth_model.DEPTH_FEATURES` by presses held out of the fit
+    (:func:`~optitac_edge.calibration.depth_fit.select_feature`, ``drift``: the response change between days
+    it guards against), separately for depth and force; ``feature`` fixes it instead (the held-out figures
+    are still reported).
+    """
+    p = depth_presses(rec, bundle, DEPTH_FEATURES if feature is None else (feature,))
+    counts, level = p.frames, p.level
+    radius = float(bundle.layout.radius_mm)
     groups = np.arange(counts.size)  # one row per press: a fold never splits a press
-    level = means[:, 1]  # the commanded depth of each press
     try:
-        depth = select_feature(per_press, means[:, 0], level, radius, level, counts, groups, drift)
-        force_sel = (select_feature(per_press, means[:, 0], means[:, 2], radius, level, counts, groups, drift)
-                     if with_force else None)
+        depth = select_feature(p.features, p.rho2, level, radius, level, counts, groups, drift)
+        force_sel = (select_feature(p.features, p.rho2, p.force, radius, level, counts, groups, drift)
+                     if p.with_force else None)
     except ValueError as exc:
         raise RecordingError(f"{rec.path}: {exc}") from None
     model = DepthForceModel(depth.feature, depth.fit.model, None if force_sel is None else force_sel.fit.model,
                             "" if force_sel is None else force_sel.feature)
     chosen = depth.chosen
     summary: dict[str, Any] = {
-        "presses": int(counts.size), "frames": int(rows.size), "feature": depth.feature,
+        "presses": int(counts.size), "frames": int(counts.sum()), "feature": depth.feature,
         "depth_range_mm": [round(float(level.min()), 3), round(float(level.max()), 3)],
         "depth_radial": depth.fit.model.radial, "fitted_depth_rmse_mm": round(depth.fit.rmse, 4),
         "heldout_depth_rmse_mm": round(chosen.heldout_rmse, 4),
@@ -259,11 +299,11 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | No
     details: dict[str, Any] = {**summary, "folds": depth.folds, "response_drift": drift,
                                "depth_candidates": [c.to_dict() for c in depth.candidates]}
     if force_sel is not None:
-        span = float(np.ptp(means[:, 2]))
+        span = float(np.ptp(p.force))
         fc = force_sel.chosen
         force_summary = {
             "force_feature": force_sel.feature,
-            "force_range_n": [round(float(means[:, 2].min()), 3), round(float(means[:, 2].max()), 3)],
+            "force_range_n": [round(float(p.force.min()), 3), round(float(p.force.max()), 3)],
             "force_radial": force_sel.fit.model.radial, "fitted_force_rmse_n": round(force_sel.fit.rmse, 4),
             "heldout_force_rmse_n": round(fc.heldout_rmse, 4),
             "heldout_force_rmse_pct_of_range": round(100 * fc.heldout_rmse / span, 2) if span else None}
@@ -271,7 +311,7 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | No
         details.update(force_summary, force_candidates=[c.to_dict() for c in force_sel.candidates])
     bundle = with_depth_model(bundle, model)
     # per press: the chosen feature, rho^2, depth, and the force where a load cell measured it (finite values)
-    presses = np.stack([per_press[depth.feature], means[:, 0], level, means[:, 2]], axis=1)
-    bundle = _with_report_arrays(bundle, depth_presses=presses if with_force else presses[:, :3],
+    presses = np.stack([p.features[depth.feature], p.rho2, level, p.force], axis=1)
+    bundle = _with_report_arrays(bundle, depth_presses=presses if p.with_force else presses[:, :3],
                                  depth_press_frames=counts)
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "depth_fit": details}), summary
