@@ -45,8 +45,8 @@ def _run(pipe: Pipeline, sensor: SimulatedSensor, phases: list[tuple[str, tuple[
         for _ in range(frames):
             if k == tare_at:
                 pipe.reset_baseline()
-            est = pipe.process(sensor.frame(indenters, t_s=k / FPS), k * PERIOD_NS)
-            out.setdefault(name, []).append((est.copy(), pipe.baseline_raised))
+            est = pipe.process(sensor.frame(indenters, t_s=k / FPS), k * PERIOD_NS).primary
+            out.setdefault(name, []).append((est.copy(), pipe.result.baseline_raised))
             k += 1
     return out
 
@@ -124,7 +124,7 @@ def test_a_uniform_brightening_of_the_light_is_no_press_under_the_baseline(senso
         if k >= 60:
             frame = np.clip(frame.astype(np.float32) * scale, 0, 255).astype(np.uint8)
         pipe.process(frame, k * PERIOD_NS)
-        raised += pipe.baseline_raised
+        raised += pipe.result.baseline_raised
     assert raised == 0
 
 

@@ -183,3 +183,19 @@ def test_limit_spreads_the_presses_over_the_whole_experiment() -> None:
     picked = spread(full, 7)
     assert len(picked) == 7 and picked[0] == full[0] and picked[-1] == full[-1]
     assert [full.index(p) for p in picked] == sorted(full.index(p) for p in picked)
+
+
+def test_the_estimates_of_several_frames_are_each_frames_own(tmp_path, monkeypatch) -> None:
+    """Bug: the touch-off (2 of 3 frames in contact) and the registration (the mean of the hold frames)
+    read a list holding the pipeline's one reused estimate n times: the last frame's, n times."""
+    seen: list[list[int]] = []
+    frames = Collector._frames
+
+    def spy(self, n, phase, press):
+        got = frames(self, n, phase, press)
+        seen.append([e.frame for e in got])
+        return got
+
+    monkeypatch.setattr(Collector, "_frames", spy)
+    _collect(EXPERIMENTS[0], tmp_path / "c", "sim://", limit=1)
+    assert seen and all(len(set(f)) == len(f) for f in seen), seen

@@ -104,8 +104,8 @@ def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac
     sent: dict[int, object] = {}
     stop = threading.Event()
 
-    def keep(est, stats):
-        sent[(est.t_ns // 1000) % 2**32] = est.copy()
+    def keep(result, stats):
+        sent[(result.t_ns // 1000) % 2**32] = result.primary.copy()
         if len(sent) == 360:  # 3 s at 120 fps
             stop.set()
 

@@ -18,6 +18,7 @@ from rosbags.typesys.msg import get_types_from_msg
 
 from optitac_edge.errors import PublishError
 from optitac_edge.io.publishers import open_publisher
+from optitac_edge.io.ros2.messages import ContactValues
 from optitac_edge.service.network import NetworkSensor, contact_outline
 
 TOPICS = ("/optitac/sim/contacts", "/optitac/sim/image", "/optitac/sim/annotations", "/optitac/sim/surface")
@@ -88,7 +89,7 @@ def test_the_overlay_maps_a_contacts_ellipse_onto_the_image():
     s = NetworkSensor(1, "thumb", x, y, np.zeros(n, bool), fiber_px=px)
     affine = s.mm_to_px()
     np.testing.assert_allclose(affine, [[10, 0, 100], [0, -10, 50]], atol=1e-9)
-    outline = contact_outline(affine, (3, True, 0, 1.0, 0.5, 4.0, 2.0, 90.0, 1.0, 0.0, 0.0, "edge", 0.9))
+    outline = contact_outline(affine, ContactValues(3, True, 0, 1.0, 0.5, 4.0, 2.0, 90.0, 1.0, 0.0, 0.0, "edge", 0.9))
     assert outline.label == "3 edge" and outline.at == pytest.approx((110.0, 45.0))
     # major axis 4 mm along y (90 degrees): 40 px tall, minor 2 mm: 20 px wide
     assert np.ptp(outline.points[:, 1]) == pytest.approx(40.0) and np.ptp(outline.points[:, 0]) == pytest.approx(20.0)

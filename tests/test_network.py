@@ -18,6 +18,7 @@ import pytest
 from fakes.net import free_port
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.errors import PublishError
 from optitac_edge.io.protocol.messages import STATE_BASELINE_READY, STATE_STREAMING, StatusMessage
 from optitac_edge.io.protocol.wire import MsgType
@@ -50,18 +51,25 @@ def contact(cid: int, frame: int, touch_frame: int, x: float = 1.0) -> SimpleNam
                            shape="", confidence=math.nan)
 
 
-def frame_(index: int, *contacts: SimpleNamespace) -> tuple[SimpleNamespace, list[SimpleNamespace]]:
-    est = SimpleNamespace(contact=bool(contacts), n_contacts=len(contacts), frame=index)
-    return est, [*contacts, *(contact(0, index, 0) for _ in range(4 - len(contacts)))]
+def frame_(index: int, *contacts: SimpleNamespace, t_ns: int = 0, released: tuple[tuple[int, int], ...] = (),
+           calibrated: bool = True) -> FrameResult:
+    """A frame's result as the pipeline gives it (the tracker's releases given)."""
+    slots = [*contacts, *(contact(0, index, 0) for _ in range(4 - len(contacts)))]
+    slots[0].frame, slots[0].t_ns = index, t_ns
+    result = FrameResult(slots, [*released, *[(0, -1)] * 4])  # type: ignore[arg-type]
+    result.n_contacts, result.n_released, result.calibrated = len(contacts), len(released), calibrated
+    return result
 
 
 def test_every_contact_with_touch_and_release_events(store):
     pub = VirtualPublisher()
     with NetworkOutput(pub, [sensor()]) as net:
-        frames = [frame_(0), frame_(1, contact(1, 1, 1)), frame_(2, contact(1, 2, 1), contact(2, 2, 2, x=5.0)),
-                  frame_(3, contact(2, 3, 2, x=5.0)), frame_(4)]
-        for k, (est, contacts) in enumerate(frames):
-            net.offer_frame(1, est, contacts, 1000 + k, True, False, False)
+        frames = [frame_(0, t_ns=1000), frame_(1, contact(1, 1, 1), t_ns=1001),
+                  frame_(2, contact(1, 2, 1), contact(2, 2, 2, x=5.0), t_ns=1002),
+                  frame_(3, contact(2, 3, 2, x=5.0), t_ns=1003, released=((1, 1),)),
+                  frame_(4, t_ns=1004, released=((2, 2),))]
+        for result in frames:
+            net.offer_frame(1, result, False)
     got = [store.deserialize_cdr(m.payload, msgs.CONTACTS) for m in pub.taken("/optitac/thumb/contacts")]
     assert [m.frame for m in got] == [0, 1, 2, 3, 4] and [m.t_ns for m in got] == [1000, 1001, 1002, 1003, 1004]
     assert [[c.id for c in m.contacts] for m in got] == [[], [1], [1, 2], [2], []]
@@ -77,10 +85,30 @@ class StuckPublisher(VirtualPublisher):
     def __init__(self) -> None:
         super().__init__()
         self.release = threading.Event()
+        self.waiting = threading.Event()
 
     def publish(self, handle: int, payload: bytes, source_ns: int) -> None:
+        self.waiting.set()
         self.release.wait()
         super().publish(handle, payload, source_ns)
+
+
+def test_a_release_in_frames_the_queue_dropped_comes_with_the_next_frame_published(store):
+    """The tracker releases a contact once, in its frame; when the queue drops that frame, the next one
+    published releases it (a subscriber never holds a contact that is gone)."""
+    pub = StuckPublisher()
+    net = NetworkOutput(pub, [sensor(3)], queue=2)
+    net.offer_frame(3, frame_(0, contact(7, 0, 0)), False)
+    assert pub.waiting.wait(10)  # frame 0 is being published: taken off the queue
+    net.offer_frame(3, frame_(1, released=((7, 0),)), False)  # dropped: the queue holds 2
+    for k in (2, 3):
+        net.offer_frame(3, frame_(k), False)
+    pub.release.set()
+    net.close()
+    got = [store.deserialize_cdr(m.payload, msgs.CONTACTS) for m in pub.taken()]
+    assert [m.frame for m in got] == [0, 2, 3]
+    assert [list(m.released) for m in got] == [[], [7], []]
+    assert net.counters(3) == (3, 1)
 
 
 def test_a_stuck_network_costs_the_frame_loop_nothing_and_every_drop_is_counted(store):
@@ -90,7 +118,7 @@ def test_a_stuck_network_costs_the_frame_loop_nothing_and_every_drop_is_counted(
 
     def loop() -> None:
         for k in range(offered):
-            net.offer_frame(4, *frame_(k, contact(1, k, 0)), k, True, False, False)
+            net.offer_frame(4, frame_(k, contact(1, k, 0), t_ns=k), False)
 
     t = threading.Thread(target=loop)
     t.start()
@@ -109,10 +137,11 @@ def test_status_reports_the_sensor_and_the_publishers_counters(store):
     pub = VirtualPublisher()
     with NetworkOutput(pub, [sensor(2, "index-1")], signal_hz=10) as net:
         for k in range(3):
-            net.offer_frame(2, *frame_(k), k * 50_000_000, False, False, False, signal=np.full(7, k, np.float32))
+            net.offer_frame(2, frame_(k, t_ns=k * 50_000_000, calibrated=False), False,
+                            signal=np.full(7, k, np.float32))
         status = StatusMessage(sensor_id=2, t_us=5, fps_x10=2400, frames_dropped=3, camera_errors=1,
                                link_errors=2, cpu_temp_c_x10=455, state=STATE_STREAMING | STATE_BASELINE_READY)
-        net.offer_status(2, status, frames=3, contacts=0, fps=240.0, protocol=2)
+        net.offer_status(2, status, status.flags, frames=3, contacts=0, fps=240.0, protocol=2)
     (m,) = [store.deserialize_cdr(x.payload, msgs.STATUS) for x in pub.taken("/optitac/index_1/status")]
     assert (m.sensor_id, m.sensor_name, m.calibration_id, m.frames, m.frames_dropped, m.protocol) == \
         (2, "index-1", "c0ffee", 3, 3, 2)
@@ -249,7 +278,7 @@ def test_pictures_are_the_sensors_region_its_surface_and_the_overlay(store):
     pub = VirtualPublisher()
     with NetworkOutput(pub, [placed], picture_hz=5) as net:
         for k in range(3):  # at 5 per second, frames 100 ms apart: pictures of frames 0 and 2
-            net.offer_frame(5, *frame_(k, contact(1, k, 0)), k * 100_000_000, True, False, False,
+            net.offer_frame(5, frame_(k, contact(1, k, 0), t_ns=k * 100_000_000), False,
                             frame=frame, surface=np.full((4, 4), k, np.float32))
     images = [store.deserialize_cdr(m.payload, msgs.IMAGE) for m in pub.taken("/optitac/index/image")]
     assert len(images) == 2 and (images[0].width, images[0].height) == (30, 40)

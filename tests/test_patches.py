@@ -67,7 +67,7 @@ def test_each_patch_sees_its_own_presses_and_none_of_the_others(two_patches):
         press = Indenter("circle", float(rng.uniform(-5, 5)), float(rng.uniform(-5, 5)), 0.0, 5.0, 3.0)
         frame = cam.frame([(press,) if j == k else () for j in range(2)])
         for j, p in enumerate(pipes):
-            est = p.process(frame, t)
+            est = p.process(frame, t).primary
             counts[k, j] += est.contact
             if j == k and est.contact:
                 errors.append(np.hypot(est.x_mm - press.x_mm, est.y_mm - press.y_mm))
@@ -85,6 +85,6 @@ def test_a_bundle_is_refused_on_a_frame_of_another_size(two_patches):
 
     _, rest, bundles = two_patches
     with pytest.raises(FrameMismatchError):
-        Pipeline(bundles[0]).process(np.ascontiguousarray(rest[0][:, :900]), 0)
+        bundles[0].fibers.check_frame(np.ascontiguousarray(rest[0][:, :900]), "gray")
     with pytest.raises(ValueError, match="already placed"):
         place_bundle(bundles[0], Region(0, 0, 440, 360), 960, 400)

@@ -102,7 +102,13 @@ def render(bundle: CalibrationBundle, levels: np.ndarray, pixel_format: str | No
 
 
 def run(pipe, frames: list[np.ndarray]) -> list:
-    return [pipe.process(f, 1000 * k).copy() for k, f in enumerate(frames)]
+    """Every frame's primary estimate (the reference pipeline returns the estimate, the pipeline the frame's
+    result)."""
+    out = []
+    for k, f in enumerate(frames):
+        got = pipe.process(f, 1000 * k)
+        out.append((got.primary if isinstance(pipe, Pipeline) else got).copy())
+    return out
 
 
 def warm(bundle: CalibrationBundle, rest: np.ndarray, fmt: str | None = None) -> list[np.ndarray]:
@@ -134,7 +140,7 @@ def test_press_centroid(x0: float, y0: float) -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e = pipe.process(render(bundle, pressed_levels(rest, x0, y0)), 7)
+    e = pipe.process(render(bundle, pressed_levels(rest, x0, y0)), 7).primary
     assert e.baseline_ready and e.contact
     assert e.x_mm == pytest.approx(x0, abs=0.15)
     assert e.y_mm == pytest.approx(y0, abs=0.15)
@@ -149,7 +155,7 @@ def test_elongated_press_angle() -> None:
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
     for theta in (30.0, -55.0, 90.0):
-        e = pipe.process(render(bundle, pressed_levels(rest, 1.0, -0.5, 60.0, 3.0, 1.2, theta)), 0)
+        e = pipe.process(render(bundle, pressed_levels(rest, 1.0, -0.5, 60.0, 3.0, 1.2, theta)), 0).primary
         assert e.contact
         assert e.major_mm > 1.5 * e.minor_mm
         diff = (e.angle_deg - theta + 90.0) % 180.0 - 90.0
@@ -161,9 +167,9 @@ def test_estimate_is_reused_and_copy_is_independent() -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e1 = pipe.process(render(bundle, pressed_levels(rest, 2.0, 2.0)), 1)
+    e1 = pipe.process(render(bundle, pressed_levels(rest, 2.0, 2.0)), 1).primary
     kept = e1.copy()
-    e2 = pipe.process(render(bundle, rest), 2)
+    e2 = pipe.process(render(bundle, rest), 2).primary
     assert e2 is e1 and not e2.contact
     assert kept.contact and kept.hu is not e2.hu and np.all(np.isfinite(kept.hu))
     json.dumps(kept.to_dict())
@@ -181,7 +187,7 @@ def test_shape_features_are_log_hu_and_q4_of_the_binarised_contact() -> None:
     q4 = {}
     for name, levels in (("round", pressed_levels(rest, 1.0, -0.5, 60.0, 2.0, 2.0)),
                          ("long", pressed_levels(rest, 1.0, -0.5, 60.0, 3.5, 1.2, 25.0))):
-        e = pipe.process(render(bundle, levels), 1)
+        e = pipe.process(render(bundle, levels), 1).primary
         assert e.contact and e.features.dtype == np.float64
         np.testing.assert_array_equal(e.features[:7], e.hu)
         # the paper's method: the binarised contact is the surface above the threshold
@@ -196,7 +202,7 @@ def test_shape_features_are_log_hu_and_q4_of_the_binarised_contact() -> None:
         np.testing.assert_array_equal(other.features, e.features)
         assert kept.to_dict()["features"][7] == pytest.approx(e.features[7])
     assert q4["round"] < 0.005 and q4["long"] > 0.02
-    e = pipe.process(render(bundle, rest), 2)
+    e = pipe.process(render(bundle, rest), 2).primary
     assert not e.contact and np.all(np.isnan(e.features)) and np.all(np.isfinite(kept.features))
     assert e.to_dict()["features"] == [None] * 8
 
@@ -207,13 +213,13 @@ def test_reset_baseline_tares() -> None:
     pressed = render(bundle, pressed_levels(rest, -1.0, 1.0))
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    assert pipe.process(pressed, 0).contact
+    assert pipe.process(pressed, 0).primary.contact
     pipe.reset_baseline()
     assert not pipe.baseline_ready
     for _ in range(bundle.baseline_frames):
-        e = pipe.process(pressed, 0)
+        e = pipe.process(pressed, 0).primary
         assert not e.baseline_ready and not e.contact
-    e = pipe.process(pressed, 0)
+    e = pipe.process(pressed, 0).primary
     assert e.baseline_ready and not e.contact  # the press is the new zero
     assert e.frame == bundle.baseline_frames * 2 + 1
 
@@ -225,7 +231,7 @@ def test_dead_fibers_are_ignored() -> None:
     run(pipe, warm(bundle, rest))
     flicker = rest.copy()
     flicker[[108, 109]] = 0.0  # a broken fiber going dark is no contact
-    e = pipe.process(render(bundle, flicker), 0)
+    e = pipe.process(render(bundle, flicker), 0).primary
     assert not e.contact and e.area_mm2 == 0.0
     np.testing.assert_array_equal(pipe.signal[[108, 109]], 0.0)
 
@@ -235,7 +241,7 @@ def test_truncation_keeps_values_above_threshold() -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e = pipe.process(render(bundle, pressed_levels(rest, 1.0, 2.0, 40.0)), 0)
+    e = pipe.process(render(bundle, pressed_levels(rest, 1.0, 2.0, 40.0)), 0).primary
     full = bundle.interpolation.astype(np.float64) @ pipe.signal.astype(np.float64)
     surface = pipe.surface.ravel()
     above = full > 10.0
@@ -251,7 +257,7 @@ def test_min_area_gates_contact() -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e = pipe.process(render(bundle, pressed_levels(rest, 0.0, 0.0, 60.0)), 0)
+    e = pipe.process(render(bundle, pressed_levels(rest, 0.0, 0.0, 60.0)), 0).primary
     assert not e.contact and 0.0 < e.area_mm2 < 500.0 and e.strength > 0.0
     assert math.isnan(e.x_mm) and np.all(np.isnan(e.hu))
 
@@ -260,22 +266,23 @@ def test_min_area_gates_contact() -> None:
 
 
 def test_frame_mismatch_errors() -> None:
+    """The one check of a frame before the pipeline (a recording's: the table's; the service's: FrameCheck)."""
+    from optitac_edge.core.frame_check import FrameCheck
+
     bundle = make_bundle()
-    pipe = Pipeline(bundle)
     good = render(bundle, rest_levels())
+    table = bundle.fibers
+    check = FrameCheck(table, good.shape)
+    for bad in (good[:-2], good.T.copy(), good.astype(np.float32), render(bundle, rest_levels(), "rgb")):
+        with pytest.raises(FrameMismatchError):
+            table.check_frame(bad, "gray")
+        assert check(bad) == "bad"
     with pytest.raises(FrameMismatchError):
-        pipe.process(good[:-2], 0)
-    with pytest.raises(FrameMismatchError):
-        pipe.process(good.T.copy(), 0)
-    with pytest.raises(FrameMismatchError):
-        pipe.process(good.astype(np.float32), 0)
-    with pytest.raises(FrameMismatchError):
-        pipe.process(render(bundle, rest_levels(), "rgb"), 0)
-    with pytest.raises(FrameMismatchError):
-        Pipeline(make_bundle("yuv420")).process(good, 0)
+        make_bundle("yuv420").fibers.check_frame(good, "yuv420")
     with pytest.raises(FrameMismatchError):
         ReferencePipeline(bundle).process(good[:-2], 0)
-    assert pipe.process(good, 0).frame == 0  # failures do not count as frames
+    assert check(good) is None
+    assert Pipeline(bundle).process(good, 0).frame == 0
 
 
 def test_pixel_formats_agree() -> None:
@@ -347,7 +354,7 @@ def test_end_to_end_simulated_sensor() -> None:
              Ind("triangle", -3.0, -5.0, 0.0, 6.0, 2.0)]
     for ind in cases:
         frame = sensor.frame([ind])
-        a, b = fast.process(frame, 0).copy(), ref.process(frame, 0)
+        a, b = fast.process(frame, 0).primary.copy(), ref.process(frame, 0)
         assert a.contact and b.contact, ind
         assert a.x_mm == pytest.approx(b.x_mm, abs=0.02) and a.y_mm == pytest.approx(b.y_mm, abs=0.02)
         assert a.major_mm == pytest.approx(b.major_mm, rel=0.01)
@@ -356,7 +363,7 @@ def test_end_to_end_simulated_sensor() -> None:
         if ind.shape in ("ellipse", "edge"):
             assert abs((a.angle_deg - ind.angle_deg + 90) % 180 - 90) < 3.0, ind
     for _ in range(3):
-        assert not fast.process(sensor.frame(), 0).contact
+        assert not fast.process(sensor.frame(), 0).primary.contact
 
 
 @pytest.mark.parametrize("options", [ContactOptions.paper(), ContactOptions()], ids=["paper", "default"])
@@ -374,7 +381,7 @@ def test_shape_features_equal_the_plain_moments_of_the_binarised_contact(options
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
     for levels in presses:
-        est = pipe.process(render(bundle, levels, seed=9), 10**9)
+        est = pipe.process(render(bundle, levels, seed=9), 10**9).primary
         assert est.contact
         surface = pipe.surface
         trunc = np.float32(pipe.levels.as_tuple()[0])
@@ -425,7 +432,7 @@ def test_a_frame_makes_no_array_sized_temporary_even_with_four_contacts(bundle_p
         for f in frames[12:]:
             tracemalloc.reset_peak()
             before = tracemalloc.get_traced_memory()[0]
-            est = pipe.process(f, t)
+            est = pipe.process(f, t).primary
             largest = max(largest, tracemalloc.get_traced_memory()[1] - before)
             t += 4_166_667
     finally:

@@ -88,21 +88,40 @@ def test_set_protocol_is_validated(payload_version, expect):
 # -- the announcer -------------------------------------------------------------------------------
 
 
-def _contacts(*ids_touch: tuple[int, int]) -> list[ContactEstimate]:
-    return [ContactEstimate(contact=True, contact_id=i, touch_frame=t) for i, t in ids_touch]
-
-
 def test_touches_and_releases_are_relative_to_the_frames_sent():
+    """The tracker's releases between sent frames go out with the next sent frame; an id handed out again is
+    a new touch (the frames come from a tracker, as the pipeline's)."""
+    from optitac_edge.core.frame_result import FrameResult
+
+    released: list[tuple[int, int]] = [(0, -1)] * 8
+    contacts = [ContactEstimate() for _ in range(4)]
+    result = FrameResult(contacts, released)
+
+    def frame(now: list[tuple[int, int]], gone: list[tuple[int, int]] = ()) -> FrameResult:
+        for c, (cid, touch) in zip(contacts, now):
+            c.contact, c.contact_id, c.touch_frame = True, cid, touch
+        released[:len(gone)] = gone
+        result.n_contacts, result.n_released = len(now), len(gone)
+        return result
+
     a = ContactAnnouncer()
-    assert a.update(_contacts((1, 10)), 1) == [] and a.touched == [True]
-    assert a.update(_contacts((1, 10), (2, 12)), 2) == [] and a.touched == [False, True]
-    # frames 13-20 were not sent (rate divider): contact 2 came and went, 3 came; 1 stays
-    assert a.update(_contacts((1, 10), (3, 18)), 2) == [(2, 12)] and a.touched == [False, True]
-    assert sorted(a.update([], 0)) == [(1, 10), (3, 18)]
-    assert a.update(_contacts((1, 30)), 1) == [] and a.touched == [True]  # id 1 handed out again: a touch
-    assert a.update(_contacts((1, 40)), 1) == [(1, 30)] and a.touched == [True]  # and again
+
+    def sent(r: FrameResult) -> list[tuple[int, int]]:
+        a.observe(r)
+        return a.announce(r)
+
+    assert sent(frame([(1, 10)])) == [] and a.touched == [True]
+    assert sent(frame([(1, 10), (2, 12)])) == [] and a.touched == [False, True]
+    # frames 13-20 are not sent (rate divider): contact 2 goes, 3 comes and goes, 4 comes; 1 stays
+    for now, gone in (([(1, 10)], [(2, 12)]), ([(1, 10), (3, 15)], []), ([(1, 10)], [(3, 15)]),
+                      ([(1, 10), (4, 18)], [])):
+        a.observe(frame(now, gone))
+    assert a.announce(frame([(1, 10), (4, 18)])) == [(2, 12)] and a.touched == [False, True]  # never told of 3
+    assert sent(frame([], [(1, 10), (4, 18)])) == [(1, 10), (4, 18)]
+    assert sent(frame([(1, 30)])) == [] and a.touched == [True]  # id 1 handed out again: a touch
+    assert sent(frame([(1, 40)], [(1, 30)])) == [(1, 30)] and a.touched == [True]  # and again
     a.reset()
-    assert a.update(_contacts((1, 40)), 1) == [] and a.touched == [True]
+    assert sent(frame([(1, 40)])) == [] and a.touched == [True]
 
 
 # -- the service over a serial line ------------------------------------------------------------
@@ -172,5 +191,5 @@ def test_a_link_without_v2_ignores_set_protocol_2_and_counts_it(bundle_path):
     frame = np.zeros((bundle.fibers.height, bundle.fibers.width), dtype=np.uint8)
     service = Service(load_board_config("sim", env={}), bundle, ListCamera([frame]), V1Only())
     service.handle(Command(CommandType.SET_PROTOCOL, 1, version=2))
-    assert service.protocol == 1 and service.stats.protocol_refused == 1
+    assert service.link.protocol == 1 and service.stats.protocol_refused == 1
     assert not service.status_message(0).state & STATE_PROTOCOL_V2

@@ -260,7 +260,7 @@ def test_led_drifting_10_percent_over_a_run_gives_no_false_contact():
         false = 0
         for k in range(n):
             gain = 1.0 + direction * 0.10 * k / n
-            false += bool(pipe.process(po.render(bundle, po.REST * gain), (5 + k) * po.PERIOD).contact)
+            false += bool(pipe.process(po.render(bundle, po.REST * gain), (5 + k) * po.PERIOD).primary.contact)
         assert false == 0, (direction, false)
 
 
@@ -311,11 +311,11 @@ def test_a_pipeline_failure_is_counted_flagged_and_the_loop_goes_on(bundle):
     real = service.pipeline.process
     calls = [0]
 
-    def flaky(frame, t_ns):
+    def flaky(frame, t_ns, saturated=False):
         calls[0] += 1
         if 100 <= calls[0] < 103:
             raise IndexError("index 217 is out of bounds for axis 0 with size 217")
-        return real(frame, t_ns)
+        return real(frame, t_ns, saturated)
 
     service.pipeline.process = flaky
     stats = service.run(threading.Event(), duration_s=1.0)
@@ -339,7 +339,7 @@ def test_fibers_dimmer_than_the_black_level_do_not_crash_the_gain_estimate():
     frame = np.zeros((480, 640), np.uint8)
     for i in range(30):
         frame.reshape(-1)[cal.fibers.pixel_index] = 254 if i < 20 else 9
-        est = pipe.process(frame, i * 16_666_667)
+        est = pipe.process(frame, i * 16_666_667).primary
     assert est.baseline_ready and np.isfinite(pipe.gain)
 
 
@@ -365,7 +365,7 @@ def test_a_sudden_led_dimming_is_not_a_contact_and_a_press_during_it_is_found(sc
     for i in range(900):  # 15 s at 60 fps; the light steps at frame 500 (8.3 s)
         pressing = press_from <= i < 700
         frame = sensor.frame((press,) if pressing else ())
-        est = pipe.process(_dimmed(frame, scale) if i >= 500 else frame, i * 16_666_667)
+        est = pipe.process(_dimmed(frame, scale) if i >= 500 else frame, i * 16_666_667).primary
         if not pressing:
             false_contacts += est.contact
         elif i >= press_from + 10:  # past the ramp of the skin

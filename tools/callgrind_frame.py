@@ -20,8 +20,8 @@ per-frame count, with start-up, imports and warm-up cancelled exactly:
   Python's allocator, OpenCV's).
 
 The driver does what the service's thread does per frame apart from the
-camera hand-off: the frame check, :meth:`Pipeline.process`, the CONTACT fill
-and its wire encoding. Needs valgrind on the PATH; docs/performance.md has the
+camera hand-off: the frame check, :meth:`Pipeline.process`, the outbox's
+messages (protocol v1: the CONTACT) and their wire encoding. Needs valgrind on the PATH; docs/performance.md has the
 results and the Pi projection made from them.
 """
 
@@ -52,22 +52,23 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int) -> None:
     from optitac_edge.core.frame_check import FrameCheck
     from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
     from optitac_edge.io.bundle_file import load_bundle
-    from optitac_edge.io.protocol.messages import ContactMessage
+    from optitac_edge.io.protocol.outbox import LinkState, SensorOutbox
     from optitac_edge.io.protocol.wire import MsgType, contact_payload, encode_frame
 
     bundle = load_bundle(bundle_path)
     frames = list(np.load(frames_path))
     pipe = Pipeline(bundle)
     check = FrameCheck(bundle.fibers, frames[0].shape)
-    msg = ContactMessage()
+    outbox = SensorOutbox(0)
+    link = LinkState()
     period = 4_166_667
     t = 0
 
     def one(frame: np.ndarray, t_ns: int) -> None:
         check(frame)
-        est = pipe.process(frame, t_ns)
-        msg.fill(est, t_ns, t_ns, pipe.calibrated, saturated=check.saturated)
-        encode_frame(MsgType.CONTACT, 0, int(msg.t_us), contact_payload(msg))
+        result = pipe.process(frame, t_ns, check.saturated)
+        for msg in outbox.update(result, link, True, t_ns):
+            encode_frame(MsgType.CONTACT, 0, int(msg.t_us), contact_payload(msg))  # type: ignore[arg-type]
 
     with single_threaded_opencv():
         for f in frames:

@@ -171,8 +171,9 @@ class Collector:
         self._rows.append(self._row(phase, press, st.xyz_mm))
         self._times.append(int(captured.t_ns if t_ns is None else t_ns))
         self._index += 1
-        est = self.pipeline.process(captured.frame, captured.t_ns)
-        return est, st
+        self.pipeline.bundle.fibers.check_frame(captured.frame, self.camera.pixel_format)
+        # a copy: the callers keep the estimates of several frames (the pipeline's own is reused)
+        return self.pipeline.process(captured.frame, captured.t_ns).primary.copy(), st
 
     def _row(self, phase: str, press: PlannedPress | None, xyz: tuple[float, float, float]) -> dict[str, Any]:
         row: dict[str, Any] = {"frame": self._index, "phase": phase, "rig": [round(v, 4) for v in xyz]}

@@ -41,7 +41,8 @@ def orient_live(camera: Camera, bundle: CalibrationBundle, timeout_s: float,
         captured = camera.read(read_timeout_s)
         if captured is None:
             raise CameraError("the camera ended before the orientation was found")
-        est = pipeline.process(captured.frame, captured.t_ns)
+        bundle.fibers.check_frame(captured.frame, camera.pixel_format)
+        est = pipeline.process(captured.frame, captured.t_ns).primary
         if not est.baseline_ready:
             continue
         if start_ns is None:

@@ -76,7 +76,7 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     t_ns = rec.t_ns
     show = sys.stderr.isatty() if progress is None else progress
     for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
-        yield i, pipeline.process(rec.frames[i], int(t_ns[i]))
+        yield i, pipeline.process(rec.frames[i], int(t_ns[i])).primary
 
 
 def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool = True,

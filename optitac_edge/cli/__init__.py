@@ -724,11 +724,11 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
                         f"{int((~b.fibers.dead).sum())}/{b.layout.n_fibers} fibers")
             say(f"running {len(config.sensors)} sensors on {len(config.cameras)} camera(s) ({via}; Ctrl-C to stop)")
 
-        def on_result(est: Any, stats: Any) -> None:
+        def on_result(result: Any, stats: Any) -> None:
             if max_frames is not None and stats.frames >= max_frames:
                 stop.set()
             if line is not None and stats is session.services[0].stats:  # the lead camera's first sensor
-                line.offer(est, stats)
+                line.offer(result.primary, stats)
 
         session.run(stop, duration_s=args.duration, on_result=on_result)
         return session.services

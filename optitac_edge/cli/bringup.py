@@ -169,7 +169,8 @@ def _cmd_snapshot(args: argparse.Namespace) -> int:
                 captured = camera.read(config.camera.timeout_s)
                 if captured is None:
                     raise OptiTacError("the camera ended before the picture was taken")
-                est = pipeline.process(captured.frame, captured.t_ns)
+                bundle.fibers.check_frame(captured.frame, camera.pixel_format)
+                est = pipeline.process(captured.frame, captured.t_ns).primary
                 stats.frames += 1
                 stats.contacts += int(est.contact)
                 taken += int(est.baseline_ready)

@@ -4,7 +4,9 @@ Per frame (the OptiTac method, see :mod:`optitac_edge.devtools.reference` for th
 literal version, and :class:`~optitac_edge.core.bundle.ContactOptions` for the
 switchable improvements beyond the paper noted in brackets):
 
-1. check the frame against the bundle (shape, dtype, pixel format);
+1. (the caller's) the frame is checked against the bundle: shape, dtype, pixel
+   format, dark or saturated (:class:`~optitac_edge.core.frame_check.FrameCheck`,
+   once per frame; the pipeline takes a checked frame);
 2. per-fiber mean gray level with the precomputed fiber table;
 3. the first ``bundle.baseline_frames`` frames are averaged into the baseline
    (reported with ``baseline_ready=False``);
@@ -34,7 +36,7 @@ switchable improvements beyond the paper noted in brackets):
    matrix products, :class:`~optitac_edge.core.moments.BinaryShapeMoments`);
 8. the contacts get stable ids, the frame they touched in, and the contacts
    of the previous frame that are gone are released
-   (:class:`~optitac_edge.core.tracking.ContactTracker`; ``pipeline.released``);
+   (:class:`~optitac_edge.core.tracking.ContactTracker`; ``result.released``);
 9. [track_baseline: without contact, on quiet frames, the baseline follows
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)];
@@ -43,7 +45,9 @@ switchable improvements beyond the paper noted in brackets):
    without contact: the baseline was taken while the skin was pressed there (a
    start or a tare during a grasp); those fibers' baseline is raised to their
    light (:class:`~optitac_edge.core.baseline.BrightFibers`;
-   ``pipeline.baseline_raised``, ``pipeline.raised_fibers``).
+   ``result.baseline_raised``, ``result.raised_fibers``).
+
+Everything a frame gave is one :class:`~optitac_edge.core.frame_result.FrameResult`.
 
 The steps are named parts, each with its own buffers and public methods (the
 benchmark times them one by one): :class:`~optitac_edge.core.fiber_table.FiberSampler`
@@ -78,6 +82,7 @@ from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.fiber_table import FiberSampler
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.gain import GainCompensation
 from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
@@ -121,10 +126,10 @@ class Pipeline:
 
     Notes
     -----
-    :meth:`process` returns the same :class:`ContactEstimate` object every
-    call (updated in place; the primary, i.e. strongest, contact); use
-    ``estimate.copy()`` to keep one. All contacts of the frame are
-    ``pipeline.contacts[:estimate.n_contacts]`` (also reused).
+    :meth:`process` returns the same :class:`FrameResult` object every call
+    (updated in place): ``result.primary`` is the primary (strongest) contact's
+    :class:`ContactEstimate`, ``result.contacts[:result.n_contacts]`` every
+    contact; use ``result.primary.copy()`` to keep one.
     """
 
     def __init__(self, bundle: CalibrationBundle, options: ContactOptions | None = None) -> None:
@@ -144,10 +149,6 @@ class Pipeline:
         self.baseline = Baseline(n_fibers, bundle.baseline_frames, o.black_level, o.baseline_tau_s, o.holdoff_s)
         #: Step 10: a baseline taken over a press, found from fibers brighter than it.
         self.bright_fibers = BrightFibers(n_fibers, from_common=not o.compensate_gain)
-        #: The last frame raised the baseline of fibers brighter than it (it had been taken over a press).
-        self.baseline_raised = False
-        #: How many fibers the last raise moved.
-        self.raised_fibers = 0
         #: The truncation, off and on levels.
         self.levels = ContactLevels(o, bundle.thresholds.threshold)
         #: Step 4 with ``compensate_gain``: the frame's LED gain divided out (None when off).
@@ -182,6 +183,8 @@ class Pipeline:
         self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
         #: Stable contact ids, touch frames and releases from frame to frame.
         self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
+        #: What the last frame gave (the object :meth:`process` returns, updated in place).
+        self.result = FrameResult(self.contacts, self.tracker.released)
         #: Per-contact corrections (centroid error map, width model, shape), or None.
         self.corrector: ContactCorrector | None = None
         self.set_corrector(ContactCorrector(bundle))
@@ -224,18 +227,8 @@ class Pipeline:
         return 1.0 if self.gain_compensation is None else self.gain_compensation.gain
 
     @property
-    def light_changed(self) -> bool:
-        """The last frame's light changed common-mode (an LED dimming or brightening, not a contact)."""
-        return self.gain_compensation is not None and self.gain_compensation.light_changed
-
-    @property
     def in_contact(self) -> bool:
         return self._in_contact
-
-    @property
-    def released(self) -> list[tuple[int, int]]:
-        """``(contact id, touch frame)`` of the contacts the last frame released (a new list)."""
-        return self.tracker.released[:self.tracker.n_released]
 
     def set_contact_level(self, on_relative: float | None) -> None:
         """Set the contact-on level, in relative units of the rest light (None: the calibrated one).
@@ -278,32 +271,33 @@ class Pipeline:
 
     # -- per frame -------------------------------------------------------------
 
-    def process(self, frame: np.ndarray, now_ns: int) -> ContactEstimate:
-        """Contact estimate of one frame.
+    def process(self, frame: np.ndarray, now_ns: int, saturated: bool = False) -> FrameResult:
+        """Everything one frame gives.
 
         Parameters
         ----------
         frame : ndarray, uint8
-            A C-contiguous frame of the bundle's size and pixel format
-            (gray (H, W), rgb (H, W, 3) or yuv420 (H*3//2, W)).
+            A checked frame (:class:`~optitac_edge.core.frame_check.FrameCheck`, or
+            :meth:`FiberTable.check_frame <optitac_edge.core.fiber_table.FiberTable.check_frame>`
+            for a recording): C-contiguous, of the bundle's size and pixel
+            format (gray (H, W), rgb (H, W, 3) or yuv420 (H*3//2, W)). The
+            pipeline does not check it again.
         now_ns : int
             Timestamp of the frame, ns (copied to ``t_ns``; the baseline
             tracking's clock).
+        saturated : bool
+            The frame check found a live fiber centre at full scale (carried into the result).
 
         Returns
         -------
-        ContactEstimate
-            The pipeline's reused estimate of the primary (strongest) contact,
-            updated in place; ``n_contacts`` tells how many of
-            :attr:`contacts` are valid.
-
-        Raises
-        ------
-        FrameMismatchError
-            If the frame's shape, dtype or format does not match the bundle.
+        FrameResult
+            The pipeline's reused result, updated in place: the contacts with
+            their ids, the releases and the frame's flags.
         """
-        self.sampler.table.check_frame(frame, self._pixel_format)
-        self.baseline_raised = False
+        result = self.result
+        result.saturated = saturated
+        result.light_changed = result.baseline_raised = False
+        result.calibrated = self.corrector is not None and self.corrector.calibrated
         est = self._estimate
         est.frame = self._frame
         est.t_ns = now_ns
@@ -320,14 +314,15 @@ class Pipeline:
                     gain.reset(now_ns)
             est.baseline_ready = False
             self._no_contact(est, 0.0, 0.0)
-            self.tracker.update(self.contacts, 0, est.frame)
-            return est
+            self._track(0, est.frame)
+            return result
         est.baseline_ready = True
 
         signal = self.compute_signal(means, now_ns)
+        result.light_changed = gain is not None and gain.light_changed
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self._find_contacts(surface, est)
-        self.tracker.update(self.contacts, n, est.frame)
+        self._track(n, est.frame)
 
         if n > 0:
             self._in_contact = True
@@ -335,17 +330,30 @@ class Pipeline:
             self._in_contact = False
             self._contact_end_ns = now_ns
         if self.bright_fibers.check(signal, float(self.levels.off), now_ns, n == 0):
-            self.raised_fibers = baseline.raise_to(self._rest_light(means), signal, float(self.levels.off),
-                                                   self.bright_fibers.common)
+            result.raised_fibers = baseline.raise_to(self._rest_light(means), signal, float(self.levels.off),
+                                                     self.bright_fibers.common)
             self._levels_changed()
-            self.baseline_raised = True
-            return est
+            result.baseline_raised = True
+            return result
         if n == 0 and gain is not None:
             gain.contact_free(now_ns)
         if n == 0 and self.options.track_baseline and dt_ns > 0:
             baseline.track(self._rest_light(means), signal, float(self.levels.off), now_ns, dt_ns,
                            self._contact_end_ns)
-        return est
+        return result
+
+    def _track(self, n: int, frame: int) -> None:
+        """Step 8: ids, touches and releases of the frame's ``n`` contacts, into the result."""
+        tracker, result = self.tracker, self.result
+        tracker.update(self.contacts, n, frame)
+        result.n_contacts = n
+        result.n_released = tracker.n_released
+
+    def adopt_tracking(self, previous: Pipeline) -> None:
+        """Go on with ``previous``'s contact ids (a re-oriented bundle replacing it): its contacts are
+        released by this pipeline's first frame, and no id is handed out again at once."""
+        self.tracker = previous.tracker
+        self.result.released = self.tracker.released
 
     def _rest_light(self, means: np.ndarray) -> np.ndarray:
         """The frame's fiber means (shape (N,), gray levels) as the baseline takes them: with gain compensation,

@@ -26,7 +26,7 @@ from typing import Any
 
 import serial
 
-from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock, VirtualClock
 from optitac_edge.io.transports.serial import SerialTransport
 from optitac_edge.service.board_config import load_board_config
@@ -130,7 +130,7 @@ def run_soak(minutes: float, fault_rate: float = 0.01, seed: int = 0, fps: float
     due = {"unplug": start_ns + int(UNPLUG_EVERY_S * 1e9), "rss": start_ns}
     result = SoakResult(0.0, ServiceStats(), inj.injected, 0, {}, 0)
 
-    def on_result(est: ContactEstimate, stats: ServiceStats) -> None:
+    def on_result(_result: FrameResult, stats: ServiceStats) -> None:
         now = clock.monotonic_ns()
         if now >= due["rss"]:
             result.rss_kb.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)

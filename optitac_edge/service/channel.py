@@ -9,12 +9,10 @@ place: no allocation per frame beyond what the pipeline does.
 from __future__ import annotations
 
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.frame_check import FrameCheck
-from optitac_edge.core.options import MAX_CONTACTS
 from optitac_edge.core.pipeline import Pipeline
-from optitac_edge.io.protocol.announce import ContactAnnouncer
-from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Message, ReleaseMessage, StatusMessage
+from optitac_edge.io.protocol.messages import StatusMessage
+from optitac_edge.io.protocol.outbox import SensorOutbox
 
 
 class SensorChannel:
@@ -37,14 +35,13 @@ class SensorChannel:
         self.name = name
         self.bundle = bundle
         self.pipeline = Pipeline(bundle)
+        #: The one check of a frame before the pipeline takes it.
         self.frame_check = FrameCheck(bundle.fibers, frame_shape)
-        self.message = ContactMessage(sensor_id=sensor_id)
-        self.messages_v2 = [ContactV2Message(sensor_id=sensor_id) for _ in range(MAX_CONTACTS)]
-        self.release = ReleaseMessage(sensor_id=sensor_id)
-        self.announcer = ContactAnnouncer()
-        self.status = StatusMessage(sensor_id=sensor_id, calibration_id=int(bundle.calibration_id[:8] or "0", 16))
         #: Some fiber of the bundle is dead (every message's DEGRADED flag).
         self.degraded = bool(bundle.fibers.dead.any())
+        #: The messages of each frame to the MCU.
+        self.outbox = SensorOutbox(sensor_id, self.degraded)
+        self.status = StatusMessage(sensor_id=sensor_id, calibration_id=int(bundle.calibration_id[:8] or "0", 16))
         #: Frames this sensor processed, and those with a contact.
         self.frames = 0
         self.contacts = 0
@@ -54,21 +51,7 @@ class SensorChannel:
         self.light_since_status = False
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
-        """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread)."""
+        """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread); it goes on
+        with this one's contact ids, so the contacts of the old one are released."""
+        pipeline.adopt_tracking(self.pipeline)
         self.pipeline = pipeline
-
-    def fill_v1(self, est: ContactEstimate, t_ns: int, now_ns: int, saturated: bool) -> ContactMessage:
-        """The frame's CONTACT (protocol v1: its primary contact)."""
-        return self.message.fill(est, t_ns, now_ns, self.pipeline.calibrated, saturated=saturated,
-                                 degraded=self.degraded)
-
-    def releases(self, est: ContactEstimate) -> list[tuple[int, int]]:
-        """Protocol v2: (id, touch frame) of every contact the MCU was told of that is gone this frame."""
-        return self.announcer.update(self.pipeline.contacts, est.n_contacts if est.contact else 0)
-
-    def fill_v2(self, est: ContactEstimate, k: int, t_ns: int, now_ns: int, saturated: bool) -> ContactV2Message:
-        """Protocol v2: the CONTACT2 of contact ``k`` (after :meth:`releases`); with no contact, one saying so."""
-        n = est.n_contacts if est.contact else 0
-        return self.messages_v2[k].fill(self.pipeline.contacts[k] if n else est, k, t_ns, now_ns,
-                                        self.pipeline.calibrated, saturated, self.degraded,
-                                        touch=self.announcer.touched[k] if n else None)

@@ -28,25 +28,14 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
 from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
-from optitac_edge.io.protocol.messages import (
-    STATE_BASELINE_READY,
-    STATE_CALIBRATION_UNSAVED,
-    STATE_CAMERA_FAULT,
-    STATE_DEGRADED,
-    STATE_LIGHT_CHANGE,
-    STATE_PROTOCOL_V2,
-    STATE_STREAMING,
-    TEMP_UNKNOWN,
-    Command,
-    CommandType,
-    StatusMessage,
-)
+from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, Command, CommandType, SensorState, StatusMessage
+from optitac_edge.io.protocol.outbox import LinkState
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
@@ -69,7 +58,7 @@ SWITCH_INTERVAL_S = 0.0005
 #: SET_THRESHOLD unit: the contact-on level in 1e-4 of the rest light (relative signal).
 THRESHOLD_UNIT = 1e-4
 
-OnResult = Callable[[ContactEstimate, "ServiceStats"], None]
+OnResult = Callable[[FrameResult, "ServiceStats"], None]
 
 
 class ServiceStalled(OptiTacError):
@@ -190,11 +179,10 @@ class Service:
         self.view: Any = None
         #: The network publisher's frame-loop side (``[publish]``): ``offer_*`` copy and return, never blocking.
         self.network: NetworkOutput | None = None
-        self.streaming = True
-        self.rate_divider = config.link.rate_divider
+        #: Protocol, streaming and rate divider, as the MCU's commands set them.
+        self.link = LinkState(rate_divider=config.link.rate_divider, delivers=transport.delivers,
+                              v2_alongside_v1=transport.v2_alongside_v1)
         self.stats = ServiceStats()
-        #: The protocol the MCU asked for with SET_PROTOCOL (1 until it does).
-        self.protocol = 1
         self._inbox: deque[Command] = deque()
         self._pixel_format = camera.pixel_format
         self._frame_shape = camera.frame_shape
@@ -239,18 +227,18 @@ class Service:
             for ch in self.channels:
                 ch.pipeline.reset_baseline()
         elif command.type == CommandType.STREAM:
-            self.streaming = command.stream_on
-            self.rate_divider = max(int(command.rate_divider), 1)
+            self.link.streaming = command.stream_on
+            self.link.rate_divider = max(int(command.rate_divider), 1)
         elif command.type == CommandType.SET_THRESHOLD:
             for ch in self.channels:
                 ch.pipeline.set_contact_level(command.threshold * THRESHOLD_UNIT)
         elif command.type == CommandType.SET_PROTOCOL:
             if command.version in self.transport.protocols:
-                if command.version != self.protocol and not self.is_peer:
+                if command.version != self.link.protocol and not self.is_peer:
                     log.info("the MCU switched to protocol v%d", command.version)
-                self.protocol = command.version
+                self.link.protocol = command.version
                 for ch in self.channels:
-                    ch.announcer.reset()  # a new session: every contact is news to the MCU
+                    ch.outbox.new_session()  # every contact is news to the MCU
             else:
                 self.stats.protocol_refused += 1
                 if not self.is_peer:  # the lead says it once for the board
@@ -263,7 +251,15 @@ class Service:
 
     # -- status ------------------------------------------------------------------------------
 
-    def status_message(self, now_ns: int, index: int = 0) -> StatusMessage:
+    def sensor_state(self, index: int = 0) -> SensorState:
+        """The flags of sensor ``index`` of this camera for its STATUS (those since its last STATUS)."""
+        ch = self.channels[index]
+        return SensorState(streaming=self.link.streaming, baseline_ready=ch.pipeline.baseline_ready,
+                           degraded=ch.degraded, camera_fault=ch.fault_since_status or self.camera is None,
+                           light_change=ch.light_since_status, calibration_unsaved=self.calibration_unsaved,
+                           protocol_v2=self.link.protocol == 2)
+
+    def status_message(self, now_ns: int, index: int = 0, state: SensorState | None = None) -> StatusMessage:
         """The STATUS of sensor ``index`` of this camera (its flags since its last STATUS, then cleared)."""
         ch, st = self.channels[index], self.stats
         s = ch.status
@@ -275,13 +271,7 @@ class Service:
         s.link_errors = c.send_errors + c.rx_errors
         temp = cpu_temperature_c()
         s.cpu_temp_c_x10 = TEMP_UNKNOWN if temp is None else round(temp * 10)
-        fault = ch.fault_since_status or self.camera is None
-        s.state = ((STATE_STREAMING if self.streaming else 0)
-                   | (STATE_BASELINE_READY if ch.pipeline.baseline_ready else 0)
-                   | (STATE_DEGRADED if ch.degraded else 0) | (STATE_CAMERA_FAULT if fault else 0)
-                   | (STATE_LIGHT_CHANGE if ch.light_since_status else 0)
-                   | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0)
-                   | (STATE_PROTOCOL_V2 if self.protocol == 2 else 0))
+        s.state = (self.sensor_state(index) if state is None else state).bits
         ch.fault_since_status = ch.light_since_status = False
         return s
 
@@ -289,11 +279,12 @@ class Service:
         """A STATUS for every sensor of the camera, with the frame rate of the last status period."""
         self.stats.measure_rate(now_ns)
         for k, ch in enumerate(self.channels):
-            status = self.status_message(now_ns, k)
+            state = self.sensor_state(k)
+            status = self.status_message(now_ns, k, state)
             self.transport.send_status(status)
             if self.network is not None:
-                self.network.offer_status(ch.sensor_id, status, ch.frames, ch.contacts, self.stats.recent_fps,
-                                          self.protocol)
+                self.network.offer_status(ch.sensor_id, status, state, ch.frames, ch.contacts,
+                                          self.stats.recent_fps, self.link.protocol)
 
     def _flag_fault(self) -> None:
         for ch in self.channels:
@@ -405,10 +396,10 @@ class Service:
                     break
                 self._check_frame_gap(now_ns)
                 try:
-                    est = self._step(stop, now_ns)
+                    result = self._step(stop, now_ns)
                 except _CameraEnded:
                     break
-                self._after_step(est, on_result)
+                self._after_step(result, on_result)
         finally:
             self._shut_down()
         log.info("camera %s stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
@@ -422,8 +413,8 @@ class Service:
             raise ServiceStalled(f"no good camera frame for {(now_ns - self._last_good_ns) / 1e9:.1f} s "
                                  f"({self.stats.camera_errors} camera faults); exiting so systemd restarts")
 
-    def _step(self, stop: threading.Event, now_ns: int) -> ContactEstimate | None:
-        """One pass: reopen the camera or read a frame and process it; the estimate, or None.
+    def _step(self, stop: threading.Event, now_ns: int) -> FrameResult | None:
+        """One pass: reopen the camera or read a frame and process it; the first sensor's result, or None.
 
         Raises :class:`_CameraEnded` when a finite source has no more frames.
         """
@@ -440,16 +431,16 @@ class Service:
         if captured is None:
             raise _CameraEnded
         self.stats.frames_dropped += camera.frames_dropped - dropped
-        est, device_fault = self._process(captured)
+        result, device_fault = self._process(captured)
         if self.view is not None:  # the live view copies what it needs when an update is due; never waits
             self.view.observe(captured.frame, captured.t_ns, self.pipeline, self.stats)
         if not device_fault:  # a camera delivering wrong frames counts towards the frame gap
             self._last_good_ns = self.clock.monotonic_ns()
-        return est
+        return result
 
-    def _after_step(self, est: ContactEstimate | None, on_result: OnResult | None) -> None:
+    def _after_step(self, result: FrameResult | None, on_result: OnResult | None) -> None:
         """READY once, the watchdog kick, the MCU's commands, the caller's hook, STATUS when due."""
-        if est is not None and not self._ready:
+        if result is not None and not self._ready:
             self._ready = True
         if not self.is_peer:
             self._tell_systemd()
@@ -457,8 +448,8 @@ class Service:
                 self.handle(command)
         while self._inbox:
             self.handle(self._inbox.popleft())
-        if est is not None and on_result is not None:
-            on_result(est, self.stats)
+        if result is not None and on_result is not None:
+            on_result(result, self.stats)
         now_ns = self.clock.monotonic_ns()
         if now_ns >= self._next_status_ns:
             self._next_status_ns = now_ns + self._status_period_ns
@@ -486,30 +477,30 @@ class Service:
             self.notifier.stopping()
         self.close()
 
-    def _process(self, captured: CapturedFrame) -> tuple[ContactEstimate | None, bool]:
-        """Check and process one captured frame for every sensor: (the first estimate, None when no sensor
-        processed the frame; a device fault)."""
+    def _process(self, captured: CapturedFrame) -> tuple[FrameResult | None, bool]:
+        """Check and process one captured frame for every sensor: (the first sensor's result, None when no
+        sensor processed the frame; a device fault)."""
         st = self.stats
-        first: ContactEstimate | None = None
+        first: FrameResult | None = None
         processed = device_fault = False
-        send = self.streaming and (st.frames + 1) % self.rate_divider == 0 and self.transport.delivers
+        send = self.link.due(st.frames + 1)
         for ch in self.channels:
-            est, fault = self._process_sensor(ch, captured, send)
+            result, fault = self._process_sensor(ch, captured, send)
             device_fault |= fault is not None
             if fault == "bad":
                 break  # a frame of the wrong shape or type is wrong for every sensor: counted once
-            if est is not None and not processed:
-                processed, first = True, est
+            if result is not None and not processed:
+                processed, first = True, result
         if processed:
             st.frames += 1
             st.sent += int(send)
         return first, device_fault
 
     def _process_sensor(self, ch: SensorChannel, captured: CapturedFrame,
-                        send: bool) -> tuple[ContactEstimate | None, str | None]:
-        """One sensor's part of a frame: its check, its pipeline, its messages. Returns its estimate (None:
-        skipped) and the device fault: None, "bad" (a wrong frame) or "failed" (the pipeline failed)."""
-        st = self.stats
+                        send: bool) -> tuple[FrameResult | None, str | None]:
+        """One sensor's part of a frame: the frame check, the pipeline, the outbox's messages sent. Returns
+        its result (None: skipped) and the device fault: None, "bad" (a wrong frame) or "failed" (the
+        pipeline failed)."""
         try:
             why = ch.frame_check(captured.frame)
         except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
@@ -518,42 +509,30 @@ class Service:
             self._frame_skipped(ch, why)
             return None, "bad" if why == "bad" else None
         try:
-            est = ch.pipeline.process(captured.frame, captured.t_ns)
+            result = ch.pipeline.process(captured.frame, captured.t_ns, ch.frame_check.saturated)
         except Exception as exc:  # noqa: BLE001 - a per-frame failure never ends the service
             self._processing_failed(ch, exc)
             return None, "failed"  # a loop failing on every frame counts towards the frame gap
-        ch.frames += 1
-        ch.contacts += int(est.contact)
-        st.contacts += int(est.contact)
-        if ch.pipeline.light_changed:
-            self._light_changed(ch)
-        if ch.pipeline.baseline_raised:
-            self._baseline_raised(ch)
-        saturated = ch.frame_check.saturated
-        st.saturated_sent += int(saturated)
+        self._count(ch, result)
         if self.network is not None:
-            p = ch.pipeline
-            self.network.offer_frame(ch.sensor_id, est, p.contacts, captured.t_ns, p.calibrated, saturated,
-                                     ch.degraded, p.signal, captured.frame, p.surface)
-        if send:
-            alongside = self.transport.v2_alongside_v1
-            if self.protocol == 1 or alongside:
-                self.transport.send_contact(ch.fill_v1(est, captured.t_ns, self.clock.monotonic_ns(), saturated))
-            if self.protocol == 2 or alongside:
-                self._send_v2(ch, est, captured.t_ns, saturated)
-        return est, None
+            self.network.offer_frame(ch.sensor_id, result, ch.degraded, ch.pipeline.signal, captured.frame,
+                                     ch.pipeline.surface)
+        for message in ch.outbox.update(result, self.link, send, self.clock.monotonic_ns()):
+            self.transport.send(message)
+        return result, None
 
-    def _send_v2(self, ch: SensorChannel, est: ContactEstimate, t_ns: int, saturated: bool) -> None:
-        """Protocol v2: a RELEASE for every contact the MCU was told of that is gone, then a CONTACT2 for
-        every contact of the frame (one with no contact when there is none)."""
-        t_us = t_ns // 1000
-        r = ch.release
-        for cid, touch in ch.releases(est):
-            r.contact_id, r.touch_frame, r.frame, r.t_us = cid, touch, est.frame, t_us
-            self.transport.send_release(r)
-        now_ns = self.clock.monotonic_ns()
-        for k in range(max(est.n_contacts if est.contact else 0, 1)):
-            self.transport.send_contact_v2(ch.fill_v2(est, k, t_ns, now_ns, saturated))
+    def _count(self, ch: SensorChannel, result: FrameResult) -> None:
+        """The sensor's counters and flags from its frame (and a log line on the first and every 100th event)."""
+        st = self.stats
+        contact = result.n_contacts > 0
+        ch.frames += 1
+        ch.contacts += contact
+        st.contacts += contact
+        st.saturated_sent += result.saturated
+        if result.light_changed:
+            self._light_changed(ch)
+        if result.baseline_raised:
+            self._baseline_raised(ch, result.raised_fibers)
 
     def _light_changed(self, ch: SensorChannel) -> None:
         st = self.stats
@@ -563,14 +542,13 @@ class Service:
             log.warning("common-mode change of the light %d (LED dimming or brightening to %.3f of the "
                         "baseline, sensor %d): not a contact", st.light_changes, ch.pipeline.gain, ch.sensor_id)
 
-    def _baseline_raised(self, ch: SensorChannel) -> None:
+    def _baseline_raised(self, ch: SensorChannel, fibers: int) -> None:
         st = self.stats
         st.baseline_raises += 1
         if st.baseline_raises == 1 or st.baseline_raises % 100 == 0:
             log.warning("baseline raised %d (sensor %d): %d fibers stayed brighter than their baseline, which no "
                         "press can make: it was taken while the skin was pressed there (a start or a tare during "
-                        "a grasp); their baseline is now their light", st.baseline_raises, ch.sensor_id,
-                        ch.pipeline.raised_fibers)
+                        "a grasp); their baseline is now their light", st.baseline_raises, ch.sensor_id, fibers)
 
     def _processing_failed(self, ch: SensorChannel, exc: Exception) -> None:
         """Count a frame the pipeline failed on, flag it, and start its state afresh (a new baseline)."""

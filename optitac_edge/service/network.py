@@ -1,8 +1,10 @@
 """Contacts, status and the fiber signal on the robot's network, off the frame thread.
 
 The frame loop calls :meth:`NetworkOutput.offer_frame` and
-:meth:`NetworkOutput.offer_status`: each copies a few values into a bounded
-queue and returns (no encoding, no I/O, no lock held against the network). One
+:meth:`NetworkOutput.offer_status`: each copies the frame's contacts into the
+message objects (:class:`~optitac_edge.io.ros2.messages.ContactsSample`,
+:class:`~optitac_edge.io.ros2.messages.StatusSample`) in a bounded queue and
+returns (no encoding, no I/O, no lock held against the network). One
 thread takes them out, encodes them as optitac_msgs (CDR) and hands them to a
 :class:`~optitac_edge.io.publishers.Publisher`. A full queue drops its oldest
 entry; the drops are counted per sensor (from gaps in each sensor's sequence)
@@ -19,21 +21,14 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.errors import PublishError
-from optitac_edge.io.protocol.messages import (
-    STATE_BASELINE_READY,
-    STATE_CALIBRATION_UNSAVED,
-    STATE_CAMERA_FAULT,
-    STATE_DEGRADED,
-    STATE_LIGHT_CHANGE,
-    STATE_STREAMING,
-    TEMP_UNKNOWN,
-    StatusMessage,
-)
+from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, SensorState, StatusMessage
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2 import messages as msgs
 from optitac_edge.io.ros2.rmw_zenoh import check_ros_name
@@ -46,7 +41,6 @@ log = logging.getLogger(__name__)
 #: Entries the queue holds before it drops the oldest (about a second at 240 fps with 1 sensor).
 DEFAULT_QUEUE = 256
 
-_CONTACTS, _STATUS, _SIGNAL, _PICTURE = 0, 1, 2, 3
 #: Points of a contact's outline on the image.
 _OUTLINE_POINTS = 24
 
@@ -123,9 +117,17 @@ def check_topic_names(sensors: Sequence[NetworkSensor]) -> None:
                                f"{other.name!r}'s ({s.topic_name}): rename one of them")
 
 
-def contact_outline(mm_to_px: np.ndarray, values: tuple[Any, ...]) -> msgs.Outline:
+def contact_values(c: ContactEstimate) -> msgs.ContactValues:
+    """A contact as Contact.msg carries it."""
+    return msgs.ContactValues(c.contact_id, c.touch_frame == c.frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
+                              c.minor_mm, c.angle_deg, c.strength, c.depth_mm, c.force_n, c.shape or "",
+                              c.confidence)
+
+
+def contact_outline(mm_to_px: np.ndarray, contact: msgs.ContactValues) -> msgs.Outline:
     """A contact's ellipse (FWHM widths at its angle) in image pixels, labelled with its id and shape."""
-    cid, x, y, major, minor, angle, shape = values[0], values[3], values[4], values[5], values[6], values[7], values[11]
+    c = contact
+    cid, x, y, major, minor, angle, shape = c.id, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.shape
     t = np.linspace(0.0, 2 * np.pi, _OUTLINE_POINTS, endpoint=False)
     a = np.deg2rad(angle)
     ex, ey = major / 2 * np.cos(t), minor / 2 * np.sin(t)
@@ -139,6 +141,28 @@ def contact_outline(mm_to_px: np.ndarray, values: tuple[Any, ...]) -> msgs.Outli
 def topic_of(namespace: str, sensor: NetworkSensor, what: str) -> str:
     """The fully qualified topic: ``<namespace>/optitac/<sensor>/<what>``."""
     return f"{namespace}/optitac/{sensor.topic_name}/{what}"
+
+
+@dataclass(slots=True)
+class _Picture:
+    """The sensor's image, its surface and its contacts, for the picture topics."""
+
+    t_ns: int
+    image: np.ndarray
+    surface: np.ndarray | None
+    contacts: list[msgs.ContactValues]
+
+
+_Message = msgs.ContactsSample | msgs.StatusSample | msgs.SignalSample | _Picture
+
+
+class _Queued(NamedTuple):
+    """A message in the queue, with its sensor's slot, sequence number (gaps: drops) and time stamp."""
+
+    slot: _Slot
+    seq: int
+    t_ns: int
+    message: _Message
 
 
 class _Slot:
@@ -194,7 +218,7 @@ class NetworkOutput:
                 slot.mm_to_px = s.mm_to_px() if s.fiber_px is not None else None
         self._signal_period_ns = int(1e9 / signal_hz) if signal_hz > 0 else 0
         self._picture_period_ns = int(1e9 / picture_hz) if picture_hz > 0 else 0
-        self._queue: deque[tuple[Any, ...]] = deque(maxlen=queue)
+        self._queue: deque[_Queued] = deque(maxlen=queue)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.errors = 0
@@ -203,37 +227,44 @@ class NetworkOutput:
 
     # -- the frame loop's side: copy and return ----------------------------------
 
-    def offer_frame(self, sensor_id: int, est: Any, contacts: Sequence[Any], t_ns: int, calibrated: bool,
-                    saturated: bool, degraded: bool, signal: np.ndarray | None = None,
+    def offer_frame(self, sensor_id: int, result: FrameResult, degraded: bool, signal: np.ndarray | None = None,
                     frame: np.ndarray | None = None, surface: np.ndarray | None = None) -> None:
-        """Every contact of a sensor's frame (``contacts[:est.n_contacts]`` when ``est.contact``), and the
-        signal and the picture (the camera ``frame``, the ``surface``) when due. Never blocks."""
+        """Every contact of a sensor's frame and its releases, and the signal and the picture (the camera
+        ``frame``, the ``surface``) when due. Never blocks."""
         slot = self._slots[sensor_id]
-        n = est.n_contacts if est.contact else 0
-        values = tuple((c.contact_id, c.touch_frame == c.frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
-                        c.minor_mm, c.angle_deg, c.strength, c.depth_mm, c.force_n, c.shape or "", c.confidence)
-                       for c in contacts[:n])
+        est, t_ns = result.primary, result.t_ns
+        contacts = [contact_values(c) for c in result.touching()]
+        released = sorted(cid for cid, _ in result.releases())
+        sample = msgs.ContactsSample(sensor_id, est.frame, t_ns, result.calibrated, result.saturated, degraded,
+                                     contacts, released)
+        queue = self._queue
         slot.offered += 1
-        self._queue.append((_CONTACTS, slot, slot.offered, est.frame, t_ns, calibrated, saturated, degraded, values))
+        queue.append(_Queued(slot, slot.offered, t_ns, sample))
         if self._signal_period_ns and signal is not None and t_ns >= slot.next_signal_ns:
             slot.next_signal_ns = t_ns + self._signal_period_ns
             slot.offered += 1
-            self._queue.append((_SIGNAL, slot, slot.offered, est.frame, t_ns, signal.copy()))
+            s = slot.sensor
+            queue.append(_Queued(slot, slot.offered, t_ns, msgs.SignalSample(sensor_id, est.frame, s.x_mm, s.y_mm,
+                                                                             signal.copy(), s.dead)))
         if self._picture_period_ns and frame is not None and t_ns >= slot.next_picture_ns:
             slot.next_picture_ns = t_ns + self._picture_period_ns
             slot.offered += 1
-            self._queue.append((_PICTURE, slot, slot.offered, t_ns, slot.sensor.crop(frame),
-                                None if surface is None else surface.copy(), values))
+            picture = _Picture(t_ns, slot.sensor.crop(frame), None if surface is None else surface.copy(), contacts)
+            queue.append(_Queued(slot, slot.offered, t_ns, picture))
         self._wake.set()
 
-    def offer_status(self, sensor_id: int, status: StatusMessage, frames: int, contacts: int, fps: float,
-                     protocol: int) -> None:
-        """A sensor's STATUS (as the MCU gets it) with its frame counts. Never blocks."""
+    def offer_status(self, sensor_id: int, status: StatusMessage, state: SensorState, frames: int, contacts: int,
+                     fps: float, protocol: int) -> None:
+        """A sensor's STATUS (as the MCU gets it, with its flags) and its frame counts. Never blocks."""
         slot = self._slots[sensor_id]
         slot.offered += 1
-        s = status
-        self._queue.append((_STATUS, slot, slot.offered, s.t_us * 1000, frames, contacts, fps, s.frames_dropped,
-                            s.camera_errors, s.link_errors, s.cpu_temp_c_x10, s.state, protocol))
+        s, sensor = status, slot.sensor
+        sample = msgs.StatusSample(
+            sensor.sensor_id, sensor.name, sensor.calibration_id, fps, frames, contacts, s.frames_dropped,
+            s.camera_errors, s.link_errors, 0, 0, math.nan if s.cpu_temp_c_x10 == TEMP_UNKNOWN
+            else s.cpu_temp_c_x10 / 10, protocol, state.streaming, state.baseline_ready, state.degraded,
+            state.camera_fault, state.light_change, state.calibration_unsaved)
+        self._queue.append(_Queued(slot, slot.offered, s.t_us * 1000, sample))
         self._wake.set()
 
     # -- the publishing thread ----------------------------------------------------
@@ -248,23 +279,22 @@ class NetworkOutput:
             if self._stop.is_set() and not queue:
                 return
 
-    def _send(self, item: tuple[Any, ...]) -> None:
-        kind, slot, seq = item[0], item[1], item[2]
-        slot.dropped += seq - slot.taken - 1
+    def _send(self, item: _Queued) -> None:
+        slot, seq, t_ns, message = item
+        gap = seq - slot.taken - 1
+        slot.dropped += gap
         slot.taken = seq
         wall = time.time_ns() - time.monotonic_ns()  # the frame clock (CLOCK_MONOTONIC) on the system clock
         try:
-            if kind == _CONTACTS:
-                handle, payload = slot.contacts_topic, self._contacts_payload(slot, item, wall)
-            elif kind == _PICTURE:
-                self._send_picture(slot, item, wall)
+            if isinstance(message, msgs.ContactsSample):
+                handle, payload = slot.contacts_topic, self._contacts_payload(slot, message, gap > 0, t_ns + wall)
+            elif isinstance(message, _Picture):
+                self._send_picture(slot, message, wall)
                 return
-            elif kind == _SIGNAL:
-                s = slot.sensor
-                sample = msgs.SignalSample(s.sensor_id, item[3], s.x_mm, s.y_mm, item[5], s.dead)
-                handle, payload = slot.signal_topic or 0, msgs.encode_signal(sample, item[4] + wall, slot.frame_id)
+            elif isinstance(message, msgs.SignalSample):
+                handle, payload = slot.signal_topic or 0, msgs.encode_signal(message, t_ns + wall, slot.frame_id)
             else:
-                handle, payload = slot.status_topic, self._status_payload(slot, item, wall)
+                handle, payload = slot.status_topic, self._status_payload(slot, message, t_ns + wall)
             self.publisher.publish(handle, payload, time.time_ns())
             slot.published += 1
         except Exception as exc:  # noqa: BLE001 - the network never stops the service
@@ -275,44 +305,35 @@ class NetworkOutput:
             else:
                 log.debug("publishing failed: %s", exc)
 
-    def _send_picture(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> None:
+    def _send_picture(self, slot: _Slot, picture: _Picture, wall: int) -> None:
         """The sensor's image, its surface and the overlay, as three messages."""
-        _, _, _, t_ns, image, surface, values = item
         assert slot.picture_topics is not None
         image_topic, surface_topic, overlay_topic = slot.picture_topics
-        stamp, now, s = t_ns + wall, time.time_ns(), slot.sensor
-        self.publisher.publish(image_topic, msgs.encode_image(image, stamp, slot.frame_id), now)
+        stamp, now, s = picture.t_ns + wall, time.time_ns(), slot.sensor
+        self.publisher.publish(image_topic, msgs.encode_image(picture.image, stamp, slot.frame_id), now)
         slot.published += 1
-        if surface is not None:
-            self.publisher.publish(surface_topic, msgs.encode_image(np.asarray(surface, np.float32), stamp,
+        if picture.surface is not None:
+            self.publisher.publish(surface_topic, msgs.encode_image(np.asarray(picture.surface, np.float32), stamp,
                                                                     slot.frame_id), now)
             slot.published += 1
         if s.fiber_px is not None and slot.mm_to_px is not None:
-            outlines = [contact_outline(slot.mm_to_px, v) for v in values]
+            outlines = [contact_outline(slot.mm_to_px, c) for c in picture.contacts]
             self.publisher.publish(overlay_topic, msgs.encode_annotations(stamp, s.fiber_px, s.dead, outlines), now)
             slot.published += 1
 
-    def _contacts_payload(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> bytes:
-        _, _, _, frame, t_ns, calibrated, saturated, degraded, values = item
-        contacts = [msgs.ContactValues(*v) for v in values]
-        ids = {c.id for c in contacts}
-        released = sorted(slot.previous_ids - ids)
+    def _contacts_payload(self, slot: _Slot, sample: msgs.ContactsSample, after_gap: bool, stamp: int) -> bytes:
+        """The frame's contacts; after entries the queue dropped, the contacts of the last published frame
+        that are gone are released too (their releases were in the dropped frames)."""
+        ids = {c.id for c in sample.contacts}
+        if after_gap and slot.previous_ids - ids:
+            sample.released = sorted(set(sample.released) | (slot.previous_ids - ids))
         slot.previous_ids = ids
-        sample = msgs.ContactsSample(slot.sensor.sensor_id, frame, t_ns, calibrated, saturated, degraded,
-                                     contacts, released)
-        return msgs.encode_contacts(sample, t_ns + wall, slot.frame_id)
+        return msgs.encode_contacts(sample, stamp, slot.frame_id)
 
-    def _status_payload(self, slot: _Slot, item: tuple[Any, ...], wall: int) -> bytes:
-        (_, _, _, t_ns, frames, contacts, fps, dropped, camera_errors, link_errors, temp_x10, state,
-         protocol) = item
-        s = slot.sensor
-        sample = msgs.StatusSample(
-            s.sensor_id, s.name, s.calibration_id, fps, frames, contacts, dropped, camera_errors, link_errors,
-            slot.published, slot.dropped, math.nan if temp_x10 == TEMP_UNKNOWN else temp_x10 / 10, protocol,
-            bool(state & STATE_STREAMING), bool(state & STATE_BASELINE_READY), bool(state & STATE_DEGRADED),
-            bool(state & STATE_CAMERA_FAULT), bool(state & STATE_LIGHT_CHANGE),
-            bool(state & STATE_CALIBRATION_UNSAVED))
-        return msgs.encode_status(sample, t_ns + wall, slot.frame_id)
+    def _status_payload(self, slot: _Slot, sample: msgs.StatusSample, stamp: int) -> bytes:
+        """The STATUS with the sensor's publishing counters as they are now."""
+        sample.published, sample.publish_dropped = slot.published, slot.dropped
+        return msgs.encode_status(sample, stamp, slot.frame_id)
 
     # -- counters and closing ------------------------------------------------------
 

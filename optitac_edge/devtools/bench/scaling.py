@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.devtools.bench.paced import Paced, ratio, run_interleaved
 
@@ -35,8 +36,8 @@ def contact_frames(n_contacts: int, rgb: bool, fps: float, layout: Any = None) -
                               seed=n_contacts)
 
 
-def _count(est: Any) -> int:
-    return int(est.n_contacts) if est.contact else 0
+def _count(result: FrameResult) -> int:
+    return result.n_contacts
 
 
 def measure_contacts(bundle: Any, fps: float, n: int, rgb: bool) -> dict[str, Any]:

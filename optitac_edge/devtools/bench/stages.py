@@ -50,7 +50,7 @@ class StageTimer:
         p = self.pipe
         s = self.samples
         t0 = time.perf_counter_ns()
-        est = p.process(frame, t_ns)
+        est = p.process(frame, t_ns).primary
         s["whole_frame"].append(time.perf_counter_ns() - t0)
         if not est.baseline_ready:
             return est

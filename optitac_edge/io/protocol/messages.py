@@ -291,6 +291,52 @@ class ReleaseMessage:
     touch_frame: int = 0
 
 
+@dataclass(frozen=True, slots=True)
+class SensorState:
+    """A sensor's state as STATUS reports it: the one place its flags are set and packed (``state``).
+
+    Attributes
+    ----------
+    streaming : bool
+        STREAM is on.
+    baseline_ready : bool
+    degraded : bool
+        Some fiber is dead.
+    camera_fault : bool
+        A frame was skipped or failed, or the camera is being reopened, since the last STATUS.
+    light_change : bool
+        A common-mode change of the light (LED dimming) since the last STATUS.
+    calibration_unsaved : bool
+        Running on a bundle that could not be saved.
+    protocol_v2 : bool
+        The sensor speaks protocol v2 (the MCU asked for it with SET_PROTOCOL).
+    """
+
+    streaming: bool = False
+    baseline_ready: bool = False
+    degraded: bool = False
+    camera_fault: bool = False
+    light_change: bool = False
+    calibration_unsaved: bool = False
+    protocol_v2: bool = False
+
+    @property
+    def bits(self) -> int:
+        """The STATUS ``state`` byte (bit0 streaming … bit6 protocol v2)."""
+        return ((STATE_STREAMING if self.streaming else 0) | (STATE_BASELINE_READY if self.baseline_ready else 0)
+                | (STATE_DEGRADED if self.degraded else 0) | (STATE_CAMERA_FAULT if self.camera_fault else 0)
+                | (STATE_LIGHT_CHANGE if self.light_change else 0)
+                | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0)
+                | (STATE_PROTOCOL_V2 if self.protocol_v2 else 0))
+
+    @classmethod
+    def from_bits(cls, state: int) -> SensorState:
+        """The flags of a received STATUS ``state`` byte."""
+        return cls(bool(state & STATE_STREAMING), bool(state & STATE_BASELINE_READY), bool(state & STATE_DEGRADED),
+                   bool(state & STATE_CAMERA_FAULT), bool(state & STATE_LIGHT_CHANGE),
+                   bool(state & STATE_CALIBRATION_UNSAVED), bool(state & STATE_PROTOCOL_V2))
+
+
 @dataclass(slots=True)
 class StatusMessage:
     """About once a second: the health of the sensor service."""
@@ -303,7 +349,12 @@ class StatusMessage:
     link_errors: int = 0  # serial/CAN send errors and bad incoming frames
     cpu_temp_c_x10: int = TEMP_UNKNOWN  # °C × 10
     calibration_id: int = 0  # first 32 bits of the bundle's id
-    state: int = 0  # bit0 streaming, bit1 baseline ready, bit2 degraded, bit3 camera fault
+    state: int = 0  # SensorState.bits: bit0 streaming, bit1 baseline ready, bit2 degraded, bit3 camera fault …
+
+    @property
+    def flags(self) -> SensorState:
+        """:attr:`state` as named flags."""
+        return SensorState.from_bits(self.state)
 
 
 @dataclass(frozen=True, slots=True)

@@ -56,6 +56,15 @@ class Transport(Device, ABC):
         or :attr:`v2_alongside_v1`."""
         raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
 
+    def send(self, message: ContactMessage | ContactV2Message | ReleaseMessage) -> None:
+        """Queue one message of a sensor's frame (the outbox's), by its kind (non-blocking)."""
+        if isinstance(message, ContactV2Message):
+            self.send_contact_v2(message)
+        elif isinstance(message, ContactMessage):
+            self.send_contact(message)
+        else:
+            self.send_release(message)
+
     def poll_commands(self) -> list[Command]:
         """Commands received since the last call (validated; bad ones already answered and counted)."""
         return []

@@ -147,11 +147,9 @@ class LiveView:
             np.copyto(b.frame, frame)
             np.copyto(b.means, pipeline.means)
             np.copyto(b.surface, pipeline.surface.reshape(-1))
-            est = pipeline.contacts[0]
-            n = est.n_contacts if est.contact else 0
-            b.n_contacts = n
-            for k in range(n):
-                c = pipeline.contacts[k]
+            result = pipeline.result
+            b.n_contacts = result.n_contacts
+            for k, c in enumerate(result.touching()):
                 for j, name in enumerate(CONTACT_FIELDS):
                     b.contacts[k, j] = getattr(c, name)
                 b.shapes[k] = c.shape
