@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -27,7 +28,7 @@ def test_packaged_boards_load(name):
     assert Path(cfg.source).name == f"{name}.toml"
     assert config_warnings(cfg) == []
     assert set(cfg.as_dict()) == {"sensor", "camera", "calibration", "link", "led", "status", "watchdog", "rig",
-                                 "publish", "mcap"}
+                                 "network", "publish"}
 
 
 def test_available_boards_and_repo_dir():
@@ -295,3 +296,62 @@ def test_the_camera_backends_a_config_may_name_are_the_registrys(tmp_path, monke
     assert "must be one of " + ", ".join(repr(n) for n in sorted(cameras.BACKENDS)) in str(info.value)
     monkeypatch.setitem(cameras.BACKENDS, "webcam", "my_cameras:Webcam")
     assert load_board_config(path, env={}).camera.backend == "webcam"
+
+
+# -- publishers: [publish.NAME] and [network] ------------------------------------------------------------
+
+
+def test_each_publisher_is_a_section_named_after_its_registry_entry(tmp_path):
+    from optitac_edge.io.publishers import PUBLISHERS
+    from optitac_edge.service.board_config import PUBLISH_SECTIONS, McapPublish, ZenohPublish
+
+    assert set(PUBLISH_SECTIONS) == set(PUBLISHERS)
+    board = tmp_path / "b.toml"
+    board.write_text('[network]\nnamespace = "/robot1"\n[publish.mcap]\npath = "run.mcap"\nmax_mb = 50\n'
+                     '[publish.zenoh]\nmode = "client"\nconnect = ["tcp/192.168.1.10:7447"]\n')
+    cfg = load_board_config(board, env={})
+    assert list(cfg.publish) == ["mcap", "zenoh"] and cfg.network.namespace == "/robot1"
+    assert cfg.publish["mcap"] == McapPublish(path=str(tmp_path / "run.mcap"), max_mb=50.0)
+    assert cfg.publish["zenoh"].kwargs() == {**ZenohPublish().kwargs(), "mode": "client",
+                                             "connect": ("tcp/192.168.1.10:7447",)}
+    assert cfg.publish["mcap"].kwargs()["max_bytes"] == 50_000_000
+
+
+def test_an_old_publish_section_loads_as_the_new_form_with_a_one_line_hint(tmp_path, caplog):
+    old, new = tmp_path / "old.toml", tmp_path / "new.toml"
+    old.write_text('[publish]\nbackend = "zenoh"\nconnect = ["tcp/10.0.0.2:7447"]\nnamespace = "/r"\nqueue = 64\n'
+                   'foxglove = "0.0.0.0:8765"\n[mcap]\npath = "x.mcap"\nkeep_mb = 10\n')
+    new.write_text('[network]\nnamespace = "/r"\nqueue = 64\n[publish.zenoh]\nconnect = ["tcp/10.0.0.2:7447"]\n'
+                   '[publish.foxglove]\nbind = "0.0.0.0:8765"\n[publish.mcap]\npath = "x.mcap"\nkeep_mb = 10\n')
+    with caplog.at_level("WARNING"):
+        a = load_board_config(old, env={})
+    b = load_board_config(new, env={})
+    assert a.publish == b.publish and a.network == b.network
+    (hint,) = [r.getMessage() for r in caplog.records]
+    assert "old form" in hint and "[publish.zenoh]" in hint and "network.namespace" in hint and "\n" not in hint
+    off = tmp_path / "off.toml"
+    off.write_text('[publish]\nbackend = "none"\nsignal_hz = 5\n')
+    assert load_board_config(off, env={}).publish == {} and load_board_config(off, env={}).network.signal_hz == 5
+
+
+@pytest.mark.parametrize(("text", "env", "message"), [
+    ('[publish.ros]\nmode = "client"\n', {}, "publish.ros: no such publisher (known: zenoh, foxglove, mcap, virtual)"),
+    ('[publish.zenoh]\nmod = "client"\n', {}, "publish.zenoh.mod: unknown key"),
+    ('[publish.mcap]\nmax_mb = 5\n', {}, "publish.mcap.path: required"),
+    ('[publish.zenoh]\nmode = "peer"\n', {"OPTITAC_PUBLISH_BACKEND": "zenoh"},
+     "environment OPTITAC_PUBLISH_BACKEND: publishers are set as OPTITAC_PUBLISH_<NAME>_<KEY>"),
+])
+def test_bad_publishers_are_one_line_naming_the_key(tmp_path, text, env, message):
+    board = tmp_path / "b.toml"
+    board.write_text(text)
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_board_config(board, env=env)
+
+
+def test_the_environment_and_command_line_set_a_publisher_by_its_name(tmp_path):
+    board = tmp_path / "b.toml"
+    board.write_text('[publish.zenoh]\nmode = "client"\n')
+    cfg = load_board_config(board, env={"OPTITAC_PUBLISH_ZENOH_DOMAIN_ID": "7"},
+                            overrides={"publish.mcap.path": "r.mcap"})
+    assert cfg.publish["zenoh"].domain_id == 7 and list(cfg.publish) == ["zenoh", "mcap"]
+    assert load_board_config(board, env={}, overrides={"publish.zenoh": False}).publish == {}

@@ -183,7 +183,7 @@ def _board(tmp_path: Path, name: str, camera: str, port: int, extra: str = "") -
     cfg.write_text(f'{{ mode: "peer", connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, '
                    'scouting: { multicast: { enabled: false } } }')
     board = tmp_path / f"{name}.toml"
-    board.write_text(f'{camera}\n[publish]\nbackend = "zenoh"\nconfig = "{cfg}"\n{extra}')
+    board.write_text(f'{camera}\n[network]\n{extra}[publish.zenoh]\nconfig = "{cfg}"\n')
     return board
 
 
@@ -358,7 +358,7 @@ def test_an_endpoint_that_can_never_work_is_refused_at_start(endpoint, words, tm
     with pytest.raises(PublishError, match=words):
         ZenohPublisher(mode="client", connect=(endpoint,))
     board = tmp_path / "b.toml"
-    board.write_text(f'[publish]\nbackend = "zenoh"\nmode = "client"\nconnect = ["{endpoint}"]\n')
+    board.write_text(f'[publish.zenoh]\nmode = "client"\nconnect = ["{endpoint}"]\n')
     assert main(["run", "--board", str(board), "--duration", "5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0]
@@ -370,7 +370,7 @@ def test_run_streams_to_the_mcu_while_the_router_is_not_up(tmp_path):
     from fakes.mcu import FakeMcu
 
     board = tmp_path / "client.toml"
-    board.write_text(f'[link]\ntransport = "serial"\n[publish]\nbackend = "zenoh"\nmode = "client"\n'
+    board.write_text(f'[link]\ntransport = "serial"\n[publish.zenoh]\nmode = "client"\n'
                      f'connect = ["tcp/127.0.0.1:{free_port()}"]\n')
     mcu = FakeMcu()
     try:

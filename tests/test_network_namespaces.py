@@ -71,8 +71,8 @@ def test_two_robots_in_their_own_namespaces_are_found_by_scouting_and_heard_by_t
         runs = []
         for robot in ("robot1", "robot2"):
             board = tmp_path / f"{robot}.toml"
-            board.write_text(f'[sensor]\nname = "hand"\n[publish]\nbackend = "zenoh"\n'
-                             f'config = "{_scouting_config(tmp_path / f"{robot}.json5")}"\nnamespace = "/{robot}"\n')
+            board.write_text(f'[sensor]\nname = "hand"\n[network]\nnamespace = "/{robot}"\n[publish.zenoh]\n'
+                             f'config = "{_scouting_config(tmp_path / f"{robot}.json5")}"\n')
             runs.append(subprocess.Popen(["ip", "netns", "exec", lan[robot], sys.executable, "-m", "optitac_edge.cli",
                                           "run", "--board", str(board), "--frames", str(FRAMES)],
                                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))

@@ -184,12 +184,12 @@ def test_install_dry_run(board):
 
 
 @pytest.mark.parametrize(("publish", "extras"), [
-    ('backend = "zenoh"\nconnect = ["tcp/192.168.1.10:7447"]\n', "board,zenoh,mcap"),
-    ('foxglove = "0.0.0.0:8765"\n', "board,mcap,foxglove"),
+    ('[publish.zenoh]\nconnect = ["tcp/192.168.1.10:7447"]\n', "board,zenoh,mcap"),
+    ('[publish.foxglove]\nbind = "0.0.0.0:8765"\n', "board,mcap,foxglove"),
 ])
 def test_install_a_publishing_board_gets_the_zenoh_drop_in_and_extras(tmp_path, publish, extras):
     board = tmp_path / "robot.toml"
-    board.write_text(f'[publish]\n{publish}[mcap]\npath = "/var/lib/x.mcap"\n')
+    board.write_text(f'{publish}[publish.mcap]\npath = "/var/lib/x.mcap"\n')
     proc = subprocess.run(check=False, args=["bash", str(INSTALL), "--dry-run", str(board)], capture_output=True,
                           text=True, timeout=120, env={**os.environ, "OPTITAC_PYTHON": sys.executable,
                                                        "PATH": "/usr/bin:/bin"})

@@ -90,9 +90,8 @@ try:
     c = load_board_config(sys.argv[1], env={})
 except OptiTacError as exc:
     sys.exit(f"install.sh: {exc}")
-extras = ["board"] + (["zenoh"] if c.publish.backend == "zenoh" else []) + (["mcap"] if c.mcap.path else [])
-extras += ["foxglove"] if c.publish.foxglove else []
-net = c.publish.backend == "zenoh" or bool(c.publish.foxglove)
+extras = ["board"] + [name for name in ("zenoh", "mcap", "foxglove") if name in c.publish]
+net = "zenoh" in c.publish or "foxglove" in c.publish
 print("pipeline" if c.camera.pipeline else "device", "zenoh" if net else "none", ",".join(extras))'
 checked="$(cd / && PYTHONPATH="$REPO" "$CHECK_PY" -c "$CHECK" "$BOARD_FILE")" || exit 2
 read -r camera_kind publish_kind extras <<< "$checked"

@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     board = work / "board.toml"
     board.write_text(f'[sensor]\nname = "thumb"\n[camera]\nbackend = "recording"\nrecording = "{presses}"\n'
                      f'[camera.options]\nloop = true\n[calibration]\nbundle = "{bundle}"\n'
-                     f'[publish]\nbackend = "zenoh"\nconfig = "{zenoh_cfg}"\n')
+                     f'[publish.zenoh]\nconfig = "{zenoh_cfg}"\n')
     received = work / "received.jsonl"
     with received.open("w") as out:
         sub = subprocess.Popen([sys.executable, str(SUBSCRIBER), "--listen", f"tcp/127.0.0.1:{port}", "--json",

@@ -177,10 +177,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="serve the live view here (off by default; e.g. 127.0.0.1:8080, see docs/bring-up.md)")
     p.add_argument("--publish", default=None, metavar="zenoh[:CONFIG]",
                    help="publish every sensor's contacts and status on Zenoh as ROS 2 topics (rmw_zenoh), with "
-                        "this Zenoh JSON5 config if given; 'none' turns the board's [publish] off (docs/network.md)")
+                        "this Zenoh JSON5 config if given; 'none' turns the board's [publish.zenoh] off "
+                        "(docs/network.md)")
     p.add_argument("--mcap", default=None, metavar="FILE",
-                   help="also write every sensor's contacts and status to this MCAP file (rotation: [mcap] max_mb, "
-                        "max_minutes)")
+                   help="also write every sensor's contacts and status to this MCAP file (rotation: [publish.mcap] "
+                        "max_mb, max_minutes)")
     p.add_argument("--foxglove", default=None, metavar="HOST:PORT",
                    help="serve contacts, status, each sensor's image, surface and overlay live to Foxglove or "
                         "Lichtblick (e.g. 127.0.0.1:8765; needs the foxglove extra)")
@@ -538,14 +539,24 @@ def _fps_overrides(args: argparse.Namespace) -> dict[str, float]:
     return {f"cameras.{name}.fps": args.fps for name in named} or {"camera.fps": args.fps}
 
 
-def _publish_overrides(value: str | None) -> dict[str, str]:
-    """``--publish zenoh[:CONFIG]`` (or ``none``) as board config overrides."""
-    if value is None:
-        return {}
-    backend, _, path = value.partition(":")
-    if backend not in ("zenoh", "none") or (backend == "none" and path):
-        raise OptiTacError(f"--publish must be zenoh, zenoh:CONFIG or none, got {value!r}")
-    return {"publish.backend": backend, **({"publish.config": path} if path else {})}
+def _publish_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """``--publish zenoh[:CONFIG]`` (or ``none``: the board's Zenoh off), ``--mcap FILE`` and ``--foxglove
+    HOST:PORT`` as board config overrides of its ``[publish.NAME]``."""
+    out: dict[str, Any] = {}
+    value = getattr(args, "publish", None)
+    if value is not None:
+        backend, _, path = value.partition(":")
+        if backend not in ("zenoh", "none") or (backend == "none" and path):
+            raise OptiTacError(f"--publish must be zenoh, zenoh:CONFIG or none, got {value!r}")
+        if backend == "none":
+            out.update({"publish.zenoh": False, "publish.virtual": False})
+        else:
+            out.update({"publish.zenoh": True, **({"publish.zenoh.config": path} if path else {})})
+    if getattr(args, "mcap", None):
+        out["publish.mcap.path"] = args.mcap
+    if getattr(args, "foxglove", None):
+        out["publish.foxglove.bind"] = args.foxglove
+    return out
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -556,9 +567,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         link = {"link.transport": "serial", "link.serial_url": args.serial}
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
-    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(getattr(args, "publish", None)),
-                          **({"mcap.path": args.mcap} if getattr(args, "mcap", None) else {}),
-                          **({"publish.foxglove": args.foxglove} if getattr(args, "foxglove", None) else {}))
+    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args))
     stop = threading.Event()
     received: list[int] = []
 

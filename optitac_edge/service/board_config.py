@@ -18,6 +18,7 @@ Nothing here touches hardware.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
@@ -36,6 +37,8 @@ else:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
 from optitac_edge.errors import ConfigError
 from optitac_edge.io.cameras import MAX_QUEUE_FRAMES
 from optitac_edge.text import parse_float, parse_int
+
+log = logging.getLogger(__name__)
 
 #: Where systemd's ``StateDirectory=optitac-edge`` lives (the calibration bundle's home).
 DEFAULT_STATE_DIR = "/var/lib/optitac-edge"
@@ -353,48 +356,73 @@ ROS_NAME = r"[A-Za-z](_?[A-Za-z0-9])*"
 
 
 @dataclass(frozen=True)
-class PublishConfig:
-    """Contacts on the robot's network (``run --publish``; docs/network.md). Off by default."""
+class NetworkConfig:
+    """What every publisher of the board shares (``[network]``; docs/network.md)."""
 
-    backend: str = _opt(_choice("none", "zenoh", "virtual"), "none",
-                        "publish every sensor's contacts, status and signal: 'zenoh' (ROS 2 topics via rmw_zenoh); "
-                        "'virtual' keeps them in memory (tests)")
-    config: str = _opt(_path, "", "zenoh: a Zenoh JSON5 config file (endpoints, scouting, TLS); '' = Zenoh's defaults")
-    mode: str = _opt(_choice("", "peer", "client", "router"), "",
-                     "zenoh: session mode ('' = the config file's, else peer)")
-    connect: tuple[str, ...] = _opt(_endpoints, (), "zenoh: endpoints to connect to, e.g. ['tcp/192.168.1.10:7447']")
-    listen: tuple[str, ...] = _opt(_endpoints, (), "zenoh: endpoints to listen on, e.g. ['tcp/0.0.0.0:7447']")
-    domain_id: int = _opt(_int(0, 232), 0, "ROS 2 domain id (ROS_DOMAIN_ID)")
     namespace: str = _opt(_str(200, pattern=f"(/{ROS_NAME})*"), "",
                           "ROS 2 namespace of the topics, e.g. '/robot1' ('' = none: /optitac/SENSOR/...)")
-    node: str = _opt(_str(64, pattern=ROS_NAME, empty=False), "optitac_edge", "ROS 2 node name")
     signal_hz: float = _opt(_num(0, 1000), 0.0, "per-fiber signal messages per second and sensor (0: none)")
-    foxglove: str = _opt(_str(256, pattern=r"\S+:\d{1,5}"), "",
-                         "serve everything live to Foxglove / Lichtblick on HOST:PORT ('' = off; run --foxglove)")
     picture_hz: float = _opt(_num(0, 120), 0.0,
                              "each sensor's camera image, surface and overlay per second (0: none; 10 with foxglove "
                              "when left at 0)")
     queue: int = _opt(_int(8, 1_000_000), 256,
                       "messages held for the publishing thread before the oldest is dropped (and counted)")
 
-    @property
-    def config_path(self) -> Path | None:
-        return Path(self.config) if self.config else None
+
+@dataclass(frozen=True)
+class ZenohPublish:
+    """``[publish.zenoh]``: every sensor's contacts, status and signal as ROS 2 topics via rmw_zenoh."""
+
+    config: str = _opt(_path, "", "a Zenoh JSON5 config file (endpoints, scouting, TLS); '' = Zenoh's defaults")
+    mode: str = _opt(_choice("", "peer", "client", "router"), "", "session mode ('' = the config file's, else peer)")
+    connect: tuple[str, ...] = _opt(_endpoints, (), "endpoints to connect to, e.g. ['tcp/192.168.1.10:7447']")
+    listen: tuple[str, ...] = _opt(_endpoints, (), "endpoints to listen on, e.g. ['tcp/0.0.0.0:7447']")
+    domain_id: int = _opt(_int(0, 232), 0, "ROS 2 domain id (ROS_DOMAIN_ID)")
+    node: str = _opt(_str(64, pattern=ROS_NAME, empty=False), "optitac_edge", "ROS 2 node name")
+
+    def kwargs(self) -> dict[str, Any]:
+        """The publisher's constructor arguments."""
+        return {"config": Path(self.config) if self.config else None, "mode": self.mode, "connect": self.connect,
+                "listen": self.listen, "domain_id": self.domain_id, "node": self.node}
 
 
 @dataclass(frozen=True)
-class McapConfig:
-    """A recording of what is published, in MCAP files (``run --mcap``; docs/network.md). Off by default."""
+class FoxglovePublish:
+    """``[publish.foxglove]``: everything live to Foxglove / Lichtblick (a WebSocket server)."""
 
-    path: str = _opt(_path, "", "write every sensor's contacts, status and signal to this MCAP file ('' = none)")
+    bind: str = _opt(_str(256, pattern=r"\S+:\d{1,5}", empty=False), "127.0.0.1:8765", "serve on HOST:PORT")
+
+    def kwargs(self) -> dict[str, Any]:
+        return {"bind": self.bind}
+
+
+@dataclass(frozen=True)
+class McapPublish:
+    """``[publish.mcap]``: a recording of what is published, in MCAP files."""
+
+    path: str = _opt(_path, "", "the MCAP file (required)")
     max_mb: float = _opt(_num(0, 1e7), 0.0, "start a new file (NAME-0001.mcap, ...) after this many MB of messages (0: never)")
     max_minutes: float = _opt(_num(0, 1e6), 0.0, "start a new file after this many minutes (0: never)")
     keep_mb: float = _opt(_num(0, 1e9), 0.0, "delete the recording's oldest complete files once they hold more than "
                           "this many MB (0: keep all)")
 
-    @property
-    def file(self) -> Path | None:
-        return Path(self.path) if self.path else None
+    def kwargs(self) -> dict[str, Any]:
+        return {"path": Path(self.path), "max_bytes": int(self.max_mb * 1e6), "max_ns": int(self.max_minutes * 60e9),
+                "keep_bytes": int(self.keep_mb * 1e6)}
+
+
+@dataclass(frozen=True)
+class VirtualPublish:
+    """``[publish.virtual]``: kept in memory (tests)."""
+
+    def kwargs(self) -> dict[str, Any]:
+        return {}
+
+
+#: Each publisher of the registry (:data:`optitac_edge.io.publishers.PUBLISHERS`) and its ``[publish.NAME]`` section.
+PUBLISH_SECTIONS: dict[str, type] = {"zenoh": ZenohPublish, "foxglove": FoxglovePublish, "mcap": McapPublish,
+                                     "virtual": VirtualPublish}
+PublishSection = ZenohPublish | FoxglovePublish | McapPublish | VirtualPublish
 
 
 _SECTIONS: dict[str, type] = {
@@ -406,15 +434,15 @@ _SECTIONS: dict[str, type] = {
     "status": StatusConfig,
     "watchdog": WatchdogConfig,
     "rig": RigConfig,
-    "publish": PublishConfig,
-    "mcap": McapConfig,
+    "network": NetworkConfig,
 }
 #: Keys holding paths, resolved against the directory of the file that set them.
 _PATH_KEYS = {("camera", "device"), ("camera", "recording"), ("calibration", "bundle"),
-              ("calibration", "layout"), ("publish", "config"), ("mcap", "path")}
+              ("calibration", "layout"), ("publish.zenoh", "config"), ("publish.mcap", "path")}
 _TOP_LEVEL = {"config_version", "description"}
-#: The tables of a board with several sensors: ``[cameras.NAME]`` and ``[[sensors]]``.
-_LISTS = ("cameras", "sensors")
+#: The tables of a board with several sensors: ``[cameras.NAME]`` and ``[[sensors]]``; the publishers
+#: ``[publish.NAME]``.
+_LISTS = ("cameras", "sensors", "publish")
 #: ``[calibration]`` keys a ``[[sensors]]`` entry sets for its sensor (the rest are board-wide).
 SENSOR_CALIBRATION_KEYS = ("bundle", "layout", "rotation_deg", "mirror")
 
@@ -454,8 +482,9 @@ class BoardConfig:
     status: StatusConfig = field(default_factory=StatusConfig)
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     rig: RigConfig = field(default_factory=RigConfig)
-    publish: PublishConfig = field(default_factory=PublishConfig)
-    mcap: McapConfig = field(default_factory=McapConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    #: The publishers (``[publish.NAME]``), by registry name, in file order.
+    publish: Mapping[str, PublishSection] = field(default_factory=lambda: MappingProxyType({}))
     #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
     origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
     #: The ``[[sensors]]`` of a board with several (empty in the one-sensor form).
@@ -522,6 +551,7 @@ class BoardConfig:
         out: dict[str, Any] = {}
         for name in _SECTIONS:
             out[name] = _plain(getattr(self, name))
+        out["publish"] = {name: _plain(section) for name, section in self.publish.items()}
         if self.listed_sensors:
             out["cameras"] = {name: _plain(cam) for name, cam in self.named_cameras.items()}
             out["sensors"] = [{**_plain(s.sensor), **{k: v for k, v in _plain(s.calibration).items()
@@ -624,6 +654,8 @@ class _Layers:
         self.values: dict[str, dict[str, Any]] = {name: {} for name in _SECTIONS}
         self.options: dict[str, dict[str, Scalar]] = {"camera": {}}
         self.origins: dict[str, str] = {}
+        #: The publishers turned on (``[publish.NAME]``), in the order they were.
+        self.publishers: dict[str, str] = {}  # name -> the source that turned it on
 
     def add_camera(self, name: str) -> str:
         target = f"cameras.{name}"
@@ -631,8 +663,34 @@ class _Layers:
         self.options.setdefault(target, {})
         return target
 
+    def publisher(self, source: str, name: str, on: bool = True) -> str:
+        """Turn the publisher ``name`` on (with its defaults) or off; its section's target."""
+        if name not in PUBLISH_SECTIONS:
+            raise ConfigError(f"{source}: publish.{name}: no such publisher (known: {', '.join(PUBLISH_SECTIONS)})")
+        target = f"publish.{name}"
+        if on:
+            self.publishers.setdefault(name, source)
+            self.values.setdefault(target, {})
+        else:
+            self.publishers.pop(name, None)
+            self.values.pop(target, None)
+        return target
+
     def set(self, source: str, section: str, key: str, value: Any, *, from_text: bool,
             base_dir: Path | None, target: str | None = None) -> None:
+        if section == "publish":
+            name, _, key = key.partition(".")
+            target = self.publisher(source, name)
+            if not key:
+                raise ConfigError(f"{source}: publish.{name}: set its keys as publish.{name}.KEY")
+            cls = PUBLISH_SECTIONS[name]
+            spec = {f.name: f for f in fields(cls)}
+            if key not in spec:
+                raise ConfigError(f"{source}: {target}.{key}: unknown key (known: {', '.join(spec) or 'none'})")
+            self.values[target][key] = _check(spec[key], target, key, value, from_text, base_dir,
+                                              f"{source}: {target}.{key}")
+            self.origins[f"{target}.{key}"] = source
+            return
         target = section if target is None else target
         where = f"{target}.{key}"
         if section not in _SECTIONS:
@@ -667,6 +725,10 @@ class _Layers:
     def camera(self, target: str) -> CameraConfig:
         return CameraConfig(**{**self.values[target], "options": MappingProxyType(dict(self.options[target]))})
 
+    def publish(self) -> Mapping[str, PublishSection]:
+        return MappingProxyType({name: PUBLISH_SECTIONS[name](**self.values[f"publish.{name}"])
+                                 for name in self.publishers})
+
 
 def _check(spec: Any, section: str, key: str, value: Any, from_text: bool, base_dir: Path | None,
            where: str) -> Any:
@@ -693,6 +755,7 @@ class _Entry:
 def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Path) -> tuple[str, list[_Entry]]:
     description = ""
     entries: list[_Entry] = []
+    old: dict[str, Any] = {}
     for name, value in data.items():
         if name in _SECTIONS:
             if not isinstance(value, dict):
@@ -701,6 +764,10 @@ def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Pat
                 layers.set(shown, name, key, item, from_text=False, base_dir=base_dir)
         elif name == "cameras":
             _apply_cameras(layers, value, shown, base_dir)
+        elif name == "publish" and _new_publish(value):
+            _apply_publish(layers, value, shown, base_dir)
+        elif name in ("publish", "mcap"):
+            old[name] = value
         elif name == "sensors":
             entries = _read_sensors(value, shown, base_dir)
         elif name == "config_version":
@@ -715,7 +782,61 @@ def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Pat
             kind = "section" if isinstance(value, dict) else "key"
             raise ConfigError(f"{shown}: {name}: unknown {kind} (known sections: "
                               f"{', '.join((*_SECTIONS, *_LISTS))})")
+    if old:
+        _apply_old_publish(layers, old, shown, base_dir)
     return description, entries
+
+
+def _new_publish(value: Any) -> bool:
+    """``[publish.NAME]`` tables (not the old form's ``[publish]`` keys)."""
+    return isinstance(value, dict) and bool(value) and all(isinstance(v, dict) for v in value.values())
+
+
+def _apply_publish(layers: _Layers, value: dict[str, Any], shown: str, base_dir: Path) -> None:
+    for name, table in value.items():
+        layers.publisher(shown, name)
+        for key, item in table.items():
+            layers.set(shown, "publish", f"{name}.{key}", item, from_text=False, base_dir=base_dir)
+
+
+#: The old form's ``[publish]`` keys that are ``[network]``'s now.
+_OLD_NETWORK_KEYS = ("namespace", "signal_hz", "picture_hz", "queue")
+
+
+def _apply_old_publish(layers: _Layers, old: dict[str, Any], shown: str, base_dir: Path) -> None:
+    """The old form (``[publish] backend``, ``foxglove``, the ``[mcap]`` section) read as ``[publish.NAME]`` and
+    ``[network]``, with a one-line hint."""
+    publish, mcap = old.get("publish", {}), old.get("mcap", {})
+    for name, table in old.items():
+        if not isinstance(table, dict):
+            raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {_type_name(table)}")
+    became: list[str] = []
+    publish = dict(publish)
+    backend = publish.pop("backend", "none")
+    if backend not in ("none", "zenoh", "virtual"):
+        raise ConfigError(f"{shown}: publish.backend: must be one of none, zenoh, virtual, got {_show(backend)}")
+    foxglove = publish.pop("foxglove", "")
+    for key, item in publish.items():
+        if key in _OLD_NETWORK_KEYS:
+            layers.set(shown, "network", key, item, from_text=False, base_dir=base_dir)
+            became.append(f"network.{key}")
+        elif backend == "zenoh":
+            layers.set(shown, "publish", f"zenoh.{key}", item, from_text=False, base_dir=base_dir)
+            became.append(f"publish.zenoh.{key}")
+        elif key not in {f.name for f in fields(ZenohPublish)}:
+            raise ConfigError(f"{shown}: publish.{key}: unknown key")
+    if backend != "none":
+        layers.publisher(shown, backend)
+        became.insert(0, f"[publish.{backend}]")
+    if foxglove:
+        layers.set(shown, "publish", "foxglove.bind", foxglove, from_text=False, base_dir=base_dir)
+        became.append("publish.foxglove.bind")
+    if mcap.get("path"):
+        for key, item in mcap.items():
+            layers.set(shown, "publish", f"mcap.{key}", item, from_text=False, base_dir=base_dir)
+        became.append("[publish.mcap]")
+    log.warning("%s: [publish] backend/foxglove and [mcap] are the old form, read as %s: write those "
+                "(docs/network.md)", shown, ", ".join(became) or "nothing published")
 
 
 def _apply_cameras(layers: _Layers, value: Any, shown: str, base_dir: Path) -> None:
@@ -776,6 +897,12 @@ def _env_key(var: str) -> tuple[str, str] | None:
         return None
     rest = var[len(ENV_PREFIX):].lower()
     section, _, key = rest.partition("_")
+    if section == "publish":
+        name, _, key = key.partition("_")
+        if name not in PUBLISH_SECTIONS or not key:
+            raise ConfigError(f"environment {var}: publishers are set as OPTITAC_PUBLISH_<NAME>_<KEY> "
+                              f"(NAME: {', '.join(PUBLISH_SECTIONS)})")
+        return section, f"{name}.{key}"
     if section in _LISTS:
         raise ConfigError(f"environment {var}: cameras and sensors are set in the board file "
                           "(or on the command line as cameras.NAME.KEY)")
@@ -848,6 +975,9 @@ def load_board_config(
         layers.set(f"environment {var}", section, key, env[var], from_text=True, base_dir=cwd)
 
     for dotted, value in (overrides or {}).items():
+        if dotted.startswith("publish.") and dotted.count(".") == 1:  # publish.NAME: True turns it on, False off
+            layers.publisher("command line", dotted[len("publish."):], on=bool(value))
+            continue
         section, key = _split_override(dotted)
         into: str | None = None
         if section == "cameras":
@@ -862,7 +992,7 @@ def load_board_config(
     sections = {name: cls(**layers.values[name]) for name, cls in _SECTIONS.items()}
     sections["camera"] = layers.camera("camera")
     config = BoardConfig(source=shown, description=description, origins=MappingProxyType(layers.origins),
-                         **sections)
+                         publish=layers.publish(), **sections)
     if entries or named:
         config = _with_sensors(config, layers, entries, named, shown, state_dir)
     _check_consistency(config, shown)
@@ -926,6 +1056,9 @@ def _check_consistency(config: BoardConfig, shown: str) -> None:
             fail(p + "pipeline", "a GStreamer pipeline must end in an appsink")
         if cam.pixel_format == "yuv420" and (cam.width % 2 or cam.height % 2):
             fail(p + "pixel_format", "yuv420 needs an even width and height", p + "width", p + "height")
+    mcap = config.publish.get("mcap")
+    if isinstance(mcap, McapPublish) and not mcap.path:
+        fail("publish.mcap.path", "required: the MCAP file to write")
     link = config.link
     if link.transport == "serial" and not link.serial_url:
         fail("link.serial_url", "required when link.transport is 'serial'", "link.transport")
@@ -993,6 +1126,10 @@ def describe_schema() -> str:
             if isinstance(default, Mapping):
                 default = dict(default)
             lines.append(f"  {f.name} = {default!r}  # {f.metadata.get('doc', '')}")
+    for name, cls in PUBLISH_SECTIONS.items():
+        lines.append(f"[publish.{name}]  # {(cls.__doc__ or '').split(': ', 1)[-1].strip()}")
+        for f in fields(cls):
+            lines.append(f"  {f.name} = {f.default!r}  # {f.metadata.get('doc', '')}")
     lines.append("[cameras.NAME]  # a board with several cameras: each takes the keys of [camera]")
     lines.append("[[sensors]]  # a board with several sensors, one entry each: the keys of [sensor] and")
     lines.append(f"  # of [calibration] {', '.join(SENSOR_CALIBRATION_KEYS)} (bundle default: "
@@ -1001,7 +1138,24 @@ def describe_schema() -> str:
 
 
 __all__ = [
-    "BoardConfig", "BoardSensor", "CalibrationConfig", "CameraConfig", "LedConfig", "LinkConfig", "SensorConfig",
-    "StatusConfig", "WatchdogConfig", "available_boards", "describe_schema", "load_board_config",
-    "packaged_config_dirs", "resolve_board_config",
+    "PUBLISH_SECTIONS",
+    "BoardConfig",
+    "BoardSensor",
+    "CalibrationConfig",
+    "CameraConfig",
+    "FoxglovePublish",
+    "LedConfig",
+    "LinkConfig",
+    "McapPublish",
+    "NetworkConfig",
+    "SensorConfig",
+    "StatusConfig",
+    "VirtualPublish",
+    "WatchdogConfig",
+    "ZenohPublish",
+    "available_boards",
+    "describe_schema",
+    "load_board_config",
+    "packaged_config_dirs",
+    "resolve_board_config",
 ]

@@ -177,7 +177,7 @@ class Service:
         self.is_peer = False
         #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
         self.view: Any = None
-        #: The network publisher's frame-loop side (``[publish]``): ``offer_*`` copy and return, never blocking.
+        #: The network publisher's frame-loop side (``[publish.NAME]``): ``offer_*`` copy and return, never blocking.
         self.network: NetworkOutput | None = None
         #: Protocol, streaming and rate divider, as the MCU's commands set them.
         self.link = LinkState(rate_divider=config.link.rate_divider, delivers=transport.delivers,

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: Pictures (image, surface, overlay) per second and sensor for Foxglove when [publish] picture_hz is 0.
+#: Pictures (image, surface, overlay) per second and sensor for Foxglove when [network] picture_hz is 0.
 DEFAULT_PICTURE_HZ = 10.0
 
 
@@ -80,7 +80,7 @@ class BoardSession:
         self.transport: Transport | None = None
         #: The live view, when :meth:`open_view` was called.
         self.view: Any = None
-        #: The board's network publisher (``[publish]``; None when off), and its publishing thread once running.
+        #: The board's network publisher (``[publish.NAME]``; None when off), and its publishing thread once running.
         self.publisher: Publisher | None = None
         self.network: NetworkOutput | None = None
 
@@ -176,11 +176,12 @@ class BoardSession:
         """The publishing thread for every sensor of the board (once; None when publishing is off)."""
         if self.publisher is None or self.network is not None:
             return self.network
-        p = self.config.publish
+        net = self.config.network
         sensors = [network_sensor(found.sensor.sensor, found.bundle)
                    for group in self.bundles().values() for found in group]
-        self.network = NetworkOutput(self.publisher, sensors, queue=p.queue, signal_hz=p.signal_hz,
-                                     picture_hz=p.picture_hz or (DEFAULT_PICTURE_HZ if p.foxglove else 0.0))
+        foxglove = "foxglove" in self.config.publish
+        self.network = NetworkOutput(self.publisher, sensors, queue=net.queue, signal_hz=net.signal_hz,
+                                     picture_hz=net.picture_hz or (DEFAULT_PICTURE_HZ if foxglove else 0.0))
         self._stack.callback(self.network.close)
         return self.network
 

@@ -141,20 +141,14 @@ def open_board_transport(config: BoardConfig) -> Transport:
 
 
 def open_board_publisher(config: BoardConfig) -> Publisher | None:
-    """Where the board's contacts go besides the MCU: the network (``[publish]``: Zenoh, Foxglove) and an
-    MCAP recording (``[mcap]``), one publisher for all; None when none is on."""
-    p, m = config.publish, config.mcap
+    """Where the board's contacts go besides the MCU: every ``[publish.NAME]`` (Zenoh, Foxglove, an MCAP
+    recording, ...), each opened by its registry name with its section's arguments and the ``[network]``
+    namespace; one publisher for all; None when none is on."""
+    namespace = config.network.namespace
     opened: list[Publisher] = []
     try:
-        if p.backend != "none":
-            opened.append(open_publisher(p.backend, config=p.config_path, mode=p.mode, connect=p.connect,
-                                         listen=p.listen, domain_id=p.domain_id, namespace=p.namespace, node=p.node))
-        if p.foxglove:
-            opened.append(open_publisher("foxglove", bind=p.foxglove, namespace=p.namespace))
-        if m.file is not None:
-            opened.append(open_publisher("mcap", path=m.file, max_bytes=int(m.max_mb * 1e6),
-                                         max_ns=int(m.max_minutes * 60e9), namespace=p.namespace,
-                                         keep_bytes=int(m.keep_mb * 1e6)))
+        for name, section in config.publish.items():
+            opened.append(open_publisher(name, namespace=namespace, **section.kwargs()))
     except BaseException:
         for publisher in opened:
             publisher.close()
