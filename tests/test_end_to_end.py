@@ -91,7 +91,7 @@ def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
 
 def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac_rx):
     from optitac_edge.service.board_config import load_board_config
-    from optitac_edge.service.bundles import load_or_calibrate
+    from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.loop import Service
     from optitac_edge.service.wiring import open_board_camera, open_board_transport
 
@@ -111,7 +111,7 @@ def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac
 
     try:
         with open_board_camera(config) as camera, open_board_transport(config) as transport:
-            bundle = load_or_calibrate(config, camera, None)
+            bundle = obtain_bundle(config, camera, None)[0]
             Service(config, bundle, camera, transport).run(stop, on_result=keep)
             transport.wait_idle()
         os.close(slave)

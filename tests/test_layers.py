@@ -84,3 +84,24 @@ def test_the_board_config_loader_needs_only_the_standard_library() -> None:
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'cv2', 'scipy', 'serial', 'cobs'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_simulator_registers_its_own_camera_and_io_names_no_layer_above():
+    """io's camera table holds io's cameras only; the simulator's comes through the package's entry point."""
+    from optitac_edge.io import cameras
+
+    source = Path(cameras.__file__).read_text()
+    assert "optitac_edge.sim" not in source
+    assert cameras.BACKENDS["sim"] == "optitac_edge.sim.camera:SimCamera"
+
+
+def test_the_board_config_accepts_the_transport_registrys_names_only():
+    from optitac_edge.errors import ConfigError
+    from optitac_edge.io.transports import TRANSPORTS
+    from optitac_edge.service.board_config import load_board_config
+
+    for name in TRANSPORTS:
+        urls = {"link.serial_url": "loop://", "link.can_channel": "vcan0"}
+        assert load_board_config("sim", env={}, overrides={"link.transport": name, **urls}).link.transport == name
+    with pytest.raises(ConfigError, match="link.transport: must be one of 'serial', 'can', 'none', got 'null'"):
+        load_board_config("sim", env={}, overrides={"link.transport": "null"})

@@ -23,7 +23,6 @@ from optitac_edge.io.protocol.messages import (
 )
 from optitac_edge.io.protocol.wire import (
     CSV_HEADER,
-    Frame,
     MsgType,
     ProtocolError,
     contact_csv_row,
@@ -39,7 +38,6 @@ from optitac_edge.io.protocol.wire import (
     encode_status,
     is_sensor_type,
     parse_command,
-    threshold_relative,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -196,7 +194,7 @@ def test_ack_and_commands():
     assert parse_command(0x10, 4, b"") == Command(CommandType.PING, 4)
     assert parse_command(0x11, 4, b"") == Command(CommandType.TARE, 4)
     cmd = parse_command(0x13, 5, b"\x2c\x01")
-    assert cmd.threshold == 300 and threshold_relative(cmd) == pytest.approx(0.03)
+    assert cmd.threshold == 300 and cmd.threshold_relative == pytest.approx(0.03)
     assert parse_command(0x12, 6, b"\x00\x04") == Command(CommandType.STREAM, 6, False, 4)
     assert parse_command(0x55, 6, b"") == (6, ResultCode.UNKNOWN_COMMAND)
     assert parse_command(0x10, 6, b"\x00") == (6, ResultCode.BAD_LENGTH)
@@ -225,7 +223,6 @@ def test_decoder_overflow_is_bounded_and_counted_once():
 def test_encode_frame_rejects_oversized_payload():
     with pytest.raises(ProtocolError):
         encode_frame(1, 0, 0, bytes(54))
-    assert isinstance(Frame(1, 2, 3, b""), tuple)
 
 
 def test_decode_contact_wrong_length():

@@ -19,7 +19,7 @@ from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import NullTransport
 from optitac_edge.service.board_config import load_board_config
-from optitac_edge.service.bundles import load_or_calibrate
+from optitac_edge.service.bundles import obtain_bundle
 from optitac_edge.service.loop import Service, ServiceStalled
 from optitac_edge.sim.camera import SimCamera
 from optitac_edge.sim.faults import FAULT_KINDS, FaultInjector, FaultyCamera
@@ -59,7 +59,7 @@ def _sim(seed: int = 0, clock: VirtualClock | None = None) -> SimCamera:
 def bundle():
     config = _config()
     with _sim() as cam:
-        return load_or_calibrate(config, cam, None)
+        return obtain_bundle(config, cam, None)[0]
 
 
 def _faulty_service(bundle, inj_kw: dict, seed: int, transport=None) -> tuple[Service, FaultInjector]:

@@ -102,12 +102,12 @@ print(json.dumps(out))
 @pytest.fixture(scope="module")
 def two_bundles(tmp_path_factory):
     from optitac_edge.service.board_config import load_board_config
-    from optitac_edge.service.bundles import load_or_calibrate
+    from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.sim.camera import SimCamera
 
     d = tmp_path_factory.mktemp("bundles")
     with SimCamera(realtime=False, seed=0, rest_frames=10) as cam:
-        bundle = load_or_calibrate(load_board_config("sim", env={}), cam, None)
+        bundle = obtain_bundle(load_board_config("sim", env={}), cam, None)[0]
     a = save_bundle(bundle.with_updates(extra_meta={**bundle.extra_meta, "variant": "a"}), d / "a.npz")
     b = save_bundle(bundle.with_updates(extra_meta={**bundle.extra_meta, "variant": "b"}), d / "b.npz")
     return d, a, b

@@ -67,7 +67,7 @@ def test_service_over_can_decodes_with_the_dbc():
     import can
 
     from optitac_edge.io.protocol.can_codec import decode_frame
-    from optitac_edge.service.bundles import load_or_calibrate
+    from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.loop import Service
     from optitac_edge.service.wiring import open_board_camera, open_board_transport
 
@@ -76,7 +76,7 @@ def test_service_over_can_decodes_with_the_dbc():
         "camera.fps": 200, "status.period_s": 0.2})
     with can.Bus(interface="virtual", channel="svc-test") as mcu:
         with open_board_camera(config) as camera, open_board_transport(config) as transport:
-            bundle = load_or_calibrate(config, camera, None)
+            bundle = obtain_bundle(config, camera, None)[0]
             stop = threading.Event()
             stats = Service(config, bundle, camera, transport).run(
                 stop, on_result=lambda est, st: st.frames == 200 and stop.set())
@@ -166,7 +166,7 @@ def test_status_says_the_frame_rate_of_its_last_period_not_the_average_since_the
             return camera.read(timeout_s)
 
     config = load_board_config("sim", env={}, overrides={"status.period_s": 1.0})
-    transport = open_transport("null")
+    transport = open_transport("none")
     sent = []
     transport.send_status = lambda m: sent.append((m.t_us, m.fps_x10 / 10))  # the message is reused
     service = Service(config, bundle, Queued(), transport, clock=clock)

@@ -18,9 +18,8 @@ from typing import Any
 
 from optitac_edge.errors import OptiTacError, TransportError
 from optitac_edge.io.protocol.decoder import FrameDecoder
-from optitac_edge.io.protocol.messages import CommandType, ResultCode
+from optitac_edge.io.protocol.messages import THRESHOLD_LSB, CommandType, ResultCode
 from optitac_edge.io.protocol.wire import (
-    THRESHOLD_LSB,
     THRESHOLD_MAX,
     THRESHOLD_MIN,
     U16,

@@ -131,36 +131,6 @@ def central_moments(
     return (xp.T @ img.T @ yq) * grid.cell_area_mm2
 
 
-def central_from_raw(m: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Central moments from raw moments (binomial expansion about the centroid).
-
-    Parameters
-    ----------
-    m : ndarray, shape (K, K), float64
-        Raw moments, ``m[0, 0] != 0``.
-    out : ndarray, shape (K, K), float64, optional
-
-    Returns
-    -------
-    ndarray, shape (K, K), float64
-    """
-    k = m.shape[0]
-    cx, cy = m[1, 0] / m[0, 0], m[0, 1] / m[0, 0]
-    bx = _shift_matrix(-cx, k)
-    by = _shift_matrix(-cy, k)
-    if out is None:
-        out = np.empty_like(m, dtype=np.float64)
-    np.matmul(bx @ m, by.T, out=out)
-    return out
-
-
-def _shift_matrix(d: float, k: int) -> np.ndarray:
-    """``B[p, i] = C(p, i) * d**(p - i)`` for ``i <= p``, else 0; shape (k, k)."""
-    p = np.arange(k)
-    binom = np.array([[math.comb(a, b) for b in range(k)] for a in range(k)], dtype=np.float64)
-    return binom * np.float64(d) ** np.clip(p[:, None] - p[None, :], 0, None)
-
-
 def ellipse_from_moments(m: np.ndarray, mu: np.ndarray) -> ContactEllipse:
     """Centroid, covariance eigenvalues, FWHM widths and angle.
 
@@ -245,35 +215,6 @@ def contact_ellipse(surface: np.ndarray, grid: SurfaceGrid) -> ContactEllipse:
     return ellipse_from_moments(m, mu)
 
 
-def hu_from_central(mu: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Hu's seven invariants from central moments.
-
-    Parameters
-    ----------
-    mu : ndarray, shape (>=4, >=4), float64
-        Central moments ``mu[p, q]`` (x power ``p``, y power ``q``).
-    out : ndarray, shape (7,), float64, optional
-
-    Returns
-    -------
-    ndarray, shape (7,), float64
-        ``h1 .. h7`` from the scale-normalised moments
-        ``eta_pq = mu_pq / mu_00 ** (1 + (p + q) / 2)`` (dimensionless). NaN if
-        ``mu[0, 0] <= 0``.
-    """
-    if out is None:
-        out = np.empty(7, dtype=np.float64)
-    m00 = float(mu[0, 0])
-    if not m00 > 0.0:
-        out.fill(np.nan)
-        return out
-    s2, s3 = m00 ** 2.0, m00 ** 2.5
-    out[:] = hu_from_normalized(
-        float(mu[2, 0]) / s2, float(mu[1, 1]) / s2, float(mu[0, 2]) / s2,
-        float(mu[3, 0]) / s3, float(mu[2, 1]) / s3, float(mu[1, 2]) / s3, float(mu[0, 3]) / s3)
-    return out
-
-
 def hu_from_normalized(n20: float, n11: float, n02: float, n30: float, n21: float, n12: float,
                        n03: float) -> tuple[float, float, float, float, float, float, float]:
     """Hu's seven invariants from the scale-normalised central moments (plain numbers).
@@ -328,7 +269,12 @@ def hu_moments(binary: np.ndarray, grid: SurfaceGrid) -> np.ndarray:
     img = (np.asarray(binary) != 0).astype(np.float64)
     if not img.any():
         return np.full(7, np.nan)
-    return hu_from_central(central_moments(img, grid, order=3))
+    mu = central_moments(img, grid, order=3)
+    m00 = float(mu[0, 0])
+    s2, s3 = m00 ** 2.0, m00 ** 2.5
+    return np.array(hu_from_normalized(
+        float(mu[2, 0]) / s2, float(mu[1, 1]) / s2, float(mu[0, 2]) / s2,
+        float(mu[3, 0]) / s3, float(mu[2, 1]) / s3, float(mu[1, 2]) / s3, float(mu[0, 3]) / s3))
 
 
 def q4_from_central(mu: np.ndarray) -> float:

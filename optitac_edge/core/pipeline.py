@@ -263,6 +263,7 @@ class Pipeline:
         By default the bundle's own models are applied (numpy shape evaluator).
         """
         self.corrector = corrector if corrector is not None and corrector.active else None
+        self.result.calibrated = self.calibrated
 
     @property
     def calibrated(self) -> bool:
@@ -297,7 +298,6 @@ class Pipeline:
         result = self.result
         result.saturated = saturated
         result.light_changed = result.baseline_raised = False
-        result.calibrated = self.corrector is not None and self.corrector.calibrated
         est = self._estimate
         est.frame = self._frame
         est.t_ns = now_ns

@@ -36,6 +36,7 @@ else:  # Python 3.10 (JetPack 6 / Ubuntu 22.04)
 
 from optitac_edge.errors import ConfigError
 from optitac_edge.io.cameras import MAX_QUEUE_FRAMES
+from optitac_edge.io.transports import TRANSPORTS
 from optitac_edge.text import parse_float, parse_int
 
 log = logging.getLogger(__name__)
@@ -280,7 +281,7 @@ class CalibrationConfig:
 
 @dataclass(frozen=True)
 class LinkConfig:
-    transport: str = _opt(_choice("serial", "can", "none"), "none", "link to the MCU")
+    transport: str = _opt(_choice(*TRANSPORTS), "none", "link to the MCU: " + ", ".join(TRANSPORTS))
     serial_url: str = _opt(_str(4096), "", "serial: pyserial URL or device, e.g. /dev/optitac-mcu")
     baudrate: int = _opt(_int(1200, 12_000_000), 115_200, "serial: baud rate (ignored by USB CDC)")
     can_channel: str = _opt(_str(64), "can0", "can: python-can channel (socketcan: interface name)")

@@ -126,13 +126,6 @@ def obtain_bundle(config: BoardConfig, camera: Camera, cal_path: Path | None,
     return found.bundle, found.unsaved
 
 
-def load_or_calibrate(config: BoardConfig, camera: Camera, cal_path: Path | None,
-                      led: LedRing | NoLed | None = None) -> CalibrationBundle:
-    """The bundle of the board's only sensor: loaded if it exists, else calibrated from the camera's rest
-    frames (see :func:`obtain_bundles`)."""
-    return obtain_bundle(config, camera, cal_path, led)[0]
-
-
 def read_rest_frames(config: BoardConfig, camera: Camera, led: LedRing | NoLed | None = None) -> list[np.ndarray]:
     """``calibration.rest_frames`` frames of ``camera`` (nothing may touch the skins), copied.
 

@@ -55,9 +55,6 @@ REOPEN_BACKOFF_MAX_S = 1.0
 IDLE_WAIT_S = 0.05
 #: GIL switch interval while the service runs, s (the interpreter's default is 5 ms).
 SWITCH_INTERVAL_S = 0.0005
-#: SET_THRESHOLD unit: the contact-on level in 1e-4 of the rest light (relative signal).
-THRESHOLD_UNIT = 1e-4
-
 OnResult = Callable[[FrameResult, "ServiceStats"], None]
 
 
@@ -231,7 +228,7 @@ class Service:
             self.link.rate_divider = max(int(command.rate_divider), 1)
         elif command.type == CommandType.SET_THRESHOLD:
             for ch in self.channels:
-                ch.pipeline.set_contact_level(command.threshold * THRESHOLD_UNIT)
+                ch.pipeline.set_contact_level(command.threshold_relative)
         elif command.type == CommandType.SET_PROTOCOL:
             if command.version in self.transport.protocols:
                 if command.version != self.link.protocol and not self.is_peer:

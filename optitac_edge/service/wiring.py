@@ -13,13 +13,13 @@ import logging
 from dataclasses import fields
 from typing import Any
 
-from optitac_edge.errors import ConfigError
+from optitac_edge.errors import ConfigError, TransportError
 from optitac_edge.io.cameras import BACKENDS, open_camera
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.device import load_backend
 from optitac_edge.io.led import I2CBus, LedRing, NoLed, pwm_period_us
 from optitac_edge.io.publishers import Publisher, open_publisher
-from optitac_edge.io.transports import open_transport
+from optitac_edge.io.transports import TRANSPORTS
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.board_config import BoardConfig, LedConfig
 
@@ -74,26 +74,8 @@ def camera_kwargs(config: BoardConfig, camera: str | None = None) -> dict[str, A
     """
     name = config.sensor.camera if camera is None else camera
     cam = config.cameras[name]
-    typed: dict[str, Any]
-    if cam.backend == "sim":
-        typed = {"fps": cam.fps, "width": cam.width, "height": cam.height, "rgb": cam.pixel_format == "rgb",
-                 "rest_frames": max(config.calibration.rest_frames, 10), "queue_frames": cam.queue_frames}
-        regions = config.regions_of(name)
-        if any(regions):
-            typed["regions"] = regions
-    elif cam.backend == "recording":
-        typed = {"path": cam.recording, "realtime": True}
-    elif cam.backend == "picamera2":
-        typed = {"width": cam.width, "height": cam.height, "fps": cam.fps, "camera_num": cam.index,
-                 "pixel_format": cam.pixel_format, "exposure_us": cam.exposure_us or None,
-                 "analogue_gain": cam.gain or None, "warmup_frames": cam.warmup_frames,
-                 "timeout_s": cam.timeout_s, "queue_frames": cam.queue_frames}
-    elif cam.backend == "v4l2":  # exposure in driver units goes in camera.options.exposure
-        source = {"pipeline": cam.pipeline} if cam.pipeline else {"device": cam.device}
-        typed = {**source, "width": cam.width, "height": cam.height, "fps": cam.fps,
-                 "gain": cam.gain or None, "queue_frames": cam.queue_frames}
-    else:
-        typed = {}
+    backend = load_backend(BACKENDS, cam.backend, "camera backend", ConfigError)
+    typed: dict[str, Any] = backend.board_kwargs(cam, config.regions_of(name), config.calibration.rest_frames)
     _check_camera_options(config, name, typed)
     return {**typed, **dict(cam.options)}
 
@@ -128,16 +110,10 @@ def open_board_camera(config: BoardConfig, camera: str | None = None) -> Camera:
 
 
 def open_board_transport(config: BoardConfig) -> Transport:
-    link = config.link
-    if link.transport == "serial":
-        # a port that is not there yet (MCU unplugged, udev not done) is waited for, not fatal:
-        # the service streams as soon as it appears
-        return open_transport("serial", url=link.serial_url, baudrate=link.baudrate, require_port=False)
-    if link.transport == "can":
-        return open_transport("can", channel=link.can_channel, interface=link.can_interface,
-                              sensor_id=[s.sensor.id for s in config.sensors], protocol=link.can_protocol,
-                              bitrate=link.can_bitrate if link.can_interface == "socketcan" else None)
-    return open_transport("null")
+    """The link to the MCU ``[link] transport`` names, opened by its class from the ``[link]`` keys."""
+    cls = load_backend(TRANSPORTS, config.link.transport, "transport", TransportError)
+    transport: Transport = cls.from_link(config.link, [s.sensor.id for s in config.sensors])
+    return transport
 
 
 def open_board_publisher(config: BoardConfig) -> Publisher | None:

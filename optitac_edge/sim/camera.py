@@ -8,7 +8,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -132,6 +132,16 @@ class SimCamera(Camera):
     day : int
         The session's drift (:meth:`~optitac_edge.sim.drift.SessionDrift.for_day`, default 0: none).
     """
+
+    @classmethod
+    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+        """``[camera]`` fps, width, height, pixel_format, queue_frames; one fiber patch in each sensor's region."""
+        c = camera
+        out: dict[str, Any] = {"fps": c.fps, "width": c.width, "height": c.height, "rgb": c.pixel_format == "rgb",
+                               "rest_frames": max(rest_frames, 10), "queue_frames": c.queue_frames}
+        if any(regions):
+            out["regions"] = regions
+        return out
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,

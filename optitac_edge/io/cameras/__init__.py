@@ -15,12 +15,23 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from optitac_edge.io.cameras.base import Camera, CapturedFrame
 
-#: Backend name -> "module:class", imported on first use (python-can style).
+#: Entry point group through which a package adds its cameras (the simulator its ``sim``, from the layer above).
+ENTRY_POINTS = "optitac_edge.cameras"
+
+
+def _registered() -> dict[str, str]:
+    """The cameras other packages (and layers) register: ``[project.entry-points."optitac_edge.cameras"]``."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINTS)}
+
+
+#: Backend name -> "module:class", imported on first use (python-can style): io's own, then the registered.
 BACKENDS: dict[str, str] = {
-    "sim": "optitac_edge.sim.camera:SimCamera",
     "recording": "optitac_edge.io.cameras.recording:RecordingCamera",
     "picamera2": "optitac_edge.io.cameras.picamera2:Picamera2Camera",
     "v4l2": "optitac_edge.io.cameras.v4l2:V4L2Camera",
+    **_registered(),
 }
 #: Most frames a camera may queue for the loop (``camera.queue_frames``).
 MAX_QUEUE_FRAMES = 16

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -49,6 +49,12 @@ class Camera(Device, ABC):
     #: True when every frame is written into the same buffer, so a frame is
     #: only valid until the next read (the hardware backends).
     reuses_buffer: bool = False
+
+    @classmethod
+    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+        """Constructor arguments from a board's ``[camera]`` section (``camera``: its keys as attributes), the
+        ``regions`` of the sensors it reads and the calibration's ``rest_frames``. The default takes none."""
+        return {}
 
     def __init__(self) -> None:
         Device.__init__(self)

@@ -109,6 +109,15 @@ class Picamera2Camera(Camera):
 
     reuses_buffer = True
 
+    @classmethod
+    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+        """``[camera]`` width, height, fps, index, pixel_format, exposure_us, gain, warmup_frames, timeout_s,
+        queue_frames."""
+        c = camera
+        return {"width": c.width, "height": c.height, "fps": c.fps, "camera_num": c.index,
+                "pixel_format": c.pixel_format, "exposure_us": c.exposure_us or None, "analogue_gain": c.gain or None,
+                "warmup_frames": c.warmup_frames, "timeout_s": c.timeout_s, "queue_frames": c.queue_frames}
+
     def __init__(
         self,
         camera_num: int | str = 0,

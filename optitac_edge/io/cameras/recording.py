@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.recording import Recording
@@ -26,6 +27,11 @@ class RecordingCamera(Camera):
     the moment the camera was opened: replayed as fast as read, a recording
     still has its own timing.
     """
+
+    @classmethod
+    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+        """``[camera] recording``, played at its own rate."""
+        return {"path": camera.recording, "realtime": True}
 
     def __init__(self, path: str | Path, realtime: bool = False, loop: bool = False) -> None:
         super().__init__()

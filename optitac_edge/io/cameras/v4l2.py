@@ -143,6 +143,15 @@ class V4L2Camera(Camera):
 
     reuses_buffer = True
 
+    @classmethod
+    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+        """``[camera]`` device or pipeline, width, height, fps, gain, queue_frames (exposure in driver units
+        goes in ``camera.options.exposure``)."""
+        c = camera
+        source = {"pipeline": c.pipeline} if c.pipeline else {"device": c.device}
+        return {**source, "width": c.width, "height": c.height, "fps": c.fps, "gain": c.gain or None,
+                "queue_frames": c.queue_frames}
+
     def __init__(
         self,
         device: int | str = 0,

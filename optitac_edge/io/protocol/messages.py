@@ -357,6 +357,10 @@ class StatusMessage:
         return SensorState.from_bits(self.state)
 
 
+#: SET_THRESHOLD: relative units (of the rest light) per LSB.
+THRESHOLD_LSB = 1e-4
+
+
 @dataclass(frozen=True, slots=True)
 class Command:
     """A validated command from the MCU."""
@@ -367,3 +371,8 @@ class Command:
     rate_divider: int = 1
     threshold: int = 0
     version: int = 0  # SET_PROTOCOL
+
+    @property
+    def threshold_relative(self) -> float:
+        """SET_THRESHOLD's contact-on level in relative units (0.001..0.5)."""
+        return self.threshold * THRESHOLD_LSB

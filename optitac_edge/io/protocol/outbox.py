@@ -103,17 +103,18 @@ class SensorOutbox:
         """
         out = self._out
         out.clear()
-        announcer = self.announcer
-        v2 = link.protocol == 2 or link.v2_alongside_v1
+        protocol, alongside = link.protocol, link.v2_alongside_v1
+        v2 = protocol == 2 or alongside
         if v2:
-            announcer.observe(result)
+            self.announcer.observe(result)
         if not send:
             return out
-        est, t_ns = result.primary, result.t_ns
-        calibrated, saturated, degraded = result.calibrated, result.saturated, self.degraded
-        if link.protocol == 1 or link.v2_alongside_v1:
-            out.append(self.contact.fill(est, t_ns, now_ns, calibrated, saturated=saturated, degraded=degraded))
+        est = result.primary
+        t_ns, calibrated, saturated, degraded = est.t_ns, result.calibrated, result.saturated, self.degraded
+        if protocol == 1 or alongside:
+            out.append(self.contact.fill(est, t_ns, now_ns, calibrated, saturated, degraded))
         if v2:
+            announcer = self.announcer
             t_us = t_ns // 1000
             for k, (cid, touch) in enumerate(announcer.announce(result)):
                 r = self.releases[k]

@@ -91,7 +91,6 @@ ANGLE_LSB = 0.01  # degrees
 ANGLE_MAX = 9000  # ±90.00°
 STRENGTH_LSB = 0.01  # pipeline strength (m00, relative units · mm²) per LSB
 CONFIDENCE_MAX = 255
-THRESHOLD_LSB = 1e-4  # SET_THRESHOLD: relative units per LSB
 THRESHOLD_MIN = 10  # 0.0010 relative units
 THRESHOLD_MAX = 5000  # 0.5000 relative units
 RATE_DIVIDER_MIN = 1
@@ -304,11 +303,6 @@ def parse_command(msg_type: int, seq: int, payload: bytes) -> Command | tuple[in
             return seq, ResultCode.OUT_OF_RANGE
         return Command(ctype, seq, version=version)
     return Command(ctype, seq)
-
-
-def threshold_relative(cmd: Command) -> float:
-    """A SET_THRESHOLD command's contact-on level in relative units (0.001..0.5)."""
-    return cmd.threshold * THRESHOLD_LSB
 
 
 def contact_csv_row(frame: Frame) -> str:

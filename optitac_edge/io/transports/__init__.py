@@ -1,4 +1,8 @@
-"""Links to the gripper MCU behind one interface, chosen by name, imported only when used."""
+"""Links to the gripper MCU behind one interface, chosen by name (``[link] transport``), imported only when used.
+
+Each transport reads its own ``[link]`` keys (:meth:`Transport.from_link`); adding one is a module with
+its class and a line in :data:`TRANSPORTS`.
+"""
 
 from __future__ import annotations
 
@@ -10,12 +14,12 @@ from optitac_edge.io.transports.base import Transport, TransportCounters
 TRANSPORTS: dict[str, str] = {
     "serial": "optitac_edge.io.transports.serial:SerialTransport",
     "can": "optitac_edge.io.transports.can:CanTransport",
-    "null": "optitac_edge.io.transports.base:NullTransport",
+    "none": "optitac_edge.io.transports.base:NullTransport",
 }
 
 
 def open_transport(name: str, **kwargs: Any) -> Transport:
-    """Open the transport called ``name`` (``serial``, ``can`` or ``null``)."""
+    """Open the transport called ``name`` (``serial``, ``can`` or ``none``)."""
     from optitac_edge.errors import TransportError
     from optitac_edge.io.device import load_backend
 

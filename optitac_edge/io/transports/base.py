@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from optitac_edge.io.device import Device
 from optitac_edge.io.protocol.messages import Command, ContactMessage, ContactV2Message, ReleaseMessage, StatusMessage
@@ -37,6 +39,12 @@ class Transport(Device, ABC):
     def __init__(self) -> None:
         self.counters = TransportCounters()
         Device.__init__(self)
+
+    @classmethod
+    def from_link(cls, link: Any, sensor_ids: Sequence[int]) -> Transport:
+        """Open it as a board's ``[link]`` section (``link``: its keys as attributes) says, for the board's
+        ``sensor_ids``. The default takes no keys."""
+        return cls()
 
     @abstractmethod
     def send_contact(self, message: ContactMessage) -> None:

@@ -149,6 +149,12 @@ class CanTransport(Transport):
 
     # -- bus handling -------------------------------------------------------------------------
 
+    @classmethod
+    def from_link(cls, link: Any, sensor_ids: Sequence[int]) -> CanTransport:
+        """``[link] can_channel``, ``can_interface``, ``can_protocol``, ``can_bitrate`` (socketcan only)."""
+        return cls(channel=link.can_channel, interface=link.can_interface, sensor_id=list(sensor_ids),
+                   protocol=link.can_protocol, bitrate=link.can_bitrate if link.can_interface == "socketcan" else None)
+
     def _open_bus(self) -> Any:
         kwargs = dict(self._bus_kwargs)
         if self.bitrate is not None:

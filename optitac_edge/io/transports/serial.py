@@ -28,7 +28,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from optitac_edge.errors import TransportError
@@ -184,6 +184,12 @@ class SerialTransport(Transport):
                                                daemon=True)
         self._io_thread.start()
         self._writer_thread.start()
+
+    @classmethod
+    def from_link(cls, link: Any, sensor_ids: Sequence[int]) -> SerialTransport:
+        """``[link] serial_url``, ``baudrate``. A port that is not there yet (MCU unplugged, udev not done) is
+        waited for, not fatal: the service streams as soon as it appears."""
+        return cls(link.serial_url, baudrate=link.baudrate, require_port=False)
 
     # -- Transport API (frame loop side) --------------------------------------------------
 
