@@ -145,8 +145,8 @@ def test_bright_fibers_must_stay_bright_for_the_hold_and_the_frame_be_free():
 
 
 def test_the_service_counts_and_logs_a_raise_once(sensor_and_bundle, caplog):
+    from optitac_edge.config import load_board_config
     from optitac_edge.io.transports.base import NullTransport
-    from optitac_edge.service.board_config import load_board_config
     from optitac_edge.service.loop import Service
 
     sensor, bundle = sensor_and_bundle

@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from optitac_edge.errors import ConfigError
-from optitac_edge.service.board_config import (
+from optitac_edge.config import (
     BoardConfig,
     available_boards,
     describe_schema,
     load_board_config,
     resolve_board_config,
 )
+from optitac_edge.errors import ConfigError
 from optitac_edge.service.wiring import config_warnings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -302,8 +302,8 @@ def test_the_camera_backends_a_config_may_name_are_the_registrys(tmp_path, monke
 
 
 def test_each_publisher_is_a_section_named_after_its_registry_entry(tmp_path):
+    from optitac_edge.config import PUBLISH_SECTIONS, McapPublish, ZenohPublish
     from optitac_edge.io.publishers import PUBLISHERS
-    from optitac_edge.service.board_config import PUBLISH_SECTIONS, McapPublish, ZenohPublish
 
     assert set(PUBLISH_SECTIONS) == set(PUBLISHERS)
     board = tmp_path / "b.toml"

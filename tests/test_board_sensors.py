@@ -11,13 +11,13 @@ import pytest
 from fakes.list_camera import ListCamera
 
 from optitac_edge.calibration.region import Region, calibrate_region
+from optitac_edge.config import load_board_config
 from optitac_edge.errors import BundleError, ConfigError
 from optitac_edge.io.bundle_file import save_bundle
 from optitac_edge.io.protocol.messages import CommandType
 from optitac_edge.io.protocol.wire import MsgType, decode_contact, decode_status, encode_command
 from optitac_edge.io.protocol.wire_v2 import decode_contact2
 from optitac_edge.io.transports.base import NullTransport
-from optitac_edge.service.board_config import load_board_config
 from optitac_edge.service.bundles import check_bundle_region
 from optitac_edge.service.loop import Service
 from optitac_edge.sim.patches import PatchFrames, PatchPlacement

@@ -415,7 +415,7 @@ def test_open_failure_after_the_thread_started_tears_down(monkeypatch):
 
 
 def test_the_service_passes_camera_queue_frames_from_the_board_config(monkeypatch):
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.config import load_board_config
     from optitac_edge.service.wiring import camera_kwargs
 
     hw = install_picamera2(monkeypatch)

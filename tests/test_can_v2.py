@@ -71,8 +71,8 @@ def test_the_service_sends_every_contact_beside_an_unchanged_v1_stream(bundle_pa
     import can
     from fakes.list_camera import ListCamera
 
+    from optitac_edge.config import load_board_config
     from optitac_edge.io.bundle_file import load_bundle
-    from optitac_edge.service.board_config import load_board_config
     from optitac_edge.service.loop import Service
     from optitac_edge.service.wiring import open_board_transport
     from optitac_edge.sim.multi_press import multi_press_frames

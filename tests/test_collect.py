@@ -25,7 +25,7 @@ _BUNDLES: dict[str, object] = {}
 
 def _collect(experiment: str, out, url: str, limit: int = 3, settings: CollectSettings = FAST):
     from optitac_edge.bringup.rigs import open_rig
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.config import load_board_config
 
     rig, camera = open_rig(load_board_config("sim", env={}), url)
     with rig, camera:

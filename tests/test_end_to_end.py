@@ -90,7 +90,7 @@ def test_run_streams_every_frame_to_the_c_decoder_at_120_fps(optitac_rx):
 
 
 def test_decoded_values_equal_the_pipeline_values_to_the_wire_resolution(optitac_rx):
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.config import load_board_config
     from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.service.loop import Service
     from optitac_edge.service.wiring import open_board_camera, open_board_transport

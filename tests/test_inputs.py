@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from optitac_edge.cli import main
+from optitac_edge.config import load_board_config
 from optitac_edge.core.layout import hex_layout
 from optitac_edge.errors import ConfigError, RecordingError
 from optitac_edge.io.layout_csv import load_layout_csv
 from optitac_edge.io.recording import Recording, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
-from optitac_edge.service.board_config import load_board_config
 from optitac_edge.service.wiring import camera_kwargs
 
 

@@ -79,7 +79,7 @@ def test_the_default_run_needs_no_optional_package(tmp_path) -> None:
 
 def test_the_board_config_loader_needs_only_the_standard_library() -> None:
     """tools/install.sh checks a board config with the system Python before it installs anything."""
-    code = ("import sys; from optitac_edge.service.board_config import available_boards, load_board_config\n"
+    code = ("import sys; from optitac_edge.config import available_boards, load_board_config\n"
             "[load_board_config(n, env={}) for n in available_boards()]\n"
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'cv2', 'scipy', 'serial', 'cobs'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
@@ -96,9 +96,9 @@ def test_the_simulator_registers_its_own_camera_and_io_names_no_layer_above():
 
 
 def test_the_board_config_accepts_the_transport_registrys_names_only():
+    from optitac_edge.config import load_board_config
     from optitac_edge.errors import ConfigError
     from optitac_edge.io.transports import TRANSPORTS
-    from optitac_edge.service.board_config import load_board_config
 
     for name in TRANSPORTS:
         urls = {"link.serial_url": "loop://", "link.can_channel": "vcan0"}

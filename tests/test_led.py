@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from optitac_edge.calibration.led_brightness import adjust_brightness_for_saturation, fiber_peak
+from optitac_edge.config import LedConfig
 from optitac_edge.io import led as led_mod
 from optitac_edge.io.led import LedError, LedRing, NoLed, channel_registers, prescale_for, pwm_period_us
-from optitac_edge.service.board_config import LedConfig
 from optitac_edge.service.wiring import open_led
 
 

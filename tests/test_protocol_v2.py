@@ -132,9 +132,9 @@ def test_two_presses_reach_the_mcu_in_every_frame_with_stable_ids_after_it_asks_
     through 100 frames; the release of both is announced; STATUS says v2."""
     from fakes.mcu import FakeMcu
 
+    from optitac_edge.config import load_board_config
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
-    from optitac_edge.service.board_config import load_board_config
     from optitac_edge.service.loop import Service
     from optitac_edge.sim.multi_press import multi_press_frames
 
@@ -179,9 +179,9 @@ def test_two_presses_reach_the_mcu_in_every_frame_with_stable_ids_after_it_asks_
 
 
 def test_a_link_without_v2_ignores_set_protocol_2_and_counts_it(bundle_path):
+    from optitac_edge.config import load_board_config
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.base import NullTransport
-    from optitac_edge.service.board_config import load_board_config
     from optitac_edge.service.loop import Service
 
     class V1Only(NullTransport):

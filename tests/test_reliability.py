@@ -13,12 +13,12 @@ import time
 import numpy as np
 import pytest
 
+from optitac_edge.config import load_board_config
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import NullTransport
-from optitac_edge.service.board_config import load_board_config
 from optitac_edge.service.bundles import obtain_bundle
 from optitac_edge.service.loop import Service, ServiceStalled
 from optitac_edge.sim.camera import SimCamera

@@ -101,7 +101,7 @@ print(json.dumps(out))
 
 @pytest.fixture(scope="module")
 def two_bundles(tmp_path_factory):
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.config import load_board_config
     from optitac_edge.service.bundles import obtain_bundle
     from optitac_edge.sim.camera import SimCamera
 

@@ -7,8 +7,8 @@ import inspect
 
 import pytest
 
+from optitac_edge.config import available_boards, load_board_config
 from optitac_edge.io.cameras import BACKENDS
-from optitac_edge.service.board_config import available_boards, load_board_config
 from optitac_edge.service.wiring import camera_kwargs
 
 

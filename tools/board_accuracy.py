@@ -27,8 +27,8 @@ from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.measure import measure_recording
 from optitac_edge.calibration.region import Region, calibrate_region
 from optitac_edge.calibration.steps import calibrate_centroid
+from optitac_edge.config import BoardConfig, BoardSensor, load_board_config
 from optitac_edge.io.recording import Recording
-from optitac_edge.service.board_config import BoardConfig, BoardSensor, load_board_config
 from optitac_edge.sim.optics import CameraOptics
 from optitac_edge.sim.patches import PatchFrames, PatchPlacement
 from optitac_edge.sim.scenarios import write_scenario

@@ -85,7 +85,7 @@ if ! "$CHECK_PY" -c 'import sys; sys.version_info >= (3, 11) or __import__("toml
 fi
 CHECK='import sys
 from optitac_edge.errors import OptiTacError
-from optitac_edge.service.board_config import load_board_config
+from optitac_edge.config import load_board_config
 try:
     c = load_board_config(sys.argv[1], env={})
 except OptiTacError as exc:

@@ -7,10 +7,10 @@
 
 from __future__ import annotations
 
+from optitac_edge.config import BoardConfig
 from optitac_edge.errors import RigError
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.rigs.base import Rig, RigLimits
-from optitac_edge.service.board_config import BoardConfig
 
 #: Rig URL scheme -> the prefix a URL of it starts with (the simulator's takes ``sim:`` with or without ``//``).
 RIG_SCHEMES = {"gcode": "gcode://", "ur": "ur://", "sim": "sim:"}

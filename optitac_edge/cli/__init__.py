@@ -533,7 +533,7 @@ def _fps_overrides(args: argparse.Namespace) -> dict[str, float]:
     """``run --fps``: the frame rate of every camera of the board."""
     if args.fps is None:
         return {}
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.config import load_board_config
 
     named = load_board_config(args.board, env=os.environ).named_cameras
     return {f"cameras.{name}.fps": args.fps for name in named} or {"camera.fps": args.fps}

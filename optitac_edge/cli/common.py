@@ -73,7 +73,7 @@ def add_storage(p: argparse.ArgumentParser, default: str | None, text: str) -> N
 
 def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
     """The board config of ``--board`` (with ``overrides``), narrowed to ``--sensor`` when given."""
-    from optitac_edge.service.board_config import load_board_config
+    from optitac_edge.config import load_board_config
 
     config = load_board_config(args.board, env=os.environ,
                                overrides={k: v for k, v in overrides.items() if v is not None})

@@ -26,10 +26,10 @@ from typing import Any
 
 import serial
 
+from optitac_edge.config import load_board_config
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock, VirtualClock
 from optitac_edge.io.transports.serial import SerialTransport
-from optitac_edge.service.board_config import load_board_config
 from optitac_edge.service.bundles import calibrate_from_camera
 from optitac_edge.service.loop import Service, ServiceStats
 from optitac_edge.sim.camera import SimCamera

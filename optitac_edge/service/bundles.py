@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from optitac_edge.config import BoardConfig, BoardSensor
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.region import Region, bundle_region
@@ -26,7 +27,6 @@ from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.layout_csv import load_layout_csv
 from optitac_edge.io.led import LedRing, NoLed
-from optitac_edge.service.board_config import BoardConfig, BoardSensor
 
 log = logging.getLogger(__name__)
 

@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from optitac_edge.config import BoardConfig, CameraConfig, SensorConfig
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
@@ -39,7 +40,6 @@ from optitac_edge.io.protocol.outbox import LinkState
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
-from optitac_edge.service.board_config import BoardConfig, CameraConfig, SensorConfig
 from optitac_edge.service.channel import SensorChannel
 
 if TYPE_CHECKING:

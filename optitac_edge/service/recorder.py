@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from optitac_edge.config import BoardConfig
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta
 from optitac_edge.io.recording_paths import check_writable_recording
 from optitac_edge.io.recording_writer import RecordingWriter
-from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.service.bundles import fiber_finder
 from optitac_edge.service.wiring import open_board_camera
 

@@ -18,6 +18,7 @@ from threading import Event
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+from optitac_edge.config import BoardConfig
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
@@ -25,7 +26,6 @@ from optitac_edge.io.led import LedRing, NoLed
 from optitac_edge.io.publishers import Publisher
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import Transport
-from optitac_edge.service.board_config import BoardConfig
 from optitac_edge.service.bundles import SensorBundle, obtain_bundles
 from optitac_edge.service.loop import OnResult, Service, ServiceStats
 from optitac_edge.service.network import NetworkOutput, NetworkSensor

@@ -13,6 +13,7 @@ import logging
 from dataclasses import fields
 from typing import Any
 
+from optitac_edge.config import BoardConfig, LedConfig
 from optitac_edge.errors import ConfigError, TransportError
 from optitac_edge.io.cameras import BACKENDS, open_camera
 from optitac_edge.io.cameras.base import Camera
@@ -21,7 +22,6 @@ from optitac_edge.io.led import I2CBus, LedRing, NoLed, pwm_period_us
 from optitac_edge.io.publishers import Publisher, open_publisher
 from optitac_edge.io.transports import TRANSPORTS
 from optitac_edge.io.transports.base import Transport
-from optitac_edge.service.board_config import BoardConfig, LedConfig
 
 log = logging.getLogger(__name__)
 

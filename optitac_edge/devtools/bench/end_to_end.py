@@ -46,9 +46,9 @@ def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bo
                 frames: list[np.ndarray] | None, rest: int, queue_frames: int | None, view: str | None,
                 on_view: Any, bundles: list[Any] | None, publish: bool) -> dict[str, Any]:
     """:func:`measure_end_to_end`, the reader writing its figures to ``out``."""
+    from optitac_edge.config import SensorConfig, load_board_config
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
-    from optitac_edge.service.board_config import SensorConfig, load_board_config
     from optitac_edge.service.loop import Service
     from optitac_edge.sim.camera import SimCamera
 

@@ -1,0 +1,127 @@
+"""The values of every section and key, with where each came from, layered in precedence order."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import fields
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from optitac_edge.config.checkers import (
+    Scalar,
+    _Bad,
+    _scalar,
+    _type_name,
+)
+from optitac_edge.config.sections import (
+    _LISTS,
+    _PATH_KEYS,
+    _SECTIONS,
+    PUBLISH_SECTIONS,
+    CameraConfig,
+    PublishSection,
+)
+from optitac_edge.errors import ConfigError
+
+
+class _Layers:
+    """Values of every section/key with their source, applied in precedence order.
+
+    Sections are stored by target: ``camera`` for the one-sensor form's
+    ``[camera]``, ``cameras.NAME`` for a named camera (checked as a ``[camera]``).
+    """
+
+    def __init__(self) -> None:
+        self.values: dict[str, dict[str, Any]] = {name: {} for name in _SECTIONS}
+        self.options: dict[str, dict[str, Scalar]] = {"camera": {}}
+        self.origins: dict[str, str] = {}
+        #: The publishers turned on (``[publish.NAME]``), in the order they were.
+        self.publishers: dict[str, str] = {}  # name -> the source that turned it on
+
+    def add_camera(self, name: str) -> str:
+        target = f"cameras.{name}"
+        self.values.setdefault(target, {})
+        self.options.setdefault(target, {})
+        return target
+
+    def publisher(self, source: str, name: str, on: bool = True) -> str:
+        """Turn the publisher ``name`` on (with its defaults) or off; its section's target."""
+        if name not in PUBLISH_SECTIONS:
+            raise ConfigError(f"{source}: publish.{name}: no such publisher (known: {', '.join(PUBLISH_SECTIONS)})")
+        target = f"publish.{name}"
+        if on:
+            self.publishers.setdefault(name, source)
+            self.values.setdefault(target, {})
+        else:
+            self.publishers.pop(name, None)
+            self.values.pop(target, None)
+        return target
+
+    def set(self, source: str, section: str, key: str, value: Any, *, from_text: bool,
+            base_dir: Path | None, target: str | None = None) -> None:
+        if section == "publish":
+            name, _, key = key.partition(".")
+            target = self.publisher(source, name)
+            if not key:
+                raise ConfigError(f"{source}: publish.{name}: set its keys as publish.{name}.KEY")
+            cls = PUBLISH_SECTIONS[name]
+            spec = {f.name: f for f in fields(cls)}
+            if key not in spec:
+                raise ConfigError(f"{source}: {target}.{key}: unknown key (known: {', '.join(spec) or 'none'})")
+            self.values[target][key] = _check(spec[key], target, key, value, from_text, base_dir,
+                                              f"{source}: {target}.{key}")
+            self.origins[f"{target}.{key}"] = source
+            return
+        target = section if target is None else target
+        where = f"{target}.{key}"
+        if section not in _SECTIONS:
+            raise ConfigError(f"{source}: {section}: unknown section (known: {', '.join((*_SECTIONS, *_LISTS))})")
+        cls = _SECTIONS[section]
+        spec = {f.name: f for f in fields(cls)}
+        if section == "camera" and key.startswith("options."):
+            name = key[len("options."):]
+            if not re.fullmatch(r"[a-z][a-z0-9_]*", name):
+                raise ConfigError(f"{source}: {where}: option names are lower-case identifiers")
+            try:
+                self.options[target][name] = _scalar(value, from_text)
+            except _Bad as exc:
+                raise ConfigError(f"{source}: {where}: {exc}") from None
+            self.origins[where] = source
+            return
+        if key not in spec:
+            close = [k for k in spec if k.replace("_", "") == key.replace("_", "").lower()]
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise ConfigError(f"{source}: {where}: unknown key{hint} (known: {', '.join(spec)})")
+        if key == "options":  # a whole table from a file
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: {where}: must be a table, got {_type_name(value)}")
+            for name, item in value.items():
+                self.set(source, section, f"options.{name}", item, from_text=from_text, base_dir=base_dir,
+                         target=target)
+            return
+        self.values[target][key] = _check(spec[key], section, key, value, from_text, base_dir,
+                                          f"{source}: {where}")
+        self.origins[where] = source
+
+    def camera(self, target: str) -> CameraConfig:
+        return CameraConfig(**{**self.values[target], "options": MappingProxyType(dict(self.options[target]))})
+
+    def publish(self) -> Mapping[str, PublishSection]:
+        return MappingProxyType({name: PUBLISH_SECTIONS[name](**self.values[f"publish.{name}"])
+                                 for name in self.publishers})
+
+
+def _check(spec: Any, section: str, key: str, value: Any, from_text: bool, base_dir: Path | None,
+           where: str) -> Any:
+    """``value`` checked by ``spec``'s checker (paths resolved against ``base_dir``); errors name ``where``."""
+    try:
+        converted = spec.metadata["check"](value, from_text)
+    except _Bad as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    if (section, key) in _PATH_KEYS and converted and base_dir is not None:
+        expanded = Path(os.path.expanduser(converted))
+        converted = str(expanded if expanded.is_absolute() else base_dir / expanded)
+    return converted
