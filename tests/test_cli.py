@@ -161,7 +161,7 @@ def test_the_status_line_never_makes_the_frame_loop_wait_for_the_terminal(monkey
     """The loop's hook only hands over a copy; a terminal that blocks holds up the printing thread only."""
     import threading
 
-    from optitac_edge.cli import _StatusLine
+    from optitac_edge.cli.commands.run import StatusLine as _StatusLine
     from optitac_edge.core.contact import ContactEstimate
 
     release, writing = threading.Event(), threading.Event()
@@ -203,7 +203,7 @@ def test_the_status_line_fits_an_80_column_terminal_shows_the_true_rate_and_the_
     import shutil
     import threading
 
-    from optitac_edge.cli import _StatusLine
+    from optitac_edge.cli.commands.run import StatusLine as _StatusLine
     from optitac_edge.core.contact import ContactEstimate
 
     written, wrote = [], threading.Event()
@@ -271,7 +271,7 @@ def test_the_status_line_rates_one_cameras_frames() -> None:
     """With two cameras the line took its rate from both cameras' counters in turn: -89.7 fps."""
     from types import SimpleNamespace
 
-    from optitac_edge.cli import _StatusLine
+    from optitac_edge.cli.commands.run import StatusLine as _StatusLine
 
     now = [0]
     line = _StatusLine(0.1, "no link", clock=lambda: now[0])

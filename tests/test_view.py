@@ -366,7 +366,7 @@ def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> 
     presses ignored them)."""
     from types import SimpleNamespace
 
-    from optitac_edge.cli import _simulated_operator_for_the_view
+    from optitac_edge.cli.commands.run import simulated_operator_for_the_view as _simulated_operator_for_the_view
     from optitac_edge.io.clock import VirtualClock
     from optitac_edge.sim.camera import SimCamera
 

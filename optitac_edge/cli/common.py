@@ -8,6 +8,7 @@ import os
 from collections.abc import Callable
 from typing import Any, NoReturn
 
+from optitac_edge.errors import OptiTacError
 from optitac_edge.text import parse_float, parse_int
 
 EXIT_ERROR = 2
@@ -84,3 +85,25 @@ def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
 def one_sensor_config(args: argparse.Namespace, **overrides: Any) -> Any:
     """:func:`board_config` of a command that serves one sensor: a board with several needs ``--sensor``."""
     return board_config(args, **overrides).for_sensor(getattr(args, "sensor", None))
+
+
+def add_orientation(p: argparse.ArgumentParser) -> None:
+    """``--rotation-deg A`` and ``--mirror``: how the array appears in the image."""
+    p.add_argument("--rotation-deg", type=number(-360, 360), default=0.0, metavar="A",
+                   help="the array appears rotated counter-clockwise by about A degrees in the image")
+    p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
+
+
+def add_fresh(p: argparse.ArgumentParser) -> None:
+    """``--fresh``: replace a complete recording at the output, once the new one is complete."""
+    p.add_argument("--fresh", action="store_true",
+                   help="replace a complete recording at the output (it is kept until the new one is complete)")
+
+
+def board_sensor(args: argparse.Namespace) -> Any:
+    """The board config narrowed to ``--sensor`` for an offline command (None without ``--board``)."""
+    if args.board is None:
+        if args.sensor is not None:
+            raise OptiTacError("--sensor needs --board (the board config that lists the sensor)")
+        return None
+    return one_sensor_config(args)

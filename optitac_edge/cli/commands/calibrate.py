@@ -1,0 +1,151 @@
+"""``optitac-edge calibrate STEP``: the calibration steps (fibers, orientation, centroid, width, shapes, depth)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from optitac_edge.cli.common import (
+    SEED,
+    Parser,
+    add_board,
+    add_orientation,
+    board_sensor,
+)
+from optitac_edge.errors import OptiTacError
+from optitac_edge.text import fields
+
+
+def add_parser(sub: Any) -> None:
+    """``calibrate STEP RECORDING``."""
+    cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
+        dest="step", required=True, parser_class=Parser)
+    p = cal.add_parser("fibers", help="build a calibration bundle from a recording's rest frames")
+    p.add_argument("recording", type=Path)
+    p.add_argument("-o", "--output", type=Path, default=None, metavar="CAL",
+                   help="the bundle to write (required, unless --sensor: that sensor's bundle)")
+    add_board(p, default=None)
+    p.add_argument("--layout", type=Path, default=None, metavar="CSV", help="custom layout (fiber,x_mm,y_mm)")
+    add_orientation(p)
+
+    for step, text in (("orientation", ("check the fiber map against presses of known position; fix a "
+                                        "rotation or mirror of the layout")),
+                       ("centroid", "centroid error maps from presses of known position"),
+                       ("width", "linear width model from circles of known diameter"),
+                       ("shapes", "shape classifier from labelled presses"),
+                       ("depth", "depth (and force, with a load cell's force_n column) from known depths")):
+        p = cal.add_parser(step, help=text)
+        p.add_argument("recording", type=Path)
+        p.add_argument("--cal", type=Path, default=None, metavar="CAL",
+                       help="bundle to update in place (required, unless --sensor: that sensor's bundle)")
+        add_board(p, default=None)
+        if step == "shapes":
+            p.add_argument("--seed", type=SEED, default=0, help="seed of the held-out split and the fits")
+        if step == "width":
+            p.add_argument("--model", choices=("auto", "linear", "monotone", "linear-radial", "monotone-radial"),
+                           default="auto",
+                           help="per-axis map: auto (default) chooses by presses held out of the fit; linear is "
+                                "the paper's; -radial reads the width scaled by the distance from the centre")
+        if step == "centroid":
+            p.add_argument("--fill", choices=("auto", "nearest", "linear"), default="auto",
+                           help="error between presses: auto (default) chooses by presses held out of the map; "
+                                "the paper's nearest neighbour, or linear")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``calibrate fibers`` builds a bundle; every other step updates one."""
+    return _fibers(args) if args.step == "fibers" else _model(args)
+
+
+def _fibers(args: argparse.Namespace) -> int:
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.io.bundle_file import save_bundle
+    from optitac_edge.io.layout_csv import load_layout_csv
+    from optitac_edge.io.recording import Recording
+
+    config = board_sensor(args)
+    output = args.output or (config.calibration.bundle_path if config is not None else None)
+    if output is None:
+        raise OptiTacError("calibrate fibers: give -o CAL (or --board B --sensor ID: that sensor's bundle)")
+    rec = Recording(args.recording)
+    layout_path = args.layout or (config.calibration.layout_path if config is not None else None)
+    layout = load_layout_csv(layout_path) if layout_path else None
+    region = config.sensor.region if config is not None else ()
+    if region:
+        from optitac_edge.calibration.region import Region, calibrate_region
+
+        cam = config.camera
+        if (rec.width, rec.height) != (cam.width, cam.height):
+            raise OptiTacError(f"{args.recording}: frames are {rec.width}x{rec.height}, sensor "
+                               f"{config.sensor.id}'s camera {config.sensor.camera!r} delivers "
+                               f"{cam.width}x{cam.height}")
+        bundle = calibrate_region(rec.rest_frames(), rec.pixel_format, Region(*region), layout=layout,
+                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+    else:
+        bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
+                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+    bundle = save_bundle(bundle, output)
+    report = bundle.fiber_map_report
+    dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
+    placed = f" in region {list(region)}" if region else ""
+    print(f"wrote {output} (id {bundle.calibration_id}){placed}: "
+          f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
+          f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs; "
+          f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
+    return 0
+
+
+def _step_bundle(args: argparse.Namespace) -> tuple[Path, Any]:
+    """The bundle a calibration step updates: ``--cal``, or ``--sensor``'s (checked against its region)."""
+    from optitac_edge.io.bundle_file import load_bundle
+
+    config = board_sensor(args)
+    cal = args.cal or (config.calibration.bundle_path if config is not None else None)
+    if cal is None:
+        raise OptiTacError(f"calibrate {args.step}: give --cal CAL (or --board B --sensor ID: that sensor's bundle)")
+    bundle = load_bundle(cal)
+    if config is not None:
+        from optitac_edge.service.bundles import check_bundle_region
+
+        check_bundle_region(bundle, config.sensors[0], cal)
+    return Path(cal), bundle
+
+
+def _model(args: argparse.Namespace) -> int:
+    from optitac_edge.calibration import steps as calibrate_steps
+    from optitac_edge.io.bundle_file import save_bundle
+    from optitac_edge.io.recording import Recording
+
+    rec = Recording(args.recording)
+    args.cal, bundle = _step_bundle(args)
+    if args.step == "orientation":
+        bundle, fit = calibrate_steps.calibrate_orientation(rec, bundle)
+        assert fit.symmetry is not None
+        bundle = save_bundle(bundle, args.cal)
+        other, other_rmse = fit.runner_up
+        evidence = (f"{fit.presses} presses, RMS {fit.best_rmse_mm:.2f} mm; "
+                    f"next best '{other}' {other_rmse:.2f} mm")
+        if fit.symmetry.is_identity:
+            print(f"orientation of {args.cal} confirmed ({evidence})")
+        else:
+            print(f"corrected {args.cal} (id {bundle.calibration_id}): its fiber map was {fit.symmetry.label} "
+                  f"({evidence}); centroid, width and shape models were removed: calibrate them again")
+        return 0
+    if args.step == "shapes":
+        bundle, summary = calibrate_steps.calibrate_shapes(rec, bundle, seed=args.seed)
+    elif args.step == "depth":
+        bundle, summary = calibrate_steps.calibrate_depth(rec, bundle)
+    elif args.step == "centroid":
+        bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill,
+                                                               bundle_path=str(args.cal))
+    else:
+        bundle, summary = calibrate_steps.calibrate_width(rec, bundle, kind=args.model)
+    bundle = save_bundle(bundle, args.cal)
+    print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: {fields(summary)}")
+    return 0
+
+
+def left(args: argparse.Namespace) -> str:
+    """What an interrupted run left behind, for its one line."""
+    return "bundle " + str(args.output if args.step == "fibers" else args.cal) + " unchanged"

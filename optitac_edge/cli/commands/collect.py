@@ -1,0 +1,93 @@
+"""``optitac-edge collect``: an experiment on an indentation rig into a recording with truth."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+from optitac_edge.cli.common import (
+    add_board,
+    add_storage,
+    number,
+    one_sensor_config,
+)
+from optitac_edge.errors import OptiTacError
+
+
+def add_parser(sub: Any) -> None:
+    """``collect EXPERIMENT``."""
+    from optitac_edge.bringup.experiments import EXPERIMENTS
+
+    p = sub.add_parser("collect", help="run an experiment on an indentation rig into a recording with truth")
+    p.add_argument("experiment", choices=EXPERIMENTS, metavar="EXPERIMENT", help="%(choices)s")
+    add_board(p)
+    p.add_argument("--rig", default=None, metavar="URL",
+                   help="gcode://PORT, ur://HOST or sim://?rotation=DEG&origin=X,Y (default: the board's rig.url)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="REC")
+    p.add_argument("--cal", type=Path, default=None, metavar="CAL",
+                   help="bundle that reads the registration presses (default: the board's, or calibrated "
+                        "from the first frames)")
+    p.add_argument("--seed", type=number(0, 2**32 - 1, integer=True), default=0,
+                   help="seed of the experiment's random positions")
+    p.add_argument("--limit", type=number(1, 10**6, integer=True), default=None, metavar="N",
+                   help="only N presses, spread over the whole experiment")
+    p.add_argument("--fresh", action="store_true",
+                   help="start again instead of continuing an interrupted collection; replaces a complete recording "
+                        "at REC once the new one is complete")
+    add_storage(p, "fibers", "fibers (default): the rest frames and each fiber's light, ~0.4 kB a frame; raw: "
+                             "every frame as it is, ~300 kB a frame at 640x480")
+
+
+def run(args: argparse.Namespace) -> int:
+
+    from optitac_edge.bringup.collect import Collector
+    from optitac_edge.bringup.rigs import open_rig
+    from optitac_edge.io.recording_paths import check_writable_recording
+    from optitac_edge.service.bundles import fiber_finder, obtain_bundle
+    from optitac_edge.service.wiring import open_board_camera
+
+    config = one_sensor_config(args)
+    check_writable_recording(args.output, args.fresh)  # before anything opens or moves
+    with ExitStack() as stack:
+        rig, camera = open_rig(config, args.rig)
+        stack.enter_context(rig)
+        camera = stack.enter_context(camera if camera is not None else open_board_camera(config))
+        bundle, _ = obtain_bundle(config, camera, args.cal)
+        collector = Collector(camera, rig, bundle, prompt=lambda line: print(line, flush=True),
+                              confirm=_wait_for_enter, storage=args.storage, find_fibers=fiber_finder(config))
+        result = collector.run(args.experiment, args.output, seed=args.seed, limit=args.limit, fresh=args.fresh)
+    f = result.rig_frame
+    print(f"wrote {args.output}: {result.experiment}, {result.presses} presses, {result.frames} frames"
+          f"{f' (continued after press {result.resumed_at})' if result.resumed_at else ''}; "
+          f"rig frame origin ({f.origin_xy_mm[0]:.2f}, {f.origin_xy_mm[1]:.2f}) mm, +x at {f.rotation_deg:+.2f}°, "
+          f"surface z {f.surface_z_mm:.3f} mm; bundle orientation: {result.bundle_symmetry}")
+    from optitac_edge.calibration.verdict import PRESSES_NEEDED
+
+    if args.experiment in PRESSES_NEEDED:
+        from optitac_edge.bringup.experiments import WIDTHS_MM
+
+        model, need, at_least = PRESSES_NEEDED[args.experiment]
+        at_least *= len(WIDTHS_MM) if args.experiment == "widths" else 1
+        print(f"the {model} model needs {need} for its held-out error to settle (docs/accuracy.md); "
+              f"{result.presses} presses collected" + (": too few, evaluate's verdict will refuse the model"
+                                                        if result.presses < at_least else ""))
+    return 0
+
+
+def _wait_for_enter(line: str) -> None:
+
+    print(line, flush=True)
+    if sys.stdin.readline() == "":
+        raise OptiTacError("standard input closed while waiting for the operator")
+
+
+def left(args: argparse.Namespace) -> str:
+    """What an interrupted collection left behind (the tip is retracted first), for its one line."""
+    if getattr(args, "replacing", False):
+        return (f"tip retracted; recording {args.output} unchanged (the new collection in "
+                f"{args.output}.new is incomplete; --fresh starts it again)")
+    return (f"tip retracted; recording {args.output} is incomplete: run the same command again to continue "
+            "after the last complete press")

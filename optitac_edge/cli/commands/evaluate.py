@@ -1,0 +1,41 @@
+"""``optitac-edge evaluate``: a bundle's accuracy on a recording with truth, and its verdict."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+
+def add_parser(sub: Any) -> None:
+    """``evaluate RECORDING --cal CAL``."""
+    p = sub.add_parser("evaluate", help="print accuracy metrics of a recording against its truth.csv")
+    p.add_argument("recording", type=Path)
+    p.add_argument("--cal", type=Path, required=True, metavar="CAL")
+    p.add_argument("--shape-backend", choices=("numpy", "onnx"), default="numpy")
+    p.add_argument("--onnx", type=Path, default=None, help="exported shape model for --shape-backend onnx")
+    p.add_argument("--strict", action="store_true", help="exit 1 when the verdict is not good enough")
+
+
+def run(args: argparse.Namespace) -> int:
+    from optitac_edge.calibration.evaluation import format_evaluation
+    from optitac_edge.calibration.measure import measure_recording
+    from optitac_edge.errors import RecordingError
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.io.recording import Recording
+
+    rec = Recording(args.recording)
+    if rec.truth is None:
+        raise RecordingError(f"{rec.path}: evaluation needs truth.csv")
+    bundle = load_bundle(args.cal)
+    m = measure_recording(rec, bundle, shape_backend=args.shape_backend,
+                          onnx_path=str(args.onnx) if args.onnx else None)
+    from optitac_edge.calibration.verdict import judge
+
+    print(f"{rec.path} with {args.cal} (id {bundle.calibration_id}):")
+    for line in format_evaluation(m, rec.truth):
+        print(line)
+    verdict = judge(bundle, m, rec.truth)
+    for line in verdict.lines():
+        print(line)
+    return 1 if args.strict and not verdict.good else 0

@@ -1,0 +1,297 @@
+"""``optitac-edge run``: the service (capture, process, send), its status line and its summary."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from optitac_edge.cli.common import (
+    COUNT,
+    EXIT_INTERRUPTED,
+    FPS,
+    add_board,
+    board_config,
+    number,
+)
+from optitac_edge.errors import OptiTacError
+from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+
+def add_parser(sub: Any) -> None:
+    """``run [--board B] [--serial PORT | --can CHANNEL] ...``."""
+    p = sub.add_parser("run", help="capture -> process -> transmit (default: the built-in simulated sensor)")
+    add_board(p)
+    p.add_argument("--cal", type=Path, default=None, help="use this bundle (default: the board's)")
+    p.add_argument("--serial", default=None, metavar="PORT", help="serial device or pyserial URL (overrides the board)")
+    p.add_argument("--can", default=None, metavar="CHANNEL", help="CAN channel (overrides the board)")
+    p.add_argument("--duration", type=number(0, 1e8, lo_open=True), default=None, metavar="S",
+                   help="stop cleanly after S seconds")
+    p.add_argument("--frames", type=COUNT, default=None, help="stop after N frames")
+    p.add_argument("--fps", type=FPS, default=None, help="camera frame rate (overrides the board)")
+    p.add_argument("--view", default=None, metavar="HOST:PORT",
+                   help="serve the live view here (off by default; e.g. 127.0.0.1:8080, see docs/bring-up.md)")
+    p.add_argument("--publish", default=None, metavar="zenoh[:CONFIG]",
+                   help="publish every sensor's contacts and status on Zenoh as ROS 2 topics (rmw_zenoh), with "
+                        "this Zenoh JSON5 config if given; 'none' turns the board's [publish.zenoh] off "
+                        "(docs/network.md)")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write every sensor's contacts and status to this MCAP file (rotation: [publish.mcap] "
+                        "max_mb, max_minutes)")
+    p.add_argument("--foxglove", default=None, metavar="HOST:PORT",
+                   help="serve contacts, status, each sensor's image, surface and overlay live to Foxglove or "
+                        "Lichtblick (e.g. 127.0.0.1:8765; needs the foxglove extra)")
+
+
+def _status_line(est: Any, fps: float | None) -> str:
+    rate = "  -.- fps" if fps is None else f"{fps:5.1f} fps"
+    if not est.baseline_ready:
+        return f"{rate}  baselining..."
+    if not est.contact:
+        return f"{rate}  no contact"
+    shape = f" {est.shape}" if est.shape else ""
+    return (f"{rate}  CONTACT {est.x_mm:+.2f},{est.y_mm:+.2f} mm  {est.major_mm:.2f}x{est.minor_mm:.2f} mm  "
+            f"{est.angle_deg:+.0f}°  s {est.strength:.0f}{shape}")
+
+
+def _fps_overrides(args: argparse.Namespace) -> dict[str, float]:
+    """``run --fps``: the frame rate of every camera of the board."""
+    if args.fps is None:
+        return {}
+    from optitac_edge.config import load_board_config
+
+    named = load_board_config(args.board, env=os.environ).named_cameras
+    return {f"cameras.{name}.fps": args.fps for name in named} or {"camera.fps": args.fps}
+
+
+def _publish_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """``--publish zenoh[:CONFIG]`` (or ``none``: the board's Zenoh off), ``--mcap FILE`` and ``--foxglove
+    HOST:PORT`` as board config overrides of its ``[publish.NAME]``."""
+    out: dict[str, Any] = {}
+    value = getattr(args, "publish", None)
+    if value is not None:
+        backend, _, path = value.partition(":")
+        if backend not in ("zenoh", "none") or (backend == "none" and path):
+            raise OptiTacError(f"--publish must be zenoh, zenoh:CONFIG or none, got {value!r}")
+        if backend == "none":
+            out.update({"publish.zenoh": False, "publish.virtual": False})
+        else:
+            out.update({"publish.zenoh": True, **({"publish.zenoh.config": path} if path else {})})
+    if getattr(args, "mcap", None):
+        out["publish.mcap.path"] = args.mcap
+    if getattr(args, "foxglove", None):
+        out["publish.foxglove.bind"] = args.foxglove
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.duration is not None and not args.duration > 0:
+        raise OptiTacError("--duration must be positive")
+    link = {}
+    if args.serial is not None:
+        link = {"link.transport": "serial", "link.serial_url": args.serial}
+    elif args.can is not None:
+        link = {"link.transport": "can", "link.can_channel": args.can}
+    config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args))
+    stop = threading.Event()
+    received: list[int] = []
+
+    def on_signal(signum: int, frame: object) -> None:  # Ctrl-C, systemd's stop, a closed terminal
+        received.append(signum)
+        stop.set()
+
+    previous = {signum: signal.signal(signum, on_signal) for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+    # run's own lines go to stdout through a queue too: a stdout nobody reads never holds up the service
+    console = NonBlockingLogging(logging.INFO, sys.stdout, logger="optitac_edge.console", fmt="%(message)s",
+                                 always=True).start()
+    services: list[Any] = []
+    try:
+        say = logging.getLogger("optitac_edge.console").info
+        services = _run_service(args, config, stop, say)
+        several = len(services) > 1
+        for service in services:
+            stats = service.stats
+            commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
+            # with several sensors on a camera, the contacts are each sensor's (below): a camera's frame is one
+            contacts = f", {stats.contacts} with contact" if len(service.channels) == 1 else ""
+            say("%sprocessed %d frames%s, dropped %d, camera errors %d, processing errors %d, commands %s",
+                f"camera {service.camera_name}: " if several else "", stats.frames, contacts,
+                stats.frames_dropped, stats.camera_errors, stats.processing_errors, commands)
+            if len(config.sensors) > 1:
+                for ch in service.channels:
+                    say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
+        if services:
+            say("%s", _link_summary(services[0].transport))
+            network = service.network
+            if network is not None:
+                for ch in service.channels:
+                    published, dropped = network.counters(ch.sensor_id)
+                    say("  sensor %d %r: %d messages published, %d dropped (publishing errors %d; %s)",
+                        ch.sensor_id, ch.name, published, dropped, network.errors, network.publisher.where)
+
+        network = services[0].network if services else None
+        for line in network.publisher.summary if network is not None else ():
+            say("wrote %s", line)
+    finally:
+        console.stop()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if received and received[0] == signal.SIGINT:
+        final = " (final STATUS sent)" if services and _delivered(services[0].transport) else ""
+        print(f"optitac-edge: interrupted: the service stopped cleanly{final}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0  # SIGTERM / SIGHUP: a requested stop (systemd counts it as success)
+
+
+def _delivered(transport: Any) -> bool:
+    """The link wrote something to the MCU (not the null link, not a port that never opened)."""
+    return bool(transport.delivers and transport.counters.sent)
+
+
+def _link_summary(transport: Any) -> str:
+    """What went over the link: messages written and those that could not be (from the link's own counters;
+    frames handed to a port that was never there are not "sent")."""
+    if not transport.delivers:
+        return "no link: nothing was sent"
+    c = transport.counters
+    stats = transport.stats() if hasattr(transport, "stats") else {}
+    absent = " (the port was never open: is it plugged in, is the name right?)" \
+        if not c.sent and not stats.get("connected", True) else ""
+    return (f"link: {c.sent} messages written, {c.send_errors} not sent{absent}, {c.received} received, "
+            f"{c.rx_errors} bad, {c.reconnects} reconnects")
+
+
+class StatusLine:
+    """The live status line of ``run`` on a terminal, printed by its own thread: the frame loop only
+    hands over a copy of the estimate when a line is due, and never waits on the terminal. The rate is
+    over the last interval; the line is cut to the terminal's width so it never wraps."""
+
+    def __init__(self, period_s: float, link: str, clock: Callable[[], int] = time.monotonic_ns,
+                 label: str = "") -> None:
+        self._clock = clock
+        self._period_ns = int(period_s * 1e9)
+        self._link = link
+        self._label = label
+        self._due_ns = 0
+        self._last: tuple[int, int] | None = None  # (ns, frames) of the previous line
+        self._latest: tuple[Any, float | None] | None = None
+        self._stats: Any = None
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._print_loop, name="optitac-status-line", daemon=True)
+
+    def offer(self, est: Any, stats: Any) -> None:
+        """From the frame loop of the first camera that offers (the others' go by): keep a copy of ``est``
+        when a line is due. One camera's counters make the rate (two cameras' made it -89.7 fps)."""
+        if self._stats is None:
+            self._stats = stats
+        elif stats is not self._stats:
+            return
+        now = self._clock()
+        if now < self._due_ns:
+            return
+        self._due_ns = now + self._period_ns
+        fps = None
+        if self._last is not None and now > self._last[0]:
+            fps = (stats.frames - self._last[1]) * 1e9 / (now - self._last[0])
+        self._last = (now, stats.frames)
+        with self._lock:
+            self._latest = (est.copy(), fps)
+        self._wake.set()
+
+    def _print_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            with self._lock:
+                latest, self._latest = self._latest, None
+            if latest is not None:
+                width = max(shutil.get_terminal_size((80, 24)).columns - 1, 20)
+                line = f"[{self._link}] {self._label}{_status_line(*latest)}"
+                with LIVE_LINE.lock:  # a log record clears the line first (it is drawn again here)
+                    sys.stdout.write("\r\x1b[2K" + line[:width])
+                    sys.stdout.flush()
+
+    def __enter__(self) -> Self:
+        LIVE_LINE.active = True
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        LIVE_LINE.active = False
+        if not self._thread.is_alive():  # (a terminal stuck in write(): leave it alone)
+            sys.stdout.write("\n")
+
+
+def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
+                 say: Callable[..., None]) -> list[Any]:
+    """Run the board's session; its services (the lead's first)."""
+    from optitac_edge.service.session import BoardSession
+
+    max_frames = args.frames
+    link = "no link" if config.link.transport == "none" else config.link.transport
+    with BoardSession(config, args.cal) as session, ExitStack() as stack:
+        # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
+        first = config.sensors[0]  # the lead camera's first sensor: the one the status line shows
+        label = f"{first.sensor.name}: " if len(config.sensors) > 1 else ""
+        line = stack.enter_context(StatusLine(0.1, link, label=label)) if sys.stdout.isatty() else None
+        if session.calibrates:
+            say("calibrating fibers from the first rest frames...")
+        bundle = session.bundle()
+        if getattr(args, "view", None):
+            url = session.open_view(args.view)
+            say(f"view: {url}")
+            simulated_operator_for_the_view(session)
+        via = link if link == "no link" else link + " link"
+        if len(config.sensors) == 1:
+            say(f"{int((~bundle.fibers.dead).sum())}/{bundle.layout.n_fibers} fibers; running "
+                f"({config.camera.backend} camera, {via}; Ctrl-C to stop)")
+        else:
+            for name, group in session.bundles().items():
+                for found in group:
+                    b, where = found.bundle, list(found.sensor.sensor.region) or "the whole frame"
+                    say(f"{found.sensor.label} on camera {name!r} ({where}): "
+                        f"{int((~b.fibers.dead).sum())}/{b.layout.n_fibers} fibers")
+            say(f"running {len(config.sensors)} sensors on {len(config.cameras)} camera(s) ({via}; Ctrl-C to stop)")
+
+        def on_result(result: Any, stats: Any) -> None:
+            if max_frames is not None and stats.frames >= max_frames:
+                stop.set()
+            if line is not None and stats is session.services[0].stats:  # the lead camera's first sensor
+                line.offer(result.primary, stats)
+
+        session.run(stop, duration_s=args.duration, on_result=on_result)
+        return session.services
+
+
+def simulated_operator_for_the_view(session: Any) -> None:
+    """On the simulated camera, a simulated operator does what the view's guided orientation asks (the
+    simulator's own presses ignore its prompts)."""
+    from optitac_edge.sim.camera import SimCamera
+    from optitac_edge.sim.operator import PromptFollower
+
+    if isinstance(session.camera, SimCamera) and session.view is not None:
+        operator = PromptFollower(session.camera.sensor.layout.radius_mm)
+        previous = session.camera.program
+
+        def follow(prompt: str) -> None:
+            operator.follow(prompt)
+            session.camera.press_with(operator if prompt else previous)
+
+        session.view.on_prompt = follow
