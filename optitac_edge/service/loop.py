@@ -24,35 +24,31 @@ import sys
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from optitac_edge.config import BoardConfig, CameraConfig, SensorConfig
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
-from optitac_edge.errors import CameraError, FrameMismatchError, OptiTacError
-from optitac_edge.io.backoff import Backoff
+from optitac_edge.errors import OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
-from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, Command, CommandType, SensorState, StatusMessage
+from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, Command, SensorState, StatusMessage
 from optitac_edge.io.protocol.outbox import LinkState
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
+from optitac_edge.service import stats as counts
+from optitac_edge.service.camera_keeper import CameraKeeper
 from optitac_edge.service.channel import SensorChannel
+from optitac_edge.service.commands import Outcome, apply_command
+from optitac_edge.service.stats import ServiceStats
 
 if TYPE_CHECKING:
     from optitac_edge.service.network import NetworkOutput
 
 log = logging.getLogger(__name__)
 
-#: First wait before reopening a failed camera, s (doubles per failed attempt).
-REOPEN_BACKOFF_S = 0.05
-#: Longest wait between camera reopen attempts, s (also capped at a quarter of the frame gap).
-REOPEN_BACKOFF_MAX_S = 1.0
-#: Longest wait of the loop while it has no camera or the camera failed, s (it kicks the watchdog between).
-IDLE_WAIT_S = 0.05
 #: GIL switch interval while the service runs, s (the interpreter's default is 5 ms).
 SWITCH_INTERVAL_S = 0.0005
 OnResult = Callable[[FrameResult, "ServiceStats"], None]
@@ -60,59 +56,6 @@ OnResult = Callable[[FrameResult, "ServiceStats"], None]
 
 class ServiceStalled(OptiTacError):
     """No good frame for ``watchdog.max_frame_gap_s``: the service exits so systemd restarts it."""
-
-
-@dataclass
-class ServiceStats:
-    """Counters of one run.
-
-    ``camera_errors`` counts every frame fault (read errors and timeouts, wrong
-    frames, dark and saturated frames); the other counters split it by kind.
-    With several sensors on the camera, ``frames`` counts camera frames some
-    sensor processed, ``contacts`` every sensor's frames with a contact, and a
-    dark or saturated patch counts once per sensor it hides.
-    """
-
-    frames: int = 0
-    contacts: int = 0
-    sent: int = 0
-    frames_dropped: int = 0
-    camera_errors: int = 0
-    read_errors: int = 0  # CameraError from read(): timeouts, device gone, driver errors
-    unexpected_errors: int = 0  # any other exception from the camera (a backend bug): counted like read_errors
-    bad_frames: int = 0  # wrong shape or dtype
-    dark_frames: int = 0
-    saturated_frames: int = 0  # skipped: most fibers at full scale
-    saturated_sent: int = 0  # processed frames with some fiber at full scale (SATURATED flag)
-    light_changes: int = 0  # common-mode changes of the light (LED dimming), not reported as contacts
-    baseline_raises: int = 0  # fibers brighter than their baseline (taken over a press): raised to their light
-    processing_errors: int = 0  # frames the pipeline failed on (a bug): counted, flagged, baseline re-taken
-    protocol_refused: int = 0  # SET_PROTOCOL for a version the link cannot speak: ignored
-    reopens: int = 0  # successful camera reopens
-    reopen_failures: int = 0
-    commands: dict[str, int] = field(default_factory=dict)
-    started_ns: int = 0
-    #: The frame rate over the last status period (:meth:`measure_rate`), frames/s.
-    recent_fps: float = 0.0
-    _rate_mark: tuple[int, int] | None = None
-
-    def fps(self, now_ns: int) -> float:
-        """Frames per second since the start (the run's summary)."""
-        elapsed = (now_ns - self.started_ns) / 1e9
-        return self.frames / elapsed if elapsed > 0 else 0.0
-
-    def measure_rate(self, now_ns: int) -> float:
-        """The frame rate since the previous call (or the start), kept as :attr:`recent_fps`: what STATUS says.
-
-        The average since the start over-read for a long time after it (the frames queued while the
-        service started come at once: 85 fps, then 62, on a 60-fps camera).
-        """
-        since_ns, since_frames = self._rate_mark or (self.started_ns, 0)
-        if now_ns - since_ns >= 200_000_000 or self._rate_mark is None:
-            span = (now_ns - since_ns) / 1e9
-            self.recent_fps = (self.frames - since_frames) / span if span > 0 else 0.0
-            self._rate_mark = (now_ns, self.frames)
-        return self.recent_fps
 
 
 class _CameraEnded(Exception):
@@ -144,13 +87,12 @@ class Service:
                  camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK,
                  sensors: Sequence[tuple[SensorConfig, CalibrationBundle]] | None = None,
                  camera_config: CameraConfig | None = None, camera_name: str | None = None) -> None:
-        if camera is None:
-            if camera_factory is None:
-                raise ValueError("Service needs a camera or a camera_factory")
-            camera = camera_factory()
-            self._owned: Camera | None = camera
-        else:
-            self._owned = None
+        self.stats = ServiceStats()
+        gap_s = config.watchdog.max_frame_gap_s
+        #: The camera, reopened after a failure when there is a factory.
+        self.keeper = CameraKeeper(camera, camera_factory, clock, self.stats, gap_s)
+        camera = self.keeper.camera
+        assert camera is not None
         if sensors is None:
             if bundle is None:
                 raise ValueError("Service needs a bundle or sensors")
@@ -162,8 +104,6 @@ class Service:
         #: The camera's name in the board config (for logs).
         self.camera_name = camera_name or config.sensor.camera
         self.clock = clock
-        self.camera: Camera | None = camera
-        self.camera_factory = camera_factory
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
         #: One per sensor the camera reads, in the board's order.
@@ -179,17 +119,11 @@ class Service:
         #: Protocol, streaming and rate divider, as the MCU's commands set them.
         self.link = LinkState(rate_divider=config.link.rate_divider, delivers=transport.delivers,
                               v2_alongside_v1=transport.v2_alongside_v1)
-        self.stats = ServiceStats()
         self._inbox: deque[Command] = deque()
-        self._pixel_format = camera.pixel_format
-        self._frame_shape = camera.frame_shape
         #: The bundle could not be saved (the service runs on it from memory): STATUS bit5.
         self.calibration_unsaved = False
-        gap_s = config.watchdog.max_frame_gap_s
-        self._backoff = Backoff(REOPEN_BACKOFF_S, min(REOPEN_BACKOFF_MAX_S, gap_s / 4))
         self._max_gap_ns = int(gap_s * 1e9)
         self._status_period_ns = int(config.status.period_s * 1e9)
-        self._reopen_at_ns = 0
         self._last_good_ns = 0
         #: When the loop last went round (peers: what the lead's watchdog kick checks).
         self.heartbeat_ns = 0
@@ -202,6 +136,11 @@ class Service:
     def pipeline(self) -> Pipeline:
         """The first sensor's pipeline (the only one on a one-sensor camera)."""
         return self.channels[0].pipeline
+
+    @property
+    def camera(self) -> Camera | None:
+        """The camera the loop reads (None while it is being reopened)."""
+        return self.keeper.camera
 
     @property
     def bundle(self) -> CalibrationBundle:
@@ -220,27 +159,14 @@ class Service:
         self.stats.commands[name] = self.stats.commands.get(name, 0) + 1
         for peer in self.peers:
             peer.post(command)
-        if command.type == CommandType.TARE:
-            for ch in self.channels:
-                ch.pipeline.reset_baseline()
-        elif command.type == CommandType.STREAM:
-            self.link.streaming = command.stream_on
-            self.link.rate_divider = max(int(command.rate_divider), 1)
-        elif command.type == CommandType.SET_THRESHOLD:
-            for ch in self.channels:
-                ch.pipeline.set_contact_level(command.threshold_relative)
-        elif command.type == CommandType.SET_PROTOCOL:
-            if command.version in self.transport.protocols:
-                if command.version != self.link.protocol and not self.is_peer:
-                    log.info("the MCU switched to protocol v%d", command.version)
-                self.link.protocol = command.version
-                for ch in self.channels:
-                    ch.outbox.new_session()  # every contact is news to the MCU
-            else:
-                self.stats.protocol_refused += 1
-                if not self.is_peer:  # the lead says it once for the board
-                        log.warning("SET_PROTOCOL %d ignored: this link speaks %s", command.version,
-                                ", ".join(f"v{v}" for v in self.transport.protocols))
+        outcome = apply_command(command, self.link, self.channels, self.transport.protocols)
+        if outcome is Outcome.REFUSED:
+            self.stats.protocol_refused += 1
+            if not self.is_peer:  # the lead says it once for the board
+                log.warning("SET_PROTOCOL %d ignored: this link speaks %s", command.version,
+                            ", ".join(f"v{v}" for v in self.transport.protocols))
+        elif outcome is Outcome.SWITCHED and not self.is_peer:
+            log.info("the MCU switched to protocol v%d", command.version)
 
     def post(self, command: Command) -> None:
         """From the lead's thread: a command for this service's loop (acted on before its next frame)."""
@@ -283,68 +209,6 @@ class Service:
                 self.network.offer_status(ch.sensor_id, status, state, ch.frames, ch.contacts,
                                           self.stats.recent_fps, self.link.protocol)
 
-    def _flag_fault(self) -> None:
-        for ch in self.channels:
-            ch.fault_since_status = True
-
-    # -- camera faults -----------------------------------------------------------------------
-
-    def _close_camera(self) -> None:
-        cam, self.camera = self.camera, None
-        if cam is self._owned:
-            self._owned = None
-        if cam is not None and self.camera_factory is not None:
-            # the failed device is released before it is reopened (close() is idempotent,
-            # so the caller's own close of the camera it passed in stays harmless)
-            try:
-                cam.close()
-            except Exception as exc:  # noqa: BLE001 - a failing close must not stop the reopen
-                log.warning("closing the failed camera: %s", exc)
-
-    def _try_reopen(self) -> bool:
-        assert self.camera_factory is not None
-        try:
-            cam = self.camera_factory()
-            if cam.frame_shape != self._frame_shape or cam.pixel_format != self._pixel_format:
-                cam.close()
-                raise FrameMismatchError(f"reopened camera delivers {cam.pixel_format} {cam.frame_shape}, "
-                                         f"expected {self._pixel_format} {self._frame_shape}")
-        except Exception as exc:  # noqa: BLE001 - device still gone: try again later
-            self.stats.reopen_failures += 1
-            if self.stats.reopen_failures == 1 or self.stats.reopen_failures % 20 == 0:
-                log.warning("camera reopen failed (%d): %s", self.stats.reopen_failures, exc)
-            return False
-        self.camera = self._owned = cam
-        self.stats.reopens += 1
-        log.info("camera reopened (%d)", self.stats.reopens)
-        return True
-
-    def _reopen_step(self, stop: threading.Event, now_ns: int) -> None:
-        """Without a camera: reopen it when its time has come, else wait a little (at most IDLE_WAIT_S)."""
-        if now_ns >= self._reopen_at_ns:
-            if self._try_reopen():
-                self._backoff.reset()
-                return
-            self._reopen_at_ns = now_ns + int(self._backoff.next() * 1e9)
-        self.clock.wait(stop, min(max(self._reopen_at_ns - now_ns, 0) / 1e9, IDLE_WAIT_S))
-
-    def _camera_failed(self, stop: threading.Event, exc: Exception) -> None:
-        """Count a failed read; close the camera for a reopen (or, without a factory, wait a little)."""
-        st = self.stats
-        st.camera_errors += 1
-        if isinstance(exc, CameraError):
-            st.read_errors += 1
-        else:
-            st.unexpected_errors += 1
-        self._flag_fault()
-        if st.camera_errors == 1 or st.camera_errors % 100 == 0:
-            log.warning("camera error %d: %s: %s", st.camera_errors, type(exc).__name__, exc)
-        if self.camera_factory is not None:
-            self._close_camera()
-            self._reopen_at_ns = self.clock.monotonic_ns() + int(self._backoff.next() * 1e9)
-        else:
-            self.clock.wait(stop, min(self._backoff.delay, IDLE_WAIT_S))
-
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """The first sensor uses ``pipeline`` from the next frame (a bundle re-oriented from the view; built off
         the frame thread)."""
@@ -352,8 +216,7 @@ class Service:
 
     def close(self) -> None:
         """Close the camera the service opened itself (idempotent)."""
-        if self._owned is not None:
-            self._close_camera()
+        self.keeper.close()
 
     # -- the loop ----------------------------------------------------------------------------
 
@@ -415,19 +278,18 @@ class Service:
 
         Raises :class:`_CameraEnded` when a finite source has no more frames.
         """
-        camera = self.camera
-        if camera is None:  # reopening after a failure
-            self._reopen_step(stop, now_ns)
+        keeper = self.keeper
+        if keeper.camera is None:  # reopening after a failure
+            keeper.reopen_step(stop, now_ns)
             return None
-        dropped = camera.frames_dropped  # the camera counts its sequence gaps
-        try:
-            captured = camera.read(self.camera_config.timeout_s)
-        except Exception as exc:  # noqa: BLE001 - one bad read never ends the service
-            self._camera_failed(stop, exc)
+        captured, dropped, read = keeper.read(stop, self.camera_config.timeout_s)
+        if not read:
+            for ch in self.channels:
+                ch.fault_since_status = True
             return None
         if captured is None:
             raise _CameraEnded
-        self.stats.frames_dropped += camera.frames_dropped - dropped
+        self.stats.frames_dropped += dropped
         result, device_fault = self._process(captured)
         if self.view is not None:  # the live view copies what it needs when an update is due; never waits
             self.view.observe(captured.frame, captured.t_ns, self.pipeline, self.stats)
@@ -503,12 +365,12 @@ class Service:
         except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
             why = "bad"
         if why is not None:
-            self._frame_skipped(ch, why)
+            counts.frame_skipped(self.stats, ch, why)
             return None, "bad" if why == "bad" else None
         try:
             result = ch.pipeline.process(captured.frame, captured.t_ns, ch.frame_check.saturated)
         except Exception as exc:  # noqa: BLE001 - a per-frame failure never ends the service
-            self._processing_failed(ch, exc)
+            counts.processing_failed(self.stats, ch, exc)
             return None, "failed"  # a loop failing on every frame counts towards the frame gap
         self._count(ch, result)
         if self.network is not None:
@@ -527,45 +389,6 @@ class Service:
         st.contacts += contact
         st.saturated_sent += result.saturated
         if result.light_changed:
-            self._light_changed(ch)
+            counts.light_changed(st, ch)
         if result.baseline_raised:
-            self._baseline_raised(ch, result.raised_fibers)
-
-    def _light_changed(self, ch: SensorChannel) -> None:
-        st = self.stats
-        st.light_changes += 1
-        ch.light_since_status = True
-        if st.light_changes == 1 or st.light_changes % 100 == 0:
-            log.warning("common-mode change of the light %d (LED dimming or brightening to %.3f of the "
-                        "baseline, sensor %d): not a contact", st.light_changes, ch.pipeline.gain, ch.sensor_id)
-
-    def _baseline_raised(self, ch: SensorChannel, fibers: int) -> None:
-        st = self.stats
-        st.baseline_raises += 1
-        if st.baseline_raises == 1 or st.baseline_raises % 100 == 0:
-            log.warning("baseline raised %d (sensor %d): %d fibers stayed brighter than their baseline, which no "
-                        "press can make: it was taken while the skin was pressed there (a start or a tare during "
-                        "a grasp); their baseline is now their light", st.baseline_raises, ch.sensor_id, fibers)
-
-    def _processing_failed(self, ch: SensorChannel, exc: Exception) -> None:
-        """Count a frame the pipeline failed on, flag it, and start its state afresh (a new baseline)."""
-        st = self.stats
-        st.processing_errors += 1
-        ch.fault_since_status = True
-        if st.processing_errors == 1 or st.processing_errors % 100 == 0:
-            log.error("processing error %d (sensor %d): %s: %s; the baseline is taken again", st.processing_errors,
-                      ch.sensor_id, type(exc).__name__, exc)
-        ch.pipeline.reset_baseline()
-
-    def _frame_skipped(self, ch: SensorChannel, why: str) -> None:
-        st = self.stats
-        st.camera_errors += 1
-        ch.fault_since_status = True
-        if why == "bad":
-            st.bad_frames += 1
-        elif why == "dark":
-            st.dark_frames += 1
-        else:
-            st.saturated_frames += 1
-        if st.camera_errors == 1 or st.camera_errors % 100 == 0:
-            log.warning("camera fault %d: %s frame skipped (sensor %d)", st.camera_errors, why, ch.sensor_id)
+            counts.baseline_raised(st, ch, result.raised_fibers)
