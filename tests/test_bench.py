@@ -257,7 +257,6 @@ def test_paced_runs_take_turns_frame_by_frame_on_the_camera_clock() -> None:
     assert res["a"]["late_frames"] >= 2 and res["b"]["late_frames"] >= 2
 
 
-
 @pytest.mark.parametrize("bad", ["1280", "axb", "10x720", "1280x9000"])
 def test_bench_refuses_a_bad_patch_frame_in_one_line(bad, capsys) -> None:
     with pytest.raises(SystemExit) as exc:

@@ -25,6 +25,7 @@ def test_constant_error_is_removed_everywhere():
 def test_smooth_error_field_is_learned_between_presses(fill):
     """A radial pull towards the centre (as at the rim) is corrected at unseen positions."""
     true = hex_layout().xy_mm
+
     def pull(p):
         return -0.04 * p * (np.linalg.norm(p, axis=-1, keepdims=True) / 12.0)
     measured = true + pull(true)

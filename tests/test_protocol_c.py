@@ -40,7 +40,6 @@ SAN = ["-fsanitize=address,undefined", "-fno-omit-frame-pointer", "-fno-sanitize
 PROGRAMS = {"test_vectors": "test_vectors.c", "optitac_fuzz": "fuzz_main.c", "optitac_rx": "optitac_rx.c"}
 
 
-
 def _run(cmd, **kw):
     """subprocess.run without raising on a non-zero exit (the tests check returncode)."""
     return subprocess.run(cmd, check=False, **kw)

@@ -137,7 +137,7 @@ class Collector:
         Finds the fibers in the recording's rest frames (e.g. :func:`optitac_edge.service.bundles.fiber_finder`).
     """
 
-    def __init__(self, camera: Camera, rig: Rig, bundle: CalibrationBundle, settings: CollectSettings = CollectSettings(),
+    def __init__(self, camera: Camera, rig: Rig, bundle: CalibrationBundle, settings: CollectSettings = CollectSettings(),  # noqa: PLR0913
                  prompt: Callable[[str], None] = print, confirm: Callable[[str], None] | None = None,
                  read_timeout_s: float = 2.0, storage: str = "raw", find_fibers: FindFibers | None = None) -> None:
         self.camera, self.rig, self.bundle, self.settings = camera, rig, bundle, settings
@@ -350,7 +350,7 @@ class Collector:
         self.rig.move_and_wait((x0, y0, safe))
         self.prompt(f"parked the tip at z = {safe:g} mm over the start point ({x0:.2f}, {y0:.2f})")
 
-    def _run(self, experiment: str, presses: list[PlannedPress], setup: dict[str, Any],
+    def _run(self, experiment: str, presses: list[PlannedPress], setup: dict[str, Any],  # noqa: PLR0915
              done: list[dict[str, Any]], journal: Path, kept_rows: list[dict[str, Any]], seed: int) -> CollectResult:
         assert self.writer is not None
         s = self.settings

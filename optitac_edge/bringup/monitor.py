@@ -190,7 +190,7 @@ class SerialMonitor:
                 f"version {c.version}, overflow {c.overflow}, payload {self.tally.bad_payloads}")
 
 
-def monitor_serial(port: str, baudrate: int, duration_s: float | None, commands: list[str],
+def monitor_serial(port: str, baudrate: int, duration_s: float | None, commands: list[str],  # noqa: PLR0913
                    say: Callable[[str], None], every: bool = False, period_s: float = 1.0,
                    stop: threading.Event | None = None, serial_port: Any = None) -> SerialMonitor:
     """Read the serial link until ``duration_s`` (or ``stop``), printing a summary every ``period_s``.

@@ -174,7 +174,7 @@ def predict(model: RadialMonotoneMap, feature: np.ndarray, rho2: np.ndarray) -> 
     return np.array([model(float(f), float(x), 0.0) for f, x in zip(feature, r)])
 
 
-def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_mm: float, level: np.ndarray,
+def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_mm: float, level: np.ndarray,  # noqa: PLR0913
              weight: np.ndarray, groups: np.ndarray, exponent: float, drift: float = RESPONSE_DRIFT,
              folds: int = MAX_FOLDS, name: str = "") -> Candidate:
     """One candidate's held-out error: ``GroupKFold`` over ``groups`` (one group per press).

@@ -26,6 +26,7 @@ from optitac_edge.core.region import REGION_KEY, Region, bundle_region
 __all__ = ["REGION_KEY", "Region", "bundle_region", "calibrate_region", "crop_frames", "place_bundle",
            "place_fiber_table"]
 
+
 def place_fiber_table(table: FiberTable, region: Region, frame_width: int, frame_height: int,
                       pixel_format: str | None = None) -> FiberTable:
     """``table`` (built on a crop of ``region``'s size) with its pixels in the whole frame.

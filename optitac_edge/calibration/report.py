@@ -133,7 +133,7 @@ def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = 
     return measure_recording(rec, bundle, corrected=corrected), rec.truth
 
 
-def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,
+def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,  # noqa: C901, PLR0915
                  repeat: Path | None = None) -> Path:
     """Write the figures and ``index.md`` into ``out_dir``; returns the index path."""
     from optitac_edge.calibration.evaluation import detected_rows, repeatability

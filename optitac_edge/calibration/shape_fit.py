@@ -321,7 +321,7 @@ def gmm_unsupervised(
     return model, gm
 
 
-def fit_supervised(
+def fit_supervised(  # noqa: PLR0913
     f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
     seed: int = 0, max_components: int = 3, n_init: int = 2, reg_covar: float = 1e-4,
     q4_floor: float = Q4_FLOOR,
@@ -331,7 +331,7 @@ def fit_supervised(
                          n_init=n_init, reg_covar=reg_covar, q4_floor=q4_floor)[0]
 
 
-def gmm_per_class(
+def gmm_per_class(  # noqa: PLR0913
     f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
     seed: int = 0, max_components: int = 3, n_init: int = 2, reg_covar: float = 1e-4,
     q4_floor: float = Q4_FLOOR,
@@ -429,7 +429,7 @@ def _fit_kind(kind: str, f: np.ndarray, y: np.ndarray, names: tuple[str, ...],
     return fitter(f, y, names, subset, **opts[kind])
 
 
-def fit_shape_model(
+def fit_shape_model(  # noqa: PLR0913
     features: np.ndarray,
     labels: np.ndarray,
     *,
@@ -496,7 +496,7 @@ def fit_shape_model(
             q4_floor=q4_floor)
 
 
-def _fit_shape_model(
+def _fit_shape_model(  # noqa: PLR0913
     features: np.ndarray, labels: np.ndarray, *, groups: np.ndarray | None, seed: int,
     holdout: float, cv_folds: int, subsets: tuple[tuple[int, ...], ...] | None, refit: bool,
     n_init: int, max_components: int, reg_covar_unsupervised: float,

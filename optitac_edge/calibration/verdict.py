@@ -198,7 +198,7 @@ def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth:
                         f"limit {MAX_DEPTH_RMSE_MM} mm against commanded depths")
 
 
-def _model_check(name: str, ok: bool, seen: str, fix: str, heldout: float, here: tuple[float, str] | None,
+def _model_check(name: str, ok: bool, seen: str, fix: str, heldout: float, here: tuple[float, str] | None,  # noqa: PLR0913
                  limit: float, slack_mm: float, limit_text: str) -> Check:
     """A model's check from its calibration figures (``ok``, ``seen``) and, when the evaluated recording
     measured it, the error there (``here``: value, words): within ``limit`` and agreeing with ``heldout``."""

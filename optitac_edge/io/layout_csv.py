@@ -23,7 +23,7 @@ MAX_CELL_CHARS = 64
 MAX_FIBER_ID = 2**31 - 1
 
 
-def load_layout_csv(path: str | Path) -> FiberLayout:
+def load_layout_csv(path: str | Path) -> FiberLayout:  # noqa: C901
     """Read a custom layout from a CSV file with header ``fiber,x_mm,y_mm`` (UTF-8, a BOM allowed).
 
     An optional ``fiducial`` column marks fibers ``dark`` or ``bright`` by design.

@@ -204,7 +204,7 @@ def read_truth(path: Path, n_frames: int) -> Truth:
     return read_truth_file(path, n_frames)[0]
 
 
-def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple[Truth, RigPoses | None]:
+def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple[Truth, RigPoses | None]:  # noqa: C901, PLR0915
     """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames (``text``: its
     contents, kept elsewhere than ``path``, e.g. in an MCAP recording; ``path`` then names it).
 

@@ -100,7 +100,7 @@ class RecordingWriter:
         If ``keep_frames`` asks for frames the existing recording does not hold, or in another storage.
     """
 
-    def __init__(
+    def __init__(  # noqa: PLR0913
         self,
         path: str | Path,
         n_frames: int | None,
@@ -239,7 +239,7 @@ class RecordingWriter:
             self.abort(f"failed: {exc}")
             raise
 
-    def write_truth(
+    def write_truth(  # noqa: PLR0913
         self,
         frame: int,
         contact: bool,

@@ -27,7 +27,6 @@ def _address(env: Mapping[str, str]) -> str | bytes | None:
     return None  # vsock:... and other forms are not for a local service
 
 
-
 def watchdog_period(env: Mapping[str, str] | None = None) -> float | None:
     """systemd's watchdog timeout in seconds (``$WATCHDOG_USEC``), None when not enabled for us."""
     env = os.environ if env is None else env

@@ -62,7 +62,6 @@ class _CameraEnded(Exception):
     """The camera is a finite source (a recording) and has no more frames."""
 
 
-
 class Service:
     """Runs the frame loop of one camera: every sensor the camera reads, one transport.
 
@@ -82,7 +81,7 @@ class Service:
     alive, and says READY once each has processed a frame.
     """
 
-    def __init__(self, config: BoardConfig, bundle: CalibrationBundle | None, camera: Camera | None,
+    def __init__(self, config: BoardConfig, bundle: CalibrationBundle | None, camera: Camera | None,  # noqa: PLR0913
                  transport: Transport, notifier: Notifier | None = None, *,
                  camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK,
                  sensors: Sequence[tuple[SensorConfig, CalibrationBundle]] | None = None,

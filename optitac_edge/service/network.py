@@ -91,6 +91,7 @@ class NetworkSensor:
             x, y, w, h = self.region
             image = image[y:y + h, x:x + w]
         return image.copy()
+
     @property
     def topic_name(self) -> str:
         """The sensor's name as a ROS 2 name token (``-`` and ``.`` become ``_``)."""

@@ -143,7 +143,7 @@ class SimCamera(Camera):
             out["regions"] = regions
         return out
 
-    def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,
+    def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,  # noqa: PLR0913
                  rotation_deg: float = 0.0, mirror: bool = False, seed: int = 0, rest_frames: int = 10,
                  realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None,
                  program: PressSource | None = None,

@@ -296,7 +296,7 @@ def _find_fibers(layout: FiberLayout, optics: CameraOptics) -> Callable[[np.ndar
     return find
 
 
-def write_scenario(
+def write_scenario(  # noqa: PLR0913
     out_dir: str | Path,
     name: str,
     seed: int = 0,

@@ -108,7 +108,7 @@ def binary_q4(binary: np.ndarray, grid: SurfaceGrid) -> float:
     return abs(c40) / float(mu[0, 0]) ** 3
 
 
-def synthetic_features(
+def synthetic_features(  # noqa: PLR0913
     n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
     shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
     size_mm: tuple[float, float] = (4.0, 8.0), blur_mm: float = 0.0, level: float = 0.5,

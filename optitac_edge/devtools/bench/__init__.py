@@ -91,7 +91,7 @@ def _published(p: dict[str, Any]) -> str:
             f"{p['mcap_messages']} messages")
 
 
-def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,
+def run_bench(frames: int = 20000, source: str = "sim", fps: float = 240.0, cal: Path | None = None,  # noqa: PLR0913, PLR0915
               rgb: bool = False, workdir: Path | None = None, reference_frames: int = 300,
               memory_frames: int = 2000, e2e_seconds: float = 60.0, startup: bool = True,
               unique_frames: int = 600, queue_frames: int | None = None, view: str | None = None,

@@ -20,7 +20,7 @@ from optitac_edge.devtools.bench.replay_camera import drop_causes, paced_replay_
 from optitac_edge.devtools.bench.samples import summary
 
 
-def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
+def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,  # noqa: PLR0913
                        frames: list[np.ndarray] | None = None, rest: int = 10,
                        queue_frames: int | None = None, view: str | None = None,
                        on_view: Any = None, bundles: list[Any] | None = None,
@@ -42,7 +42,7 @@ def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,
                            on_view, bundles, publish)
 
 
-def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bool,
+def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bool,  # noqa: PLR0913, PLR0915
                 frames: list[np.ndarray] | None, rest: int, queue_frames: int | None, view: str | None,
                 on_view: Any, bundles: list[Any] | None, publish: bool) -> dict[str, Any]:
     """:func:`measure_end_to_end`, the reader writing its figures to ``out``."""

@@ -118,7 +118,7 @@ class Picamera2Camera(Camera):
                 "pixel_format": c.pixel_format, "exposure_us": c.exposure_us or None, "analogue_gain": c.gain or None,
                 "warmup_frames": c.warmup_frames, "timeout_s": c.timeout_s, "queue_frames": c.queue_frames}
 
-    def __init__(
+    def __init__(  # noqa: PLR0913
         self,
         camera_num: int | str = 0,
         width: int = 640,

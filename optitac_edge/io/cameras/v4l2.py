@@ -152,7 +152,7 @@ class V4L2Camera(Camera):
         return {**source, "width": c.width, "height": c.height, "fps": c.fps, "gain": c.gain or None,
                 "queue_frames": c.queue_frames}
 
-    def __init__(
+    def __init__(  # noqa: PLR0913
         self,
         device: int | str = 0,
         width: int = 640,

@@ -99,7 +99,7 @@ def node_token(domain_id: int, zid: str, nid: int, namespace: str, node: str, en
     return f"{ADMIN_SPACE}/{domain_id}/{zid}/{nid}/{nid}/{NODE}/{mangle(enclave)}/{mangle(namespace)}/{node}"
 
 
-def publisher_token(domain_id: int, zid: str, nid: int, eid: int, namespace: str, node: str, topic: str,
+def publisher_token(domain_id: int, zid: str, nid: int, eid: int, namespace: str, node: str, topic: str,  # noqa: PLR0913
                     dds_type: str, type_hash: str, qos: Qos, enclave: str = "") -> str:
     """The liveliness token of a publisher of ``topic`` (fully qualified) on node ``nid``."""
     return (f"{ADMIN_SPACE}/{domain_id}/{zid}/{nid}/{eid}/{PUBLISHER}/{mangle(enclave)}/{mangle(namespace)}/"

@@ -111,7 +111,7 @@ class CanTransport(Transport):
         A bad configuration or a bus that cannot be opened at construction.
     """
 
-    def __init__(self, channel: str = "can0", interface: str = "socketcan", sensor_id: int | Sequence[int] = 0,
+    def __init__(self, channel: str = "can0", interface: str = "socketcan", sensor_id: int | Sequence[int] = 0,  # noqa: PLR0913
                  bitrate: int | None = None, dbc_path: str | Path | None = None, *,
                  base_id: int = BASE_ID, backoff_s: tuple[float, float] = (0.1, 5.0),
                  down_after: int = 100, bus_kwargs: dict[str, Any] | None = None, protocol: int = 1) -> None:

@@ -62,6 +62,7 @@ def _errno(exc: BaseException) -> int | None:
     """The errno of an open failure (pyserial wraps the OSError and keeps its errno)."""
     return getattr(exc, "errno", None)
 
+
 #: :meth:`SerialTransport._next`'s type of a queued item that is the rest of a frame written in part.
 _TAIL = -1
 
@@ -113,7 +114,7 @@ class SerialTransport(Transport):
         above); a fake port or one a test unplugs goes in here.
     """
 
-    def __init__(self, url: str, baudrate: int = 921600, queue_size: int = 8,
+    def __init__(self, url: str, baudrate: int = 921600, queue_size: int = 8,  # noqa: PLR0913
                  *, require_port: bool = True, read_timeout: float = 0.05,
                  write_timeout: float = 0.2, backoff_min: float = 0.05, backoff_max: float = 1.0,
                  on_frame: Callable[[Frame], None] | None = None,
