@@ -107,3 +107,12 @@ def board_sensor(args: argparse.Namespace) -> Any:
             raise OptiTacError("--sensor needs --board (the board config that lists the sensor)")
         return None
     return one_sensor_config(args)
+
+
+def recording_left(args: argparse.Namespace) -> str:
+    """What an interrupted ``sim`` or ``record`` left behind: the recording it was writing, or the complete
+    one it was replacing (unchanged)."""
+    out = getattr(args, "out_dir", None) or args.output
+    if getattr(args, "replacing", False):
+        return f"recording {out} unchanged (the new one was not complete)"
+    return f"recording {out} is incomplete (not usable; record it again)"

@@ -6,12 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    COUNT,
-    FPS,
-    frame_size,
-    number,
-)
+from optitac_edge.cli.common import COUNT, FPS, frame_size, number
 from optitac_edge.errors import OptiTacError
 
 

@@ -6,13 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    SEED,
-    Parser,
-    add_board,
-    add_orientation,
-    board_sensor,
-)
+from optitac_edge.cli.common import SEED, Parser, add_board, add_orientation, board_sensor
 from optitac_edge.errors import OptiTacError
 from optitac_edge.text import fields
 

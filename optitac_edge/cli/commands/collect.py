@@ -8,12 +8,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    add_board,
-    add_storage,
-    number,
-    one_sensor_config,
-)
+from optitac_edge.cli.common import add_board, add_storage, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
 

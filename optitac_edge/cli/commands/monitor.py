@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from optitac_edge.cli.common import (
-    number,
-)
+from optitac_edge.cli.common import number
 from optitac_edge.errors import OptiTacError
 
 

@@ -7,11 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    add_board,
-    number,
-    one_sensor_config,
-)
+from optitac_edge.cli.common import add_board, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
 

@@ -6,13 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    COUNT,
-    add_board,
-    add_fresh,
-    add_storage,
-    one_sensor_config,
-)
+from optitac_edge.cli.common import COUNT, add_board, add_fresh, add_storage, one_sensor_config, recording_left
 from optitac_edge.errors import OptiTacError
 
 
@@ -45,9 +39,4 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def left(args: argparse.Namespace) -> str:
-    """What an interrupted run left behind, for its one line."""
-    out = getattr(args, "out_dir", None) or args.output
-    if getattr(args, "replacing", False):
-        return f"recording {out} unchanged (the new one was not complete)"
-    return f"recording {out} is incomplete (not usable; record it again)"
+left = recording_left

@@ -15,14 +15,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from optitac_edge.cli.common import (
-    COUNT,
-    EXIT_INTERRUPTED,
-    FPS,
-    add_board,
-    board_config,
-    number,
-)
+from optitac_edge.cli.common import COUNT, EXIT_INTERRUPTED, FPS, add_board, board_config, number
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
 

@@ -16,6 +16,7 @@ from optitac_edge.cli.common import (
     add_storage,
     board_sensor,
     number,
+    recording_left,
 )
 from optitac_edge.errors import OptiTacError
 
@@ -145,9 +146,4 @@ def _simboard_sensor(args: argparse.Namespace, config: Any, dark: tuple[int, ...
     return optics, PatchPlacement(frames, regions.index(config.sensor.region))
 
 
-def left(args: argparse.Namespace) -> str:
-    """What an interrupted run left behind, for its one line."""
-    out = getattr(args, "out_dir", None) or args.output
-    if getattr(args, "replacing", False):
-        return f"recording {out} unchanged (the new one was not complete)"
-    return f"recording {out} is incomplete (not usable; record it again)"
+left = recording_left

@@ -6,11 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    add_board,
-    number,
-    one_sensor_config,
-)
+from optitac_edge.cli.common import add_board, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
 

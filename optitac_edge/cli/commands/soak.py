@@ -5,11 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from optitac_edge.cli.common import (
-    FPS,
-    SEED,
-    number,
-)
+from optitac_edge.cli.common import FPS, SEED, number
 from optitac_edge.errors import OptiTacError
 
 

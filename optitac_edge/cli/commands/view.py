@@ -6,10 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.cli.common import (
-    add_board,
-    number,
-)
+from optitac_edge.cli.common import add_board, number
 
 
 def add_parser(sub: Any) -> None:
