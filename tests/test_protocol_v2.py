@@ -192,4 +192,4 @@ def test_a_link_without_v2_ignores_set_protocol_2_and_counts_it(bundle_path):
     service = Service(load_board_config("sim", env={}), bundle, ListCamera([frame]), V1Only())
     service.handle(Command(CommandType.SET_PROTOCOL, 1, version=2))
     assert service.link.protocol == 1 and service.stats.protocol_refused == 1
-    assert not service.status_message(0).state & STATE_PROTOCOL_V2
+    assert not service.status.message(0).state & STATE_PROTOCOL_V2

@@ -107,7 +107,7 @@ def test_a_state_directory_that_cannot_hold_the_bundle_does_not_stop_the_service
         stats = session.run(stop, on_result=lambda est, st: st.frames == 60 and stop.set())
         assert stats.frames == 60
         assert session.unsaved is not None and "calibration.npz" in session.unsaved
-        assert session.service.status_message(0).state & STATE_CALIBRATION_UNSAVED
+        assert session.service.status.message(0).state & STATE_CALIBRATION_UNSAVED
     assert [r.levelname for r in caplog.records if "not saved" in r.getMessage()] == ["ERROR"]
 
 

@@ -33,16 +33,16 @@ from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
-from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, Command, SensorState, StatusMessage
+from optitac_edge.io.protocol.messages import Command
 from optitac_edge.io.protocol.outbox import LinkState
 from optitac_edge.io.sdnotify import Notifier
-from optitac_edge.io.thermal import cpu_temperature_c
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service import stats as counts
 from optitac_edge.service.camera_keeper import CameraKeeper
 from optitac_edge.service.channel import SensorChannel
 from optitac_edge.service.commands import Outcome, apply_command
 from optitac_edge.service.stats import ServiceStats
+from optitac_edge.service.status import StatusReporter
 
 if TYPE_CHECKING:
     from optitac_edge.service.network import NetworkOutput
@@ -119,15 +119,14 @@ class Service:
         self.link = LinkState(rate_divider=config.link.rate_divider, delivers=transport.delivers,
                               v2_alongside_v1=transport.v2_alongside_v1)
         self._inbox: deque[Command] = deque()
-        #: The bundle could not be saved (the service runs on it from memory): STATUS bit5.
-        self.calibration_unsaved = False
+        #: Every sensor's STATUS (``status.calibration_unsaved``: the bundle could not be saved, bit5).
+        self.status = StatusReporter(self.channels, self.stats, self.link, transport, config.status.period_s)
         self._max_gap_ns = int(gap_s * 1e9)
-        self._status_period_ns = int(config.status.period_s * 1e9)
         self._last_good_ns = 0
         #: When the loop last went round (peers: what the lead's watchdog kick checks).
         self.heartbeat_ns = 0
-        self._next_status_ns = 0
-        self._ready = False
+        #: This loop processed a frame (the lead says READY once every loop did).
+        self.ready = False
         #: The lead told systemd READY.
         self.notifier_ready = False
 
@@ -140,11 +139,6 @@ class Service:
     def camera(self) -> Camera | None:
         """The camera the loop reads (None while it is being reopened)."""
         return self.keeper.camera
-
-    @property
-    def bundle(self) -> CalibrationBundle:
-        """The first sensor's bundle."""
-        return self.channels[0].bundle
 
     # -- commands ----------------------------------------------------------------------------
 
@@ -170,43 +164,6 @@ class Service:
     def post(self, command: Command) -> None:
         """From the lead's thread: a command for this service's loop (acted on before its next frame)."""
         self._inbox.append(command)
-
-    # -- status ------------------------------------------------------------------------------
-
-    def sensor_state(self, index: int = 0) -> SensorState:
-        """The flags of sensor ``index`` of this camera for its STATUS (those since its last STATUS)."""
-        ch = self.channels[index]
-        return SensorState(streaming=self.link.streaming, baseline_ready=ch.pipeline.baseline_ready,
-                           degraded=ch.degraded, camera_fault=ch.fault_since_status or self.camera is None,
-                           light_change=ch.light_since_status, calibration_unsaved=self.calibration_unsaved,
-                           protocol_v2=self.link.protocol == 2)
-
-    def status_message(self, now_ns: int, index: int = 0, state: SensorState | None = None) -> StatusMessage:
-        """The STATUS of sensor ``index`` of this camera (its flags since its last STATUS, then cleared)."""
-        ch, st = self.channels[index], self.stats
-        s = ch.status
-        s.t_us = now_ns // 1000
-        s.fps_x10 = round(st.recent_fps * 10)
-        s.frames_dropped = st.frames_dropped
-        s.camera_errors = st.camera_errors
-        c = self.transport.counters
-        s.link_errors = c.send_errors + c.rx_errors
-        temp = cpu_temperature_c()
-        s.cpu_temp_c_x10 = TEMP_UNKNOWN if temp is None else round(temp * 10)
-        s.state = (self.sensor_state(index) if state is None else state).bits
-        ch.fault_since_status = ch.light_since_status = False
-        return s
-
-    def send_status(self, now_ns: int) -> None:
-        """A STATUS for every sensor of the camera, with the frame rate of the last status period."""
-        self.stats.measure_rate(now_ns)
-        for k, ch in enumerate(self.channels):
-            state = self.sensor_state(k)
-            status = self.status_message(now_ns, k, state)
-            self.transport.send_status(status)
-            if self.network is not None:
-                self.network.offer_status(ch.sensor_id, status, state, ch.frames, ch.contacts,
-                                          self.stats.recent_fps, self.link.protocol)
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """The first sensor uses ``pipeline`` from the next frame (a bundle re-oriented from the view; built off
@@ -247,30 +204,33 @@ class Service:
         st = self.stats
         st.started_ns = self._last_good_ns = self.heartbeat_ns = self.clock.monotonic_ns()
         end_ns = None if duration_s is None else st.started_ns + int(duration_s * 1e9)
-        self._next_status_ns = st.started_ns + self._status_period_ns
+        self.status.next_ns = st.started_ns + self.status.period_ns
         try:
             while not stop.is_set():
                 now_ns = self.heartbeat_ns = self.clock.monotonic_ns()
                 if end_ns is not None and now_ns >= end_ns:
                     break
-                self._check_frame_gap(now_ns)
+                if now_ns - self._last_good_ns > self._max_gap_ns:
+                    raise ServiceStalled(f"no good camera frame for {(now_ns - self._last_good_ns) / 1e9:.1f} s "
+                                         f"({st.camera_errors} camera faults); exiting so systemd restarts")
                 try:
                     result = self._step(stop, now_ns)
                 except _CameraEnded:
                     break
                 self._after_step(result, on_result)
         finally:
-            self._shut_down()
+            try:  # a last STATUS: the MCU sees the final counters
+                self.status.send(self.clock.monotonic_ns(), self.camera is not None, self.network)
+            except Exception as exc:  # noqa: BLE001 - shutting down anyway
+                log.warning("final status not sent: %s", exc)
+            if not self.is_peer:
+                self.notifier.stopping()
+            self.close()
         log.info("camera %s stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
                  "%d processing errors, %d light changes, %d baseline raises)", self.camera_name, st.frames,
                  st.contacts, st.frames_dropped, st.camera_errors, st.reopens, st.processing_errors,
                  st.light_changes, st.baseline_raises)
         return st
-
-    def _check_frame_gap(self, now_ns: int) -> None:
-        if now_ns - self._last_good_ns > self._max_gap_ns:
-            raise ServiceStalled(f"no good camera frame for {(now_ns - self._last_good_ns) / 1e9:.1f} s "
-                                 f"({self.stats.camera_errors} camera faults); exiting so systemd restarts")
 
     def _step(self, stop: threading.Event, now_ns: int) -> FrameResult | None:
         """One pass: reopen the camera or read a frame and process it; the first sensor's result, or None.
@@ -298,8 +258,8 @@ class Service:
 
     def _after_step(self, result: FrameResult | None, on_result: OnResult | None) -> None:
         """READY once, the watchdog kick, the MCU's commands, the caller's hook, STATUS when due."""
-        if result is not None and not self._ready:
-            self._ready = True
+        if result is not None and not self.ready:
+            self.ready = True
         if not self.is_peer:
             self._tell_systemd()
             for command in self.transport.poll_commands():
@@ -309,13 +269,12 @@ class Service:
         if result is not None and on_result is not None:
             on_result(result, self.stats)
         now_ns = self.clock.monotonic_ns()
-        if now_ns >= self._next_status_ns:
-            self._next_status_ns = now_ns + self._status_period_ns
-            self.send_status(now_ns)
+        if now_ns >= self.status.next_ns:
+            self.status.send(now_ns, self.camera is not None, self.network)
 
     def _tell_systemd(self) -> None:
         """The lead: READY once every camera processed a frame; the watchdog kick while every loop goes round."""
-        if self._ready and not self.notifier_ready and all(p._ready for p in self.peers):
+        if self.ready and not self.notifier_ready and all(p.ready for p in self.peers):
             self.notifier_ready = True
             self.notifier.ready("processing frames")
             log.info("first frame processed; %s", "streaming to the MCU" if self.transport.delivers
@@ -325,15 +284,6 @@ class Service:
             # from the loop itself: a stuck loop (or a peer's, stuck in its camera driver) stops kicking
             if all(now_ns - p.heartbeat_ns <= self._max_gap_ns for p in self.peers):
                 self.notifier.watchdog(now_ns / 1e9)
-
-    def _shut_down(self) -> None:
-        try:  # a last STATUS: the MCU sees the final counters
-            self.send_status(self.clock.monotonic_ns())
-        except Exception as exc:  # noqa: BLE001 - shutting down anyway
-            log.warning("final status not sent: %s", exc)
-        if not self.is_peer:
-            self.notifier.stopping()
-        self.close()
 
     def _process(self, captured: CapturedFrame) -> tuple[FrameResult | None, bool]:
         """Check and process one captured frame for every sensor: (the first sensor's result, None when no

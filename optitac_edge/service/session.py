@@ -204,7 +204,7 @@ class BoardSession:
                               camera_factory=functools.partial(open_board_camera, config, name), clock=self.clock,
                               sensors=[(b.sensor.sensor, b.bundle) for b in group],
                               camera_config=config.cameras[name], camera_name=name)
-            service.calibration_unsaved = any(b.unsaved is not None for b in group)
+            service.status.calibration_unsaved = any(b.unsaved is not None for b in group)
             self.services.append(service)
         lead, peers = self.services[0], self.services[1:]
         lead.peers = peers
