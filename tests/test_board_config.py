@@ -355,3 +355,18 @@ def test_the_environment_and_command_line_set_a_publisher_by_its_name(tmp_path):
                             overrides={"publish.mcap.path": "r.mcap"})
     assert cfg.publish["zenoh"].domain_id == 7 and list(cfg.publish) == ["zenoh", "mcap"]
     assert load_board_config(board, env={}, overrides={"publish.zenoh": False}).publish == {}
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ('[publish]\nbackend = "none"\ndomain_id = 999\n', "publish.zenoh.domain_id: must be an integer in 0..232"),
+    ('[publish]\nbackend = "virtual"\nmod = "client"\n', "publish.zenoh.mod: unknown key"),
+    ('[mcap]\nmax_mb = -1\n', "publish.mcap.max_mb: must be a number in 0..1e+07"),
+    ('[mcap]\npat = "x.mcap"\n', "publish.mcap.pat: unknown key"),
+])
+def test_an_old_publish_section_is_checked_also_where_it_publishes_nothing(tmp_path, text, message):
+    """The old form checked [publish] and [mcap] keys whatever the backend or path (a bad value was one line,
+    not silently dropped); read as the new tables it still does."""
+    board = tmp_path / "b.toml"
+    board.write_text(text)
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_board_config(board, env={})

@@ -4,18 +4,11 @@ tables with a one-line hint."""
 from __future__ import annotations
 
 import logging
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.config.checkers import (
-    _show,
-    _type_name,
-)
+from optitac_edge.config.checkers import _show, _type_name
 from optitac_edge.config.layers import _Layers
-from optitac_edge.config.sections import (
-    ZenohPublish,
-)
 from optitac_edge.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -38,24 +31,29 @@ def _apply_old_publish(layers: _Layers, old: dict[str, Any], shown: str, base_di
     if backend not in ("none", "zenoh", "virtual"):
         raise ConfigError(f"{shown}: publish.backend: must be one of none, zenoh, virtual, got {_show(backend)}")
     foxglove = publish.pop("foxglove", "")
+    # every old key is checked as its new one is, also where the old form left it unused (a backend
+    # "none" with Zenoh keys, [mcap] keys without a path): that publisher is then turned off again
     for key, item in publish.items():
         if key in _OLD_NETWORK_KEYS:
             layers.set(shown, "network", key, item, from_text=False, base_dir=base_dir)
             became.append(f"network.{key}")
-        elif backend == "zenoh":
+        else:
             layers.set(shown, "publish", f"zenoh.{key}", item, from_text=False, base_dir=base_dir)
-            became.append(f"publish.zenoh.{key}")
-        elif key not in {f.name for f in fields(ZenohPublish)}:
-            raise ConfigError(f"{shown}: publish.{key}: unknown key")
+            if backend == "zenoh":
+                became.append(f"publish.zenoh.{key}")
+    if backend != "zenoh":
+        layers.publisher(shown, "zenoh", on=False)
     if backend != "none":
         layers.publisher(shown, backend)
         became.insert(0, f"[publish.{backend}]")
     if foxglove:
         layers.set(shown, "publish", "foxglove.bind", foxglove, from_text=False, base_dir=base_dir)
         became.append("publish.foxglove.bind")
+    for key, item in mcap.items():
+        layers.set(shown, "publish", f"mcap.{key}", item, from_text=False, base_dir=base_dir)
     if mcap.get("path"):
-        for key, item in mcap.items():
-            layers.set(shown, "publish", f"mcap.{key}", item, from_text=False, base_dir=base_dir)
         became.append("[publish.mcap]")
+    else:
+        layers.publisher(shown, "mcap", on=False)
     log.warning("%s: [publish] backend/foxglove and [mcap] are the old form, read as %s: write those "
                 "(docs/network.md)", shown, ", ".join(became) or "nothing published")
