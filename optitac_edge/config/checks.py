@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 from optitac_edge.config.board import BoardConfig, BoardSensor
-from optitac_edge.config.sections import (
-    MAIN_CAMERA,
-    McapPublish,
-)
+from optitac_edge.config.sections import MAIN_CAMERA, McapPublish
 from optitac_edge.errors import ConfigError
 
 

@@ -10,20 +10,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from optitac_edge.config.checkers import (
-    Scalar,
-    _Bad,
-    _scalar,
-    _type_name,
-)
-from optitac_edge.config.sections import (
-    _LISTS,
-    _PATH_KEYS,
-    _SECTIONS,
-    PUBLISH_SECTIONS,
-    CameraConfig,
-    PublishSection,
-)
+from optitac_edge.config.checkers import Scalar, _Bad, _scalar, _type_name
+from optitac_edge.config.sections import _LISTS, _PATH_KEYS, _SECTIONS, PUBLISH_SECTIONS, CameraConfig, PublishSection
 from optitac_edge.errors import ConfigError
 
 

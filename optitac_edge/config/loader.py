@@ -11,12 +11,7 @@ from types import MappingProxyType
 from typing import Any
 
 from optitac_edge.config.board import BoardConfig, BoardSensor
-from optitac_edge.config.checkers import (
-    CAMERA_NAME,
-    _Bad,
-    _str,
-    _type_name,
-)
+from optitac_edge.config.checkers import CAMERA_NAME, _Bad, _str, _type_name
 from optitac_edge.config.checks import _check_consistency
 from optitac_edge.config.files import _display, _read_toml, resolve_board_config
 from optitac_edge.config.layers import _check, _Layers

@@ -2,11 +2,7 @@
 
 from __future__ import annotations
 
-from optitac_edge.config.sections import (
-    _LISTS,
-    _SECTIONS,
-    PUBLISH_SECTIONS,
-)
+from optitac_edge.config.sections import _LISTS, _SECTIONS, PUBLISH_SECTIONS
 from optitac_edge.errors import ConfigError
 
 #: Prefix of the environment variables that override file values.
