@@ -1,2 +1,2 @@
-"""The service: the board config, the wiring that opens devices and loads or builds the bundle,
-and the one frame loop that does I/O (camera -> pipeline -> link)."""
+"""The service: the wiring that opens a board's devices and loads or builds its bundles, and the one frame
+loop that does I/O (camera -> pipeline -> link, network, STATUS). The board config is :mod:`optitac_edge.config`."""

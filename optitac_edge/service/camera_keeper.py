@@ -18,6 +18,7 @@ from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import Clock
 from optitac_edge.service.stats import ServiceStats, camera_failed
 
+#: The frame loop's logger: these lines are the loop's, and keep its name in the journal.
 log = logging.getLogger("optitac_edge.service.loop")
 
 #: First wait before reopening a failed camera, s (doubles per failed attempt).

@@ -146,9 +146,8 @@ def topic_of(namespace: str, sensor: NetworkSensor, what: str) -> str:
 
 @dataclass(slots=True)
 class _Picture:
-    """The sensor's image, its surface and its contacts, for the picture topics."""
+    """The sensor's image, its surface and its contacts, for the picture topics (stamped with its entry's time)."""
 
-    t_ns: int
     image: np.ndarray
     surface: np.ndarray | None
     contacts: list[msgs.ContactValues]
@@ -250,7 +249,7 @@ class NetworkOutput:
         if self._picture_period_ns and frame is not None and t_ns >= slot.next_picture_ns:
             slot.next_picture_ns = t_ns + self._picture_period_ns
             slot.offered += 1
-            picture = _Picture(t_ns, slot.sensor.crop(frame), None if surface is None else surface.copy(), contacts)
+            picture = _Picture(slot.sensor.crop(frame), None if surface is None else surface.copy(), contacts)
             queue.append(_Queued(slot, slot.offered, t_ns, picture))
         self._wake.set()
 
@@ -290,7 +289,7 @@ class NetworkOutput:
             if isinstance(message, msgs.ContactsSample):
                 handle, payload = slot.contacts_topic, self._contacts_payload(slot, message, gap > 0, t_ns + wall)
             elif isinstance(message, _Picture):
-                self._send_picture(slot, message, wall)
+                self._send_picture(slot, message, t_ns + wall)
                 return
             elif isinstance(message, msgs.SignalSample):
                 handle, payload = slot.signal_topic or 0, msgs.encode_signal(message, t_ns + wall, slot.frame_id)
@@ -306,11 +305,11 @@ class NetworkOutput:
             else:
                 log.debug("publishing failed: %s", exc)
 
-    def _send_picture(self, slot: _Slot, picture: _Picture, wall: int) -> None:
+    def _send_picture(self, slot: _Slot, picture: _Picture, stamp: int) -> None:
         """The sensor's image, its surface and the overlay, as three messages."""
         assert slot.picture_topics is not None
         image_topic, surface_topic, overlay_topic = slot.picture_topics
-        stamp, now, s = picture.t_ns + wall, time.time_ns(), slot.sensor
+        now, s = time.time_ns(), slot.sensor
         self.publisher.publish(image_topic, msgs.encode_image(picture.image, stamp, slot.frame_id), now)
         slot.published += 1
         if picture.surface is not None:

@@ -16,6 +16,7 @@ from optitac_edge.errors import CameraError
 if TYPE_CHECKING:
     from optitac_edge.service.channel import SensorChannel
 
+#: The frame loop's logger: these lines are the loop's, and keep its name in the journal.
 log = logging.getLogger("optitac_edge.service.loop")
 
 
