@@ -27,7 +27,7 @@ from optitac_edge.io.protocol.wire import (
     encode_frame,
 )
 from optitac_edge.io.transports import open_transport
-from optitac_edge.io.transports.serial import SerialTransport
+from optitac_edge.io.transports.serial import SerialTiming, SerialTransport
 
 
 @pytest.fixture
@@ -56,8 +56,8 @@ def test_loopback_contacts_and_status_round_trip():
                                      cpu_temp_c_x10=451, calibration_id=0xABCD, state=3))
         assert wait_for(lambda: len(got) == 41)
         assert tr.counters.sent == 41 and tr.counters.send_errors == 0
-        assert tr.unexpected == 41  # our own frames echoed back are dropped, never answered
-        assert tr.acks[ResultCode.OK] == 0
+        assert tr.reader.unexpected == 41  # our own frames echoed back are dropped, never answered
+        assert tr.writer.acks[ResultCode.OK] == 0
     assert [f.seq for f in got] == list(range(41))  # seq +1 per frame from 0
     for f, m in zip(got, msgs, strict=False):
         d = decode_contact(f.payload, f.t_us)
@@ -98,17 +98,17 @@ def test_commands_from_mcu_are_acked_and_queued(mcu):
                         Command(CommandType.STREAM, 102, True, 3),
                         Command(CommandType.SET_THRESHOLD, 103, threshold=250)]
         assert tr.poll_commands() == []
-        assert wait_for(lambda: tr.unexpected == 1)
-        c = tr.decoder.counters
+        assert wait_for(lambda: tr.reader.unexpected == 1)
+        c = tr.reader.decoder.counters
         assert (c.frames, c.crc, c.cobs) == (9, 1, 1)
         assert tr.counters.received == 9
         assert tr.counters.rx_errors == 2 + 4 + 1  # framing + rejected commands + unexpected type
-        assert tr.acks[ResultCode.OK] == 4 and tr.acks[ResultCode.OUT_OF_RANGE] == 2
+        assert tr.writer.acks[ResultCode.OK] == 4 and tr.writer.acks[ResultCode.OUT_OF_RANGE] == 2
 
 
 def test_queue_overflow_drops_oldest_and_late_port(tmp_path, mcu):
     link = tmp_path / "ttyOPTITAC"
-    tr = SerialTransport(str(link), queue_size=8, require_port=False, backoff_max=0.05)
+    tr = SerialTransport(str(link), queue_size=8, require_port=False, timing=SerialTiming(backoff_max=0.05))
     try:
         assert not tr.connected
         t0 = time.perf_counter()
@@ -116,7 +116,7 @@ def test_queue_overflow_drops_oldest_and_late_port(tmp_path, mcu):
             tr.send_contact(contact(i))  # no port: never blocks, never raises
         per_call = (time.perf_counter() - t0) / 20
         assert per_call < 0.005
-        assert tr.dropped == 12 and tr.counters.send_errors == 12 and tr.pending == 8
+        assert tr.writer.dropped == 12 and tr.counters.send_errors == 12 and tr.pending == 8
         os.symlink(mcu.path, link)  # the device appears
         frames = mcu.read_until(lambda fr: len(fr) >= 8)
         assert [decode_contact(f.payload).age_us - 1200 for f in frames] == list(range(12, 20))
@@ -144,7 +144,7 @@ def test_port_vanishes_and_comes_back(tmp_path):
     link = tmp_path / "ttyOPTITAC"
     first = FakeMcu()
     os.symlink(first.path, link)
-    tr = SerialTransport(str(link), backoff_min=0.02, backoff_max=0.1)
+    tr = SerialTransport(str(link), timing=SerialTiming(backoff_min=0.02, backoff_max=0.1))
     second = None
     try:
         tr.send_contact(contact(0))
@@ -155,7 +155,7 @@ def test_port_vanishes_and_comes_back(tmp_path):
         for i in range(1, 30):  # the frame loop goes on: no exception escapes
             tr.send_contact(contact(i))
             tr.send_status(StatusMessage(t_us=i))
-        assert tr.pending <= 8 and tr.dropped > 0
+        assert tr.pending <= 8 and tr.writer.dropped > 0
         time.sleep(0.3)  # several failed reopen attempts
         assert tr.counters.reconnects == 0
         second = FakeMcu()  # plugged in again (new pty, same path)
@@ -201,7 +201,7 @@ def test_send_cost_and_throughput(mcu):
             tr.send_contact(contact(i % 50))
         per_call_us = (time.perf_counter() - t0) / n * 1e6
         frames = mcu.read_until(lambda fr: len(fr) >= n, timeout=10)
-        assert len(frames) == n and tr.dropped == 0
+        assert len(frames) == n and tr.writer.dropped == 0
         assert [f.seq for f in frames] == list(range(n))
     print(f"send_contact: {per_call_us:.1f} us/call")
     assert per_call_us < 200
@@ -230,7 +230,7 @@ def test_the_frame_loop_writes_an_idle_line_itself(mcu):
         for i in range(50):
             tr.send_contact(contact(i))
             assert len(mcu.read_until(lambda fr, k=i: len(fr) > k)) == i + 1  # the MCU keeps up
-        assert tr.direct_writes == 50 and tr.partial_writes == 0 and tr.counters.sent == 50
+        assert tr.writer.direct_writes == 50 and tr.writer.partial_writes == 0 and tr.counters.sent == 50
     assert [decode_contact(f.payload).age_us - 1200 for f in mcu.frames] == list(range(50))
     assert [f.seq for f in mcu.frames] == list(range(50))
 
@@ -244,7 +244,7 @@ def test_a_full_line_hands_over_to_the_writer_thread_in_order(mcu):
         for i in range(n):
             tr.send_contact(contact(i % 50))
         frames = mcu.read_until(lambda fr: len(fr) >= n, timeout=10)
-        assert 0 < tr.direct_writes < n and tr.partial_writes <= 1 and tr.dropped == 0
+        assert 0 < tr.writer.direct_writes < n and tr.writer.partial_writes <= 1 and tr.writer.dropped == 0
     assert [f.seq for f in frames] == list(range(n))
     assert mcu.decoder.counters.errors == 0
 
@@ -253,11 +253,11 @@ def test_the_rest_of_a_frame_written_in_part_goes_out_before_the_next(mcu):
     """The kernel takes 5 bytes of a frame: the writer thread writes the other bytes first, so the
     frame arrives whole and the next frames follow it."""
     with SerialTransport(mcu.path) as tr:
-        real = tr._os_write
-        tr._os_write = lambda fd, data: real(fd, data[:5])
+        real = tr.writer._os_write
+        tr.writer._os_write = lambda fd, data: real(fd, data[:5])
         tr.send_contact(contact(0))
-        tr._os_write = real
-        assert tr.partial_writes == 1
+        tr.writer._os_write = real
+        assert tr.writer.partial_writes == 1
         for i in range(1, 4):
             tr.send_contact(contact(i))
         frames = mcu.read_until(lambda fr: len(fr) >= 4)
@@ -271,4 +271,4 @@ def test_loop_url_has_no_descriptor_and_uses_the_writer_thread():
     with SerialTransport("loop://", on_frame=got.append) as tr:
         tr.send_contact(contact(0))
         assert wait_for(lambda: len(got) == 1)
-        assert tr.direct_writes == 0 and tr.counters.sent == 1
+        assert tr.writer.direct_writes == 0 and tr.counters.sent == 1
