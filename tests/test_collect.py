@@ -8,6 +8,7 @@ import pytest
 from optitac_edge.bringup.collect import Collector, CollectSettings
 from optitac_edge.bringup.experiments import EXPERIMENTS, plan, spread
 from optitac_edge.bringup.rig_frame import fit_rig_frame
+from optitac_edge.bringup.rig_recorder import RigRecorder
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.orientation import layout_symmetries
 from optitac_edge.cli import main
@@ -189,13 +190,13 @@ def test_the_estimates_of_several_frames_are_each_frames_own(tmp_path, monkeypat
     """Bug: the touch-off (2 of 3 frames in contact) and the registration (the mean of the hold frames)
     read a list holding the pipeline's one reused estimate n times: the last frame's, n times."""
     seen: list[list[int]] = []
-    frames = Collector._frames
+    frames = RigRecorder.frames
 
     def spy(self, n, phase, press):
         got = frames(self, n, phase, press)
         seen.append([e.frame for e in got])
         return got
 
-    monkeypatch.setattr(Collector, "_frames", spy)
+    monkeypatch.setattr(RigRecorder, "frames", spy)
     _collect(EXPERIMENTS[0], tmp_path / "c", "sim://", limit=1)
     assert seen and all(len(set(f)) == len(f) for f in seen), seen

@@ -106,6 +106,16 @@ class ContactEstimate:
     contact_id: int = 0
     touch_frame: int = -1
 
+    def clear(self, strength: float = 0.0, area_mm2: float = 0.0) -> None:
+        """No contact in this frame, in place: no id, no geometry; ``strength`` and ``area_mm2`` what was
+        above the truncation level (0 when nothing was)."""
+        self.contact = False
+        self.strength = strength
+        self.area_mm2 = area_mm2
+        self.n_contacts = 0
+        self.contact_id, self.touch_frame = 0, -1
+        self.clear_geometry()
+
     def clear_geometry(self) -> None:
         """Set the geometric fields and shape features to NaN (no contact), in place."""
         self.x_mm = self.y_mm = math.nan

@@ -79,6 +79,7 @@ from optitac_edge.core.baseline import Baseline, BrightFibers
 from optitac_edge.core.blob import BlobMeasurer
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.contact_finder import ContactFinder
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.fiber_table import FiberSampler
@@ -89,9 +90,6 @@ from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
 from optitac_edge.core.surface import DenseSurface, TriangleSurface
 from optitac_edge.core.tracking import ContactTracker
-
-#: Most blobs measured per frame (the largest by area) before the strongest are kept.
-MAX_CANDIDATES = 8
 
 
 @contextmanager
@@ -167,8 +165,6 @@ class Pipeline:
         self.segmenter = Segmenter(grid.n, self.levels, min_area / float(grid.cell_area_mm2), o.split_fraction)
         #: Step 7: each contact's moments and shape features.
         self.blobs = BlobMeasurer(grid, self.levels, min_area, o.peak_fraction, o.shape_fraction)
-        self._multi = o.max_contacts > 1
-        self._max_contacts = o.max_contacts
         self._means = np.zeros(n_fibers, dtype=np.float32)
         self._signal = np.zeros(n_fibers, dtype=np.float32)
         self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
@@ -180,7 +176,9 @@ class Pipeline:
         #: All contacts of the last frame, valid ``[:n_contacts]``, strongest first.
         self.contacts: list[ContactEstimate] = [ContactEstimate() for _ in range(MAX_CONTACTS)]
         self._estimate = self.contacts[0]
-        self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
+        #: Steps 6 and 7 together: the frame's contacts into :attr:`contacts`.
+        self.finder = ContactFinder(self.segmenter, self.blobs, self.levels, self.contacts, o.max_contacts,
+                                    float(grid.cell_area_mm2))
         #: Stable contact ids, touch frames and releases from frame to frame.
         self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
@@ -226,10 +224,6 @@ class Pipeline:
         """The LED gain relative to the baseline the last frame was compensated with (1 if off)."""
         return 1.0 if self.gain_compensation is None else self.gain_compensation.gain
 
-    @property
-    def in_contact(self) -> bool:
-        return self._in_contact
-
     def set_contact_level(self, on_relative: float | None) -> None:
         """Set the contact-on level, in relative units of the rest light (None: the calibrated one).
 
@@ -263,12 +257,8 @@ class Pipeline:
         By default the bundle's own models are applied (numpy shape evaluator).
         """
         self.corrector = corrector if corrector is not None and corrector.active else None
-        self.result.calibrated = self.calibrated
-
-    @property
-    def calibrated(self) -> bool:
-        """True when centroid and width calibrations are applied to the estimates."""
-        return self.corrector is not None and self.corrector.calibrated
+        # centroid and width calibrations are applied to the estimates
+        self.result.calibrated = self.corrector is not None and self.corrector.calibrated
 
     # -- per frame -------------------------------------------------------------
 
@@ -313,7 +303,7 @@ class Pipeline:
                 if gain is not None:
                     gain.reset(now_ns)
             est.baseline_ready = False
-            self._no_contact(est, 0.0, 0.0)
+            est.clear()
             self._track(0, est.frame)
             return result
         est.baseline_ready = True
@@ -321,7 +311,7 @@ class Pipeline:
         signal = self.compute_signal(means, now_ns)
         result.light_changed = gain is not None and gain.light_changed
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
-        n = self._find_contacts(surface, est)
+        n = self.finder.find(surface, est, self._in_contact, self.corrector)
         self._track(n, est.frame)
 
         if n > 0:
@@ -373,48 +363,3 @@ class Pipeline:
         if self._has_dead:
             signal[self._dead] = 0.0
         return signal
-
-    def _no_contact(self, est: ContactEstimate, strength: float, area: float) -> None:
-        est.contact = False
-        est.strength = strength
-        est.area_mm2 = area
-        est.n_contacts = 0
-        est.contact_id, est.touch_frame = 0, -1
-        est.clear_geometry()
-
-    def _find_contacts(self, surface: np.ndarray, est: ContactEstimate) -> int:
-        """Truncate the surface, find and measure the contacts; returns their number."""
-        seg, blobs = self.segmenter, self.blobs
-        cells = seg.truncate(surface)
-        if cells == 0:
-            self._no_contact(est, 0.0, 0.0)
-            return 0
-        level = self.levels.off if self._in_contact else self.levels.on
-        # everything below reads only the bounding box of the cells above the truncation level
-        box = seg.box(surface)
-        n_cand = 0
-        if not self._multi:
-            n_cand = int(blobs.measure(box.img, box.peak, cells, level, self._cands[0], box.x, box.y))
-        else:
-            for k, blob_cells in seg.partition(box, cells):
-                img, x, y = seg.contact_surface(box, k)  # the contact's own box
-                peak = box.peak if img is box.img else cv2.minMaxLoc(img)[1]
-                n_cand += blobs.measure(img, peak, blob_cells, level, self._cands[n_cand], x, y)
-                if n_cand == MAX_CANDIDATES:
-                    break
-        if n_cand == 0:
-            strength = float(cv2.sumElems(box.img)[0]) * float(self.bundle.grid.cell_area_mm2)
-            self._no_contact(est, strength, cells * float(self.bundle.grid.cell_area_mm2))
-            return 0
-        cands = self._cands
-        # strongest first, ties in candidate order (a stable sort; Python's: no numpy buffer)
-        ranked = sorted(range(n_cand), key=lambda i: -cands[i].strength) if n_cand > 1 else range(1)
-        n = min(n_cand, self._max_contacts)
-        frame, t_ns = est.frame, est.t_ns
-        for i in range(n):
-            c = self.contacts[i]
-            c.assign(cands[ranked[i]])
-            c.frame, c.t_ns, c.baseline_ready, c.n_contacts = frame, t_ns, True, n
-            if self.corrector is not None:
-                self.corrector.apply(c)
-        return n
