@@ -125,7 +125,7 @@ def test_numpy_and_onnx_mixtures_match_sklearn_on_simulated_calibration_presses(
     """The runtime evaluators agree with scikit-learn's predict_proba to 1e-6 on real calibration data."""
     from optitac_edge.calibration.evaluation import detected_rows
     from optitac_edge.calibration.onnx_export import export_onnx
-    from optitac_edge.calibration.shape_fit import gmm_per_class, gmm_unsupervised
+    from optitac_edge.calibration.shape_mixtures import gmm_per_class, gmm_unsupervised
     from optitac_edge.core.shapes.evaluate import ShapeClassifier
     from optitac_edge.core.shapes.features import shape_features
     from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier

@@ -13,17 +13,15 @@ import time
 import numpy as np
 import pytest
 
+from optitac_edge.calibration.folds import stratified_group_split
 from optitac_edge.calibration.shape_fit import (
     ALL_SUBSETS,
     Q4_SUBSETS,
+    ShapeFitSettings,
     evaluate_model,
     fit_shape_model,
-    fit_supervised,
-    fit_unsupervised,
-    gmm_per_class,
-    gmm_unsupervised,
-    stratified_group_split,
 )
+from optitac_edge.calibration.shape_mixtures import fit_supervised, fit_unsupervised, gmm_per_class, gmm_unsupervised
 from optitac_edge.core.moments import log_hu
 from optitac_edge.core.shapes.evaluate import ShapeClassifier
 from optitac_edge.core.shapes.features import LOG_HU_CAP, Q4_FLOOR, shape_features
@@ -56,7 +54,7 @@ def data() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def report(data):
     hu, labels, groups = data
-    return fit_shape_model(hu, labels, groups=groups, seed=0, holdout=0.3)
+    return fit_shape_model(hu, labels, groups=groups, settings=ShapeFitSettings(seed=0, holdout=0.3))
 
 
 def _class_index(labels: np.ndarray) -> np.ndarray:
@@ -212,7 +210,7 @@ def test_separable_blobs_both_kinds() -> None:
     hu = np.concatenate([c + rng.normal(0, [0.01, 0.2, 0.3], (60, 3)) for c in centres])
     hu = np.hstack([hu, rng.normal(5.0, 1.0, (hu.shape[0], 4)), rng.uniform(0, 1, (300, 1))])
     labels = np.repeat(np.array(["edge", "circle", "square", "ellipse", "triangle"]), 60)
-    r = fit_shape_model(hu, labels, seed=0, subsets=((0, 1, 2), (0, 1)), cv_folds=2)
+    r = fit_shape_model(hu, labels, settings=ShapeFitSettings(seed=0, subsets=((0, 1, 2), (0, 1)), cv_folds=2))
     assert r.unsupervised.holdout.average_diagonal >= 0.95
     assert r.supervised.holdout.average_diagonal >= 0.95
 
@@ -222,7 +220,8 @@ def test_fit_drops_nan_rows(data) -> None:
     hu = hu[::2].copy()
     labels = labels[::2]
     hu[:3] = np.nan
-    r = fit_shape_model(hu, labels, seed=1, subsets=((0, 1, 2),), cv_folds=2, refit=False)
+    r = fit_shape_model(hu, labels, settings=ShapeFitSettings(seed=1, subsets=((0, 1, 2),), cv_folds=2,
+                                                           refit=False))
     assert r.n_dropped == 3
     assert not np.isin(np.arange(3), np.concatenate([r.train_index, r.test_index])).any()
     assert r.model is r.chosen.holdout_model

@@ -10,15 +10,16 @@ import pytest
 from optitac_edge.calibration.shape_fit import (
     PAPER_SUBSETS,
     Q4_SUBSETS,
+    ShapeFitSettings,
     evaluate_model,
     fit_shape_model,
-    gmm_per_class,
-    gmm_unsupervised,
 )
+from optitac_edge.calibration.shape_mixtures import gmm_per_class, gmm_unsupervised
+from optitac_edge.core.moments import q4_moment
 from optitac_edge.core.shapes.evaluate import ShapeClassifier
 from optitac_edge.core.shapes.features import shape_features
 from optitac_edge.core.shapes.model import ShapeModel, subset_name
-from optitac_edge.sim.synthetic_shapes import DEFAULT_GRID, binary_q4, shape_mask, synthetic_features
+from optitac_edge.sim.synthetic_shapes import DEFAULT_GRID, shape_mask, synthetic_features
 
 pytest.importorskip("sklearn")
 
@@ -35,29 +36,16 @@ def blurred() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return f_cal, l_cal, f_eval, np.array([NAMES.index(s) for s in l_eval])
 
 
-def test_binary_q4_closed_forms() -> None:
+def test_q4_of_the_synthetic_shapes_closed_forms() -> None:
     q = {}
     for shape, size in (("circle", 8.0), ("square", 8.0), ("ellipse", 9.0), ("triangle", 8.0)):
-        q[shape] = [binary_q4(shape_mask(shape, 0.7, -1.3, a, size), DEFAULT_GRID)
+        q[shape] = [q4_moment(shape_mask(shape, 0.7, -1.3, a, size), DEFAULT_GRID)
                     for a in (0.0, 17.0, 30.0, 45.0)]
     r = 1 / 0.6
     assert max(q["circle"]) < 3e-3 and max(q["triangle"]) < 3e-3
     np.testing.assert_allclose(q["square"], 1 / 60, rtol=0.05)  # rotation invariant
     np.testing.assert_allclose(q["ellipse"], (r - 1 / r) ** 2 / (8 * math.pi ** 2), rtol=0.05)
-    assert math.isnan(binary_q4(np.zeros((100, 100), bool), DEFAULT_GRID))
-
-
-def test_binary_q4_matches_pipeline_moments() -> None:
-    """The generator's q4 is the pipeline's (``moments.q4_moment``, when present)."""
-    from optitac_edge.core import moments
-
-    q4_moment = getattr(moments, "q4_moment", None)
-    if q4_moment is None:
-        pytest.skip("optitac_edge.core.moments.q4_moment not available")
-    for shape in ("circle", "square", "ellipse", "triangle", "edge"):
-        mask = shape_mask(shape, 1.1, 0.4, 23.0, 2.0 if shape == "edge" else 6.0)
-        assert binary_q4(mask, DEFAULT_GRID) == pytest.approx(q4_moment(mask, DEFAULT_GRID),
-                                                              rel=1e-9, abs=1e-15)
+    assert math.isnan(q4_moment(np.zeros((100, 100), bool), DEFAULT_GRID))
 
 
 def test_synthetic_features_layout() -> None:
@@ -124,10 +112,11 @@ def test_input_width_enforced(blurred, tmp_path) -> None:
 def test_hu_only_fit_and_version1_bundle(blurred) -> None:
     """A 7-wide input searches the paper's subsets only; version-1 bundles load as 7-wide."""
     f_cal, l_cal, f_eval, _ = blurred
-    r = fit_shape_model(f_cal[:, :7], l_cal, seed=0, cv_folds=2, subsets=PAPER_SUBSETS[:3])
+    r = fit_shape_model(f_cal[:, :7], l_cal, settings=ShapeFitSettings(seed=0, cv_folds=2,
+                                                                     subsets=PAPER_SUBSETS[:3]))
     assert r.model.n_inputs == 7
     with pytest.raises(ValueError, match="Q4"):
-        fit_shape_model(f_cal[:, :7], l_cal, subsets=((0, 1, 7),))
+        fit_shape_model(f_cal[:, :7], l_cal, settings=ShapeFitSettings(subsets=((0, 1, 7),)))
     meta, arrays = r.model.to_bundle()
     assert meta["version"] == 2 and meta["n_inputs"] == 7
     v1 = {k: v for k, v in meta.items() if k not in ("n_inputs", "q4_floor")}
@@ -142,7 +131,7 @@ def test_q4_separates_blurred_circle_and_square(blurred) -> None:
     f_cal, l_cal, f_eval, y_eval = blurred
     metrics = {}
     for tag, subsets in (("hu", PAPER_SUBSETS), ("q4", Q4_SUBSETS), ("all", None)):
-        r = fit_shape_model(f_cal, l_cal, seed=0, subsets=subsets)
+        r = fit_shape_model(f_cal, l_cal, settings=ShapeFitSettings(seed=0, subsets=subsets))
         metrics[tag] = (r, evaluate_model(r.model, f_eval, y_eval))
     hu, q4 = metrics["hu"][1], metrics["q4"][1]
     assert hu.average_diagonal <= 0.9  # the setting confuses Hu-only models

@@ -4,7 +4,9 @@ The frames of one press are not independent (the same indenter, pose and
 depth), so a fold holds out whole presses: never a frame whose press is also
 in the fit. This is scikit-learn's ``GroupKFold`` (groups sorted by size, each
 given to the fold with the fewest rows so far), written in numpy so the
-centroid and width steps need no optional package.
+centroid and width steps need no optional package. The shape classifier's
+selection uses folds that are also stratified by class
+(:func:`stratified_group_split`, :func:`stratified_group_folds`).
 """
 
 from __future__ import annotations
@@ -100,3 +102,62 @@ def held_out_errors(groups: np.ndarray, folds: int, error: Callable[[np.ndarray,
         errors.append(err)
         fold_rmse.append(float(np.sqrt(np.mean(err ** 2))))
     return HeldOut(np.concatenate(errors), np.array(fold_rmse))
+
+
+def _group_labels(y: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unique groups, each group's majority class, and each row's group index."""
+    ug, inv = np.unique(groups, return_inverse=True)
+    counts = np.zeros((ug.size, int(y.max()) + 1), dtype=np.int64)
+    np.add.at(counts, (inv, y), 1)
+    return ug, counts.argmax(axis=1), inv
+
+
+def stratified_group_split(
+    y: np.ndarray, groups: np.ndarray, fraction: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of about ``fraction`` of each class's groups vs the rest.
+
+    Parameters
+    ----------
+    y : ndarray, shape (n,), int
+        Class indices.
+    groups : ndarray, shape (n,)
+        Press ids.
+    fraction : float
+    rng : numpy Generator
+
+    Returns
+    -------
+    rest, held : ndarray, int64
+        Disjoint sorted row indices; every class with >= 2 groups has at least
+        one group on each side.
+    """
+    ug, gcls, inv = _group_labels(y, groups)
+    held_g = np.zeros(ug.size, dtype=bool)
+    for c in np.unique(gcls):
+        g = rng.permutation(np.flatnonzero(gcls == c))
+        k = round(fraction * g.size)
+        if g.size >= 2:
+            k = min(max(k, 1), g.size - 1)
+        held_g[g[:k]] = True
+    held = held_g[inv]
+    return np.flatnonzero(~held), np.flatnonzero(held)
+
+
+def stratified_group_folds(
+    y: np.ndarray, groups: np.ndarray, k: int, rng: np.random.Generator
+) -> list[np.ndarray]:
+    """Grouped, stratified folds: each class's groups shuffled and dealt round-robin.
+
+    Returns
+    -------
+    list of ndarray, int64
+        ``k`` disjoint sets of row indices (the held-out rows of each fold).
+    """
+    ug, gcls, inv = _group_labels(y, groups)
+    fold_g = np.empty(ug.size, dtype=np.int64)
+    for c in np.unique(gcls):
+        g = rng.permutation(np.flatnonzero(gcls == c))
+        fold_g[g] = np.arange(g.size) % k
+    fold = fold_g[inv]
+    return [np.flatnonzero(fold == i) for i in range(k)]

@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.calibration.folds import stratified_group_folds, stratified_group_split
+from optitac_edge.calibration.shape_mixtures import fit_supervised, fit_unsupervised
 from optitac_edge.core.shapes.evaluate import ShapeClassifier
 from optitac_edge.core.shapes.features import N_FEATURES, N_HU, Q4_FLOOR, Q4_INDEX, shape_features
 from optitac_edge.core.shapes.model import ShapeModel, subset_name
@@ -195,202 +197,6 @@ class ShapeFitReport:
         }
 
 
-# -- splits ----------------------------------------------------------------------------------
-
-def _group_labels(y: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unique groups, each group's majority class, and each row's group index."""
-    ug, inv = np.unique(groups, return_inverse=True)
-    counts = np.zeros((ug.size, int(y.max()) + 1), dtype=np.int64)
-    np.add.at(counts, (inv, y), 1)
-    return ug, counts.argmax(axis=1), inv
-
-
-def stratified_group_split(
-    y: np.ndarray, groups: np.ndarray, fraction: float, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of about ``fraction`` of each class's groups vs the rest.
-
-    Parameters
-    ----------
-    y : ndarray, shape (n,), int
-        Class indices.
-    groups : ndarray, shape (n,)
-        Press ids.
-    fraction : float
-    rng : numpy Generator
-
-    Returns
-    -------
-    rest, held : ndarray, int64
-        Disjoint sorted row indices; every class with >= 2 groups has at least
-        one group on each side.
-    """
-    ug, gcls, inv = _group_labels(y, groups)
-    held_g = np.zeros(ug.size, dtype=bool)
-    for c in np.unique(gcls):
-        g = rng.permutation(np.flatnonzero(gcls == c))
-        k = round(fraction * g.size)
-        if g.size >= 2:
-            k = min(max(k, 1), g.size - 1)
-        held_g[g[:k]] = True
-    held = held_g[inv]
-    return np.flatnonzero(~held), np.flatnonzero(held)
-
-
-def stratified_group_folds(
-    y: np.ndarray, groups: np.ndarray, k: int, rng: np.random.Generator
-) -> list[np.ndarray]:
-    """Grouped, stratified folds: each class's groups shuffled and dealt round-robin.
-
-    Returns
-    -------
-    list of ndarray, int64
-        ``k`` disjoint sets of row indices (the held-out rows of each fold).
-    """
-    ug, gcls, inv = _group_labels(y, groups)
-    fold_g = np.empty(ug.size, dtype=np.int64)
-    for c in np.unique(gcls):
-        g = rng.permutation(np.flatnonzero(gcls == c))
-        fold_g[g] = np.arange(g.size) % k
-    fold = fold_g[inv]
-    return [np.flatnonzero(fold == i) for i in range(k)]
-
-
-# -- fitting ---------------------------------------------------------------------------------
-
-def _standardise(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    mean = f.mean(axis=0)
-    std = f.std(axis=0)
-    return mean, np.where(std > 1e-12, std, 1.0)
-
-
-def fit_unsupervised(
-    f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
-    seed: int = 0, n_init: int = 5, reg_covar: float = 1e-6, q4_floor: float = Q4_FLOOR,
-) -> ShapeModel:
-    """The paper's GMM; see :func:`gmm_unsupervised` (this drops the estimator)."""
-    return gmm_unsupervised(f, y, class_names, subset, seed=seed, n_init=n_init,
-                            reg_covar=reg_covar, q4_floor=q4_floor)[0]
-
-
-def gmm_unsupervised(
-    f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
-    seed: int = 0, n_init: int = 5, reg_covar: float = 1e-6, q4_floor: float = Q4_FLOOR,
-) -> tuple[ShapeModel, Any]:
-    """The paper's GMM: ``C`` clusters on the standardised subset, mapped to classes.
-
-    Parameters
-    ----------
-    f : ndarray, shape (n, W), float64
-        Transformed features (:func:`shape_features`), W = 8 (with q4) or 7;
-        the model's ``n_inputs`` is W.
-    y : ndarray, shape (n,), int
-        Class indices into ``class_names`` (used only to name the clusters).
-    class_names : tuple of str
-    subset : tuple of int
-    seed, n_init, reg_covar
-        scikit-learn ``GaussianMixture`` settings (``reg_covar`` in standardised units).
-    q4_floor : float
-        The q4 floor ``f`` was transformed with (stored in the model).
-
-    Returns
-    -------
-    model : ShapeModel
-    estimator : sklearn.mixture.GaussianMixture
-        Fitted on ``(f[:, subset] - model.mean) / model.std``; cluster ``k`` is
-        class ``model.component_class[k]``.
-    """
-    from scipy.optimize import linear_sum_assignment
-    from sklearn.mixture import GaussianMixture
-
-    c = len(class_names)
-    x = f[:, list(subset)]
-    mean, std = _standardise(x)
-    z = (x - mean) / std
-    gm = GaussianMixture(n_components=c, covariance_type="full", n_init=n_init,
-                         random_state=seed, reg_covar=reg_covar).fit(z)
-    counts = np.zeros((c, c), dtype=np.int64)
-    np.add.at(counts, (gm.predict(z), y), 1)
-    rows, cols = linear_sum_assignment(-counts)
-    mapping = np.empty(c, dtype=np.int64)
-    mapping[rows] = cols
-    model = ShapeModel(kind="gmm_unsupervised", class_names=class_names, subset=np.array(subset),
-                       mean=mean, std=std, weights=gm.weights_, means=gm.means_,
-                       precisions_cholesky=gm.precisions_cholesky_, component_class=mapping,
-                       n_inputs=f.shape[1], q4_floor=q4_floor)
-    return model, gm
-
-
-def fit_supervised(  # noqa: PLR0913
-    f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
-    seed: int = 0, max_components: int = 3, n_init: int = 2, reg_covar: float = 1e-4,
-    q4_floor: float = Q4_FLOOR,
-) -> ShapeModel:
-    """The per-class mixture; see :func:`gmm_per_class` (this drops the estimators)."""
-    return gmm_per_class(f, y, class_names, subset, seed=seed, max_components=max_components,
-                         n_init=n_init, reg_covar=reg_covar, q4_floor=q4_floor)[0]
-
-
-def gmm_per_class(  # noqa: PLR0913
-    f: np.ndarray, y: np.ndarray, class_names: tuple[str, ...], subset: tuple[int, ...], *,
-    seed: int = 0, max_components: int = 3, n_init: int = 2, reg_covar: float = 1e-4,
-    q4_floor: float = Q4_FLOOR,
-) -> tuple[ShapeModel, list[Any], np.ndarray]:
-    """Supervised: a full-covariance mixture per class, class priors = class frequencies.
-
-    Each class gets 1..``max_components`` components, the count chosen by BIC.
-
-    Parameters as :func:`gmm_unsupervised`; every class needs >= 2 training
-    frames, and gets k > 1 components only with at least ``k * (d + 2)`` frames.
-    ``n_init`` restarts apply to k > 1 (k = 1 is deterministic).
-
-    Returns
-    -------
-    model : ShapeModel
-        The equivalent single mixture, components labelled with their class.
-    estimators : list of sklearn.mixture.GaussianMixture
-        One per class (on standardised features).
-    priors : ndarray, shape (C,), float64
-        Class frequencies in ``y``.
-    """
-    from sklearn.mixture import GaussianMixture
-
-    x = f[:, list(subset)]
-    d = x.shape[1]
-    mean, std = _standardise(x)
-    z = (x - mean) / std
-    weights, means, precs, comp_class, ests, priors = [], [], [], [], [], []
-    for ci, name in enumerate(class_names):
-        zc = z[y == ci]
-        if zc.shape[0] < 2:
-            raise ValueError(f"class {name!r} has {zc.shape[0]} training frames; need >= 2")
-        best: Any = None
-        best_bic = np.inf
-        for k in range(1, max_components + 1):
-            if k > 1 and zc.shape[0] < k * (d + 2):
-                break
-            gm = GaussianMixture(n_components=k, covariance_type="full",
-                                 n_init=n_init if k > 1 else 1,
-                                 random_state=seed, reg_covar=reg_covar).fit(zc)
-            bic = gm.bic(zc)
-            if bic < best_bic:
-                best, best_bic = gm, bic
-        prior = zc.shape[0] / z.shape[0]
-        ests.append(best)
-        priors.append(prior)
-        weights.append(prior * best.weights_)
-        means.append(best.means_)
-        precs.append(best.precisions_cholesky_)
-        comp_class.append(np.full(best.n_components, ci))
-    w = np.concatenate(weights)
-    model = ShapeModel(kind="gmm_per_class", class_names=class_names, subset=np.array(subset),
-                       mean=mean, std=std, weights=w / w.sum(), means=np.concatenate(means),
-                       precisions_cholesky=np.concatenate(precs),
-                       component_class=np.concatenate(comp_class), n_inputs=f.shape[1],
-                       q4_floor=q4_floor)
-    return model, ests, np.array(priors)
-
-
 def evaluate_model(model: ShapeModel, features: np.ndarray, y: np.ndarray) -> ShapeMetrics:
     """Metrics of ``model`` (numpy runtime evaluator) on labelled frames.
 
@@ -423,41 +229,12 @@ def evaluate_model(model: ShapeModel, features: np.ndarray, y: np.ndarray) -> Sh
     )
 
 
-def _fit_kind(kind: str, f: np.ndarray, y: np.ndarray, names: tuple[str, ...],
-              subset: tuple[int, ...], opts: dict[str, Any]) -> ShapeModel:
-    fitter = fit_unsupervised if kind == "gmm_unsupervised" else fit_supervised
-    return fitter(f, y, names, subset, **opts[kind])
+@dataclass(frozen=True)
+class ShapeFitSettings:
+    """How :func:`fit_shape_model` splits, searches and fits.
 
-
-def fit_shape_model(  # noqa: PLR0913
-    features: np.ndarray,
-    labels: np.ndarray,
-    *,
-    groups: np.ndarray | None = None,
-    seed: int = 0,
-    holdout: float = 0.3,
-    cv_folds: int = 3,
-    subsets: tuple[tuple[int, ...], ...] | None = None,
-    refit: bool = True,
-    n_init: int = 5,
-    max_components: int = 3,
-    reg_covar_unsupervised: float = 1e-6,
-    reg_covar_supervised: float = 1e-4,
-    class_names: tuple[str, ...] | None = None,
-    q4_floor: float = Q4_FLOOR,
-) -> ShapeFitReport:
-    """Fit and evaluate both shape classifiers; keep the better (see the module docstring).
-
-    Parameters
+    Attributes
     ----------
-    features : ndarray, shape (n, 8) or (n, 7), float64
-        Shape features of contact frames: ``ContactEstimate.features``
-        (``[log-Hu x 7, q4]``), or ``ContactEstimate.hu`` (log-Hu only: the
-        q4 subsets are then not searched). The deployed model takes the same width.
-    labels : ndarray, shape (n,), str
-        True shape per frame.
-    groups : ndarray, shape (n,), optional
-        Press id per frame (frames of a press stay together); default: each frame its own.
     seed : int
         Seeds the split, folds and mixture initialisation.
     holdout : float
@@ -479,6 +256,57 @@ def fit_shape_model(  # noqa: PLR0913
         Class order; default the sorted unique labels.
     q4_floor : float
         The q4 transform's floor (:func:`~optitac_edge.core.shapes.features.q4_log`), kept in the model.
+    """
+
+    seed: int = 0
+    holdout: float = 0.3
+    cv_folds: int = 3
+    subsets: tuple[tuple[int, ...], ...] | None = None
+    refit: bool = True
+    n_init: int = 5
+    max_components: int = 3
+    reg_covar_unsupervised: float = 1e-6
+    reg_covar_supervised: float = 1e-4
+    class_names: tuple[str, ...] | None = None
+    q4_floor: float = Q4_FLOOR
+
+    def to_json(self, subsets: tuple[tuple[int, ...], ...], model: ShapeModel) -> dict[str, Any]:
+        """The settings a report keeps (the subsets searched, the model's caps)."""
+        return {"seed": self.seed, "holdout": self.holdout, "cv_folds": self.cv_folds, "n_init": self.n_init,
+                "max_components": self.max_components, "log_hu_cap": model.log_hu_cap,
+                "q4_floor": model.q4_floor, "subsets": [subset_name(s) for s in subsets],
+                "reg_covar_unsupervised": self.reg_covar_unsupervised,
+                "reg_covar_supervised": self.reg_covar_supervised}
+
+
+_DEFAULTS = ShapeFitSettings()
+
+
+def _fit_kind(kind: str, f: np.ndarray, y: np.ndarray, names: tuple[str, ...],
+              subset: tuple[int, ...], s: ShapeFitSettings) -> ShapeModel:
+    if kind == "gmm_unsupervised":
+        return fit_unsupervised(f, y, names, subset, seed=s.seed, n_init=s.n_init,
+                                reg_covar=s.reg_covar_unsupervised, q4_floor=s.q4_floor)
+    return fit_supervised(f, y, names, subset, seed=s.seed, max_components=s.max_components,
+                          reg_covar=s.reg_covar_supervised, q4_floor=s.q4_floor)
+
+
+def fit_shape_model(features: np.ndarray, labels: np.ndarray, groups: np.ndarray | None = None,
+                    settings: ShapeFitSettings = _DEFAULTS) -> ShapeFitReport:
+    """Fit and evaluate both shape classifiers; keep the better (see the module docstring).
+
+    Parameters
+    ----------
+    features : ndarray, shape (n, 8) or (n, 7), float64
+        Shape features of contact frames: ``ContactEstimate.features``
+        (``[log-Hu x 7, q4]``), or ``ContactEstimate.hu`` (log-Hu only: the
+        q4 subsets are then not searched). The deployed model takes the same width.
+    labels : ndarray, shape (n,), str
+        True shape per frame.
+    groups : ndarray, shape (n,), optional
+        Press id per frame (frames of a press stay together); default: each frame its own.
+    settings : ShapeFitSettings
+        Split, search and mixture settings.
 
     Returns
     -------
@@ -488,94 +316,95 @@ def fit_shape_model(  # noqa: PLR0913
 
     # Tiny problems: thread start-up dominates (about 20x slower with threads).
     with threadpool_limits(limits=1):
-        return _fit_shape_model(
-            features, labels, groups=groups, seed=seed, holdout=holdout, cv_folds=cv_folds,
-            subsets=subsets, refit=refit, n_init=n_init, max_components=max_components,
-            reg_covar_unsupervised=reg_covar_unsupervised,
-            reg_covar_supervised=reg_covar_supervised, class_names=class_names,
-            q4_floor=q4_floor)
+        return _fit_shape_model(_Frames.of(features, labels, groups, settings), settings)
 
 
-def _fit_shape_model(  # noqa: PLR0913
-    features: np.ndarray, labels: np.ndarray, *, groups: np.ndarray | None, seed: int,
-    holdout: float, cv_folds: int, subsets: tuple[tuple[int, ...], ...] | None, refit: bool,
-    n_init: int, max_components: int, reg_covar_unsupervised: float,
-    reg_covar_supervised: float, class_names: tuple[str, ...] | None, q4_floor: float,
-) -> ShapeFitReport:
-    x = np.asarray(features, dtype=np.float64)
-    labels = np.asarray(labels).astype(str)
-    if x.ndim != 2 or x.shape[1] not in (N_HU, N_FEATURES) or labels.shape != (x.shape[0],):
-        raise ValueError(f"need features (n, 8) [log-Hu x 7, q4] or (n, 7) [log-Hu] and "
-                         f"labels (n,), got {x.shape} and {labels.shape}")
-    if subsets is None:
-        subsets = ALL_SUBSETS if x.shape[1] == N_FEATURES else PAPER_SUBSETS
-    subsets = tuple(tuple(int(i) for i in s) for s in subsets)
-    if any(i < 0 or i >= x.shape[1] for s in subsets for i in s):
-        raise ValueError(f"subsets {[subset_name(s) for s in subsets]} need more than the "
-                         f"{x.shape[1]} input features (Q4 needs the 8-wide ContactEstimate.features)")
-    groups = np.arange(x.shape[0]) if groups is None else np.asarray(groups)
-    keep = ~np.isnan(x).any(axis=1)
-    n_dropped = int((~keep).sum())
-    if n_dropped:
-        logger.warning("shape fit: dropping %d frames with NaN features", n_dropped)
-    rows = np.flatnonzero(keep)
-    x, labels, groups = x[keep], labels[keep], groups[keep]
-    names = tuple(class_names) if class_names is not None else tuple(np.unique(labels).tolist())
-    lookup = {n: i for i, n in enumerate(names)}
-    if set(labels.tolist()) - set(names):
-        raise ValueError(f"labels not in class_names: {sorted(set(labels.tolist()) - set(names))}")
-    y = np.array([lookup[s] for s in labels], dtype=np.int64)
-    f = shape_features(x, q4_floor=q4_floor)
-    rng = np.random.default_rng(seed)
-    tr, te = stratified_group_split(y, groups, holdout, rng)
-    folds = stratified_group_folds(y[tr], groups[tr], cv_folds, rng)
-    opts = {
-        "gmm_unsupervised": {"seed": seed, "n_init": n_init, "reg_covar": reg_covar_unsupervised,
-                             "q4_floor": q4_floor},
-        "gmm_per_class": {"seed": seed, "max_components": max_components,
-                          "reg_covar": reg_covar_supervised, "q4_floor": q4_floor},
-    }
-    reports = {}
-    for kind in ("gmm_unsupervised", "gmm_per_class"):
-        results, fits = [], {}
-        for subset in subsets:
-            scores = []
-            for held in folds:
-                fit_rows = tr[np.setdiff1d(np.arange(tr.size), held)]
-                if held.size == 0 or np.bincount(y[fit_rows], minlength=len(names)).min() < 2:
-                    continue  # a class (nearly) absent from this fold's training presses
-                m = _fit_kind(kind, f[fit_rows], y[fit_rows], names, subset, opts)
-                scores.append(evaluate_model(m, x[tr[held]], y[tr[held]]).average_diagonal)
-            fits[subset] = _fit_kind(kind, f[tr], y[tr], names, subset, opts)
-            cv = float(np.mean(scores)) if scores else float("nan")
-            results.append(SubsetResult(subset, cv, evaluate_model(fits[subset], x[te], y[te])))
-            logger.info("shape fit %s %s: cv %.3f held-out %.3f", kind, results[-1].name,
-                        results[-1].cv_average_diagonal, results[-1].holdout.average_diagonal)
-        if all(np.isnan(r.cv_average_diagonal) for r in results):
-            logger.warning("shape fit: too few presses per class for %d-fold selection; "
-                           "using %s", cv_folds, subset_name(DEFAULT_SUBSET))
-            best = next((r for r in results if r.subset == DEFAULT_SUBSET), results[0])
-        else:
-            best = max(results, key=lambda r: (np.nan_to_num(r.cv_average_diagonal, nan=-1.0),
-                                               -len(r.subset)))
-        reports[kind] = KindReport(kind, results, best.subset, best.holdout, fits[best.subset])
-    unsup, sup = reports["gmm_unsupervised"], reports["gmm_per_class"]
+@dataclass(frozen=True)
+class _Frames:
+    """The labelled frames a fit uses (rows with a NaN feature dropped), and the subsets it searches."""
+
+    x: np.ndarray  # (n, W) the untransformed features
+    f: np.ndarray  # (n, W) shape_features(x)
+    y: np.ndarray  # (n,) class indices into names
+    groups: np.ndarray  # (n,) press ids
+    rows: np.ndarray  # (n,) the input rows kept
+    names: tuple[str, ...]
+    subsets: tuple[tuple[int, ...], ...]
+    n_dropped: int
+
+    @classmethod
+    def of(cls, features: np.ndarray, labels: np.ndarray, groups: np.ndarray | None,
+           s: ShapeFitSettings) -> _Frames:
+        x = np.asarray(features, dtype=np.float64)
+        labels = np.asarray(labels).astype(str)
+        if x.ndim != 2 or x.shape[1] not in (N_HU, N_FEATURES) or labels.shape != (x.shape[0],):
+            raise ValueError(f"need features (n, 8) [log-Hu x 7, q4] or (n, 7) [log-Hu] and "
+                             f"labels (n,), got {x.shape} and {labels.shape}")
+        subsets = s.subsets
+        if subsets is None:
+            subsets = ALL_SUBSETS if x.shape[1] == N_FEATURES else PAPER_SUBSETS
+        subsets = tuple(tuple(int(i) for i in sub) for sub in subsets)
+        if any(i < 0 or i >= x.shape[1] for sub in subsets for i in sub):
+            raise ValueError(f"subsets {[subset_name(sub) for sub in subsets]} need more than the "
+                             f"{x.shape[1]} input features (Q4 needs the 8-wide ContactEstimate.features)")
+        groups = np.arange(x.shape[0]) if groups is None else np.asarray(groups)
+        keep = ~np.isnan(x).any(axis=1)
+        n_dropped = int((~keep).sum())
+        if n_dropped:
+            logger.warning("shape fit: dropping %d frames with NaN features", n_dropped)
+        x, labels, groups = x[keep], labels[keep], groups[keep]
+        names = tuple(s.class_names) if s.class_names is not None else tuple(np.unique(labels).tolist())
+        lookup = {n: i for i, n in enumerate(names)}
+        if set(labels.tolist()) - set(names):
+            raise ValueError(f"labels not in class_names: {sorted(set(labels.tolist()) - set(names))}")
+        y = np.array([lookup[v] for v in labels], dtype=np.int64)
+        return cls(x, shape_features(x, q4_floor=s.q4_floor), y, groups, np.flatnonzero(keep), names, subsets,
+                   n_dropped)
+
+
+def _search_kind(kind: str, d: _Frames, tr: np.ndarray, te: np.ndarray, folds: list[np.ndarray],
+                 s: ShapeFitSettings) -> KindReport:
+    """Every subset of one kind: its CV score on the training presses and its held-out metrics; the best."""
+    x, f, y = d.x, d.f, d.y
+    results, fits = [], {}
+    for subset in d.subsets:
+        scores = []
+        for held in folds:
+            fit_rows = tr[np.setdiff1d(np.arange(tr.size), held)]
+            if held.size == 0 or np.bincount(y[fit_rows], minlength=len(d.names)).min() < 2:
+                continue  # a class (nearly) absent from this fold's training presses
+            m = _fit_kind(kind, f[fit_rows], y[fit_rows], d.names, subset, s)
+            scores.append(evaluate_model(m, x[tr[held]], y[tr[held]]).average_diagonal)
+        fits[subset] = _fit_kind(kind, f[tr], y[tr], d.names, subset, s)
+        cv = float(np.mean(scores)) if scores else float("nan")
+        results.append(SubsetResult(subset, cv, evaluate_model(fits[subset], x[te], y[te])))
+        logger.info("shape fit %s %s: cv %.3f held-out %.3f", kind, results[-1].name,
+                    results[-1].cv_average_diagonal, results[-1].holdout.average_diagonal)
+    if all(np.isnan(r.cv_average_diagonal) for r in results):
+        logger.warning("shape fit: too few presses per class for %d-fold selection; "
+                       "using %s", s.cv_folds, subset_name(DEFAULT_SUBSET))
+        best = next((r for r in results if r.subset == DEFAULT_SUBSET), results[0])
+    else:
+        best = max(results, key=lambda r: (np.nan_to_num(r.cv_average_diagonal, nan=-1.0), -len(r.subset)))
+    return KindReport(kind, results, best.subset, best.holdout, fits[best.subset])
+
+
+def _fit_shape_model(d: _Frames, s: ShapeFitSettings) -> ShapeFitReport:
+    rng = np.random.default_rng(s.seed)
+    tr, te = stratified_group_split(d.y, d.groups, s.holdout, rng)
+    folds = stratified_group_folds(d.y[tr], d.groups[tr], s.cv_folds, rng)
+    unsup, sup = (_search_kind(kind, d, tr, te, folds, s) for kind in ("gmm_unsupervised", "gmm_per_class"))
     better = np.nan_to_num(sup.cv_score, nan=-1.0) > np.nan_to_num(unsup.cv_score, nan=-1.0)
     chosen = sup if better else unsup  # ties -> the paper's
-    if refit:
-        model = _fit_kind(chosen.kind, f, y, names, chosen.selected, opts)
+    if s.refit:
+        model = _fit_kind(chosen.kind, d.f, d.y, d.names, chosen.selected, s)
     else:
         model = chosen.holdout_model
-    resub = evaluate_model(model, x, y) if refit else evaluate_model(model, x[tr], y[tr])
+    resub = evaluate_model(model, d.x, d.y) if s.refit else evaluate_model(model, d.x[tr], d.y[tr])
     logger.info("shape fit: chose %s %s (held-out average diagonal %.3f)", chosen.kind,
                 subset_name(chosen.selected), chosen.holdout.average_diagonal)
     return ShapeFitReport(
-        model=model, kind=chosen.kind, unsupervised=unsup, supervised=sup, class_names=names,
-        train_index=rows[tr], test_index=rows[te], refit=refit,
-        resubstitution_accuracy=resub.accuracy, n_dropped=n_dropped,
-        settings={"seed": seed, "holdout": holdout, "cv_folds": cv_folds, "n_init": n_init,
-                  "max_components": max_components, "log_hu_cap": model.log_hu_cap,
-                  "q4_floor": model.q4_floor, "subsets": [subset_name(s) for s in subsets],
-                  "reg_covar_unsupervised": reg_covar_unsupervised,
-                  "reg_covar_supervised": reg_covar_supervised},
+        model=model, kind=chosen.kind, unsupervised=unsup, supervised=sup, class_names=d.names,
+        train_index=d.rows[tr], test_index=d.rows[te], refit=s.refit,
+        resubstitution_accuracy=resub.accuracy, n_dropped=d.n_dropped, settings=s.to_json(d.subsets, model),
     )

@@ -188,7 +188,7 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto
 def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
                      ) -> tuple[CalibrationBundle, dict[str, Any]]:
     """Shape classifier from labelled presses (the paper's GMM search and a supervised alternative)."""
-    from optitac_edge.calibration.shape_fit import fit_shape_model
+    from optitac_edge.calibration.shape_fit import ShapeFitSettings, fit_shape_model
 
     truth = _truth(rec)
     m = measure_recording(rec, bundle, corrected=False)
@@ -197,7 +197,7 @@ def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
     if np.unique(labels).size < 2:
         raise RecordingError(f"{rec.path}: shape calibration needs presses of at least two shapes")
     features = m.features[truth.frame[rows]]
-    report = fit_shape_model(features, labels, groups=press_ids(truth)[rows], seed=seed)
+    report = fit_shape_model(features, labels, press_ids(truth)[rows], ShapeFitSettings(seed=seed))
     bundle = with_shape_model(bundle, report.model)
     details = report.to_dict()
     summary = {

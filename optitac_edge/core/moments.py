@@ -242,7 +242,7 @@ def hu_from_normalized(n20: float, n11: float, n02: float, n30: float, n21: floa
 
 
 def log_hu_value(h: float) -> float:
-    """One log-scaled Hu invariant, ``-sign(h) * log10(|h|)`` (0 for 0, NaN for NaN); see :func:`log_hu`."""
+    """One log-scaled Hu invariant, ``-sign(h) * log10(|h|)`` (0 for 0, NaN for NaN); :func:`log_hu` of an array."""
     if h == 0.0:
         return 0.0
     if math.isnan(h):
@@ -329,7 +329,7 @@ def q4_moment(binary: np.ndarray, grid: SurfaceGrid) -> float:
 
 
 def log_hu(h: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Log-scaled Hu invariants, ``-sign(h) * log10(|h|)``.
+    """Log-scaled Hu invariants, :func:`log_hu_value` of each (the one definition of the scaling).
 
     Parameters
     ----------
@@ -340,16 +340,13 @@ def log_hu(h: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     Returns
     -------
     ndarray, shape (7,), float64
-        0 where ``h == 0`` (guarded, no warning); NaN stays NaN.
+        ``-sign(h) * log10(|h|)``; 0 where ``h == 0``; NaN stays NaN.
     """
     h = np.asarray(h, dtype=np.float64)
-    sign = np.sign(h)
-    a = np.abs(h)
+    values = [log_hu_value(v) for v in h.ravel().tolist()]
     if out is None:
-        out = np.empty_like(a)
-    out.fill(0.0)
-    np.log10(a, out=out, where=a != 0.0)
-    np.multiply(out, -sign, out=out)
+        out = np.empty_like(h)
+    out.reshape(-1)[:] = values
     return out
 
 

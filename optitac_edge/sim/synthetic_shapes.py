@@ -9,7 +9,7 @@ outline (the binarised contact surface is smooth), rasterised on a 100 x 100
 (the skin) and binarised again at a fraction of its peak. Features are
 ``[log-Hu x 7, q4]`` as ``ContactEstimate.features``:
 :func:`~optitac_edge.core.moments.log_hu` of :func:`~optitac_edge.core.moments.hu_moments`
-and :func:`binary_q4`.
+and :func:`~optitac_edge.core.moments.q4_moment`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from optitac_edge.core.grid import SurfaceGrid
-from optitac_edge.core.moments import central_moments, hu_moments, log_hu
+from optitac_edge.core.moments import hu_moments, log_hu, q4_moment
 from optitac_edge.io.recording import SHAPES
 
 #: The default mesh: 100 x 100 cells spanning +-12 mm (the default layout's).
@@ -80,34 +80,6 @@ def shape_mask(
     return sdf < 0.0
 
 
-def binary_q4(binary: np.ndarray, grid: SurfaceGrid) -> float:
-    """4-fold symmetry magnitude ``|c40| / mu00**3`` of a binary shape.
-
-    ``c40 = (mu40 - 6 mu22 + mu04) + 4i (mu31 - mu13)`` (central moments, x
-    power first) is multiplied by ``exp(4i theta)`` by a rotation, so its
-    modulus over ``mu00**3`` is rotation and scale invariant: 0 for a disc or an
-    equilateral triangle, 1/60 for a square, ``(r - 1/r)**2 / (8 pi**2)`` for an
-    ellipse of axis ratio ``r``.
-
-    Parameters
-    ----------
-    binary : ndarray, shape (n, n), bool or real
-        Nonzero cells count as 1.
-    grid : SurfaceGrid
-
-    Returns
-    -------
-    float
-        Dimensionless; NaN for an empty shape.
-    """
-    img = (np.asarray(binary) != 0).astype(np.float64)
-    if not img.any():
-        return math.nan
-    mu = central_moments(img, grid, order=4)
-    c40 = complex(mu[4, 0] - 6.0 * mu[2, 2] + mu[0, 4], 4.0 * (mu[3, 1] - mu[1, 3]))
-    return abs(c40) / float(mu[0, 0]) ** 3
-
-
 def synthetic_features(  # noqa: PLR0913
     n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
     shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
@@ -158,7 +130,7 @@ def synthetic_features(  # noqa: PLR0913
             if blur_mm > 0:
                 soft = gaussian_filter(mask.astype(np.float64), blur_mm / grid.step_mm)
                 mask = soft > level * soft.max()
-            out.append(np.append(log_hu(hu_moments(mask, grid)), binary_q4(mask, grid)))
+            out.append(np.append(log_hu(hu_moments(mask, grid)), q4_moment(mask, grid)))
             labels.append(shape)
     f = np.array(out)
     if hu_noise > 0:
