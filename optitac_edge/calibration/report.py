@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -133,10 +134,10 @@ def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = 
     return measure_recording(rec, bundle, corrected=corrected), rec.truth
 
 
-def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,  # noqa: C901, PLR0915
+def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,
                  repeat: Path | None = None) -> Path:
     """Write the figures and ``index.md`` into ``out_dir``; returns the index path."""
-    from optitac_edge.calibration.evaluation import detected_rows, repeatability
+    from optitac_edge.calibration.evaluation import detected_rows
 
     plt = _plt()
     bundle = load_bundle(cal)
@@ -168,6 +169,32 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Unseen presses", _scatter(
             plt, bundle, corrector, np.stack([m.x_mm[f], m.y_mm[f]], 1),
             np.stack([truth.x_mm[rows], truth.y_mm[rows]], 1), "unseen", out / "unseen_scatter.png")))
+    lines += _verdict_lines(bundle, unseen)
+    if repeat is not None:
+        figures.append(("Repeatability", _repeatability_figure(plt, bundle, repeat, out / "repeatability.png")))
+    if "report/width_measured" in arrays and corrector.width is not None:
+        figures.append(("Width calibration", _width_figure(plt, arrays, corrector.width, out / "width_fit.png")))
+        lines += _fit_lines("Width calibration", bundle.extra_meta.get("width_fit") or {}, "form")
+    depth_fit = bundle.extra_meta.get("depth_fit")
+    if depth_fit:
+        lines += _fit_lines("Depth calibration", depth_fit, "feature")
+    shapes_fit = bundle.extra_meta.get("shapes_fit")
+    if shapes_fit:
+        figures.append(("Shape classification (held-out presses)",
+                        _confusion_figure(plt, shapes_fit, out / "confusion.png")))
+        lines += _shape_lines(shapes_fit)
+    if "report/shape_hu" in arrays:
+        figures.append(("Hu features", _hu_figure(plt, arrays, out / "hu_scatter.png")))
+    lines.append("")
+    for title, file in figures:
+        lines += [f"## {title}", "", f"![{title}]({file})", ""]
+    index = out / "index.md"
+    write_file_atomic(index, "\n".join(lines))
+    return index
+
+
+def _verdict_lines(bundle: CalibrationBundle, unseen: Path | None) -> list[str]:
+    """The verdict section: from the unseen presses when given, else from the bundle alone."""
     from optitac_edge.calibration.verdict import Verdict, bundle_checks, judge, model_checks
 
     if unseen is not None:
@@ -177,104 +204,112 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         verdict = Verdict(tuple(bundle_checks(bundle) + model_checks(bundle)))
         basis = "the bundle alone (give --unseen REC for the centroid and detection checks)"
     head, *checks = verdict.lines()
-    lines += ["", "## Verdict", "", f"**{head[len('verdict: '):]}**, from {basis}:", "",
-              *(f"* {c.strip()}" for c in checks), ""]
-    if repeat is not None:
-        positions = repeatability(*_measure_truth(repeat, bundle, corrected=True))
-        fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
-        k = np.arange(len(positions))
-        for off, axis, colour in ((-0.12, "x", "tab:blue"), (0.12, "y", "tab:orange")):
-            mean = np.array([getattr(p, f"mean_error_{axis}") for p in positions])
-            rng = np.array([getattr(p, f"range_{axis}") for p in positions])
-            ax.errorbar(k + off, mean, yerr=rng / 2, fmt="o", capsize=4, color=colour, label=f"{axis} error ± range/2")
-        ax.axhline(0, color="gray", lw=0.5)
-        ax.set_xticks(k, [f"({p.x_mm:.1f}, {p.y_mm:.1f})" for p in positions], fontsize=8)
-        ax.set_ylabel("calibrated centroid error (mm)")
-        ax.set_title("Repeatability: 10 presses per position")
-        ax.legend()
-        _save(plt, fig, out / "repeatability.png")
-        figures.append(("Repeatability", "repeatability.png"))
-    if "report/width_measured" in arrays and corrector.width is not None:
-        measured, true = arrays["report/width_measured"], arrays["report/width_true"]
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
-        w = corrector.width
-        xy = arrays.get("report/width_xy")
-        xy = np.zeros((len(measured), 2)) if xy is None or len(xy) != len(measured) else xy
-        calibrated = np.array([w.correct(a, b, x, y) for (a, b), (x, y) in zip(measured, xy)])
-        for ax, col, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
-            ax.scatter(true, measured[:, col], s=10, label="measured FWHM")
-            grid = np.linspace(min(measured[:, col].min(), amap.knots_measured[0]) * 0.95,
-                               measured[:, col].max() * 1.05, 100)
-            radial = w.radial_major if col == 0 else w.radial_minor
-            ax.plot([amap(g) for g in grid], grid, "r-",
-                    label=f"{w.kind} width model" + (f" (at the centre; radial gain {radial:+.2f})" if radial else ""))
-            fitted = calibrated[:, col]
-            ax.scatter(true, fitted, s=10, marker="x", c="k", label="calibrated")
-            ax.plot([0, true.max()], [0, true.max()], "k:", lw=0.8)
-            rmse = float(np.sqrt(np.mean((fitted - true) ** 2)))
-            ax.set_title(f"{axis} axis: calibrated RMSE {rmse:.3f} mm (calibration data)")
-            ax.set_xlabel("true diameter (mm)")
-            ax.set_ylabel("width (mm)")
-            ax.legend(fontsize=7)
-        _save(plt, fig, out / "width_fit.png")
-        figures.append(("Width calibration", "width_fit.png"))
-        lines += _fit_lines("Width calibration", bundle.extra_meta.get("width_fit") or {}, "form")
-    depth_fit = bundle.extra_meta.get("depth_fit")
-    if depth_fit:
-        lines += _fit_lines("Depth calibration", depth_fit, "feature")
-    shapes_fit = bundle.extra_meta.get("shapes_fit")
-    if shapes_fit:
-        chosen = next(shapes_fit[k] for k in ("unsupervised", "supervised")
-                      if shapes_fit[k]["kind"] == shapes_fit["kind"])["holdout"]
-        classes = shapes_fit["class_names"]
-        conf = np.asarray(chosen["confusion"], dtype=float)
-        conf = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)
-        fig, ax = plt.subplots(figsize=(5.5, 4.8), constrained_layout=True)
-        ax.imshow(conf, cmap="Blues", vmin=0, vmax=1)
-        for i in range(len(classes)):
-            for j in range(len(classes)):
-                ax.text(j, i, f"{conf[i, j]:.2f}", ha="center", va="center",
-                        color="white" if conf[i, j] > 0.5 else "black")
-        ax.set_xticks(range(len(classes)), classes, rotation=30)
-        ax.set_yticks(range(len(classes)), classes)
-        ax.set_xlabel("predicted")
-        ax.set_ylabel("true")
-        ax.set_title(f"Held-out confusion ({shapes_fit['kind']} {shapes_fit['subset']})", fontsize=9)
-        _save(plt, fig, out / "confusion.png")
-        figures.append(("Shape classification (held-out presses)", "confusion.png"))
-        lines.append(f"Shape classifier: {shapes_fit['kind']} mixture on {shapes_fit['subset']}, held-out "
-                     f"average diagonal {chosen['average_diagonal']:.3f}; paper's unsupervised GMM "
-                     f"{shapes_fit['unsupervised']['holdout']['average_diagonal']:.3f} "
-                     f"({shapes_fit['unsupervised']['selected']}), supervised "
-                     f"{shapes_fit['supervised']['holdout']['average_diagonal']:.3f} "
-                     f"({shapes_fit['supervised']['selected']})")
-        lines.append("")
-        lines.append("| Hu subset | unsupervised held-out avg. diagonal | supervised |")
-        lines.append("|---|---|---|")
-        for name, res in shapes_fit["unsupervised"]["subsets"].items():
-            sup = shapes_fit["supervised"]["subsets"].get(name, {}).get("holdout", {})
-            lines.append(f"| {name} | {res['holdout']['average_diagonal']:.3f} | "
-                         f"{sup.get('average_diagonal', float('nan')):.3f} |")
-    if "report/shape_hu" in arrays:
-        hu, label = arrays["report/shape_hu"], arrays["report/shape_label"]
-        fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)
-        for ax, (a, b) in zip(axes, ((0, 1), (0, 2), (1, 2))):
-            for kind, s in enumerate(SHAPES):
-                sel = label == kind
-                if sel.any():
-                    ax.scatter(hu[sel, a], hu[sel, b], s=8, c=_COLOURS[s], label=s)
-            ax.set_xlabel(f"M{a + 1} (log)")
-            ax.set_ylabel(f"M{b + 1} (log)")
-        axes[0].legend(fontsize=7)
-        fig.suptitle("Hu moments M1–M3 of the calibration presses")
-        _save(plt, fig, out / "hu_scatter.png")
-        figures.append(("Hu features", "hu_scatter.png"))
-    lines.append("")
-    for title, file in figures:
-        lines += [f"## {title}", "", f"![{title}]({file})", ""]
-    index = out / "index.md"
-    write_file_atomic(index, "\n".join(lines))
-    return index
+    return ["", "## Verdict", "", f"**{head[len('verdict: '):]}**, from {basis}:", "",
+            *(f"* {c.strip()}" for c in checks), ""]
+
+
+def _repeatability_figure(plt: Any, bundle: CalibrationBundle, repeat: Path, path: Path) -> str:
+    """Each position's calibrated centroid error, mean and range over its presses."""
+    from optitac_edge.calibration.evaluation import repeatability
+
+    positions = repeatability(*_measure_truth(repeat, bundle, corrected=True))
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    k = np.arange(len(positions))
+    for off, axis, colour in ((-0.12, "x", "tab:blue"), (0.12, "y", "tab:orange")):
+        mean = np.array([getattr(p, f"mean_error_{axis}") for p in positions])
+        rng = np.array([getattr(p, f"range_{axis}") for p in positions])
+        ax.errorbar(k + off, mean, yerr=rng / 2, fmt="o", capsize=4, color=colour, label=f"{axis} error ± range/2")
+    ax.axhline(0, color="gray", lw=0.5)
+    ax.set_xticks(k, [f"({p.x_mm:.1f}, {p.y_mm:.1f})" for p in positions], fontsize=8)
+    ax.set_ylabel("calibrated centroid error (mm)")
+    ax.set_title("Repeatability: 10 presses per position")
+    ax.legend()
+    _save(plt, fig, path)
+    return path.name
+
+
+def _width_figure(plt: Any, arrays: Mapping[str, np.ndarray], w: Any, path: Path) -> str:
+    """The width model of each axis over the calibration presses' measured and true widths."""
+    measured, true = arrays["report/width_measured"], arrays["report/width_true"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
+    xy = arrays.get("report/width_xy")
+    xy = np.zeros((len(measured), 2)) if xy is None or len(xy) != len(measured) else xy
+    calibrated = np.array([w.correct(a, b, x, y) for (a, b), (x, y) in zip(measured, xy)])
+    for ax, col, axis, amap in zip(axes, (0, 1), ("major", "minor"), (w.major, w.minor)):
+        ax.scatter(true, measured[:, col], s=10, label="measured FWHM")
+        grid = np.linspace(min(measured[:, col].min(), amap.knots_measured[0]) * 0.95,
+                           measured[:, col].max() * 1.05, 100)
+        radial = w.radial_major if col == 0 else w.radial_minor
+        ax.plot([amap(g) for g in grid], grid, "r-",
+                label=f"{w.kind} width model" + (f" (at the centre; radial gain {radial:+.2f})" if radial else ""))
+        fitted = calibrated[:, col]
+        ax.scatter(true, fitted, s=10, marker="x", c="k", label="calibrated")
+        ax.plot([0, true.max()], [0, true.max()], "k:", lw=0.8)
+        rmse = float(np.sqrt(np.mean((fitted - true) ** 2)))
+        ax.set_title(f"{axis} axis: calibrated RMSE {rmse:.3f} mm (calibration data)")
+        ax.set_xlabel("true diameter (mm)")
+        ax.set_ylabel("width (mm)")
+        ax.legend(fontsize=7)
+    _save(plt, fig, path)
+    return path.name
+
+
+def _chosen_holdout(shapes_fit: dict[str, Any]) -> dict[str, Any]:
+    return next(shapes_fit[k] for k in ("unsupervised", "supervised")
+                if shapes_fit[k]["kind"] == shapes_fit["kind"])["holdout"]
+
+
+def _confusion_figure(plt: Any, shapes_fit: dict[str, Any], path: Path) -> str:
+    """The chosen shape classifier's held-out confusion, row-normalised."""
+    classes = shapes_fit["class_names"]
+    conf = np.asarray(_chosen_holdout(shapes_fit)["confusion"], dtype=float)
+    conf = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)
+    fig, ax = plt.subplots(figsize=(5.5, 4.8), constrained_layout=True)
+    ax.imshow(conf, cmap="Blues", vmin=0, vmax=1)
+    for i in range(len(classes)):
+        for j in range(len(classes)):
+            ax.text(j, i, f"{conf[i, j]:.2f}", ha="center", va="center",
+                    color="white" if conf[i, j] > 0.5 else "black")
+    ax.set_xticks(range(len(classes)), classes, rotation=30)
+    ax.set_yticks(range(len(classes)), classes)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    ax.set_title(f"Held-out confusion ({shapes_fit['kind']} {shapes_fit['subset']})", fontsize=9)
+    _save(plt, fig, path)
+    return path.name
+
+
+def _shape_lines(shapes_fit: dict[str, Any]) -> list[str]:
+    """The shape classifier's choice and every Hu subset's held-out score, both kinds."""
+    chosen = (f"Shape classifier: {shapes_fit['kind']} mixture on {shapes_fit['subset']}, held-out "
+              f"average diagonal {_chosen_holdout(shapes_fit)['average_diagonal']:.3f}; paper's unsupervised GMM "
+              f"{shapes_fit['unsupervised']['holdout']['average_diagonal']:.3f} "
+              f"({shapes_fit['unsupervised']['selected']}), supervised "
+              f"{shapes_fit['supervised']['holdout']['average_diagonal']:.3f} "
+              f"({shapes_fit['supervised']['selected']})")
+    lines = [chosen, "", "| Hu subset | unsupervised held-out avg. diagonal | supervised |", "|---|---|---|"]
+    for name, res in shapes_fit["unsupervised"]["subsets"].items():
+        sup = shapes_fit["supervised"]["subsets"].get(name, {}).get("holdout", {})
+        lines.append(f"| {name} | {res['holdout']['average_diagonal']:.3f} | "
+                     f"{sup.get('average_diagonal', float('nan')):.3f} |")
+    return lines
+
+
+def _hu_figure(plt: Any, arrays: Mapping[str, np.ndarray], path: Path) -> str:
+    """Hu moments M1-M3 of the calibration presses, pairwise, by shape."""
+    hu, label = arrays["report/shape_hu"], arrays["report/shape_label"]
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)
+    for ax, (a, b) in zip(axes, ((0, 1), (0, 2), (1, 2))):
+        for kind, s in enumerate(SHAPES):
+            sel = label == kind
+            if sel.any():
+                ax.scatter(hu[sel, a], hu[sel, b], s=8, c=_COLOURS[s], label=s)
+        ax.set_xlabel(f"M{a + 1} (log)")
+        ax.set_ylabel(f"M{b + 1} (log)")
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Hu moments M1–M3 of the calibration presses")
+    _save(plt, fig, path)
+    return path.name
 
 
 def _save(plt: Any, fig: Any, path: Path) -> None:

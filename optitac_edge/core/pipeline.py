@@ -110,6 +110,12 @@ def single_threaded_opencv() -> Iterator[None]:
         cv2.setNumThreads(previous)
 
 
+def _rest_light(means: np.ndarray, gain: GainCompensation | None, baseline: Baseline) -> np.ndarray:
+    """The frame's fiber means (shape (N,), gray levels) as the baseline takes them: with gain compensation,
+    the LED gain divided out (per-fiber drift, not the LED's); a view valid until the next frame."""
+    return means if gain is None else gain.rest_means(baseline)
+
+
 class Pipeline:
     """Lean per-frame processing for one calibration bundle.
 
@@ -313,24 +319,29 @@ class Pipeline:
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self.finder.find(surface, est, self._in_contact, self.corrector)
         self._track(n, est.frame)
+        self._follow_light(n, means, signal, now_ns, dt_ns)
+        return result
 
+    def _follow_light(self, n: int, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
+        """Steps 9 and 10 after a frame with ``n`` contacts: a baseline taken over a press raised, else the
+        baseline and the LED gain follow the light of contact-free frames."""
+        baseline, gain, result = self.baseline, self.gain_compensation, self.result
         if n > 0:
             self._in_contact = True
         elif self._in_contact:
             self._in_contact = False
             self._contact_end_ns = now_ns
         if self.bright_fibers.check(signal, float(self.levels.off), now_ns, n == 0):
-            result.raised_fibers = baseline.raise_to(self._rest_light(means), signal, float(self.levels.off),
+            result.raised_fibers = baseline.raise_to(_rest_light(means, self.gain_compensation, baseline), signal, float(self.levels.off),
                                                      self.bright_fibers.common)
             self._levels_changed()
             result.baseline_raised = True
-            return result
+            return
         if n == 0 and gain is not None:
             gain.contact_free(now_ns)
         if n == 0 and self.options.track_baseline and dt_ns > 0:
-            baseline.track(self._rest_light(means), signal, float(self.levels.off), now_ns, dt_ns,
+            baseline.track(_rest_light(means, self.gain_compensation, baseline), signal, float(self.levels.off), now_ns, dt_ns,
                            self._contact_end_ns)
-        return result
 
     def _track(self, n: int, frame: int) -> None:
         """Step 8: ids, touches and releases of the frame's ``n`` contacts, into the result."""
@@ -344,12 +355,6 @@ class Pipeline:
         released by this pipeline's first frame, and no id is handed out again at once."""
         self.tracker = previous.tracker
         self.result.released = self.tracker.released
-
-    def _rest_light(self, means: np.ndarray) -> np.ndarray:
-        """The frame's fiber means (shape (N,), gray levels) as the baseline takes them: with gain compensation,
-        the LED gain divided out (per-fiber drift, not the LED's); a view valid until the next frame."""
-        gain = self.gain_compensation
-        return means if gain is None else gain.rest_means(self.baseline)
 
     def compute_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:
         """Step 4: the inverted signal of ``means`` (shape (N,)) into :attr:`signal` (see there)."""
