@@ -204,7 +204,7 @@ def read_truth(path: Path, n_frames: int) -> Truth:
     return read_truth_file(path, n_frames)[0]
 
 
-def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple[Truth, RigPoses | None]:  # noqa: C901, PLR0915
+def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple[Truth, RigPoses | None]:
     """Parse and validate ``truth.csv`` against a recording of ``n_frames`` frames (``text``: its
     contents, kept elsewhere than ``path``, e.g. in an MCAP recording; ``path`` then names it).
 
@@ -220,25 +220,9 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
         twice, a contact row without its position, shape, size or depth, an
         unknown shape or phase.
     """
-    try:
-        if text is not None:
-            if len(text) > MAX_TRUTH_BYTES:
-                raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
-            rows = list(csv.reader(io.StringIO(text.removeprefix("\ufeff"), newline="")))
-        else:
-            if path.stat().st_size > MAX_TRUTH_BYTES:
-                raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
-            with path.open(newline="", encoding="utf-8-sig") as f:
-                rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise RecordingError(f"{path}: cannot read truth ({exc})") from None
+    rows = _truth_rows(path, text)
     header = tuple(c.strip() for c in rows[0]) if rows else ()
-    force = bool(header) and header[-1] == FORCE_COLUMN
-    base = header[:-1] if force else header
-    if base not in (TRUTH_HEADER, TRUTH_HEADER + RIG_COLUMNS):
-        raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}' "
-                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}', then ',{FORCE_COLUMN}')")
-    rig = len(base) > len(TRUTH_HEADER)
+    force, rig = _truth_columns(path, header)
     if len(rows) < 2:
         raise RecordingError(f"{path}: no rows after the header")
     cols: list[list[Any]] = [[] for _ in TRUTH_HEADER]
@@ -246,13 +230,14 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
     forces: list[float] = []
     seen: set[int] = set()
     n_values = len(TRUTH_HEADER) - 3
+    n_base = len(header) - force
     for line_no, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):
             raise RecordingError(f"{path}: line {line_no}: expected {len(header)} cells")
         try:
             frame, contact = int(row[0]), int(row[1])
             values = [_cell_float(c) for c in row[3:3 + n_values]]
-            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:len(base)]]
+            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:n_base]]
             force_n = _cell_float(row[-1]) if force else math.nan
         except ValueError:
             raise RecordingError(f"{path}: line {line_no}: not a number") from None
@@ -265,17 +250,8 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
         phase = row[len(TRUTH_HEADER)].strip() if rig else ""
         if rig and (phase not in PHASES or not all(math.isfinite(v) for v in pose)):
             raise RecordingError(f"{path}: line {line_no}: unknown phase {phase!r} or a rig pose not finite")
-        if contact and shape not in SHAPES:
-            raise RecordingError(f"{path}: line {line_no}: unknown shape {shape!r}")
-        if contact and not all(math.isfinite(v) for i, v in enumerate(values) if TRUTH_HEADER[3 + i] != "angle_deg"):
-            missing = [TRUTH_HEADER[3 + i] for i, v in enumerate(values)
-                       if not math.isfinite(v) and TRUTH_HEADER[3 + i] != "angle_deg"]
-            raise RecordingError(f"{path}: line {line_no}: a contact without {', '.join(missing)}")
         if contact:
-            for name, v in zip(TRUTH_HEADER[3:], values):
-                lo, hi = TRUTH_RANGES[name]
-                if not (math.isnan(v) and name == "angle_deg") and not lo <= v <= hi:
-                    raise RecordingError(f"{path}: line {line_no}: {name} {v:g} is outside {lo:g}..{hi:g}")
+            _check_contact(path, line_no, shape, values)
         if force and (math.isinf(force_n) or not (math.isnan(force_n) or 0 <= force_n <= MAX_FORCE_N)):
             raise RecordingError(f"{path}: line {line_no}: force_n must be a force of 0..{MAX_FORCE_N:g} N or empty")
         if rig:
@@ -300,6 +276,44 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
     poses = RigPoses(np.asarray(rig_cols[0], dtype=np.int64), np.asarray(rig_cols[1], dtype=str),
                      np.asarray(rig_cols[2], dtype=np.float64).reshape(-1, 3)) if rig else None
     return truth, poses
+
+
+def _truth_rows(path: Path, text: str | None) -> list[list[str]]:
+    """The CSV rows of ``truth.csv`` (``text``: its contents kept elsewhere), size-checked."""
+    try:
+        if text is not None:
+            if len(text) > MAX_TRUTH_BYTES:
+                raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
+            return list(csv.reader(io.StringIO(text.removeprefix("\ufeff"), newline="")))
+        if path.stat().st_size > MAX_TRUTH_BYTES:
+            raise RecordingError(f"{path}: larger than a truth file can be ({MAX_TRUTH_BYTES >> 20} MiB)")
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            return list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise RecordingError(f"{path}: cannot read truth ({exc})") from None
+
+
+def _truth_columns(path: Path, header: tuple[str, ...]) -> tuple[bool, bool]:
+    """Whether the header has the force column and the rig's columns; anything else is refused."""
+    force = bool(header) and header[-1] == FORCE_COLUMN
+    base = header[:-1] if force else header
+    if base not in (TRUTH_HEADER, TRUTH_HEADER + RIG_COLUMNS):
+        raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}' "
+                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}', then ',{FORCE_COLUMN}')")
+    return force, len(base) > len(TRUTH_HEADER)
+
+
+def _check_contact(path: Path, line_no: int, shape: str, values: list[float]) -> None:
+    """A contact row: a known shape, every value but the angle given, each in its range."""
+    if shape not in SHAPES:
+        raise RecordingError(f"{path}: line {line_no}: unknown shape {shape!r}")
+    missing = [name for name, v in zip(TRUTH_HEADER[3:], values) if not math.isfinite(v) and name != "angle_deg"]
+    if missing:
+        raise RecordingError(f"{path}: line {line_no}: a contact without {', '.join(missing)}")
+    for name, v in zip(TRUTH_HEADER[3:], values):
+        lo, hi = TRUTH_RANGES[name]
+        if not (math.isnan(v) and name == "angle_deg") and not lo <= v <= hi:
+            raise RecordingError(f"{path}: line {line_no}: {name} {v:g} is outside {lo:g}..{hi:g}")
 
 
 class Recording:

@@ -393,76 +393,68 @@ def write_scenario(  # noqa: PLR0913
     sensor = SimulatedSensor(
         layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=FPS
     )
+    simulator = _simulator_meta(sensor, patch, scenario=name, seed=seed, sensor_seed=sensor_seed, day=day,
+                                variant=variant, physics=physics, optics=optics.to_dict(), skin=skin.to_dict(),
+                                drift=drift.to_dict())
+    frame_shape = sensor.frame_shape if patch is None else patch.frames.frame_shape
+    meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra={"simulator": simulator})
+    out = Path(out_dir)
+    log.info("simulating %s (seed %d, day %d, variant %d, %s physics): %d frames of %s into %s",
+             name, seed, day, variant, physics, len(plan), frame_shape, out)
+    load_cell = name == "depths"
+    with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
+                         force_column=load_cell, replace=fresh, storage=storage,
+                         find_fibers=_find_fibers(layout, optics) if storage == "fibers" else None) as writer:
+        simulator["real_depth_mm"] = _render(writer, sensor, plan, patch, clamp_radius_mm(layout.xy_mm, skin)
+                                             if load_cell else None)
+    return out
+
+
+def _simulator_meta(sensor: SimulatedSensor, patch: PatchPlacement | None, **given: object) -> dict[str, object]:
+    """The recording's ``simulator`` object: what made it (``given``) and the sensor's ground truth, in whole
+    camera frame pixels for a patch."""
     proj = sensor.renderer.projection
     simulator: dict[str, object] = {
-        "scenario": name,
-        "seed": seed,
-        "sensor_seed": sensor_seed,
-        "day": day,
-        "variant": variant,
-        "physics": physics,
-        "optics": optics.to_dict(),
-        "skin": skin.to_dict(),
-        "drift": drift.to_dict(),
+        **given,
         "scale_px_per_mm": proj.scale,
         "centre_px": [proj.cx, proj.cy],
         "rest_peak_gray": np.round(sensor.rest_peak, 3).tolist(),
         "fiber_centres_px": np.round(sensor.fiber_centres_px, 4).tolist(),
     }
-    frame_shape = sensor.frame_shape
     if patch is not None:  # the ground truth in whole-frame pixels
         offset = np.array([patch.region.x, patch.region.y])
         simulator["centre_px"] = [proj.cx + patch.region.x, proj.cy + patch.region.y]
         simulator["fiber_centres_px"] = np.round(sensor.fiber_centres_px + offset, 4).tolist()
         simulator["region"] = patch.region.to_dict()
-        frame_shape = patch.frames.frame_shape
-    meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra={"simulator": simulator})
-    out = Path(out_dir)
-    log.info(
-        "simulating %s (seed %d, day %d, variant %d, %s physics): %d frames of %s into %s",
-        name,
-        seed,
-        day,
-        variant,
-        physics,
-        len(plan),
-        frame_shape,
-        out,
-    )
+    return simulator
+
+
+def _render(writer: RecordingWriter, sensor: SimulatedSensor, plan: list[Frame], patch: PatchPlacement | None,
+            clamp_r: float | None) -> list[list[float]]:
+    """Every frame of ``plan`` and its truth row into ``writer``; ``[first frame, real depth]`` of each press.
+
+    ``clamp_r`` (mm): the load cell's clamp radius, for the force column (None: no load cell).
+    """
     real_depths: list[list[float]] = []
-    load_cell = name == "depths"
-    clamp_r = clamp_radius_mm(layout.xy_mm, skin)
     force = math.nan
-    with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
-                         force_column=load_cell, replace=fresh, storage=storage,
-                         find_fibers=_find_fibers(layout, optics) if storage == "fibers" else None) as writer:
-        last: Frame = None
-        dark = sensor.darkening(())
-        for i, press in enumerate(plan):
-            if press is not last:
-                dark = sensor.darkening(() if press is None else (press,))
-                if press is not None:
-                    real = sensor.last_real_indenters[0].depth_mm
-                    real_depths.append([i, round(real, 5)])
-                    force = contact_force_n(sensor.last_real_indenters[0], clamp_r, skin)
-                last = press
-            frame = sensor.frame_from_darkening(dark, t_s=i / FPS)
-            if patch is not None:
-                frame = patch.paste(frame)
-            writer.write(i, frame, round(i * 1e9 / FPS))
-            if press is None:
-                writer.write_truth(i, False)
-            else:
-                writer.write_truth(
-                    i,
-                    True,
-                    press.shape,
-                    press.x_mm,
-                    press.y_mm,
-                    press.angle_deg,
-                    press.size_mm,
-                    press.depth_mm,
-                    force_n=force if load_cell else math.nan,
-                )
-        simulator["real_depth_mm"] = real_depths
-    return out
+    last: Frame = None
+    dark = sensor.darkening(())
+    for i, press in enumerate(plan):
+        if press is not last:
+            dark = sensor.darkening(() if press is None else (press,))
+            if press is not None:
+                real = sensor.last_real_indenters[0].depth_mm
+                real_depths.append([i, round(real, 5)])
+                if clamp_r is not None:
+                    force = contact_force_n(sensor.last_real_indenters[0], clamp_r, sensor.skin)
+            last = press
+        frame = sensor.frame_from_darkening(dark, t_s=i / FPS)
+        if patch is not None:
+            frame = patch.paste(frame)
+        writer.write(i, frame, round(i * 1e9 / FPS))
+        if press is None:
+            writer.write_truth(i, False)
+        else:
+            writer.write_truth(i, True, press.shape, press.x_mm, press.y_mm, press.angle_deg, press.size_mm,
+                               press.depth_mm, force_n=force)
+    return real_depths
