@@ -240,25 +240,39 @@ def sensor_variant(
     offset_frac = u(-1.0, 1.0, 2)
     skin_f = [float(f) for f in u(0.75, 1.25, 7)]
     skin_f[0] = float(u(0.75, 1.1))  # max_darkening 0.64-0.94: a fiber never goes fully dark
-    skin = replace(
+    skin = _variant_skin(base, skin_f, variant)
+    _fit_in_frame(ov, layout, variant, (width, height), offset_frac)
+    ov = {k: round(v, 6) if isinstance(v, float) else v for k, v in ov.items()}
+    return ov, skin
+
+
+def _variant_skin(base: SkinModel, f: list[float], variant: int) -> SkinModel:
+    """``base`` with its fields scaled by the variant's factors ``f`` (and its modulus by a stream of its own)."""
+    return replace(
         base,
-        max_darkening=base.max_darkening * skin_f[0],
-        compression_gain=base.compression_gain * skin_f[1],
-        tilt_gain=base.tilt_gain * skin_f[2],
-        spread_mm=base.spread_mm * skin_f[3],
-        spread_per_depth=base.spread_per_depth * skin_f[4],
-        clamp_margin_mm=base.clamp_margin_mm * skin_f[5],
-        rim_width_mm=base.rim_width_mm * skin_f[6],
+        max_darkening=base.max_darkening * f[0],
+        compression_gain=base.compression_gain * f[1],
+        tilt_gain=base.tilt_gain * f[2],
+        spread_mm=base.spread_mm * f[3],
+        spread_per_depth=base.spread_per_depth * f[4],
+        clamp_margin_mm=base.clamp_margin_mm * f[5],
+        rim_width_mm=base.rim_width_mm * f[6],
         # a stream of its own: the draws above (and every variant's skin) stay as they were
         modulus_mpa=base.modulus_mpa * float(np.random.default_rng([variant, 77]).uniform(0.75, 1.25)),
     )
-    # No saturation: cap the brightest rest fiber.
+
+
+def _fit_in_frame(ov: dict[str, Any], layout: FiberLayout, variant: int, frame: tuple[int, int],
+                  offset_frac: np.ndarray) -> None:
+    """Make the variant's optics ``ov`` (in place) fit a ``frame`` (width, height): the brightest rest fiber
+    capped (no saturation), the fill shrunk until the array fits, then the array placed anywhere it stays
+    inside (``offset_frac`` of the room, each in -1..1)."""
+    width, height = frame
     optics = replace(CameraOptics(width=width, height=height), **ov)
     peak = fiber_rest_peak(layout, optics, variant_sensor_seed(variant)).max()
     room = MAX_REST_LEVEL - float(ov["background_gray"])
     if peak > room:
         ov["led_peak_gray"] = float(float(ov["led_peak_gray"]) * 0.999 * room / peak)
-    # Fit the fill, then place the array anywhere it stays inside the frame.
     size = np.array([width, height], dtype=float)
     for _ in range(20):
         optics = replace(
@@ -275,8 +289,6 @@ def sensor_variant(
         round(float(offset_frac[0] * slack[0]), 3),
         round(float(offset_frac[1] * slack[1]), 3),
     )
-    ov = {k: round(v, 6) if isinstance(v, float) else v for k, v in ov.items()}
-    return ov, skin
 
 
 def variant_optics(variant: int, optics: CameraOptics | None = None) -> CameraOptics:
