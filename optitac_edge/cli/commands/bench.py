@@ -56,7 +56,7 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from optitac_edge.devtools.bench import format_table, run_bench
+    from optitac_edge.devtools.bench import BenchPlan, format_table, run_bench
     from optitac_edge.io.files import check_output_path, write_file_atomic
 
     if args.frames < 1:
@@ -68,13 +68,14 @@ def run(args: argparse.Namespace) -> int:
     if args.queue_frames is not None and not 1 <= args.queue_frames <= MAX_DEPTH:
         raise OptiTacError(f"--queue-frames must be 1..{MAX_DEPTH}")
     check_output_path(args.json)  # refused now, not after minutes of measuring
-    res = run_bench(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
-                    workdir=args.workdir, reference_frames=args.reference_frames,
-                    memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
-                    startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view,
-                    paced_frames=args.paced_frames, cpu_seconds=args.cpu_seconds, cpu_rounds=args.cpu_rounds,
-                    e2e_contacts=args.e2e_contacts, patches=args.patches, patch_frame=args.patch_frame,
-                    publish=args.e2e_publish, log=print)
+    plan = BenchPlan(frames=args.frames, source=args.source, fps=args.fps, cal=args.cal, rgb=args.rgb,
+                     workdir=args.workdir, reference_frames=args.reference_frames,
+                     memory_frames=args.memory_frames, e2e_seconds=args.e2e_seconds,
+                     startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view,
+                     paced_frames=args.paced_frames, cpu_seconds=args.cpu_seconds, cpu_rounds=args.cpu_rounds,
+                     e2e_contacts=args.e2e_contacts, patches=args.patches, patch_frame=args.patch_frame,
+                     publish=args.e2e_publish)
+    res = run_bench(plan, log=print)
     print(format_table(res))
     write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")
     print(f"wrote {args.json}")
