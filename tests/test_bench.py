@@ -181,8 +181,8 @@ def test_service_cpu_runs_every_contact_count_interleaved_and_takes_medians(monk
     def frames(k, rgb, fps, layout=None):
         return [np.full((4, 4), k, np.uint8)] * (scaling.REST_FRAMES + 3)
 
-    def fake(cal, fps, seconds, rgb, frame_list, rest):
-        k = int(frame_list[0][0, 0])  # which contact count's frames the run got
+    def fake(run):
+        k = int(run.frames[0][0, 0])  # which contact count's frames the run got
         calls.append(k)
         return {"main_thread": {"cpu_us_per_frame": cpu[k][calls.count(k) - 1]},
                 "frames_dropped": 0, "latency_us": {"p50": 1, "p99": 2, "max": 3}}

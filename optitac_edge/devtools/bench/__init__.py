@@ -70,7 +70,7 @@ from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.pipeline import single_threaded_opencv
-from optitac_edge.devtools.bench.end_to_end import measure_end_to_end, measure_startup
+from optitac_edge.devtools.bench.end_to_end import EndToEnd, measure_end_to_end, measure_startup
 from optitac_edge.devtools.bench.inputs import load_inputs, machine
 from optitac_edge.devtools.bench.scaling import (
     contact_frames,
@@ -246,10 +246,10 @@ def _end_to_end_section(plan: BenchPlan, cal_path: Path, log: Callable[[str], No
     """The service loop paced at the plan's rate, its packets read from a pty by another process."""
     from optitac_edge.devtools.bench.scaling import REST_FRAMES
 
-    e = measure_end_to_end(cal_path, plan.fps, plan.e2e_seconds, plan.rgb,
-                           contact_frames(plan.e2e_contacts, plan.rgb, plan.fps), REST_FRAMES,
-                           plan.queue_frames, plan.view, lambda url: log(f"  view: {url}"),
-                           publish=plan.publish)
+    e = measure_end_to_end(EndToEnd(cal_path, plan.fps, plan.e2e_seconds, plan.rgb,
+                                    contact_frames(plan.e2e_contacts, plan.rgb, plan.fps), REST_FRAMES,
+                                    plan.queue_frames, plan.view, lambda url: log(f"  view: {url}"),
+                                    publish=plan.publish))
     e["contacts_pressed"] = plan.e2e_contacts
     why = ""
     if "frames_dropped_by_pipeline" in e:
@@ -272,8 +272,9 @@ def _patches_end_to_end_section(plan: BenchPlan, log: Callable[[str], None]) -> 
 
     pw, ph = plan.patch_frame
     pipes, patch_rest, patch_presses = patch_pipelines(plan.patches, pw, ph)
-    pe = measure_end_to_end(None, plan.fps, plan.e2e_seconds, False, patch_rest + patch_presses, len(patch_rest),
-                            plan.queue_frames, bundles=[p.bundle for p in pipes], publish=plan.publish)
+    pe = measure_end_to_end(EndToEnd(None, plan.fps, plan.e2e_seconds, False, patch_rest + patch_presses,
+                                     len(patch_rest), plan.queue_frames, bundles=[p.bundle for p in pipes],
+                                     publish=plan.publish))
     pe["patches"], pe["frame_size"] = plan.patches, list(plan.patch_frame)
     log(f"  end to end, {plan.patches} patches on one {pw}x{ph} camera @ {plan.fps} fps, "
         f"{plan.e2e_seconds} s: {pe['frames']} frames, dropped {pe['frames_dropped']}"

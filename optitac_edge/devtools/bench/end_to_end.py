@@ -10,6 +10,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,77 +21,67 @@ from optitac_edge.devtools.bench.replay_camera import drop_causes, paced_replay_
 from optitac_edge.devtools.bench.samples import summary
 
 
-def measure_end_to_end(cal: Path | None, fps: float, seconds: float, rgb: bool,  # noqa: PLR0913
-                       frames: list[np.ndarray] | None = None, rest: int = 10,
-                       queue_frames: int | None = None, view: str | None = None,
-                       on_view: Any = None, bundles: list[Any] | None = None,
-                       publish: bool = False) -> dict[str, Any]:
-    """The service loop paced at ``fps`` into a pty, read by a separate process.
+@dataclass(frozen=True)
+class EndToEnd:
+    """One end-to-end run: the service loop paced at ``fps`` for ``seconds`` into a pty.
 
-    With ``frames``, the camera replays them (pre-rendered, see ``paced_replay_camera``);
-    otherwise it is the live simulated camera (rendering ~1 ms a frame in its own thread).
-    ``queue_frames`` overrides the sim board's ``camera.queue_frames``. With ``view``
-    (``HOST:PORT``) the live view is served during the run (``on_view`` gets its URL),
-    so the cost of a browser on it is in the figures. With ``bundles`` (instead of ``cal``)
-    the camera reads one sensor per bundle (patches of one frame, ids 1, 2, ...), as a board
-    with several sensors on one camera runs. With ``publish`` every sensor's contacts, status
-    and signal also go on Zenoh to a subscriber process and into an MCAP file
-    (:mod:`optitac_edge.devtools.bench.network`).
+    With ``frames``, the camera replays them (pre-rendered, see ``paced_replay_camera``; the first
+    ``rest`` contact-free); otherwise it is the live simulated camera (rendering ~1 ms a frame in its
+    own thread). ``queue_frames`` overrides the sim board's ``camera.queue_frames``. With ``view``
+    (``HOST:PORT``) the live view is served during the run (``on_view`` gets its URL), so the cost of
+    a browser on it is in the figures. With ``bundles`` (instead of ``cal``) the camera reads one
+    sensor per bundle (patches of one frame, ids 1, 2, ...), as a board with several sensors on one
+    camera runs. With ``publish`` every sensor's contacts, status and signal also go on Zenoh to a
+    subscriber process and into an MCAP file (:mod:`optitac_edge.devtools.bench.network`).
     """
+
+    cal: Path | None
+    fps: float
+    seconds: float
+    rgb: bool = False
+    frames: list[np.ndarray] | None = None
+    rest: int = 10
+    queue_frames: int | None = None
+    view: str | None = None
+    on_view: Any = None
+    bundles: list[Any] | None = None
+    publish: bool = False
+
+
+def measure_end_to_end(run: EndToEnd) -> dict[str, Any]:
+    """The service loop of ``run``, its packets read from the pty by a separate process."""
     with tempfile.TemporaryDirectory(prefix="optitac-bench-") as tmp:
-        return _end_to_end(Path(tmp) / "e2e.json", cal, fps, seconds, rgb, frames, rest, queue_frames, view,
-                           on_view, bundles, publish)
+        return _end_to_end(Path(tmp) / "e2e.json", run)
 
 
-def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bool,  # noqa: PLR0913, PLR0915
-                frames: list[np.ndarray] | None, rest: int, queue_frames: int | None, view: str | None,
-                on_view: Any, bundles: list[Any] | None, publish: bool) -> dict[str, Any]:
+def _end_to_end(out: Path, run: EndToEnd) -> dict[str, Any]:
     """:func:`measure_end_to_end`, the reader writing its figures to ``out``."""
     from optitac_edge.config import SensorConfig, load_board_config
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.transports.serial import SerialTransport
     from optitac_edge.service.loop import Service
-    from optitac_edge.sim.camera import SimCamera
 
+    fps, seconds = run.fps, run.seconds
     master, slave, path = open_pty()
+    bundles = run.bundles
     if bundles is None:
-        assert cal is not None, "measure_end_to_end needs cal or bundles"
-        bundles = [load_bundle(cal)]
+        assert run.cal is not None, "measure_end_to_end needs cal or bundles"
+        bundles = [load_bundle(run.cal)]
     bundle = bundles[0]
     overrides: dict[str, Any] = {"camera.fps": fps, "link.transport": "serial", "link.serial_url": path}
-    if queue_frames is not None:
-        overrides["camera.queue_frames"] = queue_frames
+    if run.queue_frames is not None:
+        overrides["camera.queue_frames"] = run.queue_frames
     config = load_board_config("sim", env={}, overrides=overrides)
     reader = start_reader(master, seconds + 3.0, str(out))
     time.sleep(0.5)  # reader up
-    if frames is not None:
-        camera = paced_replay_camera(frames, rest, fps, bundle.fibers.pixel_format, config.camera.queue_frames)
-    else:
-        camera = SimCamera(fps=fps, rgb=bundle.fibers.pixel_format == "rgb", rest_frames=rest, seed=11,
-                           queue_frames=config.camera.queue_frames)
+    camera = _camera(run, bundle.fibers.pixel_format, config.camera.queue_frames)
     transport = SerialTransport(path, baudrate=921600)
     steal0 = steal_jiffies()
-    live = server = net = None
-    net_stats: dict[str, Any] = {}
+    outputs = _Outputs()
     try:
         sensors = [(SensorConfig(id=k + 1, name=f"patch{k + 1}"), b) for k, b in enumerate(bundles)]
         service = Service(config, bundle, camera, transport, sensors=sensors if len(bundles) > 1 else None)
-        if publish:
-            from optitac_edge.devtools.bench.network import BenchNetwork
-            from optitac_edge.service.session import network_sensor
-
-            named = sensors if len(bundles) > 1 else [(config.sensor, bundle)]
-            net = BenchNetwork([network_sensor(s, b) for s, b in named])
-            service.network = net.output
-        if view is not None:
-            from optitac_edge.service.view.live import LiveView
-            from optitac_edge.service.view.server import ViewServer
-
-            live = LiveView(bundle, bundle.fibers.pixel_format)
-            server = ViewServer(live, view)
-            service.view = live
-            if on_view is not None:
-                on_view(server.url)
+        outputs.attach(service, run, sensors if len(bundles) > 1 else [(config.sensor, bundle)])
         stop = threading.Event()
         cpu = MainThreadCpu(warm_frames=int(fps * min(1.0, seconds / 4)))  # from the second second on (short runs: the first quarter)
         stats = service.run(stop, duration_s=seconds, on_result=cpu.on_result)
@@ -99,14 +90,7 @@ def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bo
         transport.wait_idle(1.0)
         t_stats = dict(transport.stats())
     finally:
-        if net is not None:
-            net_stats = net.close()
-        view_stats = {}
-        if server is not None and live is not None:
-            view_stats = {"updates": live.published.seq if live.published else 0, "skipped": live.skipped,
-                          "bad_requests": server.bad_requests}
-            server.close()
-            live.close()
+        outputs.close()
         transport.close()
         camera.close()
         time.sleep(0.2)  # the reader drains the pty
@@ -117,7 +101,7 @@ def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bo
     lat, missing = latencies(data["rows"], data["seqs"])
     s = summary(lat)
     a = summary([r[3] * 1000 for r in data["rows"] if r[3] >= 0])
-    return {"camera": "replayed pre-rendered frames" if frames is not None else "live simulated camera",
+    return {"camera": "replayed pre-rendered frames" if run.frames is not None else "live simulated camera",
             "fps": fps, "seconds": seconds, "queue_frames": config.camera.queue_frames,
             "frames": stats.frames, "sent": stats.sent,
             "received": len(data["rows"]), "frames_dropped": stats.frames_dropped,  # sequence gaps read
@@ -133,8 +117,56 @@ def _end_to_end(out: Path, cal: Path | None, fps: float, seconds: float, rgb: bo
             # the part before the message was filled (camera delivery + processing), from its age field
             "frame_to_fill_us": {"p50": a["median_us"], "p99": a["p99_us"], "max": a["max_us"]},
             "transport": {k: v for k, v in t_stats.items() if isinstance(v, (int, float, str, bool))},
-            **({"view": view_stats} if view is not None else {}),
-            **({"publish": net_stats} if publish else {})}
+            **({"view": outputs.view_stats} if run.view is not None else {}),
+            **({"publish": outputs.net_stats} if run.publish else {})}
+
+
+def _camera(run: EndToEnd, pixel_format: str, queue_frames: int) -> Any:
+    """The run's camera: its frames replayed at its rate, or the live simulated camera."""
+    if run.frames is not None:
+        return paced_replay_camera(run.frames, run.rest, run.fps, pixel_format, queue_frames)
+    from optitac_edge.sim.camera import SimCamera
+
+    return SimCamera(fps=run.fps, rgb=pixel_format == "rgb", rest_frames=run.rest, seed=11, queue_frames=queue_frames)
+
+
+class _Outputs:
+    """The run's network publisher and live view (either may be off), and what they counted once closed."""
+
+    def __init__(self) -> None:
+        self.net: Any = None
+        self.live: Any = None
+        self.server: Any = None
+        self.net_stats: dict[str, Any] = {}
+        self.view_stats: dict[str, Any] = {}
+
+    def attach(self, service: Any, run: EndToEnd, named: list[tuple[Any, Any]]) -> None:
+        if run.publish:
+            from optitac_edge.devtools.bench.network import BenchNetwork
+            from optitac_edge.service.session import network_sensor
+
+            self.net = BenchNetwork([network_sensor(s, b) for s, b in named])
+            service.network = self.net.output
+        if run.view is not None:
+            from optitac_edge.service.view.live import LiveView
+            from optitac_edge.service.view.server import ViewServer
+
+            bundle = named[0][1]
+            self.live = LiveView(bundle, bundle.fibers.pixel_format)
+            self.server = ViewServer(self.live, run.view)
+            service.view = self.live
+            if run.on_view is not None:
+                run.on_view(self.server.url)
+
+    def close(self) -> None:
+        if self.net is not None:
+            self.net_stats = self.net.close()
+        if self.server is not None and self.live is not None:
+            live = self.live
+            self.view_stats = {"updates": live.published.seq if live.published else 0, "skipped": live.skipped,
+                               "bad_requests": self.server.bad_requests}
+            self.server.close()
+            live.close()
 
 
 class MainThreadCpu:

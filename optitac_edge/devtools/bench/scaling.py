@@ -142,13 +142,13 @@ def measure_service_cpu(cal: Path, fps: float, seconds: float, rounds: int, rgb:
     Each pass runs the production loop (:func:`measure_end_to_end`) ``seconds`` long per
     contact count, in the order 1, 0, 2, 4; the figure per count is the median over the passes.
     """
-    from optitac_edge.devtools.bench.end_to_end import measure_end_to_end
+    from optitac_edge.devtools.bench.end_to_end import EndToEnd, measure_end_to_end
 
     frames = {k: contact_frames(k, rgb, fps) for k in CONTACT_COUNTS}
     runs: dict[str, list[dict[str, Any]]] = {str(k): [] for k in CONTACT_COUNTS}
     for r in range(rounds):
         for k in (1, 0, 2, 4):
-            e = measure_end_to_end(cal, fps, seconds, rgb, frames[k], REST_FRAMES)
+            e = measure_end_to_end(EndToEnd(cal, fps, seconds, rgb, frames[k], REST_FRAMES))
             runs[str(k)].append({"main_thread": e["main_thread"], "frames_dropped": e["frames_dropped"],
                                  "latency_us": e["latency_us"]})
             if log is not None and e["main_thread"]:
