@@ -147,7 +147,15 @@ class RecordingWriter:
         size = n_frames if n_frames is not None else keep_frames + _GROW_TIMES
         self._t_ns = np.zeros(size, dtype=np.int64)
         self._stamped = np.zeros(size, dtype=bool)
-        self._store: FrameStore | None = None
+        self._store: FrameStore | None = self._open_store(keep_frames, storage, find_fibers)
+        if keep_frames:
+            assert kept_t_ns is not None
+            self._t_ns[:keep_frames] = kept_t_ns
+            self._stamped[:keep_frames] = True
+
+    def _open_store(self, keep_frames: int, storage: str, find_fibers: FindFibers | None) -> FrameStore:
+        """Make the directory ready (an earlier replacement's leftovers and stale files gone, marked
+        incomplete) and open its frame store, keeping ``keep_frames`` frames of an interrupted recording."""
         try:
             if self.replacing:
                 check_output_path(self.path, directory=True)
@@ -163,18 +171,13 @@ class RecordingWriter:
             self._mark_incomplete("being written")
             if storage == "fibers":
                 assert find_fibers is not None
-                self._store = FiberSumStore(self.path, self.frame_shape, meta.rest_frames, find_fibers,
-                                            keep_frames=keep_frames)
-            elif storage == "raw":
-                self._store = RawFrameStore(self.path, self.frame_shape, n_frames, keep_frames=keep_frames)
-            else:
-                raise ValueError(f"unknown storage {storage!r}")
+                return FiberSumStore(self.path, self.frame_shape, self.meta.rest_frames, find_fibers,
+                                     keep_frames=keep_frames)
+            if storage == "raw":
+                return RawFrameStore(self.path, self.frame_shape, self.n_frames, keep_frames=keep_frames)
+            raise ValueError(f"unknown storage {storage!r}")
         except OSError as exc:
             raise OutputError(f"{self.path}: {exc.strerror or exc}") from None
-        if keep_frames:
-            assert kept_t_ns is not None
-            self._t_ns[:keep_frames] = kept_t_ns
-            self._stamped[:keep_frames] = True
 
     def _mark_incomplete(self, reason: str) -> None:
         (self.path / INCOMPLETE_MARKER).write_text(json.dumps(

@@ -58,6 +58,21 @@ def _import_picamera2() -> Any:
     return picamera2
 
 
+def _check_settings(pixel_format: str, width: int, height: int, fps: float, buffer_count: int,
+                    timeout_s: float) -> None:
+    """Refuse settings the camera cannot take, before it is opened (one line naming the setting)."""
+    if pixel_format not in ("gray", "yuv420"):
+        raise CameraError(f"picamera2: pixel_format must be 'gray' or 'yuv420', not {pixel_format!r}")
+    if width <= 0 or height <= 0 or width % 2 or height % 2:
+        raise CameraError(f"picamera2: frame size must be positive and even, not {width}x{height}")
+    if not fps > 0:
+        raise CameraError(f"picamera2: fps must be > 0, not {fps}")
+    if buffer_count < 3:
+        raise CameraError(f"picamera2: buffer_count must be >= 3, not {buffer_count}")
+    if not timeout_s > 0:
+        raise CameraError(f"picamera2: timeout_s must be > 0, not {timeout_s}")
+
+
 class Picamera2Camera(Camera):
     """A Raspberry Pi camera (libcamera) read through picamera2.
 
@@ -140,16 +155,7 @@ class Picamera2Camera(Camera):
         queue_frames: int = 4,
     ) -> None:
         super().__init__()
-        if pixel_format not in ("gray", "yuv420"):
-            raise CameraError(f"picamera2: pixel_format must be 'gray' or 'yuv420', not {pixel_format!r}")
-        if width <= 0 or height <= 0 or width % 2 or height % 2:
-            raise CameraError(f"picamera2: frame size must be positive and even, not {width}x{height}")
-        if not fps > 0:
-            raise CameraError(f"picamera2: fps must be > 0, not {fps}")
-        if buffer_count < 3:
-            raise CameraError(f"picamera2: buffer_count must be >= 3, not {buffer_count}")
-        if not timeout_s > 0:
-            raise CameraError(f"picamera2: timeout_s must be > 0, not {timeout_s}")
+        _check_settings(pixel_format, width, height, fps, buffer_count, timeout_s)
         self.pixel_format = pixel_format
         self.width, self.height, self.fps = int(width), int(height), float(fps)
         self._period_ns = 1e9 / self.fps
