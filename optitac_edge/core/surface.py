@@ -142,6 +142,42 @@ class DenseSurface:
         return np.matmul(self.matrix, values, out=out)
 
 
+def _by_triangle(cols: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh cells grouped by the triangle (the 9 columns) they are evaluated from.
+
+    Parameters
+    ----------
+    cols : ndarray, shape (n*n, 9), intp
+        Each cell's columns of the vertex terms.
+    wts : ndarray, shape (n*n, 9), float32
+        Each cell's weights (all 0: a cell outside the array, never evaluated).
+
+    Returns
+    -------
+    tri_cols : ndarray, shape (T, 9)
+        Each triangle's columns.
+    cells : ndarray, shape (max(T, 1), P), intp
+        Each triangle's cells, padded with copies of its first (which write the same value twice).
+    weights : ndarray, shape (max(T, 1), P, 9), float32
+        Their weights.
+    """
+    live = np.flatnonzero(np.any(wts != 0.0, axis=1))
+    tri_cols, tri_of = np.unique(cols[live], axis=0, return_inverse=True)
+    tri_of = tri_of.ravel()
+    order = np.argsort(tri_of, kind="stable")
+    counts = np.bincount(tri_of, minlength=len(tri_cols))
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    n_tri, width = len(tri_cols), int(counts.max(initial=1))
+    cells = np.zeros((max(n_tri, 1), width), dtype=np.intp)
+    weights = np.zeros((max(n_tri, 1), width, CELL_TERMS), dtype=np.float32)
+    for t in range(n_tri):
+        members = live[order[starts[t]:starts[t + 1]]]
+        padded = np.concatenate([members, np.repeat(members[:1], width - members.size)])
+        cells[t] = padded
+        weights[t] = wts[padded]
+    return tri_cols, cells, weights
+
+
 class TriangleSurface:
     """The surface from :class:`SurfaceFactors`, triangle by triangle, only where it can exceed a level.
 
@@ -191,23 +227,10 @@ class TriangleSurface:
         self._value_op = np.ascontiguousarray(op[self._value_rows])
         self._value_buf = np.zeros(self._value_rows.size, dtype=np.float32)
         self._grad_op = np.ascontiguousarray(op[n_f:])
-        cols, wts = factors.cell_columns, factors.cell_weights
-        live = np.flatnonzero(np.any(wts != 0.0, axis=1))
-        tri_cols, tri_of = np.unique(cols[live], axis=0, return_inverse=True)
-        tri_of = tri_of.ravel()
-        order = np.argsort(tri_of, kind="stable")
-        counts = np.bincount(tri_of, minlength=len(tri_cols))
-        starts = np.concatenate([[0], np.cumsum(counts)])
+        tri_cols, cells, weights = _by_triangle(factors.cell_columns, factors.cell_weights)
         #: Triangles (T) and the most cells of one (P).
         self.n_triangles = n_tri = len(tri_cols)
-        self.width = width = int(counts.max(initial=1))
-        cells = np.zeros((max(n_tri, 1), width), dtype=np.intp)
-        weights = np.zeros((max(n_tri, 1), width, CELL_TERMS), dtype=np.float32)
-        for t in range(n_tri):
-            members = live[order[starts[t]:starts[t + 1]]]
-            padded = np.concatenate([members, np.repeat(members[:1], width - members.size)])
-            cells[t] = padded
-            weights[t] = wts[padded]
+        self.width = width = cells.shape[1]
         self._tri_cols = np.ascontiguousarray(tri_cols, dtype=np.intp).reshape(n_tri, CELL_TERMS)
         # weights term-major per triangle, (T, 9, P): the product is a row of 9 terms times (9, P),
         # which numpy's stacked matmul does ~3x faster than (P, 9) times a column
