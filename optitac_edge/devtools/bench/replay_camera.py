@@ -10,6 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from optitac_edge.errors import CameraError
+from optitac_edge.io.cameras.base import Camera, CapturedFrame
+
 
 def dropped_in_stall(now_ns: int, due_ns: int, dropped_published_ns: int, period_ns: float) -> bool:
     """Whether a frame pushed out of the replay camera's queue at ``now_ns`` was lost to a process stall.
@@ -24,80 +27,81 @@ def dropped_in_stall(now_ns: int, due_ns: int, dropped_published_ns: int, period
     return now_ns - due_ns >= period_ns or now_ns - dropped_published_ns < period_ns / 2
 
 
-def paced_replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format: str,
-                   queue_frames: int) -> Any:
-    """A camera delivering pre-rendered frames at ``fps`` from a capture thread (see PacedReplayCamera)."""
-    from optitac_edge.errors import CameraError
-    from optitac_edge.io.cameras.base import Camera, CapturedFrame
+class PacedReplayCamera(Camera):
+    """Frames (rest first, then the rest cycled) published at ``k / fps`` by a capture thread.
 
-    class PacedReplayCamera(Camera):
-        """Frames (rest first, then the rest cycled) published at ``k / fps`` by a capture thread.
+    The thread starts at the loop's first read, so the rest frames reach the
+    baseline however long the service takes to be built (a run whose first
+    frames were lost would take its baseline over presses and measure another
+    workload). It queues each frame, stamped when published, as the hardware
+    backends' frame ring does: up to ``queue_frames`` wait, and when one more
+    comes the oldest is dropped (a gap in ``seq``, counted as dropped). Like a
+    camera whose driver delivers by DMA: the source costs the loop nothing, so
+    the loop itself is measured.
+    """
 
-        The thread starts at the loop's first read, so the rest frames reach the
-        baseline however long the service takes to be built (a run whose first
-        frames were lost would take its baseline over presses and measure another
-        workload). It queues each frame, stamped when published, as the hardware
-        backends' frame ring does: up to ``queue_frames`` wait, and when one more
-        comes the oldest is dropped (a gap in ``seq``, counted as dropped). Like a
-        camera whose driver delivers by DMA: the source costs the loop nothing, so
-        the loop itself is measured.
-        """
+    def __init__(self, frames: list[np.ndarray], rest: int, fps: float, pixel_format: str,
+                 queue_frames: int) -> None:
+        super().__init__()
+        h, w = frames[0].shape[:2]
+        self.pixel_format, self.fps = pixel_format, fps
+        self.height, self.width = (h * 2 // 3, w) if pixel_format == "yuv420" else (h, w)
+        self._frames, self._rest, self._queue_frames = frames, rest, queue_frames
+        self._waiting: deque[CapturedFrame] = deque()
+        #: (seq, stalled) of each frame dropped from the queue (the loop had not taken it when
+        #: ``queue_frames`` newer ones came), see :func:`dropped_in_stall`
+        self.overwritten: list[tuple[int, bool]] = []
+        #: (seq, ns late) of each frame the capture thread published a period or more late
+        self.stalls: list[tuple[int, int]] = []
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._capture, name="bench-capture", daemon=True)
 
-        def __init__(self) -> None:
-            super().__init__()
-            h, w = frames[0].shape[:2]
-            self.pixel_format, self.fps = pixel_format, fps
-            self.height, self.width = (h * 2 // 3, w) if pixel_format == "yuv420" else (h, w)
-            self._waiting: deque[CapturedFrame] = deque()
-            #: (seq, stalled) of each frame dropped from the queue (the loop had not taken it when
-            #: ``queue_frames`` newer ones came), see :func:`dropped_in_stall`
-            self.overwritten: list[tuple[int, bool]] = []
-            #: (seq, ns late) of each frame the capture thread published a period or more late
-            self.stalls: list[tuple[int, int]] = []
-            self._cond = threading.Condition()
-            self._stop = threading.Event()
-            self._thread = threading.Thread(target=self._capture, name="bench-capture", daemon=True)
-
-        def _capture(self) -> None:
-            period = 1e9 / fps
-            t0 = time.monotonic_ns()
-            k, seq = len(frames) - rest, 0
-            while not self._stop.is_set():
-                due = t0 + int(seq * period)
+    def _capture(self) -> None:
+        frames, rest = self._frames, self._rest
+        period = 1e9 / self.fps
+        t0 = time.monotonic_ns()
+        k, seq = len(frames) - rest, 0
+        while not self._stop.is_set():
+            due = t0 + int(seq * period)
+            now = time.monotonic_ns()
+            if due > now:
+                time.sleep((due - now) / 1e9)
+            i = seq if seq < len(frames) else rest + (seq - rest) % k
+            with self._cond:
                 now = time.monotonic_ns()
-                if due > now:
-                    time.sleep((due - now) / 1e9)
-                i = seq if seq < len(frames) else rest + (seq - rest) % k
-                with self._cond:
-                    now = time.monotonic_ns()
-                    if now - due >= period:
-                        self.stalls.append((seq + 1, now - due))
-                    if len(self._waiting) == queue_frames:
-                        old = self._waiting.popleft()
-                        self.overwritten.append((old.seq, dropped_in_stall(now, due, old.t_ns, period)))
-                    self._waiting.append(CapturedFrame(frames[i], now, seq + 1))
-                    self._cond.notify_all()
-                seq += 1
+                if now - due >= period:
+                    self.stalls.append((seq + 1, now - due))
+                if len(self._waiting) == self._queue_frames:
+                    old = self._waiting.popleft()
+                    self.overwritten.append((old.seq, dropped_in_stall(now, due, old.t_ns, period)))
+                self._waiting.append(CapturedFrame(frames[i], now, seq + 1))
+                self._cond.notify_all()
+            seq += 1
 
-        def _read_internal(self, timeout_s: float) -> CapturedFrame:
-            deadline = time.monotonic() + timeout_s
-            with self._cond:
-                if self._thread.ident is None and not self._stop.is_set():
-                    self._thread.start()
-                while not self._waiting:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise CameraError("replay camera: no frame in time")
-                    self._cond.wait(left)
-                return self._waiting.popleft()
+    def _read_internal(self, timeout_s: float) -> CapturedFrame:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            if self._thread.ident is None and not self._stop.is_set():
+                self._thread.start()
+            while not self._waiting:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise CameraError("replay camera: no frame in time")
+                self._cond.wait(left)
+            return self._waiting.popleft()
 
-        def _close_internal(self) -> None:
-            with self._cond:
-                self._stop.set()
-            if self._thread.ident is not None:
-                self._thread.join(timeout=1.0)
+    def _close_internal(self) -> None:
+        with self._cond:
+            self._stop.set()
+        if self._thread.ident is not None:
+            self._thread.join(timeout=1.0)
 
-    return PacedReplayCamera()
+
+def paced_replay_camera(frames: list[np.ndarray], rest: int, fps: float, pixel_format: str,
+                        queue_frames: int) -> PacedReplayCamera:
+    """A camera delivering pre-rendered frames at ``fps`` from a capture thread (see :class:`PacedReplayCamera`)."""
+    return PacedReplayCamera(frames, rest, fps, pixel_format, queue_frames)
 
 
 def steal_jiffies() -> int:
