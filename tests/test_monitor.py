@@ -106,8 +106,7 @@ def _monitor_the_service(commands: list[str], duration_s: float, every: bool = F
     lines: list[str] = []
     try:
         os.read(master, 65536) if select.select([master], [], [], 15)[0] else None  # the service is up
-        mon = monitor_serial(path, 921600, duration_s, commands, lines.append, every=every,
-                             serial_port=MasterEnd(master))
+        mon = monitor_serial(MasterEnd(master), duration_s, commands, lines.append, every=every)
     finally:
         service.terminate()
         service.wait(timeout=10)

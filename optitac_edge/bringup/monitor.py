@@ -190,12 +190,8 @@ class SerialMonitor:
                 f"version {c.version}, overflow {c.overflow}, payload {self.tally.bad_payloads}")
 
 
-def monitor_serial(port: str, baudrate: int, duration_s: float | None, commands: list[str],  # noqa: PLR0913
-                   say: Callable[[str], None], every: bool = False, period_s: float = 1.0,
-                   stop: threading.Event | None = None, serial_port: Any = None) -> SerialMonitor:
-    """Read the serial link until ``duration_s`` (or ``stop``), printing a summary every ``period_s``.
-
-    ``commands`` (typed as :data:`COMMAND_HELP`) are sent at the start; ``every`` prints each message.
+def open_monitor_port(port: str, baudrate: int) -> Any:
+    """The MCU's end of the serial link, for :func:`monitor_serial` (refused while another process holds it).
 
     Raises
     ------
@@ -204,12 +200,20 @@ def monitor_serial(port: str, baudrate: int, duration_s: float | None, commands:
     """
     import serial
 
+    try:
+        return serial.serial_for_url(port, baudrate=baudrate, timeout=0.05, exclusive=True)
+    except (serial.SerialException, ValueError, OSError) as exc:
+        raise TransportError(f"monitor: cannot open {port} ({exc})") from None
+
+
+def monitor_serial(serial_port: Any, duration_s: float | None, commands: list[str], say: Callable[[str], None],
+                   every: bool = False, period_s: float = 1.0, stop: threading.Event | None = None) -> SerialMonitor:
+    """Read the serial link ``serial_port`` (:func:`open_monitor_port`; closed at the end) until ``duration_s``
+    (or ``stop``), printing a summary every ``period_s``.
+
+    ``commands`` (typed as :data:`COMMAND_HELP`) are sent at the start; ``every`` prints each message.
+    """
     frames = [command_frame(text, seq) for seq, text in enumerate(commands, start=1)]
-    if serial_port is None:
-        try:
-            serial_port = serial.serial_for_url(port, baudrate=baudrate, timeout=0.05, exclusive=True)
-        except (serial.SerialException, ValueError, OSError) as exc:
-            raise TransportError(f"monitor: cannot open {port} ({exc})") from None
     mon = SerialMonitor()
 
     def poll() -> list[str]:

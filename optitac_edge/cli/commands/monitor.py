@@ -26,7 +26,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from optitac_edge.bringup.monitor import command_frame, monitor_can, monitor_serial
+    from optitac_edge.bringup.monitor import command_frame, monitor_can, monitor_serial, open_monitor_port
 
     def say(line: str) -> None:
         print(line, flush=True)
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     if args.serial is not None:
         for text in args.send:
             command_frame(text, 0)  # refuse a bad command before opening anything
-        monitor_serial(args.serial, args.baud, args.duration, args.send, say, every=args.all)
+        monitor_serial(open_monitor_port(args.serial, args.baud), args.duration, args.send, say, every=args.all)
     else:
         if args.send:
             raise OptiTacError("protocol v1 carries no commands on CAN: --send needs --serial")
