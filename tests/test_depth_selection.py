@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optitac_edge.calibration.depth_fit import MIN_SELECTION_PRESSES, held_out, select_feature
+from optitac_edge.calibration.depth_fit import MIN_SELECTION_PRESSES, Presses, held_out, select_feature
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.depth_model import DEPTH_FEATURES, GAIN_EXPONENT, depth_feature
 
@@ -52,7 +52,7 @@ def test_the_held_out_error_measures_the_noise_of_presses_the_fit_never_saw():
     while the fit's own error is smaller (it partly fits the noise)."""
     depth, rho2, rng = _presses(reps=14)
     noisy = depth + 0.1 * rng.standard_normal(depth.size)
-    c = held_out(depth * 3.0, rho2 * 0.0, noisy, 12.0, depth, np.ones_like(depth), np.arange(depth.size),
+    c = held_out(depth * 3.0, Presses(rho2 * 0.0, noisy, depth, np.ones_like(depth), np.arange(depth.size)), 12.0,
                  exponent=0.0)
     assert 0.08 < c.heldout_rmse < 0.13 and 0.0 < c.heldout_spread < 0.05
 

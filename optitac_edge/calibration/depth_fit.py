@@ -174,20 +174,38 @@ def predict(model: RadialMonotoneMap, feature: np.ndarray, rho2: np.ndarray) -> 
     return np.array([model(float(f), float(x), 0.0) for f, x in zip(feature, r)])
 
 
-def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_mm: float, level: np.ndarray,  # noqa: PLR0913
-             weight: np.ndarray, groups: np.ndarray, exponent: float, drift: float = RESPONSE_DRIFT,
+@dataclass(frozen=True, eq=False)
+class Presses:
+    """What a depth or force model is fitted to, per press: arrays of shape (P,) (see :func:`fit_radial_monotone`).
+
+    ``rho2``: squared radius over the array's; ``target``: the depth (mm) or force (N); ``level``: the press's
+    depth, for the monotone map's order; ``weight``: its frames; ``groups``: the press each row belongs to.
+    """
+
+    rho2: np.ndarray
+    target: np.ndarray
+    level: np.ndarray
+    weight: np.ndarray
+    groups: np.ndarray
+
+
+def held_out(feature: np.ndarray, p: Presses, radius_mm: float, exponent: float, drift: float = RESPONSE_DRIFT,
              folds: int = MAX_FOLDS, name: str = "") -> Candidate:
-    """One candidate's held-out error: ``GroupKFold`` over ``groups`` (one group per press).
+    """One candidate's held-out error: ``GroupKFold`` over ``p.groups`` (one group per press).
 
     Parameters
     ----------
-    feature, rho2, target, level, weight, groups : ndarray, shape (P,)
-        Per press (see :func:`fit_radial_monotone`); ``groups``: the press each row belongs to.
+    feature : ndarray, shape (P,)
+        The candidate input, per press.
+    p : Presses
+    radius_mm : float
+        The array's radius.
     exponent : float
         How the feature scales with the skin's response (``GAIN_EXPONENT``).
     drift : float
         The response change the drift term assumes.
     """
+    rho2, target, level, weight = p.rho2, p.target, p.level, p.weight
     moved: list[np.ndarray] = []
 
     def error(train: np.ndarray, test: np.ndarray) -> np.ndarray:
@@ -199,7 +217,7 @@ def held_out(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_m
         return pred - target[test]
 
     try:
-        out = held_out_errors(groups, folds, error)
+        out = held_out_errors(p.groups, folds, error)
     except ValueError:  # a fold that cannot be fitted
         return Candidate(name, float("inf"), float("inf"), float("inf"))
     if not np.isfinite(out.errors).all():
@@ -226,14 +244,14 @@ def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np
         Fewer than :data:`MIN_SELECTION_PRESSES` presses, or no candidate could be fitted.
     """
     folds = fold_count(groups, MIN_SELECTION_PRESSES, "choose the model")
+    presses = Presses(rho2, target, level, weight, groups)
     candidates = []
     for name, value in features.items():
         v = np.asarray(value, dtype=np.float64)
         ok = np.isfinite(v) & (v > 0)
         if not ok.all():  # a candidate that is not defined for every press is not one
             continue
-        candidates.append(held_out(v, rho2, target, radius_mm, level, weight, groups, GAIN_EXPONENT[name],
-                                   drift, folds, name))
+        candidates.append(held_out(v, presses, radius_mm, GAIN_EXPONENT[name], drift, folds, name))
     finite = [c for c in candidates if np.isfinite(c.expected_rmse)]
     if not finite:
         raise ValueError("no candidate model could be fitted on held-out presses")
