@@ -172,7 +172,7 @@ def width_check(bundle: CalibrationBundle, m: Measurements | None = None, truth:
     here = None if report is None else (
         max(report.rmse_major, report.rmse_minor),
         f"{report.rmse_major:.3f} / {report.rmse_minor:.3f} mm here over {report.n} frames")
-    return _model_check("width", ok, seen, fix, worst, here, MAX_WIDTH_RMSE_MM, WIDTH_AGREEMENT_MM,
+    return _model_check(Check("width", ok, seen, fix), worst, here, (MAX_WIDTH_RMSE_MM, WIDTH_AGREEMENT_MM),
                         f"limit {MAX_WIDTH_RMSE_MM} mm")
 
 
@@ -194,19 +194,22 @@ def depth_check(bundle: CalibrationBundle, m: Measurements | None = None, truth:
     report = depth_accuracy(m, truth) if m is not None and truth is not None else None
     here = None if report is None else (report.depth_rmse_mm,
                                         f"{report.depth_rmse_mm:.3f} mm here over {report.n} frames")
-    return _model_check("depth", ok, seen, fix, heldout, here, MAX_DEPTH_RMSE_MM, DEPTH_AGREEMENT_MM,
+    return _model_check(Check("depth", ok, seen, fix), heldout, here, (MAX_DEPTH_RMSE_MM, DEPTH_AGREEMENT_MM),
                         f"limit {MAX_DEPTH_RMSE_MM} mm against commanded depths")
 
 
-def _model_check(name: str, ok: bool, seen: str, fix: str, heldout: float, here: tuple[float, str] | None,  # noqa: PLR0913
-                 limit: float, slack_mm: float, limit_text: str) -> Check:
-    """A model's check from its calibration figures (``ok``, ``seen``) and, when the evaluated recording
-    measured it, the error there (``here``: value, words): within ``limit`` and agreeing with ``heldout``."""
+def _model_check(calibrated: Check, heldout: float, here: tuple[float, str] | None, limits: tuple[float, float],
+                 limit_text: str) -> Check:
+    """A model's check from its calibration figures (``calibrated``) and, when the evaluated recording
+    measured it, the error there (``here``: value, words): within ``limits[0]`` and agreeing with ``heldout``
+    (within :data:`AGREEMENT` times it plus ``limits[1]`` mm)."""
+    ok, seen, fix = calibrated.ok, calibrated.seen, calibrated.fix
     if here is not None:
+        limit, slack_mm = limits
         value, words = here
         agrees = value <= AGREEMENT * heldout + slack_mm
         seen += f", {words}"
         ok = ok and value <= limit and agrees
         if not agrees:
             fix = "the skin responds differently than when calibrated: " + fix
-    return Check(name, ok, f"{seen} ({limit_text})", fix)
+    return Check(calibrated.name, ok, f"{seen} ({limit_text})", fix)
