@@ -80,18 +80,16 @@ def shape_mask(
     return sdf < 0.0
 
 
-def synthetic_features(  # noqa: PLR0913
-    n_per_class: int, seed: int = 0, grid: SurfaceGrid = DEFAULT_GRID,
-    shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
+def synthetic_features(
+    n_per_class: int, seed: int = 0, shapes: tuple[str, ...] = SHAPES, wobble_mm: float = 0.1, hu_noise: float = 0.0,
     size_mm: tuple[float, float] = (4.0, 8.0), blur_mm: float = 0.0, level: float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Labelled shape features ``[log-Hu x 7, q4]`` of random shapes.
+    """Labelled shape features ``[log-Hu x 7, q4]`` of random shapes on :data:`DEFAULT_GRID`.
 
     Parameters
     ----------
     n_per_class : int
     seed : int
-    grid : SurfaceGrid
     shapes : tuple of str
     wobble_mm : float
         Standard deviation of the outline roughness, mm (0: clean rasterisation).
@@ -111,6 +109,7 @@ def synthetic_features(  # noqa: PLR0913
     labels : ndarray, shape (n_per_class * len(shapes),), str
         Class-sorted order.
     """
+    grid = DEFAULT_GRID
     rng = np.random.default_rng(seed)
     period = {"circle": 360.0, "square": 90.0, "triangle": 120.0, "ellipse": 180.0, "edge": 180.0}
     out, labels = [], []
