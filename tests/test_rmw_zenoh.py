@@ -18,10 +18,11 @@ STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f
 
 
 def test_the_design_documents_talker_and_listener_tokens():
-    assert rmw_zenoh.node_token(0, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "", "listener") == \
+    assert rmw_zenoh.node_token(rmw_zenoh.Node(0, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "", "listener")) == \
         "@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
-    token = rmw_zenoh.publisher_token(0, "8b20917502ee955ac4476e0266340d5c", 0, 10, "", "talker", "/chatter",
-                                      "std_msgs::msg::dds_::String_", STRING_HASH, rmw_zenoh.Qos(depth=7))
+    talker = rmw_zenoh.Node(0, "8b20917502ee955ac4476e0266340d5c", 0, "", "talker")
+    token = rmw_zenoh.publisher_token(talker, 10, "/chatter", "std_msgs::msg::dds_::String_", STRING_HASH,
+                                      rmw_zenoh.Qos(depth=7))
     assert token == ("@ros2_lv/0/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
                      "std_msgs::msg::dds_::String_/" + STRING_HASH + "/::,7:,:,:,,")
     assert rmw_zenoh.topic_keyexpr(0, "/chatter", "std_msgs::msg::dds_::String_", STRING_HASH) == \
@@ -33,7 +34,8 @@ def test_namespaces_and_qos_components():
     dds = dds_type_name("optitac_msgs/msg/Contacts")
     h = TYPE_HASHES["optitac_msgs/msg/Contacts"]
     assert rmw_zenoh.topic_keyexpr(3, topic, dds, h) == f"3/robot1/optitac/thumb/contacts/{dds}/{h}"
-    token = rmw_zenoh.publisher_token(3, "1f", 0, 2, "/robot1", "optitac_edge", topic, dds, h, rmw_zenoh.Qos())
+    token = rmw_zenoh.publisher_token(rmw_zenoh.Node(3, "1f", 0, "/robot1", "optitac_edge"), 2, topic, dds, h,
+                                      rmw_zenoh.Qos())
     assert token.split("/") == ["@ros2_lv", "3", "1f", "0", "2", "MP", "%", "%robot1", "optitac_edge",
                                 "%robot1%optitac%thumb%contacts", dds, h, "::,:,:,:,,"]
     best_effort = rmw_zenoh.Qos(reliability=rmw_zenoh.RELIABILITY_BEST_EFFORT, depth=5)

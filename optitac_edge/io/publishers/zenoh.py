@@ -187,19 +187,22 @@ class ZenohPublisher(Publisher):
             return False
         self._session, self.zid, self.failure = session, str(session.zid()), ""
         self._tokens.append(session.liveliness().declare_token(
-            rmw_zenoh.node_token(self.domain_id, self.zid, 0, self.namespace, self.node)))
+            rmw_zenoh.node_token(self._node())))
         for topic, type_name in self._topics:
             self._declare(topic, type_name)
         if self.attempts > 1:
             log.info("Zenoh: session %s open (attempt %d)", self.zid, self.attempts)
         return True
 
+    def _node(self) -> rmw_zenoh.Node:
+        """This session's node (id 0)."""
+        return rmw_zenoh.Node(self.domain_id, self.zid, 0, self.namespace, self.node)
+
     def _declare(self, topic: str, type_name: str) -> None:
         type_hash, dds_type = TYPE_HASHES[type_name], dds_type_name(type_name)
         eid = len(self._publishers) + 1  # entity ids: 0 is the node's
         key = rmw_zenoh.topic_keyexpr(self.domain_id, topic, dds_type, type_hash)
-        token = rmw_zenoh.publisher_token(self.domain_id, self.zid, 0, eid, self.namespace, self.node, topic,
-                                          dds_type, type_hash, TOPIC_QOS)
+        token = rmw_zenoh.publisher_token(self._node(), eid, topic, dds_type, type_hash, TOPIC_QOS)
         publisher = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
         self._tokens.append(self._session.liveliness().declare_token(token))
         self._publishers.append((publisher, rmw_zenoh.entity_gid(token)))

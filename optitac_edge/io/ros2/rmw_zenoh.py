@@ -94,16 +94,32 @@ class Qos:
                 f"{part(self.history, HISTORY_KEEP_LAST)},{part(self.depth, DEFAULT_DEPTH)}:,:,:,,")
 
 
-def node_token(domain_id: int, zid: str, nid: int, namespace: str, node: str, enclave: str = "") -> str:
+@dataclass(frozen=True)
+class Node:
+    """A ROS 2 node as rmw_zenoh names it in liveliness tokens: its domain, session (``zid``), node id,
+    namespace, name and security enclave."""
+
+    domain_id: int
+    zid: str
+    nid: int
+    namespace: str
+    name: str
+    enclave: str = ""
+
+    def prefix(self, eid: int, kind: str) -> str:
+        """The tokens' common start, for entity ``eid`` of ``kind`` (``NN`` the node, ``MP`` a publisher)."""
+        return (f"{ADMIN_SPACE}/{self.domain_id}/{self.zid}/{self.nid}/{eid}/{kind}/{mangle(self.enclave)}/"
+                f"{mangle(self.namespace)}/{self.name}")
+
+
+def node_token(node: Node) -> str:
     """The liveliness token of a node."""
-    return f"{ADMIN_SPACE}/{domain_id}/{zid}/{nid}/{nid}/{NODE}/{mangle(enclave)}/{mangle(namespace)}/{node}"
+    return node.prefix(node.nid, NODE)
 
 
-def publisher_token(domain_id: int, zid: str, nid: int, eid: int, namespace: str, node: str, topic: str,  # noqa: PLR0913
-                    dds_type: str, type_hash: str, qos: Qos, enclave: str = "") -> str:
-    """The liveliness token of a publisher of ``topic`` (fully qualified) on node ``nid``."""
-    return (f"{ADMIN_SPACE}/{domain_id}/{zid}/{nid}/{eid}/{PUBLISHER}/{mangle(enclave)}/{mangle(namespace)}/"
-            f"{node}/{mangle(topic)}/{mangle(dds_type)}/{mangle(type_hash)}/{qos.keyexpr()}")
+def publisher_token(node: Node, eid: int, topic: str, dds_type: str, type_hash: str, qos: Qos) -> str:
+    """The liveliness token of a publisher of ``topic`` (fully qualified), entity ``eid`` of ``node``."""
+    return f"{node.prefix(eid, PUBLISHER)}/{mangle(topic)}/{mangle(dds_type)}/{mangle(type_hash)}/{qos.keyexpr()}"
 
 
 def entity_gid(token: str) -> bytes:
