@@ -66,7 +66,7 @@ def _recording(tmp_path, n=12) -> object:
     with RecordingWriter(path, n, (48, 64), RecordingMeta(rest_frames=5, fps=30.0), with_truth=True) as w:
         for i in range(n):
             w.write(i, np.full((48, 64), 120, np.uint8))
-            w.write_truth(i, False)
+            w.write_truth(i, None)
     return path
 
 

@@ -126,7 +126,7 @@ def test_calibrate_centroid_refuses_a_wrong_orientation_and_says_how_to_fix_it(p
 
 def test_calibrate_orientation_refuses_presses_that_cannot_tell(tmp_path, capsys) -> None:
     from optitac_edge.io.recording import RecordingMeta
-    from optitac_edge.io.recording_writer import RecordingWriter
+    from optitac_edge.io.recording_writer import Press, RecordingWriter
     from optitac_edge.sim.sensor import SimulatedSensor
     from optitac_edge.sim.skin import Indenter
 
@@ -138,7 +138,7 @@ def test_calibrate_orientation_refuses_presses_that_cannot_tell(tmp_path, capsys
         for i in range(30):
             pressed = i >= 20
             w.write(i, sensor.frame((press,) if pressed else ()))
-            w.write_truth(i, pressed, "circle", 0.0, 0.0, 0.0, 5.0, 3.0)
+            w.write_truth(i, Press("circle", 0.0, 0.0, 0.0, 5.0, 3.0) if pressed else None)
     rec = Recording(rec_path)
     cal = tmp_path / "cal.npz"
     save_bundle(calibrate_fibers(rec.rest_frames(), rec.pixel_format), cal)

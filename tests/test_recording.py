@@ -5,7 +5,7 @@ import pytest
 
 from optitac_edge.errors import RecordingError
 from optitac_edge.io.recording import Recording, RecordingMeta
-from optitac_edge.io.recording_writer import RecordingWriter
+from optitac_edge.io.recording_writer import Press, RecordingWriter
 
 
 def _write(path, n=8, shape=(12, 16), rest=5, truth=True):
@@ -15,9 +15,9 @@ def _write(path, n=8, shape=(12, 16), rest=5, truth=True):
             w.write(i, np.full(shape, i, dtype=np.uint8))
             if truth:
                 if i < rest:
-                    w.write_truth(i, False)
+                    w.write_truth(i, None)
                 else:
-                    w.write_truth(i, True, "circle", 1.0, -2.0, 0.0, 5.0, 3.0)
+                    w.write_truth(i, Press("circle", 1.0, -2.0, 0.0, 5.0, 3.0))
     return path
 
 

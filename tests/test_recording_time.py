@@ -9,7 +9,7 @@ import pytest
 
 from optitac_edge.errors import RecordingError
 from optitac_edge.io.recording import TIMESTAMPS, Recording, RecordingMeta
-from optitac_edge.io.recording_writer import RecordingWriter
+from optitac_edge.io.recording_writer import Press, RecordingWriter
 
 META = RecordingMeta(rest_frames=5, fps=50.0)
 
@@ -69,10 +69,10 @@ def test_an_interrupted_open_ended_recording_continues_after_its_kept_frames(tmp
     with RecordingWriter(path, None, (6, 8), META, with_truth=True, keep_frames=kept,
                          kept_t_ns=np.arange(1000, 1000 + kept)) as w:
         for i in range(kept):
-            w.write_truth(i, False)
+            w.write_truth(i, None)
         for i in range(kept, 50):
             w.write(i, np.full((6, 8), 100 + i, np.uint8), 5000 + i)
-            w.write_truth(i, False)
+            w.write_truth(i, None)
     rec = Recording(path)
     assert len(rec) == 50 and len(rec.truth) == 50
     assert [int(rec.frames[i][0, 0]) for i in (0, 29, 30, 49)] == [0, 29, 130, 149]
@@ -95,8 +95,8 @@ def test_rig_columns_keep_every_pose_and_score_only_rest_and_hold(tmp_path):
         for i, phase in enumerate(phases):
             w.write(i, np.zeros((6, 8), np.uint8), i)
             pressed = phase in ("approach", "hold", "release")
-            w.write_truth(i, pressed, "circle", 1.0, 2.0, float("nan"), 5.0, 3.0 if phase == "hold" else 1.0,
-                          phase=phase, rig_xyz_mm=(100.0, 50.0 + i, -3.0 if pressed else 2.0))
+            press = Press("circle", 1.0, 2.0, float("nan"), 5.0, 3.0 if phase == "hold" else 1.0) if pressed else None
+            w.write_truth(i, press, phase=phase, rig_xyz_mm=(100.0, 50.0 + i, -3.0 if pressed else 2.0))
     rec = Recording(tmp_path / "r")
     assert rec.truth is not None and rec.rig_poses is not None
     assert rec.truth.frame.tolist() == [0, 1, 3, 4] and rec.truth.depth_mm[2] == 3.0
@@ -109,7 +109,7 @@ def test_an_unknown_phase_is_refused(tmp_path):
     with RecordingWriter(tmp_path / "r", 6, (6, 8), META, rig_columns=True) as w:
         for i in range(6):
             w.write(i, np.zeros((6, 8), np.uint8))
-            w.write_truth(i, False, phase="rest", rig_xyz_mm=(0.0, 0.0, 5.0))
+            w.write_truth(i, None, phase="rest", rig_xyz_mm=(0.0, 0.0, 5.0))
     text = (tmp_path / "r" / "truth.csv").read_text().replace("rest", "wobble", 1)
     (tmp_path / "r" / "truth.csv").write_text(text)
     with pytest.raises(RecordingError, match="line 2: unknown phase 'wobble'"):

@@ -15,7 +15,7 @@ from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.errors import CameraError, RigError
 from optitac_edge.io.cameras.base import Camera
-from optitac_edge.io.recording_writer import RecordingWriter
+from optitac_edge.io.recording_writer import Press, RecordingWriter
 from optitac_edge.io.rigs.base import STOPPED_STATES, Rig, RigStatus
 
 
@@ -107,11 +107,9 @@ class RigRecorder:
         """Write truth rows into the recording (kept ones of an interrupted collection, or a step's)."""
         for row in rows:
             xyz = (float(row["rig"][0]), float(row["rig"][1]), float(row["rig"][2]))
-            if row.get("contact"):
-                self.writer.write_truth(row["frame"], True, row["shape"], row["x"], row["y"], row["angle"],
-                                        row["size"], row["depth"], phase=row["phase"], rig_xyz_mm=xyz)
-            else:
-                self.writer.write_truth(row["frame"], False, phase=row["phase"], rig_xyz_mm=xyz)
+            press = Press(row["shape"], row["x"], row["y"], row["angle"], row["size"], row["depth"]) \
+                if row.get("contact") else None
+            self.writer.write_truth(row["frame"], press, phase=row["phase"], rig_xyz_mm=xyz)
 
     def commit(self, journal: Path, entry: dict[str, Any], new: bool = False) -> None:
         """End a step: its rows written, its frames durable, then its journal line (``entry`` with the step's

@@ -10,8 +10,9 @@ import csv
 import json
 import math
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -44,6 +45,36 @@ if TYPE_CHECKING:
 
 #: The frame times are kept in memory this many at a time more (open-ended writers).
 _GROW_TIMES = 4096
+
+
+class PressTruth(Protocol):
+    """What a truth row says of a press, in the sensor's frame (the simulator's ``Indenter`` has it, as
+    :class:`Press` does)."""
+
+    @property
+    def shape(self) -> str: ...
+    @property
+    def x_mm(self) -> float: ...
+    @property
+    def y_mm(self) -> float: ...
+    @property
+    def angle_deg(self) -> float: ...
+    @property
+    def size_mm(self) -> float: ...
+    @property
+    def depth_mm(self) -> float: ...
+
+
+@dataclass(frozen=True)
+class Press:
+    """A press's truth: shape, centre (mm), angle (degrees; NaN: none), size and depth (mm)."""
+
+    shape: str
+    x_mm: float
+    y_mm: float
+    angle_deg: float
+    size_mm: float
+    depth_mm: float
 
 
 class RecordingWriter:
@@ -242,32 +273,21 @@ class RecordingWriter:
             self.abort(f"failed: {exc}")
             raise
 
-    def write_truth(  # noqa: PLR0913
-        self,
-        frame: int,
-        contact: bool,
-        shape: str = "",
-        x_mm: float = math.nan,
-        y_mm: float = math.nan,
-        angle_deg: float = math.nan,
-        size_mm: float = math.nan,
-        depth_mm: float = math.nan,
-        phase: str = "",
-        rig_xyz_mm: tuple[float, float, float] | None = None,
-        force_n: float = math.nan,
-    ) -> None:
-        """Add the truth row of ``frame``; with ``rig_columns`` also its ``phase`` and the rig's pose,
-        with ``force_column`` the force (N; NaN: none)."""
+    def write_truth(self, frame: int, press: PressTruth | None, phase: str = "",
+                    rig_xyz_mm: tuple[float, float, float] | None = None, force_n: float = math.nan) -> None:
+        """Add the truth row of ``frame``: the ``press`` on it (None: no contact); with ``rig_columns`` also its
+        ``phase`` and the rig's pose, with ``force_column`` the force (N; NaN: none)."""
         if self._truth_rows is None:
             raise ValueError("writer was opened without truth")
         if self._rig and (phase not in PHASES or rig_xyz_mm is None):
             raise ValueError(f"a rig row needs a phase in {PHASES} and the rig's pose")
 
         def cell(v: float) -> str:
-            return "" if not contact or math.isnan(v) else f"{v:.4f}"
+            return "" if math.isnan(v) else f"{v:.4f}"
 
-        row = [str(frame), str(int(contact)), shape if contact else "",
-               *(cell(v) for v in (x_mm, y_mm, angle_deg, size_mm, depth_mm))]
+        row = [str(frame), "0", "", "", "", "", "", ""] if press is None else [
+            str(frame), "1", press.shape,
+            *(cell(v) for v in (press.x_mm, press.y_mm, press.angle_deg, press.size_mm, press.depth_mm))]
         if self._rig and rig_xyz_mm is not None:
             row += [phase, *(f"{v:.4f}" for v in rig_xyz_mm)]
         if self._force:

@@ -452,9 +452,5 @@ def _render(writer: RecordingWriter, sensor: SimulatedSensor, plan: list[Frame],
         if patch is not None:
             frame = patch.paste(frame)
         writer.write(i, frame, round(i * 1e9 / FPS))
-        if press is None:
-            writer.write_truth(i, False)
-        else:
-            writer.write_truth(i, True, press.shape, press.x_mm, press.y_mm, press.angle_deg, press.size_mm,
-                               press.depth_mm, force_n=force)
+        writer.write_truth(i, press, force_n=math.nan if press is None else force)
     return real_depths
