@@ -77,7 +77,7 @@ def test_the_gain_reference_does_not_follow_an_estimate_it_held(sensor_and_bundl
     sensor, bundle = sensor_and_bundle
     pipe = Pipeline(bundle)
     _run(pipe, sensor, [("held", _press(0.0, 0.0), 120), ("released", (), 2)])
-    g = pipe.gain_compensation
+    g = pipe.led_gain
     assert g is not None and g.frame_gain > 1.2  # the estimate off the released fibers
     assert g.reference == pytest.approx(1.0, abs=0.01) and pipe.gain == pytest.approx(1.0, abs=0.01)
 

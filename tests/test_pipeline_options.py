@@ -344,7 +344,7 @@ def test_a_gain_step_as_a_whole_array_press_lifts_is_a_light_change_not_a_linger
     dim = render(bundle, REST * 0.96)
     got = [pipe.process(dim, (11 + k) * PERIOD).primary.contact for k in range(int(10 / (PERIOD * 1e-9)))]
     assert not any(got)
-    assert pipe.gain_compensation.light_changes == 1 and pipe.gain == pytest.approx(0.96, abs=0.002)
+    assert pipe.led_gain is not None and pipe.led_gain.light_changes == 1 and pipe.gain == pytest.approx(0.96, abs=0.002)
 
 
 def test_gain_compensation_off_in_the_paper_method() -> None:

@@ -45,8 +45,11 @@ CONFIGS = (("gray-217-0", 8, "gray", 0), ("gray-217-1", 8, "gray", 1), ("gray-21
 COUNTED = {"numpy_buffers": "PyDataMem_UserNEW", "mallocs": "malloc"}
 
 
-def driver(bundle_path: str, frames_path: str, rest: int, n: int) -> None:
-    """Run under callgrind: warm up on every frame once, then ``n`` more frames (cycled)."""
+def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str = "compiled", what: str = "service") -> None:
+    """Run under callgrind: warm up on every frame once, then ``n`` more frames (cycled).
+
+    ``backend``: the compiled kernel or the numpy parts; ``what``: the service's work per frame (frame
+    check, pipeline, outbox, encoding) or :meth:`Pipeline.process` alone."""
     import numpy as np
 
     from optitac_edge.core.frame_check import FrameCheck
@@ -57,7 +60,7 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int) -> None:
 
     bundle = load_bundle(bundle_path)
     frames = list(np.load(frames_path))
-    pipe = Pipeline(bundle)
+    pipe = Pipeline(bundle, compiled=backend == "compiled")
     check = FrameCheck(bundle.fibers, frames[0].shape)
     outbox = SensorOutbox(0)
     link = LinkState()
@@ -65,6 +68,9 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int) -> None:
     t = 0
 
     def one(frame: np.ndarray, t_ns: int) -> None:
+        if what == "process":
+            pipe.process(frame, t_ns)
+            return
         check(frame)
         result = pipe.process(frame, t_ns, check.saturated)
         for msg in outbox.update(result, link, True, t_ns):
@@ -106,11 +112,12 @@ def parse(path: Path) -> dict[str, int]:
     return {"instructions": total, **{k: calls.get(v, 0) for k, v in COUNTED.items()}}
 
 
-def run_callgrind(bundle: Path, frames: Path, rest: int, n: int, out: Path) -> dict[str, int]:
+def run_callgrind(bundle: Path, frames: Path, rest: int, n: int, out: Path, backend: str = "compiled",
+                  what: str = "service") -> dict[str, int]:
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     cmd = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", "--dump-instr=no",
            "--compress-strings=yes", "--separate-threads=no", sys.executable, __file__, "--driver",
-           str(bundle), str(frames), str(rest), str(n)]
+           str(bundle), str(frames), str(rest), str(n), backend, what]
     subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return parse(out)
 
@@ -118,13 +125,18 @@ def run_callgrind(bundle: Path, frames: Path, rest: int, n: int, out: Path) -> d
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--driver":
-        driver(argv[1], argv[2], int(argv[3]), int(argv[4]))
+        driver(argv[1], argv[2], int(argv[3]), int(argv[4]), argv[5], argv[6])
         return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "optitac-bench")
     ap.add_argument("--frames", type=int, default=200, help="F: frames of the difference (default 200)")
     ap.add_argument("--json", type=Path, default=Path("callgrind.json"))
     ap.add_argument("--only", default=None, help="comma-separated configuration names")
+    ap.add_argument("--backend", choices=("compiled", "numpy"), default="compiled",
+                    help="the compiled kernel (default) or the numpy pipeline")
+    ap.add_argument("--what", choices=("service", "process"), default="service",
+                    help="the service's work per frame (default: check, pipeline, outbox, encoding) or "
+                         "Pipeline.process alone")
     args = ap.parse_args(argv)
     import numpy as np
 
@@ -148,13 +160,16 @@ def main(argv: list[str] | None = None) -> int:
             frames_path = Path(tmp) / f"{name}.npy"
             np.save(frames_path, np.stack(frames))
             t0 = time.monotonic()
-            a = run_callgrind(bundle, frames_path, REST_FRAMES, args.frames, Path(tmp) / f"{name}-a.out")
-            b = run_callgrind(bundle, frames_path, REST_FRAMES, 2 * args.frames, Path(tmp) / f"{name}-b.out")
+            a = run_callgrind(bundle, frames_path, REST_FRAMES, args.frames, Path(tmp) / f"{name}-a.out",
+                              args.backend, args.what)
+            b = run_callgrind(bundle, frames_path, REST_FRAMES, 2 * args.frames, Path(tmp) / f"{name}-b.out",
+                              args.backend, args.what)
             per = {k: round((b[k] - a[k]) / args.frames, 1) for k in a}
             results[name] = {"fibers": layout.n_fibers, "pixel_format": fmt, "contacts": contacts, **per}
             print(f"{name}: {per['instructions']:,.0f} instructions, {per['numpy_buffers']} numpy buffers, "
                   f"{per['mallocs']} mallocs per frame ({time.monotonic() - t0:.0f} s)", flush=True)
-    args.json.write_text(json.dumps({"frames": args.frames, "configs": results}, indent=1) + "\n")
+    args.json.write_text(json.dumps({"frames": args.frames, "backend": args.backend, "what": args.what,
+                                     "configs": results}, indent=1) + "\n")
     print(f"wrote {args.json}")
     return 0
 

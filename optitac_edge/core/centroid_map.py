@@ -50,6 +50,12 @@ class CentroidErrorMap:
         i = min(max(round(float((y_mm - self.y0_mm) / self.step_mm)), 0), n - 1)
         return x_mm - float(self.error_x[i, j]), y_mm - float(self.error_y[i, j])
 
+    def kernel_arrays(self) -> dict[str, Any]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`)."""
+        return {"cmap_n": self.n, "cmap_x0": float(self.x0_mm), "cmap_y0": float(self.y0_mm),
+                "cmap_step": float(self.step_mm), "cmap_ex": np.ascontiguousarray(self.error_x, dtype=np.float32),
+                "cmap_ey": np.ascontiguousarray(self.error_y, dtype=np.float32)}
+
     def to_bundle(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         meta = {"x0_mm": self.x0_mm, "y0_mm": self.y0_mm, "step_mm": self.step_mm}
         return meta, {"centroid/error_x": self.error_x, "centroid/error_y": self.error_y}

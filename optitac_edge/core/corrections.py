@@ -87,6 +87,19 @@ class ContactCorrector:
             else:
                 raise BundleError(f"unknown shape backend {shape_backend!r} (numpy or onnx)")
 
+    def kernel_arrays(self) -> dict[str, Any] | None:
+        """The models as the compiled kernel reads them (:mod:`optitac_edge.core.compiled`), or None when
+        one is not the kernel's to evaluate (the ONNX shape backend): then this corrector runs in Python."""
+        from optitac_edge.core.shapes.evaluate import ShapeClassifier
+
+        if self.shapes is not None and not isinstance(self.shapes, ShapeClassifier):
+            return None
+        out: dict[str, Any] = {}
+        for model in (self.centroid, self.width, self.depth, self.shapes):
+            if model is not None:
+                out.update(model.kernel_arrays())
+        return out
+
     @property
     def active(self) -> bool:
         return (self.centroid is not None or self.width is not None or self.shapes is not None

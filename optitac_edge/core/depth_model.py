@@ -106,6 +106,11 @@ class RadialMonotoneMap:
         v = self.scaled(float(feature), float(x_mm), float(y_mm))
         return math.nan if math.isnan(v) else self.curve(v)
 
+    def kernel_arrays(self, prefix: str, feature: str) -> dict[str, Any]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`), under ``prefix``."""
+        return {**self.curve.kernel_arrays(prefix), f"{prefix}_feature": DEPTH_FEATURES.index(feature),
+                f"{prefix}_radial": float(self.radial), f"{prefix}_radius_mm": float(self.radius_mm)}
+
     def to_dict(self) -> dict[str, Any]:
         return {"radial": self.radial, "radius_mm": self.radius_mm,
                 "knots_feature": self.curve.knots_measured.tolist(), "knots_target": self.curve.knots_true.tolist()}
@@ -151,6 +156,11 @@ class DepthForceModel:
         x, y = est.x_mm, est.y_mm
         est.depth_mm = self.depth(depth_feature(est, self.feature), x, y)
         est.force_n = math.nan if self.force is None else self.force(depth_feature(est, self.force_feature), x, y)
+
+    def kernel_arrays(self) -> dict[str, Any]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`): the depth map, and the force map."""
+        force = {} if self.force is None else self.force.kernel_arrays("force", self.force_feature)
+        return {**self.depth.kernel_arrays("depth", self.feature), **force}
 
     def to_bundle(self) -> dict[str, Any]:
         return {"feature": self.feature, "depth": self.depth.to_dict(), "force_feature": self.force_feature,

@@ -156,6 +156,17 @@ class FiberSampler:
         self._probe = (np.unique(flat // CACHE_LINE) * CACHE_LINE).astype(np.intp)
         self._probed = np.empty(self._probe.size, dtype=np.uint8)
 
+    def kernel_arrays(self) -> dict[str, np.ndarray | int]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`): the pixels of each fiber
+        (int32, int64 starts), the reciprocal pixel counts and the frame's size."""
+        t = self.table
+        frame_bytes = t.height * t.width * (3 if t.pixel_format == "rgb" else 1)
+        if t.pixel_format == "yuv420":
+            frame_bytes = t.height * 3 // 2 * t.width
+        return {"pixel_index": t.pixel_index.astype(np.int32), "pixel_start": t.pixel_start.astype(np.int64),
+                "inv_count": self._inv_count, "rgb": int(t.pixel_format == "rgb"),
+                "frame_pixels": t.height * t.width, "frame_bytes": frame_bytes}
+
     def means(self, frame: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Mean gray level of each fiber.
 

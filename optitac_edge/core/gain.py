@@ -19,6 +19,8 @@ instead of being reported as a contact over the whole surface.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -27,6 +29,32 @@ from optitac_edge.core.baseline import Baseline
 #: A jump of the brightest cluster's gain is a common-mode change of the light when at least this
 #: fraction of the live fibers agree with the new gain (within the cluster's width).
 COMMON_MODE_FRACTION = 0.6
+
+
+@dataclass(frozen=True)
+class LedGain:
+    """The LED gain compensation's state after a frame (:attr:`Pipeline.led_gain
+    <optitac_edge.core.pipeline.Pipeline.led_gain>`), whichever runs the frames.
+
+    Attributes
+    ----------
+    gain : float
+        The gain the frame was compensated with (relative to the baseline's light).
+    frame_gain : float
+        The frame's own estimate, before the limit.
+    reference : float
+        The last contact-free frame's gain (the limit's centre).
+    reference_ns : int
+        Its time, ns.
+    light_changes : int
+        Common-mode changes of the light taken at once, since the pipeline was built.
+    """
+
+    gain: float
+    frame_gain: float
+    reference: float
+    reference_ns: int
+    light_changes: int
 
 
 class GainCompensation:
@@ -78,6 +106,10 @@ class GainCompensation:
         self._held = False  # the last frame's own estimate was out of the band, and held to it
         #: Common-mode changes of the light taken since construction.
         self.light_changes = 0
+
+    def state(self) -> LedGain:
+        """The state after the last frame."""
+        return LedGain(self.gain, self.frame_gain, self.reference, self.reference_ns, self.light_changes)
 
     def set_levels(self, delta: float, tolerance: float, significant: float) -> None:
         """``delta``: the cluster width (the off level, relative); ``tolerance``: the gain change

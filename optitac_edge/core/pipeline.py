@@ -69,6 +69,7 @@ numpy and OpenCV only; see docs/performance.md.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -78,13 +79,14 @@ import numpy as np
 from optitac_edge.core.baseline import Baseline, BrightFibers
 from optitac_edge.core.blob import BlobMeasurer
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.compiled import FrameKernel, kernel_status
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.contact_finder import ContactFinder
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.frame_result import FrameResult
-from optitac_edge.core.gain import GainCompensation
+from optitac_edge.core.gain import GainCompensation, LedGain
 from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
@@ -127,6 +129,10 @@ class Pipeline:
     options : ContactOptions, optional
         Overrides ``bundle.options`` (e.g. ``ContactOptions.paper()`` or a
         ``dataclasses.replace`` of the bundle's options with one switch flipped).
+    compiled : bool, optional
+        Run the frames in the compiled kernel (:mod:`optitac_edge.core.compiled`):
+        None (default) when it is built, True requires it (ImportError if not
+        built), False the numpy parts (the reference).
 
     Notes
     -----
@@ -136,7 +142,8 @@ class Pipeline:
     contact; use ``result.primary.copy()`` to keep one.
     """
 
-    def __init__(self, bundle: CalibrationBundle, options: ContactOptions | None = None) -> None:
+    def __init__(self, bundle: CalibrationBundle, options: ContactOptions | None = None,
+                 compiled: bool | None = None) -> None:
         self.bundle = bundle
         self.options = o = bundle.options if options is None else options
         table = bundle.fibers
@@ -189,9 +196,18 @@ class Pipeline:
         self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
         self.result = FrameResult(self.contacts, self.tracker.released)
+        #: The compiled kernel running steps 2-10 (None: the numpy parts do).
+        self.kernel: FrameKernel | None = None
         #: Per-contact corrections (centroid error map, width model, shape), or None.
         self.corrector: ContactCorrector | None = None
         self.set_corrector(ContactCorrector(bundle))
+        if compiled or (compiled is None and kernel_status()[0]):
+            self.kernel = FrameKernel(self)
+            self.set_corrector(self.corrector)
+            for c, row in zip(self.contacts, self.kernel.contacts):
+                # the kernel writes each contact's shape features where the estimate keeps them
+                c.hu, c.features = row[8:15], row[8:16]
+                c.hu.fill(np.nan)
 
     # -- state -----------------------------------------------------------------
 
@@ -228,7 +244,19 @@ class Pipeline:
     @property
     def gain(self) -> float:
         """The LED gain relative to the baseline the last frame was compensated with (1 if off)."""
-        return 1.0 if self.gain_compensation is None else self.gain_compensation.gain
+        if self.gain_compensation is None:
+            return 1.0
+        return self.kernel.kernel.gain if self.kernel is not None else self.gain_compensation.gain
+
+    @property
+    def led_gain(self) -> LedGain | None:
+        """The LED gain compensation's state after the last frame (None without ``compensate_gain``)."""
+        if self.gain_compensation is None:
+            return None
+        if self.kernel is None:
+            return self.gain_compensation.state()
+        k = self.kernel.kernel
+        return LedGain(k.gain, k.frame_gain, k.reference, k.reference_ns, k.light_changes)
 
     def set_contact_level(self, on_relative: float | None) -> None:
         """Set the contact-on level, in relative units of the rest light (None: the calibrated one).
@@ -250,12 +278,18 @@ class Pipeline:
         self._contact_end_ns = None
         if self.gain_compensation is not None:
             self.gain_compensation.reset(self.gain_compensation.reference_ns)
+        if self.kernel is not None:
+            self.kernel.kernel.reset_contact()
+            self.kernel.kernel.reset_gain(self.kernel.kernel.reference_ns)
 
     def _levels_changed(self) -> None:
-        self.levels.update(self.baseline.values, self._live)
+        levels = self.levels
+        levels.update(self.baseline.values, self._live)
         if self.gain_compensation is not None:
-            self.gain_compensation.set_levels(self.levels.gain_delta, self.levels.gain_tolerance,
-                                              self.levels.gain_significant)
+            self.gain_compensation.set_levels(levels.gain_delta, levels.gain_tolerance, levels.gain_significant)
+        if self.kernel is not None:
+            self.kernel.kernel.set_levels(levels.trunc, levels.off, levels.on, levels.gain_delta,
+                                          levels.gain_tolerance, levels.gain_significant)
 
     def set_corrector(self, corrector: ContactCorrector | None) -> None:
         """Apply ``corrector`` (the bundle's calibration models) to every contact; None: raw estimates.
@@ -263,6 +297,8 @@ class Pipeline:
         By default the bundle's own models are applied (numpy shape evaluator).
         """
         self.corrector = corrector if corrector is not None and corrector.active else None
+        #: The kernel applies the corrector's models (else they run here, per contact).
+        self._kernel_corrects = self.kernel is not None and self.kernel.use_corrector(self.corrector)
         # centroid and width calibrations are applied to the estimates
         self.result.calibrated = self.corrector is not None and self.corrector.calibrated
 
@@ -300,14 +336,22 @@ class Pipeline:
         self._frame += 1
         dt_ns = 0 if self._last_ns is None else now_ns - self._last_ns
         self._last_ns = now_ns
-        means = self.sampler.means(frame, self._means)
         baseline, gain = self.baseline, self.gain_compensation
+        if self.kernel is not None and baseline.ready:
+            return self._compiled_frame(frame, now_ns, dt_ns)
+        if self.kernel is not None:
+            self.kernel.kernel.means(frame)
+            means = self._means
+        else:
+            means = self.sampler.means(frame, self._means)
 
         if not baseline.ready:
             if baseline.add(means):
                 self._levels_changed()
                 if gain is not None:
                     gain.reset(now_ns)
+                if self.kernel is not None:
+                    self.kernel.kernel.reset_gain(now_ns)
             est.baseline_ready = False
             est.clear()
             self._track(0, est.frame)
@@ -321,6 +365,44 @@ class Pipeline:
         self._track(n, est.frame)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
+
+    def _compiled_frame(self, frame: np.ndarray, now_ns: int, dt_ns: int) -> FrameResult:
+        """Steps 2-10 by the compiled kernel (the baseline is ready); the contacts' corrections and ids here."""
+        fk, result, est = self.kernel, self.result, self._estimate
+        assert fk is not None
+        kern = fk.kernel
+        est.baseline_ready = True
+        n = fk.frame(frame, now_ns, dt_ns)
+        if n == fk.split_needed:  # two presses joined into one blob: the numpy split of the kernel's surface
+            n = self.finder.find(self._surface, est, bool(kern.in_contact), self.corrector)
+            kern.follow(n, now_ns, dt_ns)
+        elif n == 0:
+            est.clear(kern.clear_strength, kern.clear_area)
+        else:
+            self._take_contacts(n, est)
+        result.light_changed = self.gain_compensation is not None and bool(kern.light_changed)
+        self._track(n, est.frame)
+        if kern.raise_pending:
+            result.raised_fibers = self.baseline.raise_to(fk.rest, self._signal, float(self.levels.off), kern.common)
+            self._levels_changed()
+            result.baseline_raised = True
+        return result
+
+    def _take_contacts(self, n: int, est: ContactEstimate) -> None:
+        """The kernel's ``n`` contacts into :attr:`contacts` (their shape features are there already), corrected."""
+        fk = self.kernel
+        assert fk is not None
+        frame, t_ns, corrector, names = est.frame, est.t_ns, self.corrector, fk.shape_names
+        rows = fk.contacts[:n].tolist()
+        for i in range(n):
+            c, r = self.contacts[i], rows[i]
+            c.strength, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.area_mm2, c.peak = r[:8]
+            c.frame, c.t_ns, c.baseline_ready, c.n_contacts, c.contact = frame, t_ns, True, n, True
+            c.depth_mm, c.force_n, c.confidence = r[16], r[17], r[19]
+            c.shape = names[int(r[18])] if r[18] >= 0 else ""
+            if corrector is not None and not self._kernel_corrects:
+                c.shape, c.confidence, c.depth_mm, c.force_n = "", math.nan, math.nan, math.nan
+                corrector.apply(c)
 
     def _follow_light(self, n: int, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
         """Steps 9 and 10 after a frame with ``n`` contacts: a baseline taken over a press raised, else the

@@ -141,6 +141,10 @@ class DenseSurface:
         is accepted for :class:`TriangleSurface`'s signature (the whole surface is computed)."""
         return np.matmul(self.matrix, values, out=out)
 
+    def kernel_arrays(self) -> dict[str, np.ndarray]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`): the matrix."""
+        return {"dense": self.matrix}
+
 
 def _by_triangle(cols: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The mesh cells grouped by the triangle (the 9 columns) they are evaluated from.
@@ -263,6 +267,18 @@ class TriangleSurface:
         self._values = np.zeros((n_tri, 1, width), dtype=np.float32)
         #: Triangles evaluated by the last :meth:`compute`.
         self.evaluated = 0
+
+    def kernel_arrays(self) -> dict[str, np.ndarray | int]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`): the operators and the
+        triangles, in the layouts :meth:`compute` uses, indices as int32, and each triangle's cells
+        before the padding."""
+        first = self._cells[:, :1]
+        counts = 1 + np.count_nonzero(self._cells[:, 1:] != first, axis=1)
+        return {"value_rows": self._value_rows.astype(np.int32), "value_op": self._value_op,
+                "grad_op": self._grad_op, "n_tri": self.n_triangles, "width": self.width,
+                "n_value_terms": self._n_value, "tri_cols": self._tri_cols.astype(np.int32),
+                "tri_cells": self._cells.astype(np.int32), "tri_count": counts.astype(np.int32),
+                "tri_weights": self._weights, "value_w": self._value_w, "grad_w": self._grad_w}
 
     def compute(self, values: np.ndarray, out: np.ndarray, level: float | None = None) -> np.ndarray:
         """``out`` (shape (n*n,), float32) = the surface of ``values`` (shape (N,), float32).

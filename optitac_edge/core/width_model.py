@@ -67,6 +67,10 @@ class AxisMap:
         slope = (kt[k + 1] - kt[k]) / (km[k + 1] - km[k])
         return max(kt[k] + slope * (measured - km[k]), 0.0)
 
+    def kernel_arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """The knots as the compiled kernel reads them, under ``prefix + "_km"`` and ``"_kt"``."""
+        return {f"{prefix}_km": np.array(self._km, dtype=np.float64), f"{prefix}_kt": np.array(self._kt, dtype=np.float64)}
+
     @classmethod
     def linear(cls, offset_mm: float, scale: float) -> AxisMap:
         """The paper's ``true = scale · (measured − offset)`` as two knots."""
@@ -121,6 +125,12 @@ class WidthModel:
             rho2 = 0.0
         return (self.major(major_mm * (1.0 + self.radial_major * rho2)),
                 self.minor(minor_mm * (1.0 + self.radial_minor * rho2)))
+
+    def kernel_arrays(self) -> dict[str, Any]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`)."""
+        return {**self.major.kernel_arrays("width_major"), **self.minor.kernel_arrays("width_minor"),
+                "width_radial_major": float(self.radial_major), "width_radial_minor": float(self.radial_minor),
+                "width_radius_mm": float(self.radius_mm)}
 
     def to_bundle(self) -> dict[str, Any]:
         return {"kind": self.kind, "radial_major": self.radial_major, "radial_minor": self.radial_minor,

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from optitac_edge.config import BoardConfig
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.compiled import kernel_status
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.led import LedRing, NoLed
@@ -106,6 +107,7 @@ class BoardSession:
 
     def __enter__(self) -> Self:
         log_config_warnings(self.config)
+        log.info("%s", kernel_status()[1])
         try:
             self.notifier = self._stack.enter_context(closing(self._notifier or Notifier()))
             led = open_led(self.config.led)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -135,6 +136,16 @@ class ShapeClassifier:
         self._const = np.ascontiguousarray(np.asarray(c.const, dtype=np.float64).reshape(1, k))
         self._p = np.empty((1, len(model.class_names) + 1))
         self._n_cls = len(model.class_names)
+
+    def kernel_arrays(self) -> dict[str, Any]:
+        """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`): the transform's rules and the
+        constants :meth:`classify` uses, folded the same way."""
+        rules = [int(signed) | 2 * int(zero_null) | 4 * int(q4) for signed, zero_null, q4 in self._rule]
+        return {"shape_d": len(self._sel), "shape_k": int(self._const.shape[1]), "shape_c": self._n_cls,
+                "shape_sel": np.array(self._sel, dtype=np.int32), "shape_rule": np.array(rules, dtype=np.int32),
+                "shape_mean": np.array(self._mean), "shape_std": np.array(self._std), "shape_cap": float(self._cap),
+                "shape_q4_floor": float(self._q4_floor), "shape_q4_max": float(Q4_MAX),
+                "shape_proj1": self._proj1, "shape_const": self._const, "shape_map1": self._map1}
 
     def predict_proba(self, features: np.ndarray) -> np.ndarray:
         """Class probabilities of many contacts.

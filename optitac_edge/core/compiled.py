@@ -1,0 +1,141 @@
+"""The compiled per-frame kernel (``kernel/frame_kernel.c``), wired to a pipeline's parts.
+
+The kernel does steps 2 to 10 of :mod:`optitac_edge.core.pipeline` in one call per
+frame, in C, with the GIL released: the fiber means (gray, RGB, YUV's Y plane),
+the signal (relative, gain-compensated, dead fibers), the surface (factored or
+dense), the truncation, the split into contacts and their moments and shape
+features, and the baseline's tracking and raise test. It reads and writes the
+same buffers as the numpy parts (the fiber means, signal, surface, baseline,
+levels), so the numpy pipeline stays the readable reference and everything
+reading those buffers (the live view, the bench) sees the same thing.
+
+What stays in Python, per contact: the calibration models (:class:`ContactCorrector`)
+and the tracking of ids (:class:`ContactTracker`); and for the rare frame where
+two presses joined into one blob holding two seeds, the split by the distance
+transform (the kernel then hands the truncated surface to the numpy
+:class:`ContactFinder`).
+
+The kernel is built by ``pip install`` where a C compiler and Python's headers
+exist (``setup.py``: an optional extension); nothing is compiled at run time or
+on import. :func:`kernel_status` says whether it is here, and why not; the
+service logs it at start. ``OPTITAC_EDGE_KERNEL=numpy`` runs the numpy pipeline
+although the kernel is built.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from importlib import import_module
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from optitac_edge.core.baseline import BRIGHT_HOLD_S
+from optitac_edge.core.options import MAX_CONTACTS
+
+if TYPE_CHECKING:
+    from optitac_edge.core.pipeline import Pipeline
+
+#: The extension module's name.
+MODULE = "optitac_edge.core._frame_kernel"
+#: Set to ``numpy`` to run the numpy pipeline although the kernel is built (a comparison on the robot).
+ENV = "OPTITAC_EDGE_KERNEL"
+
+_loaded: ModuleType | None = None
+_why_not = ""
+
+
+def _load() -> ModuleType | None:
+    global _loaded, _why_not
+    if _loaded is None and not _why_not:
+        try:
+            _loaded = import_module(MODULE)
+        except ImportError as exc:
+            _why_not = f"not built ({exc}); pip install it where a C compiler and Python's headers exist"
+    return _loaded
+
+
+def kernel_status() -> tuple[bool, str]:
+    """(whether pipelines run the compiled kernel by default, a sentence saying what runs the frames)."""
+    if os.environ.get(ENV, "").strip().lower() == "numpy":
+        return False, f"the numpy pipeline runs the frames ({ENV}=numpy)"
+    if _load() is None:
+        return False, f"the numpy pipeline runs the frames: the compiled kernel is {_why_not}"
+    return True, "the compiled kernel runs the frames"
+
+
+def fields() -> int:
+    """Values per contact in the kernel's output (strength, x, y, major, minor, angle, area, peak, 7 log-Hu, q4)."""
+    mod = _load()
+    return 20 if mod is None else int(mod.FIELDS)
+
+
+class FrameKernel:
+    """One pipeline's compiled kernel: its plan from the pipeline's parts, and the frame's contacts.
+
+    Parameters
+    ----------
+    pipe : Pipeline
+        Built with every numpy part (the kernel shares their buffers and constants).
+
+    Raises
+    ------
+    ImportError
+        If the kernel is not built (see :func:`kernel_status`).
+    """
+
+    def __init__(self, pipe: Pipeline) -> None:
+        mod = _load()
+        if mod is None:
+            raise ImportError(f"the compiled kernel is {_why_not}")
+        self.split_needed = int(mod.SPLIT_NEEDED)
+        o, grid, baseline = pipe.options, pipe.bundle.grid, pipe.baseline
+        #: The contacts of the last frame, strongest first: (MAX_CONTACTS, fields) float64: strength, x, y,
+        #: major, minor, angle, area, peak, 7 log-Hu, q4, depth, force, shape index (-1: none), confidence.
+        self.contacts = np.full((MAX_CONTACTS, int(mod.FIELDS)), math.nan)
+        #: The rest light a raise sets the baseline to (written by the kernel when it finds one).
+        self.rest = np.zeros(pipe.bundle.fibers.n_fibers, dtype=np.float32)
+        live = np.flatnonzero(~np.asarray(pipe.bundle.fibers.dead, dtype=bool)).astype(np.int32)
+        plan: dict[str, Any] = {
+            **pipe.sampler.kernel_arrays(), **pipe.surface_op.kernel_arrays(),
+            "n_fibers": pipe.bundle.fibers.n_fibers, "n": grid.n,
+            "dead": np.flatnonzero(pipe.bundle.fibers.dead).astype(np.int32),
+            "live": live if live.size else np.arange(pipe.bundle.fibers.n_fibers, dtype=np.int32),
+            "relative": int(o.relative), "compensate_gain": int(o.compensate_gain),
+            "track_baseline": int(o.track_baseline), "bright_from_common": int(not o.compensate_gain),
+            "black_level": float(np.float32(o.black_level)), "gain_rate_per_ns": float(o.gain_rate_per_s) * 1e-9,
+            "tau_ns": float(o.baseline_tau_s) * 1e9, "holdoff_ns": float(o.holdoff_s) * 1e9,
+            "bright_hold_ns": float(int(BRIGHT_HOLD_S * 1e9)),
+            "x0_mm": float(grid.x0_mm), "y0_mm": float(grid.y0_mm), "step_mm": float(grid.step_mm),
+            "cell_area_mm2": float(grid.cell_area_mm2),
+            "min_area_mm2": float(pipe.bundle.thresholds.min_area_mm2),
+            "min_cells": float(pipe.bundle.thresholds.min_area_mm2) / float(grid.cell_area_mm2),
+            "peak_fraction": float(o.peak_fraction), "shape_fraction": float(o.shape_fraction),
+            "split_fraction": float(o.split_fraction), "max_contacts": int(o.max_contacts),
+            "means": pipe.means, "signal": pipe.signal, "surface": pipe.surface,
+            "baseline": baseline.values, "level": baseline.level, "inv_level": baseline.inv_level,
+            "rest": self.rest, "contacts": self.contacts,
+        }
+        #: The corrector whose models the kernel applies (None: the kernel gives raw contacts).
+        self.corrector = pipe.corrector
+        models = None if pipe.corrector is None else pipe.corrector.kernel_arrays()
+        if models is None:
+            self.corrector = None
+        else:
+            plan.update(models)
+        #: Class names of the kernel's shape model (its OK_SHAPE field indexes them).
+        self.shape_names: list[str] = (list(pipe.corrector.shapes.class_names)
+                                       if self.corrector is not None and pipe.corrector is not None
+                                       and pipe.corrector.shapes is not None else [])
+        #: The extension's kernel object (its members: gain, light_changed, raise_pending, common, ...).
+        self.kernel = mod.Kernel(plan)
+        self.kernel.set_correct(self.corrector is not None)
+        self.frame = self.kernel.frame
+
+    def use_corrector(self, corrector: object) -> bool:
+        """Whether the kernel applies ``corrector`` (the one it was built with) or the caller does."""
+        on = corrector is not None and corrector is self.corrector
+        self.kernel.set_correct(on)
+        return on

@@ -1,0 +1,387 @@
+"""The compiled per-frame kernel (kernel/*.c) against the numpy pipeline, its readable reference.
+
+Every frame is run through both (``Pipeline(compiled=False)`` and ``compiled=True``) and the
+results compared: identical contact counts, ids, touches, releases, shapes and flags; the fiber
+means and the signal bit for bit (the same float32 steps); the surface, centroid and widths to
+rounding (the kernel sums the gradient product and the moments in another order than OpenBLAS
+and OpenCV: 1e-6 mm allowed, 1e-3 degrees for the angle). The frames: the simulated sensor with
+0-4 presses (the four join into one blob: the split falls back to numpy), LED dimming and
+brightening, a start during a press (the baseline raise), a tare, the MCU's contact level; every
+contact option switched; gray, RGB and YUV frames; dead fibers; a dense surface matrix; and a
+small layout of large fibers (sums past 16 bits).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.bundle_models import (
+    with_centroid_map,
+    with_depth_model,
+    with_shape_model,
+    with_width_model,
+)
+from optitac_edge.calibration.interpolation import build_interpolation_matrix
+from optitac_edge.calibration.shape_fit import ShapeFitSettings, fit_shape_model
+from optitac_edge.core import _frame_kernel, compiled
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.centroid_map import CentroidErrorMap
+from optitac_edge.core.depth_model import DepthForceModel, RadialMonotoneMap
+from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.grid import SurfaceGrid
+from optitac_edge.core.image_transform import ImageTransform
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.options import ContactOptions
+from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.core.width_model import AxisMap, WidthModel
+from optitac_edge.io.bundle_file import load_bundle
+from optitac_edge.sim.multi_press import multi_press_frames
+from optitac_edge.sim.synthetic_shapes import synthetic_features
+
+PERIOD = 4_166_667  # ns, 240 fps
+MM = 1e-6  # centroid and widths, mm
+DEG = 1e-3  # angle, degrees
+
+
+# -- the comparison ----------------------------------------------------------------------------------
+
+
+def _close(a: float, b: float, tol: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= tol
+
+
+def assert_same_frame(ref: Pipeline, kern: Pipeline, where: str) -> None:
+    """The two pipelines' last frames agree (see the module docstring)."""
+    a, b = ref.result, kern.result
+    assert (a.n_contacts, a.releases(), a.light_changed, a.baseline_raised, a.raised_fibers) == \
+        (b.n_contacts, b.releases(), b.light_changed, b.baseline_raised, b.raised_fibers), where
+    assert np.array_equal(ref.means, kern.means), where
+    if not ref.baseline_ready:
+        return
+    assert np.array_equal(ref.signal, kern.signal), where
+    np.testing.assert_allclose(kern.surface, ref.surface, rtol=1e-5, atol=1e-5 * float(ref.levels.trunc) + 1e-7,
+                               err_msg=where)
+    np.testing.assert_array_equal(ref.baseline.values, kern.baseline.values, err_msg=where)
+    for i in range(max(a.n_contacts, 1)):
+        x, y = a.contacts[i], b.contacts[i]
+        assert (x.frame, x.t_ns, x.baseline_ready, x.contact, x.n_contacts, x.contact_id, x.touch_frame, x.shape) == \
+            (y.frame, y.t_ns, y.baseline_ready, y.contact, y.n_contacts, y.contact_id, y.touch_frame, y.shape), where
+        for name, tol in (("x_mm", MM), ("y_mm", MM), ("major_mm", MM), ("minor_mm", MM)):
+            assert _close(getattr(x, name), getattr(y, name), tol), (where, name, getattr(x, name), getattr(y, name))
+        for name in ("depth_mm", "force_n"):  # from the strength (gray levels * mm^2 in gray-level mode): relative
+            v, w = getattr(x, name), getattr(y, name)
+            assert _close(v, w, 1e-6 * max(abs(v), 1.0)), (where, name, v, w)
+        if not math.isnan(x.angle_deg):
+            assert abs((x.angle_deg - y.angle_deg + 90.0) % 180.0 - 90.0) <= DEG, (where, x.angle_deg, y.angle_deg)
+        for name in ("strength", "area_mm2", "peak", "confidence"):
+            v, w = getattr(x, name), getattr(y, name)
+            assert _close(v, w, 1e-5 * max(abs(v), 1e-9)), (where, name, v, w)
+        np.testing.assert_allclose(y.features, x.features, rtol=1e-6, atol=1e-9, err_msg=where)
+        np.testing.assert_array_equal(np.isnan(x.hu), np.isnan(y.hu), err_msg=where)
+
+
+def run_both(bundle: CalibrationBundle, frames: list[np.ndarray], options: ContactOptions | None = None,
+             events: dict[int, str] | None = None) -> tuple[Pipeline, Pipeline, list[tuple[int, bool]]]:
+    """Both pipelines over ``frames`` (``events``: frame -> "tare" or "level"), compared frame by frame;
+    each frame's (contacts, baseline raised)."""
+    ref, kern = Pipeline(bundle, options, compiled=False), Pipeline(bundle, options, compiled=True)
+    assert ref.kernel is None and kern.kernel is not None
+    seen = []
+    #: Each frame's primary contact of the numpy pipeline (a copy), for the tests' own checks.
+    run_both.primaries = []  # type: ignore[attr-defined]
+    for k, frame in enumerate(frames):
+        what = (events or {}).get(k)
+        for p in (ref, kern):
+            if what == "tare":
+                p.reset_baseline()
+            elif what == "level":
+                p.set_contact_level(0.02)
+            p.process(frame, k * PERIOD)
+        assert_same_frame(ref, kern, f"frame {k}")
+        seen.append((ref.result.n_contacts, ref.result.baseline_raised))
+        run_both.primaries.append(ref.result.primary.copy())  # type: ignore[attr-defined]
+    return ref, kern, seen
+
+
+# -- bundles and frames --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def modelled(bundle_path) -> CalibrationBundle:
+    """The simulated sensor's fiber map with every calibration model the kernel evaluates."""
+    bundle = load_bundle(bundle_path)
+    rng = np.random.default_rng(0)
+    n = 60
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    ex = (0.3 * np.sin(3 * xx) * np.cos(2 * yy) + 0.01 * rng.normal(size=(n, n))).astype(np.float32)
+    ey = (0.2 * np.cos(4 * xx + yy)).astype(np.float32)
+    bundle = with_centroid_map(bundle, CentroidErrorMap(-13.0, -13.0, 26.0 / (n - 1), ex, ey))
+    major = AxisMap(np.array([1.0, 3.0, 6.0, 12.0]), np.array([0.5, 2.5, 6.5, 13.0]))
+    minor = AxisMap(np.array([1.0, 4.0, 11.0]), np.array([0.8, 3.5, 12.0]))
+    bundle = with_width_model(bundle, WidthModel("monotone", major, minor, 0.1, -0.05, 12.0))
+    depth = RadialMonotoneMap(0.3, 12.0, AxisMap(np.array([0.5, 2.0, 8.0]), np.array([0.1, 1.0, 3.5])))
+    force = RadialMonotoneMap(-0.2, 12.0, AxisMap(np.array([0.01, 0.2, 1.0]), np.array([0.0, 2.0, 8.0])))
+    bundle = with_depth_model(bundle, DepthForceModel("width", depth, force, "root_strength_width"))
+    feats, labels = synthetic_features(12, seed=3)
+    shapes = fit_shape_model(feats, labels, settings=ShapeFitSettings(seed=0, holdout=0.3, cv_folds=2))
+    return with_shape_model(bundle, shapes.model)
+
+
+def sim_frames(bundle: CalibrationBundle, contacts: int, n: int, rest: int, seed: int) -> list[np.ndarray]:
+    return multi_press_frames(contacts, n, rest, layout=bundle.layout, fps=240.0, seed=seed)
+
+
+def scaled(frames: list[np.ndarray], start: float, end: float) -> list[np.ndarray]:
+    """The frames with the light scaled from ``start`` to ``end`` (an LED dimming or brightening)."""
+    out = []
+    for k, f in enumerate(frames):
+        g = start + (end - start) * k / max(len(frames) - 1, 1)
+        out.append(np.clip(np.rint(f.astype(np.float32) * g), 0, 255).astype(np.uint8))
+    return out
+
+
+@pytest.fixture(scope="module")
+def day(modelled) -> list[np.ndarray]:
+    """Rest, then 1, 2 and 4 presses, a quick LED step down and a slow dimming with presses."""
+    one = sim_frames(modelled, 1, 60, 30, seed=1)
+    two = sim_frames(modelled, 2, 50, 3, seed=2)
+    four = sim_frames(modelled, 4, 50, 3, seed=4)
+    dim = scaled(sim_frames(modelled, 1, 40, 20, seed=5), 1.0, 0.93)
+    step = scaled(sim_frames(modelled, 0, 0, 12, seed=6), 0.93, 0.93) + scaled(sim_frames(modelled, 0, 0, 8, seed=7),
+                                                                                 1.02, 1.02)
+    return one + two + four + dim + step
+
+
+# -- parity ----------------------------------------------------------------------------------------------
+
+
+def test_the_kernel_is_built() -> None:
+    """CI builds it (``pip install``); the parity tests below need it."""
+    assert compiled.kernel_status() == (True, "the compiled kernel runs the frames")
+    assert _frame_kernel.FIELDS == compiled.fields() == 20
+
+
+def test_a_day_of_presses_with_every_model_agrees(modelled, day) -> None:
+    _ref, kern, seen = run_both(modelled, day, events={150: "level", 230: "tare"})
+    assert kern.kernel is not None and kern._kernel_corrects  # the kernel applied the models
+    assert {n for n, _ in seen} == {0, 1, 2, 4}
+    touching = [e for e in run_both.primaries if e.contact]  # type: ignore[attr-defined]
+    assert {e.shape for e in touching} - {""}  # the shape model classified
+    assert all(not math.isnan(e.depth_mm) and not math.isnan(e.force_n) for e in touching)
+
+
+OPTIONS = {
+    "paper": ContactOptions.paper(),
+    "gray levels": {"relative": False},
+    "paper levels": {"noise_levels": False},
+    "no hysteresis": {"hysteresis": False},
+    "no peak fraction": {"peak_fraction": 0.0},
+    "no shape fraction": {"shape_fraction": 0.0},
+    "one contact": {"max_contacts": 1},
+    "two contacts": {"max_contacts": 2},
+    "no tracking": {"track_baseline": False},
+    "no gain": {"compensate_gain": False},
+    "no gain, gray levels": {"compensate_gain": False, "relative": False},
+    "holdoff": {"holdoff_s": 0.05},
+}
+
+
+@pytest.mark.parametrize("name", list(OPTIONS))
+def test_every_option_agrees(modelled, day, name) -> None:
+    base = modelled.options
+    o = OPTIONS[name]
+    options = o if isinstance(o, ContactOptions) else dataclasses.replace(base, **o)
+    run_both(modelled, day[::2], options)
+
+
+def test_a_start_during_a_press_raises_the_same_fibers(modelled) -> None:
+    """The baseline is taken over a press; after the release both raise the same fibers at the same frame."""
+    pressed = sim_frames(modelled, 1, 40, 0, seed=8)
+    frames = pressed + sim_frames(modelled, 0, 0, 120, seed=9) + sim_frames(modelled, 1, 30, 0, seed=8)
+    _, _, seen = run_both(modelled, frames)
+    assert sum(raised for _, raised in seen) >= 1  # both raised, in the same frame (compared above)
+
+
+def test_dead_fibers_filled_and_not(modelled, day) -> None:
+    dead = np.zeros(modelled.fibers.n_fibers, dtype=bool)
+    dead[[0, 40, 76, 105, 200]] = True
+    bundle = modelled.with_updates(fibers=dataclasses.replace(modelled.fibers, dead=dead))
+    run_both(bundle, day[::3])
+    run_both(bundle, day[::3], dataclasses.replace(bundle.options, fill_dead=False))
+
+
+def test_the_onnx_or_no_corrector_runs_in_python(modelled, day) -> None:
+    """A corrector the kernel was not built with (here: none, then a fresh one) is applied in Python."""
+    ref, kern = Pipeline(modelled, compiled=False), Pipeline(modelled, compiled=True)
+    for p in (ref, kern):
+        p.set_corrector(None)
+    for k, f in enumerate(day[:120]):
+        ref.process(f, k * PERIOD)
+        kern.process(f, k * PERIOD)
+        assert_same_frame(ref, kern, f"frame {k}")
+    assert not kern._kernel_corrects
+    from optitac_edge.core.corrections import ContactCorrector
+
+    other = ContactCorrector(modelled)
+    for p in (ref, kern):
+        p.set_corrector(other)
+    assert not kern._kernel_corrects  # not the kernel's own: applied per contact in Python
+    for k, f in enumerate(day[120:200]):
+        ref.process(f, (120 + k) * PERIOD)
+        kern.process(f, (120 + k) * PERIOD)
+        assert_same_frame(ref, kern, f"frame {120 + k}")
+
+
+# -- gray, RGB and YUV frames; a dense matrix; large fibers ---------------------------------------------------
+
+
+def synthetic_bundle(fmt: str, rings: int = 8, width: int = 160, height: int = 120, radius_px: int = 2,
+                     dead: tuple[int, ...] = ()) -> CalibrationBundle:
+    """A bundle whose fiber i owns a disc of pixels at its transformed position (a dense surface matrix)."""
+    layout = hex_layout(rings)
+    grid = SurfaceGrid.over_layout(layout, 60)
+    scale = 0.45 * min(width, height) / layout.radius_mm
+    transform = ImageTransform(rotation_deg=10.0, scale_px_per_mm=scale, cx=width / 2, cy=height / 2)
+    centres = transform.layout_to_image(layout.xy_mm)
+    dy, dx = np.mgrid[-radius_px:radius_px + 1, -radius_px:radius_px + 1]
+    disc = dx ** 2 + dy ** 2 <= radius_px ** 2
+    cols = np.rint(centres[:, 0])[:, None].astype(np.int64) + dx[disc]
+    rows = np.rint(centres[:, 1])[:, None].astype(np.int64) + dy[disc]
+    n = layout.n_fibers
+    dead_mask = np.zeros(n, dtype=bool)
+    dead_mask[list(dead)] = True
+    table = FiberTable(height=height, width=width, pixel_format=fmt,
+                       pixel_index=(rows * width + cols).ravel().astype(np.int32),
+                       pixel_start=np.arange(n + 1, dtype=np.int64) * int(disc.sum()), centroid_px=centres,
+                       dead=dead_mask, unmatched_px=np.zeros((0, 2)))
+    return CalibrationBundle(layout=layout, transform=transform, fibers=table, grid=grid,
+                             interpolation=build_interpolation_matrix(layout, grid),
+                             options=dataclasses.replace(ContactOptions(), black_level=12.0, noise_rel=0.002))
+
+
+def synthetic_frames(bundle: CalibrationBundle, n: int, seed: int) -> list[np.ndarray]:
+    """Rest, then a press wandering over the array and a second one, on a noisy fiber light."""
+    rng = np.random.default_rng(seed)
+    layout, table = bundle.layout, bundle.fibers
+    rest = rng.uniform(150.0, 215.0, layout.n_fibers)
+    labels = table.label_image()
+    frames = []
+    for k in range(n):
+        levels = rest + rng.normal(0.0, 0.6, rest.size)
+        if k >= 8:
+            for j, (x0, y0) in enumerate([(3 * math.cos(k / 9), 3 * math.sin(k / 7)), (-4.0, 2.0)][:1 + (k % 3 == 0)]):
+                d = layout.xy_mm - (x0, y0)
+                levels -= (40 + 10 * j) * np.exp(-0.5 * (d ** 2).sum(axis=1) / 1.9 ** 2)
+        lut = np.concatenate([[12.0], np.clip(np.rint(levels), 0, 255)]).astype(np.uint8)
+        y = lut[labels]
+        if table.pixel_format == "gray":
+            frames.append(y)
+        elif table.pixel_format == "rgb":  # colours whose BT.601 gray is near the level: every weight matters
+            rgb = np.stack([y, np.clip(y.astype(int) + rng.integers(-30, 31, y.shape), 0, 255),
+                            np.clip(y.astype(int) - rng.integers(-30, 31, y.shape), 0, 255)], axis=2)
+            frames.append(np.ascontiguousarray(rgb.astype(np.uint8)))
+        else:
+            chroma = rng.integers(0, 256, (y.shape[0] // 2, y.shape[1]), dtype=np.uint8)
+            frames.append(np.ascontiguousarray(np.concatenate([y, chroma])))
+    return frames
+
+
+@pytest.mark.parametrize("fmt", ["gray", "rgb", "yuv420"])
+def test_pixel_formats_and_a_dense_matrix_agree(fmt) -> None:
+    bundle = synthetic_bundle(fmt, dead=(5, 60))
+    assert bundle.surface_factors is None  # the dense surface, in both
+    run_both(bundle, synthetic_frames(bundle, 60, seed=1))
+
+
+def test_large_fibers_sum_past_sixteen_bits() -> None:
+    """19 fibers of 1,257 pixels each (more than 128 eight-byte chunks, sums over 65,535): failed with
+    the first gray gather, which added its 16-bit lanes with a multiply that overflowed."""
+    bundle = synthetic_bundle("gray", rings=2, width=640, height=480, radius_px=20)
+    assert int(bundle.fibers.pixel_count.min()) > 1024
+    frames = synthetic_frames(bundle, 30, seed=2)
+    ref, kern, _ = run_both(bundle, frames)
+    assert float(ref.means.min()) * int(bundle.fibers.pixel_count.min()) > 0xFFFF  # every fiber's sum is past 16 bits
+    assert kern.result.n_contacts >= 1
+
+
+# -- the kernel's own parts --------------------------------------------------------------------------------
+
+
+def test_the_sort_sorts() -> None:
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 2, 3, 16, 17, 100, 217, 1027):
+        for values in (rng.normal(size=n), np.round(rng.normal(size=n), 1), np.zeros(n), np.arange(n)[::-1]):
+            a = values.astype(np.float32)
+            _frame_kernel.sort(a)
+            assert np.array_equal(a, np.sort(values.astype(np.float32)))
+
+
+def test_the_labelling_is_opencvs_partition_in_raster_order() -> None:
+    rng = np.random.default_rng(1)
+    for k in range(60):
+        h, w = rng.integers(1, 40, 2)
+        mask = (rng.random((h, w)) < rng.uniform(0.1, 0.7)).astype(np.uint8)
+        labels = np.zeros((h, w), dtype=np.int32)
+        n = _frame_kernel.label8(mask, labels)
+        n_cv, cv_labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
+        assert n == n_cv, k
+        pairs = set(zip(labels[mask > 0].tolist(), cv_labels[mask > 0].tolist()))
+        assert len(pairs) == n - 1  # one to one: the same components
+        firsts = [int(np.flatnonzero(labels.ravel() == lab)[0]) for lab in range(1, n)]
+        assert firsts == sorted(firsts)  # numbered in raster order of their first cell
+
+
+def test_a_bad_plan_is_one_clear_error(modelled) -> None:
+    pipe = Pipeline(modelled, compiled=True)
+    assert pipe.kernel is not None
+    plan = {**pipe.sampler.kernel_arrays(), **pipe.surface_op.kernel_arrays()}
+    with pytest.raises(KeyError, match="kernel plan: missing n_fibers"):
+        _frame_kernel.Kernel(plan)
+    with pytest.raises(TypeError):
+        _frame_kernel.Kernel("not a dict")
+
+
+def test_a_frame_of_the_wrong_size_is_refused(modelled) -> None:
+    pipe = Pipeline(modelled, compiled=True)
+    assert pipe.kernel is not None
+    with pytest.raises(ValueError, match="bytes"):
+        pipe.kernel.kernel.means(np.zeros((10, 10), dtype=np.uint8))
+    with pytest.raises(ValueError, match="bytes"):
+        pipe.kernel.frame(np.zeros((480, 640), dtype=np.float32), 0, 0)
+
+
+def test_without_the_kernel_the_numpy_pipeline_runs_and_says_so(modelled, monkeypatch) -> None:
+    monkeypatch.setattr(compiled, "_loaded", None)
+    monkeypatch.setattr(compiled, "_why_not", "not built (no module named '_frame_kernel'); pip install it where ...")
+    ok, why = compiled.kernel_status()
+    assert not ok and why.startswith("the numpy pipeline runs the frames: the compiled kernel is not built")
+    assert Pipeline(modelled).kernel is None
+    with pytest.raises(ImportError, match="not built"):
+        Pipeline(modelled, compiled=True)
+
+
+def test_a_compiled_frame_allocates_nothing_that_outlives_it(modelled, day, traced_bytes) -> None:
+    """A press held over 60 frames, run twice round: the state at the end is the state at the start."""
+    pipe = Pipeline(modelled, compiled=True)
+    for k, f in enumerate(day[:90]):
+        pipe.process(f, k * PERIOD)
+    state = {"k": 0}
+
+    def one() -> None:
+        k = state["k"] = state["k"] + 1
+        pipe.process(day[30 + k % 60], (90 + k) * PERIOD)
+
+    net, _peak = traced_bytes(one, 240)
+    assert net < 200
+
+
+def test_the_environment_can_ask_for_the_numpy_pipeline(modelled, monkeypatch) -> None:
+    monkeypatch.setenv(compiled.ENV, "numpy")
+    assert compiled.kernel_status() == (False, "the numpy pipeline runs the frames (OPTITAC_EDGE_KERNEL=numpy)")
+    assert Pipeline(modelled).kernel is None
+    assert Pipeline(modelled, compiled=True).kernel is not None  # asked for by the caller
