@@ -122,12 +122,19 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     k->seed_x0 = zalloc(max_runs, sizeof(int32_t));
     k->seed_x1 = zalloc(max_runs, sizeof(int32_t));
     k->seed_label = zalloc(max_runs, sizeof(int32_t));
+    k->part_y = zalloc(nn + 1, sizeof(int32_t));
+    k->part_x0 = zalloc(nn + 1, sizeof(int32_t));
+    k->part_x1 = zalloc(nn + 1, sizeof(int32_t));
+    k->part_label = zalloc(nn + 1, sizeof(int32_t));
+    k->seed_img = zalloc(nn, sizeof(int32_t));
+    k->nearest = zalloc(nn, sizeof(int32_t));
+    k->dist = zalloc(2 * ((size_t)p->n + 4) * ((size_t)p->n + 6), sizeof(int32_t));
     k->parent = zalloc(nn + 1, sizeof(int32_t));
     k->counts = zalloc(nn + 1, sizeof(int32_t));
     k->seed_counts = zalloc(nn + 1, sizeof(int32_t));
     k->order = zalloc(nn + 1, sizeof(int32_t));
     k->rect = zalloc(4 * (nn + 1), sizeof(int32_t));
-    k->powers = zalloc(5 * (size_t)p->n, sizeof(double));
+    k->powers = zalloc(5 * (size_t)p->n + 8, sizeof(double));
     k->shape_y = zalloc((size_t)mo->shape_k * mo->shape_d, sizeof(double));
     k->shape_ll = zalloc((size_t)mo->shape_k + 1, sizeof(double));
     k->correct = 1;
@@ -137,7 +144,8 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     k->fiber_run = zalloc((size_t)nf + 1, sizeof(int32_t));
     if (!k->shape_y || !k->shape_ll || !k->run_start || !k->run_len || !k->fiber_run || !k->absw || !k->w || !k->ratio || !k->sorted || !k->bound || !k->selected || !k->blob
         || !k->cell_rc || !k->tri_box || !k->tri_stamp || !k->grad_w_t || !k->run_y || !k->run_x0 || !k->run_x1 || !k->run_label
-        || !k->seed_y || !k->seed_x0 || !k->seed_x1 || !k->seed_label || !k->parent || !k->counts || !k->seed_counts
+        || !k->seed_y || !k->seed_x0 || !k->seed_x1 || !k->seed_label || !k->part_y || !k->part_x0 || !k->part_x1 || !k->part_label || !k->seed_img
+        || !k->nearest || !k->dist || !k->parent || !k->counts || !k->seed_counts
         || !k->order || !k->rect || !k->powers) {
         ok_kernel_free(k);
         snprintf(err, err_len, "kernel: out of memory");
@@ -177,9 +185,9 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
             if (row > b[3]) b[3] = row;
         }
     }
-    for (int32_t c = 0; c < p->n; c++) {
+    for (int32_t c = 0; c < p->n; c++) { /* powers[q * n + c] = c ** q */
         double v = 1.0;
-        for (int q = 0; q < 5; q++, v *= c) k->powers[5 * c + q] = v;
+        for (int q = 0; q < 5; q++, v *= c) k->powers[(int64_t)q * p->n + c] = v;
     }
     k->trunc = k->off = k->on = 1.0f;
     k->gain = k->frame_gain = k->reference = 1.0;
@@ -191,7 +199,8 @@ void ok_kernel_free(ok_kernel *k) {
                      (void **)&k->selected, (void **)&k->blob,
                      (void **)&k->cell_rc, (void **)&k->tri_box, (void **)&k->tri_stamp, (void **)&k->grad_w_t, (void **)&k->run_y, (void **)&k->run_x0, (void **)&k->run_x1,
                      (void **)&k->run_label, (void **)&k->seed_y, (void **)&k->seed_x0, (void **)&k->seed_x1,
-                     (void **)&k->seed_label,
+                     (void **)&k->seed_label, (void **)&k->part_y, (void **)&k->part_x0, (void **)&k->part_x1,
+                     (void **)&k->part_label, (void **)&k->seed_img, (void **)&k->nearest, (void **)&k->dist,
                      (void **)&k->parent, (void **)&k->counts, (void **)&k->seed_counts, (void **)&k->order,
                      (void **)&k->rect, (void **)&k->powers, (void **)&k->shape_y, (void **)&k->shape_ll, (void **)&k->run_start, (void **)&k->run_len, (void **)&k->chunk_offset, (void **)&k->chunk_mask,
                      (void **)&k->fiber_chunk,
@@ -457,6 +466,7 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
 #if defined(__GNUC__) || defined(__clang__)
 /* Four float32 lanes: SSE2 on x86-64, NEON on aarch64 (both in their baseline), from the same code. */
 typedef float v4f __attribute__((vector_size(16)));
+typedef int32_t v4i __attribute__((vector_size(16)));
 static inline v4f load4(const float *p) {
     v4f v;
     memcpy(&v, p, sizeof v); /* an unaligned load */
@@ -589,7 +599,6 @@ static int32_t triangle_surface(ok_kernel *k) {
         const int32_t *cl = p->tri_cells + (int64_t)t * P;
         int32_t cnt = p->tri_count[t], q = 0, kept = 0;
 #if defined(__GNUC__) || defined(__clang__)
-        typedef int32_t v4i __attribute__((vector_size(16)));
         const v4f tv = {trunc, trunc, trunc, trunc};
         v4i kept4 = {0, 0, 0, 0};
         v4f top4 = {0.0f, 0.0f, 0.0f, 0.0f};
@@ -690,27 +699,57 @@ static double log_hu_value(double h) {
 }
 
 /* BinaryShapeMoments.hu_q4 of img > level: hu_q4[0..6] the log-Hu invariants, [7] q4; NaN if empty. */
-void ok_hu_q4(const float *img, int32_t h, int32_t w, int32_t stride, float level, const double *powers,
+#if defined(__GNUC__) || defined(__clang__)
+typedef double v4d __attribute__((vector_size(32)));
+typedef int64_t v4l __attribute__((vector_size(32)));
+#define CLONES_AVX2 __attribute__((target_clones("avx2", "default")))
+#if !(defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__))
+#undef CLONES_AVX2
+#define CLONES_AVX2
+#endif
+#endif
+
+/* One row of a binary shape img > level: r[p] = sum of x ** p over its cells (exact integers, in any
+ * order), four cells at a time. xp: the powers, xp[p * n + x]. */
+#if defined(__GNUC__) || defined(__clang__)
+CLONES_AVX2
+#endif
+static void binary_row(const float *row, int32_t w, float level, const double *xp, int32_t n, double *r) {
+    int32_t x = 0;
+    double t[5] = {0, 0, 0, 0, 0};
+#if defined(__GNUC__) || defined(__clang__)
+    v4d acc[5] = {{0}, {0}, {0}, {0}, {0}};
+    const v4f lv = {level, level, level, level};
+    for (; x + 4 <= w; x += 4) {
+        v4f f;
+        memcpy(&f, row + x, sizeof f);
+        v4l keep = __builtin_convertvector(f > lv, v4l); /* all ones where the cell is in */
+        for (int q = 0; q < 5; q++) {
+            v4l bits;
+            memcpy(&bits, xp + (int64_t)q * n + x, sizeof bits);
+            bits &= keep;
+            v4d v;
+            memcpy(&v, &bits, sizeof v);
+            acc[q] += v;
+        }
+    }
+    for (int q = 0; q < 5; q++) t[q] = (acc[q][0] + acc[q][1]) + (acc[q][2] + acc[q][3]);
+#endif
+    for (; x < w; x++)
+        if (row[x] > level)
+            for (int q = 0; q < 5; q++) t[q] += xp[(int64_t)q * n + x];
+    for (int q = 0; q < 5; q++) r[q] = t[q];
+}
+
+void ok_hu_q4(const float *img, int32_t h, int32_t w, int32_t stride, float level, const double *xp, int32_t n,
               double *hu_q4) {
     double m[5][5] = {{0}}; /* m[q][p]: y power q, x power p */
     for (int32_t y = 0; y < h; y++) {
-        const float *row = img + (int64_t)y * stride;
-        double r0 = 0, r1 = 0, r2 = 0, r3 = 0, r4 = 0;
-        for (int32_t x = 0; x < w; x++) {
-            if (row[x] > level) {
-                const double *px = powers + 5 * x;
-                r0 += 1.0;
-                r1 += px[1];
-                r2 += px[2];
-                r3 += px[3];
-                r4 += px[4];
-            }
-        }
-        if (r0 == 0.0) continue;
-        const double *py = powers + 5 * y;
-        double r[5] = {r0, r1, r2, r3, r4};
+        double r[5];
+        binary_row(img + (int64_t)y * stride, w, level, xp, n, r);
+        if (r[0] == 0.0) continue;
         for (int q = 0; q < 5; q++)
-            for (int pp = 0; pp + q < 5; pp++) m[q][pp] += py[q] * r[pp];
+            for (int pp = 0; pp + q < 5; pp++) m[q][pp] += xp[(int64_t)q * n + y] * r[pp];
     }
     double m00 = m[0][0];
     if (!(m00 > 0.0)) {
@@ -759,22 +798,62 @@ void ok_hu_q4(const float *img, int32_t h, int32_t w, int32_t stride, float leve
 
 /* BlobMeasurer.ellipse: cv2.moments of a float32 box's cells above `above` (float64 sums; their number
  * into cells), into out; 0 when it holds nothing. */
+/* One row of the weighted moments: s[0..2] = sum of v, v x, v x^2 over the cells above `above` (the others
+ * weigh 0), float64, four cells at a time; their number. xs: the column coordinates. */
+#if defined(__GNUC__) || defined(__clang__)
+CLONES_AVX2
+#endif
+static int32_t ellipse_row(const float *row, int32_t w, float above, const double *xs, double *s) {
+    int32_t x = 0, count = 0;
+    double s0 = 0, s1 = 0, s2 = 0;
+#if defined(__GNUC__) || defined(__clang__)
+    v4d a0 = {0}, a1 = {0}, a2 = {0};
+    v4i kept = {0};
+    const v4f av = {above, above, above, above};
+    for (; x + 4 <= w; x += 4) {
+        v4f f;
+        memcpy(&f, row + x, sizeof f);
+        v4i keep = f > av, bits; /* cv2.threshold TOZERO */
+        memcpy(&bits, &f, sizeof bits);
+        bits &= keep;
+        memcpy(&f, &bits, sizeof f);
+        kept -= keep;
+        v4d v = __builtin_convertvector(f, v4d), xv;
+        memcpy(&xv, xs + x, sizeof xv);
+        v4d vx = v * xv;
+        a0 += v;
+        a1 += vx;
+        a2 += vx * xv;
+    }
+    s0 = (a0[0] + a0[1]) + (a0[2] + a0[3]);
+    s1 = (a1[0] + a1[1]) + (a1[2] + a1[3]);
+    s2 = (a2[0] + a2[1]) + (a2[2] + a2[3]);
+    count = (kept[0] + kept[1]) + (kept[2] + kept[3]);
+#endif
+    for (; x < w; x++) {
+        int keep = row[x] > above;
+        double v = keep ? row[x] : 0.0f;
+        double vx = v * x;
+        count += keep;
+        s0 += v;
+        s1 += vx;
+        s2 += vx * x;
+    }
+    s[0] = s0;
+    s[1] = s1;
+    s[2] = s2;
+    return count;
+}
+
 static int ellipse(const ok_kernel *k, const float *img, int32_t h, int32_t w, int32_t stride, float above,
                    int32_t *cells, int32_t bx, int32_t by, double *out) {
     double m00 = 0, m10 = 0, m01 = 0, m20 = 0, m11 = 0, m02 = 0;
     int32_t count = 0;
+    const double *xs = k->powers + k->p.n; /* powers[1 * n + x] = x */
     for (int32_t y = 0; y < h; y++) {
-        const float *row = img + (int64_t)y * stride;
-        double s0 = 0, s1 = 0, s2 = 0;
-        for (int32_t x = 0; x < w; x++) {
-            int keep = row[x] > above; /* the cells above the weighting level (cv2.threshold TOZERO) */
-            double v = keep ? row[x] : 0.0f;
-            double vx = v * x;
-            count += keep;
-            s0 += v;
-            s1 += vx;
-            s2 += vx * x;
-        }
+        double r[3];
+        count += ellipse_row(img + (int64_t)y * stride, w, above, xs, r);
+        double s0 = r[0], s1 = r[1], s2 = r[2];
         m00 += s0;
         m10 += s1;
         m01 += s0 * y;
@@ -819,7 +898,7 @@ static int measure(ok_kernel *k, const float *img, int32_t h, int32_t w, int32_t
     if (t > trunc) cells = count; /* the cells above the weighting level */
     out[OK_AREA_MM2] = cells * p->cell_area_mm2;
     out[OK_PEAK] = peak;
-    ok_hu_q4(img, h, w, stride, (float)shape_level, k->powers, out + OK_HU0);
+    ok_hu_q4(img, h, w, stride, (float)shape_level, k->powers, p->n, out + OK_HU0);
     return 1;
 }
 
@@ -881,47 +960,33 @@ static void order_decreasing(const double *keys, int32_t *order, int32_t n, int3
     }
 }
 
-/* Segmenter.partition for blobs that each hold at most one seed, then ContactFinder's measuring of each
- * (Segmenter.contact_surface: the blob alone in its own box), from the runs ok_find made. Candidates
- * into k->cand; their number, or OK_SPLIT_NEEDED when a blob holds two seeds. */
-static int32_t split_blobs(ok_kernel *k, float level, double peak) {
+/* Contacts from labelled runs of the box's cells above the truncation level (run i: row y[i], columns
+ * x0[i] .. x1[i], label lab[i] in 1 .. n_labels - 1): each label's cells, largest first (ties in label
+ * order), at least min_cells, measured alone in its own box (Segmenter._largest_first, contact_surface).
+ * Candidates into k->cand; their number. */
+static int32_t measure_parts(ok_kernel *k, float level, const int32_t *y, const int32_t *x0, const int32_t *x1,
+                             const int32_t *lab, int32_t nr, int32_t n_labels) {
     const ok_plan *p = &k->p;
-    int32_t bw = k->box_w, bh = k->box_h, nr = k->n_runs, ns = k->n_seed_runs;
-    const float *box = k->p.surface + (int64_t)k->box_y * k->p.n + k->box_x;
-    int32_t stride = k->p.n;
-    int32_t n_parts = ok_label_runs(k->run_y, k->run_x0, k->run_x1, nr, k->run_label, k->parent, k->order);
-    int32_t n_seeds = ok_label_runs(k->seed_y, k->seed_x0, k->seed_x1, ns, k->seed_label, k->parent, k->order) - 1;
-    double min_cells = p->min_cells - 1e-9;
-    if (n_parts == 2 && n_seeds == 1) /* one blob holding one seed: one contact */
-        return k->cells >= min_cells
-            && measure(k, box, bh, bw, stride, peak, k->cells, level, k->box_x, k->box_y, k->cand);
-    int32_t *counts = k->counts, *seed_counts = k->seed_counts, *rect = k->rect;
-    for (int32_t l = 0; l < n_parts; l++) {
-        counts[l] = seed_counts[l] = 0;
-        rect[4 * l] = bw;
-        rect[4 * l + 1] = bh;
+    int32_t stride = p->n;
+    const float *box = p->surface + (int64_t)k->box_y * stride + k->box_x;
+    int32_t *counts = k->counts, *rect = k->rect, *order = k->order;
+    for (int32_t l = 0; l < n_labels; l++) {
+        counts[l] = 0;
+        rect[4 * l] = rect[4 * l + 1] = INT32_MAX;
         rect[4 * l + 2] = rect[4 * l + 3] = -1;
     }
     for (int32_t i = 0; i < nr; i++) {
-        int32_t l = k->run_label[i], *r = rect + 4 * l;
-        counts[l] += k->run_x1[i] - k->run_x0[i] + 1;
-        if (k->run_x0[i] < r[0]) r[0] = k->run_x0[i];
-        if (k->run_y[i] < r[1]) r[1] = k->run_y[i];
-        if (k->run_x1[i] > r[2]) r[2] = k->run_x1[i];
-        if (k->run_y[i] > r[3]) r[3] = k->run_y[i];
+        int32_t l = lab[i], *r = rect + 4 * l;
+        counts[l] += x1[i] - x0[i] + 1;
+        if (x0[i] < r[0]) r[0] = x0[i];
+        if (y[i] < r[1]) r[1] = y[i];
+        if (x1[i] > r[2]) r[2] = x1[i];
+        if (y[i] > r[3]) r[3] = y[i];
     }
-    /* each seed run lies in one run of the mask (the seeds are above the mask's level): its blob */
-    for (int32_t i = 0, j = 0; i < ns; i++) {
-        while (k->run_y[j] < k->seed_y[i] || (k->run_y[j] == k->seed_y[i] && k->run_x1[j] < k->seed_x0[i])) j++;
-        seed_counts[k->run_label[j]] += k->seed_x1[i] - k->seed_x0[i] + 1;
-    }
-    int32_t seeded = 0;
-    for (int32_t l = 1; l < n_parts; l++) seeded += seed_counts[l] > 0;
-    if (seeded != n_seeds) return OK_SPLIT_NEEDED; /* a blob holds two seeds */
-    /* every blob is one contact: largest first (ties in label order), at least min_cells */
-    int32_t m = 0, *order = k->order;
-    for (int32_t l = 1; l < n_parts; l++)
-        if (counts[l] >= min_cells) order[m++] = l;
+    double min_cells = p->min_cells - 1e-9;
+    int32_t m = 0;
+    for (int32_t l = 1; l < n_labels; l++)
+        if (counts[l] > 0 && counts[l] >= min_cells) order[m++] = l;
     for (int32_t i = 1; i < m; i++) { /* stable insertion sort by decreasing count */
         int32_t v = order[i], j = i - 1;
         while (j >= 0 && counts[order[j]] < counts[v]) {
@@ -938,10 +1003,10 @@ static int32_t split_blobs(ok_kernel *k, float level, double peak) {
         float *blob = k->blob, top = 0.0f;
         memset(blob, 0, (size_t)rw * rh * sizeof(float));
         for (int32_t j = 0; j < nr; j++) {
-            if (k->run_label[j] != l) continue;
-            const float *src = box + (int64_t)k->run_y[j] * stride;
-            float *dst = blob + (int64_t)(k->run_y[j] - r[1]) * rw - r[0];
-            for (int32_t x = k->run_x0[j]; x <= k->run_x1[j]; x++) {
+            if (lab[j] != l) continue;
+            const float *src = box + (int64_t)y[j] * stride;
+            float *dst = blob + (int64_t)(y[j] - r[1]) * rw - r[0];
+            for (int32_t x = x0[j]; x <= x1[j]; x++) {
                 dst[x] = src[x];
                 if (src[x] > top) top = src[x];
             }
@@ -950,6 +1015,207 @@ static int32_t split_blobs(ok_kernel *k, float level, double peak) {
                           k->cand + (int64_t)n_cand * OK_FIELDS);
     }
     return n_cand;
+}
+
+/* The chamfer weights of OpenCV's labelled distance transform (DIST_L2; with labels its mask is 5 x 5:
+ * 1, 1.4 and 2.1969 as float32, times 2^16, rounded). */
+#define DT_HV 65536
+#define DT_DIAG 91750
+#define DT_LONG 143976
+#define DT_FAR (INT32_MAX >> 2)
+
+/* See frame_kernel.h. A forward and a backward pass of a 5 x 5 chamfer in 16.16 fixed point, the first of
+ * equally near neighbours winning in OpenCV's order (its distanceTransformEx_5x5). */
+#if defined(__GNUC__) || defined(__clang__)
+typedef int32_t v8i __attribute__((vector_size(32)));
+#endif
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
+__attribute__((target_clones("avx2", "default")))
+#endif
+void ok_nearest_seed(const int32_t *seed_label, int32_t bh, int32_t bw, int32_t *d, int32_t *nearest) {
+    /* d: distances, then labels, each (bh + 4) x (bw + 4) with a border of 2 (DT_FAR, label 0), then two
+     * rows of bw + 4 for the best of the seven neighbours of the rows above (below) */
+    int32_t W = bw + 4;
+    int64_t cells = (int64_t)(bh + 4) * W;
+    int32_t *lab = d + cells, *best_t = lab + cells, *best_l = best_t + W;
+    for (int32_t i = 0; i < bh + 4; i++) { /* the border (the passes write every inner cell) */
+        int32_t *dr = d + (int64_t)i * W, *lr = lab + (int64_t)i * W;
+        if (i < 2 || i >= bh + 2) {
+            for (int32_t j = 0; j < W; j++) {
+                dr[j] = DT_FAR;
+                lr[j] = 0;
+            }
+        } else {
+            dr[0] = dr[1] = dr[W - 2] = dr[W - 1] = DT_FAR;
+            lr[0] = lr[1] = lr[W - 2] = lr[W - 1] = 0;
+        }
+    }
+    static const int dy_f[7] = {-2, -2, -1, -1, -1, -1, -1}, dx_f[7] = {-1, 1, -2, -1, 0, 1, 2};
+    static const int32_t cost[7] = {DT_LONG, DT_LONG, DT_LONG, DT_DIAG, DT_HV, DT_DIAG, DT_LONG};
+    int32_t off[7];
+    for (int q = 0; q < 7; q++) off[q] = dy_f[q] * W + dx_f[q];
+    for (int32_t i = 0; i < bh; i++) { /* forward: the seven above, in order, then the one to the left */
+        int32_t *t = d + (int64_t)(i + 2) * W + 2, *l = lab + (int64_t)(i + 2) * W + 2;
+        const int32_t *sl = seed_label + (int64_t)i * bw;
+        int32_t j = 0;
+#if defined(__GNUC__) || defined(__clang__)
+        for (; j + 8 <= bw; j += 8) { /* eight columns at a time (an AVX2 clone on x86-64) */
+            v8i t0 = {DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR}, l0 = {0};
+            for (int q = 0; q < 7; q++) {
+                v8i v, lv;
+                memcpy(&v, t + j + off[q], sizeof v);
+                memcpy(&lv, l + j + off[q], sizeof lv);
+                v += cost[q];
+                v8i m = t0 > v; /* strictly nearer: the first of equals stays */
+                t0 = (v & m) | (t0 & ~m);
+                l0 = (lv & m) | (l0 & ~m);
+            }
+            memcpy(best_t + j, &t0, sizeof t0);
+            memcpy(best_l + j, &l0, sizeof l0);
+        }
+#endif
+        for (; j < bw; j++) {
+            int32_t t0 = DT_FAR, l0 = 0;
+            for (int q = 0; q < 7; q++) {
+                int32_t v = t[j + off[q]] + cost[q];
+                if (t0 > v) {
+                    t0 = v;
+                    l0 = l[j + off[q]];
+                }
+            }
+            best_t[j] = t0;
+            best_l[j] = l0;
+        }
+        for (j = 0; j < bw; j++) {
+            if (sl[j]) {
+                t[j] = 0;
+                l[j] = sl[j];
+                continue;
+            }
+            int32_t t0 = best_t[j], l0 = best_l[j], v = t[j - 1] + DT_HV;
+            if (t0 > v) {
+                t0 = v;
+                l0 = l[j - 1];
+            }
+            t[j] = t0;
+            l[j] = l0;
+        }
+    }
+    for (int32_t i = bh - 1; i >= 0; i--) { /* backward: the seven below (mirrored), then the one to the right */
+        int32_t *t = d + (int64_t)(i + 2) * W + 2, *l = lab + (int64_t)(i + 2) * W + 2;
+        int32_t j = 0;
+#if defined(__GNUC__) || defined(__clang__)
+        for (; j + 8 <= bw; j += 8) {
+            v8i t0, l0;
+            memcpy(&t0, t + j, sizeof t0);
+            memcpy(&l0, l + j, sizeof l0);
+            for (int q = 0; q < 7; q++) {
+                v8i v, lv;
+                memcpy(&v, t + j - off[q], sizeof v);
+                memcpy(&lv, l + j - off[q], sizeof lv);
+                v += cost[q];
+                v8i m = t0 > v;
+                t0 = (v & m) | (t0 & ~m);
+                l0 = (lv & m) | (l0 & ~m);
+            }
+            memcpy(best_t + j, &t0, sizeof t0);
+            memcpy(best_l + j, &l0, sizeof l0);
+        }
+#endif
+        for (; j < bw; j++) {
+            int32_t t0 = t[j], l0 = l[j];
+            for (int q = 0; q < 7; q++) {
+                int32_t v = t[j - off[q]] + cost[q];
+                if (t0 > v) {
+                    t0 = v;
+                    l0 = l[j - off[q]];
+                }
+            }
+            best_t[j] = t0;
+            best_l[j] = l0;
+        }
+        for (j = bw - 1; j >= 0; j--) {
+            if (t[j] <= DT_HV) continue; /* a seed, or next to one */
+            int32_t t0 = best_t[j], l0 = best_l[j], v = t[j + 1] + DT_HV;
+            if (t0 > v) {
+                t0 = v;
+                l0 = l[j + 1];
+            }
+            t[j] = t0;
+            l[j] = l0;
+        }
+    }
+    for (int32_t i = 0; i < bh; i++)
+        memcpy(nearest + (int64_t)i * bw, lab + (int64_t)(i + 2) * W + 2, (size_t)bw * sizeof(int32_t));
+}
+
+/* Segmenter.partition, then ContactFinder's measuring of each contact, from the runs ok_find made:
+ * one blob holding one seed is one contact; blobs holding at most one seed each are one contact each;
+ * otherwise every cell above the truncation level goes to its nearest seed (the strong blobs, and the
+ * blobs without one). Candidates into k->cand; their number. */
+static int32_t split_blobs(ok_kernel *k, float level, double peak) {
+    const ok_plan *p = &k->p;
+    int32_t bw = k->box_w, bh = k->box_h, nr = k->n_runs, ns = k->n_seed_runs;
+    int32_t stride = p->n;
+    const float *box = p->surface + (int64_t)k->box_y * stride + k->box_x;
+    int32_t n_parts = ok_label_runs(k->run_y, k->run_x0, k->run_x1, nr, k->run_label, k->parent, k->order);
+    int32_t n_seeds = ok_label_runs(k->seed_y, k->seed_x0, k->seed_x1, ns, k->seed_label, k->parent, k->order) - 1;
+    if (n_parts == 2 && n_seeds == 1) /* one blob holding one seed: one contact */
+        return k->cells >= p->min_cells - 1e-9
+            && measure(k, box, bh, bw, stride, peak, k->cells, level, k->box_x, k->box_y, k->cand);
+    int32_t *seed_counts = k->seed_counts;
+    for (int32_t l = 0; l < n_parts; l++) seed_counts[l] = 0;
+    /* each seed run lies in one run of the mask (the seeds are above the mask's level): its blob */
+    for (int32_t i = 0, j = 0; i < ns; i++) {
+        while (k->run_y[j] < k->seed_y[i] || (k->run_y[j] == k->seed_y[i] && k->run_x1[j] < k->seed_x0[i])) j++;
+        seed_counts[k->run_label[j]] += k->seed_x1[i] - k->seed_x0[i] + 1;
+    }
+    int32_t seeded = 0;
+    for (int32_t l = 1; l < n_parts; l++) seeded += seed_counts[l] > 0;
+    if (seeded == n_seeds) /* no blob holds two seeds: every blob is one contact */
+        return measure_parts(k, level, k->run_y, k->run_x0, k->run_x1, k->run_label, nr, n_parts);
+    /* the seeds: the strong cells, and the blobs without one, painted with their components' labels */
+    int32_t nz = 0, *zy = k->part_y, *zx0 = k->part_x0, *zx1 = k->part_x1, *zl = k->part_label;
+    for (int32_t i = 0, j = 0; i < nr || j < ns;) { /* merged in raster order */
+        int take_seed = j < ns && (i >= nr || k->seed_y[j] < k->run_y[i]
+                                   || (k->seed_y[j] == k->run_y[i] && k->seed_x0[j] < k->run_x0[i]));
+        if (take_seed) {
+            zy[nz] = k->seed_y[j];
+            zx0[nz] = k->seed_x0[j];
+            zx1[nz++] = k->seed_x1[j++];
+        } else {
+            if (!seed_counts[k->run_label[i]]) {
+                zy[nz] = k->run_y[i];
+                zx0[nz] = k->run_x0[i];
+                zx1[nz++] = k->run_x1[i];
+            }
+            i++;
+        }
+    }
+    ok_label_runs(zy, zx0, zx1, nz, zl, k->parent, k->order);
+    int32_t *seed_img = k->seed_img, *nearest = k->nearest;
+    memset(seed_img, 0, (size_t)bw * bh * sizeof(int32_t));
+    int32_t n_labels = 1;
+    for (int32_t i = 0; i < nz; i++) {
+        for (int32_t x = zx0[i]; x <= zx1[i]; x++) seed_img[(int64_t)zy[i] * bw + x] = zl[i];
+        if (zl[i] >= n_labels) n_labels = zl[i] + 1;
+    }
+    ok_nearest_seed(seed_img, bh, bw, k->dist, nearest);
+    /* the mask's runs cut where the nearest seed changes */
+    int32_t np_ = 0;
+    for (int32_t i = 0; i < nr; i++) {
+        const int32_t *row = nearest + (int64_t)k->run_y[i] * bw;
+        for (int32_t x = k->run_x0[i]; x <= k->run_x1[i]; x++) {
+            int32_t a = x;
+            while (x + 1 <= k->run_x1[i] && row[x + 1] == row[a]) x++;
+            zy[np_] = k->run_y[i];
+            zx0[np_] = a;
+            zx1[np_] = x;
+            zl[np_++] = row[a];
+        }
+    }
+    return measure_parts(k, level, zy, zx0, zx1, zl, np_, n_labels);
 }
 
 /* The sum of the box's cells (the strength above the truncation level of a frame without contact). */
@@ -968,18 +1234,18 @@ static double box_sum(const ok_kernel *k) {
 static void box_runs(ok_kernel *k, float split) {
     int32_t bw = k->box_w, bh = k->box_h, nr = 0, ns = 0;
     for (int32_t y = 0; y < bh; y++) {
-        const float *dst = k->p.surface + (int64_t)(k->box_y + y) * k->p.n + k->box_x;
+        const float *row = k->p.surface + (int64_t)(k->box_y + y) * k->p.n + k->box_x;
         for (int32_t x = 0; x < bw; x++) {
-            if (!(dst[x] > 0.0f)) continue;
+            if (!(row[x] > 0.0f)) continue;
             int32_t a = x;
-            while (x + 1 < bw && dst[x + 1] > 0.0f) x++;
+            while (x + 1 < bw && row[x + 1] > 0.0f) x++;
             k->run_y[nr] = y;
             k->run_x0[nr] = a;
             k->run_x1[nr++] = x;
             for (int32_t s = a; s <= x; s++) { /* the seed runs within it */
-                if (!(dst[s] > split)) continue;
+                if (!(row[s] > split)) continue;
                 int32_t b = s;
-                while (s + 1 <= x && dst[s + 1] > split) s++;
+                while (s + 1 <= x && row[s + 1] > split) s++;
                 k->seed_y[ns] = y;
                 k->seed_x0[ns] = b;
                 k->seed_x1[ns++] = s;
@@ -1005,7 +1271,6 @@ int32_t ok_find(ok_kernel *k, float level) {
                          k->box_x, k->box_y, k->cand);
     } else {
         n_cand = split_blobs(k, level, peak);
-        if (n_cand == OK_SPLIT_NEEDED) return OK_SPLIT_NEEDED;
     }
     k->n_candidates = n_cand;
     if (n_cand == 0) {
@@ -1140,7 +1405,6 @@ int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_
     k->clear_strength = k->clear_area = 0.0;
     if (ok_surface(k, now_ns) > 0) {
         n = ok_find(k, k->in_contact ? k->off : k->on);
-        if (n == OK_SPLIT_NEEDED) return n;
     }
     ok_follow(k, n, now_ns, dt_ns);
     return n;

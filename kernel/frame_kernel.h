@@ -65,8 +65,6 @@ typedef struct {
     const double *shape_map1;   /* (K, C + 1) */
 } ok_models;
 
-/* What ok_find returns besides a number of contacts. */
-#define OK_SPLIT_NEEDED (-2) /* a blob holds two seeds: the caller splits it (the surface is ready) */
 
 /* Everything fixed for a bundle and its options. Arrays are borrowed. */
 typedef struct {
@@ -170,11 +168,16 @@ typedef struct {
     int32_t *run_y, *run_x0, *run_x1, *run_label; /* (n*n / 2 + 1,) each */
     int32_t *seed_y, *seed_x0, *seed_x1, *seed_label;
     int32_t n_runs, n_seed_runs;
+    /* the split of joined presses: the seeds' runs, then the mask's runs cut by nearest seed; the seeds'
+     * labels and each cell's nearest seed (box-sized), and the chamfer distances (box + a border of 2) */
+    int32_t *part_y, *part_x0, *part_x1, *part_label; /* (n*n + 1,) each */
+    int32_t *seed_img, *nearest; /* (n*n,) */
+    int32_t *dist;               /* (2 (n + 4) (n + 6),) distances and labels, and two rows */
     int32_t *parent;   /* (n*n + 1,) union-find */
     int32_t *counts;   /* (n*n + 1,) */
     int32_t *seed_counts; /* (n*n + 1,) */
     int32_t *order;    /* (n*n + 1,) */
-    double *powers;    /* (n, 5): c ** p */
+    double *powers;    /* (5, n): powers[q * n + c] = c ** q */
     double cand[OK_MAX_CANDIDATES * OK_FIELDS];
 } ok_kernel;
 
@@ -195,19 +198,23 @@ void ok_means(ok_kernel *k, const uint8_t *frame);
 /* Steps 4-6 after ok_means: signal, surface, truncation; the cells above the truncation level. */
 int32_t ok_surface(ok_kernel *k, int64_t now_ns);
 /* One frame after the baseline is ready: ok_means, ok_surface, ok_find at the on level (the off level
- * while in contact) and, unless the split is needed, ok_follow. Returns the contacts or OK_SPLIT_NEEDED
- * (then the caller splits the truncated surface and calls ok_follow). */
+ * while in contact), ok_follow. Returns the number of contacts. */
 int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_ns);
 /* Pipeline.reset_baseline's part: no contact, none ended, no raise pending, nothing bright. */
 void ok_reset_contact(ok_kernel *k);
-/* Step 7 after ok_surface found cells: the contacts (k->contacts, strongest first), their number
- * (at most max_contacts; 0: clear_strength and clear_area say what was above the truncation level),
- * or OK_SPLIT_NEEDED. level: the on level, or the off level while in contact. */
+/* Step 7 after ok_surface found cells: the contacts (plan.contacts, strongest first), their number
+ * (at most max_contacts; 0: clear_strength and clear_area say what was above the truncation level).
+ * level: the on level, or the off level while in contact. */
 int32_t ok_find(ok_kernel *k, float level);
 /* Steps 9, 10 after a frame with n contacts: k->raise_pending when fibers are to be raised (plan.rest
  * holds the rest light and k->common the level brightness was measured from; the caller raises them
  * and calls ok_set_levels), else the LED gain and the baseline followed the light. */
 void ok_follow(ok_kernel *k, int32_t n, int64_t now_ns, int64_t dt_ns);
+
+/* Every cell of an h x w box to its nearest seed component, as cv2.distanceTransformWithLabels(non-seed
+ * cells, DIST_L2, 3, labelType=DIST_LABEL_CCOMP) labels them: seed_label holds the seeds' component labels
+ * (0 elsewhere); nearest receives each cell's; dist is scratch of 2 (h + 4) (w + 4) + 2 (w + 4). */
+void ok_nearest_seed(const int32_t *seed_label, int32_t h, int32_t w, int32_t *dist, int32_t *nearest);
 
 /* ContactCorrector.apply on one contact's fields (OK_FIELDS values), in place. */
 void ok_correct(const ok_kernel *k, double *c);
@@ -219,7 +226,7 @@ void ok_sort_floats(float *a, int32_t n);
  * (as cv2.connectedComponents). parent and map need n + 1 entries. */
 int32_t ok_label_runs(const int32_t *y, const int32_t *x0, const int32_t *x1, int32_t n, int32_t *label,
                       int32_t *parent, int32_t *map);
-void ok_hu_q4(const float *img, int32_t h, int32_t w, int32_t stride, float level, const double *powers,
+void ok_hu_q4(const float *img, int32_t h, int32_t w, int32_t stride, float level, const double *xp, int32_t n,
               double *hu_q4);
 
 #endif

@@ -348,26 +348,6 @@ static PyObject *Kernel_means(KernelObject *self, PyObject *frame) {
     Py_RETURN_NONE;
 }
 
-static PyObject *Kernel_follow(KernelObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    REQUIRE_INIT(self);
-    long long v[3];
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "follow(n, now_ns, dt_ns)");
-        return NULL;
-    }
-    for (int i = 0; i < 3; i++) {
-        v[i] = PyLong_AsLongLong(args[i]);
-        if (v[i] == -1 && PyErr_Occurred()) return NULL;
-    }
-    long long n = v[0], now_ns = v[1], dt_ns = v[2];
-    if (n < 0 || n > OK_MAX_CANDIDATES) {
-        PyErr_Format(PyExc_ValueError, "follow: %lld contacts", n);
-        return NULL;
-    }
-    ok_follow(&self->k, (int32_t)n, now_ns, dt_ns);
-    Py_RETURN_NONE;
-}
-
 static PyObject *Kernel_set_levels(KernelObject *self, PyObject *args) {
     REQUIRE_INIT(self);
     float trunc, off, on;
@@ -403,10 +383,8 @@ static PyMethodDef Kernel_methods[] = {
     {"set_correct", (PyCFunction)Kernel_set_correct, METH_O,
      "set_correct(on): apply the plan's calibration models to the contacts (default on)."},
     {"frame", (PyCFunction)(void (*)(void))Kernel_frame, METH_FASTCALL,
-     "frame(frame, now_ns, dt_ns) -> contacts, or SPLIT_NEEDED: one frame after the baseline is ready."},
+     "frame(frame, now_ns, dt_ns) -> contacts: one frame after the baseline is ready."},
     {"means", (PyCFunction)Kernel_means, METH_O, "means(frame): the fiber means into the plan's means."},
-    {"follow", (PyCFunction)(void (*)(void))Kernel_follow, METH_FASTCALL,
-     "follow(n, now_ns, dt_ns): steps 9 and 10 after a frame the caller split."},
     {"set_levels", (PyCFunction)Kernel_set_levels, METH_VARARGS,
      "set_levels(trunc, off, on, gain_delta, gain_tolerance, gain_significant)"},
     {"reset_gain", (PyCFunction)Kernel_reset_gain, METH_O, "reset_gain(now_ns): gain 1 from now on."},
@@ -505,7 +483,39 @@ static PyObject *mod_label8(PyObject *Py_UNUSED(mod), PyObject *args) {
     return result;
 }
 
+/* nearest_seed(seed_labels int32 (h, w), nearest int32 (h, w)): the kernel's labelled distance transform */
+static PyObject *mod_nearest_seed(PyObject *Py_UNUSED(mod), PyObject *args) {
+    PyObject *a, *b;
+    if (!PyArg_ParseTuple(args, "OO", &a, &b)) return NULL;
+    Py_buffer s, n;
+    if (PyObject_GetBuffer(a, &s, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
+    if (PyObject_GetBuffer(b, &n, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
+        PyBuffer_Release(&s);
+        return NULL;
+    }
+    PyObject *result = NULL;
+    if (s.ndim != 2 || s.itemsize != 4 || n.len != s.len) {
+        PyErr_SetString(PyExc_ValueError, "nearest_seed: (h, w) int32 seed labels and (h, w) int32 out");
+    } else {
+        Py_ssize_t h = s.shape[0], w = s.shape[1];
+        int32_t *d = PyMem_Malloc((size_t)(2 * (h + 4) + 2) * (w + 4) * sizeof(int32_t));
+        if (!d) {
+            PyErr_NoMemory();
+        } else {
+            ok_nearest_seed((const int32_t *)s.buf, (int32_t)h, (int32_t)w, d, (int32_t *)n.buf);
+            PyMem_Free(d);
+            result = Py_None;
+            Py_INCREF(result);
+        }
+    }
+    PyBuffer_Release(&s);
+    PyBuffer_Release(&n);
+    return result;
+}
+
 static PyMethodDef module_methods[] = {
+    {"nearest_seed", mod_nearest_seed, METH_VARARGS,
+     "nearest_seed(seed_labels, nearest): every cell to its nearest seed, as cv2.distanceTransformWithLabels."},
     {"sort", mod_sort, METH_O, "sort(a): a float32 array in place, ascending (the kernel's sort)."},
     {"label8", mod_label8, METH_VARARGS, "label8(mask, labels) -> n: 8-connected components, raster order."},
     {NULL, NULL, 0, NULL}};
@@ -526,6 +536,5 @@ PyMODINIT_FUNC PyInit__frame_kernel(void) {
     }
     PyModule_AddIntConstant(m, "FIELDS", OK_FIELDS);
     PyModule_AddIntConstant(m, "MAX_CANDIDATES", OK_MAX_CANDIDATES);
-    PyModule_AddIntConstant(m, "SPLIT_NEEDED", OK_SPLIT_NEEDED);
     return m;
 }

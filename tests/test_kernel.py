@@ -5,7 +5,7 @@ results compared: identical contact counts, ids, touches, releases, shapes and f
 means and the signal bit for bit (the same float32 steps); the surface, centroid and widths to
 rounding (the kernel sums the gradient product and the moments in another order than OpenBLAS
 and OpenCV: 1e-6 mm allowed, 1e-3 degrees for the angle). The frames: the simulated sensor with
-0-4 presses (the four join into one blob: the split falls back to numpy), LED dimming and
+0-4 presses (the four join into one blob: the nearest-seed split), LED dimming and
 brightening, a start during a press (the baseline raise), a tare, the MCU's contact level; every
 contact option switched; gray, RGB and YUV frames; dead fibers; a dense surface matrix; and a
 small layout of large fibers (sums past 16 bits).
@@ -334,6 +334,29 @@ def test_the_labelling_is_opencvs_partition_in_raster_order() -> None:
         assert len(pairs) == n - 1  # one to one: the same components
         firsts = [int(np.flatnonzero(labels.ravel() == lab)[0]) for lab in range(1, n)]
         assert firsts == sorted(firsts)  # numbered in raster order of their first cell
+
+
+def test_the_nearest_seed_is_opencvs_labelled_distance_transform() -> None:
+    """The split of joined presses: every cell to the seed component cv2.distanceTransformWithLabels gives it."""
+    rng = np.random.default_rng(2)
+    for k in range(80):
+        h, w = (int(v) for v in rng.integers(2, 45, 2))
+        seeds = np.zeros((h, w), dtype=np.uint8)
+        for _ in range(int(rng.integers(1, 6))):  # a few blobs of seeds
+            y, x, r = int(rng.integers(0, h)), int(rng.integers(0, w)), int(rng.integers(0, 4))
+            seeds[max(y - r, 0):y + r + 1, max(x - r, 0):x + r + 1] = 1
+        seeds &= (rng.random((h, w)) < 0.9).astype(np.uint8)  # ragged
+        if not seeds.any():
+            continue
+        labels = np.zeros((h, w), dtype=np.int32)
+        _frame_kernel.label8(seeds, labels)
+        nearest = np.zeros((h, w), dtype=np.int32)
+        _frame_kernel.nearest_seed(labels, nearest)
+        _dist, cv_nearest = cv2.distanceTransformWithLabels((1 - seeds).astype(np.uint8), cv2.DIST_L2, 3,
+                                                            labelType=cv2.DIST_LABEL_CCOMP)
+        mapping = dict(zip(labels[seeds > 0].tolist(), cv_nearest[seeds > 0].tolist()))  # the two numberings
+        assert len(set(mapping.values())) == len(mapping), k
+        np.testing.assert_array_equal(np.vectorize(mapping.get)(nearest), cv_nearest, err_msg=str(k))
 
 
 def test_a_bad_plan_is_one_clear_error(modelled) -> None:

@@ -9,11 +9,10 @@ same buffers as the numpy parts (the fiber means, signal, surface, baseline,
 levels), so the numpy pipeline stays the readable reference and everything
 reading those buffers (the live view, the bench) sees the same thing.
 
-What stays in Python, per contact: the calibration models (:class:`ContactCorrector`)
-and the tracking of ids (:class:`ContactTracker`); and for the rare frame where
-two presses joined into one blob holding two seeds, the split by the distance
-transform (the kernel then hands the truncated surface to the numpy
-:class:`ContactFinder`).
+What stays in Python, per contact: the tracking of ids (:class:`ContactTracker`),
+and a corrector other than the bundle's own (the ONNX shape backend). The
+kernel applies the bundle's calibration models (centroid map, width, depth and
+force, the numpy shape classifier) itself.
 
 The kernel is built by ``pip install`` where a C compiler and Python's headers
 exist (``setup.py``: an optional extension); nothing is compiled at run time or
@@ -90,7 +89,6 @@ class FrameKernel:
         mod = _load()
         if mod is None:
             raise ImportError(f"the compiled kernel is {_why_not}")
-        self.split_needed = int(mod.SPLIT_NEEDED)
         o, grid, baseline = pipe.options, pipe.bundle.grid, pipe.baseline
         #: The contacts of the last frame, strongest first: (MAX_CONTACTS, fields) float64: strength, x, y,
         #: major, minor, angle, area, peak, 7 log-Hu, q4, depth, force, shape index (-1: none), confidence.

@@ -373,10 +373,7 @@ class Pipeline:
         kern = fk.kernel
         est.baseline_ready = True
         n = fk.frame(frame, now_ns, dt_ns)
-        if n == fk.split_needed:  # two presses joined into one blob: the numpy split of the kernel's surface
-            n = self.finder.find(self._surface, est, bool(kern.in_contact), self.corrector)
-            kern.follow(n, now_ns, dt_ns)
-        elif n == 0:
+        if n == 0:
             est.clear(kern.clear_strength, kern.clear_area)
         else:
             self._take_contacts(n, est)
