@@ -482,7 +482,10 @@ static inline v8f load8(const float *p) {
     memcpy(&v, p, sizeof v);
     return v;
 }
-static inline float sum8(v8f v) { return ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7])); }
+static inline float sum8(const v8f *p) {
+    const v8f v = *p;
+    return ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]));
+}
 
 /* out[r] = sum_c op[r, c] * v[c], float32: four rows at a time, eight columns per step (lane j sums the
  * columns c = j mod 8 in order), then the lanes; the columns past a multiple of 8 last. Written for
@@ -503,7 +506,7 @@ static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, 
             sc += load8(c + j) * x;
             sd += load8(d + j) * x;
         }
-        float ta = sum8(sa), tb = sum8(sb), tc = sum8(sc), td = sum8(sd);
+        float ta = sum8(&sa), tb = sum8(&sb), tc = sum8(&sc), td = sum8(&sd);
         for (int32_t j = c8; j < cols; j++) {
             ta += a[j] * v[j];
             tb += b[j] * v[j];
@@ -519,7 +522,7 @@ static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, 
         const float *a = op + (int64_t)r * cols;
         v8f sa = {0};
         for (int32_t j = 0; j < c8; j += 8) sa += load8(a + j) * load8(v + j);
-        float ta = sum8(sa);
+        float ta = sum8(&sa);
         for (int32_t j = c8; j < cols; j++) ta += a[j] * v[j];
         out[r] = ta;
     }

@@ -3,6 +3,7 @@ region, one frame loop per camera with every sensor of the camera, one link carr
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from pathlib import Path
 
@@ -171,15 +172,20 @@ class Recorder(NullTransport):
     def __init__(self) -> None:
         super().__init__()
         self.sent: list[tuple[str, int, bool]] = []
+        #: Every CONTACT message in full, in order.
+        self.messages: list[str] = []
 
     def send_contact(self, message) -> None:
         self.sent.append(("CONTACT", message.sensor_id, bool(message.flags & 1)))
+        self.messages.append(repr(dataclasses.replace(message, age_us=0)))  # its age: the wall clock's
 
     def send_status(self, message) -> None:
         self.sent.append(("STATUS", message.sensor_id, False))
 
 
-def test_one_loop_reads_every_sensor_of_its_camera_and_sends_each_with_its_own_id(tmp_path, fingers):
+@pytest.mark.parametrize("workers", [0, 1])
+def test_one_loop_reads_every_sensor_of_its_camera_and_sends_each_with_its_own_id(tmp_path, fingers, workers):
+    """On the loop's thread alone, and with the second sensor's pipeline on a worker thread: the same."""
     cam, rest, bundles = fingers
     config = load_board_config(_board(tmp_path), env={})
     thumb, index, _ = config.sensors
@@ -189,13 +195,33 @@ def test_one_loop_reads_every_sensor_of_its_camera_and_sends_each_with_its_own_i
     link = Recorder()
     service = Service(config, None, ListCamera(frames), link, sensors=[(thumb.sensor, bundles[0]),
                                                                       (index.sensor, bundles[1])],
-                      camera_config=config.cameras["fingers"])
+                      camera_config=config.cameras["fingers"], workers=workers)
+    assert service.pool.workers == workers
     stats = service.run(threading.Event())
     contacts = [(sid, on) for kind, sid, on in link.sent if kind == "CONTACT"]
     assert contacts[::2] == [(1, on) for on in [False] * 10 + [True] * 5 + [False] * 5]
     assert contacts[1::2] == [(2, on) for on in [False] * 15 + [True] * 5]
     assert {sid for kind, sid, _ in link.sent if kind == "STATUS"} == {1, 2}
     assert (stats.frames, stats.contacts, [ch.contacts for ch in service.channels]) == (20, 10, [5, 5])
+
+
+def test_sensors_on_worker_threads_send_the_same_messages_in_the_same_order(tmp_path, fingers):
+    """Four sensors (the two patches, twice) on three worker threads: every CONTACT message, in full and in
+    order, as the loop alone sends them."""
+    cam, rest, bundles = fingers
+    config = load_board_config(_board(tmp_path), env={})
+    thumb, index, _ = config.sensors
+    press = Indenter("square", -2.0, 1.0, 30.0, 4.0, 3.0)
+    frames = rest + [cam.frame([(press,), ()]) for _ in range(6)] + [cam.frame([(), (press,)]) for _ in range(6)]
+    sensors = [(thumb.sensor, bundles[0]), (index.sensor, bundles[1])] * 2
+    sent = {}
+    for workers in (0, 3):
+        link = Recorder()
+        service = Service(config, None, ListCamera(frames), link, sensors=sensors, workers=workers)
+        service.run(threading.Event())
+        assert service.pool.workers == 0  # closed with the service
+        sent[workers] = link.messages
+    assert len(sent[0]) == 4 * len(frames) and sent[3] == sent[0]
 
 
 def test_a_dark_patch_is_skipped_for_its_sensor_only(tmp_path, fingers):

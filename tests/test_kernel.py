@@ -14,7 +14,10 @@ small layout of large fibers (sums past 16 bits).
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
+import subprocess
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -408,3 +411,30 @@ def test_the_environment_can_ask_for_the_numpy_pipeline(modelled, monkeypatch) -
     assert compiled.kernel_status() == (False, "the numpy pipeline runs the frames (OPTITAC_EDGE_KERNEL=numpy)")
     assert Pipeline(modelled).kernel is None
     assert Pipeline(modelled, compiled=True).kernel is not None  # asked for by the caller
+
+
+# -- the kernel on aarch64 (qemu-user; .ci/run installs Debian's cross compiler and qemu) ---------------------
+
+
+@pytest.fixture(scope="module")
+def aarch64_tool():
+    path = Path(__file__).resolve().parents[1] / "tools" / "kernel_aarch64.py"
+    spec = importlib.util.spec_from_file_location("kernel_aarch64", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_tool, tmp_path) -> None:
+    """kernel/harness.c built with Debian's aarch64 cross compiler (NEON from the same vector code), run under
+    qemu-user on the plan and frames of this machine's kernel: the same contacts, within the tolerances
+    (another libm may round exp, log, atan2 in the last bit)."""
+    root = Path(__file__).resolve().parents[1]
+    exe = tmp_path / "harness-aarch64"
+    subprocess.run(["aarch64-linux-gnu-gcc", "-std=c99", "-O3", "-ffp-contract=off", "-static", "-o", str(exe),
+                    str(root / "kernel" / "harness.c"), str(root / "kernel" / "frame_kernel.c"), "-lm"], check=True)
+    lines = aarch64_tool.check(Pipeline(modelled, compiled=True), day[:200], [f"qemu-aarch64 {exe}"], tmp_path,
+                               "day")
+    assert len(lines) == 1 and ", 0 beyond the tolerances" in lines[0], lines
+    assert " 0 contacts" not in lines[0]

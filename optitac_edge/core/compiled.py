@@ -127,6 +127,9 @@ class FrameKernel:
         self.shape_names: list[str] = (list(pipe.corrector.shapes.class_names)
                                        if self.corrector is not None and pipe.corrector is not None
                                        and pipe.corrector.shapes is not None else [])
+        #: What the kernel was built from (its arrays are the pipeline's buffers; tools/kernel_aarch64.py
+        #: writes it out for the C harness).
+        self.plan = plan
         #: The extension's kernel object (its members: gain, light_changed, raise_pending, common, ...).
         self.kernel = mod.Kernel(plan)
         self.kernel.set_correct(self.corrector is not None)

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frame_check import FrameCheck
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.io.cameras.base import CapturedFrame
 from optitac_edge.io.protocol.messages import StatusMessage
 from optitac_edge.io.protocol.outbox import SensorOutbox
 
@@ -49,6 +51,17 @@ class SensorChannel:
         self.fault_since_status = False
         #: A common-mode change of the light since the last STATUS.
         self.light_since_status = False
+        self._captured: CapturedFrame | None = None
+
+    def take(self, captured: CapturedFrame) -> None:
+        """The checked frame :meth:`run_pipeline` processes next."""
+        self._captured = captured
+
+    def run_pipeline(self) -> FrameResult:
+        """The pipeline on the frame :meth:`take` gave (on a worker thread of the loop's pool, or the loop's)."""
+        c = self._captured
+        assert c is not None, "take() a frame first"
+        return self.pipeline.process(c.frame, c.t_ns, self.frame_check.saturated)
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread); it goes on

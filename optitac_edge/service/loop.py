@@ -41,6 +41,7 @@ from optitac_edge.service import stats as counts
 from optitac_edge.service.camera_keeper import CameraKeeper
 from optitac_edge.service.channel import SensorChannel
 from optitac_edge.service.commands import Outcome, apply_command
+from optitac_edge.service.pool import SensorPool, spare_workers
 from optitac_edge.service.stats import ServiceStats
 from optitac_edge.service.status import StatusReporter
 
@@ -85,7 +86,8 @@ class Service:
                  transport: Transport, notifier: Notifier | None = None, *,
                  camera_factory: Callable[[], Camera] | None = None, clock: Clock = SYSTEM_CLOCK,
                  sensors: Sequence[tuple[SensorConfig, CalibrationBundle]] | None = None,
-                 camera_config: CameraConfig | None = None, camera_name: str | None = None) -> None:
+                 camera_config: CameraConfig | None = None, camera_name: str | None = None,
+                 workers: int | None = None) -> None:
         self.stats = ServiceStats()
         gap_s = config.watchdog.max_frame_gap_s
         #: The camera, reopened after a failure when there is a factory.
@@ -107,6 +109,9 @@ class Service:
         self.notifier = notifier or Notifier(env={})
         #: One per sensor the camera reads, in the board's order.
         self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.frame_shape) for sensor, b in sensors]
+        #: The sensors' pipelines on the board's spare cores (``workers``: how many threads; None: one per
+        #: sensor beyond the first, as many as the cores beyond two).
+        self.pool = SensorPool(spare_workers(len(self.channels)) if workers is None else workers)
         #: The services of the board's other cameras (this one is the lead when it has any).
         self.peers: list[Service] = []
         #: This service is one of a lead's peers: it takes commands from its inbox and leaves systemd alone.
@@ -171,8 +176,9 @@ class Service:
         self.channels[0].replace_pipeline(pipeline)
 
     def close(self) -> None:
-        """Close the camera the service opened itself (idempotent)."""
+        """Close the camera the service opened itself and stop the sensor workers (idempotent)."""
         self.keeper.close()
+        self.pool.close()
 
     # -- the loop ----------------------------------------------------------------------------
 
@@ -287,47 +293,54 @@ class Service:
 
     def _process(self, captured: CapturedFrame) -> tuple[FrameResult | None, bool]:
         """Check and process one captured frame for every sensor: (the first sensor's result, None when no
-        sensor processed the frame; a device fault)."""
+        sensor processed the frame; a device fault).
+
+        The frame checks, then every checked sensor's pipeline (side by side on :attr:`pool`'s workers),
+        then, sensor by sensor in the board's order, the counts, the network and the messages to the MCU.
+        """
         st = self.stats
         first: FrameResult | None = None
-        processed = device_fault = False
+        device_fault = False
         send = self.link.due(st.frames + 1)
+        checked = []
         for ch in self.channels:
-            result, fault = self._process_sensor(ch, captured, send)
-            device_fault |= fault is not None
-            if fault == "bad":
-                break  # a frame of the wrong shape or type is wrong for every sensor: counted once
-            if result is not None and not processed:
-                processed, first = True, result
-        if processed:
+            try:
+                why = ch.frame_check(captured.frame)
+            except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
+                why = "bad"
+            if why is not None:
+                counts.frame_skipped(self.stats, ch, why)
+                if why == "bad":  # a frame of the wrong shape or type is wrong for every sensor: counted once
+                    device_fault = True
+                    break
+                continue
+            ch.take(captured)
+            checked.append(ch)
+        if device_fault:
+            checked.clear()
+        results = self.pool.run([ch.run_pipeline for ch in checked])
+        for ch, result in zip(checked, results):
+            if isinstance(result, Exception):  # a per-frame failure never ends the service
+                counts.processing_failed(self.stats, ch, result)
+                device_fault = True  # a loop failing on every frame counts towards the frame gap
+                continue
+            assert isinstance(result, FrameResult)
+            self._deliver(ch, result, captured, send)
+            if first is None:
+                first = result
+        if first is not None:
             st.frames += 1
             st.sent += int(send)
         return first, device_fault
 
-    def _process_sensor(self, ch: SensorChannel, captured: CapturedFrame,
-                        send: bool) -> tuple[FrameResult | None, str | None]:
-        """One sensor's part of a frame: the frame check, the pipeline, the outbox's messages sent. Returns
-        its result (None: skipped) and the device fault: None, "bad" (a wrong frame) or "failed" (the
-        pipeline failed)."""
-        try:
-            why = ch.frame_check(captured.frame)
-        except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
-            why = "bad"
-        if why is not None:
-            counts.frame_skipped(self.stats, ch, why)
-            return None, "bad" if why == "bad" else None
-        try:
-            result = ch.pipeline.process(captured.frame, captured.t_ns, ch.frame_check.saturated)
-        except Exception as exc:  # noqa: BLE001 - a per-frame failure never ends the service
-            counts.processing_failed(self.stats, ch, exc)
-            return None, "failed"  # a loop failing on every frame counts towards the frame gap
+    def _deliver(self, ch: SensorChannel, result: FrameResult, captured: CapturedFrame, send: bool) -> None:
+        """One sensor's frame out: its counts, the network, the outbox's messages sent."""
         self._count(ch, result)
         if self.network is not None:
             self.network.offer_frame(ch.sensor_id, result, ch.degraded, ch.pipeline.signal, captured.frame,
                                      ch.pipeline.surface)
         for message in ch.outbox.update(result, self.link, send, self.clock.monotonic_ns()):
             self.transport.send(message)
-        return result, None
 
     def _count(self, ch: SensorChannel, result: FrameResult) -> None:
         """The sensor's counters and flags from its frame (and a log line on the first and every 100th event)."""
