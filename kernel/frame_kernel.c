@@ -7,6 +7,18 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* x86-64 (GCC, Linux): the widest loops have an AVX2 form beside the baseline one (SSE2, as NEON on
+ * aarch64: four float32 lanes), chosen once at init where the CPU has AVX2. -DOK_NO_CLONES builds the
+ * baseline alone (a 4-lane machine's instruction mix, as the Pi's). */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__) && !defined(OK_NO_CLONES)
+#define OK_AVX2 1
+#define CLONES_AVX2 __attribute__((target_clones("avx2", "default")))
+static int ok_avx2; /* set by ok_kernel_init */
+#else
+#define OK_AVX2 0
+#define CLONES_AVX2
+#endif
+
 #define FWHM_PER_SIGMA 2.3548200450309493 /* 2 sqrt(2 ln 2), moments.FWHM_PER_SIGMA */
 #define BOUND_MARGIN 1e-4                  /* TriangleSurface.BOUND_MARGIN */
 #define COMMON_MODE_FRACTION 0.6           /* gain.COMMON_MODE_FRACTION */
@@ -55,6 +67,10 @@ static int init_chunks(ok_kernel *k) {
 
 int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     memset(k, 0, sizeof *k);
+#if OK_AVX2
+    __builtin_cpu_init();
+    ok_avx2 = __builtin_cpu_supports("avx2");
+#endif
     k->p = *plan;
     const ok_plan *p = &k->p;
     int32_t nf = p->n_fibers;
@@ -473,40 +489,32 @@ static inline v4f load4(const float *p) {
     return v;
 }
 
-/* Eight float32 lanes, passed between static inline functions only: the ABI note about 32-byte vectors
- * without AVX does not apply (nothing here is called across a library boundary). */
-#pragma GCC diagnostic ignored "-Wpsabi"
-typedef float v8f __attribute__((vector_size(32)));
-static inline v8f load8(const float *p) {
-    v8f v;
-    memcpy(&v, p, sizeof v);
-    return v;
-}
-static inline float sum8(const v8f *p) {
-    const v8f v = *p;
-    return ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]));
+/* Every matrix-vector product sums column c of a row into lane c mod 8, in column order, then adds the
+ * lanes as ((0+1)+(2+3))+((4+5)+(6+7)), and the columns past a multiple of 8 last: the same float32
+ * sums on every machine, whatever its vector width. */
+static inline float lanes8(v4f lo, v4f hi) {
+    return ((lo[0] + lo[1]) + (lo[2] + lo[3])) + ((hi[0] + hi[1]) + (hi[2] + hi[3]));
 }
 
-/* out[r] = sum_c op[r, c] * v[c], float32: four rows at a time, eight columns per step (lane j sums the
- * columns c = j mod 8 in order), then the lanes; the columns past a multiple of 8 last. Written for
- * eight lanes, so every machine sums in the same order: x86-64 gets an AVX2 clone (one instruction per
- * eight lanes, chosen at load time) beside the SSE2 one (two per eight); aarch64 NEON takes two. */
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
-__attribute__((target_clones("avx2", "default")))
-#endif
-static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, float *out) {
+/* out[r] = sum_c op[r, c] * v[c]: four rows at a time, eight columns per step as two 4-lane halves
+ * (SSE2 on x86-64, NEON on aarch64: both in their baseline). */
+static void matvec4(const float *op, int32_t rows, int32_t cols, const float *v, float *out) {
     int32_t c8 = cols & ~7, r = 0;
     for (; r + 4 <= rows; r += 4) {
         const float *a = op + (int64_t)r * cols, *b = a + cols, *c = b + cols, *d = c + cols;
-        v8f sa = {0}, sb = {0}, sc = {0}, sd = {0};
+        v4f a0 = {0}, a1 = {0}, b0 = {0}, b1 = {0}, c0 = {0}, c1 = {0}, d0 = {0}, d1 = {0};
         for (int32_t j = 0; j < c8; j += 8) {
-            v8f x = load8(v + j);
-            sa += load8(a + j) * x;
-            sb += load8(b + j) * x;
-            sc += load8(c + j) * x;
-            sd += load8(d + j) * x;
+            v4f x0 = load4(v + j), x1 = load4(v + j + 4);
+            a0 += load4(a + j) * x0;
+            a1 += load4(a + j + 4) * x1;
+            b0 += load4(b + j) * x0;
+            b1 += load4(b + j + 4) * x1;
+            c0 += load4(c + j) * x0;
+            c1 += load4(c + j + 4) * x1;
+            d0 += load4(d + j) * x0;
+            d1 += load4(d + j + 4) * x1;
         }
-        float ta = sum8(&sa), tb = sum8(&sb), tc = sum8(&sc), td = sum8(&sd);
+        float ta = lanes8(a0, a1), tb = lanes8(b0, b1), tc = lanes8(c0, c1), td = lanes8(d0, d1);
         for (int32_t j = c8; j < cols; j++) {
             ta += a[j] * v[j];
             tb += b[j] * v[j];
@@ -520,12 +528,55 @@ static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, 
     }
     for (; r < rows; r++) {
         const float *a = op + (int64_t)r * cols;
-        v8f sa = {0};
-        for (int32_t j = 0; j < c8; j += 8) sa += load8(a + j) * load8(v + j);
-        float ta = sum8(&sa);
+        v4f a0 = {0}, a1 = {0};
+        for (int32_t j = 0; j < c8; j += 8) {
+            a0 += load4(a + j) * load4(v + j);
+            a1 += load4(a + j + 4) * load4(v + j + 4);
+        }
+        float ta = lanes8(a0, a1);
         for (int32_t j = c8; j < cols; j++) ta += a[j] * v[j];
         out[r] = ta;
     }
+}
+
+#if OK_AVX2
+/* The same with the eight lanes in one AVX2 register (x86-64 machines that have it, chosen at init). */
+typedef float v8f __attribute__((vector_size(32)));
+__attribute__((target("avx2"))) static void matvec8(const float *op, int32_t rows, int32_t cols, const float *v,
+                                                    float *out) {
+    int32_t c8 = cols & ~7, r = 0;
+    for (; r < rows; r += 4) { /* four rows at a time (the last block may hold fewer) */
+        int32_t nr = rows - r < 4 ? rows - r : 4;
+        const float *row[4];
+        for (int q = 0; q < 4; q++) row[q] = op + (int64_t)(r + (q < nr ? q : 0)) * cols;
+        v8f acc[4] = {{0}, {0}, {0}, {0}};
+        for (int32_t j = 0; j < c8; j += 8) {
+            v8f x;
+            memcpy(&x, v + j, sizeof x);
+            for (int q = 0; q < 4; q++) {
+                v8f a;
+                memcpy(&a, row[q] + j, sizeof a);
+                acc[q] += a * x;
+            }
+        }
+        for (int q = 0; q < nr; q++) {
+            v8f sa = acc[q];
+            float t = ((sa[0] + sa[1]) + (sa[2] + sa[3])) + ((sa[4] + sa[5]) + (sa[6] + sa[7]));
+            for (int32_t j = c8; j < cols; j++) t += row[q][j] * v[j];
+            out[r + q] = t;
+        }
+    }
+}
+#endif
+
+static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, float *out) {
+#if OK_AVX2
+    if (ok_avx2) {
+        matvec8(op, rows, cols, v, out);
+        return;
+    }
+#endif
+    matvec4(op, rows, cols, v, out);
 }
 #else
 /* The portable form: the same sums in the same order, one lane at a time. */
@@ -705,18 +756,11 @@ static double log_hu_value(double h) {
 #if defined(__GNUC__) || defined(__clang__)
 typedef double v4d __attribute__((vector_size(32)));
 typedef int64_t v4l __attribute__((vector_size(32)));
-#define CLONES_AVX2 __attribute__((target_clones("avx2", "default")))
-#if !(defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__))
-#undef CLONES_AVX2
-#define CLONES_AVX2
-#endif
 #endif
 
 /* One row of a binary shape img > level: r[p] = sum of x ** p over its cells (exact integers, in any
  * order), four cells at a time. xp: the powers, xp[p * n + x]. */
-#if defined(__GNUC__) || defined(__clang__)
 CLONES_AVX2
-#endif
 static void binary_row(const float *row, int32_t w, float level, const double *xp, int32_t n, double *r) {
     int32_t x = 0;
     double t[5] = {0, 0, 0, 0, 0};
@@ -803,9 +847,7 @@ void ok_hu_q4(const float *img, int32_t h, int32_t w, int32_t stride, float leve
  * into cells), into out; 0 when it holds nothing. */
 /* One row of the weighted moments: s[0..2] = sum of v, v x, v x^2 over the cells above `above` (the others
  * weigh 0), float64, four cells at a time; their number. xs: the column coordinates. */
-#if defined(__GNUC__) || defined(__clang__)
 CLONES_AVX2
-#endif
 static int32_t ellipse_row(const float *row, int32_t w, float above, const double *xs, double *s) {
     int32_t x = 0, count = 0;
     double s0 = 0, s1 = 0, s2 = 0;
@@ -1029,13 +1071,98 @@ static int32_t measure_parts(ok_kernel *k, float level, const int32_t *y, const 
 
 /* See frame_kernel.h. A forward and a backward pass of a 5 x 5 chamfer in 16.16 fixed point, the first of
  * equally near neighbours winning in OpenCV's order (its distanceTransformEx_5x5). */
+/* The best of a row's seven neighbours in the rows above (mirror = 0: from DT_FAR) or below (mirror = 1:
+ * from the cell's own distance), for every cell of the row: the first strictly nearest wins, as OpenCV
+ * checks them. t, l: the row's distances and labels (a border of 2 around); off: the seven offsets. */
+static void dt_best_scalar(const int32_t *t, const int32_t *l, const int32_t *off, const int32_t *cost, int32_t j,
+                           int32_t bw, int mirror, int32_t *best_t, int32_t *best_l) {
+    for (; j < bw; j++) {
+        int32_t t0 = mirror ? t[j] : DT_FAR, l0 = mirror ? l[j] : 0;
+        for (int q = 0; q < 7; q++) {
+            int32_t o = mirror ? -off[q] : off[q], v = t[j + o] + cost[q];
+            if (t0 > v) {
+                t0 = v;
+                l0 = l[j + o];
+            }
+        }
+        best_t[j] = t0;
+        best_l[j] = l0;
+    }
+}
+
 #if defined(__GNUC__) || defined(__clang__)
-typedef int32_t v8i __attribute__((vector_size(32)));
+/* Four cells at a time (SSE2, NEON): exact integer minima, the same winners as one at a time. */
+static void dt_best4(const int32_t *t, const int32_t *l, const int32_t *off, const int32_t *cost, int32_t bw,
+                     int mirror, int32_t *best_t, int32_t *best_l) {
+    int32_t j = 0;
+    for (; j + 4 <= bw; j += 4) {
+        v4i t0 = {DT_FAR, DT_FAR, DT_FAR, DT_FAR}, l0 = {0, 0, 0, 0};
+        if (mirror) {
+            memcpy(&t0, t + j, sizeof t0);
+            memcpy(&l0, l + j, sizeof l0);
+        }
+        for (int q = 0; q < 7; q++) {
+            int32_t o = mirror ? -off[q] : off[q];
+            v4i v, lv;
+            memcpy(&v, t + j + o, sizeof v);
+            memcpy(&lv, l + j + o, sizeof lv);
+            v += cost[q];
+            v4i m = t0 > v; /* strictly nearer: the first of equals stays */
+            t0 = (v & m) | (t0 & ~m);
+            l0 = (lv & m) | (l0 & ~m);
+        }
+        memcpy(best_t + j, &t0, sizeof t0);
+        memcpy(best_l + j, &l0, sizeof l0);
+    }
+    dt_best_scalar(t, l, off, cost, j, bw, mirror, best_t, best_l);
+}
 #endif
 
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__)
-__attribute__((target_clones("avx2", "default")))
+#if OK_AVX2
+typedef int32_t v8i __attribute__((vector_size(32)));
+/* Eight cells at a time (AVX2). */
+__attribute__((target("avx2"))) static void dt_best8(const int32_t *t, const int32_t *l, const int32_t *off,
+                                                     const int32_t *cost, int32_t bw, int mirror, int32_t *best_t,
+                                                     int32_t *best_l) {
+    int32_t j = 0;
+    for (; j + 8 <= bw; j += 8) {
+        v8i t0 = {DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR}, l0 = {0};
+        if (mirror) {
+            memcpy(&t0, t + j, sizeof t0);
+            memcpy(&l0, l + j, sizeof l0);
+        }
+        for (int q = 0; q < 7; q++) {
+            int32_t o = mirror ? -off[q] : off[q];
+            v8i v, lv;
+            memcpy(&v, t + j + o, sizeof v);
+            memcpy(&lv, l + j + o, sizeof lv);
+            v += cost[q];
+            v8i m = t0 > v;
+            t0 = (v & m) | (t0 & ~m);
+            l0 = (lv & m) | (l0 & ~m);
+        }
+        memcpy(best_t + j, &t0, sizeof t0);
+        memcpy(best_l + j, &l0, sizeof l0);
+    }
+    dt_best_scalar(t, l, off, cost, j, bw, mirror, best_t, best_l);
+}
 #endif
+
+static void dt_best(const int32_t *t, const int32_t *l, const int32_t *off, const int32_t *cost, int32_t bw,
+                    int mirror, int32_t *best_t, int32_t *best_l) {
+#if OK_AVX2
+    if (ok_avx2) {
+        dt_best8(t, l, off, cost, bw, mirror, best_t, best_l);
+        return;
+    }
+#endif
+#if defined(__GNUC__) || defined(__clang__)
+    dt_best4(t, l, off, cost, bw, mirror, best_t, best_l);
+#else
+    dt_best_scalar(t, l, off, cost, 0, bw, mirror, best_t, best_l);
+#endif
+}
+
 void ok_nearest_seed(const int32_t *seed_label, int32_t bh, int32_t bw, int32_t *d, int32_t *nearest) {
     /* d: distances, then labels, each (bh + 4) x (bw + 4) with a border of 2 (DT_FAR, label 0), then two
      * rows of bw + 4 for the best of the seven neighbours of the rows above (below) */
@@ -1061,36 +1188,8 @@ void ok_nearest_seed(const int32_t *seed_label, int32_t bh, int32_t bw, int32_t 
     for (int32_t i = 0; i < bh; i++) { /* forward: the seven above, in order, then the one to the left */
         int32_t *t = d + (int64_t)(i + 2) * W + 2, *l = lab + (int64_t)(i + 2) * W + 2;
         const int32_t *sl = seed_label + (int64_t)i * bw;
-        int32_t j = 0;
-#if defined(__GNUC__) || defined(__clang__)
-        for (; j + 8 <= bw; j += 8) { /* eight columns at a time (an AVX2 clone on x86-64) */
-            v8i t0 = {DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR, DT_FAR}, l0 = {0};
-            for (int q = 0; q < 7; q++) {
-                v8i v, lv;
-                memcpy(&v, t + j + off[q], sizeof v);
-                memcpy(&lv, l + j + off[q], sizeof lv);
-                v += cost[q];
-                v8i m = t0 > v; /* strictly nearer: the first of equals stays */
-                t0 = (v & m) | (t0 & ~m);
-                l0 = (lv & m) | (l0 & ~m);
-            }
-            memcpy(best_t + j, &t0, sizeof t0);
-            memcpy(best_l + j, &l0, sizeof l0);
-        }
-#endif
-        for (; j < bw; j++) {
-            int32_t t0 = DT_FAR, l0 = 0;
-            for (int q = 0; q < 7; q++) {
-                int32_t v = t[j + off[q]] + cost[q];
-                if (t0 > v) {
-                    t0 = v;
-                    l0 = l[j + off[q]];
-                }
-            }
-            best_t[j] = t0;
-            best_l[j] = l0;
-        }
-        for (j = 0; j < bw; j++) {
+        dt_best(t, l, off, cost, bw, 0, best_t, best_l);
+        for (int32_t j = 0; j < bw; j++) {
             if (sl[j]) {
                 t[j] = 0;
                 l[j] = sl[j];
@@ -1107,38 +1206,8 @@ void ok_nearest_seed(const int32_t *seed_label, int32_t bh, int32_t bw, int32_t 
     }
     for (int32_t i = bh - 1; i >= 0; i--) { /* backward: the seven below (mirrored), then the one to the right */
         int32_t *t = d + (int64_t)(i + 2) * W + 2, *l = lab + (int64_t)(i + 2) * W + 2;
-        int32_t j = 0;
-#if defined(__GNUC__) || defined(__clang__)
-        for (; j + 8 <= bw; j += 8) {
-            v8i t0, l0;
-            memcpy(&t0, t + j, sizeof t0);
-            memcpy(&l0, l + j, sizeof l0);
-            for (int q = 0; q < 7; q++) {
-                v8i v, lv;
-                memcpy(&v, t + j - off[q], sizeof v);
-                memcpy(&lv, l + j - off[q], sizeof lv);
-                v += cost[q];
-                v8i m = t0 > v;
-                t0 = (v & m) | (t0 & ~m);
-                l0 = (lv & m) | (l0 & ~m);
-            }
-            memcpy(best_t + j, &t0, sizeof t0);
-            memcpy(best_l + j, &l0, sizeof l0);
-        }
-#endif
-        for (; j < bw; j++) {
-            int32_t t0 = t[j], l0 = l[j];
-            for (int q = 0; q < 7; q++) {
-                int32_t v = t[j - off[q]] + cost[q];
-                if (t0 > v) {
-                    t0 = v;
-                    l0 = l[j - off[q]];
-                }
-            }
-            best_t[j] = t0;
-            best_l[j] = l0;
-        }
-        for (j = bw - 1; j >= 0; j--) {
+        dt_best(t, l, off, cost, bw, 1, best_t, best_l);
+        for (int32_t j = bw - 1; j >= 0; j--) {
             if (t[j] <= DT_HV) continue; /* a seed, or next to one */
             int32_t t0 = best_t[j], l0 = best_l[j], v = t[j + 1] + DT_HV;
             if (t0 > v) {

@@ -32,7 +32,8 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capfd, monkeypatch) -> No
     assert main(["bench", "--frames", "40", "--cal", str(bundle_path), "--fps", "120",
                  "--reference-frames", "3", "--memory-frames", "20", "--e2e-seconds", "1",
                  "--paced-frames", "4", "--cpu-seconds", "0", "--patches", "2", "--patch-frame", "960x400",
-                 "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--e2e-publish", "--json", str(out)]) == 0
+                 "--workdir", str(tmp_path / "w"), "--queue-frames", "2", "--e2e-publish", "--workers", "1",
+                 "--json", str(out)]) == 0
     text, err = capfd.readouterr()
     assert "| whole_frame |" in text
     assert "Traceback" not in err  # the subscriber process's threads end cleanly too
@@ -74,6 +75,7 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capfd, monkeypatch) -> No
     assert 0 < pub["received_by_subscriber"] <= pub["published"]
     pe = res["patches_end_to_end"]  # one service, a sensor per patch: each frame's CONTACTs of both patches
     assert pe["patches"] == 2 and pe["frames"] > 0 and pe["received"] > pe["frames"]
+    assert pe["sensor_workers"] == 1  # the second patch's pipeline on a worker thread
     assert pe["received"] <= 2 * pe["sent"] and pe["sent"] <= pe["frames"]
     assert pe["publish"]["topics"] >= 4 and pe["publish"]["published"] >= 2 * pe["frames"]  # contacts, status x2
     st = res["startup"]

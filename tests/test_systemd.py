@@ -179,7 +179,7 @@ def test_install_dry_run(board):
     assert "/etc/udev/rules.d/99-optitac-edge.rules" in out
     assert "systemctl enable optitac-edge.service" in out
     assert ("jetson-csi.conf" in out) == (board == "jetson-csi")
-    assert "zenoh.conf" not in out and f"{REPO}[board]" in out  # no board here publishes: no IP
+    assert "zenoh.conf" not in out and ".whl[board]" in out  # no board here publishes: no IP
     assert "could not check the config" not in out
 
 
@@ -195,7 +195,7 @@ def test_install_a_publishing_board_gets_the_zenoh_drop_in_and_extras(tmp_path, 
                                                        "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
-    assert f"{REPO}[{extras}]" in out
+    assert f".whl[{extras}]" in out
     for unit in ("optitac-edge.service", "optitac-edge@.service"):
         assert f"install -m 0644 {REPO}/systemd/zenoh.conf /etc/systemd/system/{unit}.d/zenoh.conf" in out
 
@@ -234,6 +234,36 @@ def test_with_the_zenoh_drop_in_only_the_network_items_change(tmp_path):
     changed = {i.split()[1].split("=")[0] for i in before ^ after}
     assert changed == {"RestrictAddressFamilies", "IPAddressDeny"}, before ^ after
     assert analyze_exposure(plain / UNIT.name) < analyze_exposure(_with_drop_in(tmp_path)) <= MAX_EXPOSURE
+
+
+def _dry_run(env: dict[str, str]) -> str:
+    proc = subprocess.run(["bash", str(INSTALL), "--dry-run", "sim"], capture_output=True, text=True, timeout=120,
+                          check=False, env={**os.environ, "OPTITAC_PYTHON": sys.executable, "PATH": "/usr/bin:/bin",
+                                            **env})
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
+def test_install_builds_the_wheel_once_per_source_and_reuses_it(tmp_path):
+    """Issue 28.6: the kernel compiles for a minute on a Pi; the second install of the same source takes the
+    cached wheel. The cache key changes with any source file (here: the wheel directory must not be reused
+    for another tree, so a fake wheel under another key is not taken)."""
+    cache = tmp_path / "wheels"
+    first = _dry_run({"OPTITAC_WHEEL_CACHE": str(cache)})
+    built = re.search(rf"pip wheel --no-deps --disable-pip-version-check --wheel-dir ({re.escape(str(cache))}/\w+) "
+                      rf"{re.escape(str(REPO))}$", first, re.MULTILINE)
+    assert built, first
+    (cache / "0123456789abcdef").mkdir(parents=True)
+    (cache / "0123456789abcdef" / "optitac_edge-0.1.0-cp311-cp311-linux_x86_64.whl").write_bytes(b"")
+    assert "pip wheel" in _dry_run({"OPTITAC_WHEEL_CACHE": str(cache)})  # another source's wheel: built again
+    key = Path(built.group(1))
+    key.mkdir(parents=True)
+    wheel = key / "optitac_edge-0.1.0-cp311-cp311-linux_x86_64.whl"
+    wheel.write_bytes(b"")
+    second = _dry_run({"OPTITAC_WHEEL_CACHE": str(cache)})
+    assert "pip wheel" not in second and f"installing {wheel} (built from this source before: no rebuild)" in second
+    assert f"pip install --force-reinstall --no-deps --disable-pip-version-check {wheel}" in second
+    assert f"{wheel}[board]" in second
 
 
 def test_install_unknown_board_fails_in_one_line():

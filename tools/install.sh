@@ -12,6 +12,10 @@
 #
 # The board config is checked first, before anything changes (with this checkout's package and
 # $OPTITAC_PYTHON, default /usr/bin/python3).
+#
+# The package is built once per source into a wheel kept in $OPTITAC_WHEEL_CACHE (default
+# /var/cache/optitac-edge/wheels): its compiled per-frame kernel needs gcc and python3-dev (installed
+# here) and a minute on a Pi; running this again on the same source installs that wheel, no rebuild.
 set -euo pipefail
 
 PREFIX=/opt/optitac-edge
@@ -106,7 +110,8 @@ fi
 log "board $BOARD_FILE on a $PLATFORM system"
 
 # --- system packages --------------------------------------------------------------------------
-PACKAGES=(python3 python3-venv python3-pip python3-numpy i2c-tools can-utils)
+# gcc and python3-dev: pip builds the compiled per-frame kernel (without them it runs the numpy pipeline)
+PACKAGES=(python3 python3-venv python3-pip python3-numpy python3-dev gcc i2c-tools can-utils)
 case "$PLATFORM" in
     raspberrypi) PACKAGES+=(python3-picamera2 python3-libcamera) ;;
     jetson) PACKAGES+=(python3-opencv python3-tomli) ;;  # JetPack's OpenCV has GStreamer; Python 3.10
@@ -151,8 +156,42 @@ else
     run rm -f "$CONSTRAINTS"
     CONSTRAINTS=""
 fi
+# The package as a wheel built once per source (the kernel compiles for a minute on a Pi): the key is a hash
+# of every file the build reads; the three most recent sources' wheels are kept.
+WHEEL_CACHE="${OPTITAC_WHEEL_CACHE:-/var/cache/optitac-edge/wheels}"
+source_key="$(cd "$REPO" && find optitac_edge kernel setup.py pyproject.toml MANIFEST.in README.md -type f \
+    ! -name '*.so' ! -name '*.pyc' ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum \
+    | sha256sum | cut -c1-16)"
+WHEEL_DIR="$WHEEL_CACHE/$source_key"
+shopt -s nullglob
+built=("$WHEEL_DIR"/optitac_edge-*.whl)
+shopt -u nullglob
+if [ "${#built[@]}" -gt 0 ]; then
+    wheel="${built[0]}"
+    log "installing $wheel (built from this source before: no rebuild)"
+else
+    log "building the package from $REPO (the compiled kernel: about a minute on a Pi 4)"
+    run install -d -m 0755 "$WHEEL_DIR"
+    run "$VENV/bin/python" -m pip wheel --no-deps --disable-pip-version-check --wheel-dir "$WHEEL_DIR" "$REPO"
+    wheel="$WHEEL_DIR/optitac_edge.whl"
+    if [ "$DRY_RUN" -eq 0 ]; then
+        shopt -s nullglob
+        built=("$WHEEL_DIR"/optitac_edge-*.whl)
+        shopt -u nullglob
+        [ "${#built[@]}" -gt 0 ] || { echo "install.sh: pip built no wheel in $WHEEL_DIR" >&2; exit 1; }
+        wheel="${built[0]}"
+    fi
+    # keep the three most recent sources' wheels
+    if [ -d "$WHEEL_CACHE" ]; then
+        find "$WHEEL_CACHE" -mindepth 1 -maxdepth 1 -type d -printf '%T@ %p\n' | sort -rn | tail -n +4 \
+            | cut -d' ' -f2- | while read -r old; do run rm -rf "$old"; done
+    fi
+fi
+# its dependencies (pip caches the wheels it builds for them itself), then the package itself again: the
+# same version number from another source would count as installed
 run "$VENV/bin/python" -m pip install --upgrade --disable-pip-version-check ${CONSTRAINTS:+--constraint "$CONSTRAINTS"} \
-    "${REPO}[${extras}]"
+    "${wheel}[${extras}]"
+run "$VENV/bin/python" -m pip install --force-reinstall --no-deps --disable-pip-version-check "$wheel"
 
 PY="$VENV/bin/python"
 [ -x "$PY" ] || PY="$CHECK_PY"  # dry run before the venv exists
@@ -162,6 +201,10 @@ if [ "$camera_kind" = pipeline ] && [ "$PLATFORM" = jetson ]; then
     if "$PY" -m pip show opencv-python-headless > /dev/null 2>&1; then
         run "$VENV/bin/python" -m pip uninstall -y opencv-python-headless
     fi
+fi
+
+if [ "$DRY_RUN" -eq 0 ]; then  # one line: what will run the frames
+    log "$("$VENV/bin/python" -c 'from optitac_edge.core.compiled import kernel_status; print(kernel_status()[1])')"
 fi
 
 # --- configuration ----------------------------------------------------------------------------

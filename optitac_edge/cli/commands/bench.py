@@ -46,6 +46,9 @@ def add_parser(sub: Any) -> None:
                         "process on loopback) and in an MCAP file (needs the zenoh and mcap extras)")
     p.add_argument("--e2e-contacts", type=number(0, 4, integer=True), default=2, metavar="K",
                    help="end to end: indenters pressed throughout the run (default 2)")
+    p.add_argument("--workers", type=number(0, 16, integer=True), default=None, metavar="W",
+                   help="end to end with patches: the service's sensor worker threads (default: one per patch "
+                        "beyond the first, as many as the cores beyond two)")
     p.add_argument("--patches", type=number(0, 16, integer=True), default=4, metavar="N",
                    help="paced runs: N patches of 217 fibers on one camera, every pipeline on each frame "
                         "(0: skip; gray only)")
@@ -74,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                      startup=not args.no_startup, queue_frames=args.queue_frames, view=args.view,
                      paced_frames=args.paced_frames, cpu_seconds=args.cpu_seconds, cpu_rounds=args.cpu_rounds,
                      e2e_contacts=args.e2e_contacts, patches=args.patches, patch_frame=args.patch_frame,
-                     publish=args.e2e_publish)
+                     publish=args.e2e_publish, workers=args.workers)
     res = run_bench(plan, log=print)
     print(format_table(res))
     write_file_atomic(args.json, json.dumps(res, indent=1) + "\n")

@@ -133,6 +133,7 @@ class BenchPlan:
     patches: int = 4
     patch_frame: tuple[int, int] = (1280, 720)
     publish: bool = False
+    workers: int | None = None
 
 
 _DEFAULT_PLAN = BenchPlan()
@@ -274,12 +275,13 @@ def _patches_end_to_end_section(plan: BenchPlan, log: Callable[[str], None]) -> 
     pipes, patch_rest, patch_presses = patch_pipelines(plan.patches, pw, ph)
     pe = measure_end_to_end(EndToEnd(None, plan.fps, plan.e2e_seconds, False, patch_rest + patch_presses,
                                      len(patch_rest), plan.queue_frames, bundles=[p.bundle for p in pipes],
-                                     publish=plan.publish))
+                                     publish=plan.publish, workers=plan.workers))
     pe["patches"], pe["frame_size"] = plan.patches, list(plan.patch_frame)
     log(f"  end to end, {plan.patches} patches on one {pw}x{ph} camera @ {plan.fps} fps, "
         f"{plan.e2e_seconds} s: {pe['frames']} frames, dropped {pe['frames_dropped']}"
         + (f" (by the pipeline {pe['frames_dropped_by_pipeline']})" if "frames_dropped_by_pipeline" in pe else "")
         + f", lost {pe['packets_lost']}, latency p50/p99 {pe['latency_us']['p50']}/{pe['latency_us']['p99']} µs"
+        + f", {pe['sensor_workers']} sensor worker threads"
         + (f"; main-thread CPU {pe['main_thread']['cpu_us_per_frame']} µs/frame" if pe.get("main_thread")
            else "") + (_published(pe["publish"]) if "publish" in pe else ""))
     return pe

@@ -32,7 +32,8 @@ class EndToEnd:
     a browser on it is in the figures. With ``bundles`` (instead of ``cal``) the camera reads one
     sensor per bundle (patches of one frame, ids 1, 2, ...), as a board with several sensors on one
     camera runs. With ``publish`` every sensor's contacts, status and signal also go on Zenoh to a
-    subscriber process and into an MCAP file (:mod:`optitac_edge.devtools.bench.network`).
+    subscriber process and into an MCAP file (:mod:`optitac_edge.devtools.bench.network`). ``workers``:
+    the service's sensor worker threads (None: as the service chooses from the cores).
     """
 
     cal: Path | None
@@ -46,6 +47,7 @@ class EndToEnd:
     on_view: Any = None
     bundles: list[Any] | None = None
     publish: bool = False
+    workers: int | None = None
 
 
 def measure_end_to_end(run: EndToEnd) -> dict[str, Any]:
@@ -80,7 +82,9 @@ def _end_to_end(out: Path, run: EndToEnd) -> dict[str, Any]:
     outputs = _Outputs()
     try:
         sensors = [(SensorConfig(id=k + 1, name=f"patch{k + 1}"), b) for k, b in enumerate(bundles)]
-        service = Service(config, bundle, camera, transport, sensors=sensors if len(bundles) > 1 else None)
+        service = Service(config, bundle, camera, transport, sensors=sensors if len(bundles) > 1 else None,
+                          workers=run.workers)
+        workers = service.pool.workers
         outputs.attach(service, run, sensors if len(bundles) > 1 else [(config.sensor, bundle)])
         stop = threading.Event()
         cpu = MainThreadCpu(warm_frames=int(fps * min(1.0, seconds / 4)))  # from the second second on (short runs: the first quarter)
@@ -111,7 +115,7 @@ def _end_to_end(out: Path, run: EndToEnd) -> dict[str, Any]:
                              + t_stats.get("send_errors", 0)),
             "sequence_gaps": missing,
             **drop_causes(camera, fps, steal),
-            "achieved_fps": round(stats.frames / seconds, 1),
+            "achieved_fps": round(stats.frames / seconds, 1), "sensor_workers": workers,
             **cpu.result(),
             "latency_us": {"p50": s["median_us"], "p99": s["p99_us"], "max": s["max_us"]},
             # the part before the message was filled (camera delivery + processing), from its age field

@@ -4,7 +4,8 @@ Patches of the default 217-fiber array in a grid on one camera frame
 (:class:`~optitac_edge.sim.patches.PatchFrames`), each calibrated on its crop
 and placed in the frame (:func:`~optitac_edge.calibration.region.place_bundle`). One
 patch at a time is pressed (a 5 mm circle at a new place every frame), the
-others rest, as a hand holding an object. A camera frame's time is all its
+others rest, as a hand holding an object; every third frame a second patch is
+pressed too (a grasp between two fingers: two contacts on two patches). A camera frame's time is all its
 patches' pipelines, back to back and paced at the camera's rate
 (:func:`~optitac_edge.devtools.bench.paced.run_interleaved`).
 """
@@ -46,7 +47,8 @@ def patch_pipelines(n_patches: int, width: int, height: int, seed: int = 1
     frames = []
     for i in range(PATCH_FRAMES):
         press = Indenter("circle", float(rng.uniform(-4, 4)), float(rng.uniform(-4, 4)), 0.0, 5.0, 3.0)
-        frames.append(cam.frame([(press,) if k == i % n_patches else () for k in range(n_patches)]))
+        pressed = {i % n_patches} | ({(i + 1) % n_patches} if i % 3 == 2 else set())  # a grasp: two patches
+        frames.append(cam.frame([(press,) if k in pressed else () for k in range(n_patches)]))
     return pipes, rest, frames
 
 
