@@ -542,29 +542,48 @@ static void matvec4(const float *op, int32_t rows, int32_t cols, const float *v,
 #if OK_AVX2
 /* The same with the eight lanes in one AVX2 register (x86-64 machines that have it, chosen at init). */
 typedef float v8f __attribute__((vector_size(32)));
+#define LOAD8(dst, src) memcpy(&(dst), (src), sizeof(v8f))
+#define SUM8(v) ((((v)[0] + (v)[1]) + ((v)[2] + (v)[3])) + (((v)[4] + (v)[5]) + ((v)[6] + (v)[7])))
 __attribute__((target("avx2"))) static void matvec8(const float *op, int32_t rows, int32_t cols, const float *v,
                                                     float *out) {
     int32_t c8 = cols & ~7, r = 0;
-    for (; r < rows; r += 4) { /* four rows at a time (the last block may hold fewer) */
-        int32_t nr = rows - r < 4 ? rows - r : 4;
-        const float *row[4];
-        for (int q = 0; q < 4; q++) row[q] = op + (int64_t)(r + (q < nr ? q : 0)) * cols;
-        v8f acc[4] = {{0}, {0}, {0}, {0}};
+    for (; r + 4 <= rows; r += 4) {
+        const float *a = op + (int64_t)r * cols, *b = a + cols, *c = b + cols, *d = c + cols;
+        v8f sa = {0}, sb = {0}, sc = {0}, sd = {0}, x, y;
         for (int32_t j = 0; j < c8; j += 8) {
-            v8f x;
-            memcpy(&x, v + j, sizeof x);
-            for (int q = 0; q < 4; q++) {
-                v8f a;
-                memcpy(&a, row[q] + j, sizeof a);
-                acc[q] += a * x;
-            }
+            LOAD8(x, v + j);
+            LOAD8(y, a + j);
+            sa += y * x;
+            LOAD8(y, b + j);
+            sb += y * x;
+            LOAD8(y, c + j);
+            sc += y * x;
+            LOAD8(y, d + j);
+            sd += y * x;
         }
-        for (int q = 0; q < nr; q++) {
-            v8f sa = acc[q];
-            float t = ((sa[0] + sa[1]) + (sa[2] + sa[3])) + ((sa[4] + sa[5]) + (sa[6] + sa[7]));
-            for (int32_t j = c8; j < cols; j++) t += row[q][j] * v[j];
-            out[r + q] = t;
+        float ta = SUM8(sa), tb = SUM8(sb), tc = SUM8(sc), td = SUM8(sd);
+        for (int32_t j = c8; j < cols; j++) {
+            ta += a[j] * v[j];
+            tb += b[j] * v[j];
+            tc += c[j] * v[j];
+            td += d[j] * v[j];
         }
+        out[r] = ta;
+        out[r + 1] = tb;
+        out[r + 2] = tc;
+        out[r + 3] = td;
+    }
+    for (; r < rows; r++) {
+        const float *a = op + (int64_t)r * cols;
+        v8f sa = {0}, x, y;
+        for (int32_t j = 0; j < c8; j += 8) {
+            LOAD8(x, v + j);
+            LOAD8(y, a + j);
+            sa += y * x;
+        }
+        float ta = SUM8(sa);
+        for (int32_t j = c8; j < cols; j++) ta += a[j] * v[j];
+        out[r] = ta;
     }
 }
 #endif
@@ -1045,8 +1064,7 @@ static int32_t measure_parts(ok_kernel *k, float level, const int32_t *y, const 
         int32_t l = order[i];
         const int32_t *r = rect + 4 * l;
         int32_t rw = r[2] - r[0] + 1, rh = r[3] - r[1] + 1;
-        float *blob = k->blob, top = 0.0f;
-        memset(blob, 0, (size_t)rw * rh * sizeof(float));
+        float *blob = k->blob, top = 0.0f; /* blob is all 0 between contacts */
         for (int32_t j = 0; j < nr; j++) {
             if (lab[j] != l) continue;
             const float *src = box + (int64_t)y[j] * stride;
@@ -1058,6 +1076,10 @@ static int32_t measure_parts(ok_kernel *k, float level, const int32_t *y, const 
         }
         n_cand += measure(k, blob, rh, rw, rw, top, counts[l], level, k->box_x + r[0], k->box_y + r[1],
                           k->cand + (int64_t)n_cand * OK_FIELDS);
+        for (int32_t j = 0; j < nr; j++) /* back to 0, run by run written */
+            if (lab[j] == l)
+                memset(blob + (int64_t)(y[j] - r[1]) * rw + (x0[j] - r[0]), 0,
+                       (size_t)(x1[j] - x0[j] + 1) * sizeof(float));
     }
     return n_cand;
 }
@@ -1163,6 +1185,7 @@ static void dt_best(const int32_t *t, const int32_t *l, const int32_t *off, cons
 #endif
 }
 
+CLONES_AVX2
 void ok_nearest_seed(const int32_t *seed_label, int32_t bh, int32_t bw, int32_t *d, int32_t *nearest) {
     /* d: distances, then labels, each (bh + 4) x (bw + 4) with a border of 2 (DT_FAR, label 0), then two
      * rows of bw + 4 for the best of the seven neighbours of the rows above (below) */
@@ -1266,14 +1289,15 @@ static int32_t split_blobs(ok_kernel *k, float level, double peak) {
         }
     }
     ok_label_runs(zy, zx0, zx1, nz, zl, k->parent, k->order);
-    int32_t *seed_img = k->seed_img, *nearest = k->nearest;
-    memset(seed_img, 0, (size_t)bw * bh * sizeof(int32_t));
+    int32_t *seed_img = k->seed_img, *nearest = k->nearest; /* seed_img is all 0 between frames */
     int32_t n_labels = 1;
     for (int32_t i = 0; i < nz; i++) {
         for (int32_t x = zx0[i]; x <= zx1[i]; x++) seed_img[(int64_t)zy[i] * bw + x] = zl[i];
         if (zl[i] >= n_labels) n_labels = zl[i] + 1;
     }
     ok_nearest_seed(seed_img, bh, bw, k->dist, nearest);
+    for (int32_t i = 0; i < nz; i++) /* back to 0, cell by cell painted */
+        memset(seed_img + (int64_t)zy[i] * bw + zx0[i], 0, (size_t)(zx1[i] - zx0[i] + 1) * sizeof(int32_t));
     /* the mask's runs cut where the nearest seed changes */
     int32_t np_ = 0;
     for (int32_t i = 0; i < nr; i++) {
