@@ -83,12 +83,23 @@ def traced_bytes() -> Callable[..., tuple[int, int]]:
     return _traced_bytes
 
 
-@pytest.fixture(scope="session")
-def fuzz_tool() -> ModuleType:
-    """``tools/fuzz_decoder.py`` (the decoder's independent oracle), imported from its file."""
-    path = Path(__file__).resolve().parents[1] / "tools" / "fuzz_decoder.py"
-    spec = importlib.util.spec_from_file_location("fuzz_decoder", path)
+def load_tool(name: str) -> ModuleType:
+    """``tools/NAME.py``, imported from its file (the tools are scripts, not a package)."""
+    path = Path(__file__).resolve().parents[1] / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="session")
+def fuzz_tool() -> ModuleType:
+    """``tools/fuzz_decoder.py`` (the decoder's independent oracle)."""
+    return load_tool("fuzz_decoder")
+
+
+@pytest.fixture(scope="session")
+def aarch64_tool() -> ModuleType:
+    """``tools/kernel_aarch64.py`` (the compiled kernel replayed on another architecture)."""
+    return load_tool("kernel_aarch64")

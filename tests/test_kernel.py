@@ -14,7 +14,6 @@ small layout of large fibers (sums past 16 bits).
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 import subprocess
 from pathlib import Path
@@ -414,16 +413,6 @@ def test_the_environment_can_ask_for_the_numpy_pipeline(modelled, monkeypatch) -
 
 
 # -- the kernel on aarch64 (qemu-user; .ci/run installs Debian's cross compiler and qemu) ---------------------
-
-
-@pytest.fixture(scope="module")
-def aarch64_tool():
-    path = Path(__file__).resolve().parents[1] / "tools" / "kernel_aarch64.py"
-    spec = importlib.util.spec_from_file_location("kernel_aarch64", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_tool, tmp_path) -> None:

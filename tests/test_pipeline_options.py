@@ -308,7 +308,7 @@ def test_gain_compensation_does_not_eat_a_press_covering_the_whole_array() -> No
     assert expected.contact
     bundle, pipe = start(GAIN)
     e = pipe.process(render(bundle, press), 10 * PERIOD).primary
-    assert e.contact and pipe.gain == pytest.approx(1.0, abs=pipe.levels.as_tuple()[0])
+    assert e.contact and pipe.led_gain.gain == pytest.approx(1.0, abs=pipe.levels.as_tuple()[0])
     assert e.strength == pytest.approx(expected.strength, rel=0.03)
     assert e.major_mm == pytest.approx(expected.major_mm, rel=0.02)
     assert math.hypot(e.x_mm, e.y_mm) < 0.1
@@ -320,7 +320,7 @@ def test_gain_compensation_does_not_eat_a_press_covering_the_whole_array() -> No
     assert e.major_mm == pytest.approx(expected.major_mm, rel=0.03)
     # released: no contact, and the gain is measured again at once
     e = pipe.process(render(bundle, REST * 0.996), 200 * PERIOD).primary
-    assert not e.contact and pipe.gain == pytest.approx(0.996, abs=0.001)
+    assert not e.contact and pipe.led_gain.gain == pytest.approx(0.996, abs=0.001)
 
 
 def test_gain_compensation_measures_the_gain_beside_a_small_press() -> None:
@@ -328,7 +328,7 @@ def test_gain_compensation_measures_the_gain_beside_a_small_press() -> None:
     pipe.process(render(bundle, REST * 0.995), 10 * PERIOD)  # contact-free: gain 0.995
     levels = pressed_levels(REST, 2.0, -1.0, depth=60.0) * 0.99
     e = pipe.process(render(bundle, levels), 70 * PERIOD).primary  # 1 s later: within 0.5 %
-    assert e.contact and pipe.gain == pytest.approx(0.99, abs=0.0005)
+    assert e.contact and pipe.led_gain.gain == pytest.approx(0.99, abs=0.0005)
     assert math.hypot(e.x_mm - 2.0, e.y_mm + 1.0) < 0.15
 
 
@@ -344,7 +344,7 @@ def test_a_gain_step_as_a_whole_array_press_lifts_is_a_light_change_not_a_linger
     dim = render(bundle, REST * 0.96)
     got = [pipe.process(dim, (11 + k) * PERIOD).primary.contact for k in range(int(10 / (PERIOD * 1e-9)))]
     assert not any(got)
-    assert pipe.led_gain is not None and pipe.led_gain.light_changes == 1 and pipe.gain == pytest.approx(0.96, abs=0.002)
+    assert pipe.led_gain is not None and pipe.led_gain.light_changes == 1 and pipe.led_gain.gain == pytest.approx(0.96, abs=0.002)
 
 
 def test_gain_compensation_off_in_the_paper_method() -> None:

@@ -32,9 +32,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from optitac_edge.core.baseline import BRIGHT_HOLD_S
+from optitac_edge.core.gain import LedGain
 from optitac_edge.core.options import MAX_CONTACTS
 
 if TYPE_CHECKING:
+    from optitac_edge.core.contact import ContactEstimate
+    from optitac_edge.core.corrections import ContactCorrector
     from optitac_edge.core.pipeline import Pipeline
 
 #: The extension module's name.
@@ -134,6 +137,60 @@ class FrameKernel:
         self.kernel = mod.Kernel(plan)
         self.kernel.set_correct(self.corrector is not None)
         self.frame = self.kernel.frame
+        for c, row in zip(pipe.contacts, self.contacts):  # each contact's shape features where the kernel writes them
+            c.hu, c.features = row[8:15], row[8:16]
+            c.hu.fill(math.nan)
+
+    def run(self, frame: Any, now_ns: int, dt_ns: int, est: ContactEstimate, contacts: list[ContactEstimate],
+            corrector: ContactCorrector | None) -> int:
+        """Steps 2-10 of one frame (the baseline ready): its contacts into ``contacts`` (their shape features
+        are there already), corrected by ``corrector`` when the kernel does not (None: it did, or raw);
+        without contact ``est`` says so. Returns their number."""
+        n = self.frame(frame, now_ns, dt_ns)
+        if n == 0:
+            est.clear(self.kernel.clear_strength, self.kernel.clear_area)
+            return 0
+        index, t_ns, names = est.frame, est.t_ns, self.shape_names
+        rows = self.contacts[:n].tolist()
+        for i in range(n):
+            c, r = contacts[i], rows[i]
+            c.strength, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.area_mm2, c.peak = r[:8]
+            c.frame, c.t_ns, c.baseline_ready, c.n_contacts, c.contact = index, t_ns, True, n, True
+            c.depth_mm, c.force_n, c.confidence = r[16], r[17], r[19]
+            c.shape = names[int(r[18])] if r[18] >= 0 else ""
+            if corrector is not None:
+                c.shape, c.confidence, c.depth_mm, c.force_n = "", math.nan, math.nan, math.nan
+                corrector.apply(c)
+        return n
+
+    @property
+    def light_changed(self) -> bool:
+        """The last frame's light changed common-mode (the LED gain taken at once)."""
+        return bool(self.kernel.light_changed)
+
+    @property
+    def raise_pending(self) -> bool:
+        """The last frame found fibers brighter than their baseline to raise (to :attr:`rest`, from :attr:`common`)."""
+        return bool(self.kernel.raise_pending)
+
+    @property
+    def common(self) -> float:
+        """The level the last frame's brightness was measured from (signal units)."""
+        return float(self.kernel.common)
+
+    def means(self, frame: Any, out: Any) -> Any:
+        """Step 2 alone (the baseline's frames): the fiber means into ``out`` (the pipeline's buffer)."""
+        self.kernel.means(frame)
+        return out
+
+    def reset_gain(self, now_ns: int) -> None:
+        """The LED gain 1 from ``now_ns`` on (a new baseline)."""
+        self.kernel.reset_gain(now_ns)
+
+    def led_gain(self) -> LedGain:
+        """The LED gain compensation's state after the last frame."""
+        k = self.kernel
+        return LedGain(k.gain, k.frame_gain, k.reference, k.reference_ns, k.light_changes)
 
     def use_corrector(self, corrector: object) -> bool:
         """Whether the kernel applies ``corrector`` (the one it was built with) or the caller does."""

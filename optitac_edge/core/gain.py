@@ -120,7 +120,7 @@ class GainCompensation:
         self._tolerance = tolerance
         self._significant = significant
 
-    def reset(self, now_ns: int = 0) -> None:
+    def reset_gain(self, now_ns: int = 0) -> None:
         """Gain 1 from ``now_ns`` on (a new baseline)."""
         self.reference = self.gain = 1.0
         self.reference_ns = now_ns

@@ -69,7 +69,6 @@ numpy and OpenCV only; see docs/performance.md.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -112,6 +111,13 @@ def single_threaded_opencv() -> Iterator[None]:
         cv2.setNumThreads(previous)
 
 
+def _track(tracker: ContactTracker, result: FrameResult, n: int, frame: int) -> None:
+    """Step 8: ids, touches and releases of the frame's ``n`` contacts (``result.contacts``), into ``result``."""
+    tracker.update(result.contacts, n, frame)
+    result.n_contacts = n
+    result.n_released = tracker.n_released
+
+
 def _rest_light(means: np.ndarray, gain: GainCompensation | None, baseline: Baseline) -> np.ndarray:
     """The frame's fiber means (shape (N,), gray levels) as the baseline takes them: with gain compensation,
     the LED gain divided out (per-fiber drift, not the LED's); a view valid until the next frame."""
@@ -149,7 +155,6 @@ class Pipeline:
         table = bundle.fibers
         n_fibers = table.n_fibers
         grid = bundle.grid
-        self._pixel_format = table.pixel_format
         self._dead = np.flatnonzero(table.dead)
         self._has_dead = self._dead.size > 0
         self._live = ~np.asarray(table.dead, dtype=bool)
@@ -178,12 +183,9 @@ class Pipeline:
         self.segmenter = Segmenter(grid.n, self.levels, min_area / float(grid.cell_area_mm2), o.split_fraction)
         #: Step 7: each contact's moments and shape features.
         self.blobs = BlobMeasurer(grid, self.levels, min_area, o.peak_fraction, o.shape_fraction)
-        self._means = np.zeros(n_fibers, dtype=np.float32)
-        self._signal = np.zeros(n_fibers, dtype=np.float32)
+        self._means, self._signal = np.zeros(n_fibers, dtype=np.float32), np.zeros(n_fibers, dtype=np.float32)
         self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
-        self._n = grid.n
-        self._frame = 0
-        self._in_contact = False
+        self._n, self._frame, self._in_contact = grid.n, 0, False
         self._last_ns: int | None = None
         self._contact_end_ns: int | None = None
         #: All contacts of the last frame, valid ``[:n_contacts]``, strongest first.
@@ -202,12 +204,8 @@ class Pipeline:
         self.corrector: ContactCorrector | None = None
         self.set_corrector(ContactCorrector(bundle))
         if compiled or (compiled is None and kernel_status()[0]):
-            self.kernel = FrameKernel(self)
+            self.kernel = FrameKernel(self)  # it keeps the contacts' shape features where it writes them
             self.set_corrector(self.corrector)
-            for c, row in zip(self.contacts, self.kernel.contacts):
-                # the kernel writes each contact's shape features where the estimate keeps them
-                c.hu, c.features = row[8:15], row[8:16]
-                c.hu.fill(np.nan)
 
     # -- state -----------------------------------------------------------------
 
@@ -242,21 +240,12 @@ class Pipeline:
         return self._signal
 
     @property
-    def gain(self) -> float:
-        """The LED gain relative to the baseline the last frame was compensated with (1 if off)."""
-        if self.gain_compensation is None:
-            return 1.0
-        return self.kernel.kernel.gain if self.kernel is not None else self.gain_compensation.gain
-
-    @property
     def led_gain(self) -> LedGain | None:
-        """The LED gain compensation's state after the last frame (None without ``compensate_gain``)."""
+        """The LED gain compensation's state after the last frame (``.gain``: the gain relative to the
+        baseline the frame was compensated with); None without ``compensate_gain``."""
         if self.gain_compensation is None:
             return None
-        if self.kernel is None:
-            return self.gain_compensation.state()
-        k = self.kernel.kernel
-        return LedGain(k.gain, k.frame_gain, k.reference, k.reference_ns, k.light_changes)
+        return self.gain_compensation.state() if self.kernel is None else self.kernel.led_gain()
 
     def set_contact_level(self, on_relative: float | None) -> None:
         """Set the contact-on level, in relative units of the rest light (None: the calibrated one).
@@ -277,10 +266,10 @@ class Pipeline:
         self._in_contact = False
         self._contact_end_ns = None
         if self.gain_compensation is not None:
-            self.gain_compensation.reset(self.gain_compensation.reference_ns)
+            self.gain_compensation.reset_gain(self.gain_compensation.reference_ns)
         if self.kernel is not None:
             self.kernel.kernel.reset_contact()
-            self.kernel.kernel.reset_gain(self.kernel.kernel.reference_ns)
+            self.kernel.reset_gain(self.kernel.kernel.reference_ns)
 
     def _levels_changed(self) -> None:
         levels = self.levels
@@ -311,123 +300,79 @@ class Pipeline:
         ----------
         frame : ndarray, uint8
             A checked frame (:class:`~optitac_edge.core.frame_check.FrameCheck`, or
-            :meth:`FiberTable.check_frame <optitac_edge.core.fiber_table.FiberTable.check_frame>`
-            for a recording): C-contiguous, of the bundle's size and pixel
-            format (gray (H, W), rgb (H, W, 3) or yuv420 (H*3//2, W)). The
-            pipeline does not check it again.
+            :meth:`FiberTable.check_frame <optitac_edge.core.fiber_table.FiberTable.check_frame>` for a
+            recording): C-contiguous, of the bundle's size and pixel format (gray (H, W), rgb (H, W, 3)
+            or yuv420 (H*3//2, W)); not checked again.
         now_ns : int
-            Timestamp of the frame, ns (copied to ``t_ns``; the baseline
-            tracking's clock).
+            Timestamp of the frame, ns (copied to ``t_ns``; the baseline tracking's clock).
         saturated : bool
             The frame check found a live fiber centre at full scale (carried into the result).
 
         Returns
         -------
         FrameResult
-            The pipeline's reused result, updated in place: the contacts with
-            their ids, the releases and the frame's flags.
+            The pipeline's reused result, updated in place: the contacts with their ids, the releases
+            and the frame's flags.
         """
-        result = self.result
+        result, est, fk = self.result, self._estimate, self.kernel
         result.saturated = saturated
         result.light_changed = result.baseline_raised = False
-        est = self._estimate
-        est.frame = self._frame
-        est.t_ns = now_ns
+        est.frame, est.t_ns = self._frame, now_ns
         self._frame += 1
         dt_ns = 0 if self._last_ns is None else now_ns - self._last_ns
         self._last_ns = now_ns
         baseline, gain = self.baseline, self.gain_compensation
-        if self.kernel is not None and baseline.ready:
-            return self._compiled_frame(frame, now_ns, dt_ns)
-        if self.kernel is not None:
-            self.kernel.kernel.means(frame)
-            means = self._means
-        else:
-            means = self.sampler.means(frame, self._means)
-
+        if fk is not None and baseline.ready:  # steps 2-10 in the kernel
+            est.baseline_ready = True
+            n = fk.run(frame, now_ns, dt_ns, est, self.contacts, None if self._kernel_corrects else self.corrector)
+            result.light_changed = gain is not None and fk.light_changed
+            _track(self.tracker, result, n, est.frame)
+            if fk.raise_pending:
+                self._raise(fk.rest, fk.common)
+            return result
+        means = self.sampler.means(frame, self._means) if fk is None else fk.means(frame, self._means)
         if not baseline.ready:
             if baseline.add(means):
                 self._levels_changed()
-                if gain is not None:
-                    gain.reset(now_ns)
-                if self.kernel is not None:
-                    self.kernel.kernel.reset_gain(now_ns)
+                for g in (gain, fk):
+                    if g is not None:
+                        g.reset_gain(now_ns)
             est.baseline_ready = False
             est.clear()
-            self._track(0, est.frame)
+            _track(self.tracker, result, 0, est.frame)
             return result
         est.baseline_ready = True
-
         signal = self.compute_signal(means, now_ns)
         result.light_changed = gain is not None and gain.light_changed
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self.finder.find(surface, est, self._in_contact, self.corrector)
-        self._track(n, est.frame)
+        _track(self.tracker, result, n, est.frame)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
 
-    def _compiled_frame(self, frame: np.ndarray, now_ns: int, dt_ns: int) -> FrameResult:
-        """Steps 2-10 by the compiled kernel (the baseline is ready); the contacts' corrections and ids here."""
-        fk, result, est = self.kernel, self.result, self._estimate
-        assert fk is not None
-        kern = fk.kernel
-        est.baseline_ready = True
-        n = fk.frame(frame, now_ns, dt_ns)
-        if n == 0:
-            est.clear(kern.clear_strength, kern.clear_area)
-        else:
-            self._take_contacts(n, est)
-        result.light_changed = self.gain_compensation is not None and bool(kern.light_changed)
-        self._track(n, est.frame)
-        if kern.raise_pending:
-            result.raised_fibers = self.baseline.raise_to(fk.rest, self._signal, float(self.levels.off), kern.common)
-            self._levels_changed()
-            result.baseline_raised = True
-        return result
-
-    def _take_contacts(self, n: int, est: ContactEstimate) -> None:
-        """The kernel's ``n`` contacts into :attr:`contacts` (their shape features are there already), corrected."""
-        fk = self.kernel
-        assert fk is not None
-        frame, t_ns, corrector, names = est.frame, est.t_ns, self.corrector, fk.shape_names
-        rows = fk.contacts[:n].tolist()
-        for i in range(n):
-            c, r = self.contacts[i], rows[i]
-            c.strength, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.area_mm2, c.peak = r[:8]
-            c.frame, c.t_ns, c.baseline_ready, c.n_contacts, c.contact = frame, t_ns, True, n, True
-            c.depth_mm, c.force_n, c.confidence = r[16], r[17], r[19]
-            c.shape = names[int(r[18])] if r[18] >= 0 else ""
-            if corrector is not None and not self._kernel_corrects:
-                c.shape, c.confidence, c.depth_mm, c.force_n = "", math.nan, math.nan, math.nan
-                corrector.apply(c)
+    def _raise(self, rest: np.ndarray, common: float) -> None:
+        """Step 10's action: the fibers brighter than their baseline raised to ``rest``, the levels after."""
+        self.result.raised_fibers = self.baseline.raise_to(rest, self._signal, float(self.levels.off), common)
+        self._levels_changed()
+        self.result.baseline_raised = True
 
     def _follow_light(self, n: int, means: np.ndarray, signal: np.ndarray, now_ns: int, dt_ns: int) -> None:
         """Steps 9 and 10 after a frame with ``n`` contacts: a baseline taken over a press raised, else the
         baseline and the LED gain follow the light of contact-free frames."""
-        baseline, gain, result = self.baseline, self.gain_compensation, self.result
+        baseline, gain = self.baseline, self.gain_compensation
         if n > 0:
             self._in_contact = True
         elif self._in_contact:
             self._in_contact = False
             self._contact_end_ns = now_ns
         if self.bright_fibers.check(signal, float(self.levels.off), now_ns, n == 0):
-            result.raised_fibers = baseline.raise_to(_rest_light(means, self.gain_compensation, baseline), signal, float(self.levels.off),
-                                                     self.bright_fibers.common)
-            self._levels_changed()
-            result.baseline_raised = True
+            self._raise(_rest_light(means, gain, baseline), self.bright_fibers.common)
             return
         if n == 0 and gain is not None:
             gain.contact_free(now_ns)
         if n == 0 and self.options.track_baseline and dt_ns > 0:
             baseline.track(_rest_light(means, self.gain_compensation, baseline), signal, float(self.levels.off), now_ns, dt_ns,
                            self._contact_end_ns)
-
-    def _track(self, n: int, frame: int) -> None:
-        """Step 8: ids, touches and releases of the frame's ``n`` contacts, into the result."""
-        tracker, result = self.tracker, self.result
-        tracker.update(self.contacts, n, frame)
-        result.n_contacts = n
-        result.n_released = tracker.n_released
 
     def adopt_tracking(self, previous: Pipeline) -> None:
         """Go on with ``previous``'s contact ids (a re-oriented bundle replacing it): its contacts are

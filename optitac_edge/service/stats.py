@@ -119,7 +119,7 @@ def light_changed(st: ServiceStats, ch: SensorChannel) -> None:
     ch.light_since_status = True
     if _due(st.light_changes):
         log.warning("common-mode change of the light %d (LED dimming or brightening to %.3f of the "
-                    "baseline, sensor %d): not a contact", st.light_changes, ch.pipeline.gain, ch.sensor_id)
+                    "baseline, sensor %d): not a contact", st.light_changes, _gain(ch), ch.sensor_id)
 
 
 def baseline_raised(st: ServiceStats, ch: SensorChannel, fibers: int) -> None:
@@ -129,3 +129,9 @@ def baseline_raised(st: ServiceStats, ch: SensorChannel, fibers: int) -> None:
         log.warning("baseline raised %d (sensor %d): %d fibers stayed brighter than their baseline, which no "
                     "press can make: it was taken while the skin was pressed there (a start or a tare during "
                     "a grasp); their baseline is now their light", st.baseline_raises, ch.sensor_id, fibers)
+
+
+def _gain(ch: SensorChannel) -> float:
+    """The sensor's LED gain relative to its baseline (1 without gain compensation)."""
+    led = ch.pipeline.led_gain
+    return 1.0 if led is None else led.gain
