@@ -65,6 +65,37 @@ static int init_chunks(ok_kernel *k) {
     return 0;
 }
 
+/* The gradient solve's indices and envelopes in range (the plan's arrays were sized by the caller). */
+static int check_gradient_solve(const ok_plan *p, char *err, int err_len) {
+    int32_t nf = p->n_fibers, m = 2 * nf;
+    if (!p->tri_cols || !p->gs_diag || !p->gs_row_first || !p->gs_row_ptr || !p->gs_row_env || !p->gs_col_last
+        || !p->gs_col_ptr || !p->gs_col_env || !p->gs_nbr_ptr || !p->gs_nbr || !p->gs_coef) {
+        snprintf(err, err_len, "kernel plan: an incomplete gradient solve");
+        return -1;
+    }
+    if (p->gs_row_ptr[0] != 0 || p->gs_col_ptr[0] != 0 || p->gs_nbr_ptr[0] != 0) {
+        snprintf(err, err_len, "kernel plan: gradient solve offsets must start at 0");
+        return -1;
+    }
+    for (int32_t r = 0; r < nf; r++)
+        if (p->gs_fibers[r] < 0 || p->gs_fibers[r] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve fiber out of range"); return -1; }
+    for (int32_t q = 0; q < m; q++) {
+        if (!(p->gs_diag[q] != 0.0f)
+            || p->gs_row_first[q] < -OK_GS_PAD || p->gs_row_first[q] > q || (q - p->gs_row_first[q]) % OK_GS_PAD
+            || p->gs_row_ptr[q + 1] - p->gs_row_ptr[q] != q - p->gs_row_first[q]
+            || p->gs_col_last[q] <= q || p->gs_col_last[q] > m + OK_GS_PAD || (p->gs_col_last[q] - q - 1) % OK_GS_PAD
+            || p->gs_col_ptr[q + 1] - p->gs_col_ptr[q] != p->gs_col_last[q] - q - 1) {
+            snprintf(err, err_len, "kernel plan: gradient solve row %d out of range", q);
+            return -1;
+        }
+    }
+    for (int32_t i = 0; i < nf; i++)
+        if (p->gs_nbr_ptr[i + 1] < p->gs_nbr_ptr[i]) { snprintf(err, err_len, "kernel plan: gradient solve neighbours out of order"); return -1; }
+    for (int32_t e = 0; e < p->gs_nbr_ptr[nf]; e++)
+        if (p->gs_nbr[e] < 0 || p->gs_nbr[e] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve neighbour out of range"); return -1; }
+    return 0;
+}
+
 int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     memset(k, 0, sizeof *k);
 #if OK_AVX2
@@ -109,6 +140,7 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
         snprintf(err, err_len, "kernel plan: neither surface factors nor a dense matrix");
         return -1;
     }
+    if (p->gs_fibers && check_gradient_solve(p, err, err_len) < 0) return -1;
     const ok_models *mo = &p->models;
     if ((mo->width && (mo->major.k < 2 || mo->minor.k < 2)) || (mo->depth && mo->depth_map.curve.k < 2)
         || (mo->force && mo->force_map.curve.k < 2)
@@ -120,8 +152,10 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     size_t nn = (size_t)cells;
     k->w = zalloc(3 * (size_t)nf, sizeof(float));
     k->absw = zalloc(3 * (size_t)nf, sizeof(float));
+    k->gs_y = zalloc(2 * (size_t)nf + 2 * OK_GS_PAD, sizeof(float));
     k->ratio = zalloc(nf, sizeof(float));
     k->sorted = zalloc(nf, sizeof(float));
+    k->sort_scratch = zalloc(OK_SORT_SCRATCH(nf), sizeof(uint32_t));
     k->bound = zalloc(p->n_tri, sizeof(float));
     k->selected = zalloc(2 * (size_t)p->n_tri, sizeof(int32_t));
     k->tri_stamp = zalloc(p->n_tri, sizeof(uint32_t));
@@ -158,7 +192,7 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     k->run_start = zalloc((size_t)n_pixels, sizeof(int32_t));
     k->run_len = zalloc((size_t)n_pixels, sizeof(int32_t));
     k->fiber_run = zalloc((size_t)nf + 1, sizeof(int32_t));
-    if (!k->shape_y || !k->shape_ll || !k->run_start || !k->run_len || !k->fiber_run || !k->absw || !k->w || !k->ratio || !k->sorted || !k->bound || !k->selected || !k->blob
+    if (!k->shape_y || !k->shape_ll || !k->run_start || !k->run_len || !k->fiber_run || !k->absw || !k->gs_y || !k->w || !k->ratio || !k->sorted || !k->sort_scratch || !k->bound || !k->selected || !k->blob
         || !k->cell_rc || !k->tri_box || !k->tri_stamp || !k->grad_w_t || !k->run_y || !k->run_x0 || !k->run_x1 || !k->run_label
         || !k->seed_y || !k->seed_x0 || !k->seed_x1 || !k->seed_label || !k->part_y || !k->part_x0 || !k->part_x1 || !k->part_label || !k->seed_img
         || !k->nearest || !k->dist || !k->parent || !k->counts || !k->seed_counts
@@ -211,7 +245,7 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
 }
 
 void ok_kernel_free(ok_kernel *k) {
-    void **bufs[] = {(void **)&k->w, (void **)&k->absw, (void **)&k->ratio, (void **)&k->sorted, (void **)&k->bound,
+    void **bufs[] = {(void **)&k->w, (void **)&k->absw, (void **)&k->gs_y, (void **)&k->ratio, (void **)&k->sorted, (void **)&k->sort_scratch, (void **)&k->bound,
                      (void **)&k->selected, (void **)&k->blob,
                      (void **)&k->cell_rc, (void **)&k->tri_box, (void **)&k->tri_stamp, (void **)&k->grad_w_t, (void **)&k->run_y, (void **)&k->run_x0, (void **)&k->run_x1,
                      (void **)&k->run_label, (void **)&k->seed_y, (void **)&k->seed_x0, (void **)&k->seed_x1,
@@ -260,7 +294,7 @@ static void insertion_sort(float *a, int32_t n) {
 }
 
 /* Ascending (the values are finite): quicksort with a median of three, insertion sort below 16. */
-void ok_sort_floats(float *a, int32_t n) {
+static void quicksort_floats(float *a, int32_t n) {
     while (n > 16) {
         float x = a[0], y = a[n / 2], z = a[n - 1];
         float pivot = x < y ? (y < z ? y : (x < z ? z : x)) : (x < z ? x : (y < z ? z : y));
@@ -278,15 +312,64 @@ void ok_sort_floats(float *a, int32_t n) {
         /* [0, j] <= pivot <= [j + 1, n): recurse into the smaller part, loop on the larger */
         int32_t left = j + 1;
         if (left < n - left) {
-            ok_sort_floats(a, left);
+            quicksort_floats(a, left);
             a += left;
             n -= left;
         } else {
-            ok_sort_floats(a + left, n - left);
+            quicksort_floats(a + left, n - left);
             n = left;
         }
     }
     insertion_sort(a, n);
+}
+
+/* A float's bits as an unsigned key in the floats' order (negatives flipped, positives above them). */
+static inline uint32_t float_key(float f) {
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    return (u & 0x80000000u) ? ~u : u | 0x80000000u;
+}
+
+static inline float key_float(uint32_t k) {
+    uint32_t u = (k & 0x80000000u) ? k & 0x7FFFFFFFu : ~k;
+    float f;
+    memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+/* Ascending by the keys' bytes, least significant first (a byte all keys share is skipped); scratch:
+ * OK_SORT_SCRATCH(n) words. */
+static void radix_sort_floats(float *a, int32_t n, uint32_t *scratch) {
+    uint32_t *src = scratch, *dst = scratch + n, *hist = scratch + 2 * (int64_t)n; /* hist: 4 x 256 */
+    memset(hist, 0, 4 * 256 * sizeof(uint32_t));
+    for (int32_t i = 0; i < n; i++) {
+        uint32_t key = float_key(a[i]);
+        src[i] = key;
+        hist[key & 0xFF]++;
+        hist[256 + ((key >> 8) & 0xFF)]++;
+        hist[512 + ((key >> 16) & 0xFF)]++;
+        hist[768 + (key >> 24)]++;
+    }
+    for (int d = 0; d < 4; d++) {
+        uint32_t *h = hist + 256 * d, total = 0;
+        int shift = 8 * d;
+        if (h[(src[0] >> shift) & 0xFF] == (uint32_t)n) continue; /* every key has this byte */
+        for (int b = 0; b < 256; b++) {
+            uint32_t c = h[b];
+            h[b] = total;
+            total += c;
+        }
+        for (int32_t i = 0; i < n; i++) dst[h[(src[i] >> shift) & 0xFF]++] = src[i];
+        uint32_t *t = src;
+        src = dst;
+        dst = t;
+    }
+    for (int32_t i = 0; i < n; i++) a[i] = key_float(src[i]);
+}
+
+void ok_sort_floats(float *a, int32_t n, uint32_t *scratch) {
+    if (scratch && n >= OK_RADIX_MIN) radix_sort_floats(a, n, scratch);
+    else quicksort_floats(a, n);
 }
 
 /* The k-th smallest of a[0 .. n-1] (finite), reordering a: Hoare's selection. */
@@ -431,7 +514,7 @@ static void gain_signal(ok_kernel *k, int64_t now_ns) {
     float *ratio = k->ratio, *live = k->sorted;
     for (int32_t i = 0; i < nf; i++) ratio[i] = (p->means[i] - black) * p->inv_level[i];
     for (int32_t i = 0; i < n; i++) live[i] = ratio[p->live[i]];
-    ok_sort_floats(live, n);
+    ok_sort_floats(live, n, k->sort_scratch);
     double g = live[(3 * (n - 1)) / 4];
     for (int it = 0; it < 2; it++) {
         int32_t j = count_below(live, n, g * k->gain_keep, 0);
@@ -613,6 +696,118 @@ static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, 
 }
 #endif
 
+/* y[i] -= s * a[i] for n a multiple of 8 (the envelopes are padded with zeros to it): no sum across
+ * elements, so the same bits at every vector width (no contraction). */
+static inline __attribute__((always_inline)) void axpy8_neg(float *restrict y, float s, const float *restrict a,
+                                                            int64_t n) {
+#if defined(__GNUC__) || defined(__clang__)
+    const v4f s4 = {s, s, s, s};
+    for (int64_t i = 0; i < n; i += 8) {
+        v4f y0 = load4(y + i) - s4 * load4(a + i), y1 = load4(y + i + 4) - s4 * load4(a + i + 4);
+        memcpy(y + i, &y0, sizeof y0);
+        memcpy(y + i + 4, &y1, sizeof y1);
+    }
+#else
+    for (int64_t i = 0; i < n; i++) y[i] -= s * a[i];
+#endif
+}
+
+/* The two triangular solves C z = y, C^T x = z in place on y, the rows and columns as axpys. */
+#define GS_SOLVES(AXPY)                                                                                       \
+    do {                                                                                                      \
+        for (int32_t q = 0; q < m; q++) { /* C z = y, column by column */                                    \
+            float yq = y[q] / p->gs_diag[q];                                                                  \
+            y[q] = yq;                                                                                        \
+            AXPY(y + q + 1, yq, p->gs_col_env + p->gs_col_ptr[q], p->gs_col_last[q] - q - 1);                 \
+        }                                                                                                     \
+        for (int32_t q = m - 1; q >= 0; q--) { /* C^T x = z, row by row */                                   \
+            float yq = y[q] / p->gs_diag[q];                                                                  \
+            y[q] = yq;                                                                                        \
+            AXPY(y + p->gs_row_first[q], yq, p->gs_row_env + p->gs_row_ptr[q], q - p->gs_row_first[q]);       \
+        }                                                                                                     \
+    } while (0)
+
+static void gs_solves4(const ok_plan *p, float *restrict y, int32_t m) { GS_SOLVES(axpy8_neg); }
+
+#if OK_AVX2
+__attribute__((target("avx2"), always_inline)) static inline void axpy8_neg_avx2(float *restrict y, float s,
+                                                                                 const float *restrict a, int64_t n) {
+    const v8f s8 = {s, s, s, s, s, s, s, s};
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) { /* two vectors a step: half the loop's own instructions */
+        v8f y0, y1, a0, a1;
+        LOAD8(y0, y + i);
+        LOAD8(a0, a + i);
+        LOAD8(y1, y + i + 8);
+        LOAD8(a1, a + i + 8);
+        y0 -= s8 * a0;
+        y1 -= s8 * a1;
+        memcpy(y + i, &y0, sizeof y0);
+        memcpy(y + i + 8, &y1, sizeof y1);
+    }
+    if (i < n) {
+        v8f yv, av;
+        LOAD8(yv, y + i);
+        LOAD8(av, a + i);
+        yv -= s8 * av;
+        memcpy(y + i, &yv, sizeof yv);
+    }
+}
+
+__attribute__((target("avx2"))) static void gs_solves8(const ok_plan *p, float *restrict y, int32_t m) {
+    GS_SOLVES(axpy8_neg_avx2);
+}
+#endif
+
+/* The gradients at the fibers, g (2N: d/dx then d/dy), of the values v (N) as K g = B v solved with
+ * K = C C^T (optitac_edge/core/gradient_solve.py, whose solve_gradients computes the same in the same
+ * order). y: the unknowns in the factor's order (fiber gs_fibers[r]'s d/dx at 2 r, d/dy at 2 r + 1), with
+ * OK_GS_PAD zeros either side for the padded rows and columns. */
+static void gradient_solve(const ok_plan *p, const float *v, float *restrict y, float *restrict g) {
+    int32_t nf = p->n_fibers, m = 2 * nf;
+    for (int32_t r = 0; r < nf; r++) { /* the right side */
+        int32_t i = p->gs_fibers[r], e0 = p->gs_nbr_ptr[i], ne = p->gs_nbr_ptr[i + 1] - e0;
+        const int32_t *nb = p->gs_nbr + e0;
+        const float *c = p->gs_coef + 2 * (int64_t)e0;
+        float sx = 0.0f, sy = 0.0f, vi = v[i];
+        if (ne == 6) { /* a fiber inside the array: the same sums written out */
+            float d0 = v[nb[0]] - vi, d1 = v[nb[1]] - vi, d2 = v[nb[2]] - vi;
+            float d3 = v[nb[3]] - vi, d4 = v[nb[4]] - vi, d5 = v[nb[5]] - vi;
+            sx += c[0] * d0;
+            sy += c[1] * d0;
+            sx += c[2] * d1;
+            sy += c[3] * d1;
+            sx += c[4] * d2;
+            sy += c[5] * d2;
+            sx += c[6] * d3;
+            sy += c[7] * d3;
+            sx += c[8] * d4;
+            sy += c[9] * d4;
+            sx += c[10] * d5;
+            sy += c[11] * d5;
+        } else {
+            for (int32_t e = 0; e < ne; e++) {
+                float d = v[nb[e]] - vi;
+                sx += c[2 * e] * d;
+                sy += c[2 * e + 1] * d;
+            }
+        }
+        y[2 * r] = sx;
+        y[2 * r + 1] = sy;
+    }
+#if OK_AVX2
+    if (ok_avx2) gs_solves8(p, y, m);
+    else gs_solves4(p, y, m);
+#else
+    gs_solves4(p, y, m);
+#endif
+    for (int32_t r = 0; r < nf; r++) {
+        int32_t i = p->gs_fibers[r];
+        g[i] = y[2 * r];
+        g[nf + i] = y[2 * r + 1];
+    }
+}
+
 /* Keep a cell above the truncation level in the surface, the box and the peak. */
 #define KEEP_CELL(cell, value)                                          \
     do {                                                                \
@@ -644,7 +839,8 @@ static int32_t triangle_surface(ok_kernel *k) {
         for (int32_t c = 0; c < nf; c++) s += row[c] * p->signal[c];
         w[p->value_rows[r]] = s;
     }
-    matvec(p->grad_op, 2 * nf, nf, p->signal, w + nf);
+    if (p->gs_fibers) gradient_solve(p, w, k->gs_y + OK_GS_PAD, w + nf);
+    else matvec(p->grad_op, 2 * nf, nf, p->signal, w + nf);
     float level = (float)((double)k->trunc * (1.0 - BOUND_MARGIN));
     float trunc = k->trunc;
     int32_t n_sel = 0, cells = 0;
@@ -656,7 +852,16 @@ static int32_t triangle_surface(ok_kernel *k) {
         const int32_t *cols = p->tri_cols + (int64_t)t * OK_CELL_TERMS;
         float bound = 0.0f;
         const float *gw = k->grad_w_t + (int64_t)t * OK_CELL_TERMS; /* this triangle's gradient weights */
-        for (int q = nv; q < OK_CELL_TERMS; q++) bound += aw[cols[q]] * gw[q - nv];
+        if (nv == 3) { /* the usual factors, the six gradient terms written out (the same sum in the same order) */
+            bound += aw[cols[3]] * gw[0];
+            bound += aw[cols[4]] * gw[1];
+            bound += aw[cols[5]] * gw[2];
+            bound += aw[cols[6]] * gw[3];
+            bound += aw[cols[7]] * gw[4];
+            bound += aw[cols[8]] * gw[5];
+        } else {
+            for (int q = nv; q < OK_CELL_TERMS; q++) bound += aw[cols[q]] * gw[q - nv];
+        }
         if (nv) {
             float a = aw[cols[0]], b = aw[cols[1]], c = aw[cols[2]];
             float vb = a > b ? a : b;

@@ -18,6 +18,10 @@
 #include <stdint.h>
 
 #define OK_MAX_CANDIDATES 8 /* contact_finder.MAX_CANDIDATES */
+#define OK_GS_PAD 8
+/* The sort goes by bytes (4 passes at most, linear) from this many values; below, a quicksort is fewer steps. */
+#define OK_RADIX_MIN 256
+#define OK_SORT_SCRATCH(n) (2 * (size_t)(n) + 4 * 256)
 #define OK_CELL_TERMS 9     /* surface.CELL_TERMS */
 
 /* One contact's measures, in this order, in ok_kernel.contacts[k * OK_FIELDS + ...] (float64). */
@@ -96,6 +100,21 @@ typedef struct {
     const float *value_w;       /* (T,) */
     const float *grad_w;        /* (9 - n_value_terms, T) */
     const float *dense;         /* (n*n, N), when there are no factors */
+    /* the gradients as a sparse solve instead of grad_op's product (gs_fibers != NULL; see
+     * optitac_edge/core/gradient_solve.py): m = 2N unknowns, K = C C^T, C lower triangular in an envelope */
+    const int32_t *gs_fibers;   /* (N,) the fiber whose d/dx, d/dy are unknowns 2 r, 2 r + 1 of the factor */
+    /* rows and columns are padded with zeros to multiples of OK_GS_PAD entries, reaching up to OK_GS_PAD
+     * positions before 0 and after m - 1 */
+    const float *gs_diag;       /* (m,) C[p, p] */
+    const int32_t *gs_row_first; /* (m,) first column of row p */
+    const int64_t *gs_row_ptr;  /* (m + 1,) gs_row_env[row_ptr[p]:row_ptr[p + 1]] = C[p, row_first[p]:p] */
+    const float *gs_row_env;
+    const int32_t *gs_col_last; /* (m,) one past the last row of column p */
+    const int64_t *gs_col_ptr;  /* (m + 1,) gs_col_env[col_ptr[p]:col_ptr[p + 1]] = C[p + 1:col_last[p], p] */
+    const float *gs_col_env;
+    const int32_t *gs_nbr_ptr;  /* (N + 1,) */
+    const int32_t *gs_nbr;      /* (E,) each fiber's neighbours */
+    const float *gs_coef;       /* (E, 2) 6 e / L^3 */
     /* steps 6, 7: the mesh, levels and fractions */
     int32_t n;                  /* mesh side */
     double x0_mm, y0_mm, step_mm, cell_area_mm2;
@@ -150,8 +169,10 @@ typedef struct {
     /* scratch */
     float *w;          /* (3N,) */
     float *absw;       /* (3N,) |w| */
+    float *gs_y;       /* (2N,) the gradient solve's unknowns in the factor's order */
     float *ratio;      /* (N,) */
     float *sorted;     /* (max(N, 1),) */
+    uint32_t *sort_scratch; /* OK_SORT_SCRATCH(N) */
     float *bound;      /* (T,) */
     int32_t *selected; /* (2T,) triangles evaluated by the last frame; the frame before's */
     uint32_t *tri_stamp; /* (T,) the frame each triangle was last evaluated in */
@@ -220,7 +241,9 @@ void ok_nearest_seed(const int32_t *seed_label, int32_t h, int32_t w, int32_t *d
 void ok_correct(const ok_kernel *k, double *c);
 
 /* Helpers the tests reach through the module. */
-void ok_sort_floats(float *a, int32_t n);
+/* Sorts a ascending (finite values): by the floats' bytes when scratch (OK_SORT_SCRATCH(n) words) is
+ * given and n >= OK_RADIX_MIN, else a quicksort. */
+void ok_sort_floats(float *a, int32_t n, uint32_t *scratch);
 /* 8-connected components of runs (row y[i], columns x0[i] .. x1[i], in raster order) into label[i]
  * (1 .. in raster order of each component's first run); the number of labels including the background
  * (as cv2.connectedComponents). parent and map need n + 1 entries. */

@@ -153,6 +153,19 @@ int main(int argc, char **argv) {
         p.tri_weights = arr("tri_weights");
         p.value_w = arr("value_w");
         p.grad_w = arr("grad_w");
+        if (find("gs_fibers")) {
+            p.gs_fibers = arr("gs_fibers");
+            p.gs_diag = arr("gs_diag");
+            p.gs_row_first = arr("gs_row_first");
+            p.gs_row_ptr = arr("gs_row_ptr");
+            p.gs_row_env = arr("gs_row_env");
+            p.gs_col_last = arr("gs_col_last");
+            p.gs_col_ptr = arr("gs_col_ptr");
+            p.gs_col_env = arr("gs_col_env");
+            p.gs_nbr_ptr = arr("gs_nbr_ptr");
+            p.gs_nbr = arr("gs_nbr");
+            p.gs_coef = arr("gs_coef");
+        }
     }
     ok_models *m = &p.models;
     if (find("cmap_n")) {

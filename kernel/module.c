@@ -10,7 +10,7 @@
 
 #include "frame_kernel.h"
 
-#define MAX_BUFFERS 40
+#define MAX_BUFFERS 64
 
 typedef struct {
     PyObject_HEAD
@@ -170,6 +170,29 @@ static int plan_models(KernelObject *self, PyObject *plan, ok_plan *p) {
     return 0;
 }
 
+/* The gradient solve (optitac_edge/core/gradient_solve.py), present when "gs_fibers" is in the plan: every
+ * array sized here, the offsets' ends against the envelopes; the rest is checked by ok_kernel_init. */
+static int plan_gradient_solve(KernelObject *self, PyObject *plan, ok_plan *p) {
+    if (!PyDict_GetItemString(plan, "gs_fibers")) return 0;
+    Py_ssize_t nf = p->n_fibers, m = 2 * nf, n_row = 0, n_col = 0, n_nbr = 0;
+    if (!(p->gs_fibers = plan_array(self, plan, "gs_fibers", I32, 4, nf, 0, 0, NULL))) return -1;
+    if (!(p->gs_diag = plan_array(self, plan, "gs_diag", F32, 4, m, 0, 0, NULL))) return -1;
+    if (!(p->gs_row_first = plan_array(self, plan, "gs_row_first", I32, 4, m, 0, 0, NULL))) return -1;
+    if (!(p->gs_row_ptr = plan_array(self, plan, "gs_row_ptr", I64, 8, m + 1, 0, 0, NULL))) return -1;
+    if (!(p->gs_row_env = plan_array(self, plan, "gs_row_env", F32, 4, 0, 0, 0, &n_row))) return -1;
+    if (!(p->gs_col_last = plan_array(self, plan, "gs_col_last", I32, 4, m, 0, 0, NULL))) return -1;
+    if (!(p->gs_col_ptr = plan_array(self, plan, "gs_col_ptr", I64, 8, m + 1, 0, 0, NULL))) return -1;
+    if (!(p->gs_col_env = plan_array(self, plan, "gs_col_env", F32, 4, 0, 0, 0, &n_col))) return -1;
+    if (!(p->gs_nbr_ptr = plan_array(self, plan, "gs_nbr_ptr", I32, 4, nf + 1, 0, 0, NULL))) return -1;
+    if (!(p->gs_nbr = plan_array(self, plan, "gs_nbr", I32, 4, 0, 0, 0, &n_nbr))) return -1;
+    if (!(p->gs_coef = plan_array(self, plan, "gs_coef", F32, 4, 2 * n_nbr, 0, 0, NULL))) return -1;
+    if (p->gs_row_ptr[m] != n_row || p->gs_col_ptr[m] != n_col || p->gs_nbr_ptr[nf] != n_nbr) {
+        PyErr_SetString(PyExc_ValueError, "kernel plan: the gradient solve's offsets do not end at its arrays' sizes");
+        return -1;
+    }
+    return 0;
+}
+
 static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
     PyObject *plan;
     static char *kwlist[] = {"plan", NULL};
@@ -271,6 +294,7 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
         ARR(tri_weights, const float *, "tri_weights", F32, 4, T * OK_CELL_TERMS * P, 0);
         ARR(value_w, const float *, "value_w", F32, 4, T, 0);
         ARR(grad_w, const float *, "grad_w", F32, 4, (OK_CELL_TERMS - p.n_value_terms) * T, 0);
+        if (plan_gradient_solve(self, plan, &p) < 0) return -1;
     } else if (!p.dense) {
         PyErr_SetString(PyExc_ValueError, "kernel plan: neither surface factors nor a dense matrix");
         return -1;
@@ -432,7 +456,14 @@ static PyObject *mod_sort(PyObject *Py_UNUSED(mod), PyObject *arg) {
         PyErr_SetString(PyExc_ValueError, "sort: a float32 array");
         return NULL;
     }
-    ok_sort_floats((float *)b.buf, (int32_t)(b.len / 4));
+    int32_t n = (int32_t)(b.len / 4);
+    uint32_t *scratch = PyMem_Malloc(OK_SORT_SCRATCH(n) * sizeof(uint32_t));
+    if (!scratch) {
+        PyBuffer_Release(&b);
+        return PyErr_NoMemory();
+    }
+    ok_sort_floats((float *)b.buf, n, scratch);
+    PyMem_Free(scratch);
     PyBuffer_Release(&b);
     Py_RETURN_NONE;
 }

@@ -30,7 +30,7 @@ from optitac_edge.calibration.bundle_models import (
 )
 from optitac_edge.calibration.interpolation import build_interpolation_matrix
 from optitac_edge.calibration.shape_fit import ShapeFitSettings, fit_shape_model
-from optitac_edge.core import _frame_kernel, compiled
+from optitac_edge.core import _frame_kernel, compiled, gradient_solve
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.centroid_map import CentroidErrorMap
 from optitac_edge.core.depth_model import DepthForceModel, RadialMonotoneMap
@@ -215,6 +215,33 @@ def test_dead_fibers_filled_and_not(modelled, day) -> None:
     bundle = modelled.with_updates(fibers=dataclasses.replace(modelled.fibers, dead=dead))
     run_both(bundle, day[::3])
     run_both(bundle, day[::3], dataclasses.replace(bundle.options, fill_dead=False))
+
+
+@pytest.fixture()
+def solve_always(monkeypatch) -> None:
+    """The kernel finds the gradients by the sparse solve whatever the cost (at 217 fibers the dense product
+    is the cheaper, and a 1027-fiber bundle takes a minute to calibrate)."""
+    monkeypatch.setattr(gradient_solve, "SOLVE_WEIGHT", 0)
+
+
+def test_the_gradient_solve_agrees(modelled, day, solve_always) -> None:
+    """The gradients by the sparse solve (a 1027-fiber sensor's kernel) give the numpy pipeline's contacts,
+    with and without dead fibers filled."""
+    assert "gs_fibers" in Pipeline(modelled, compiled=True).kernel.plan  # type: ignore[union-attr]
+    _ref, _kern, seen = run_both(modelled, day[:160])
+    assert {n for n, _ in seen} == {0, 1, 2, 4}
+    dead = np.zeros(modelled.fibers.n_fibers, dtype=bool)
+    dead[[0, 40, 76, 105, 200]] = True
+    bundle = modelled.with_updates(fibers=dataclasses.replace(modelled.fibers, dead=dead))
+    assert "gs_fibers" in Pipeline(bundle, compiled=True).kernel.plan  # type: ignore[union-attr]
+    run_both(bundle, day[:160:2])
+
+
+def test_the_gradient_solve_is_chosen_where_it_is_cheaper(modelled) -> None:
+    """217 fibers: the dense product (94 k multiply-adds against the solve's ~35 k at 4 times the cost each)."""
+    gs = Pipeline(modelled, compiled=False).surface_op.gradient_solve  # type: ignore[union-attr]
+    assert gs() is None
+    assert "gs_fibers" not in Pipeline(modelled, compiled=True).kernel.plan  # type: ignore[union-attr]
 
 
 def test_the_onnx_or_no_corrector_runs_in_python(modelled, day) -> None:
@@ -415,7 +442,7 @@ def test_the_environment_can_ask_for_the_numpy_pipeline(modelled, monkeypatch) -
 # -- the kernel on aarch64 (qemu-user; .ci/run installs Debian's cross compiler and qemu) ---------------------
 
 
-def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_tool, tmp_path) -> None:
+def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_tool, tmp_path, monkeypatch) -> None:
     """kernel/harness.c built with Debian's aarch64 cross compiler (NEON from the same vector code), run under
     qemu-user on the plan and frames of this machine's kernel: the same contacts, within the tolerances
     (another libm may round exp, log, atan2 in the last bit)."""
@@ -425,5 +452,11 @@ def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_t
                     str(root / "kernel" / "harness.c"), str(root / "kernel" / "frame_kernel.c"), "-lm"], check=True)
     lines = aarch64_tool.check(Pipeline(modelled, compiled=True), day[:200], [f"qemu-aarch64 {exe}"], tmp_path,
                                "day")
+    assert len(lines) == 1 and ", 0 beyond the tolerances" in lines[0], lines
+    assert " 0 contacts" not in lines[0]
+    monkeypatch.setattr(gradient_solve, "SOLVE_WEIGHT", 0)  # and the gradients by the sparse solve
+    solved = Pipeline(modelled, compiled=True)
+    assert "gs_fibers" in solved.kernel.plan  # type: ignore[union-attr]
+    lines = aarch64_tool.check(solved, day[:90], [f"qemu-aarch64 {exe}"], tmp_path, "solve")
     assert len(lines) == 1 and ", 0 beyond the tolerances" in lines[0], lines
     assert " 0 contacts" not in lines[0]

@@ -176,7 +176,7 @@ class Pipeline:
         #: Step 5: the whole surface every frame, exactly: the factored Clough-Tocher form when the
         #: bundle has it (TriangleSurface: only the triangles near a contact), else the dense matrix.
         self.surface_op: TriangleSurface | DenseSurface = (
-            TriangleSurface(factors, grid.n, fill=fill) if factors is not None
+            TriangleSurface(factors, grid.n, fill=fill, fiber_xy=bundle.layout.xy_mm) if factors is not None
             else DenseSurface(np.asarray(bundle.interpolation), fill=fill))
         min_area = float(bundle.thresholds.min_area_mm2)
         #: Steps 6 and 7: truncation and the split into contacts.

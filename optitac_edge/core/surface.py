@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from optitac_edge.core.gradient_solve import GradientSolve, cheaper_gradient_solve
+
 #: Entries of ``w`` each mesh cell depends on: 3 triangle vertices x (value, d/dx, d/dy).
 CELL_TERMS = 9
 #: Mesh cells per chunk of :meth:`SurfaceFactors.dense` (float64 chunk of ~1.8 MB at N = 217).
@@ -212,12 +214,18 @@ class TriangleSurface:
     fill : ndarray, shape (N, N), optional
         Applied to the fiber values first (dead-fiber fill); folded into the
         vertex operator once (``W @ fill``).
+    fiber_xy : ndarray, shape (N, 2), optional
+        The fiber centres (mm). With them the compiled kernel may find the
+        gradients by a sparse solve (:mod:`optitac_edge.core.gradient_solve`)
+        instead of the dense product, where that is cheaper; this class
+        always computes the product.
     """
 
     #: The bound is compared with ``level * (1 - BOUND_MARGIN)``: float32 rounding never skips a cell above it.
     BOUND_MARGIN = 1e-4
 
-    def __init__(self, factors: SurfaceFactors, n: int, fill: np.ndarray | None = None) -> None:
+    def __init__(self, factors: SurfaceFactors, n: int, fill: np.ndarray | None = None,
+                 fiber_xy: np.ndarray | None = None) -> None:
         if factors.n_cells != n * n:
             raise ValueError(f"surface factors have {factors.n_cells} cells, expected {n * n}")
         self.n = n
@@ -267,6 +275,17 @@ class TriangleSurface:
         self._values = np.zeros((n_tri, 1, width), dtype=np.float32)
         #: Triangles evaluated by the last :meth:`compute`.
         self.evaluated = 0
+        self._fiber_xy = None if fiber_xy is None else np.asarray(fiber_xy, dtype=np.float64)
+        self._fill_op = op[:n_f]
+
+    def gradient_solve(self) -> GradientSolve | None:
+        """The sparse solve of the gradients when it is cheaper than the dense product and reproduces
+        it (:func:`~optitac_edge.core.gradient_solve.gradient_solve`), else None (also without the
+        fiber centres, or with factors whose first terms are not the triangles' vertex values)."""
+        if self._fiber_xy is None or self._n_value != 3:
+            return None
+        return cheaper_gradient_solve(self._fiber_xy, self._tri_cols[:, :3], self._grad_op,
+                                      None if self._value_rows.size == 0 else self._fill_op)
 
     def kernel_arrays(self) -> dict[str, np.ndarray | int]:
         """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`): the operators and the
@@ -274,7 +293,8 @@ class TriangleSurface:
         before the padding."""
         first = self._cells[:, :1]
         counts = 1 + np.count_nonzero(self._cells[:, 1:] != first, axis=1)
-        return {"value_rows": self._value_rows.astype(np.int32), "value_op": self._value_op,
+        gs = self.gradient_solve()
+        return {**({} if gs is None else gs.kernel_arrays()),"value_rows": self._value_rows.astype(np.int32), "value_op": self._value_op,
                 "grad_op": self._grad_op, "n_tri": self.n_triangles, "width": self.width,
                 "n_value_terms": self._n_value, "tri_cols": self._tri_cols.astype(np.int32),
                 "tri_cells": self._cells.astype(np.int32), "tri_count": counts.astype(np.int32),
