@@ -7,7 +7,7 @@
 # Installs gcc-aarch64-linux-gnu, libc6-dev-arm64-cross and qemu-user with apt when they are missing (as
 # root). The harness (kernel/harness.c) is the kernel with no Python: static, so qemu needs no arm64 root.
 # The vector unit: the kernel's 4- and 8-lane vector code (GCC vector extensions) compiles to NEON on
-# aarch64 as to SSE2/AVX2 on x86-64; the script counts the NEON instructions of the gradient product.
+# aarch64 as to SSE2/AVX2 on x86-64; the script counts the NEON instructions of the surface step.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 work="${1:-${TMPDIR:-/tmp}/optitac-aarch64}"
@@ -24,7 +24,8 @@ need qemu-aarch64 qemu-user
 flags=(-std=c99 -O3 -Wall -Wextra -ffp-contract=off)  # as setup.py builds the extension
 aarch64-linux-gnu-gcc "${flags[@]}" -static -o "$work/harness-aarch64" kernel/harness.c kernel/frame_kernel.c -lm
 gcc "${flags[@]}" -o "$work/harness-x86_64" kernel/harness.c kernel/frame_kernel.c -lm
-echo "NEON instructions in the aarch64 gradient product: $(aarch64-linux-gnu-objdump -d "$work/harness-aarch64" \
-    | awk '/<matvec>:/,/^$/' | grep -cE '\s(fmul|fadd)\s+v[0-9]+\.4s')"
+echo "NEON instructions in the aarch64 surface step (gradient product and solve): $(aarch64-linux-gnu-objdump \
+    -d "$work/harness-aarch64" | awk '/<(matvec4?|gs_solves4|ok_surface)>:/,/^$/' \
+    | grep -cE '\s(fmul|fadd|fsub)\s+v[0-9]+\.4s')"
 python3 tools/kernel_aarch64.py --workdir "$work" --harness "$work/harness-x86_64" \
     --harness "qemu-aarch64 $work/harness-aarch64"
