@@ -141,6 +141,14 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
         return -1;
     }
     if (p->gs_fibers && check_gradient_solve(p, err, err_len) < 0) return -1;
+    if (p->check_probe) {
+        if (p->check_bytes != 1 && p->check_bytes != 3) { snprintf(err, err_len, "kernel plan: check_bytes must be 1 or 3"); return -1; }
+        for (int64_t i = 0; i < (int64_t)p->check_pixels * p->check_bytes; i++)
+            if (p->check_probe[i] < 0 || p->check_probe[i] >= p->frame_pixels * (p->rgb ? 3 : 1)) {
+                snprintf(err, err_len, "kernel plan: check probe outside the frame");
+                return -1;
+            }
+    }
     const ok_models *mo = &p->models;
     if ((mo->width && (mo->major.k < 2 || mo->minor.k < 2)) || (mo->depth && mo->depth_map.curve.k < 2)
         || (mo->force && mo->force_map.curve.k < 2)
@@ -1700,8 +1708,30 @@ void ok_reset_contact(ok_kernel *k) {
     k->bright_since_set = 0;
 }
 
-int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_ns) {
-    ok_means(k, frame);
+int32_t ok_check(ok_kernel *k, const uint8_t *frame) {
+    const ok_plan *p = &k->p;
+    int32_t n_sat = 0, n_bright = 0, nb = p->check_bytes;
+    uint8_t sat = (uint8_t)p->check_saturated_level, dark = (uint8_t)p->check_dark_level;
+    for (int32_t i = 0; i < p->check_pixels; i++) { /* a pixel counts when any of its bytes does */
+        const int32_t *o = p->check_probe + (int64_t)i * nb;
+        int s = 0, b = 0;
+        for (int32_t j = 0; j < nb; j++) {
+            uint8_t v = frame[o[j]];
+            s |= v >= sat;
+            b |= v > dark;
+        }
+        n_sat += s;
+        n_bright += b;
+    }
+    k->saturated = 0;
+    if (n_sat > p->check_saturated_fraction * p->check_pixels) return 2;
+    if (n_bright < p->check_dark_fraction * p->check_pixels) return 1;
+    k->saturated = n_sat > 0;
+    return 0;
+}
+
+int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_ns, int means_ready) {
+    if (!means_ready) ok_means(k, frame);
     int32_t n = 0;
     k->clear_strength = k->clear_area = 0.0;
     if (ok_surface(k, now_ns) > 0) {

@@ -100,6 +100,10 @@ typedef struct {
     const float *value_w;       /* (T,) */
     const float *grad_w;        /* (9 - n_value_terms, T) */
     const float *dense;         /* (n*n, N), when there are no factors */
+    /* the frame check (FrameCheck), when check_probe != NULL */
+    const int32_t *check_probe; /* (check_pixels * check_bytes,) byte offsets into the frame */
+    int32_t check_pixels, check_bytes;
+    double check_dark_level, check_dark_fraction, check_saturated_level, check_saturated_fraction;
     /* the gradients as a sparse solve instead of grad_op's product (gs_fibers != NULL; see
      * optitac_edge/core/gradient_solve.py): m = 2N unknowns, K = C C^T, C lower triangular in an envelope */
     const int32_t *gs_fibers;   /* (N,) the fiber whose d/dx, d/dy are unknowns 2 r, 2 r + 1 of the factor */
@@ -148,6 +152,7 @@ typedef struct {
     int64_t bright_since_ns;
     double common;
     /* the last frame */
+    int32_t saturated; /* ok_check: a probed pixel at full scale */
     int32_t cells, evaluated;
     int32_t box_x, box_y, box_w, box_h;
     double clear_strength, clear_area;
@@ -218,9 +223,14 @@ void ok_reset_bright(ok_kernel *k);
 void ok_means(ok_kernel *k, const uint8_t *frame);
 /* Steps 4-6 after ok_means: signal, surface, truncation; the cells above the truncation level. */
 int32_t ok_surface(ok_kernel *k, int64_t now_ns);
-/* One frame after the baseline is ready: ok_means, ok_surface, ok_find at the on level (the off level
- * while in contact), ok_follow. Returns the number of contacts. */
-int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_ns);
+/* FrameCheck after ok_means (the probed pixels are then in the caches): 0 to process the frame, 1 dark,
+ * 2 saturated (optitac_edge/core/frame_check.py); k->saturated: a probed pixel at full scale. Changes
+ * nothing else. Needs the plan's check arrays. */
+int32_t ok_check(ok_kernel *k, const uint8_t *frame);
+/* One frame after the baseline is ready: ok_means (unless means_ready: ok_means ran on this frame),
+ * ok_surface, ok_find at the on level (the off level while in contact), ok_follow. Returns the number
+ * of contacts. */
+int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_ns, int means_ready);
 /* Pipeline.reset_baseline's part: no contact, none ended, no raise pending, nothing bright. */
 void ok_reset_contact(ok_kernel *k);
 /* Step 7 after ok_surface found cells: the contacts (plan.contacts, strongest first), their number

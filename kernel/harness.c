@@ -227,7 +227,7 @@ int main(int argc, char **argv) {
         return 1;
     }
     for (uint64_t f = 0; f < n_frames; f++) {
-        int32_t n = ok_frame(&k, frames + f * frame_bytes, times[f], times[f] - last);
+        int32_t n = ok_frame(&k, frames + f * frame_bytes, times[f], times[f] - last, 0);
         last = times[f];
         fwrite(&n, 4, 1, out);
         fwrite(p.contacts, sizeof(double), (size_t)n * OK_FIELDS, out);

@@ -299,6 +299,15 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
         PyErr_SetString(PyExc_ValueError, "kernel plan: neither surface factors nor a dense matrix");
         return -1;
     }
+    if (PyDict_GetItemString(plan, "check_probe")) { /* the frame check (FrameCheck) */
+        INT(check_bytes, "check_bytes", 1, 3);
+        INT(check_pixels, "check_pixels", 0, 1 << 24);
+        DBL(check_dark_level, "check_dark_level");
+        DBL(check_dark_fraction, "check_dark_fraction");
+        DBL(check_saturated_level, "check_saturated_level");
+        DBL(check_saturated_fraction, "check_saturated_fraction");
+        ARR(check_probe, const int32_t *, "check_probe", I32, 4, (Py_ssize_t)p.check_pixels * p.check_bytes, 0);
+    }
     if (plan_models(self, plan, &p) < 0) return -1;
     char err[200];
     if (ok_kernel_init(&self->k, &p, err, (int)sizeof err) < 0) {
@@ -343,10 +352,12 @@ static int frame_buffer(KernelObject *self, PyObject *frame, Py_buffer *b) {
 
 static PyObject *Kernel_frame(KernelObject *self, PyObject *const *args, Py_ssize_t nargs) {
     REQUIRE_INIT(self);
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "frame(frame, now_ns, dt_ns)");
+    if (nargs != 3 && nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "frame(frame, now_ns, dt_ns[, means_ready])");
         return NULL;
     }
+    int means_ready = nargs == 4 ? PyObject_IsTrue(args[3]) : 0;
+    if (means_ready < 0) return NULL;
     long long now_ns = PyLong_AsLongLong(args[1]);
     if (now_ns == -1 && PyErr_Occurred()) return NULL;
     long long dt_ns = PyLong_AsLongLong(args[2]);
@@ -355,7 +366,7 @@ static PyObject *Kernel_frame(KernelObject *self, PyObject *const *args, Py_ssiz
     if (frame_buffer(self, args[0], &b) < 0) return NULL;
     int32_t n;
     Py_BEGIN_ALLOW_THREADS
-    n = ok_frame(&self->k, (const uint8_t *)b.buf, now_ns, dt_ns);
+    n = ok_frame(&self->k, (const uint8_t *)b.buf, now_ns, dt_ns, means_ready);
     Py_END_ALLOW_THREADS
     PyBuffer_Release(&b);
     return PyLong_FromLong(n);
@@ -370,6 +381,23 @@ static PyObject *Kernel_means(KernelObject *self, PyObject *frame) {
     Py_END_ALLOW_THREADS
     PyBuffer_Release(&b);
     Py_RETURN_NONE;
+}
+
+static PyObject *Kernel_check(KernelObject *self, PyObject *frame) {
+    REQUIRE_INIT(self);
+    if (!self->k.p.check_probe) {
+        PyErr_SetString(PyExc_RuntimeError, "check: the plan has no frame check");
+        return NULL;
+    }
+    Py_buffer b;
+    if (frame_buffer(self, frame, &b) < 0) return NULL;
+    int32_t code;
+    Py_BEGIN_ALLOW_THREADS
+    ok_means(&self->k, (const uint8_t *)b.buf);
+    code = ok_check(&self->k, (const uint8_t *)b.buf);
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&b);
+    return PyLong_FromLong(code);
 }
 
 static PyObject *Kernel_set_levels(KernelObject *self, PyObject *args) {
@@ -407,8 +435,11 @@ static PyMethodDef Kernel_methods[] = {
     {"set_correct", (PyCFunction)Kernel_set_correct, METH_O,
      "set_correct(on): apply the plan's calibration models to the contacts (default on)."},
     {"frame", (PyCFunction)(void (*)(void))Kernel_frame, METH_FASTCALL,
-     "frame(frame, now_ns, dt_ns) -> contacts: one frame after the baseline is ready."},
+     "frame(frame, now_ns, dt_ns[, means_ready]) -> contacts: one frame after the baseline is ready."},
     {"means", (PyCFunction)Kernel_means, METH_O, "means(frame): the fiber means into the plan's means."},
+    {"check", (PyCFunction)Kernel_check, METH_O,
+     "check(frame) -> 0 (process it), 1 (dark), 2 (saturated): the fiber means, then FrameCheck from their "
+     "pixels; nothing else changes (frame(..., means_ready=True) goes on from the means)."},
     {"set_levels", (PyCFunction)Kernel_set_levels, METH_VARARGS,
      "set_levels(trunc, off, on, gain_delta, gain_tolerance, gain_significant)"},
     {"reset_gain", (PyCFunction)Kernel_reset_gain, METH_O, "reset_gain(now_ns): gain 1 from now on."},
@@ -426,6 +457,7 @@ static PyMemberDef Kernel_members[] = {
     MEMBER("common", T_DOUBLE, common, "The level brightness was measured from (signal units)."),
     MEMBER("raise_pending", T_INT, raise_pending, "The last frame found fibers to raise."),
     MEMBER("in_contact", T_INT, in_contact, "The last frame had a contact."),
+    MEMBER("saturated", T_INT, saturated, "The last check found a probed pixel at full scale."),
     MEMBER("cells", T_INT, cells, "Cells above the truncation level in the last frame."),
     MEMBER("evaluated", T_INT, evaluated, "Triangles of the surface the last frame evaluated."),
     MEMBER("correct", T_INT, correct, "The plan's calibration models are applied to the contacts."),

@@ -35,6 +35,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.centroid_map import CentroidErrorMap
 from optitac_edge.core.depth_model import DepthForceModel, RadialMonotoneMap
 from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.frame_check import FrameCheck
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import hex_layout
@@ -325,6 +326,50 @@ def test_pixel_formats_and_a_dense_matrix_agree(fmt) -> None:
     bundle = synthetic_bundle(fmt, dead=(5, 60))
     assert bundle.surface_factors is None  # the dense surface, in both
     run_both(bundle, synthetic_frames(bundle, 60, seed=1))
+
+
+def _centres_at(frame: np.ndarray, table: FiberTable, which: np.ndarray, value: int) -> np.ndarray:
+    """``frame`` with the centre pixel (every byte of it) of the fibers ``which`` set to ``value``."""
+    out = frame.copy()
+    col = np.clip(np.rint(table.centroid_px[which, 0]), 0, table.width - 1).astype(int)
+    row = np.clip(np.rint(table.centroid_px[which, 1]), 0, table.height - 1).astype(int)
+    out[row, col] = value
+    return out
+
+
+@pytest.mark.parametrize("fmt", ["gray", "rgb", "yuv420"])
+def test_the_kernels_frame_check_is_framechecks(fmt) -> None:
+    """Pipeline.process_checked: the kernel checks after the fiber means (the frame then in the caches), the
+    numpy pipeline with FrameCheck first; the same verdicts and saturated flags, and a frame refused changes
+    nothing (the next frames agree)."""
+    bundle = synthetic_bundle(fmt, dead=(5, 60))
+    table, n = bundle.fibers, bundle.fibers.n_fibers
+    frames = synthetic_frames(bundle, 40, seed=3)
+    live = np.flatnonzero(~table.dead)
+    f = frames[20]
+    luma = f[:table.height] if fmt == "yuv420" else f
+    variants = {
+        "dark": np.zeros_like(f), "one centre bright": _centres_at(np.zeros_like(f), table, live[:1], 200),
+        "a tenth bright": _centres_at(np.zeros_like(f), table, live[:len(live) // 10 + 1], 9),
+        "all full scale": np.full_like(f, 255), "some centres full scale": _centres_at(f, table, live[:7], 255),
+        "half the centres at full scale": _centres_at(f, table, live[:len(live) // 2], 255),
+        "more than half": _centres_at(f, table, live[:len(live) // 2 + 1], 255),
+        "dead fibers at full scale": _centres_at(f, table, np.array([5, 60]), 255),
+    }
+    assert luma.shape[:2] == (table.height, table.width) and n == len(live) + 2
+    check = FrameCheck(table, f.shape)
+    ref, kern = Pipeline(bundle, compiled=False), Pipeline(bundle, compiled=True)
+    seen = set()
+    for k, frame in enumerate(frames[:20] + list(variants.values()) + frames[20:]):
+        name = next((v for v, a in variants.items() if a is frame), f"frame {k}")
+        assert kern.baseline.ready or k < 20  # the variants go through the kernel's check
+        a, b = ref.process_checked(frame, k * PERIOD, check), kern.process_checked(frame, k * PERIOD, check)
+        assert (a if isinstance(a, str) else None) == (b if isinstance(b, str) else None), name
+        seen.add(a if isinstance(a, str) else ("saturated flag" if ref.result.saturated else "ok"))
+        if not isinstance(a, str):
+            assert ref.result.saturated == kern.result.saturated, name
+            assert_same_frame(ref, kern, name)
+    assert seen == {"dark", "saturated", "saturated flag", "ok"}
 
 
 def test_large_fibers_sum_past_sixteen_bits() -> None:

@@ -311,11 +311,11 @@ def test_a_pipeline_failure_is_counted_flagged_and_the_loop_goes_on(bundle):
     real = service.pipeline.process
     calls = [0]
 
-    def flaky(frame, t_ns, saturated=False):
+    def flaky(frame, t_ns, saturated=False, **kwargs):
         calls[0] += 1
         if 100 <= calls[0] < 103:
             raise IndexError("index 217 is out of bounds for axis 0 with size 217")
-        return real(frame, t_ns, saturated)
+        return real(frame, t_ns, saturated, **kwargs)
 
     service.pipeline.process = flaky
     stats = service.run(threading.Event(), duration_s=1.0)

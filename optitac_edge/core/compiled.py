@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from optitac_edge.core.baseline import BRIGHT_HOLD_S
+from optitac_edge.core.frame_check import CHECK_REASONS, check_kernel_arrays
 from optitac_edge.core.gain import LedGain
 from optitac_edge.core.options import MAX_CONTACTS
 
@@ -101,6 +102,7 @@ class FrameKernel:
         live = np.flatnonzero(~np.asarray(pipe.bundle.fibers.dead, dtype=bool)).astype(np.int32)
         plan: dict[str, Any] = {
             **pipe.sampler.kernel_arrays(), **pipe.surface_op.kernel_arrays(),
+            **check_kernel_arrays(pipe.bundle.fibers),
             "n_fibers": pipe.bundle.fibers.n_fibers, "n": grid.n,
             "dead": np.flatnonzero(pipe.bundle.fibers.dead).astype(np.int32),
             "live": live if live.size else np.arange(pipe.bundle.fibers.n_fibers, dtype=np.int32),
@@ -142,11 +144,12 @@ class FrameKernel:
             c.hu.fill(math.nan)
 
     def run(self, frame: Any, now_ns: int, dt_ns: int, est: ContactEstimate, contacts: list[ContactEstimate],
-            corrector: ContactCorrector | None) -> int:
+            corrector: ContactCorrector | None, means_ready: bool = False) -> int:
         """Steps 2-10 of one frame (the baseline ready): its contacts into ``contacts`` (their shape features
         are there already), corrected by ``corrector`` when the kernel does not (None: it did, or raw);
-        without contact ``est`` says so. Returns their number."""
-        n = self.frame(frame, now_ns, dt_ns)
+        without contact ``est`` says so. Returns their number. ``means_ready``: :meth:`check` took this
+        frame's fiber means."""
+        n = self.frame(frame, now_ns, dt_ns, means_ready)
         if n == 0:
             est.clear(self.kernel.clear_strength, self.kernel.clear_area)
             return 0
@@ -177,6 +180,18 @@ class FrameKernel:
     def common(self) -> float:
         """The level the last frame's brightness was measured from (signal units)."""
         return float(self.kernel.common)
+
+    def check(self, frame: Any) -> str | None:
+        """The fiber means of ``frame``, then :class:`~optitac_edge.core.frame_check.FrameCheck`'s verdict on
+        it from the same pixels (in the caches by then): ``"dark"``, ``"saturated"`` or None (process it,
+        with :attr:`saturated` telling whether a fiber centre was at full scale). Nothing else changes."""
+        code = self.kernel.check(frame)
+        return CHECK_REASONS[code - 1] if code else None
+
+    @property
+    def saturated(self) -> bool:
+        """The last :meth:`check` found a live fiber centre at full scale."""
+        return bool(self.kernel.saturated)
 
     def means(self, frame: Any, out: Any) -> Any:
         """Step 2 alone (the baseline's frames): the fiber means into ``out`` (the pipeline's buffer)."""

@@ -26,6 +26,39 @@ SATURATED_LEVEL = 255
 SATURATED_FRACTION = 0.5
 
 
+def probe_offsets(table: FiberTable) -> tuple[np.ndarray, int]:
+    """The bytes the check reads: one pixel (the centre) of every live fiber (of every fiber when all are
+    dead), as flat byte offsets into a frame (RGB: the pixel's three bytes, in turn); and the pixels' count.
+
+    Returns
+    -------
+    probe : ndarray, shape (P,) or (3 P,), intp
+    n_probes : int
+        P.
+    """
+    col = np.clip(np.rint(table.centroid_px[:, 0]), 0, table.width - 1).astype(np.intp)
+    row = np.clip(np.rint(table.centroid_px[:, 1]), 0, table.height - 1).astype(np.intp)
+    live = ~table.dead if (~table.dead).any() else np.ones_like(table.dead)
+    probe = (row * table.width + col)[live]
+    if table.pixel_format == "rgb":  # the three bytes of each probed pixel
+        probe = (probe[:, None] * 3 + np.arange(3)).ravel()
+    return probe, int(live.sum())
+
+
+def check_kernel_arrays(table: FiberTable) -> dict[str, np.ndarray | int | float]:
+    """What the compiled kernel reads to check a frame as :class:`FrameCheck` does (after the fiber means,
+    from the same pixels in its caches): the probe offsets (int32) and the levels."""
+    probe, n_probes = probe_offsets(table)
+    return {"check_probe": probe.astype(np.int32), "check_pixels": n_probes,
+            "check_bytes": 3 if table.pixel_format == "rgb" else 1, "check_dark_level": float(DARK_LEVEL),
+            "check_dark_fraction": float(DARK_FRACTION), "check_saturated_level": float(SATURATED_LEVEL),
+            "check_saturated_fraction": float(SATURATED_FRACTION)}
+
+
+#: The reasons :meth:`FrameCheck.__call__` gives, by the compiled kernel's check codes 1 and 2.
+CHECK_REASONS = ("dark", "saturated")
+
+
 class FrameCheck:
     """The check of one bundle's frames; allocates nothing per call.
 
@@ -38,20 +71,19 @@ class FrameCheck:
     """
 
     def __init__(self, table: FiberTable, frame_shape: tuple[int, ...]) -> None:
-        col = np.clip(np.rint(table.centroid_px[:, 0]), 0, table.width - 1).astype(np.intp)
-        row = np.clip(np.rint(table.centroid_px[:, 1]), 0, table.height - 1).astype(np.intp)
-        live = ~table.dead if (~table.dead).any() else np.ones_like(table.dead)
-        probe = (row * table.width + col)[live]
         self._rgb = table.pixel_format == "rgb"
-        if self._rgb:  # the three bytes of each probed pixel
-            probe = (probe[:, None] * 3 + np.arange(3)).ravel()
-        self._probe = probe
-        self._values = np.zeros(probe.size, dtype=np.uint8)
-        self._flags = np.zeros(probe.size, dtype=bool)
-        self._n_probes = int(live.sum())
+        self._probe, self._n_probes = probe_offsets(table)
+        self._values = np.zeros(self._probe.size, dtype=np.uint8)
+        self._flags = np.zeros(self._probe.size, dtype=bool)
         self.frame_shape = tuple(frame_shape)
         #: The last frame that passed had a live fiber centre at full scale.
         self.saturated = False
+
+    def bad(self, frame: Any) -> bool:
+        """Whether ``frame`` is no frame of this camera: not a uint8 array of :attr:`frame_shape` (the part of
+        the check that reads no pixel; :meth:`Pipeline.process_checked
+        <optitac_edge.core.pipeline.Pipeline.process_checked>` does the rest)."""
+        return not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self.frame_shape
 
     def _count(self, flags: np.ndarray) -> int:
         """Probed pixels flagged (for RGB: any of a pixel's three bytes)."""
@@ -65,7 +97,7 @@ class FrameCheck:
         maximum; two counts only when some probe is dark or at full scale.
         """
         self.saturated = False
-        if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self.frame_shape:
+        if self.bad(frame):
             return "bad"
         values, flags = self._values, self._flags
         frame.reshape(-1).take(self._probe, out=values, mode="wrap")  # in range for a frame of this shape

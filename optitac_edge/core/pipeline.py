@@ -84,6 +84,7 @@ from optitac_edge.core.contact_finder import ContactFinder
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.dead_fill import dead_fill_matrix
 from optitac_edge.core.fiber_table import FiberSampler
+from optitac_edge.core.frame_check import FrameCheck
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.gain import GainCompensation, LedGain
 from optitac_edge.core.levels import ContactLevels
@@ -293,7 +294,22 @@ class Pipeline:
 
     # -- per frame -------------------------------------------------------------
 
-    def process(self, frame: np.ndarray, now_ns: int, saturated: bool = False) -> FrameResult:
+    def process_checked(self, frame: np.ndarray, now_ns: int, check: FrameCheck) -> FrameResult | str:
+        """:meth:`process` of a frame that passes ``check``, else why not (``"dark"``, ``"saturated"``).
+
+        ``frame`` must have passed :meth:`FrameCheck.bad <optitac_edge.core.frame_check.FrameCheck.bad>`.
+        With the compiled kernel (baseline ready) the check reads its pixels after the fiber means, once
+        the frame is in the caches; otherwise ``check`` runs first. A frame refused changes nothing.
+        """
+        fk = self.kernel
+        if fk is not None and self.baseline.ready:
+            why = fk.check(frame)
+            return why if why is not None else self.process(frame, now_ns, fk.saturated, means_ready=True)
+        why = check(frame)
+        return why if why is not None else self.process(frame, now_ns, check.saturated)
+
+    def process(self, frame: np.ndarray, now_ns: int, saturated: bool = False, *,
+                means_ready: bool = False) -> FrameResult:
         """Everything one frame gives.
 
         Parameters
@@ -307,6 +323,8 @@ class Pipeline:
             Timestamp of the frame, ns (copied to ``t_ns``; the baseline tracking's clock).
         saturated : bool
             The frame check found a live fiber centre at full scale (carried into the result).
+        means_ready : bool
+            The kernel's check (:meth:`process_checked`) took this frame's fiber means already.
 
         Returns
         -------
@@ -324,7 +342,8 @@ class Pipeline:
         baseline, gain = self.baseline, self.gain_compensation
         if fk is not None and baseline.ready:  # steps 2-10 in the kernel
             est.baseline_ready = True
-            n = fk.run(frame, now_ns, dt_ns, est, self.contacts, None if self._kernel_corrects else self.corrector)
+            n = fk.run(frame, now_ns, dt_ns, est, self.contacts, None if self._kernel_corrects else self.corrector,
+                       means_ready)
             result.light_changed = gain is not None and fk.light_changed
             _track(self.tracker, result, n, est.frame)
             if fk.raise_pending:

@@ -57,11 +57,12 @@ class SensorChannel:
         """The checked frame :meth:`run_pipeline` processes next."""
         self._captured = captured
 
-    def run_pipeline(self) -> FrameResult:
-        """The pipeline on the frame :meth:`take` gave (on a worker thread of the loop's pool, or the loop's)."""
+    def run_pipeline(self) -> FrameResult | str:
+        """The pipeline on the frame :meth:`take` gave (on a worker thread of the loop's pool, or the loop's),
+        checked (:meth:`Pipeline.process_checked`): its result, or why the frame was skipped."""
         c = self._captured
         assert c is not None, "take() a frame first"
-        return self.pipeline.process(c.frame, c.t_ns, self.frame_check.saturated)
+        return self.pipeline.process_checked(c.frame, c.t_ns, self.frame_check)
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread); it goes on

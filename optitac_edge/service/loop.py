@@ -295,34 +295,32 @@ class Service:
         """Check and process one captured frame for every sensor: (the first sensor's result, None when no
         sensor processed the frame; a device fault).
 
-        The frame checks, then every checked sensor's pipeline (side by side on :attr:`pool`'s workers),
-        then, sensor by sensor in the board's order, the counts, the network and the messages to the MCU.
+        A frame of the wrong shape or type is refused for every sensor (counted once); then every sensor's
+        pipeline checks it (dark, saturated: :meth:`Pipeline.process_checked`) and processes it (side by side
+        on :attr:`pool`'s workers); then, sensor by sensor in the board's order, the skips, the counts, the
+        network and the messages to the MCU.
         """
         st = self.stats
         first: FrameResult | None = None
         device_fault = False
         send = self.link.due(st.frames + 1)
-        checked = []
+        try:
+            bad = self.channels[0].frame_check.bad(captured.frame)  # the sensors share the camera's frame
+        except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
+            bad = True
+        if bad:
+            counts.frame_skipped(self.stats, self.channels[0], "bad")
+            return None, True
         for ch in self.channels:
-            try:
-                why = ch.frame_check(captured.frame)
-            except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
-                why = "bad"
-            if why is not None:
-                counts.frame_skipped(self.stats, ch, why)
-                if why == "bad":  # a frame of the wrong shape or type is wrong for every sensor: counted once
-                    device_fault = True
-                    break
-                continue
             ch.take(captured)
-            checked.append(ch)
-        if device_fault:
-            checked.clear()
-        results = self.pool.run([ch.run_pipeline for ch in checked])
-        for ch, result in zip(checked, results):
+        results = self.pool.run([ch.run_pipeline for ch in self.channels])
+        for ch, result in zip(self.channels, results):
             if isinstance(result, Exception):  # a per-frame failure never ends the service
                 counts.processing_failed(self.stats, ch, result)
                 device_fault = True  # a loop failing on every frame counts towards the frame gap
+                continue
+            if isinstance(result, str):  # dark or saturated for this sensor
+                counts.frame_skipped(self.stats, ch, result)
                 continue
             assert isinstance(result, FrameResult)
             self._deliver(ch, result, captured, send)
