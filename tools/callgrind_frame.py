@@ -20,8 +20,9 @@ per-frame count, with start-up, imports and warm-up cancelled exactly:
   Python's allocator, OpenCV's).
 
 The driver does what the service's thread does per frame apart from the
-camera hand-off: the frame check, :meth:`Pipeline.process`, the outbox's
-messages (protocol v1: the CONTACT) and their wire encoding. Needs valgrind on the PATH; docs/performance.md has the
+camera hand-off: the frame check (``FrameCheck.bad``, then
+:meth:`Pipeline.process_checked`, whose kernel checks after the fiber means),
+the outbox's messages (protocol v1: the CONTACT) and their wire encoding. Needs valgrind on the PATH; docs/performance.md has the
 results and the Pi projection made from them.
 """
 
@@ -71,8 +72,11 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
         if what == "process":
             pipe.process(frame, t_ns)
             return
-        check(frame)
-        result = pipe.process(frame, t_ns, check.saturated)
+        if check.bad(frame):
+            return
+        result = pipe.process_checked(frame, t_ns, check)
+        if isinstance(result, str):  # dark or saturated: skipped
+            return
         for msg in outbox.update(result, link, True, t_ns):
             encode_frame(MsgType.CONTACT, 0, int(msg.t_us), contact_payload(msg))  # type: ignore[arg-type]
 

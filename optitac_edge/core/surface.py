@@ -18,6 +18,10 @@ triangle and only where it can exceed the truncation level (linear in the
 fibers, and a contact-free frame evaluates almost none); :class:`DenseSurface`
 computes the dense product for bundles without factors.
 
+The gradient rows ``[Gx; Gy]`` of ``W`` are dense (2N, N); for large arrays the
+compiled kernel finds the gradients by the sparse solve they come from instead
+(:mod:`optitac_edge.core.gradient_solve`, where it is the cheaper).
+
 The matrix and its factors are built offline, with scipy, by
 :mod:`optitac_edge.calibration.interpolation`; this module, used per frame,
 needs numpy only.
