@@ -150,3 +150,44 @@ def test_the_solve_pays_only_for_many_fibers(hex4) -> None:
     tris, grad_op = _parts(hex4)
     gs = gradient_solve(hex4.xy_mm, tris, grad_op)
     assert gs is not None and not solve_pays(gs)  # 61 fibers: the dense product is a few thousand steps
+
+
+def _cuthill_mckee_one_at_a_time(ptr: np.ndarray, nbr: np.ndarray) -> np.ndarray:
+    """The textbook reverse Cuthill-McKee: a queue, each fiber's unseen neighbours by degree (then number)."""
+    n = ptr.size - 1
+    degree = np.diff(ptr)
+    seen = np.zeros(n, dtype=bool)
+    out: list[int] = []
+
+    def bfs(start: int, mark: np.ndarray) -> list[int]:
+        order, head = [start], 0
+        mark[start] = True
+        while head < len(order):
+            i = order[head]
+            head += 1
+            nb = nbr[ptr[i]:ptr[i + 1]]
+            nb = nb[~mark[nb]]
+            nb = nb[np.argsort(degree[nb], kind="stable")]
+            mark[nb] = True
+            order.extend(int(j) for j in nb)
+        return order
+
+    for start in np.argsort(degree, kind="stable"):
+        if not seen[start]:
+            out.extend(bfs(bfs(int(start), seen.copy())[-1], seen))
+    return np.asarray(out[::-1])
+
+
+@pytest.mark.parametrize("which", ["hex4", "irregular", "two arrays"])
+def test_reverse_cuthill_mckee_a_level_at_a_time_is_the_textbook_order(which, request) -> None:
+    if which == "two arrays":  # two components: each numbered from its own far fiber
+        layout = request.getfixturevalue("hex4")
+        tris, _ = _parts(layout)
+        tris = np.concatenate([tris, tris + layout.n_fibers])
+        n = 2 * layout.n_fibers
+    else:
+        layout = request.getfixturevalue(which)
+        tris, _ = _parts(layout)
+        n = layout.n_fibers
+    ptr, nbr = neighbours(tris, n)
+    assert np.array_equal(reverse_cuthill_mckee(ptr, nbr), _cuthill_mckee_one_at_a_time(ptr, nbr))

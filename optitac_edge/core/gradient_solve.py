@@ -144,28 +144,36 @@ def reverse_cuthill_mckee(nbr_ptr: np.ndarray, nbr: np.ndarray) -> np.ndarray:
     """
     n = nbr_ptr.size - 1
     degree = np.diff(nbr_ptr)
+    src = np.repeat(np.arange(n), degree)
     seen = np.zeros(n, dtype=bool)
-    out: list[int] = []
+    out: list[np.ndarray] = []
 
-    def bfs(start: int, mark: np.ndarray) -> list[int]:
-        order, head = [start], 0
+    def bfs(start: int, mark: np.ndarray) -> np.ndarray:
+        """Cuthill-McKee from ``start``, a level at a time: each new fiber goes to the first fiber of the
+        level before (in order) it neighbours, a fiber's new neighbours by degree, then number."""
+        levels, level = [np.array([start])], np.array([start])
         mark[start] = True
-        while head < len(order):
-            i = order[head]
-            head += 1
-            nb = nbr[nbr_ptr[i]:nbr_ptr[i + 1]]
-            nb = nb[~mark[nb]]
-            nb = nb[np.argsort(degree[nb], kind="stable")]
-            mark[nb] = True
-            order.extend(int(j) for j in nb)
-        return order
+        while level.size:
+            pos = np.full(n, -1)
+            pos[level] = np.arange(level.size)
+            edges = np.flatnonzero(pos[src] >= 0)  # the edges leaving this level
+            cand = nbr[edges]
+            keep = ~mark[cand]
+            cand, parent = cand[keep], pos[src[edges[keep]]]
+            order = np.lexsort((cand, degree[cand], parent))
+            cand = cand[order]
+            cand = cand[np.sort(np.unique(cand, return_index=True)[1])]  # each fiber once, at its first parent
+            mark[cand] = True
+            levels.append(cand)
+            level = cand
+        return np.concatenate(levels)
 
     for start in np.argsort(degree, kind="stable"):
         if seen[start]:
             continue
-        far = bfs(int(start), seen.copy())[-1]  # a far fiber of this component (one sweep)
-        out.extend(bfs(far, seen))
-    return np.asarray(out[::-1], dtype=np.intp)
+        far = int(bfs(int(start), seen.copy())[-1])  # a far fiber of this component (one sweep)
+        out.append(bfs(far, seen))
+    return np.concatenate(out)[::-1].astype(np.intp) if out else np.zeros(0, dtype=np.intp)
 
 
 def nielson_system(xy: np.ndarray, nbr_ptr: np.ndarray, nbr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
