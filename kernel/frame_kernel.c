@@ -778,21 +778,12 @@ static void gradient_solve(const ok_plan *p, const float *v, float *restrict y, 
         const int32_t *nb = p->gs_nbr + e0;
         const float *c = p->gs_coef + 2 * (int64_t)e0;
         float sx = 0.0f, sy = 0.0f, vi = v[i];
-        if (ne == 6) { /* a fiber inside the array: the same sums written out */
-            float d0 = v[nb[0]] - vi, d1 = v[nb[1]] - vi, d2 = v[nb[2]] - vi;
-            float d3 = v[nb[3]] - vi, d4 = v[nb[4]] - vi, d5 = v[nb[5]] - vi;
-            sx += c[0] * d0;
-            sy += c[1] * d0;
-            sx += c[2] * d1;
-            sy += c[3] * d1;
-            sx += c[4] * d2;
-            sy += c[5] * d2;
-            sx += c[6] * d3;
-            sy += c[7] * d3;
-            sx += c[8] * d4;
-            sy += c[9] * d4;
-            sx += c[10] * d5;
-            sy += c[11] * d5;
+        if (ne == 6) { /* a fiber inside the array: a constant count, which the compiler writes out */
+            for (int32_t e = 0; e < 6; e++) {
+                float d = v[nb[e]] - vi;
+                sx += c[2 * e] * d;
+                sy += c[2 * e + 1] * d;
+            }
         } else {
             for (int32_t e = 0; e < ne; e++) {
                 float d = v[nb[e]] - vi;
@@ -860,13 +851,8 @@ static int32_t triangle_surface(ok_kernel *k) {
         const int32_t *cols = p->tri_cols + (int64_t)t * OK_CELL_TERMS;
         float bound = 0.0f;
         const float *gw = k->grad_w_t + (int64_t)t * OK_CELL_TERMS; /* this triangle's gradient weights */
-        if (nv == 3) { /* the usual factors, the six gradient terms written out (the same sum in the same order) */
-            bound += aw[cols[3]] * gw[0];
-            bound += aw[cols[4]] * gw[1];
-            bound += aw[cols[5]] * gw[2];
-            bound += aw[cols[6]] * gw[3];
-            bound += aw[cols[7]] * gw[4];
-            bound += aw[cols[8]] * gw[5];
+        if (nv == 3) { /* the usual factors: six gradient terms, a constant count the compiler writes out */
+            for (int q = 0; q < 6; q++) bound += aw[cols[3 + q]] * gw[q];
         } else {
             for (int q = nv; q < OK_CELL_TERMS; q++) bound += aw[cols[q]] * gw[q - nv];
         }
