@@ -8,8 +8,8 @@ setup(
     ext_modules=[
         Extension(
             "optitac_edge.core._frame_kernel",
-            sources=["kernel/module.c", "kernel/frame_kernel.c"],
-            depends=["kernel/frame_kernel.h"],
+            sources=["kernel/module.c", "kernel/frame_kernel.c", "kernel/gradient_solve.c"],
+            depends=["kernel/frame_kernel.h", "kernel/gradient_solve.h", "kernel/simd.h"],
             # -ffp-contract=off: no fused multiply-adds (aarch64's GCC contracts by default), so every
             # float32 step rounds as numpy's does and the results agree with the numpy pipeline
             extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"],

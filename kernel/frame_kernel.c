@@ -1,5 +1,7 @@
 /* The per-frame kernel: see frame_kernel.h. Each function names the numpy code it follows. */
 #include "frame_kernel.h"
+#include "gradient_solve.h"
+#include "simd.h"
 
 #include <float.h>
 #include <math.h>
@@ -7,16 +9,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-/* x86-64 (GCC, Linux): the widest loops have an AVX2 form beside the baseline one (SSE2, as NEON on
- * aarch64: four float32 lanes), chosen once at init where the CPU has AVX2. -DOK_NO_CLONES builds the
- * baseline alone (a 4-lane machine's instruction mix, as the Pi's). */
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__linux__) && !defined(OK_NO_CLONES)
-#define OK_AVX2 1
-#define CLONES_AVX2 __attribute__((target_clones("avx2", "default")))
-static int ok_avx2; /* set by ok_kernel_init */
-#else
-#define OK_AVX2 0
-#define CLONES_AVX2
+#if OK_AVX2
+int ok_avx2; /* set by ok_kernel_init */
 #endif
 
 #define FWHM_PER_SIGMA 2.3548200450309493 /* 2 sqrt(2 ln 2), moments.FWHM_PER_SIGMA */
@@ -65,37 +59,6 @@ static int init_chunks(ok_kernel *k) {
     return 0;
 }
 
-/* The gradient solve's indices and envelopes in range (the plan's arrays were sized by the caller). */
-static int check_gradient_solve(const ok_plan *p, char *err, int err_len) {
-    int32_t nf = p->n_fibers, m = 2 * nf;
-    if (!p->tri_cols || !p->gs_diag || !p->gs_row_first || !p->gs_row_ptr || !p->gs_row_env || !p->gs_col_last
-        || !p->gs_col_ptr || !p->gs_col_env || !p->gs_nbr_ptr || !p->gs_nbr || !p->gs_coef) {
-        snprintf(err, err_len, "kernel plan: an incomplete gradient solve");
-        return -1;
-    }
-    if (p->gs_row_ptr[0] != 0 || p->gs_col_ptr[0] != 0 || p->gs_nbr_ptr[0] != 0) {
-        snprintf(err, err_len, "kernel plan: gradient solve offsets must start at 0");
-        return -1;
-    }
-    for (int32_t r = 0; r < nf; r++)
-        if (p->gs_fibers[r] < 0 || p->gs_fibers[r] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve fiber out of range"); return -1; }
-    for (int32_t q = 0; q < m; q++) {
-        if (!(p->gs_diag[q] != 0.0f)
-            || p->gs_row_first[q] < -OK_GS_PAD || p->gs_row_first[q] > q || (q - p->gs_row_first[q]) % OK_GS_PAD
-            || p->gs_row_ptr[q + 1] - p->gs_row_ptr[q] != q - p->gs_row_first[q]
-            || p->gs_col_last[q] <= q || p->gs_col_last[q] > m + OK_GS_PAD || (p->gs_col_last[q] - q - 1) % OK_GS_PAD
-            || p->gs_col_ptr[q + 1] - p->gs_col_ptr[q] != p->gs_col_last[q] - q - 1) {
-            snprintf(err, err_len, "kernel plan: gradient solve row %d out of range", q);
-            return -1;
-        }
-    }
-    for (int32_t i = 0; i < nf; i++)
-        if (p->gs_nbr_ptr[i + 1] < p->gs_nbr_ptr[i]) { snprintf(err, err_len, "kernel plan: gradient solve neighbours out of order"); return -1; }
-    for (int32_t e = 0; e < p->gs_nbr_ptr[nf]; e++)
-        if (p->gs_nbr[e] < 0 || p->gs_nbr[e] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve neighbour out of range"); return -1; }
-    return 0;
-}
-
 int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     memset(k, 0, sizeof *k);
 #if OK_AVX2
@@ -140,7 +103,7 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
         snprintf(err, err_len, "kernel plan: neither surface factors nor a dense matrix");
         return -1;
     }
-    if (p->gs_fibers && check_gradient_solve(p, err, err_len) < 0) return -1;
+    if (p->gs_fibers && ok_check_gradient_solve(p, err, err_len) < 0) return -1;
     if (p->check_probe) {
         if (p->check_bytes != 1 && p->check_bytes != 3) { snprintf(err, err_len, "kernel plan: check_bytes must be 1 or 3"); return -1; }
         for (int64_t i = 0; i < (int64_t)p->check_pixels * p->check_bytes; i++)
@@ -571,14 +534,6 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
 /* ---------------------------------------------------------------- step 5: surface (TriangleSurface) */
 
 #if defined(__GNUC__) || defined(__clang__)
-/* Four float32 lanes: SSE2 on x86-64, NEON on aarch64 (both in their baseline), from the same code. */
-typedef float v4f __attribute__((vector_size(16)));
-typedef int32_t v4i __attribute__((vector_size(16)));
-static inline v4f load4(const float *p) {
-    v4f v;
-    memcpy(&v, p, sizeof v); /* an unaligned load */
-    return v;
-}
 
 /* Every matrix-vector product sums column c of a row into lane c mod 8, in column order, then adds the
  * lanes as ((0+1)+(2+3))+((4+5)+(6+7)), and the columns past a multiple of 8 last: the same float32
@@ -632,8 +587,6 @@ static void matvec4(const float *op, int32_t rows, int32_t cols, const float *v,
 
 #if OK_AVX2
 /* The same with the eight lanes in one AVX2 register (x86-64 machines that have it, chosen at init). */
-typedef float v8f __attribute__((vector_size(32)));
-#define LOAD8(dst, src) memcpy(&(dst), (src), sizeof(v8f))
 #define SUM8(v) ((((v)[0] + (v)[1]) + ((v)[2] + (v)[3])) + (((v)[4] + (v)[5]) + ((v)[6] + (v)[7])))
 __attribute__((target("avx2"))) static void matvec8(const float *op, int32_t rows, int32_t cols, const float *v,
                                                     float *out) {
@@ -704,109 +657,6 @@ static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, 
 }
 #endif
 
-/* y[i] -= s * a[i] for n a multiple of 8 (the envelopes are padded with zeros to it): no sum across
- * elements, so the same bits at every vector width (no contraction). */
-static inline __attribute__((always_inline)) void axpy8_neg(float *restrict y, float s, const float *restrict a,
-                                                            int64_t n) {
-#if defined(__GNUC__) || defined(__clang__)
-    const v4f s4 = {s, s, s, s};
-    for (int64_t i = 0; i < n; i += 8) {
-        v4f y0 = load4(y + i) - s4 * load4(a + i), y1 = load4(y + i + 4) - s4 * load4(a + i + 4);
-        memcpy(y + i, &y0, sizeof y0);
-        memcpy(y + i + 4, &y1, sizeof y1);
-    }
-#else
-    for (int64_t i = 0; i < n; i++) y[i] -= s * a[i];
-#endif
-}
-
-/* The two triangular solves C z = y, C^T x = z in place on y, the rows and columns as axpys. */
-#define GS_SOLVES(AXPY)                                                                                       \
-    do {                                                                                                      \
-        for (int32_t q = 0; q < m; q++) { /* C z = y, column by column */                                    \
-            float yq = y[q] / p->gs_diag[q];                                                                  \
-            y[q] = yq;                                                                                        \
-            AXPY(y + q + 1, yq, p->gs_col_env + p->gs_col_ptr[q], p->gs_col_last[q] - q - 1);                 \
-        }                                                                                                     \
-        for (int32_t q = m - 1; q >= 0; q--) { /* C^T x = z, row by row */                                   \
-            float yq = y[q] / p->gs_diag[q];                                                                  \
-            y[q] = yq;                                                                                        \
-            AXPY(y + p->gs_row_first[q], yq, p->gs_row_env + p->gs_row_ptr[q], q - p->gs_row_first[q]);       \
-        }                                                                                                     \
-    } while (0)
-
-static void gs_solves4(const ok_plan *p, float *restrict y, int32_t m) { GS_SOLVES(axpy8_neg); }
-
-#if OK_AVX2
-__attribute__((target("avx2"), always_inline)) static inline void axpy8_neg_avx2(float *restrict y, float s,
-                                                                                 const float *restrict a, int64_t n) {
-    const v8f s8 = {s, s, s, s, s, s, s, s};
-    int64_t i = 0;
-    for (; i + 16 <= n; i += 16) { /* two vectors a step: half the loop's own instructions */
-        v8f y0, y1, a0, a1;
-        LOAD8(y0, y + i);
-        LOAD8(a0, a + i);
-        LOAD8(y1, y + i + 8);
-        LOAD8(a1, a + i + 8);
-        y0 -= s8 * a0;
-        y1 -= s8 * a1;
-        memcpy(y + i, &y0, sizeof y0);
-        memcpy(y + i + 8, &y1, sizeof y1);
-    }
-    if (i < n) {
-        v8f yv, av;
-        LOAD8(yv, y + i);
-        LOAD8(av, a + i);
-        yv -= s8 * av;
-        memcpy(y + i, &yv, sizeof yv);
-    }
-}
-
-__attribute__((target("avx2"))) static void gs_solves8(const ok_plan *p, float *restrict y, int32_t m) {
-    GS_SOLVES(axpy8_neg_avx2);
-}
-#endif
-
-/* The gradients at the fibers, g (2N: d/dx then d/dy), of the values v (N) as K g = B v solved with
- * K = C C^T (optitac_edge/core/gradient_solve.py, whose solve_gradients computes the same in the same
- * order). y: the unknowns in the factor's order (fiber gs_fibers[r]'s d/dx at 2 r, d/dy at 2 r + 1), with
- * OK_GS_PAD zeros either side for the padded rows and columns. */
-static void gradient_solve(const ok_plan *p, const float *v, float *restrict y, float *restrict g) {
-    int32_t nf = p->n_fibers, m = 2 * nf;
-    for (int32_t r = 0; r < nf; r++) { /* the right side */
-        int32_t i = p->gs_fibers[r], e0 = p->gs_nbr_ptr[i], ne = p->gs_nbr_ptr[i + 1] - e0;
-        const int32_t *nb = p->gs_nbr + e0;
-        const float *c = p->gs_coef + 2 * (int64_t)e0;
-        float sx = 0.0f, sy = 0.0f, vi = v[i];
-        if (ne == 6) { /* a fiber inside the array: a constant count, which the compiler writes out */
-            for (int32_t e = 0; e < 6; e++) {
-                float d = v[nb[e]] - vi;
-                sx += c[2 * e] * d;
-                sy += c[2 * e + 1] * d;
-            }
-        } else {
-            for (int32_t e = 0; e < ne; e++) {
-                float d = v[nb[e]] - vi;
-                sx += c[2 * e] * d;
-                sy += c[2 * e + 1] * d;
-            }
-        }
-        y[2 * r] = sx;
-        y[2 * r + 1] = sy;
-    }
-#if OK_AVX2
-    if (ok_avx2) gs_solves8(p, y, m);
-    else gs_solves4(p, y, m);
-#else
-    gs_solves4(p, y, m);
-#endif
-    for (int32_t r = 0; r < nf; r++) {
-        int32_t i = p->gs_fibers[r];
-        g[i] = y[2 * r];
-        g[nf + i] = y[2 * r + 1];
-    }
-}
-
 /* Keep a cell above the truncation level in the surface, the box and the peak. */
 #define KEEP_CELL(cell, value)                                          \
     do {                                                                \
@@ -838,7 +688,7 @@ static int32_t triangle_surface(ok_kernel *k) {
         for (int32_t c = 0; c < nf; c++) s += row[c] * p->signal[c];
         w[p->value_rows[r]] = s;
     }
-    if (p->gs_fibers) gradient_solve(p, w, k->gs_y + OK_GS_PAD, w + nf);
+    if (p->gs_fibers) ok_gradient_solve(p, w, k->gs_y + OK_GS_PAD, w + nf);
     else matvec(p->grad_op, 2 * nf, nf, p->signal, w + nf);
     float level = (float)((double)k->trunc * (1.0 - BOUND_MARGIN));
     float trunc = k->trunc;

@@ -497,7 +497,8 @@ def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_t
     root = Path(__file__).resolve().parents[1]
     exe = tmp_path / "harness-aarch64"
     subprocess.run(["aarch64-linux-gnu-gcc", "-std=c99", "-O3", "-ffp-contract=off", "-static", "-o", str(exe),
-                    str(root / "kernel" / "harness.c"), str(root / "kernel" / "frame_kernel.c"), "-lm"], check=True)
+                    str(root / "kernel" / "harness.c"), str(root / "kernel" / "frame_kernel.c"),
+                    str(root / "kernel" / "gradient_solve.c"), "-lm"], check=True)
     lines = aarch64_tool.check(Pipeline(modelled, compiled=True), day[:200], [f"qemu-aarch64 {exe}"], tmp_path,
                                "day")
     assert len(lines) == 1 and ", 0 beyond the tolerances" in lines[0], lines

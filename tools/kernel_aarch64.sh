@@ -22,10 +22,10 @@ need() {  # need COMMAND PACKAGE...
 need aarch64-linux-gnu-gcc gcc-aarch64-linux-gnu libc6-dev-arm64-cross
 need qemu-aarch64 qemu-user
 flags=(-std=c99 -O3 -Wall -Wextra -ffp-contract=off)  # as setup.py builds the extension
-aarch64-linux-gnu-gcc "${flags[@]}" -static -o "$work/harness-aarch64" kernel/harness.c kernel/frame_kernel.c -lm
-gcc "${flags[@]}" -o "$work/harness-x86_64" kernel/harness.c kernel/frame_kernel.c -lm
+aarch64-linux-gnu-gcc "${flags[@]}" -static -o "$work/harness-aarch64" kernel/harness.c kernel/frame_kernel.c kernel/gradient_solve.c -lm
+gcc "${flags[@]}" -o "$work/harness-x86_64" kernel/harness.c kernel/frame_kernel.c kernel/gradient_solve.c -lm
 echo "NEON instructions in the aarch64 surface step (gradient product and solve): $(aarch64-linux-gnu-objdump \
-    -d "$work/harness-aarch64" | awk '/<(matvec4?|gs_solves4|ok_surface)>:/,/^$/' \
+    -d "$work/harness-aarch64" | awk '/<(matvec4?|gs_solves4|ok_gradient_solve|ok_surface)>:/,/^$/' \
     | grep -cE '\s(fmul|fadd|fsub)\s+v[0-9]+\.4s')"
 python3 tools/kernel_aarch64.py --workdir "$work" --harness "$work/harness-x86_64" \
     --harness "qemu-aarch64 $work/harness-aarch64"

@@ -1,0 +1,142 @@
+/* The surface's gradients at the fibers as a sparse solve, K g = B v with K = C C^T in an envelope, instead
+ * of the dense product (see gradient_solve.h and optitac_edge/core/gradient_solve.py). */
+#include "gradient_solve.h"
+
+#include <stdio.h>
+#include <string.h>
+
+#include "simd.h"
+
+/* The gradient solve's indices and envelopes in range (the plan's arrays were sized by the caller). */
+int ok_check_gradient_solve(const ok_plan *p, char *err, int err_len) {
+    int32_t nf = p->n_fibers, m = 2 * nf;
+    if (!p->tri_cols || !p->gs_diag || !p->gs_row_first || !p->gs_row_ptr || !p->gs_row_env || !p->gs_col_last
+        || !p->gs_col_ptr || !p->gs_col_env || !p->gs_nbr_ptr || !p->gs_nbr || !p->gs_coef) {
+        snprintf(err, err_len, "kernel plan: an incomplete gradient solve");
+        return -1;
+    }
+    if (p->gs_row_ptr[0] != 0 || p->gs_col_ptr[0] != 0 || p->gs_nbr_ptr[0] != 0) {
+        snprintf(err, err_len, "kernel plan: gradient solve offsets must start at 0");
+        return -1;
+    }
+    for (int32_t r = 0; r < nf; r++)
+        if (p->gs_fibers[r] < 0 || p->gs_fibers[r] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve fiber out of range"); return -1; }
+    for (int32_t q = 0; q < m; q++) {
+        if (!(p->gs_diag[q] != 0.0f)
+            || p->gs_row_first[q] < -OK_GS_PAD || p->gs_row_first[q] > q || (q - p->gs_row_first[q]) % OK_GS_PAD
+            || p->gs_row_ptr[q + 1] - p->gs_row_ptr[q] != q - p->gs_row_first[q]
+            || p->gs_col_last[q] <= q || p->gs_col_last[q] > m + OK_GS_PAD || (p->gs_col_last[q] - q - 1) % OK_GS_PAD
+            || p->gs_col_ptr[q + 1] - p->gs_col_ptr[q] != p->gs_col_last[q] - q - 1) {
+            snprintf(err, err_len, "kernel plan: gradient solve row %d out of range", q);
+            return -1;
+        }
+    }
+    for (int32_t i = 0; i < nf; i++)
+        if (p->gs_nbr_ptr[i + 1] < p->gs_nbr_ptr[i]) { snprintf(err, err_len, "kernel plan: gradient solve neighbours out of order"); return -1; }
+    for (int32_t e = 0; e < p->gs_nbr_ptr[nf]; e++)
+        if (p->gs_nbr[e] < 0 || p->gs_nbr[e] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve neighbour out of range"); return -1; }
+    return 0;
+}
+
+/* y[i] -= s * a[i] for n a multiple of 8 (the envelopes are padded with zeros to it): no sum across
+ * elements, so the same bits at every vector width (no contraction). */
+static inline __attribute__((always_inline)) void axpy8_neg(float *restrict y, float s, const float *restrict a,
+                                                            int64_t n) {
+#if defined(__GNUC__) || defined(__clang__)
+    const v4f s4 = {s, s, s, s};
+    for (int64_t i = 0; i < n; i += 8) {
+        v4f y0 = load4(y + i) - s4 * load4(a + i), y1 = load4(y + i + 4) - s4 * load4(a + i + 4);
+        memcpy(y + i, &y0, sizeof y0);
+        memcpy(y + i + 4, &y1, sizeof y1);
+    }
+#else
+    for (int64_t i = 0; i < n; i++) y[i] -= s * a[i];
+#endif
+}
+
+/* The two triangular solves C z = y, C^T x = z in place on y, the rows and columns as axpys. */
+#define GS_SOLVES(AXPY)                                                                                       \
+    do {                                                                                                      \
+        for (int32_t q = 0; q < m; q++) { /* C z = y, column by column */                                    \
+            float yq = y[q] / p->gs_diag[q];                                                                  \
+            y[q] = yq;                                                                                        \
+            AXPY(y + q + 1, yq, p->gs_col_env + p->gs_col_ptr[q], p->gs_col_last[q] - q - 1);                 \
+        }                                                                                                     \
+        for (int32_t q = m - 1; q >= 0; q--) { /* C^T x = z, row by row */                                   \
+            float yq = y[q] / p->gs_diag[q];                                                                  \
+            y[q] = yq;                                                                                        \
+            AXPY(y + p->gs_row_first[q], yq, p->gs_row_env + p->gs_row_ptr[q], q - p->gs_row_first[q]);       \
+        }                                                                                                     \
+    } while (0)
+
+static void gs_solves4(const ok_plan *p, float *restrict y, int32_t m) { GS_SOLVES(axpy8_neg); }
+
+#if OK_AVX2
+__attribute__((target("avx2"), always_inline)) static inline void axpy8_neg_avx2(float *restrict y, float s,
+                                                                                 const float *restrict a, int64_t n) {
+    const v8f s8 = {s, s, s, s, s, s, s, s};
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) { /* two vectors a step: half the loop's own instructions */
+        v8f y0, y1, a0, a1;
+        LOAD8(y0, y + i);
+        LOAD8(a0, a + i);
+        LOAD8(y1, y + i + 8);
+        LOAD8(a1, a + i + 8);
+        y0 -= s8 * a0;
+        y1 -= s8 * a1;
+        memcpy(y + i, &y0, sizeof y0);
+        memcpy(y + i + 8, &y1, sizeof y1);
+    }
+    if (i < n) {
+        v8f yv, av;
+        LOAD8(yv, y + i);
+        LOAD8(av, a + i);
+        yv -= s8 * av;
+        memcpy(y + i, &yv, sizeof yv);
+    }
+}
+
+__attribute__((target("avx2"))) static void gs_solves8(const ok_plan *p, float *restrict y, int32_t m) {
+    GS_SOLVES(axpy8_neg_avx2);
+}
+#endif
+
+/* The gradients at the fibers, g (2N: d/dx then d/dy), of the values v (N) as K g = B v solved with
+ * K = C C^T (optitac_edge/core/gradient_solve.py, whose solve_gradients computes the same in the same
+ * order). y: the unknowns in the factor's order (fiber gs_fibers[r]'s d/dx at 2 r, d/dy at 2 r + 1), with
+ * OK_GS_PAD zeros either side for the padded rows and columns. */
+void ok_gradient_solve(const ok_plan *p, const float *v, float *restrict y, float *restrict g) {
+    int32_t nf = p->n_fibers, m = 2 * nf;
+    for (int32_t r = 0; r < nf; r++) { /* the right side */
+        int32_t i = p->gs_fibers[r], e0 = p->gs_nbr_ptr[i], ne = p->gs_nbr_ptr[i + 1] - e0;
+        const int32_t *nb = p->gs_nbr + e0;
+        const float *c = p->gs_coef + 2 * (int64_t)e0;
+        float sx = 0.0f, sy = 0.0f, vi = v[i];
+        if (ne == 6) { /* a fiber inside the array: a constant count, which the compiler writes out */
+            for (int32_t e = 0; e < 6; e++) {
+                float d = v[nb[e]] - vi;
+                sx += c[2 * e] * d;
+                sy += c[2 * e + 1] * d;
+            }
+        } else {
+            for (int32_t e = 0; e < ne; e++) {
+                float d = v[nb[e]] - vi;
+                sx += c[2 * e] * d;
+                sy += c[2 * e + 1] * d;
+            }
+        }
+        y[2 * r] = sx;
+        y[2 * r + 1] = sy;
+    }
+#if OK_AVX2
+    if (ok_avx2) gs_solves8(p, y, m);
+    else gs_solves4(p, y, m);
+#else
+    gs_solves4(p, y, m);
+#endif
+    for (int32_t r = 0; r < nf; r++) {
+        int32_t i = p->gs_fibers[r];
+        g[i] = y[2 * r];
+        g[nf + i] = y[2 * r + 1];
+    }
+}
