@@ -40,7 +40,7 @@ from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.image_transform import ImageTransform
 from optitac_edge.core.layout import hex_layout
 from optitac_edge.core.options import ContactOptions
-from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.core.pipeline import Pipeline, process_checked
 from optitac_edge.core.width_model import AxisMap, WidthModel
 from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.sim.multi_press import multi_press_frames
@@ -342,7 +342,7 @@ def _centres_at(frame: np.ndarray, table: FiberTable, which: np.ndarray, value: 
 
 @pytest.mark.parametrize("fmt", ["gray", "rgb", "yuv420"])
 def test_the_kernels_frame_check_is_framechecks(fmt) -> None:
-    """Pipeline.process_checked: the kernel checks after the fiber means (the frame then in the caches), the
+    """process_checked: the kernel checks after the fiber means (the frame then in the caches), the
     numpy pipeline with FrameCheck first; the same verdicts and saturated flags, and a frame refused changes
     nothing (the next frames agree)."""
     bundle = synthetic_bundle(fmt, dead=(5, 60))
@@ -366,7 +366,7 @@ def test_the_kernels_frame_check_is_framechecks(fmt) -> None:
     for k, frame in enumerate(frames[:20] + list(variants.values()) + frames[20:]):
         name = next((v for v, a in variants.items() if a is frame), f"frame {k}")
         assert kern.baseline.ready or k < 20  # the variants go through the kernel's check
-        a, b = ref.process_checked(frame, k * PERIOD, check), kern.process_checked(frame, k * PERIOD, check)
+        a, b = process_checked(ref, frame, k * PERIOD, check), process_checked(kern, frame, k * PERIOD, check)
         assert (a if isinstance(a, str) else None) == (b if isinstance(b, str) else None), name
         seen.add(a if isinstance(a, str) else ("saturated flag" if ref.result.saturated else "ok"))
         if not isinstance(a, str):

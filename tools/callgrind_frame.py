@@ -21,7 +21,7 @@ per-frame count, with start-up, imports and warm-up cancelled exactly:
 
 The driver does what the service's thread does per frame apart from the
 camera hand-off: the frame check (``FrameCheck.bad``, then
-:meth:`Pipeline.process_checked`, whose kernel checks after the fiber means),
+:func:`~optitac_edge.core.pipeline.process_checked`, whose kernel checks after the fiber means),
 the outbox's messages (protocol v1: the CONTACT) and their wire encoding. Needs valgrind on the PATH; docs/performance.md has the
 results and the Pi projection made from them.
 """
@@ -54,7 +54,7 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
     import numpy as np
 
     from optitac_edge.core.frame_check import FrameCheck
-    from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
+    from optitac_edge.core.pipeline import Pipeline, process_checked, single_threaded_opencv
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.protocol.outbox import LinkState, SensorOutbox
     from optitac_edge.io.protocol.wire import MsgType, contact_payload, encode_frame
@@ -74,7 +74,7 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
             return
         if check.bad(frame):
             return
-        result = pipe.process_checked(frame, t_ns, check)
+        result = process_checked(pipe, frame, t_ns, check)
         if isinstance(result, str):  # dark or saturated: skipped
             return
         for msg in outbox.update(result, link, True, t_ns):

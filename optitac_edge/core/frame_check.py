@@ -81,8 +81,8 @@ class FrameCheck:
 
     def bad(self, frame: Any) -> bool:
         """Whether ``frame`` is no frame of this camera: not a uint8 array of :attr:`frame_shape` (the part of
-        the check that reads no pixel; :meth:`Pipeline.process_checked
-        <optitac_edge.core.pipeline.Pipeline.process_checked>` does the rest)."""
+        the check that reads no pixel; :func:`~optitac_edge.core.pipeline.process_checked`
+        does the rest)."""
         return not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self.frame_shape
 
     def _count(self, flags: np.ndarray) -> int:

@@ -37,7 +37,7 @@ import numpy as np
 
 #: Largest ``|solve - G @ v|`` accepted, relative to ``max |G @ v|`` over the probe vectors.
 CHECK_TOL = 1e-5
-#: Probe vectors of the check (fixed seed: the same answer every start).
+#: Probe vectors of the check.
 CHECK_PROBES = 3
 #: Largest 2N whose dense float64 ``K`` is factored (2N = 2896: 64 MB, once, at start).
 MAX_DOFS = 2896
@@ -297,15 +297,8 @@ def gradient_solve(xy: np.ndarray, triangles: np.ndarray, grad_op: np.ndarray,
     if np.any(np.diff(nbr_ptr) < 2):
         return None
     fibers = reverse_cuthill_mckee(nbr_ptr, nbr)
-    if max_cost is not None:
-        rank = np.empty(n, dtype=np.intp)
-        rank[fibers] = np.arange(n)
-        src = np.repeat(np.arange(n), np.diff(nbr_ptr))
-        lowest = rank.copy()
-        np.minimum.at(lowest, src, rank[nbr])
-        reach = rank - lowest  # each fiber's envelope in fibers; its two rows reach 2 * reach and 2 * reach + 1
-        if int(2 * (4 * reach.sum() + n) + ROW_COST * 2 * n + 2 * nbr.size) > max_cost:
-            return None  # the factor fills this envelope (its rows; the columns' is about as large)
+    if max_cost is not None and _estimated_cost(fibers, nbr_ptr, nbr) > max_cost:
+        return None
     k, coef = nielson_system(xy, nbr_ptr, nbr)
     order = np.stack([2 * fibers, 2 * fibers + 1], axis=1).ravel()
     k = k[np.ix_(order, order)]
@@ -317,16 +310,35 @@ def gradient_solve(xy: np.ndarray, triangles: np.ndarray, grad_op: np.ndarray,
     gs = GradientSolve(fibers=fibers.astype(np.int32), diag=np.diag(c).astype(np.float32), row_first=first,
                        row_ptr=row_ptr, row_env=row_env, col_last=last, col_ptr=col_ptr, col_env=col_env,
                        nbr_ptr=nbr_ptr, nbr=nbr, coef=coef.astype(np.float32))
+    return gs if _reproduces(gs, grad_op, fill_values) else None
+
+
+def _estimated_cost(fibers: np.ndarray, nbr_ptr: np.ndarray, nbr: np.ndarray) -> int:
+    """:meth:`GradientSolve.cost` before factoring, from the envelope of ``K`` in the order ``fibers`` (the
+    factor fills it; counted for its rows, the columns' being about as large, unpadded)."""
+    n = fibers.size
+    rank = np.empty(n, dtype=np.intp)
+    rank[fibers] = np.arange(n)
+    src = np.repeat(np.arange(n), np.diff(nbr_ptr))
+    lowest = rank.copy()
+    np.minimum.at(lowest, src, rank[nbr])
+    reach = rank - lowest  # each fiber's envelope in fibers; its two rows reach 2 * reach and 2 * reach + 1
+    return int(2 * (4 * reach.sum() + n) + ROW_COST * 2 * n + 2 * nbr.size)
+
+
+def _reproduces(gs: GradientSolve, grad_op: np.ndarray, fill_values: np.ndarray | None) -> bool:
+    """Whether ``gs`` gives ``grad_op @ v`` (within :data:`CHECK_TOL`) on :data:`CHECK_PROBES` random vectors
+    (a fixed seed: the same answer every start), solving ``fill_values @ v`` when there is a fill."""
     rng = np.random.default_rng(0)
     op = np.asarray(grad_op, dtype=np.float64)
     for _ in range(CHECK_PROBES):
-        v = np.asarray(rng.standard_normal(n), dtype=np.float32)
+        v = np.asarray(rng.standard_normal(gs.n_fibers), dtype=np.float32)
         want = op @ v
         filled = v if fill_values is None else np.asarray(fill_values @ v, dtype=np.float32)
         got = solve_gradients(gs, filled)
         if not np.abs(got - want).max() <= CHECK_TOL * max(float(np.abs(want).max()), 1e-30):
-            return None
-    return gs
+            return False
+    return True
 
 
 #: A multiply-add of the solve costs about this many of the dense product's (scattered short rows and

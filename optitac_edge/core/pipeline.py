@@ -294,20 +294,6 @@ class Pipeline:
 
     # -- per frame -------------------------------------------------------------
 
-    def process_checked(self, frame: np.ndarray, now_ns: int, check: FrameCheck) -> FrameResult | str:
-        """:meth:`process` of a frame that passes ``check``, else why not (``"dark"``, ``"saturated"``).
-
-        ``frame`` must have passed :meth:`FrameCheck.bad <optitac_edge.core.frame_check.FrameCheck.bad>`.
-        With the compiled kernel (baseline ready) the check reads its pixels after the fiber means, once
-        the frame is in the caches; otherwise ``check`` runs first. A frame refused changes nothing.
-        """
-        fk = self.kernel
-        if fk is not None and self.baseline.ready:
-            why = fk.check(frame)
-            return why if why is not None else self.process(frame, now_ns, fk.saturated, means_ready=True)
-        why = check(frame)
-        return why if why is not None else self.process(frame, now_ns, check.saturated)
-
     def process(self, frame: np.ndarray, now_ns: int, saturated: bool = False, *,
                 means_ready: bool = False) -> FrameResult:
         """Everything one frame gives.
@@ -324,7 +310,7 @@ class Pipeline:
         saturated : bool
             The frame check found a live fiber centre at full scale (carried into the result).
         means_ready : bool
-            The kernel's check (:meth:`process_checked`) took this frame's fiber means already.
+            The kernel's check (:func:`process_checked`) took this frame's fiber means already.
 
         Returns
         -------
@@ -411,3 +397,18 @@ class Pipeline:
         if self._has_dead:
             signal[self._dead] = 0.0
         return signal
+
+
+def process_checked(pipe: Pipeline, frame: np.ndarray, now_ns: int, check: FrameCheck) -> FrameResult | str:
+    """``pipe.process`` of a frame that passes ``check``, else why not (``"dark"``, ``"saturated"``).
+
+    ``frame`` must have passed :meth:`FrameCheck.bad <optitac_edge.core.frame_check.FrameCheck.bad>`.
+    With the compiled kernel (baseline ready) the check reads its pixels after the fiber means, once
+    the frame is in the caches; otherwise ``check`` runs first. A frame refused changes nothing.
+    """
+    fk = pipe.kernel
+    if fk is not None and pipe.baseline.ready:
+        why = fk.check(frame)
+        return why if why is not None else pipe.process(frame, now_ns, fk.saturated, means_ready=True)
+    why = check(frame)
+    return why if why is not None else pipe.process(frame, now_ns, check.saturated)

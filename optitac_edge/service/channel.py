@@ -11,7 +11,7 @@ from __future__ import annotations
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frame_check import FrameCheck
 from optitac_edge.core.frame_result import FrameResult
-from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.core.pipeline import Pipeline, process_checked
 from optitac_edge.io.cameras.base import CapturedFrame
 from optitac_edge.io.protocol.messages import StatusMessage
 from optitac_edge.io.protocol.outbox import SensorOutbox
@@ -59,10 +59,10 @@ class SensorChannel:
 
     def run_pipeline(self) -> FrameResult | str:
         """The pipeline on the frame :meth:`take` gave (on a worker thread of the loop's pool, or the loop's),
-        checked (:meth:`Pipeline.process_checked`): its result, or why the frame was skipped."""
+        checked (:func:`~optitac_edge.core.pipeline.process_checked`): its result, or why the frame was skipped."""
         c = self._captured
         assert c is not None, "take() a frame first"
-        return self.pipeline.process_checked(c.frame, c.t_ns, self.frame_check)
+        return process_checked(self.pipeline, c.frame, c.t_ns, self.frame_check)
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread); it goes on

@@ -296,7 +296,7 @@ class Service:
         sensor processed the frame; a device fault).
 
         A frame of the wrong shape or type is refused for every sensor (counted once); then every sensor's
-        pipeline checks it (dark, saturated: :meth:`Pipeline.process_checked`) and processes it (side by side
+        pipeline checks it (dark, saturated: :func:`~optitac_edge.core.pipeline.process_checked`) and processes it (side by side
         on :attr:`pool`'s workers); then, sensor by sensor in the board's order, the skips, the counts, the
         network and the messages to the MCU.
         """
