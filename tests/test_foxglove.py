@@ -55,16 +55,23 @@ def test_a_foxglove_client_gets_contacts_image_and_overlay_decoded_with_the_adve
             assert (c["encoding"], c["schemaEncoding"]) == ("cdr", "ros2msg")
             store.register(get_types_from_msg(c["schema"], c["schemaName"]))
         got: dict[str, list] = {t: [] for t in TOPICS}
-        while not all(got.values()) or not any(m.contacts for m in got[TOPICS[0]]):
-            data = ws.recv()
-            if isinstance(data, bytes) and data[0] == 1:  # message data: sub id u32, log time u64, payload
-                _, sub, _ = struct.unpack_from("<BIQ", data)
-                topic = TOPICS[sub - 1]
-                got[topic].append(store.deserialize_cdr(data[13:], channels[topic]["schemaName"]))
-        ws.close()
+        lost = ""  # what the client had when the server went away (the run's stderr is added below)
+        try:
+            while not all(got.values()) or not any(m.contacts for m in got[TOPICS[0]]):
+                data = ws.recv()
+                if isinstance(data, bytes) and data[0] == 1:  # message data: sub id u32, log time u64, payload
+                    _, sub, _ = struct.unpack_from("<BIQ", data)
+                    topic = TOPICS[sub - 1]
+                    got[topic].append(store.deserialize_cdr(data[13:], channels[topic]["schemaName"]))
+            ws.close()
+        except websocket.WebSocketException as exc:
+            counts = {t: len(v) for t, v in got.items()}
+            lost = (f"{type(exc).__name__} ({exc}) with {counts} received, "
+                    f"{sum(bool(m.contacts) for m in got[TOPICS[0]])} with contacts")
     finally:
         run.terminate()
         out, err = run.communicate(timeout=30)
+    assert not lost, f"{lost}; the run's stderr: {err[-2000:]}"
     assert run.returncode == 0, err[-2000:]
     assert "Foxglove ws://127.0.0.1:" in out
     image = got["/optitac/sim/image"][0]
