@@ -298,7 +298,8 @@ class TriangleSurface:
         first = self._cells[:, :1]
         counts = 1 + np.count_nonzero(self._cells[:, 1:] != first, axis=1)
         gs = self.gradient_solve()
-        return {**({} if gs is None else gs.kernel_arrays()),"value_rows": self._value_rows.astype(np.int32), "value_op": self._value_op,
+        return {**({} if gs is None else gs.kernel_arrays()),
+                "value_rows": self._value_rows.astype(np.int32), "value_op": self._value_op,
                 "grad_op": self._grad_op, "n_tri": self.n_triangles, "width": self.width,
                 "n_value_terms": self._n_value, "tri_cols": self._tri_cols.astype(np.int32),
                 "tri_cells": self._cells.astype(np.int32), "tri_count": counts.astype(np.int32),
