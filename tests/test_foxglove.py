@@ -35,6 +35,23 @@ def _connect(port: int, timeout_s: float = 60.0) -> websocket.WebSocket:
             time.sleep(0.2)
 
 
+def _refused_channel(data: str | bytes) -> int | None:
+    """The channel id of an "Unknown channel ID: N" error status, else None.
+
+    foxglove-sdk (0.30.x, rust/foxglove/src/websocket/connected_client.rs, ``advertise_channels``) sends a
+    channel's advertisement to the client before it records the channel as advertised to that client, so a
+    client that subscribes the moment the advertisement arrives can be told the channel is unknown. A
+    client then subscribes again, as this one does; the channel is known by then.
+    """
+    if not isinstance(data, str):
+        return None
+    msg = json.loads(data)
+    text = str(msg.get("message", ""))
+    if msg.get("op") == "status" and text.startswith("Unknown channel ID: "):
+        return int(text.rsplit(" ", 1)[1])
+    return None
+
+
 def test_a_foxglove_client_gets_contacts_image_and_overlay_decoded_with_the_advertised_schemas():
     port = free_port()
     run = subprocess.Popen([sys.executable, "-m", "optitac_edge.cli", "run", "--foxglove", f"127.0.0.1:{port}",
@@ -46,9 +63,9 @@ def test_a_foxglove_client_gets_contacts_image_and_overlay_decoded_with_the_adve
             msg = ws.recv()
             if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
                 channels.update({c["topic"]: c for c in json.loads(msg)["channels"]})
-        ws.send(json.dumps({"op": "subscribe",
-                            "subscriptions": [{"id": k + 1, "channelId": channels[t]["id"]}
-                                              for k, t in enumerate(TOPICS)]}))
+        subscriptions = {channels[t]["id"]: {"id": k + 1, "channelId": channels[t]["id"]}
+                         for k, t in enumerate(TOPICS)}
+        ws.send(json.dumps({"op": "subscribe", "subscriptions": list(subscriptions.values())}))
         store = get_typestore(Stores.EMPTY)
         for t in TOPICS:
             c = channels[t]
@@ -56,10 +73,15 @@ def test_a_foxglove_client_gets_contacts_image_and_overlay_decoded_with_the_adve
             store.register(get_types_from_msg(c["schema"], c["schemaName"]))
         got: dict[str, list] = {t: [] for t in TOPICS}
         lost = ""  # what the client had when the server went away (the run's stderr is added below)
+        resubscribed = 0
         try:
             while not all(got.values()) or not any(m.contacts for m in got[TOPICS[0]]):
                 data = ws.recv()
-                if isinstance(data, bytes) and data[0] == 1:  # message data: sub id u32, log time u64, payload
+                refused = _refused_channel(data)
+                if refused in subscriptions and resubscribed < 3:
+                    resubscribed += 1
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": [subscriptions[refused]]}))
+                elif isinstance(data, bytes) and data[0] == 1:  # message data: sub id u32, log time u64, payload
                     _, sub, _ = struct.unpack_from("<BIQ", data)
                     topic = TOPICS[sub - 1]
                     got[topic].append(store.deserialize_cdr(data[13:], channels[topic]["schemaName"]))
