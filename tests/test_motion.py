@@ -87,3 +87,104 @@ def test_bad_windows_are_refused(t, p, why) -> None:
 def test_bad_factors_are_refused(w, period) -> None:
     with pytest.raises(ValueError):
         velocity_noise_factor(w, period)
+
+
+# -- ContactMotion: a tracked contact's velocity and slip state, frame by frame -------------------------------
+
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.motion import MIN_SLIP_SPEED_MM_S, WINDOW, ContactMotion
+
+PERIOD_NS = round(PERIOD * 1e9)
+
+
+def _feed(motion: ContactMotion, xy: np.ndarray, *, cid: int = 7, t_ns: np.ndarray | None = None,
+          first_frame: int = 0) -> list[ContactEstimate]:
+    """One contact with id ``cid`` at the centroids ``xy`` (F, 2), a frame each; the estimates it got."""
+    out = []
+    for k, (x, y) in enumerate(xy):
+        c = ContactEstimate(contact=True, x_mm=float(x), y_mm=float(y), contact_id=cid, touch_frame=first_frame)
+        frame = first_frame + k
+        motion.update([c], 1, frame, int(t_ns[k]) if t_ns is not None else frame * PERIOD_NS)
+        out.append(c)
+    return out
+
+
+def _held(n: int, sigma: float, seed: int = 0, at: tuple[float, float] = (2.0, -1.0)) -> np.ndarray:
+    return np.asarray(at) + np.random.default_rng(seed).normal(0.0, sigma, (n, 2))
+
+
+def test_the_tracked_velocity_is_the_window_fit() -> None:
+    xy = _held(40, 0.01, seed=3) + np.outer(np.arange(40) * PERIOD, (12.0, -5.0))
+    got = _feed(ContactMotion(), xy)
+    assert math.isnan(got[0].vx_mm_s)  # the touch: one centroid, no velocity
+    for k in range(1, 40):
+        lo = max(0, k - WINDOW + 1)
+        v, _ = window_velocity(np.arange(lo, k + 1) * PERIOD_NS * 1e-9, xy[lo:k + 1])
+        assert (got[k].vx_mm_s, got[k].vy_mm_s) == pytest.approx(tuple(v), rel=1e-9, abs=1e-9)
+
+
+def test_dropped_frames_do_not_bend_the_velocity() -> None:
+    """The window's own timestamps are used: a slide seen with frames missing still gives its speed."""
+    frames = np.array([0, 1, 2, 5, 6, 9, 10, 11, 15, 16])
+    t_ns = frames * PERIOD_NS
+    xy = np.outer(t_ns * 1e-9, (20.0, 0.0))
+    got = _feed(ContactMotion(), xy, t_ns=t_ns)
+    assert got[-1].vx_mm_s == pytest.approx(20.0, rel=1e-6) and got[-1].vy_mm_s == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_held_contact_never_slides_over_100_000_frames_of_its_noise() -> None:
+    """7 minutes at 240 fps of a held contact's centroid noise (sigma 0.01 mm, more than the simulator's)."""
+    got = _feed(ContactMotion(), _held(100_000, 0.01, seed=1))
+    assert not any(c.sliding for c in got)
+
+
+def test_a_slide_is_found_within_three_frames_and_ends_when_it_stops() -> None:
+    """Held for 1 s, then 10 mm/s along +x for 0.5 s, then held again."""
+    held, moving = 240, 120
+    path = np.zeros((held + moving + 240, 2))
+    path[held:held + moving, 0] = 10.0 * PERIOD * np.arange(1, moving + 1)
+    path[held + moving:, 0] = path[held + moving - 1, 0]
+    got = _feed(ContactMotion(), path + _held(len(path), 0.005, seed=2, at=(0.0, 0.0)))
+    sliding = [k for k, c in enumerate(got) if c.sliding]
+    assert sliding and held + 1 <= sliding[0] <= held + 3  # frame `held` is still in place; it moved after
+    assert got[sliding[0]].slide_frame == sliding[0] and got[held + moving - 1].slide_frame == sliding[0]
+    assert all(c.sliding for c in got[sliding[0]:held + moving])
+    assert not any(c.sliding for c in got[held + moving + WINDOW:])
+    assert got[-1].slide_frame == -1
+    steady = np.array([(c.vx_mm_s, c.vy_mm_s) for c in got[held + WINDOW:held + moving]])
+    assert np.sqrt(((steady - (10.0, 0.0)) ** 2).sum(axis=1).mean()) < 1.0
+
+
+def test_a_small_vibration_is_not_a_slide() -> None:
+    """0.05 mm at 30 Hz (9.4 mm/s peak velocity) shakes the centroid but does not move the contact away."""
+    t = np.arange(2400) * PERIOD
+    xy = _held(2400, 0.004, seed=4) + np.c_[0.05 * np.sin(2 * np.pi * 30 * t), np.zeros_like(t)]
+    xy[:240] = _held(240, 0.004, seed=5)  # a quiet second first
+    assert not any(c.sliding for c in _feed(ContactMotion(), xy))
+
+
+def test_a_slow_creep_below_the_level_is_not_a_slide() -> None:
+    creep = 0.5 * MIN_SLIP_SPEED_MM_S
+    xy = np.outer(np.arange(4800) * PERIOD, (creep, 0.0)) + _held(4800, 0.002, seed=6)
+    assert not any(c.sliding for c in _feed(ContactMotion(), xy))
+
+
+def test_a_new_touch_and_a_tare_start_the_window_again() -> None:
+    motion = ContactMotion()
+    xy = np.outer(np.arange(20) * PERIOD, (50.0, 0.0))
+    got = _feed(motion, xy)
+    assert got[-1].sliding
+    again = _feed(motion, xy[:1] + 5.0, cid=7, first_frame=20)  # the same id handed out again: a touch
+    assert math.isnan(again[0].vx_mm_s) and not again[0].sliding
+    motion.reset()
+    after = _feed(motion, xy[:2], cid=9, first_frame=30)
+    assert math.isnan(after[0].vx_mm_s) and after[1].vx_mm_s == pytest.approx(50.0)
+
+
+def test_contacts_that_are_gone_are_forgotten() -> None:
+    motion = ContactMotion()
+    a = ContactEstimate(contact=True, x_mm=0.0, y_mm=0.0, contact_id=1, touch_frame=0)
+    b = ContactEstimate(contact=True, x_mm=5.0, y_mm=5.0, contact_id=2, touch_frame=0)
+    motion.update([a, b], 2, 0, 0)
+    motion.update([b], 1, 1, PERIOD_NS)
+    assert set(motion._tracks) == {2}

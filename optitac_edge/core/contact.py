@@ -82,6 +82,14 @@ class ContactEstimate:
     touch_frame : int
         The frame (``frame``) this contact touched in; ``touch_frame == frame``
         in the frame of the touch. -1 without contact.
+    vx_mm_s, vy_mm_s : float
+        The contact's velocity in the sensor frame, mm/s: the least-squares slope of its last
+        :data:`~optitac_edge.core.motion.WINDOW` centroids (fewer in its first frames;
+        :class:`~optitac_edge.core.motion.ContactMotion`). NaN in the frame it touched in and without contact.
+    sliding : bool
+        The contact slides (gross motion above its own noise level) rather than being held.
+    slide_frame : int
+        The frame (``frame``) its current slide was found in; -1 while it is held and without contact.
     """
 
     frame: int = -1
@@ -105,6 +113,10 @@ class ContactEstimate:
     force_n: float = math.nan
     contact_id: int = 0
     touch_frame: int = -1
+    vx_mm_s: float = math.nan
+    vy_mm_s: float = math.nan
+    sliding: bool = False
+    slide_frame: int = -1
 
     def clear(self, strength: float = 0.0, area_mm2: float = 0.0) -> None:
         """No contact in this frame, in place: no id, no geometry; ``strength`` and ``area_mm2`` what was
@@ -114,6 +126,8 @@ class ContactEstimate:
         self.area_mm2 = area_mm2
         self.n_contacts = 0
         self.contact_id, self.touch_frame = 0, -1
+        self.vx_mm_s = self.vy_mm_s = math.nan
+        self.sliding, self.slide_frame = False, -1
         self.clear_geometry()
 
     def clear_geometry(self) -> None:
@@ -136,6 +150,7 @@ class ContactEstimate:
             shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
             depth_mm=self.depth_mm, force_n=self.force_n,
             contact_id=self.contact_id, touch_frame=self.touch_frame,
+            vx_mm_s=self.vx_mm_s, vy_mm_s=self.vy_mm_s, sliding=self.sliding, slide_frame=self.slide_frame,
         )
 
     def assign(self, other: ContactEstimate) -> None:
@@ -149,6 +164,8 @@ class ContactEstimate:
         self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
         self.depth_mm, self.force_n = other.depth_mm, other.force_n
         self.contact_id, self.touch_frame = other.contact_id, other.touch_frame
+        self.vx_mm_s, self.vy_mm_s = other.vx_mm_s, other.vy_mm_s
+        self.sliding, self.slide_frame = other.sliding, other.slide_frame
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (NaN floats become None, ``hu`` and ``features`` lists)."""
@@ -167,4 +184,6 @@ class ContactEstimate:
             "n_contacts": int(self.n_contacts), "depth_mm": f(self.depth_mm), "force_n": f(self.force_n),
             "contact_id": int(self.contact_id),
             "touch_frame": int(self.touch_frame),
+            "vx_mm_s": f(self.vx_mm_s), "vy_mm_s": f(self.vy_mm_s),
+            "sliding": bool(self.sliding), "slide_frame": int(self.slide_frame),
         }

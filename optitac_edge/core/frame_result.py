@@ -10,6 +10,7 @@ computed once (by :class:`~optitac_edge.core.tracking.ContactTracker`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -46,6 +47,13 @@ class FrameResult:
         Some live fiber centre of the frame is at full scale (the frame check's flag, carried).
     calibrated : bool
         The centroid and width calibrations were applied to the contacts.
+    vibration : float
+        The fibers' signal energy above the vibration cut-off, in units of its level at rest
+        (:class:`~optitac_edge.core.vibration.VibrationMeter`); NaN until the rest level is learned.
+    vibrating : bool
+        The vibration is above its quiet level (the meter's hysteresis).
+    vibration_began : bool
+        ``vibrating`` turned on in this frame (the event).
     """
 
     contacts: list[ContactEstimate]
@@ -58,6 +66,9 @@ class FrameResult:
     raised_fibers: int = 0
     saturated: bool = False
     calibrated: bool = False
+    vibration: float = math.nan
+    vibrating: bool = False
+    vibration_began: bool = False
 
     def __post_init__(self) -> None:
         self.primary = self.contacts[0]

@@ -16,15 +16,19 @@ for ``W`` samples a frame period ``dt`` apart that is
 multiple of the velocity noise a held contact's own centroid noise gives, as
 the contact levels are multiples of the fibers' noise.
 
-Plain numpy; nothing here keeps state (the tracker will hold each contact's
-window).
+:class:`ContactMotion` keeps each tracked contact's window and decides when
+it slides (see there). :func:`window_velocity` is the same least-squares
+slope in numpy, for analysis and tests.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
+
+from optitac_edge.core.contact import ContactEstimate
 
 
 def window_velocity(t_s: np.ndarray, xy_mm: np.ndarray) -> tuple[np.ndarray, float]:
@@ -85,3 +89,148 @@ def velocity_noise_factor(window: int, period_s: float) -> float:
     if not (period_s > 0 and math.isfinite(period_s)):
         raise ValueError(f"the frame period must be a positive time, got {period_s!r}")
     return 1.0 / (period_s * math.sqrt(window * (window * window - 1) / 12.0))
+
+
+#: Centroids in a contact's velocity window (5 frames: 16.7 ms at 240 fps, 83 ms at 60 fps).
+WINDOW = 5
+#: A contact slides when its speed exceeds this many times the velocity noise its own centroid noise gives...
+SLIP_SIGMAS = 8.0
+#: ... and at least this speed, mm/s ...
+MIN_SLIP_SPEED_MM_S = 3.0
+#: ... and it has moved at least this far (or ``SLIP_SIGMAS`` centroid noises) from where it was last at
+#: rest, mm: a twentieth of the 1.5 mm fiber pitch, above a 0.05 mm vibration (gross motion, not shaking).
+MIN_SLIP_SHIFT_MM = 0.075
+#: A sliding contact is held again when its speed falls below this fraction of the level it slid at.
+HOLD_FRACTION = 0.5
+#: The centroid noise a contact starts with, mm, before its own is known (or the last contact's).
+PRIOR_NOISE_MM = 0.01
+#: Weight of one held frame's window in a contact's centroid noise and in where it rests (running means of
+#: ~20 frames).
+NOISE_RATE = 0.05
+
+
+class _Track:
+    """One contact's window of centroids (a ring), its centroid noise and its slip state."""
+
+    __slots__ = ("ax", "ay", "head", "n", "noise", "slide_frame", "sliding", "t", "x", "y")
+
+    def __init__(self, noise: float) -> None:
+        self.t = [0.0] * WINDOW
+        self.x = [0.0] * WINDOW
+        self.y = [0.0] * WINDOW
+        self.n = self.head = 0
+        self.noise = noise
+        self.sliding = False
+        self.slide_frame = -1
+        self.ax = self.ay = math.nan
+
+
+class ContactMotion:
+    """Every tracked contact's velocity and slip state, frame after frame.
+
+    Per contact id (from :class:`~optitac_edge.core.tracking.ContactTracker`) it
+    keeps the last :data:`WINDOW` centroids with their times and fits their
+    least-squares velocity (as :func:`window_velocity`). While the contact is
+    held, the scatter of its window about that line is its centroid noise
+    ``σ`` (a running mean, starting from the last contact's). The contact
+    *slides* when, over a full window, its speed exceeds
+    ``max(SLIP_SIGMAS · σ · f, MIN_SLIP_SPEED_MM_S)`` (``f`` the window's
+    :func:`velocity_noise_factor`) and it has moved more than
+    ``max(MIN_SLIP_SHIFT_MM, SLIP_SIGMAS · σ)`` from where it rests (a running
+    mean of its held window's centre);
+    it is held again when its speed falls below :data:`HOLD_FRACTION` of that
+    level. A breathing or growing press, an LED change or a small vibration
+    moves the centroid little and slowly, and raises ``σ`` while it lasts.
+
+    Pure Python on at most a few contacts; nothing is allocated per frame but
+    a track when a contact touches.
+    """
+
+    def __init__(self) -> None:
+        self._tracks: dict[int, _Track] = {}
+        self._prior = PRIOR_NOISE_MM
+
+    def reset(self) -> None:
+        """Forget every contact (a tare)."""
+        self._tracks.clear()
+
+    def update(self, contacts: Sequence[ContactEstimate], n: int, frame: int, now_ns: int) -> None:
+        """Set ``vx_mm_s``, ``vy_mm_s``, ``sliding`` and ``slide_frame`` of the first ``n`` of ``contacts``
+        (one frame's, with their ids), in place; forget the contacts that are gone."""
+        tracks = self._tracks
+        if len(tracks) > n or any(contacts[i].contact_id not in tracks for i in range(n)):
+            self._forget(contacts, n)
+        t_s = now_ns * 1e-9
+        for i in range(n):
+            c = contacts[i]
+            track = tracks.get(c.contact_id)
+            if track is None or c.touch_frame == frame:
+                track = tracks[c.contact_id] = _Track(self._prior)
+            _step(track, c, frame, t_s)
+
+    def _forget(self, contacts: Sequence[ContactEstimate], n: int) -> None:
+        alive = {contacts[i].contact_id for i in range(n)}
+        for cid in [cid for cid in self._tracks if cid not in alive]:
+            track = self._tracks.pop(cid)
+            if track.n >= WINDOW:
+                self._prior = track.noise
+
+
+def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
+    """Add ``c``'s centroid at ``t_s`` to its track; its velocity and slip state into ``c``."""
+    h = track.head
+    track.t[h], track.x[h], track.y[h] = t_s, c.x_mm, c.y_mm
+    track.head = (h + 1) % WINDOW
+    n = track.n = min(track.n + 1, WINDOW)
+    if n < 2:
+        c.vx_mm_s = c.vy_mm_s = math.nan
+        c.sliding, c.slide_frame = False, -1
+        track.ax, track.ay = c.x_mm, c.y_mm
+        return
+    ts, xs, ys = track.t, track.x, track.y
+    if n < WINDOW:  # the ring is filled from 0 until it is full
+        ts, xs, ys = ts[:n], xs[:n], ys[:n]
+    tm, xm, ym = sum(ts) / n, sum(xs) / n, sum(ys) / n
+    stt = stx = sty = 0.0
+    for k in range(n):
+        dt = ts[k] - tm
+        stt += dt * dt
+        stx += dt * (xs[k] - xm)
+        sty += dt * (ys[k] - ym)
+    if not stt > 0.0:  # two frames with one time: no velocity
+        c.vx_mm_s = c.vy_mm_s = math.nan
+        c.sliding, c.slide_frame = track.sliding, track.slide_frame
+        return
+    vx, vy = stx / stt, sty / stt
+    c.vx_mm_s, c.vy_mm_s = vx, vy
+    if n == WINDOW:
+        _decide(track, frame, vx, vy, stt, xm, ym)
+    else:
+        track.ax, track.ay = xm, ym
+    c.sliding, c.slide_frame = track.sliding, track.slide_frame
+
+
+def _decide(track: _Track, frame: int, vx: float, vy: float, stt: float, xm: float, ym: float) -> None:
+    """The slip state of a full window: velocity ``(vx, vy)``, ``stt = sum (t - t̄)^2``, mean ``(xm, ym)``."""
+    speed = math.sqrt(vx * vx + vy * vy)
+    level = max(SLIP_SIGMAS * track.noise / math.sqrt(stt), MIN_SLIP_SPEED_MM_S)
+    if track.sliding:
+        if speed < HOLD_FRACTION * level:
+            track.sliding, track.slide_frame = False, -1
+            track.ax, track.ay = xm, ym
+        return
+    last = track.head - 1  # the latest centroid
+    shift = math.sqrt((track.x[last] - track.ax) ** 2 + (track.y[last] - track.ay) ** 2)
+    if speed > level and shift > max(MIN_SLIP_SHIFT_MM, SLIP_SIGMAS * track.noise):
+        track.sliding, track.slide_frame = True, frame
+        return
+    ss = 0.0  # the window's scatter about its line: the held contact's centroid noise
+    ts, xs, ys = track.t, track.x, track.y
+    tm = sum(ts) / WINDOW
+    for k in range(WINDOW):
+        dt = ts[k] - tm
+        rx, ry = xs[k] - xm - vx * dt, ys[k] - ym - vy * dt
+        ss += rx * rx + ry * ry
+    track.noise += NOISE_RATE * (math.sqrt(ss / (2 * (WINDOW - 2))) - track.noise)
+    track.ax += NOISE_RATE * (xm - track.ax)  # where it rests: a vibration averages out, a creep is followed
+    track.ay += NOISE_RATE * (ym - track.ay)

@@ -37,6 +37,10 @@ switchable improvements beyond the paper noted in brackets):
 8. the contacts get stable ids, the frame they touched in, and the contacts
    of the previous frame that are gone are released
    (:class:`~optitac_edge.core.tracking.ContactTracker`; ``result.released``);
+   8b. each contact's velocity from its last few centroids and whether it
+   slides (:class:`~optitac_edge.core.motion.ContactMotion`), and the fibers'
+   signal energy above a cut-off frequency, the frame's vibration
+   (:class:`~optitac_edge.core.vibration.VibrationMeter`; ``result.vibration``);
 9. [track_baseline: without contact, on quiet frames, the baseline follows
    the fiber means with a time constant of seconds (LED warm-up, drift; with
    compensate_gain the gain-compensated means: per-fiber drift)];
@@ -69,6 +73,7 @@ numpy and OpenCV only; see docs/performance.md.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -88,10 +93,12 @@ from optitac_edge.core.frame_check import FrameCheck
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.gain import GainCompensation, LedGain
 from optitac_edge.core.levels import ContactLevels
+from optitac_edge.core.motion import ContactMotion
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
 from optitac_edge.core.surface import DenseSurface, TriangleSurface
 from optitac_edge.core.tracking import ContactTracker
+from optitac_edge.core.vibration import VibrationMeter
 
 
 @contextmanager
@@ -117,6 +124,12 @@ def _track(tracker: ContactTracker, result: FrameResult, n: int, frame: int) -> 
     tracker.update(result.contacts, n, frame)
     result.n_contacts = n
     result.n_released = tracker.n_released
+
+
+def _vibrate(meter: VibrationMeter, result: FrameResult, signal: np.ndarray, trunc: float, dt_ns: int) -> None:
+    """Step 8b: the frame's vibration (:class:`~optitac_edge.core.vibration.VibrationMeter`) into ``result``."""
+    result.vibration = meter.update(signal, trunc, dt_ns)
+    result.vibrating, result.vibration_began = meter.vibrating, meter.began
 
 
 def _rest_light(means: np.ndarray, gain: GainCompensation | None, baseline: Baseline) -> np.ndarray:
@@ -197,6 +210,9 @@ class Pipeline:
                                     float(grid.cell_area_mm2))
         #: Stable contact ids, touch frames and releases from frame to frame.
         self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
+        #: Step 8b: every contact's velocity and slip state, and the fibers' vibration.
+        self.motion = ContactMotion()
+        self.vibration = VibrationMeter(self._live)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
         self.result = FrameResult(self.contacts, self.tracker.released)
         #: The compiled kernel running steps 2-10 (None: the numpy parts do).
@@ -266,6 +282,8 @@ class Pipeline:
         self.bright_fibers.reset()
         self._in_contact = False
         self._contact_end_ns = None
+        self.motion.reset()
+        self.vibration.reset()
         if self.gain_compensation is not None:
             self.gain_compensation.reset_gain(self.gain_compensation.reference_ns)
         if self.kernel is not None:
@@ -332,6 +350,8 @@ class Pipeline:
                        means_ready)
             result.light_changed = gain is not None and fk.light_changed
             _track(self.tracker, result, n, est.frame)
+            self.motion.update(self.contacts, n, est.frame, now_ns)
+            _vibrate(self.vibration, result, self._signal, float(self.levels.trunc), dt_ns)
             if fk.raise_pending:
                 self._raise(fk.rest, fk.common)
             return result
@@ -345,6 +365,7 @@ class Pipeline:
             est.baseline_ready = False
             est.clear()
             _track(self.tracker, result, 0, est.frame)
+            result.vibration, result.vibrating, result.vibration_began = math.nan, False, False
             return result
         est.baseline_ready = True
         signal = self.compute_signal(means, now_ns)
@@ -352,6 +373,8 @@ class Pipeline:
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self.finder.find(surface, est, self._in_contact, self.corrector)
         _track(self.tracker, result, n, est.frame)
+        self.motion.update(self.contacts, n, est.frame, now_ns)
+        _vibrate(self.vibration, result, signal, float(self.levels.trunc), dt_ns)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
 
@@ -383,6 +406,7 @@ class Pipeline:
         """Go on with ``previous``'s contact ids (a re-oriented bundle replacing it): its contacts are
         released by this pipeline's first frame, and no id is handed out again at once."""
         self.tracker = previous.tracker
+        self.motion = previous.motion
         self.result.released = self.tracker.released
 
     def compute_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:
