@@ -8,8 +8,9 @@ setup(
     ext_modules=[
         Extension(
             "optitac_edge.core._frame_kernel",
-            sources=["kernel/module.c", "kernel/frame_kernel.c", "kernel/gradient_solve.c"],
-            depends=["kernel/frame_kernel.h", "kernel/gradient_solve.h", "kernel/simd.h"],
+            sources=["kernel/module.c", "kernel/frame_kernel.c", "kernel/gradient_solve.c", "kernel/vibration.c",
+                     "kernel/vibration_type.c", "kernel/motion.c", "kernel/motion_type.c"],
+            depends=["kernel/frame_kernel.h", "kernel/gradient_solve.h", "kernel/simd.h", "kernel/vibration.h", "kernel/motion.h"],
             # -ffp-contract=off: no fused multiply-adds (aarch64's GCC contracts by default), so every
             # float32 step rounds as numpy's does and the results agree with the numpy pipeline
             extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"],

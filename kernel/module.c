@@ -10,6 +10,9 @@
 
 #include "frame_kernel.h"
 
+int ok_add_vibration_type(PyObject *module); /* vibration_type.c */
+int ok_add_motion_type(PyObject *module);    /* motion_type.c */
+
 #define MAX_BUFFERS 64
 
 typedef struct {
@@ -594,6 +597,10 @@ PyMODINIT_FUNC PyInit__frame_kernel(void) {
     Py_INCREF(&KernelType);
     if (PyModule_AddObject(m, "Kernel", (PyObject *)&KernelType) < 0) {
         Py_DECREF(&KernelType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (ok_add_vibration_type(m) < 0 || ok_add_motion_type(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from optitac_edge.core.motion import velocity_noise_factor, window_velocity
+from optitac_edge.core import compiled
+from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.motion import (
+    MIN_SLIP_SPEED_MM_S,
+    WINDOW,
+    ContactMotion,
+    velocity_noise_factor,
+    window_velocity,
+)
 
 PERIOD = 1 / 240
 
@@ -91,10 +99,14 @@ def test_bad_factors_are_refused(w, period) -> None:
 
 # -- ContactMotion: a tracked contact's velocity and slip state, frame by frame -------------------------------
 
-from optitac_edge.core.contact import ContactEstimate
-from optitac_edge.core.motion import MIN_SLIP_SPEED_MM_S, WINDOW, ContactMotion
-
 PERIOD_NS = round(PERIOD * 1e9)
+BUILT = compiled.kernel_status()[0]
+
+
+@pytest.fixture(params=["python", pytest.param("kernel", marks=pytest.mark.skipif(not BUILT, reason="not built"))])
+def motion(request):
+    """A fresh ContactMotion, or the kernel's (the same interface)."""
+    return ContactMotion() if request.param == "python" else compiled.compiled_motion()
 
 
 def _feed(motion: ContactMotion, xy: np.ndarray, *, cid: int = 7, t_ns: np.ndarray | None = None,
@@ -113,9 +125,9 @@ def _held(n: int, sigma: float, seed: int = 0, at: tuple[float, float] = (2.0, -
     return np.asarray(at) + np.random.default_rng(seed).normal(0.0, sigma, (n, 2))
 
 
-def test_the_tracked_velocity_is_the_window_fit() -> None:
+def test_the_tracked_velocity_is_the_window_fit(motion) -> None:
     xy = _held(40, 0.01, seed=3) + np.outer(np.arange(40) * PERIOD, (12.0, -5.0))
-    got = _feed(ContactMotion(), xy)
+    got = _feed(motion, xy)
     assert math.isnan(got[0].vx_mm_s)  # the touch: one centroid, no velocity
     for k in range(1, 40):
         lo = max(0, k - WINDOW + 1)
@@ -123,28 +135,28 @@ def test_the_tracked_velocity_is_the_window_fit() -> None:
         assert (got[k].vx_mm_s, got[k].vy_mm_s) == pytest.approx(tuple(v), rel=1e-9, abs=1e-9)
 
 
-def test_dropped_frames_do_not_bend_the_velocity() -> None:
+def test_dropped_frames_do_not_bend_the_velocity(motion) -> None:
     """The window's own timestamps are used: a slide seen with frames missing still gives its speed."""
     frames = np.array([0, 1, 2, 5, 6, 9, 10, 11, 15, 16])
     t_ns = frames * PERIOD_NS
     xy = np.outer(t_ns * 1e-9, (20.0, 0.0))
-    got = _feed(ContactMotion(), xy, t_ns=t_ns)
+    got = _feed(motion, xy, t_ns=t_ns)
     assert got[-1].vx_mm_s == pytest.approx(20.0, rel=1e-6) and got[-1].vy_mm_s == pytest.approx(0.0, abs=1e-6)
 
 
-def test_a_held_contact_never_slides_over_100_000_frames_of_its_noise() -> None:
+def test_a_held_contact_never_slides_over_100_000_frames_of_its_noise(motion) -> None:
     """7 minutes at 240 fps of a held contact's centroid noise (sigma 0.01 mm, more than the simulator's)."""
-    got = _feed(ContactMotion(), _held(100_000, 0.01, seed=1))
+    got = _feed(motion, _held(100_000, 0.01, seed=1))
     assert not any(c.sliding for c in got)
 
 
-def test_a_slide_is_found_within_three_frames_and_ends_when_it_stops() -> None:
+def test_a_slide_is_found_within_three_frames_and_ends_when_it_stops(motion) -> None:
     """Held for 1 s, then 10 mm/s along +x for 0.5 s, then held again."""
     held, moving = 240, 120
     path = np.zeros((held + moving + 240, 2))
     path[held:held + moving, 0] = 10.0 * PERIOD * np.arange(1, moving + 1)
     path[held + moving:, 0] = path[held + moving - 1, 0]
-    got = _feed(ContactMotion(), path + _held(len(path), 0.005, seed=2, at=(0.0, 0.0)))
+    got = _feed(motion, path + _held(len(path), 0.005, seed=2, at=(0.0, 0.0)))
     sliding = [k for k, c in enumerate(got) if c.sliding]
     assert sliding and held + 1 <= sliding[0] <= held + 3  # frame `held` is still in place; it moved after
     assert got[sliding[0]].slide_frame == sliding[0] and got[held + moving - 1].slide_frame == sliding[0]
@@ -155,22 +167,21 @@ def test_a_slide_is_found_within_three_frames_and_ends_when_it_stops() -> None:
     assert np.sqrt(((steady - (10.0, 0.0)) ** 2).sum(axis=1).mean()) < 1.0
 
 
-def test_a_small_vibration_is_not_a_slide() -> None:
+def test_a_small_vibration_is_not_a_slide(motion) -> None:
     """0.05 mm at 30 Hz (9.4 mm/s peak velocity) shakes the centroid but does not move the contact away."""
     t = np.arange(2400) * PERIOD
     xy = _held(2400, 0.004, seed=4) + np.c_[0.05 * np.sin(2 * np.pi * 30 * t), np.zeros_like(t)]
     xy[:240] = _held(240, 0.004, seed=5)  # a quiet second first
-    assert not any(c.sliding for c in _feed(ContactMotion(), xy))
+    assert not any(c.sliding for c in _feed(motion, xy))
 
 
-def test_a_slow_creep_below_the_level_is_not_a_slide() -> None:
+def test_a_slow_creep_below_the_level_is_not_a_slide(motion) -> None:
     creep = 0.5 * MIN_SLIP_SPEED_MM_S
     xy = np.outer(np.arange(4800) * PERIOD, (creep, 0.0)) + _held(4800, 0.002, seed=6)
-    assert not any(c.sliding for c in _feed(ContactMotion(), xy))
+    assert not any(c.sliding for c in _feed(motion, xy))
 
 
-def test_a_new_touch_and_a_tare_start_the_window_again() -> None:
-    motion = ContactMotion()
+def test_a_new_touch_and_a_tare_start_the_window_again(motion) -> None:
     xy = np.outer(np.arange(20) * PERIOD, (50.0, 0.0))
     got = _feed(motion, xy)
     assert got[-1].sliding
@@ -181,10 +192,47 @@ def test_a_new_touch_and_a_tare_start_the_window_again() -> None:
     assert math.isnan(after[0].vx_mm_s) and after[1].vx_mm_s == pytest.approx(50.0)
 
 
-def test_contacts_that_are_gone_are_forgotten() -> None:
-    motion = ContactMotion()
+def test_contacts_that_are_gone_are_forgotten(motion) -> None:
+    """Contact 1 goes; 20 other contacts come and go after it; 2 keeps its window throughout."""
     a = ContactEstimate(contact=True, x_mm=0.0, y_mm=0.0, contact_id=1, touch_frame=0)
     b = ContactEstimate(contact=True, x_mm=5.0, y_mm=5.0, contact_id=2, touch_frame=0)
     motion.update([a, b], 2, 0, 0)
-    motion.update([b], 1, 1, PERIOD_NS)
-    assert set(motion._tracks) == {2}
+    for k in range(1, 21):
+        b.x_mm = 5.0 + 0.01 * k
+        other = ContactEstimate(contact=True, x_mm=-5.0, y_mm=0.0, contact_id=100 + k, touch_frame=k)
+        motion.update([b, other], 2, k, k * PERIOD_NS)
+        assert math.isnan(other.vx_mm_s) and b.vx_mm_s == pytest.approx(0.01 / PERIOD)
+
+
+def test_the_kernels_motion_is_the_reference() -> None:
+    """Random contacts touching, moving, sliding, stopping and releasing, with frames dropped and clock
+    jitter: the kernel's velocities, slip states and slide frames are the reference's."""
+    if not BUILT:
+        pytest.skip("the compiled kernel is not built")
+    rng = np.random.default_rng(12)
+    ref, kern = ContactMotion(), compiled.compiled_motion()
+    live: dict[int, list[float]] = {}  # id -> [x, y, vx, vy, touch frame]
+    next_id, t_ns, slides = 1, 0, 0
+    for frame in range(20_000):
+        t_ns += PERIOD_NS * (1 + int(rng.uniform() < 0.02)) + int(rng.integers(-20_000, 20_000))
+        if live and rng.uniform() < 0.004:
+            live.pop(int(rng.choice(list(live))))
+        if len(live) < 4 and rng.uniform() < 0.01:
+            live[next_id] = [rng.uniform(-8, 8), rng.uniform(-8, 8), 0.0, 0.0, frame]
+            next_id = next_id % 255 + 1
+        cs = []
+        for cid, s in live.items():
+            if rng.uniform() < 0.01:  # start or stop sliding
+                s[2], s[3] = (0.0, 0.0) if s[2] or s[3] else tuple(rng.uniform(-60, 60, 2))
+            s[0] += s[2] * PERIOD + rng.normal(0, 0.004)
+            s[1] += s[3] * PERIOD + rng.normal(0, 0.004)
+            cs.append((cid, s[0], s[1], int(s[4])))
+        a = [ContactEstimate(contact=True, x_mm=x, y_mm=y, contact_id=c, touch_frame=tf) for c, x, y, tf in cs]
+        b = [ContactEstimate(contact=True, x_mm=x, y_mm=y, contact_id=c, touch_frame=tf) for c, x, y, tf in cs]
+        ref.update(a, len(a), frame, t_ns)
+        kern.update(b, len(b), frame, t_ns)
+        for p, q in zip(a, b):
+            assert (p.sliding, p.slide_frame) == (q.sliding, q.slide_frame)
+            np.testing.assert_allclose((p.vx_mm_s, p.vy_mm_s), (q.vx_mm_s, q.vy_mm_s), rtol=1e-12, atol=1e-9)
+            slides += p.slide_frame == frame
+    assert slides > 50

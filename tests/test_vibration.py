@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import signal as sps
 
+from optitac_edge.core import compiled
 from optitac_edge.core.vibration import (
     LEARN_FRAMES,
     WINDOW,
@@ -44,43 +45,79 @@ def _frames(n: int, seed: int, contact: slice | None = None) -> np.ndarray:
     return s
 
 
-def _run(meter: VibrationMeter, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    levels, on, began = [], [], []
-    for f in frames:
-        levels.append(meter.update(f, TRUNC, DT_NS))
-        on.append(meter.vibrating)
-        began.append(meter.began)
-    return np.array(levels), np.array(on), np.array(began)
+class _Meter:
+    """A meter and the signal buffer it reads: the numpy one, or the kernel's (the same interface)."""
+
+    def __init__(self, kind: str, live: np.ndarray | None = None) -> None:
+        self.signal = np.zeros(N, dtype=np.float32)
+        live = np.ones(N, dtype=bool) if live is None else live
+        self.m = VibrationMeter(self.signal, live) if kind == "numpy" else compiled.compiled_vibration(self.signal,
+                                                                                                       live)
+
+    def run(self, frames: np.ndarray, trunc: float = TRUNC) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        levels, on, began = [], [], []
+        for f in frames:
+            self.signal[:] = f
+            levels.append(self.m.update(trunc, DT_NS))
+            on.append(self.m.vibrating)
+            began.append(self.m.began)
+        return np.array(levels), np.array(on), np.array(began)
+
+
+KINDS = ["numpy", pytest.param("kernel", marks=pytest.mark.skipif(not compiled.kernel_status()[0],
+                                                                  reason="the compiled kernel is not built"))]
+
+
+@pytest.fixture(params=KINDS)
+def kind(request) -> str:
+    return request.param
 
 
 def test_the_meters_filter_is_the_high_pass_fiber_by_fiber() -> None:
     """Against scipy's lfilter of the same signal, started at rest on the first frame."""
-    meter = VibrationMeter(np.ones(N, dtype=bool))
+    meter = _Meter("numpy")
     x = _frames(300, 1) + np.linspace(0, 0.5, N, dtype=np.float32)
-    for f in x:
-        meter.update(f, 10.0, DT_NS)
+    meter.run(x, trunc=10.0)
     b, a = butter2_highpass(20.0, FPS)
-    zi = sps.lfilter_zi(b, a)[:, None] * 0  # rest for the first frame: a constant input gives nothing
-    ref, _ = sps.lfilter(b, a, x[1:] - x[1], axis=0, zi=zi)  # the first frame designs the filter
-    np.testing.assert_allclose(meter._h + meter._h.mean() * 0, ref[-1] - ref[-1].mean(), atol=2e-6)
+    ref = sps.lfilter(b, a, x[1:] - x[1], axis=0)  # the first frame designs the filter and is its rest
+    h = meter.m._h  # the last frame's output, its mean across fibers taken out
+    np.testing.assert_allclose(h, ref[-1] - ref[-1].mean(), atol=2e-6)
 
 
-def test_quiet_fibers_read_about_one_and_never_vibrate() -> None:
+def test_the_kernels_meter_is_the_numpy_one() -> None:
+    """Every frame's level and flags, over a touch, quiet holds, a shake and a release."""
+    if not compiled.kernel_status()[0]:
+        pytest.skip("the compiled kernel is not built")
+    live = np.ones(N, dtype=bool)
+    live[[3, 50, 120]] = False
+    frames = np.concatenate([_frames(300, 20), _frames(600, 21, contact=slice(80, 130)), _frames(300, 22)])
+    t = np.arange(300) / FPS
+    frames[600:900, 80:130] += (4 * SIGMA * np.sin(2 * np.pi * 45.0 * t))[:, None].astype(np.float32)
+    ref, kern = _Meter("numpy", live), _Meter("kernel", live)
+    a, b = ref.run(frames), kern.run(frames)
+    np.testing.assert_allclose(a[0], b[0], rtol=1e-4, equal_nan=True)
+    assert (a[1] == b[1]).all() and (a[2] == b[2]).all() and a[1].any()
+    ref.m.reset()
+    kern.m.reset()
+    a, b = ref.run(frames[:100]), kern.run(frames[:100])
+    np.testing.assert_allclose(a[0], b[0], rtol=1e-4, equal_nan=True)
+
+
+def test_quiet_fibers_read_about_one_and_never_vibrate(kind: str) -> None:
     """A minute of noise at 240 fps, contact-free then pressed: the level is the noise's (1) and no event."""
-    meter = VibrationMeter(np.ones(N, dtype=bool))
-    levels, on, _ = _run(meter, _frames(7200, 2))
+    levels, on, _ = _Meter(kind).run(_frames(7200, 2))
     assert np.isnan(levels[:LEARN_FRAMES]).all() and not on.any()
     assert np.median(levels[100:]) == pytest.approx(1.0, abs=0.05)
     frames = _frames(7200, 3, contact=slice(80, 130))
     # a fresh meter (a tare) during a press: the press is the rest the filter starts from
-    levels, on, _ = _run(VibrationMeter(np.ones(N, dtype=bool)), frames)
+    levels, on, _ = _Meter(kind).run(frames)
     assert not on.any() and np.median(levels[100:]) == pytest.approx(1.0, abs=0.1)
 
 
-def test_a_press_growing_steadily_and_a_dimming_led_do_not_vibrate() -> None:
+def test_a_press_growing_steadily_and_a_dimming_led_do_not_vibrate(kind: str) -> None:
     """A ramp of the pressed fibers' signal (the filter's double zero at DC) and a common change of light."""
-    meter = VibrationMeter(np.ones(N, dtype=bool))
-    _run(meter, _frames(240, 4))
+    meter = _Meter(kind)
+    meter.run(_frames(240, 4))
     frames = _frames(2400, 5, contact=slice(80, 130))
     t = np.arange(2400)[:, None] / FPS
     frames[:, 80:130] += (0.2 * t).astype(np.float32)  # +0.2 signal per second
@@ -88,38 +125,38 @@ def test_a_press_growing_steadily_and_a_dimming_led_do_not_vibrate() -> None:
     # taken out by the gain compensation before the signal)
     frames += (0.004 * np.sin(2 * np.pi * 0.5 * t)).astype(np.float32)
     frames[1200:] += 0.003
-    _, on, _ = _run(meter, frames)
+    _, on, _ = meter.run(frames)
     assert on[:WINDOW].all() and not on[240:].any()  # the touch itself vibrates, briefly
 
 
 @pytest.mark.parametrize("hz", [30.0, 60.0, 100.0])
-def test_a_shake_of_the_pressed_fibers_raises_the_event_within_five_frames(hz: float) -> None:
+def test_a_shake_of_the_pressed_fibers_raises_the_event_within_five_frames(hz: float, kind: str) -> None:
     """The pressed fibers' signal oscillates by 3 noise sigmas (a 0.05 mm shake in the simulator moves
     the fibers at a contact's edge by more)."""
-    meter = VibrationMeter(np.ones(N, dtype=bool))
-    _run(meter, _frames(240, 6))
+    meter = _Meter(kind)
+    meter.run(_frames(240, 6))
     frames = _frames(960, 7, contact=slice(80, 130))
     t = np.arange(960)[480:] / FPS
     frames[480:, 80:130] += (3 * SIGMA * np.sin(2 * np.pi * hz * t))[:, None].astype(np.float32)
-    _levels, on, began = _run(meter, frames)
+    _levels, on, began = meter.run(frames)
     assert on[0] and not on[240:480].any()  # the touch, then a quiet hold
     first = 240 + int(np.argmax(on[240:]))
     assert 480 <= first <= 480 + 5 and began[first] and began[240:].sum() == 1
 
 
-def test_a_reset_learns_the_noise_again() -> None:
-    meter = VibrationMeter(np.ones(N, dtype=bool))
-    _run(meter, _frames(60, 8))
-    meter.reset()
-    levels, _, _ = _run(meter, 1.5 * _frames(60, 9))
+def test_a_reset_learns_the_noise_again(kind: str) -> None:
+    meter = _Meter(kind)
+    meter.run(_frames(60, 8))
+    meter.m.reset()
+    levels, _, _ = meter.run(1.5 * _frames(60, 9))
     assert np.isnan(levels[:LEARN_FRAMES]).all() and np.median(levels[30:]) == pytest.approx(1.0, abs=0.15)
 
 
-def test_dead_fibers_are_left_out() -> None:
+def test_dead_fibers_are_left_out(kind: str) -> None:
     live = np.ones(N, dtype=bool)
     live[:10] = False
-    meter = VibrationMeter(live)
+    meter = _Meter(kind, live)
     frames = _frames(600, 10)
     frames[:, :10] = np.random.default_rng(11).normal(0, 1.0, (600, 10))  # a dead fiber's garbage
-    levels, on, _ = _run(meter, frames)
+    levels, on, _ = meter.run(frames)
     assert not on.any() and np.median(levels[100:]) == pytest.approx(1.0, abs=0.05)

@@ -75,6 +75,45 @@ def fields() -> int:
     return 20 if mod is None else int(mod.FIELDS)
 
 
+def compiled_vibration(signal: np.ndarray, live: np.ndarray) -> Any:
+    """:class:`~optitac_edge.core.vibration.VibrationMeter`'s steps in C, on the same ``signal`` buffer.
+
+    The same interface (``update(trunc, dt_ns) -> level``, ``reset()``, ``level``, ``quiet``,
+    ``vibrating``, ``began``) and constants; the filter's float32 steps in the same order.
+
+    Raises
+    ------
+    ImportError
+        If the kernel is not built (see :func:`kernel_status`).
+    """
+    from optitac_edge.core import vibration as v
+
+    mod = _load()
+    if mod is None:
+        raise ImportError(f"the compiled kernel is {_why_not}")
+    live_idx = np.flatnonzero(np.asarray(live, dtype=bool)).astype(np.int32)
+    return mod.Vibration(signal, live_idx, v.CUTOFF_HZ, v.RATE_FRACTION, v.WINDOW, v.LEARN_FRAMES, v.MIN_FIBERS,
+                         v.ON_SIGMAS, v.QUIET_TAU_S, v.VIBRATING_TAU_S)
+
+
+def compiled_motion() -> Any:
+    """:class:`~optitac_edge.core.motion.ContactMotion`'s steps in C: the same interface (``update(contacts, n,
+    frame, now_ns)``, ``reset()``) and constants, the same sums in the same order.
+
+    Raises
+    ------
+    ImportError
+        If the kernel is not built (see :func:`kernel_status`).
+    """
+    from optitac_edge.core import motion as m
+
+    mod = _load()
+    if mod is None:
+        raise ImportError(f"the compiled kernel is {_why_not}")
+    return mod.Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
+                      m.NOISE_RATE, m.PRIOR_NOISE_MM)
+
+
 class FrameKernel:
     """One pipeline's compiled kernel: its plan from the pipeline's parts, and the frame's contacts.
 

@@ -158,8 +158,6 @@ class ContactMotion:
         """Set ``vx_mm_s``, ``vy_mm_s``, ``sliding`` and ``slide_frame`` of the first ``n`` of ``contacts``
         (one frame's, with their ids), in place; forget the contacts that are gone."""
         tracks = self._tracks
-        if len(tracks) > n or any(contacts[i].contact_id not in tracks for i in range(n)):
-            self._forget(contacts, n)
         t_s = now_ns * 1e-9
         for i in range(n):
             c = contacts[i]
@@ -167,70 +165,76 @@ class ContactMotion:
             if track is None or c.touch_frame == frame:
                 track = tracks[c.contact_id] = _Track(self._prior)
             _step(track, c, frame, t_s)
+        if len(tracks) > n:
+            self._forget(contacts, n)
 
     def _forget(self, contacts: Sequence[ContactEstimate], n: int) -> None:
+        """Forget the contacts that are gone; the next contact starts from the noise of the (noisiest) one
+        that had a full window."""
         alive = {contacts[i].contact_id for i in range(n)}
+        prior = -1.0
         for cid in [cid for cid in self._tracks if cid not in alive]:
             track = self._tracks.pop(cid)
-            if track.n >= WINDOW:
-                self._prior = track.noise
+            if track.n >= WINDOW and track.noise > prior:
+                prior = track.noise
+        if prior >= 0.0:
+            self._prior = prior
 
 
 def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
-    """Add ``c``'s centroid at ``t_s`` to its track; its velocity and slip state into ``c``."""
+    """Add ``c``'s centroid at ``t_s`` to its track; its velocity and slip state into ``c``.
+
+    One pass over the window gives the slope and the scatter about it (sums of the centred products).
+    """
+    x, y = c.x_mm, c.y_mm
     h = track.head
-    track.t[h], track.x[h], track.y[h] = t_s, c.x_mm, c.y_mm
+    ts, xs, ys = track.t, track.x, track.y
+    ts[h], xs[h], ys[h] = t_s, x, y
     track.head = (h + 1) % WINDOW
-    n = track.n = min(track.n + 1, WINDOW)
+    n = track.n = track.n + 1 if track.n < WINDOW else WINDOW
     if n < 2:
         c.vx_mm_s = c.vy_mm_s = math.nan
         c.sliding, c.slide_frame = False, -1
-        track.ax, track.ay = c.x_mm, c.y_mm
+        track.ax, track.ay = x, y
         return
-    ts, xs, ys = track.t, track.x, track.y
     if n < WINDOW:  # the ring is filled from 0 until it is full
         ts, xs, ys = ts[:n], xs[:n], ys[:n]
-    tm, xm, ym = sum(ts) / n, sum(xs) / n, sum(ys) / n
-    stt = stx = sty = 0.0
-    for k in range(n):
-        dt = ts[k] - tm
+    st = sx = sy = 0.0  # sums in order (as the kernel's; sum() compensates on Python 3.12)
+    for tk, xk, yk in zip(ts, xs, ys):
+        st += tk
+        sx += xk
+        sy += yk
+    tm, xm, ym = st / n, sx / n, sy / n
+    stt = stx = sty = sxx = syy = 0.0
+    for tk, xk, yk in zip(ts, xs, ys):
+        dt, dx, dy = tk - tm, xk - xm, yk - ym
         stt += dt * dt
-        stx += dt * (xs[k] - xm)
-        sty += dt * (ys[k] - ym)
-    if not stt > 0.0:  # two frames with one time: no velocity
+        stx += dt * dx
+        sty += dt * dy
+        sxx += dx * dx
+        syy += dy * dy
+    if not stt > 0.0:  # frames with one time: no velocity
         c.vx_mm_s = c.vy_mm_s = math.nan
         c.sliding, c.slide_frame = track.sliding, track.slide_frame
         return
     vx, vy = stx / stt, sty / stt
     c.vx_mm_s, c.vy_mm_s = vx, vy
-    if n == WINDOW:
-        _decide(track, frame, vx, vy, stt, xm, ym)
-    else:
+    if n < WINDOW:
         track.ax, track.ay = xm, ym
-    c.sliding, c.slide_frame = track.sliding, track.slide_frame
-
-
-def _decide(track: _Track, frame: int, vx: float, vy: float, stt: float, xm: float, ym: float) -> None:
-    """The slip state of a full window: velocity ``(vx, vy)``, ``stt = sum (t - t̄)^2``, mean ``(xm, ym)``."""
+        c.sliding, c.slide_frame = False, -1
+        return
     speed = math.sqrt(vx * vx + vy * vy)
     level = max(SLIP_SIGMAS * track.noise / math.sqrt(stt), MIN_SLIP_SPEED_MM_S)
     if track.sliding:
         if speed < HOLD_FRACTION * level:
             track.sliding, track.slide_frame = False, -1
             track.ax, track.ay = xm, ym
-        return
-    last = track.head - 1  # the latest centroid
-    shift = math.sqrt((track.x[last] - track.ax) ** 2 + (track.y[last] - track.ay) ** 2)
-    if speed > level and shift > max(MIN_SLIP_SHIFT_MM, SLIP_SIGMAS * track.noise):
+    elif speed > level and math.sqrt((x - track.ax) ** 2 + (y - track.ay) ** 2) > max(MIN_SLIP_SHIFT_MM,
+                                                                                      SLIP_SIGMAS * track.noise):
         track.sliding, track.slide_frame = True, frame
-        return
-    ss = 0.0  # the window's scatter about its line: the held contact's centroid noise
-    ts, xs, ys = track.t, track.x, track.y
-    tm = sum(ts) / WINDOW
-    for k in range(WINDOW):
-        dt = ts[k] - tm
-        rx, ry = xs[k] - xm - vx * dt, ys[k] - ym - vy * dt
-        ss += rx * rx + ry * ry
-    track.noise += NOISE_RATE * (math.sqrt(ss / (2 * (WINDOW - 2))) - track.noise)
-    track.ax += NOISE_RATE * (xm - track.ax)  # where it rests: a vibration averages out, a creep is followed
-    track.ay += NOISE_RATE * (ym - track.ay)
+    else:  # held: the scatter about the line is its centroid noise; where it rests follows slowly
+        ss = max(sxx - vx * stx + syy - vy * sty, 0.0)
+        track.noise += NOISE_RATE * (math.sqrt(ss / (2 * (WINDOW - 2))) - track.noise)
+        track.ax += NOISE_RATE * (xm - track.ax)
+        track.ay += NOISE_RATE * (ym - track.ay)
+    c.sliding, c.slide_frame = track.sliding, track.slide_frame

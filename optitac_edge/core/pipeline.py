@@ -83,7 +83,7 @@ import numpy as np
 from optitac_edge.core.baseline import Baseline, BrightFibers
 from optitac_edge.core.blob import BlobMeasurer
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.compiled import FrameKernel, kernel_status
+from optitac_edge.core.compiled import FrameKernel, compiled_motion, compiled_vibration, kernel_status
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.contact_finder import ContactFinder
 from optitac_edge.core.corrections import ContactCorrector
@@ -126,9 +126,9 @@ def _track(tracker: ContactTracker, result: FrameResult, n: int, frame: int) -> 
     result.n_released = tracker.n_released
 
 
-def _vibrate(meter: VibrationMeter, result: FrameResult, signal: np.ndarray, trunc: float, dt_ns: int) -> None:
+def _vibrate(meter: VibrationMeter, result: FrameResult, trunc: float, dt_ns: int) -> None:
     """Step 8b: the frame's vibration (:class:`~optitac_edge.core.vibration.VibrationMeter`) into ``result``."""
-    result.vibration = meter.update(signal, trunc, dt_ns)
+    result.vibration = meter.update(trunc, dt_ns)
     result.vibrating, result.vibration_began = meter.vibrating, meter.began
 
 
@@ -211,8 +211,8 @@ class Pipeline:
         #: Stable contact ids, touch frames and releases from frame to frame.
         self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
         #: Step 8b: every contact's velocity and slip state, and the fibers' vibration.
-        self.motion = ContactMotion()
-        self.vibration = VibrationMeter(self._live)
+        self.motion: ContactMotion = ContactMotion()
+        self.vibration: VibrationMeter = VibrationMeter(self._signal, self._live)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
         self.result = FrameResult(self.contacts, self.tracker.released)
         #: The compiled kernel running steps 2-10 (None: the numpy parts do).
@@ -222,6 +222,8 @@ class Pipeline:
         self.set_corrector(ContactCorrector(bundle))
         if compiled or (compiled is None and kernel_status()[0]):
             self.kernel = FrameKernel(self)  # it keeps the contacts' shape features where it writes them
+            self.vibration = compiled_vibration(self._signal, self._live)
+            self.motion = compiled_motion()
             self.set_corrector(self.corrector)
 
     # -- state -----------------------------------------------------------------
@@ -351,7 +353,7 @@ class Pipeline:
             result.light_changed = gain is not None and fk.light_changed
             _track(self.tracker, result, n, est.frame)
             self.motion.update(self.contacts, n, est.frame, now_ns)
-            _vibrate(self.vibration, result, self._signal, float(self.levels.trunc), dt_ns)
+            _vibrate(self.vibration, result, float(self.levels.trunc), dt_ns)
             if fk.raise_pending:
                 self._raise(fk.rest, fk.common)
             return result
@@ -374,7 +376,7 @@ class Pipeline:
         n = self.finder.find(surface, est, self._in_contact, self.corrector)
         _track(self.tracker, result, n, est.frame)
         self.motion.update(self.contacts, n, est.frame, now_ns)
-        _vibrate(self.vibration, result, signal, float(self.levels.trunc), dt_ns)
+        _vibrate(self.vibration, result, float(self.levels.trunc), dt_ns)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
 

@@ -31,8 +31,9 @@ import math
 
 import numpy as np
 
-#: The high-pass's cut-off, Hz (lowered to 0.3 x the frame rate for slow cameras).
+#: The high-pass's cut-off, Hz, lowered to RATE_FRACTION x the frame rate for slow cameras.
 CUTOFF_HZ = 20.0
+RATE_FRACTION = 0.3
 #: Frames the vibration is averaged over (5: 21 ms at 240 fps).
 WINDOW = 5
 #: Vibrating when the level exceeds its quiet value by this many spreads of a mean of noise squares over
@@ -81,6 +82,8 @@ class VibrationMeter:
 
     Parameters
     ----------
+    signal : ndarray, shape (N,), float32
+        The buffer every frame's inverted per-fiber signal is in (the pipeline's), read by :meth:`update`.
     live : ndarray, shape (N,), bool
         The fibers that carry light (dead fibers are left out).
 
@@ -97,7 +100,8 @@ class VibrationMeter:
         The level's quiet value the ratios apply to.
     """
 
-    def __init__(self, live: np.ndarray) -> None:
+    def __init__(self, signal: np.ndarray, live: np.ndarray) -> None:
+        self._signal = signal
         self._live = np.flatnonzero(np.asarray(live, dtype=bool))
         n = self._live.size
         self._x = np.zeros(n, dtype=np.float32)
@@ -121,19 +125,17 @@ class VibrationMeter:
         self.quiet = 1.0
         self.vibrating = self.began = False
 
-    def update(self, signal: np.ndarray, trunc: float, dt_ns: int) -> float:
-        """Add one frame's signal; returns :attr:`level`.
+    def update(self, trunc: float, dt_ns: int) -> float:
+        """Add the frame in the signal buffer; returns :attr:`level`.
 
         Parameters
         ----------
-        signal : ndarray, shape (N,), float32
-            The frame's inverted per-fiber signal (the pipeline's).
         trunc : float
             The truncation level, signal units: fibers above it are under a contact.
         dt_ns : int
             Time since the previous frame, ns (the filter is designed from the first one > 0).
         """
-        x = np.take(signal, self._live, out=self._x)
+        x = np.take(self._signal, self._live, out=self._x)
         self.began = False
         if self._coef is None:
             if dt_ns <= 0:
@@ -167,7 +169,7 @@ class VibrationMeter:
         return self._judge(total / tmp.size / self._unit, tmp.size, dt_ns)
 
     def _design(self, x: np.ndarray, rate_hz: float) -> None:
-        b, a = butter2_highpass(min(CUTOFF_HZ, 0.3 * rate_hz), rate_hz)
+        b, a = butter2_highpass(min(CUTOFF_HZ, RATE_FRACTION * rate_hz), rate_hz)
         self._coef = (float(b[0]), float(b[1]), float(a[1]), float(a[2]), float(b[2]))
         # the filter's state at rest for this signal: a constant input gives 0 out
         np.multiply(x, -b[0], out=self._z1)
