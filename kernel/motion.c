@@ -13,7 +13,7 @@ static void start(ok_motion *m, ok_track *track, int32_t id, int32_t frame) {
     memset(track, 0, sizeof *track);
     track->id = id;
     track->noise = m->prior;
-    track->ax = track->ay = NAN;
+    track->ax = track->ay = track->strength = NAN;
     track->slide_frame = -1;
     track->seen = frame;
 }
@@ -44,8 +44,8 @@ void ok_motion_forget(ok_motion *m, int32_t frame) {
     if (prior >= 0.0) m->prior = prior;
 }
 
-void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, int32_t frame, double t_s,
-                    ok_motion_out *out) {
+void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, double strength, int32_t frame,
+                    double t_s, ok_motion_out *out) {
     int32_t w = m->window, h = track->head;
     track->t[h] = t_s;
     track->x[h] = x;
@@ -92,7 +92,9 @@ void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, int32_t f
         return;
     }
     double speed = sqrt(vx * vx + vy * vy);
-    double level = m->slip_sigmas * track->noise / sqrt(stt);
+    double noise = track->noise; /* a fainter contact's centroid is the noisier in proportion */
+    if (strength < track->strength) noise = strength > 0.0 ? noise * track->strength / strength : INFINITY;
+    double level = m->slip_sigmas * noise / sqrt(stt);
     if (level < m->min_speed) level = m->min_speed;
     if (track->sliding) {
         if (speed < m->hold_fraction * level) {
@@ -103,7 +105,7 @@ void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, int32_t f
         }
     } else {
         double dx = x - track->ax, dy = y - track->ay, shift = sqrt(dx * dx + dy * dy);
-        double least = m->slip_sigmas * track->noise;
+        double least = m->slip_sigmas * noise;
         if (least < m->min_shift) least = m->min_shift;
         if (speed > level && shift > least) {
             track->sliding = 1;
@@ -112,6 +114,8 @@ void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, int32_t f
             double ss = sxx - vx * stx + syy - vy * sty;
             if (ss < 0.0) ss = 0.0;
             track->noise += m->noise_rate * (sqrt(ss / (2 * (w - 2))) - track->noise);
+            track->strength = isnan(track->strength) ? strength
+                                                     : track->strength + m->noise_rate * (strength - track->strength);
             track->ax += m->noise_rate * (xm - track->ax);
             track->ay += m->noise_rate * (ym - track->ay);
         }

@@ -13,7 +13,7 @@ typedef struct {
     int32_t id; /* 0: free */
     double t[OK_MOTION_MAX_WINDOW], x[OK_MOTION_MAX_WINDOW], y[OK_MOTION_MAX_WINDOW];
     int32_t n, head;
-    double noise, ax, ay;
+    double noise, strength, ax, ay; /* strength: the contact's strength its noise was measured at (NaN) */
     int32_t sliding, slide_frame;
     int32_t seen; /* the frame it was last updated in */
 } ok_track;
@@ -35,8 +35,8 @@ void ok_motion_reset(ok_motion *m);
 /* The track of contact `id` (a new one when it touched in `frame` or is not known); NULL when every track
  * is taken by a contact of this frame. */
 ok_track *ok_motion_track(ok_motion *m, int32_t id, int touched, int32_t frame);
-void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, int32_t frame, double t_s,
-                    ok_motion_out *out);
+void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, double strength, int32_t frame,
+                    double t_s, ok_motion_out *out);
 /* After a frame's contacts: forget the tracks not updated in `frame` (keeping the noise of a full one). */
 void ok_motion_forget(ok_motion *m, int32_t frame);
 

@@ -1,8 +1,8 @@
 /* optitac_edge.core._frame_kernel.Motion: the CPython face of motion.c.
  *
  * Motion(window, slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, prior) keeps every tracked
- * contact's window; update(contacts, n, frame, now_ns) reads each contact's contact_id, touch_frame, x_mm
- * and y_mm and sets its vx_mm_s, vy_mm_s, sliding and slide_frame, as ContactMotion.update does
+ * contact's window; update(contacts, n, frame, now_ns) reads each contact's contact_id, touch_frame, x_mm,
+ * y_mm and strength and sets its vx_mm_s, vy_mm_s, sliding and slide_frame, as ContactMotion.update does
  * (optitac_edge/core/motion.py, the reference). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -16,7 +16,7 @@ typedef struct {
     int initialised;
 } MotionObject;
 
-static PyObject *s_id, *s_touch, *s_x, *s_y, *s_vx, *s_vy, *s_sliding, *s_slide_frame;
+static PyObject *s_id, *s_touch, *s_x, *s_y, *s_strength, *s_vx, *s_vy, *s_sliding, *s_slide_frame;
 
 static int Motion_init(MotionObject *self, PyObject *args, PyObject *kwds) {
     static char *kwlist[] = {"window", "slip_sigmas", "min_speed", "min_shift", "hold_fraction", "noise_rate",
@@ -81,9 +81,9 @@ static PyObject *Motion_update(MotionObject *self, PyObject *const *args, Py_ssi
     for (Py_ssize_t i = 0; i < n; i++) {
         PyObject *c = PySequence_Fast_GET_ITEM(seq, i);
         long id, touch;
-        double x, y;
+        double x, y, strength;
         if (get_long(c, s_id, &id) < 0 || get_long(c, s_touch, &touch) < 0 || get_double(c, s_x, &x) < 0 ||
-            get_double(c, s_y, &y) < 0)
+            get_double(c, s_y, &y) < 0 || get_double(c, s_strength, &strength) < 0)
             goto fail;
         ok_track *track = ok_motion_track(&self->m, (int32_t)id, touch == frame, (int32_t)frame);
         if (!track) {
@@ -91,7 +91,7 @@ static PyObject *Motion_update(MotionObject *self, PyObject *const *args, Py_ssi
             goto fail;
         }
         ok_motion_out out;
-        ok_motion_step(&self->m, track, x, y, (int32_t)frame, t_s, &out);
+        ok_motion_step(&self->m, track, x, y, strength, (int32_t)frame, t_s, &out);
         if (set_steal(c, s_vx, PyFloat_FromDouble(out.vx)) < 0 || set_steal(c, s_vy, PyFloat_FromDouble(out.vy)) < 0 ||
             PyObject_SetAttr(c, s_sliding, out.sliding ? Py_True : Py_False) < 0 ||
             set_steal(c, s_slide_frame, PyLong_FromLong(out.slide_frame)) < 0)
@@ -130,6 +130,7 @@ static PyTypeObject MotionType = {
 int ok_add_motion_type(PyObject *module) {
     if (!(s_id = PyUnicode_InternFromString("contact_id")) || !(s_touch = PyUnicode_InternFromString("touch_frame")) ||
         !(s_x = PyUnicode_InternFromString("x_mm")) || !(s_y = PyUnicode_InternFromString("y_mm")) ||
+        !(s_strength = PyUnicode_InternFromString("strength")) ||
         !(s_vx = PyUnicode_InternFromString("vx_mm_s")) || !(s_vy = PyUnicode_InternFromString("vy_mm_s")) ||
         !(s_sliding = PyUnicode_InternFromString("sliding")) ||
         !(s_slide_frame = PyUnicode_InternFromString("slide_frame")))

@@ -14,6 +14,7 @@ typedef struct {
     const int32_t *live;   /* (n,) their indices into signal */
     const float *signal;   /* (N,) the pipeline's signal buffer */
     float *x, *z1, *z2;    /* (n,) scratch and the filter's state */
+    float *mask;           /* (n,) scratch: 1 where the fiber is above the truncation level */
     double cutoff_hz, rate_fraction, on_sigmas, quiet_tau_s, vibrating_tau_s;
     int32_t window, learn_frames, min_fibers;
     /* state */

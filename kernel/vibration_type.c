@@ -64,7 +64,7 @@ static int Vibration_init(VibrationObject *self, PyObject *args, PyObject *kwds)
         return -1;
     }
     self->live = PyMem_Malloc((size_t)n * sizeof(int32_t));
-    self->state = PyMem_Malloc((size_t)n * 3 * sizeof(float));
+    self->state = PyMem_Malloc((size_t)n * 4 * sizeof(float));
     if (!self->live || !self->state) {
         PyBuffer_Release(&live);
         PyErr_NoMemory();
@@ -78,6 +78,7 @@ static int Vibration_init(VibrationObject *self, PyObject *args, PyObject *kwds)
     p.x = self->state;
     p.z1 = self->state + n;
     p.z2 = self->state + 2 * n;
+    p.mask = self->state + 3 * n;
     self->v = p;
     ok_vibration_reset(&self->v);
     return 0;

@@ -181,6 +181,23 @@ def test_a_slow_creep_below_the_level_is_not_a_slide(motion) -> None:
     assert not any(c.sliding for c in _feed(motion, xy))
 
 
+def test_a_press_being_lifted_is_not_a_slide(motion) -> None:
+    """Held at strength 100 for a second, then lifted over 0.1 s: the strength falls to 1 % and its centroid
+    wanders as much as a faint contact's does (the noise in inverse proportion to the strength)."""
+    rng = np.random.default_rng(7)
+    strength = np.r_[np.full(240, 100.0), 100.0 * np.geomspace(1.0, 0.01, 24)]
+    xy = 1.0 + rng.normal(0.0, 1.0, (264, 2)) * (0.004 * 100.0 / strength)[:, None]
+    got = []
+    for k in range(264):
+        c = ContactEstimate(contact=True, x_mm=float(xy[k, 0]), y_mm=float(xy[k, 1]), contact_id=3, touch_frame=0,
+                            strength=float(strength[k]))
+        motion.update([c], 1, k, k * PERIOD_NS)
+        got.append(c)
+    assert not any(c.sliding for c in got)
+    speeds = np.hypot([c.vx_mm_s for c in got[240:]], [c.vy_mm_s for c in got[240:]])
+    assert speeds.max() > MIN_SLIP_SPEED_MM_S  # it did wander as fast as a slow slide
+
+
 def test_a_new_touch_and_a_tare_start_the_window_again(motion) -> None:
     xy = np.outer(np.arange(20) * PERIOD, (50.0, 0.0))
     got = _feed(motion, xy)
@@ -211,14 +228,14 @@ def test_the_kernels_motion_is_the_reference() -> None:
         pytest.skip("the compiled kernel is not built")
     rng = np.random.default_rng(12)
     ref, kern = ContactMotion(), compiled.compiled_motion()
-    live: dict[int, list[float]] = {}  # id -> [x, y, vx, vy, touch frame]
+    live: dict[int, list[float]] = {}  # id -> [x, y, vx, vy, touch frame, strength]
     next_id, t_ns, slides = 1, 0, 0
     for frame in range(20_000):
         t_ns += PERIOD_NS * (1 + int(rng.uniform() < 0.02)) + int(rng.integers(-20_000, 20_000))
         if live and rng.uniform() < 0.004:
             live.pop(int(rng.choice(list(live))))
         if len(live) < 4 and rng.uniform() < 0.01:
-            live[next_id] = [rng.uniform(-8, 8), rng.uniform(-8, 8), 0.0, 0.0, frame]
+            live[next_id] = [rng.uniform(-8, 8), rng.uniform(-8, 8), 0.0, 0.0, frame, 100.0]
             next_id = next_id % 255 + 1
         cs = []
         for cid, s in live.items():
@@ -226,9 +243,12 @@ def test_the_kernels_motion_is_the_reference() -> None:
                 s[2], s[3] = (0.0, 0.0) if s[2] or s[3] else tuple(rng.uniform(-60, 60, 2))
             s[0] += s[2] * PERIOD + rng.normal(0, 0.004)
             s[1] += s[3] * PERIOD + rng.normal(0, 0.004)
-            cs.append((cid, s[0], s[1], int(s[4])))
-        a = [ContactEstimate(contact=True, x_mm=x, y_mm=y, contact_id=c, touch_frame=tf) for c, x, y, tf in cs]
-        b = [ContactEstimate(contact=True, x_mm=x, y_mm=y, contact_id=c, touch_frame=tf) for c, x, y, tf in cs]
+            s[5] = max(s[5] * rng.choice([1.0, 0.97, 1.02], p=[0.9, 0.05, 0.05]), 0.5)  # fading and growing
+            cs.append((cid, s[0], s[1], int(s[4]), s[5]))
+        a = [ContactEstimate(contact=True, x_mm=x, y_mm=y, contact_id=c, touch_frame=tf, strength=st)
+             for c, x, y, tf, st in cs]
+        b = [ContactEstimate(contact=True, x_mm=x, y_mm=y, contact_id=c, touch_frame=tf, strength=st)
+             for c, x, y, tf, st in cs]
         ref.update(a, len(a), frame, t_ns)
         kern.update(b, len(b), frame, t_ns)
         for p, q in zip(a, b):

@@ -11,6 +11,7 @@ import numpy as np
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.corrections import ContactCorrector
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.io.recording import Recording
 
@@ -31,6 +32,8 @@ class Measurements:
     confidence : ndarray, shape (N,), float64
     depth_mm, force_n : ndarray, shape (N,), float64, optional
         The bundle's depth and force model (NaN when not calibrated); None: not read.
+    motion : FrameMotion, optional
+        The primary contact's id, velocity and slip state and the frame's vibration; None: not read.
     """
 
     contact: np.ndarray
@@ -48,9 +51,44 @@ class Measurements:
     confidence: np.ndarray
     depth_mm: np.ndarray | None = None
     force_n: np.ndarray | None = None
+    motion: FrameMotion | None = None
 
     def __len__(self) -> int:
         return int(self.contact.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class FrameMotion:
+    """Per frame: the primary contact's motion and the frame's vibration (arrays of shape (N,)).
+
+    Attributes
+    ----------
+    contact_id, slide_frame : ndarray, int64
+        0 / -1 without contact or while held.
+    vx_mm_s, vy_mm_s, vibration : ndarray, float64
+    sliding, vibrating, vibration_began : ndarray, bool
+    """
+
+    contact_id: np.ndarray
+    vx_mm_s: np.ndarray
+    vy_mm_s: np.ndarray
+    sliding: np.ndarray
+    slide_frame: np.ndarray
+    vibration: np.ndarray
+    vibrating: np.ndarray
+    vibration_began: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> FrameMotion:
+        return cls(np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool),
+                   np.full(n, -1, np.int64), np.full(n, np.nan), np.zeros(n, bool), np.zeros(n, bool))
+
+    def record(self, i: int, est: ContactEstimate, result: FrameResult) -> None:
+        """Frame ``i``'s values from its primary estimate and result."""
+        self.contact_id[i], self.slide_frame[i] = est.contact_id, est.slide_frame
+        self.vx_mm_s[i], self.vy_mm_s[i], self.sliding[i] = est.vx_mm_s, est.vy_mm_s, est.sliding
+        self.vibration[i], self.vibrating[i] = result.vibration, result.vibrating
+        self.vibration_began[i] = result.vibration_began
 
 
 def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None = None,
@@ -105,7 +143,9 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     hu = np.full((n, 7), np.nan)
     features = np.full((n, pipeline.contacts[0].features.size), np.nan)
     shape = np.full(n, "", dtype=object)
+    motion = FrameMotion.empty(n)
     for i, est in replay_recording(rec, pipeline, progress, desc=f"measure {rec.path.name}"):
+        motion.record(i, est, pipeline.result)
         if not est.contact:
             continue
         contact[i] = True
@@ -114,4 +154,4 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
         hu[i] = est.hu
         features[i] = est.features
         shape[i] = est.shape
-    return Measurements(contact=contact, hu=hu, features=features, shape=shape.astype(str), **cols)
+    return Measurements(contact=contact, hu=hu, features=features, shape=shape.astype(str), motion=motion, **cols)

@@ -112,7 +112,7 @@ NOISE_RATE = 0.05
 class _Track:
     """One contact's window of centroids (a ring), its centroid noise and its slip state."""
 
-    __slots__ = ("ax", "ay", "head", "n", "noise", "slide_frame", "sliding", "t", "x", "y")
+    __slots__ = ("ax", "ay", "head", "n", "noise", "slide_frame", "sliding", "strength", "t", "x", "y")
 
     def __init__(self, noise: float) -> None:
         self.t = [0.0] * WINDOW
@@ -120,6 +120,7 @@ class _Track:
         self.y = [0.0] * WINDOW
         self.n = self.head = 0
         self.noise = noise
+        self.strength = math.nan  # the contact's strength its noise was measured at
         self.sliding = False
         self.slide_frame = -1
         self.ax = self.ay = math.nan
@@ -140,7 +141,10 @@ class ContactMotion:
     mean of its held window's centre);
     it is held again when its speed falls below :data:`HOLD_FRACTION` of that
     level. A breathing or growing press, an LED change or a small vibration
-    moves the centroid little and slowly, and raises ``σ`` while it lasts.
+    moves the centroid little and slowly, and raises ``σ`` while it lasts. A
+    contact fainter than it was while ``σ`` was measured (its running mean
+    ``strength``) has the noisier centroid in proportion: ``σ`` is scaled by
+    that ratio (a press being lifted).
 
     Pure Python on at most a few contacts; nothing is allocated per frame but
     a track when a contact touches.
@@ -224,17 +228,23 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
         c.sliding, c.slide_frame = False, -1
         return
     speed = math.sqrt(vx * vx + vy * vy)
-    level = max(SLIP_SIGMAS * track.noise / math.sqrt(stt), MIN_SLIP_SPEED_MM_S)
+    strength = c.strength
+    noise = track.noise  # a fainter contact's centroid is the noisier in proportion (a press lifting)
+    if strength < track.strength:
+        noise = noise * track.strength / strength if strength > 0.0 else math.inf
+    level = max(SLIP_SIGMAS * noise / math.sqrt(stt), MIN_SLIP_SPEED_MM_S)
     if track.sliding:
         if speed < HOLD_FRACTION * level:
             track.sliding, track.slide_frame = False, -1
             track.ax, track.ay = xm, ym
     elif speed > level and math.sqrt((x - track.ax) ** 2 + (y - track.ay) ** 2) > max(MIN_SLIP_SHIFT_MM,
-                                                                                      SLIP_SIGMAS * track.noise):
+                                                                                      SLIP_SIGMAS * noise):
         track.sliding, track.slide_frame = True, frame
     else:  # held: the scatter about the line is its centroid noise; where it rests follows slowly
         ss = max(sxx - vx * stx + syy - vy * sty, 0.0)
         track.noise += NOISE_RATE * (math.sqrt(ss / (2 * (WINDOW - 2))) - track.noise)
+        track.strength = strength if math.isnan(track.strength) else (track.strength
+                                                                      + NOISE_RATE * (strength - track.strength))
         track.ax += NOISE_RATE * (xm - track.ax)
         track.ay += NOISE_RATE * (ym - track.ay)
     c.sliding, c.slide_frame = track.sliding, track.slide_frame

@@ -39,7 +39,7 @@ WINDOW = 5
 #: Vibrating when the level exceeds its quiet value by this many spreads of a mean of noise squares over
 #: the fibers and frames it is taken from (1 + 8 sqrt(2 / (n_fibers x WINDOW / 2))) times the quiet value:
 #: 1.54 over 217 fibers, 2.13 over 50, 4.0 over 7); no longer when below half that excess.
-ON_SIGMAS = 8.0
+ON_SIGMAS = 6.0
 #: Fewest fibers a mean is taken over: a contact's fibers when it has as many, else every live fiber.
 MIN_FIBERS = 7
 #: Contact-free frames after the baseline the rest noise is learned from before the first figure.

@@ -42,6 +42,11 @@ from optitac_edge.io.frame_store import STORAGES
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
 #: Optional columns after TRUTH_HEADER: the phase of the press and the rig's pose (rig frame, mm).
 RIG_COLUMNS = ("phase", "rig_x_mm", "rig_y_mm", "rig_z_mm")
+#: Optional columns after those (before the force): the press's true velocity in the sensor frame (mm/s)
+#: and how it moves (:data:`MOTION_STATES`; '' without contact): the simulator's ``slide``, ``vibrate`` and
+#: ``hold``. ``pressing``: being pressed in or lifted out.
+MOTION_COLUMNS = ("vx_mm_s", "vy_mm_s", "motion")
+MOTION_STATES = ("pressing", "held", "sliding", "vibrating")
 #: Optional last column: the normal force a load cell measured, N ('' where none).
 FORCE_COLUMN = "force_n"
 #: Phases of a rig-collected frame; only ``rest`` and ``hold`` frames (and rows without a phase) are scored.
@@ -77,6 +82,11 @@ class Truth:
     depth_mm: np.ndarray
     #: (N,) float64, N: the load cell's force (NaN where none); None: the recording has no force column.
     force_n: np.ndarray | None = None
+    #: (N,) float64, mm/s: the press's true velocity (NaN without contact); None: no motion columns.
+    vx_mm_s: np.ndarray | None = None
+    vy_mm_s: np.ndarray | None = None
+    #: (N,) str: ``held``, ``sliding`` or ``vibrating`` ('' without contact); None: no motion columns.
+    motion: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
@@ -103,6 +113,8 @@ class RigPoses:
 #: The values a contact's truth may take (mm, degrees): anything else is not a press on a fingertip sensor.
 TRUTH_RANGES = {"x_mm": (-1000.0, 1000.0), "y_mm": (-1000.0, 1000.0), "angle_deg": (-3600.0, 3600.0),
                 "size_mm": (0.0, 1000.0), "depth_mm": (0.0, 1000.0)}
+#: The largest velocity a truth row may hold, mm/s.
+MAX_SPEED_MM_S = 10_000.0
 #: The largest force a truth row may hold, N.
 MAX_FORCE_N = 100_000.0
 #: Largest truth.csv read, bytes (a row a frame).
@@ -222,12 +234,13 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
     """
     rows = _truth_rows(path, text)
     header = tuple(c.strip() for c in rows[0]) if rows else ()
-    force, rig = _truth_columns(path, header)
+    force, rig, moving = _truth_columns(path, header)
     if len(rows) < 2:
         raise RecordingError(f"{path}: no rows after the header")
     cols: list[list[Any]] = [[] for _ in TRUTH_HEADER]
     rig_cols: list[list[Any]] = [[], [], []]
     forces: list[float] = []
+    motions: list[tuple[float, float, str]] = []
     seen: set[int] = set()
     n_values = len(TRUTH_HEADER) - 3
     n_base = len(header) - force
@@ -237,7 +250,8 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
         try:
             frame, contact = int(row[0]), int(row[1])
             values = [_cell_float(c) for c in row[3:3 + n_values]]
-            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:n_base]]
+            pose = [float(c) for c in row[len(TRUTH_HEADER) + 1:len(TRUTH_HEADER) + 1 + 3 * rig]]
+            motion = _motion_cells(row[n_base - 3:n_base]) if moving else (math.nan, math.nan, "")
             force_n = _cell_float(row[-1]) if force else math.nan
         except ValueError:
             raise RecordingError(f"{path}: line {line_no}: not a number") from None
@@ -252,6 +266,10 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
             raise RecordingError(f"{path}: line {line_no}: unknown phase {phase!r} or a rig pose not finite")
         if contact:
             _check_contact(path, line_no, shape, values)
+        if moving and (motion[2] not in (MOTION_STATES if contact else ("",))
+                       or not all(abs(v) <= MAX_SPEED_MM_S for v in motion[:2] if not math.isnan(v))):
+            raise RecordingError(f"{path}: line {line_no}: motion must be one of {', '.join(MOTION_STATES)} on a "
+                                 f"contact ('' without), its velocity at most {MAX_SPEED_MM_S:g} mm/s")
         if force and (math.isinf(force_n) or not (math.isnan(force_n) or 0 <= force_n <= MAX_FORCE_N)):
             raise RecordingError(f"{path}: line {line_no}: force_n must be a force of 0..{MAX_FORCE_N:g} N or empty")
         if rig:
@@ -263,6 +281,7 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
         for col, value in zip(cols, [frame, bool(contact), shape if contact else "", *values]):
             col.append(value)
         forces.append(force_n)
+        motions.append(motion)
     if rig and len(seen) != n_frames:
         raise RecordingError(f"{path}: rows for {len(seen)} of the recording's {n_frames} frames; a rig's "
                              "collection has a row for every frame (rows lost?)")
@@ -272,6 +291,9 @@ def read_truth_file(path: Path, n_frames: int, text: str | None = None) -> tuple
         shape=np.asarray(cols[2], dtype=str),
         **{name: np.asarray(c, dtype=np.float64) for name, c in zip(TRUTH_HEADER[3:], cols[3:])},
         force_n=np.asarray(forces, dtype=np.float64) if force else None,
+        vx_mm_s=np.asarray([m[0] for m in motions], dtype=np.float64) if moving else None,
+        vy_mm_s=np.asarray([m[1] for m in motions], dtype=np.float64) if moving else None,
+        motion=np.asarray([m[2] for m in motions], dtype=str) if moving else None,
     )
     poses = RigPoses(np.asarray(rig_cols[0], dtype=np.int64), np.asarray(rig_cols[1], dtype=str),
                      np.asarray(rig_cols[2], dtype=np.float64).reshape(-1, 3)) if rig else None
@@ -293,14 +315,23 @@ def _truth_rows(path: Path, text: str | None) -> list[list[str]]:
         raise RecordingError(f"{path}: cannot read truth ({exc})") from None
 
 
-def _truth_columns(path: Path, header: tuple[str, ...]) -> tuple[bool, bool]:
-    """Whether the header has the force column and the rig's columns; anything else is refused."""
+def _truth_columns(path: Path, header: tuple[str, ...]) -> tuple[bool, bool, bool]:
+    """Whether the header has the force column, the rig's columns and the motion columns; anything else is
+    refused."""
     force = bool(header) and header[-1] == FORCE_COLUMN
     base = header[:-1] if force else header
+    moving = base[-len(MOTION_COLUMNS):] == MOTION_COLUMNS
+    base = base[:-len(MOTION_COLUMNS)] if moving else base
     if base not in (TRUTH_HEADER, TRUTH_HEADER + RIG_COLUMNS):
         raise RecordingError(f"{path}: header must be '{','.join(TRUTH_HEADER)}' "
-                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}', then ',{FORCE_COLUMN}')")
-    return force, len(base) > len(TRUTH_HEADER)
+                             f"(optionally followed by ',{','.join(RIG_COLUMNS)}', then ',{','.join(MOTION_COLUMNS)}'"
+                             f", then ',{FORCE_COLUMN}')")
+    return force, len(base) > len(TRUTH_HEADER), moving
+
+
+def _motion_cells(cells: list[str]) -> tuple[float, float, str]:
+    """The motion columns of a row: (vx, vy, state); ValueError when a velocity is not a number."""
+    return _cell_float(cells[0]), _cell_float(cells[1]), cells[2].strip()
 
 
 def _check_contact(path: Path, line_no: int, shape: str, values: list[float]) -> None:

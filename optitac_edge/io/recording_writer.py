@@ -32,6 +32,7 @@ from optitac_edge.io.frame_store import (
 from optitac_edge.io.recording import (
     FORCE_COLUMN,
     INCOMPLETE_MARKER,
+    MOTION_COLUMNS,
     PHASES,
     RIG_COLUMNS,
     TIMESTAMPS,
@@ -111,6 +112,9 @@ class RecordingWriter:
         shift, ns), :attr:`segments`.
     force_column : bool
         ``truth.csv`` carries a load cell's force (:data:`~optitac_edge.io.recording.FORCE_COLUMN`, last).
+    motion_columns : bool
+        ``truth.csv`` carries the press's true velocity and motion
+        (:data:`~optitac_edge.io.recording.MOTION_COLUMNS`, before the force).
     kept_segments : list of dict, optional
         The segments of the kept frames (default: one, from frame 0, unshifted).
     replace : bool
@@ -146,6 +150,7 @@ class RecordingWriter:
         replace: bool = False,
         storage: str = "raw",
         find_fibers: FindFibers | None = None,
+        motion_columns: bool = False,
     ) -> None:
         if n_frames is not None and n_frames < 1:
             raise ValueError(f"a recording needs at least one frame, got {n_frames}")
@@ -170,7 +175,9 @@ class RecordingWriter:
         self.open_ended = n_frames is None
         self.n_frames = n_frames
         self.frame_shape = tuple(int(v) for v in frame_shape)
-        self._truth_rows: list[list[str]] | None = [] if with_truth or rig_columns or force_column else None
+        self._truth_rows: list[list[str]] | None = ([] if with_truth or rig_columns or force_column or motion_columns
+                                                    else None)
+        self._motion = motion_columns
         self._rig = rig_columns
         self._force = force_column
         self._written = 0
@@ -274,9 +281,12 @@ class RecordingWriter:
             raise
 
     def write_truth(self, frame: int, press: PressTruth | None, phase: str = "",
-                    rig_xyz_mm: tuple[float, float, float] | None = None, force_n: float = math.nan) -> None:
+                    rig_xyz_mm: tuple[float, float, float] | None = None, force_n: float = math.nan,
+                    motion: tuple[float, float, str] = (math.nan, math.nan, "")) -> None:
         """Add the truth row of ``frame``: the ``press`` on it (None: no contact); with ``rig_columns`` also its
-        ``phase`` and the rig's pose, with ``force_column`` the force (N; NaN: none)."""
+        ``phase`` and the rig's pose, with ``motion_columns`` its velocity (mm/s) and motion (one of
+        :data:`~optitac_edge.io.recording.MOTION_STATES`, '' without contact), with ``force_column`` the
+        force (N; NaN: none)."""
         if self._truth_rows is None:
             raise ValueError("writer was opened without truth")
         if self._rig and (phase not in PHASES or rig_xyz_mm is None):
@@ -290,6 +300,8 @@ class RecordingWriter:
             *(cell(v) for v in (press.x_mm, press.y_mm, press.angle_deg, press.size_mm, press.depth_mm))]
         if self._rig and rig_xyz_mm is not None:
             row += [phase, *(f"{v:.4f}" for v in rig_xyz_mm)]
+        if self._motion:
+            row += [cell(motion[0]), cell(motion[1]), motion[2]]
         if self._force:
             row.append("" if math.isnan(force_n) else f"{force_n:.4f}")
         self._truth_rows.append(row)
@@ -331,7 +343,7 @@ class RecordingWriter:
                 with AtomicFile(self.path / "truth.csv", "w", newline="") as f:
                     w = csv.writer(f)
                     w.writerow(TRUTH_HEADER + (RIG_COLUMNS if self._rig else ())
-                               + ((FORCE_COLUMN,) if self._force else ()))
+                               + (MOTION_COLUMNS if self._motion else ()) + ((FORCE_COLUMN,) if self._force else ()))
                     w.writerows(self._truth_rows)
             meta = self.meta.to_json()
             if len(self.segments) > 1:

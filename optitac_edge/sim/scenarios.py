@@ -58,6 +58,16 @@ from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.io.recording import SHAPES, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
+from optitac_edge.sim.motion_scenarios import DEPTH_MM as MOTION_DEPTH_MM
+from optitac_edge.sim.motion_scenarios import (
+    MOTION_FPS,
+    MOTION_REST_FRAMES,
+    MOTION_SCENARIOS,
+    MotionFrame,
+    motion_schedule,
+    press_depth_factors,
+    real_indenter,
+)
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.patches import PatchPlacement
 from optitac_edge.sim.physics import physics as physics_named
@@ -265,7 +275,7 @@ def schedule(
 
 
 def scenario_drift(
-    name: str, drift: SessionDrift, n_frames: int, warmup: float = DRIFT_WARMUP
+    name: str, drift: SessionDrift, n_frames: int, warmup: float = DRIFT_WARMUP, fps: float = FPS
 ) -> SessionDrift:
     """The drift a recording of scenario ``name`` is made with.
 
@@ -274,9 +284,9 @@ def scenario_drift(
     negative: the LEDs dim) and per-fiber drift (sigma :data:`DRIFT_FIBER_SIGMA`
     over the recording), keeping the day's other drift.
     """
-    if name != "drift":
+    if name not in ("drift", "hold"):
         return drift
-    duration = max(n_frames - 1, 1) / FPS
+    duration = max(n_frames - 1, 1) / fps
     return replace(
         drift,
         led_drift_per_s=warmup / duration,
@@ -386,28 +396,59 @@ def write_scenario(  # noqa: PLR0913
     optics = replace(optics, **overrides) if overrides else optics
     skin = variant_skin if skin is None else skin
     sensor_seed = variant_sensor_seed(variant) if sensor_seed is None else sensor_seed
-    plan = schedule(name, seed, frames, layout, skin)
+    moving = name in MOTION_SCENARIOS
+    fps = MOTION_FPS if moving else FPS
+    plan: list[Frame] | list[MotionFrame] = (motion_schedule(name, seed, frames, layout) if moving
+                                             else schedule(name, seed, frames, layout, skin))
     if drift is None:
         drift = SessionDrift.for_day(day, sensor_seed, scale=world.day_drift)
-    drift = scenario_drift(name, drift, len(plan), warmup)
+    drift = scenario_drift(name, drift, len(plan), warmup, fps)
     sensor = SimulatedSensor(
-        layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=FPS
+        layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=fps
     )
     simulator = _simulator_meta(sensor, patch, scenario=name, seed=seed, sensor_seed=sensor_seed, day=day,
                                 variant=variant, physics=physics, optics=optics.to_dict(), skin=skin.to_dict(),
                                 drift=drift.to_dict())
     frame_shape = sensor.frame_shape if patch is None else patch.frames.frame_shape
-    meta = RecordingMeta(rest_frames=REST_FRAMES, fps=FPS, extra={"simulator": simulator})
+    meta = RecordingMeta(rest_frames=MOTION_REST_FRAMES if moving else REST_FRAMES, fps=fps,
+                         extra={"simulator": simulator})
     out = Path(out_dir)
     log.info("simulating %s (seed %d, day %d, variant %d, %s physics): %d frames of %s into %s",
              name, seed, day, variant, physics, len(plan), frame_shape, out)
     load_cell = name == "depths"
     with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
-                         force_column=load_cell, replace=fresh, storage=storage,
+                         force_column=load_cell, replace=fresh, storage=storage, motion_columns=moving,
                          find_fibers=_find_fibers(layout, optics) if storage == "fibers" else None) as writer:
-        simulator["real_depth_mm"] = _render(writer, sensor, plan, patch, clamp_radius_mm(layout.xy_mm, skin)
-                                             if load_cell else None)
+        if moving:
+            simulator["real_depth_mm"] = _render_motion(writer, sensor, plan, patch, seed)  # type: ignore[arg-type]
+        else:
+            simulator["real_depth_mm"] = _render(writer, sensor, plan, patch,  # type: ignore[arg-type]
+                                                 clamp_radius_mm(layout.xy_mm, skin) if load_cell else None)
     return out
+
+
+def _render_motion(writer: RecordingWriter, sensor: SimulatedSensor, plan: list[MotionFrame],
+                   patch: PatchPlacement | None, seed: int) -> list[list[float]]:
+    """Every frame of a motion scenario and its truth row (with the motion columns) into ``writer``;
+    ``[first frame, real depth]`` of each press (its depth when fully pressed)."""
+    factors = press_depth_factors(plan, sensor.drift.depth_jitter, seed)
+    real_depths: list[list[float]] = []
+    last: Indenter | None = None
+    dark = sensor.darkening(())
+    fps = sensor.fps
+    for i, f in enumerate(plan):
+        real = real_indenter(f, factors)
+        if real != last:
+            dark = sensor.darkening(()) if real is None else sensor.press_darkening((real,))
+            last = real
+        if f.press >= 0 and (i == 0 or plan[i - 1].press != f.press):
+            real_depths.append([i, round(MOTION_DEPTH_MM * factors[f.press], 5)])
+        frame = sensor.frame_from_darkening(dark, t_s=i / fps)
+        if patch is not None:
+            frame = patch.paste(frame)
+        writer.write(i, frame, round(i * 1e9 / fps))
+        writer.write_truth(i, f.indenter, motion=(f.vx_mm_s, f.vy_mm_s, f.motion))
+    return real_depths
 
 
 def _simulator_meta(sensor: SimulatedSensor, patch: PatchPlacement | None, **given: object) -> dict[str, object]:

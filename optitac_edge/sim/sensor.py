@@ -143,6 +143,14 @@ class SimulatedSensor:
             d = np.clip(d * self.drift.pin_gain, 0.0, 1.0)
         return d
 
+    def press_darkening(self, real_indenters: Sequence[Indenter]) -> np.ndarray:
+        """:meth:`darkening` of indenters already at their real depths (no jitter drawn): a press that
+        moves or changes depth keeps the depth error it started with."""
+        d = fiber_darkening(self.layout.xy_mm, tuple(real_indenters), self.skin)
+        if self.drift.pin_gain != 1.0:
+            d = np.clip(d * self.drift.pin_gain, 0.0, 1.0)
+        return d
+
     def brightness(self, t_s: float) -> np.ndarray | float:
         """The session's brightness factor at ``t_s`` s: a float, or (N,) with per-fiber drift."""
         if self.drift.fiber_drift_per_s:

@@ -35,6 +35,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{rec.path} with {args.cal} (id {bundle.calibration_id}):")
     for line in format_evaluation(m, rec.truth):
         print(line)
+    from optitac_edge.calibration.motion_report import format_motion, motion_report
+
+    motion = motion_report(m, rec.truth, rec.meta.fps)
+    for line in format_motion(motion) if motion is not None else ():
+        print(line)
     verdict = judge(bundle, m, rec.truth)
     for line in verdict.lines():
         print(line)

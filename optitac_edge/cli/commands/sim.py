@@ -33,9 +33,10 @@ class _SimNames:
             from optitac_edge.sim.physics import PHYSICS_NAMES
 
             return PHYSICS_NAMES
+        from optitac_edge.sim.motion_scenarios import MOTION_SCENARIOS
         from optitac_edge.sim.scenarios import SCENARIOS
 
-        return SCENARIOS
+        return SCENARIOS + MOTION_SCENARIOS
 
     def __contains__(self, name: object) -> bool:
         return name in self._names()
