@@ -107,3 +107,27 @@ def test_evaluate_reports_slides_on_a_simulated_slide(tmp_path, bundle_path) -> 
     fast = [o for o in onsets if float(o.split(" mm/s")[0]) >= 10]
     assert fast and all(o.split()[-1] != "-" and int(o.split()[-1]) <= 3 for o in fast)
     assert lines["false slips"].startswith("false slips: 0 in") and "max 1 over 7 presses" in lines["false slips"]
+
+
+def test_replay_writes_each_frames_motion_to_the_contacts_csv(tmp_path, bundle_path) -> None:
+    import csv
+
+    out = tmp_path / "slide"
+    cli = [sys.executable, "-m", "optitac_edge.cli"]
+    subprocess.run([*cli, "sim", str(out), "--scenario", "slide", "--frames", "1200", "--storage", "fibers"],
+                   check=True, capture_output=True)
+    subprocess.run([*cli, "replay", str(out), "--cal", str(bundle_path), "-o", str(tmp_path / "c.csv")], check=True,
+                   capture_output=True)
+    rows = list(csv.DictReader((tmp_path / "c.csv").open()))
+    truth = Recording(out).truth
+    sliding = [r for r in rows if r["sliding"] == "1"]
+    assert sliding and all(int(r["slide_frame"]) <= int(r["frame"]) for r in sliding)
+    steady = [r for r in sliding if all(truth.motion[int(r["frame"]) - j] == "sliding" for j in range(5))]
+    assert len(steady) > 100
+    for r in steady:  # a whole window sliding: the velocity is the truth's
+        k = int(r["frame"])
+        assert float(r["vx_mm_s"]) == pytest.approx(truth.vx_mm_s[k], abs=3.0)
+        assert float(r["vy_mm_s"]) == pytest.approx(truth.vy_mm_s[k], abs=3.0)
+    rest = [r for r in rows if r["contact"] == "0"]
+    assert all(r["vx_mm_s"] == "" and r["slide_frame"] == "-1" for r in rest)
+    assert all(0.0 <= float(r["vibration"]) < 1e6 for r in rows[MOTION_REST_FRAMES:])

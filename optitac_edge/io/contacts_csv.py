@@ -16,6 +16,7 @@ CONTACTS_HEADER = (
     "frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength",
     "shape", "confidence", "area_mm2", "hu1", "hu2", "hu3", "hu4", "hu5", "hu6", "hu7",
     "n_contacts", "q4", "t_ns", "depth_mm", "force_n", "contact_id",
+    "vx_mm_s", "vy_mm_s", "sliding", "slide_frame", "vibration", "vibrating",
 )
 
 
@@ -39,11 +40,13 @@ class ContactsCsvWriter:
         self._csv = csv.writer(self._out)
         self._csv.writerow(CONTACTS_HEADER)
 
-    def write(self, frame: int, est: Any, t_ns: int) -> None:
+    def write(self, frame: int, est: Any, t_ns: int, vibration: float = math.nan, vibrating: bool = False) -> None:
         """Append the row of frame ``frame`` (captured at ``t_ns``, ns) from a
-        :class:`~optitac_edge.core.contact.ContactEstimate`."""
+        :class:`~optitac_edge.core.contact.ContactEstimate` and the frame's ``vibration`` (the
+        :class:`~optitac_edge.core.frame_result.FrameResult`'s, NaN: not known)."""
+        shaking = [_num(vibration, 3), int(bool(vibrating))]
         if not est.contact:
-            self._csv.writerow([frame, 0, *([""] * 16), 0, "", int(t_ns), "", "", 0])
+            self._csv.writerow([frame, 0, *([""] * 16), 0, "", int(t_ns), "", "", 0, "", "", 0, -1, *shaking])
             return
         self._csv.writerow([
             frame, 1, _num(est.x_mm, 4), _num(est.y_mm, 4), _num(est.major_mm, 4), _num(est.minor_mm, 4),
@@ -51,6 +54,7 @@ class ContactsCsvWriter:
             _num(est.area_mm2, 3), *(_num(float(h), 6) for h in est.hu),
             est.n_contacts, _num(float(est.features[7]), 8), int(t_ns),
             _num(est.depth_mm, 4), _num(est.force_n, 4), int(est.contact_id),
+            _num(est.vx_mm_s, 3), _num(est.vy_mm_s, 3), int(bool(est.sliding)), int(est.slide_frame), *shaking,
         ])
 
     def close(self) -> None:

@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     with ContactsCsvWriter(args.output) as out:
         for i, estimate in replay_recording(rec, pipeline):
             contacts += int(estimate.contact)
-            out.write(i, estimate, int(rec.t_ns[i]))
+            out.write(i, estimate, int(rec.t_ns[i]), pipeline.result.vibration, pipeline.result.vibrating)
     print(f"wrote {args.output}: {len(rec)} frames, {contacts} with contact")
     return 0
 
