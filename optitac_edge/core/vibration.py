@@ -37,8 +37,8 @@ RATE_FRACTION = 0.3
 #: Frames the vibration is averaged over (5: 21 ms at 240 fps).
 WINDOW = 5
 #: Vibrating when the level exceeds its quiet value by this many spreads of a mean of noise squares over
-#: the fibers and frames it is taken from (1 + 8 sqrt(2 / (n_fibers x WINDOW / 2))) times the quiet value:
-#: 1.54 over 217 fibers, 2.13 over 50, 4.0 over 7); no longer when below half that excess.
+#: the fibers and frames it is taken from (1 + 6 sqrt(2 / (n_fibers x WINDOW / 2))) times the quiet value:
+#: 1.36 over 217 fibers, 1.76 over 50, 3.0 over 7); no longer when below half that excess.
 ON_SIGMAS = 6.0
 #: Fewest fibers a mean is taken over: a contact's fibers when it has as many, else every live fiber.
 MIN_FIBERS = 7
