@@ -74,8 +74,8 @@ def test_contact2_fill_carries_every_field_and_flags_depth_and_force_only_when_c
     assert (none.flags, none.n_contacts, none.contact_id, none.shape) == (0, 0, 0, ShapeCode.NONE)
 
 
-@pytest.mark.parametrize("payload_version, expect", [(1, None), (2, None), (0, ResultCode.OUT_OF_RANGE),
-                                                     (3, ResultCode.OUT_OF_RANGE)])
+@pytest.mark.parametrize("payload_version, expect", [(1, None), (2, None), (3, None), (0, ResultCode.OUT_OF_RANGE),
+                                                     (4, ResultCode.OUT_OF_RANGE)])
 def test_set_protocol_is_validated(payload_version, expect):
     got = parse_command(CommandType.SET_PROTOCOL, 9, bytes([payload_version]))
     if expect is None:

@@ -52,7 +52,7 @@ class StatusReporter:
         return SensorState(streaming=self.link.streaming, baseline_ready=ch.pipeline.baseline_ready,
                            degraded=ch.degraded, camera_fault=ch.fault_since_status or not camera_open,
                            light_change=ch.light_since_status, calibration_unsaved=self.calibration_unsaved,
-                           protocol_v2=self.link.protocol == 2)
+                           protocol_v2=self.link.protocol >= 2, protocol_v3=self.link.protocol == 3)
 
     def message(self, now_ns: int, index: int = 0, camera_open: bool = True,
                 state: SensorState | None = None) -> StatusMessage:

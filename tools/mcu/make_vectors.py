@@ -311,11 +311,43 @@ def release_vectors() -> str:
     return "".join(out)
 
 
+def motion_vectors() -> str:
+    from optitac_edge.io.protocol.messages import MotionMessage
+    from optitac_edge.io.protocol.wire_v2 import MOTION_KEYS, encode_motion, motion_fields
+
+    cases = [
+        ("motion_none", "a frame without contact: no velocity, the frame's vibration 1.02",
+         MotionMessage(sensor_id=1, flags=0x08, t_us=1_000_000, frame=12, vibration=1.02)),
+        ("motion_held", "a held contact creeping at (0.37, -0.12) mm/s",
+         MotionMessage(sensor_id=2, flags=0x09, t_us=2_000_000, frame=40, contact_id=1, vx_mm_s=0.37,
+                       vy_mm_s=-0.124, vibration=0.98)),
+        ("motion_slide_began", "index 1 of 2 starts sliding in this frame at (-12.5, 20.25) mm/s",
+         MotionMessage(sensor_id=2, flags=0x0F, t_us=2_004_167, frame=41, index=1, contact_id=200, vx_mm_s=-12.5,
+                       vy_mm_s=20.25, slide_frame=41, vibration=3.5)),
+        ("motion_vibration_began", "a held contact's frame starts vibrating",
+         MotionMessage(sensor_id=3, flags=0x39, t_us=7, frame=9, contact_id=4, vx_mm_s=1.0, vibration=2.345)),
+        ("motion_saturated", "every field at the end of its range (frame wraps, bits 6 and 7 of flags dropped)",
+         MotionMessage(sensor_id=255, flags=0xFF, t_us=0xFFFFFFFF, frame=70000, index=3, contact_id=255,
+                       vx_mm_s=-1000.0, vy_mm_s=1000.0, slide_frame=65537, vibration=1e9)),
+        ("motion_nan", "NaN fields are sent as 0",
+         MotionMessage(sensor_id=3, flags=0x01, t_us=5, frame=1, contact_id=9, vx_mm_s=float("nan"),
+                       vy_mm_s=-0.005, vibration=float("nan"))),
+    ]
+    out = [HEAD2.format(what="MOTION (0x05, protocol v3)")]
+    for seq, (name, desc, msg) in enumerate(cases, start=700):
+        frame = encode_motion(msg, seq)
+        fields = dict(zip(MOTION_KEYS, motion_fields(frame_payload(frame))))
+        out.append(_vector(name, "frame", frame, desc, type=0x05, seq=seq, t_us=int(msg.t_us) & 0xFFFFFFFF,
+                           payload_len=14, **fields))
+    return "".join(out)
+
+
 def set_protocol_vectors() -> str:
     out = [HEAD2.format(what="SET_PROTOCOL (0x14), MCU to sensor")]
     for seq, (name, version, result, desc) in enumerate([
             ("set_protocol_2", 2, 0, "ask for v2 -> OK"), ("set_protocol_1", 1, 0, "back to v1 -> OK"),
-            ("set_protocol_3", 3, 3, "an unknown version -> OUT_OF_RANGE")], start=500):
+            ("set_protocol_3", 3, 0, "ask for v3 (v2 and MOTION) -> OK"),
+            ("set_protocol_4", 4, 3, "an unknown version -> OUT_OF_RANGE")], start=500):
         frame = encode_command(CommandType.SET_PROTOCOL, seq, 10_000, version=version)
         out.append(_vector(name, "frame", frame, desc, type=0x14, seq=seq, t_us=10_000, payload_len=1,
                            version=version, result=result))
@@ -332,6 +364,7 @@ FILES.update({
     "v2/contact2.hex": contact2_vectors,
     "v2/release.hex": release_vectors,
     "v2/set_protocol.hex": set_protocol_vectors,
+    "v2/motion.hex": motion_vectors,
 })
 
 

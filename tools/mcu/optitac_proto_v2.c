@@ -47,6 +47,23 @@ int optitac_decode_release(const optitac_frame_t *f, optitac_release_t *o)
     return 0;
 }
 
+int optitac_decode_motion(const optitac_frame_t *f, optitac_motion_t *o)
+{
+    const uint8_t *p = f->payload;
+    if (f->type != OPTITAC_T_MOTION || f->payload_len != OPTITAC_MOTION_PAYLOAD)
+        return -1;
+    o->sensor_id = p[0];
+    o->flags = p[1];
+    o->frame = get16(p + 2);
+    o->index = p[4];
+    o->contact_id = p[5];
+    o->vx = (int16_t)get16(p + 6);
+    o->vy = (int16_t)get16(p + 8);
+    o->slide_frame = get16(p + 10);
+    o->vibration = get16(p + 12);
+    return 0;
+}
+
 size_t optitac_encode_set_protocol(uint16_t seq, uint32_t t_us, uint8_t version, uint8_t *out, size_t out_cap)
 {
     return optitac_encode_frame(OPTITAC_T_SET_PROTOCOL, seq, t_us, &version, 1u, out, out_cap);
@@ -86,4 +103,20 @@ size_t optitac_encode_release(uint16_t seq, uint32_t t_us, const optitac_release
     put16(p + 2, r->frame);
     put16(p + 4, r->touch_frame);
     return optitac_encode_frame(OPTITAC_T_RELEASE, seq, t_us, p, sizeof p, out, out_cap);
+}
+
+size_t optitac_encode_motion(uint16_t seq, uint32_t t_us, const optitac_motion_t *m, uint8_t *out,
+                             size_t out_cap)
+{
+    uint8_t p[OPTITAC_MOTION_PAYLOAD];
+    p[0] = m->sensor_id;
+    p[1] = (uint8_t)(m->flags & 0x3Fu);
+    put16(p + 2, m->frame);
+    p[4] = m->index;
+    p[5] = m->contact_id;
+    put16(p + 6, (uint16_t)m->vx);
+    put16(p + 8, (uint16_t)m->vy);
+    put16(p + 10, m->slide_frame);
+    put16(p + 12, m->vibration);
+    return optitac_encode_frame(OPTITAC_T_MOTION, seq, t_us, p, sizeof p, out, out_cap);
 }

@@ -10,6 +10,10 @@
  * every contact (index 0 = the strongest; one with n_contacts 0 when there is none).
  * optitac_encode_contact2/release() are the sensor's encoders, kept here so the golden vectors
  * are checked against an encoder that is not the Python code under test.
+ *
+ * Protocol v3 (docs/protocol.md section 13): after optitac_encode_set_protocol(..., 3, ...) each CONTACT2
+ * is followed by the MOTION (0x05) of the same contact (same frame and index): its velocity, whether it
+ * slides, and the frame's vibration. An MCU on v1 or v2 never asks for it and never sees it.
  */
 #ifndef OPTITAC_PROTO_V2_H
 #define OPTITAC_PROTO_V2_H
@@ -22,10 +26,12 @@ extern "C" {
 
 #define OPTITAC_T_CONTACT2 0x03u
 #define OPTITAC_T_RELEASE 0x04u
+#define OPTITAC_T_MOTION 0x05u
 #define OPTITAC_T_SET_PROTOCOL 0x14u
 
 #define OPTITAC_CONTACT2_PAYLOAD 28u
 #define OPTITAC_RELEASE_PAYLOAD 6u
+#define OPTITAC_MOTION_PAYLOAD 14u
 
 /* CONTACT2 flags */
 #define OPTITAC_F2_CONTACT 0x01u
@@ -36,8 +42,17 @@ extern "C" {
 #define OPTITAC_F2_DEPTH 0x20u /* depth is calibrated */
 #define OPTITAC_F2_FORCE 0x40u /* force is calibrated */
 
-/* STATUS state bit 6: the sensor speaks v2 */
+/* MOTION flags (protocol v3) */
+#define OPTITAC_FM_VELOCITY 0x01u        /* vx, vy hold the contact's velocity */
+#define OPTITAC_FM_SLIDING 0x02u         /* the contact slides */
+#define OPTITAC_FM_SLIDE_BEGAN 0x04u     /* its slide was found in this frame */
+#define OPTITAC_FM_VIBRATION 0x08u       /* vibration holds the frame's figure */
+#define OPTITAC_FM_VIBRATING 0x10u       /* the frame vibrates above its quiet level */
+#define OPTITAC_FM_VIBRATION_BEGAN 0x20u /* ... since this frame */
+
+/* STATUS state bit 6: the sensor speaks v2 (or v3); bit 7: it speaks v3 */
 #define OPTITAC_S_PROTOCOL_V2 0x40u
+#define OPTITAC_S_PROTOCOL_V3 0x80u
 
 typedef struct {
     uint8_t sensor_id;
@@ -66,11 +81,25 @@ typedef struct {
     uint16_t touch_frame; /* the frame it touched in */
 } optitac_release_t;
 
+typedef struct {
+    uint8_t sensor_id;
+    uint8_t flags;        /* OPTITAC_FM_* */
+    uint16_t frame;       /* as the CONTACT2 it follows */
+    uint8_t index;        /* as the CONTACT2 it follows */
+    uint8_t contact_id;   /* 0 without contact */
+    int16_t vx;           /* 0.01 mm/s, sensor frame (0 unless OPTITAC_FM_VELOCITY) */
+    int16_t vy;           /* 0.01 mm/s */
+    uint16_t slide_frame; /* the frame the slide was found in (0 unless OPTITAC_FM_SLIDING) */
+    uint16_t vibration;   /* 0.01 units of the sensor's noise (0 unless OPTITAC_FM_VIBRATION) */
+} optitac_motion_t;
+
 /* 0 on success, -1 when the frame has another type or payload length. */
 int optitac_decode_contact2(const optitac_frame_t *f, optitac_contact2_t *out);
 int optitac_decode_release(const optitac_frame_t *f, optitac_release_t *out);
+int optitac_decode_motion(const optitac_frame_t *f, optitac_motion_t *out);
 
-/* The MCU asks for protocol version 1 or 2 (the sensor answers other values OUT_OF_RANGE). */
+/* The MCU asks for protocol version 1, 2 or 3 (the sensor answers other values OUT_OF_RANGE; one that does
+ * not know v3 answers 3 OUT_OF_RANGE too, and the MCU stays on v2). */
 size_t optitac_encode_set_protocol(uint16_t seq, uint32_t t_us, uint8_t version, uint8_t *out, size_t out_cap);
 
 /* The sensor's side (vectors, simulators): complete wire frames, 0 if out_cap is too small. */
@@ -78,6 +107,8 @@ size_t optitac_encode_contact2(uint16_t seq, uint32_t t_us, const optitac_contac
                                size_t out_cap);
 size_t optitac_encode_release(uint16_t seq, uint32_t t_us, const optitac_release_t *r, uint8_t *out,
                               size_t out_cap);
+size_t optitac_encode_motion(uint16_t seq, uint32_t t_us, const optitac_motion_t *m, uint8_t *out,
+                             size_t out_cap);
 
 #ifdef __cplusplus
 }

@@ -3,11 +3,13 @@
  *
  *   v2_tool decode < hex lines    each line one wire frame (hex, delimiter included), fed to a
  *                                 fresh decoder; prints what the C decoders make of it:
- *                                 "contact2 k=v ...", "release k=v ...", "set_protocol k=v ...",
+ *                                 "contact2 k=v ...", "release k=v ...", "motion k=v ...", "set_protocol k=v ...",
  *                                 "frame type=T ..." for other types, or "error KIND"
  *   v2_tool encode < field lines  "contact2 SEQ T_US sensor_id flags frame index n_contacts contact_id
  *                                 shape x y major minor angle strength depth force confidence age_us",
- *                                 "release SEQ T_US sensor_id contact_id frame touch_frame" or
+ *                                 "release SEQ T_US sensor_id contact_id frame touch_frame",
+ *                                 "motion SEQ T_US sensor_id flags frame index contact_id vx vy slide_frame
+ *                                 vibration" or
  *                                 "set_protocol SEQ T_US version"; prints each wire frame in hex
  */
 #define _POSIX_C_SOURCE 200809L
@@ -28,6 +30,7 @@ static int decode_line(const char *s)
         if (optitac_decoder_feed(&d, (uint8_t)byte, &f) == OPTITAC_FEED_FRAME && !got) {
             optitac_contact2_t c;
             optitac_release_t r;
+            optitac_motion_t m;
             got = 1;
             if (optitac_decode_contact2(&f, &c) == 0)
                 printf("contact2 seq=%u t_us=%lu sensor_id=%u flags=%u frame=%u index=%u n_contacts=%u "
@@ -39,6 +42,10 @@ static int decode_line(const char *s)
             else if (optitac_decode_release(&f, &r) == 0)
                 printf("release seq=%u t_us=%lu sensor_id=%u contact_id=%u frame=%u touch_frame=%u\n", f.seq,
                        (unsigned long)f.t_us, r.sensor_id, r.contact_id, r.frame, r.touch_frame);
+            else if (optitac_decode_motion(&f, &m) == 0)
+                printf("motion seq=%u t_us=%lu sensor_id=%u flags=%u frame=%u index=%u contact_id=%u vx=%d vy=%d "
+                       "slide_frame=%u vibration=%u\n", f.seq, (unsigned long)f.t_us, m.sensor_id, m.flags, m.frame,
+                       m.index, m.contact_id, m.vx, m.vy, m.slide_frame, m.vibration);
             else if (f.type == OPTITAC_T_SET_PROTOCOL && f.payload_len == 1u)
                 printf("set_protocol seq=%u t_us=%lu version=%u\n", f.seq, (unsigned long)f.t_us, f.payload[0]);
             else
@@ -108,6 +115,18 @@ static int encode_line(const char *s)
         r.frame = (uint16_t)v[4];
         r.touch_frame = (uint16_t)v[5];
         print_hex(out, optitac_encode_release((uint16_t)v[0], (uint32_t)v[1], &r, out, sizeof out));
+    } else if (strcmp(kind, "motion") == 0 && n == 11) {
+        optitac_motion_t m;
+        m.sensor_id = (uint8_t)v[2];
+        m.flags = (uint8_t)v[3];
+        m.frame = (uint16_t)v[4];
+        m.index = (uint8_t)v[5];
+        m.contact_id = (uint8_t)v[6];
+        m.vx = (int16_t)v[7];
+        m.vy = (int16_t)v[8];
+        m.slide_frame = (uint16_t)v[9];
+        m.vibration = (uint16_t)v[10];
+        print_hex(out, optitac_encode_motion((uint16_t)v[0], (uint32_t)v[1], &m, out, sizeof out));
     } else if (strcmp(kind, "set_protocol") == 0 && n == 3) {
         print_hex(out, optitac_encode_set_protocol((uint16_t)v[0], (uint32_t)v[1], (uint8_t)v[2], out, sizeof out));
     } else {

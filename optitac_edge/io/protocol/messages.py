@@ -20,9 +20,10 @@ STATE_CAMERA_FAULT = 0x08
 STATE_LIGHT_CHANGE = 0x10  # a common-mode change of the light (LED dimming) since the last STATUS
 STATE_CALIBRATION_UNSAVED = 0x20  # running on a bundle that could not be saved
 STATE_PROTOCOL_V2 = 0x40  # the sensor speaks protocol v2 (the MCU asked for it with SET_PROTOCOL)
+STATE_PROTOCOL_V3 = 0x80  # the sensor speaks protocol v3: v2 and each contact's MOTION (bit 6 set too)
 
 #: The protocol versions a SET_PROTOCOL command may ask for.
-PROTOCOL_VERSIONS = (1, 2)
+PROTOCOL_VERSIONS = (1, 2, 3)
 
 #: STATUS ``cpu_temp_c_x10`` when the temperature is unknown.
 TEMP_UNKNOWN = -32768
@@ -40,6 +41,17 @@ class ContactV2Flags(IntFlag):
     FORCE = 0x40  # force_n is calibrated
 
 
+class MotionFlags(IntFlag):
+    """Bits of the MOTION message's ``flags`` (protocol v3)."""
+
+    VELOCITY = 0x01  # vx, vy hold the contact's velocity (not in the frame it touched in, nor without contact)
+    SLIDING = 0x02  # the contact slides
+    SLIDE_BEGAN = 0x04  # its slide was found in this frame
+    VIBRATION = 0x08  # vibration holds the frame's figure (learned)
+    VIBRATING = 0x10  # the frame's vibration is above its quiet level
+    VIBRATION_BEGAN = 0x20  # ... and rose above it in this frame
+
+
 class ContactFlags(IntFlag):
     """Bits of the CONTACT message's ``flags``."""
 
@@ -54,6 +66,7 @@ _CONTACT, _CALIBRATED, _SATURATED, _DEGRADED, _MORE = (int(f) for f in (
     ContactFlags.CONTACT, ContactFlags.CALIBRATED, ContactFlags.SATURATED, ContactFlags.DEGRADED,
     ContactFlags.MORE_CONTACTS))
 _TOUCH, _DEPTH, _FORCE = (int(f) for f in (ContactV2Flags.TOUCH, ContactV2Flags.DEPTH, ContactV2Flags.FORCE))
+_VELOCITY, _SLIDING, _SLIDE_BEGAN, _VIBRATION, _VIBRATING, _VIBRATION_BEGAN = (int(f) for f in MotionFlags)
 
 
 class ShapeCode(IntEnum):
@@ -270,6 +283,66 @@ class ContactV2Message:
 
 
 @dataclass(slots=True)
+class MotionMessage:
+    """Protocol v3: the motion of the contact of the CONTACT2 before it (the same ``frame`` and ``index``), and
+    the frame's vibration, in physical units (the encoders quantise).
+
+    Attributes
+    ----------
+    sensor_id, flags : int
+        ``flags``: :class:`MotionFlags` bits.
+    t_us, frame, index, contact_id : int
+        As the CONTACT2's (``contact_id`` 0 and ``index`` 0 when there is no contact).
+    vx_mm_s, vy_mm_s : float
+        The contact's velocity in the sensor frame, mm/s; 0 unless VELOCITY.
+    slide_frame : int
+        The frame its current slide was found in; 0 unless SLIDING.
+    vibration : float
+        The frame's fiber energy above 20 Hz in units of the sensor's noise; 0 unless VIBRATION.
+    """
+
+    sensor_id: int = 0
+    flags: int = 0
+    t_us: int = 0
+    frame: int = 0
+    index: int = 0
+    contact_id: int = 0
+    vx_mm_s: float = 0.0
+    vy_mm_s: float = 0.0
+    slide_frame: int = 0
+    vibration: float = 0.0
+
+    def fill(self, est: Any, index: int, t_ns: int, vibration: float, vibrating: bool,
+             vibration_began: bool) -> MotionMessage:
+        """Update in place from contact ``index`` of a frame (a :class:`~optitac_edge.core.contact.ContactEstimate`,
+        the primary one when there is no contact) and the frame's vibration."""
+        isfinite = math.isfinite
+        flags = 0
+        self.t_us = t_ns // 1000
+        self.frame = int(est.frame)
+        self.index = index
+        vx, vy = float(est.vx_mm_s), float(est.vy_mm_s)
+        if est.contact and isfinite(vx) and isfinite(vy):
+            flags |= _VELOCITY
+            self.vx_mm_s, self.vy_mm_s = vx, vy
+        else:
+            self.vx_mm_s = self.vy_mm_s = 0.0
+        self.contact_id = int(est.contact_id) if est.contact else 0
+        if est.contact and est.sliding:
+            flags |= _SLIDING | (_SLIDE_BEGAN if est.slide_frame == est.frame else 0)
+            self.slide_frame = int(est.slide_frame)
+        else:
+            self.slide_frame = 0
+        if isfinite(vibration):
+            flags |= _VIBRATION | (_VIBRATING if vibrating else 0) | (_VIBRATION_BEGAN if vibration_began else 0)
+            self.vibration = vibration
+        else:
+            self.vibration = 0.0
+        self.flags = flags
+        return self
+
+
+@dataclass(slots=True)
 class ReleaseMessage:
     """Protocol v2: a contact of the previous frame is gone (sent in the frame of its release).
 
@@ -309,7 +382,9 @@ class SensorState:
     calibration_unsaved : bool
         Running on a bundle that could not be saved.
     protocol_v2 : bool
-        The sensor speaks protocol v2 (the MCU asked for it with SET_PROTOCOL).
+        The sensor speaks protocol v2 (the MCU asked for v2 or v3 with SET_PROTOCOL).
+    protocol_v3 : bool
+        The sensor speaks protocol v3 (v2 and MOTION).
     """
 
     streaming: bool = False
@@ -319,22 +394,24 @@ class SensorState:
     light_change: bool = False
     calibration_unsaved: bool = False
     protocol_v2: bool = False
+    protocol_v3: bool = False
 
     @property
     def bits(self) -> int:
-        """The STATUS ``state`` byte (bit0 streaming … bit6 protocol v2)."""
+        """The STATUS ``state`` byte (bit0 streaming … bit6 protocol v2, bit7 protocol v3)."""
         return ((STATE_STREAMING if self.streaming else 0) | (STATE_BASELINE_READY if self.baseline_ready else 0)
                 | (STATE_DEGRADED if self.degraded else 0) | (STATE_CAMERA_FAULT if self.camera_fault else 0)
                 | (STATE_LIGHT_CHANGE if self.light_change else 0)
                 | (STATE_CALIBRATION_UNSAVED if self.calibration_unsaved else 0)
-                | (STATE_PROTOCOL_V2 if self.protocol_v2 else 0))
+                | (STATE_PROTOCOL_V2 if self.protocol_v2 else 0) | (STATE_PROTOCOL_V3 if self.protocol_v3 else 0))
 
     @classmethod
     def from_bits(cls, state: int) -> SensorState:
         """The flags of a received STATUS ``state`` byte."""
         return cls(bool(state & STATE_STREAMING), bool(state & STATE_BASELINE_READY), bool(state & STATE_DEGRADED),
                    bool(state & STATE_CAMERA_FAULT), bool(state & STATE_LIGHT_CHANGE),
-                   bool(state & STATE_CALIBRATION_UNSAVED), bool(state & STATE_PROTOCOL_V2))
+                   bool(state & STATE_CALIBRATION_UNSAVED), bool(state & STATE_PROTOCOL_V2),
+                   bool(state & STATE_PROTOCOL_V3))
 
 
 @dataclass(slots=True)

@@ -12,7 +12,9 @@ Per sent frame, in this order:
 * protocol v1 (or v2 beside v1): one CONTACT, the frame's primary contact;
 * protocol v2: a RELEASE for every contact the MCU was told of that the tracker
   released since the last sent frame, then a CONTACT2 for every contact of the
-  frame (one saying "no contact" when there is none).
+  frame (one saying "no contact" when there is none);
+* protocol v3: v2's, each CONTACT2 followed by the MOTION of the same contact
+  (and the frame's vibration).
 """
 
 from __future__ import annotations
@@ -22,10 +24,10 @@ from dataclasses import dataclass
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.options import MAX_CONTACTS
 from optitac_edge.io.protocol.announce import ContactAnnouncer
-from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Message, ReleaseMessage
+from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Message, MotionMessage, ReleaseMessage
 
 #: A message of a sensor's frame to the MCU.
-OutMessage = ContactMessage | ContactV2Message | ReleaseMessage
+OutMessage = ContactMessage | ContactV2Message | ReleaseMessage | MotionMessage
 
 
 @dataclass(slots=True)
@@ -35,7 +37,7 @@ class LinkState:
     Attributes
     ----------
     protocol : int
-        The version the MCU asked for with SET_PROTOCOL (1 until it does).
+        The version the MCU asked for with SET_PROTOCOL (1 until it does; 3 is v2 with MOTION).
     v2_alongside_v1 : bool
         v2's messages go out beside v1's from the start (CAN with ``link.can_protocol = 2``).
     streaming : bool
@@ -74,6 +76,7 @@ class SensorOutbox:
         self.contact = ContactMessage(sensor_id=sensor_id)
         self.contacts_v2 = [ContactV2Message(sensor_id=sensor_id) for _ in range(MAX_CONTACTS)]
         self.releases = [ReleaseMessage(sensor_id=sensor_id) for _ in range(MAX_CONTACTS)]
+        self.motions = [MotionMessage(sensor_id=sensor_id) for _ in range(MAX_CONTACTS)]
         #: What the MCU was told (protocol v2's touches and releases).
         self.announcer = ContactAnnouncer()
         self._out: list[OutMessage] = []
@@ -104,7 +107,8 @@ class SensorOutbox:
         out = self._out
         out.clear()
         protocol, alongside = link.protocol, link.v2_alongside_v1
-        v2 = protocol == 2 or alongside
+        v2 = protocol >= 2 or alongside
+        v3 = protocol == 3
         if v2:
             self.announcer.observe(result)
         if not send:
@@ -123,6 +127,10 @@ class SensorOutbox:
             n = result.n_contacts
             touched = announcer.touched
             for k in range(max(n, 1)):
-                out.append(self.contacts_v2[k].fill(result.contacts[k] if n else est, k, t_ns, now_ns, calibrated,
-                                                    saturated, degraded, touch=touched[k] if n else None))
+                c = result.contacts[k] if n else est
+                out.append(self.contacts_v2[k].fill(c, k, t_ns, now_ns, calibrated, saturated, degraded,
+                                                    touch=touched[k] if n else None))
+                if v3:
+                    out.append(self.motions[k].fill(c, k, t_ns, result.vibration, result.vibrating,
+                                                    result.vibration_began))
         return out

@@ -51,6 +51,7 @@ class MsgType(IntEnum):
     STATUS = 0x02
     CONTACT2 = 0x03  # protocol v2 (wire_v2)
     RELEASE = 0x04  # protocol v2 (wire_v2)
+    MOTION = 0x05  # protocol v3 (wire_v2)
     PING = 0x10
     TARE = 0x11
     STREAM = 0x12
@@ -74,7 +75,7 @@ STATUS = struct.Struct("<BBHIIIhI")
 ACK = struct.Struct("<HB")
 STREAM = struct.Struct("<BB")  # on (0/1), rate divider (1..255)
 SET_THRESHOLD = struct.Struct("<H")  # contact-on level, 0.0001 relative units
-SET_PROTOCOL = struct.Struct("<B")  # the protocol version the MCU asks for (1 or 2)
+SET_PROTOCOL = struct.Struct("<B")  # the protocol version the MCU asks for (1, 2 or 3)
 
 COMMAND_LENGTHS = {
     CommandType.PING: 0,
@@ -96,7 +97,7 @@ THRESHOLD_MAX = 5000  # 0.5000 relative units
 RATE_DIVIDER_MIN = 1
 RATE_DIVIDER_MAX = 255
 CONTACT_FLAGS_MASK = 0x1F  # bits 5-7 reserved, sent as 0
-STATE_MASK = 0x7F  # STATUS state bit 7 reserved, sent as 0 (bit 6: protocol v2, never set on v1)
+STATE_MASK = 0xFF  # STATUS state bit 6: protocol v2 (never set on v1), bit 7: protocol v3 (never set on v1, v2)
 
 U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFFFFFF
 
@@ -278,7 +279,7 @@ def parse_command(msg_type: int, seq: int, payload: bytes) -> Command | tuple[in
 
     Unknown type -> UNKNOWN_COMMAND, wrong payload length -> BAD_LENGTH, a value out of its
     range (STREAM on not 0/1, divider 0, threshold outside 10..5000, a protocol version other
-    than 1 or 2) -> OUT_OF_RANGE.
+    than 1, 2 or 3) -> OUT_OF_RANGE.
     Callers should not answer sensor-side types at all (:func:`is_sensor_type`).
     """
     try:

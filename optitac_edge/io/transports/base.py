@@ -8,7 +8,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from optitac_edge.io.device import Device
-from optitac_edge.io.protocol.messages import Command, ContactMessage, ContactV2Message, ReleaseMessage, StatusMessage
+from optitac_edge.io.protocol.messages import (
+    Command,
+    ContactMessage,
+    ContactV2Message,
+    MotionMessage,
+    ReleaseMessage,
+    StatusMessage,
+)
 
 
 @dataclass
@@ -64,10 +71,16 @@ class Transport(Device, ABC):
         or :attr:`v2_alongside_v1`."""
         raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
 
-    def send(self, message: ContactMessage | ContactV2Message | ReleaseMessage) -> None:
+    def send_motion(self, message: MotionMessage) -> None:
+        """Queue one MOTION (protocol v3, non-blocking); only called when 3 is in :attr:`protocols`."""
+        raise NotImplementedError(f"{type(self).__name__} does not speak protocol v3")
+
+    def send(self, message: ContactMessage | ContactV2Message | ReleaseMessage | MotionMessage) -> None:
         """Queue one message of a sensor's frame (the outbox's), by its kind (non-blocking)."""
         if isinstance(message, ContactV2Message):
             self.send_contact_v2(message)
+        elif isinstance(message, MotionMessage):
+            self.send_motion(message)
         elif isinstance(message, ContactMessage):
             self.send_contact(message)
         else:
@@ -82,7 +95,7 @@ class NullTransport(Transport):
     """Discards everything (``run`` without a link)."""
 
     delivers = False
-    protocols = (1, 2)
+    protocols = (1, 2, 3)
 
     def send_contact(self, message: ContactMessage) -> None:
         self.counters.sent += 1
@@ -91,6 +104,9 @@ class NullTransport(Transport):
         self.counters.sent += 1
 
     def send_release(self, message: ReleaseMessage) -> None:
+        self.counters.sent += 1
+
+    def send_motion(self, message: MotionMessage) -> None:
         self.counters.sent += 1
 
     def send_status(self, message: StatusMessage) -> None:

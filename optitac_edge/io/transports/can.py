@@ -29,7 +29,6 @@ from optitac_edge.errors import TransportError
 from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec, message_ids
 from optitac_edge.io.protocol.messages import (
-    PROTOCOL_VERSIONS,
     ContactMessage,
     ContactV2Message,
     ReleaseMessage,
@@ -44,6 +43,8 @@ LINK_DOWN_ERRNOS = frozenset({errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.E
                               errno.ENETUNREACH})
 #: errnos of a full transmit queue (also what bus-off looks like on socketcan after a while).
 QUEUE_FULL_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
+#: The protocols the CAN link speaks (its database has no MOTION yet: SET_PROTOCOL 3 is refused and counted).
+CAN_PROTOCOLS = (1, 2)
 
 
 @dataclass
@@ -116,8 +117,8 @@ class CanTransport(Transport):
                  base_id: int = BASE_ID, backoff_s: tuple[float, float] = (0.1, 5.0),
                  down_after: int = 100, bus_kwargs: dict[str, Any] | None = None, protocol: int = 1) -> None:
         super().__init__()
-        if protocol not in PROTOCOL_VERSIONS:
-            raise TransportError(f"CAN protocol must be one of {PROTOCOL_VERSIONS}, got {protocol!r}")
+        if protocol not in CAN_PROTOCOLS:
+            raise TransportError(f"CAN protocol must be one of {CAN_PROTOCOLS}, got {protocol!r}")
         sensor_ids = [int(sensor_id)] if isinstance(sensor_id, int) else [int(i) for i in sensor_id]
         if not sensor_ids or len(set(sensor_ids)) != len(sensor_ids):
             raise TransportError(f"CAN link needs distinct sensor ids, got {sensor_ids}")

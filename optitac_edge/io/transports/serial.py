@@ -30,6 +30,7 @@ from optitac_edge.io.protocol.messages import (
     Command,
     ContactMessage,
     ContactV2Message,
+    MotionMessage,
     ReleaseMessage,
     StatusMessage,
 )
@@ -86,7 +87,7 @@ class SerialTransport(Transport):
         The receiving side and its counters (``decoder.counters``, ``unexpected`` ...).
     """
 
-    protocols = (1, 2)
+    protocols = (1, 2, 3)
 
     def __init__(self, url: str, baudrate: int = 921600, queue_size: int = 8, *,
                  require_port: bool = True, timing: SerialTiming = _DEFAULT_TIMING,
@@ -134,6 +135,10 @@ class SerialTransport(Transport):
     def send_release(self, message: ReleaseMessage) -> None:
         """Queue one RELEASE (protocol v2); never blocks, never raises."""
         self._send(MsgType.RELEASE, message, wire_v2.release_payload)
+
+    def send_motion(self, message: MotionMessage) -> None:
+        """Queue one MOTION (protocol v3); never blocks, never raises."""
+        self._send(MsgType.MOTION, message, wire_v2.motion_payload)
 
     def send_status(self, message: StatusMessage) -> None:
         """Queue one STATUS; never blocks, never raises."""
