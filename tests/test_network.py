@@ -48,7 +48,8 @@ def sensor(sensor_id: int = 1, name: str = "thumb") -> NetworkSensor:
 def contact(cid: int, frame: int, touch_frame: int, x: float = 1.0) -> SimpleNamespace:
     return SimpleNamespace(contact_id=cid, frame=frame, touch_frame=touch_frame, x_mm=x, y_mm=-x, major_mm=3.0,
                            minor_mm=2.0, angle_deg=10.0, strength=5.0, depth_mm=math.nan, force_n=0.5,
-                           shape="", confidence=math.nan)
+                           shape="", confidence=math.nan, vx_mm_s=2.5 * cid, vy_mm_s=-1.0, sliding=cid == 2,
+                           slide_frame=frame if cid == 2 else -1)
 
 
 def frame_(index: int, *contacts: SimpleNamespace, t_ns: int = 0, released: tuple[tuple[int, int], ...] = (),

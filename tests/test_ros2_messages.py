@@ -65,13 +65,15 @@ def test_the_definitions_are_package_data():
 def contact(i: int, depth: float = math.nan) -> msgs.ContactValues:
     return msgs.ContactValues(id=i, touch=i % 2 == 1, touch_frame=1000 + i, x_mm=-3.25 + i, y_mm=7.125,
                               major_mm=4.5, minor_mm=2.0 + i / 7, angle_deg=-45.0, strength=123.456,
-                              depth_mm=depth, force_n=1.5 * i, shape="edge" if i else "", confidence=0.875)
+                              depth_mm=depth, force_n=1.5 * i, shape="edge" if i else "", confidence=0.875,
+                              vx_mm_s=12.5 - i, vy_mm_s=math.nan if i == 1 else -0.25, sliding=i == 2,
+                              slide_frame=999 if i == 2 else -1)
 
 
 SAMPLES = [
     msgs.ContactsSample(3, 0, 0, False, False, False),
     msgs.ContactsSample(255, 4_294_967_295, 2**63 + 5, True, True, False, [contact(7, depth=1.25)], [2, 65535]),
-    msgs.ContactsSample(1, 123456, 987654321012, True, False, True, [contact(k) for k in range(4)], [9]),
+    msgs.ContactsSample(1, 123456, 987654321012, True, False, True, [contact(k) for k in range(4)], [9], 3.25, True),
 ]
 
 
@@ -82,6 +84,8 @@ def _decoded_equal(message, sample: msgs.ContactsSample, stamp_ns: int, frame_id
     assert (message.calibrated, message.saturated, message.degraded) == \
         (sample.calibrated, sample.saturated, sample.degraded)
     assert list(message.released) == sample.released
+    assert message.vibrating == sample.vibrating and (message.vibration == sample.vibration
+                                                      or math.isnan(message.vibration) and math.isnan(sample.vibration))
     assert len(message.contacts) == len(sample.contacts)
     for got, want in zip(message.contacts, sample.contacts):
         for name in msgs.ContactValues.__slots__:

@@ -122,7 +122,7 @@ def contact_values(c: ContactEstimate) -> msgs.ContactValues:
     """A contact as Contact.msg carries it."""
     return msgs.ContactValues(c.contact_id, c.touch_frame == c.frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
                               c.minor_mm, c.angle_deg, c.strength, c.depth_mm, c.force_n, c.shape or "",
-                              c.confidence)
+                              c.confidence, c.vx_mm_s, c.vy_mm_s, c.sliding, c.slide_frame)
 
 
 def contact_outline(mm_to_px: np.ndarray, contact: msgs.ContactValues) -> msgs.Outline:
@@ -236,7 +236,7 @@ class NetworkOutput:
         contacts = [contact_values(c) for c in result.touching()]
         released = sorted(cid for cid, _ in result.releases())
         sample = msgs.ContactsSample(sensor_id, est.frame, t_ns, result.calibrated, result.saturated, degraded,
-                                     contacts, released)
+                                     contacts, released, result.vibration, result.vibrating)
         queue = self._queue
         slot.offered += 1
         queue.append(_Queued(slot, slot.offered, t_ns, sample))

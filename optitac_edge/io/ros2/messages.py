@@ -24,8 +24,8 @@ PACKAGE = "optitac_msgs"
 
 #: RIHS01 type hash of each message (REP 2011), as ROS 2 computes it from msg/*.msg.
 TYPE_HASHES: dict[str, str] = {
-    "optitac_msgs/msg/Contact": "RIHS01_8ab4fc400876c825f9f29cc79c8408cbf547d5c8051b7330b7a0b9d1021df2f8",
-    "optitac_msgs/msg/Contacts": "RIHS01_9d37f383a6d70c297aade3ada785efcbab4da1b30aac3768c41057d2896e4cfd",
+    "optitac_msgs/msg/Contact": "RIHS01_48e700dca9b7e2db34bfa0061555ee77bd284e7426238f59b6f116e1d625fa84",
+    "optitac_msgs/msg/Contacts": "RIHS01_e1537c7be1441112e24cad3ec38134846df71068e45affa9f5fc087bce0d3df7",
     "optitac_msgs/msg/FiberSignal": "RIHS01_b3eede3f07963d7b1583573e07524ddb55b8c37d84425c98e5cccd72167f3016",
     "optitac_msgs/msg/SensorStatus": "RIHS01_60cd59e3130ed38da4209a3ec0b2c9068f8a3fabd7db03a0ca9b36a8e394ccd2",
     # standard messages the pictures use: sensor_msgs/Image as ROS 2 Jazzy defines it, and foxglove_msgs'
@@ -117,6 +117,10 @@ class ContactValues:
     force_n: float
     shape: str
     confidence: float
+    vx_mm_s: float = math.nan
+    vy_mm_s: float = math.nan
+    sliding: bool = False
+    slide_frame: int = -1
 
 
 @dataclass(slots=True)
@@ -131,6 +135,8 @@ class ContactsSample:
     degraded: bool
     contacts: list[ContactValues] = field(default_factory=list)
     released: list[int] = field(default_factory=list)
+    vibration: float = math.nan
+    vibrating: bool = False
 
 
 @dataclass(slots=True)
@@ -197,7 +203,13 @@ def encode_contacts(sample: ContactsSample, stamp_ns: int, frame_id: str) -> byt
             w.f64(v)
         w.string(c.shape)
         w.f64(c.confidence)
+        w.f64(c.vx_mm_s)
+        w.f64(c.vy_mm_s)
+        w.boolean(c.sliding)
+        w.i32(c.slide_frame)
     w.u16_sequence(sample.released)
+    w.f64(sample.vibration)
+    w.boolean(sample.vibrating)
     return w.payload()
 
 
