@@ -399,3 +399,64 @@ def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> 
             assert view.message.startswith("orientation corrected (the fiber map was rotated")
         finally:
             view.close()
+
+
+@pytest.fixture(scope="module")
+def sliding_view():
+    """A LiveView fed by a pipeline at 240 fps on a press held, then slid along +x at 30 mm/s, with its server."""
+    sensor = SimulatedSensor(seed=4, fps=240.0)
+    bundle = calibrate_fibers([sensor.frame(()) for _ in range(8)], "gray")
+    pipeline = Pipeline(bundle)
+    view = LiveView(bundle, "gray", rate_hz=1e9)
+    stats = Stats()
+    xs = [None] * 30 + [-3.0] * 60 + [-3.0 + 30.0 * (k + 1) / 240 for k in range(40)]
+    t, frame = 0, None
+    for x in xs:
+        frame = sensor.frame(() if x is None else (Indenter("circle", x, 1.0, 0.0, 5.0, 2.5),))
+        pipeline.process(frame, t)
+        stats.frames += 1
+        t += 4_166_667
+    view.observe(frame, t, pipeline, stats)
+    assert view.wait_published(0) is not None
+    server = ViewServer(view, "127.0.0.1:0")
+    yield view, server, bundle
+    server.close()
+    view.close()
+
+
+def test_a_sliding_contact_has_an_arrow_along_its_motion_and_the_frame_its_vibration(sliding_view) -> None:
+    _, server, bundle = sliding_view
+    state = json.loads(_get(f"http://127.0.0.1:{server.port}/api/state")[1])
+    (c,) = state["contacts"]
+    assert c["sliding"] and abs(c["vx_mm_s"] - 30.0) < 3.0 and abs(c["vy_mm_s"]) < 3.0
+    (u0, v0), (u1, v1) = c["arrow"]
+    ahead = bundle.transform.layout_to_image(np.array([[c["x_mm"] + 0.25 * c["vx_mm_s"],
+                                                        c["y_mm"] + 0.25 * c["vy_mm_s"]]]))[0]
+    assert (u0, v0) == (c["u"], c["v"]) and np.allclose((u1, v1), ahead, atol=0.2)  # a quarter of a second on
+    assert state["vibration"] is not None and state["vibration"] >= 0 and isinstance(state["vibrating"], bool)
+
+
+@pytest.mark.skipif(not (CHROMIUM and CHROMEDRIVER),
+                    reason="needs a browser: apt-get install chromium chromium-driver (.ci/run does)")
+def test_a_headless_browser_draws_the_sliding_contacts_arrow(sliding_view) -> None:
+    _, server, _ = sliding_view
+    driver = browser()
+    try:
+        driver.get(f"http://127.0.0.1:{server.port}/")
+        found = None
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not found:
+            found = driver.execute_script(
+                "const a = document.querySelector('#contacts-layer line.arrow.sliding');"
+                "const r = document.querySelector('#contacts tbody tr');"
+                "return a && r ? [a.getAttribute('marker-end'), r.innerText, "
+                "document.getElementById('figures').textContent] : null")
+            time.sleep(0.05)
+        assert found, "no arrow drawn"
+        marker, row, figures = found
+        assert marker == "url(#arrowhead)" and re.search(r"\b(2[7-9]|3[0-3])\.\d sliding\b", row), row
+        assert re.search(r"vibration \d+\.\d", figures), figures
+        errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+        assert errors == []
+    finally:
+        driver.quit()

@@ -36,7 +36,13 @@ from optitac_edge.service.view.render import DARK_FRACTION, SATURATED_LEVEL
 log = logging.getLogger(__name__)
 
 #: Contact fields copied per contact (columns of the contact buffer).
-CONTACT_FIELDS = ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength", "confidence", "area_mm2")
+CONTACT_FIELDS = ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength", "confidence", "area_mm2",
+                  "vx_mm_s", "vy_mm_s", "sliding")
+#: A moving contact's arrow: where it will be this long from now, s (at most ARROW_MAX_MM long).
+ARROW_S = 0.25
+ARROW_MAX_MM = 8.0
+#: Contacts slower than this (and not sliding) get no arrow, mm/s.
+ARROW_MIN_MM_S = 2.0
 #: Service counters shown (from ServiceStats).
 STAT_FIELDS = ("frames", "contacts", "frames_dropped", "camera_errors", "light_changes", "processing_errors")
 #: JPEG quality of the camera picture.
@@ -83,6 +89,8 @@ class _Buffers:
         self.trunc = 0.0
         self.baseline_ready = False
         self.link = ""
+        self.vibration = math.nan
+        self.vibrating = False
         self.full = False
 
 
@@ -156,6 +164,7 @@ class LiveView:
             for j, name in enumerate(STAT_FIELDS):
                 b.stats[j] = getattr(stats, name)
             b.t_ns, b.trunc = t_ns, float(pipeline.levels.trunc)
+            b.vibration, b.vibrating = float(result.vibration), bool(result.vibrating)
             b.baseline_ready = bool(pipeline.baseline_ready)
             b.full = True
         finally:
@@ -235,10 +244,23 @@ class LiveView:
         pts = np.stack([values["x_mm"] + ex * math.cos(a) - ey * math.sin(a),
                         values["y_mm"] + ex * math.sin(a) + ey * math.cos(a)], 1)
         uv = t.layout_to_image(np.vstack([[values["x_mm"], values["y_mm"]], pts]))
+        sliding = values.pop("sliding") == 1.0
         out: dict[str, Any] = {k2: (round(v, 3) if math.isfinite(v) else None) for k2, v in values.items()}
         out.update(shape=b.shapes[k], u=round(float(uv[0, 0]), 1), v=round(float(uv[0, 1]), 1),
-                   outline=np.round(uv[1:], 1).tolist())
+                   outline=np.round(uv[1:], 1).tolist(), sliding=sliding, arrow=self._arrow(values, sliding))
         return out
+
+    def _arrow(self, values: dict[str, float], sliding: bool) -> list[list[float]] | None:
+        """A moving contact's arrow in image pixels: from its centroid to where it will be in ARROW_S (at most
+        ARROW_MAX_MM away); None for a contact held still or without a velocity."""
+        vx, vy = values["vx_mm_s"], values["vy_mm_s"]
+        speed = math.hypot(vx, vy) if math.isfinite(vx) and math.isfinite(vy) else 0.0
+        if not (sliding or speed >= ARROW_MIN_MM_S) or speed == 0.0:
+            return None
+        length = min(speed * ARROW_S, ARROW_MAX_MM) / speed
+        x, y = values["x_mm"], values["y_mm"]
+        uv = self.bundle.transform.layout_to_image(np.array([[x, y], [x + vx * length, y + vy * length]]))
+        return np.round(uv, 1).tolist()
 
     def _state(self, b: _Buffers, surface: np.ndarray, contacts: list[dict[str, Any]]) -> dict[str, Any]:
         means = b.means
@@ -259,6 +281,7 @@ class LiveView:
             "surface": {"n": int(surface.shape[0]), "max": round(top, 4),
                         "values": base64.b64encode(scaled.tobytes()).decode()},
             "contacts": contacts, "message": self.message,
+            "vibration": round(b.vibration, 2) if math.isfinite(b.vibration) else None, "vibrating": b.vibrating,
             "orient": {"active": self.procedure is not None,
                        "prompt": self.procedure.prompt if self.procedure is not None else ""},
         }

@@ -52,6 +52,9 @@ function drawAxes(svg, o, x, y, size) {
   const m = el("marker", { id: "arrow", viewBox: "0 0 10 10", refX: "9", refY: "5", markerWidth: "5",
     markerHeight: "5", orient: "auto-start-reverse" }, defs);
   el("path", { d: "M 0 0 L 10 5 L 0 10 z", class: "axis-head" }, m);
+  const mh = el("marker", { id: "arrowhead", viewBox: "0 0 10 10", refX: "9", refY: "5", markerWidth: "4",
+    markerHeight: "4", orient: "auto" }, defs);  // a moving contact's arrow (drawContacts)
+  el("path", { d: "M 0 0 L 10 5 L 0 10 z", class: "motion-head" }, mh);
   const g = el("g", { id: "axes", class: "axis" }, svg);
   for (const [end, name] of [[x, "+x"], [y, "+y"]]) {
     el("line", { x1: o[0], y1: o[1], x2: end[0], y2: end[1], "marker-end": "url(#arrow)" }, g);
@@ -162,10 +165,16 @@ function drawContacts(contacts) {
   contacts.forEach((c, k) => {
     el("polygon", { class: "contact", points: c.outline.map((p) => p.join(",")).join(" ") }, layer);
     el("circle", { class: "contact", cx: c.u, cy: c.v, r: 2 }, layer);
+    if (c.arrow) {  // a moving contact: where it will be in a quarter of a second
+      const [[u0, v0], [u1, v1]] = c.arrow;
+      el("line", { class: c.sliding ? "arrow sliding" : "arrow", x1: u0, y1: v0, x2: u1, y2: v1,
+        "marker-end": "url(#arrowhead)" }, layer);
+    }
     const row = body.insertRow();
     const fmt = (v, d) => (v === null ? "–" : v.toFixed(d));
+    const speed = c.vx_mm_s === null || c.vy_mm_s === null ? null : Math.hypot(c.vx_mm_s, c.vy_mm_s);
     for (const text of [String(k + 1), `${fmt(c.x_mm, 2)}, ${fmt(c.y_mm, 2)}`, `${fmt(c.major_mm, 2)} × ${fmt(c.minor_mm, 2)}`,
-      `${fmt(c.angle_deg, 0)}°`, c.shape || "–", fmt(c.strength, 0)]) {
+      `${fmt(c.angle_deg, 0)}°`, c.shape || "–", fmt(c.strength, 0), fmt(speed, 1) + (c.sliding ? " sliding" : "")]) {
       row.insertCell().textContent = text;
     }
   });
@@ -173,7 +182,9 @@ function drawContacts(contacts) {
 
 function show(s) {
   $("frame").src = `api/frame.jpg?seq=${s.seq}`;
-  $("figures").textContent = `${s.fps.toFixed(1)} fps · frames ${s.frames} · dropped ${s.frames_dropped} · camera faults ${s.camera_errors} · light changes ${s.light_changes} · link ${s.link}` + (s.baseline_ready ? "" : " · taking the baseline");
+  const vibration = s.vibration === null ? "–" : s.vibration.toFixed(1) + (s.vibrating ? " vibrating" : "");
+  $("figures").textContent = `${s.fps.toFixed(1)} fps · frames ${s.frames} · dropped ${s.frames_dropped} · camera faults ${s.camera_errors} · light changes ${s.light_changes} · vibration ${vibration} · link ${s.link}` + (s.baseline_ready ? "" : " · taking the baseline");
+  document.body.dataset.vibration = String(s.vibration);
   $("trunc").textContent = `max ${s.surface.max.toFixed(3)}, truncation level ${s.truncation}`;
   const warn = new Set([...s.dark, ...s.saturated]);
   for (const [id, node] of fiberNodes) {
