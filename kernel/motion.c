@@ -9,11 +9,13 @@ void ok_motion_reset(ok_motion *m) {
     for (int32_t i = 0; i < OK_MOTION_MAX_TRACKS; i++) m->tracks[i].id = 0;
 }
 
+
 static void start(ok_motion *m, ok_track *track, int32_t id, int32_t frame) {
     memset(track, 0, sizeof *track);
     track->id = id;
     track->noise = m->prior;
-    track->ax = track->ay = track->strength = NAN;
+    track->ax = track->ay = NAN;
+    track->strength = m->prior_strength;
     track->slide_frame = -1;
     track->seen = frame;
 }
@@ -34,14 +36,20 @@ ok_track *ok_motion_track(ok_motion *m, int32_t id, int touched, int32_t frame) 
 }
 
 void ok_motion_forget(ok_motion *m, int32_t frame) {
-    double prior = -1.0;
+    double prior = -1.0, strength = NAN;
     for (int32_t i = 0; i < OK_MOTION_MAX_TRACKS; i++) {
         ok_track *track = &m->tracks[i];
         if (track->id == 0 || track->seen == frame) continue;
-        if (track->n >= m->window && track->noise > prior) prior = track->noise;
+        if (track->n >= m->window && track->noise > prior) {
+            prior = track->noise;
+            strength = track->strength;
+        }
         track->id = 0;
     }
-    if (prior >= 0.0) m->prior = prior;
+    if (prior >= 0.0) {
+        m->prior = prior;
+        m->prior_strength = strength;
+    }
 }
 
 void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, double strength, int32_t frame,
@@ -50,6 +58,7 @@ void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, double st
     track->t[h] = t_s;
     track->x[h] = x;
     track->y[h] = y;
+    track->s[h] = strength;
     track->head = (h + 1) % w;
     int32_t n = track->n = track->n < w ? track->n + 1 : w;
     if (n < 2) {
@@ -92,8 +101,25 @@ void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, double st
         return;
     }
     double speed = sqrt(vx * vx + vy * vy);
-    double noise = track->noise; /* a fainter contact's centroid is the noisier in proportion */
-    if (strength < track->strength) noise = strength > 0.0 ? noise * track->strength / strength : INFINITY;
+    /* a fainter contact's centroid is the noisier in proportion: the noise scaled by the strength it was
+     * measured at (or the window's strongest) over the window's faintest */
+    double weakest = track->s[0], strongest = track->s[0], noise = track->noise;
+    for (int32_t k = 1; k < w; k++) {
+        if (track->s[k] < weakest) weakest = track->s[k];
+        if (track->s[k] > strongest) strongest = track->s[k];
+    }
+    if (track->strength > strongest) strongest = track->strength;
+    double ratio = weakest > 0.0 ? strongest / weakest : strongest > 0.0 ? INFINITY : 1.0; /* 1: none known */
+    if (!(ratio <= m->steady_ratio)) { /* pressed in or lifted: no slip judged, nothing learned */
+        if (!track->sliding) {
+            track->ax = xm;
+            track->ay = ym;
+        }
+        out->sliding = track->sliding;
+        out->slide_frame = track->slide_frame;
+        return;
+    }
+    noise *= ratio;
     double level = m->slip_sigmas * noise / sqrt(stt);
     if (level < m->min_speed) level = m->min_speed;
     if (track->sliding) {

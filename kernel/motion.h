@@ -11,7 +11,7 @@
 
 typedef struct {
     int32_t id; /* 0: free */
-    double t[OK_MOTION_MAX_WINDOW], x[OK_MOTION_MAX_WINDOW], y[OK_MOTION_MAX_WINDOW];
+    double t[OK_MOTION_MAX_WINDOW], x[OK_MOTION_MAX_WINDOW], y[OK_MOTION_MAX_WINDOW], s[OK_MOTION_MAX_WINDOW];
     int32_t n, head;
     double noise, strength, ax, ay; /* strength: the contact's strength its noise was measured at (NaN) */
     int32_t sliding, slide_frame;
@@ -20,8 +20,8 @@ typedef struct {
 
 typedef struct {
     int32_t window;
-    double slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate;
-    double prior;
+    double slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, steady_ratio;
+    double prior, prior_strength; /* the last full contact's noise and the strength it was measured at */
     ok_track tracks[OK_MOTION_MAX_TRACKS];
 } ok_motion;
 

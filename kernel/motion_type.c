@@ -1,6 +1,6 @@
 /* optitac_edge.core._frame_kernel.Motion: the CPython face of motion.c.
  *
- * Motion(window, slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, prior) keeps every tracked
+ * Motion(window, slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, prior, steady_ratio) keeps every tracked
  * contact's window; update(contacts, n, frame, now_ns) reads each contact's contact_id, touch_frame, x_mm,
  * y_mm and strength and sets its vx_mm_s, vy_mm_s, sliding and slide_frame, as ContactMotion.update does
  * (optitac_edge/core/motion.py, the reference). */
@@ -9,6 +9,8 @@
 #include <structmember.h>
 
 #include "motion.h"
+
+#include <math.h>
 
 typedef struct {
     PyObject_HEAD
@@ -20,15 +22,17 @@ static PyObject *s_id, *s_touch, *s_x, *s_y, *s_strength, *s_vx, *s_vy, *s_slidi
 
 static int Motion_init(MotionObject *self, PyObject *args, PyObject *kwds) {
     static char *kwlist[] = {"window", "slip_sigmas", "min_speed", "min_shift", "hold_fraction", "noise_rate",
-                             "prior", NULL};
+                             "prior", "steady_ratio", NULL};
     ok_motion *m = &self->m;
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "idddddd", kwlist, &m->window, &m->slip_sigmas, &m->min_speed,
-                                     &m->min_shift, &m->hold_fraction, &m->noise_rate, &m->prior))
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "iddddddd", kwlist, &m->window, &m->slip_sigmas, &m->min_speed,
+                                     &m->min_shift, &m->hold_fraction, &m->noise_rate, &m->prior, &m->steady_ratio))
         return -1;
-    if (m->window < 3 || m->window > OK_MOTION_MAX_WINDOW || !(m->prior >= 0) || !(m->noise_rate > 0)) {
+    if (m->window < 3 || m->window > OK_MOTION_MAX_WINDOW || !(m->prior >= 0) || !(m->noise_rate > 0) ||
+        !(m->steady_ratio >= 1.0)) {
         PyErr_SetString(PyExc_ValueError, "Motion: constants out of range");
         return -1;
     }
+    m->prior_strength = NAN;
     ok_motion_reset(m);
     self->initialised = 1;
     return 0;

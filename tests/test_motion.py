@@ -198,6 +198,23 @@ def test_a_press_being_lifted_is_not_a_slide(motion) -> None:
     assert speeds.max() > MIN_SLIP_SPEED_MM_S  # it did wander as fast as a slow slide
 
 
+def test_a_press_being_pressed_in_is_not_a_slide(motion) -> None:
+    """A first contact pressed in over 0.1 s (its strength growing from 1 % to full), its centroid wandering as
+    a faint contact's does, then held: never a slide."""
+    rng = np.random.default_rng(8)
+    strength = np.r_[100.0 * np.geomspace(0.01, 1.0, 24), np.full(240, 100.0)]
+    xy = 1.0 + rng.normal(0.0, 1.0, (264, 2)) * (0.004 * 100.0 / strength)[:, None]
+    got = []
+    for k in range(264):
+        c = ContactEstimate(contact=True, x_mm=float(xy[k, 0]), y_mm=float(xy[k, 1]), contact_id=3, touch_frame=0,
+                            strength=float(strength[k]))
+        motion.update([c], 1, k, k * PERIOD_NS)
+        got.append(c)
+    assert not any(c.sliding for c in got)
+    speeds = np.hypot([c.vx_mm_s for c in got[1:24]], [c.vy_mm_s for c in got[1:24]])
+    assert speeds.max() > 3 * MIN_SLIP_SPEED_MM_S  # it did wander fast
+
+
 def test_a_new_touch_and_a_tare_start_the_window_again(motion) -> None:
     xy = np.outer(np.arange(20) * PERIOD, (50.0, 0.0))
     got = _feed(motion, xy)

@@ -111,7 +111,7 @@ def compiled_motion() -> Any:
     if mod is None:
         raise ImportError(f"the compiled kernel is {_why_not}")
     return mod.Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
-                      m.NOISE_RATE, m.PRIOR_NOISE_MM)
+                      m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO)
 
 
 class FrameKernel:

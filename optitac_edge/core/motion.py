@@ -102,6 +102,10 @@ MIN_SLIP_SPEED_MM_S = 3.0
 MIN_SLIP_SHIFT_MM = 0.075
 #: A sliding contact is held again when its speed falls below this fraction of the level it slid at.
 HOLD_FRACTION = 0.5
+#: A contact whose window's strongest sample is more than this many times its faintest (or than the strength
+#: its noise was measured at) is being pressed in or lifted: its centroid moves as its footprint grows or
+#: shrinks, and no slide is judged.
+STEADY_RATIO = 2.0
 #: The centroid noise a contact starts with, mm, before its own is known (or the last contact's).
 PRIOR_NOISE_MM = 0.01
 #: Weight of one held frame's window in a contact's centroid noise and in where it rests (running means of
@@ -112,15 +116,16 @@ NOISE_RATE = 0.05
 class _Track:
     """One contact's window of centroids (a ring), its centroid noise and its slip state."""
 
-    __slots__ = ("ax", "ay", "head", "n", "noise", "slide_frame", "sliding", "strength", "t", "x", "y")
+    __slots__ = ("ax", "ay", "head", "n", "noise", "s", "slide_frame", "sliding", "strength", "t", "x", "y")
 
-    def __init__(self, noise: float) -> None:
+    def __init__(self, noise: float, strength: float) -> None:
         self.t = [0.0] * WINDOW
         self.x = [0.0] * WINDOW
         self.y = [0.0] * WINDOW
+        self.s = [0.0] * WINDOW
         self.n = self.head = 0
         self.noise = noise
-        self.strength = math.nan  # the contact's strength its noise was measured at
+        self.strength = strength  # the contact's strength its noise was measured at (NaN: not known)
         self.sliding = False
         self.slide_frame = -1
         self.ax = self.ay = math.nan
@@ -142,9 +147,12 @@ class ContactMotion:
     it is held again when its speed falls below :data:`HOLD_FRACTION` of that
     level. A breathing or growing press, an LED change or a small vibration
     moves the centroid little and slowly, and raises ``σ`` while it lasts. A
-    contact fainter than it was while ``σ`` was measured (its running mean
-    ``strength``) has the noisier centroid in proportion: ``σ`` is scaled by
-    that ratio (a press being lifted).
+    contact's centroid is the noisier the fainter it is, in inverse proportion
+    to its strength: ``σ`` is scaled by the strength it was measured at (its
+    running mean while held; the window's strongest if that is stronger) over
+    the window's faintest; beyond :data:`STEADY_RATIO` the press is being
+    pressed in or lifted, its footprint and centroid change with its depth,
+    and no slide is judged (where it rests follows it).
 
     Pure Python on at most a few contacts; nothing is allocated per frame but
     a track when a contact touches.
@@ -153,6 +161,7 @@ class ContactMotion:
     def __init__(self) -> None:
         self._tracks: dict[int, _Track] = {}
         self._prior = PRIOR_NOISE_MM
+        self._prior_strength = math.nan
 
     def reset(self) -> None:
         """Forget every contact (a tare)."""
@@ -167,7 +176,7 @@ class ContactMotion:
             c = contacts[i]
             track = tracks.get(c.contact_id)
             if track is None or c.touch_frame == frame:
-                track = tracks[c.contact_id] = _Track(self._prior)
+                track = tracks[c.contact_id] = _Track(self._prior, self._prior_strength)
             _step(track, c, frame, t_s)
         if len(tracks) > n:
             self._forget(contacts, n)
@@ -176,13 +185,13 @@ class ContactMotion:
         """Forget the contacts that are gone; the next contact starts from the noise of the (noisiest) one
         that had a full window."""
         alive = {contacts[i].contact_id for i in range(n)}
-        prior = -1.0
+        prior, strength = -1.0, math.nan
         for cid in [cid for cid in self._tracks if cid not in alive]:
             track = self._tracks.pop(cid)
             if track.n >= WINDOW and track.noise > prior:
-                prior = track.noise
+                prior, strength = track.noise, track.strength
         if prior >= 0.0:
-            self._prior = prior
+            self._prior, self._prior_strength = prior, strength
 
 
 def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
@@ -194,6 +203,7 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
     h = track.head
     ts, xs, ys = track.t, track.x, track.y
     ts[h], xs[h], ys[h] = t_s, x, y
+    track.s[h] = strength = c.strength
     track.head = (h + 1) % WINDOW
     n = track.n = track.n + 1 if track.n < WINDOW else WINDOW
     if n < 2:
@@ -228,10 +238,18 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
         c.sliding, c.slide_frame = False, -1
         return
     speed = math.sqrt(vx * vx + vy * vy)
-    strength = c.strength
-    noise = track.noise  # a fainter contact's centroid is the noisier in proportion (a press lifting)
-    if strength < track.strength:
-        noise = noise * track.strength / strength if strength > 0.0 else math.inf
+    # a fainter contact's centroid is the noisier in proportion (a press being pressed in or lifted): the
+    # noise scaled by the strength it was measured at (or the window's strongest) over the window's faintest
+    weakest, strongest = min(track.s), max(track.s)
+    if track.strength > strongest:
+        strongest = track.strength
+    ratio = strongest / weakest if weakest > 0.0 else (math.inf if strongest > 0.0 else 1.0)  # 1: none known
+    if not ratio <= STEADY_RATIO:  # being pressed in or lifted: no slip judged, nothing learned
+        if not track.sliding:
+            track.ax, track.ay = xm, ym
+        c.sliding, c.slide_frame = track.sliding, track.slide_frame
+        return
+    noise = track.noise * ratio
     level = max(SLIP_SIGMAS * noise / math.sqrt(stt), MIN_SLIP_SPEED_MM_S)
     if track.sliding:
         if speed < HOLD_FRACTION * level:
