@@ -1,6 +1,31 @@
 """optitac-edge: OptiTac optical-fiber tactile sensor processing for robot grippers.
 
-Nothing in this package touches hardware at import time.
+The public Python API (docs/api.md) is what this package exports: :func:`open_sensor`, :class:`Sensor`,
+:class:`Reading`, :class:`Contact`, :class:`Status` and :class:`OptiTacError`. They are imported when first
+used, so ``import optitac_edge`` stays light; nothing in the package touches hardware at import time.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 __version__ = "0.1.0"
+
+#: The names the project promises to keep (tests/test_api.py lists them).
+__all__ = ["Contact", "OptiTacError", "Reading", "Sensor", "Status", "__version__", "open_sensor"]
+
+if TYPE_CHECKING:
+    from optitac_edge.api import Contact, Reading, Sensor, Status, open_sensor
+    from optitac_edge.errors import OptiTacError
+
+
+def __getattr__(name: str) -> Any:
+    if name == "OptiTacError":
+        from optitac_edge.errors import OptiTacError
+
+        return OptiTacError
+    if name in __all__:
+        from optitac_edge import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'optitac_edge' has no attribute {name!r}")

@@ -241,8 +241,7 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
     # a fainter contact's centroid is the noisier in proportion (a press being pressed in or lifted): the
     # noise scaled by the strength it was measured at (or the window's strongest) over the window's faintest
     weakest, strongest = min(track.s), max(track.s)
-    if track.strength > strongest:
-        strongest = track.strength
+    strongest = max(strongest, track.strength)
     ratio = strongest / weakest if weakest > 0.0 else (math.inf if strongest > 0.0 else 1.0)  # 1: none known
     if not ratio <= STEADY_RATIO:  # being pressed in or lifted: no slip judged, nothing learned
         if not track.sliding:
