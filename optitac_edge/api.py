@@ -292,9 +292,6 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
         A board, sensor, bundle, camera or recording that cannot be opened: one line naming it.
     """
     from optitac_edge.config import load_board_config
-    from optitac_edge.io.bundle_file import load_bundle
-    from optitac_edge.service.bundles import check_bundle_region, obtain_bundles
-    from optitac_edge.service.wiring import open_board_camera, open_led
 
     if recording is not None and not Path(recording).is_dir():
         raise OptiTacError(f"{recording}: no such recording directory")
@@ -309,22 +306,32 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
         raise OptiTacError(f"{cal_path}: no such calibration bundle")
     stack = ExitStack()
     try:
-        led = open_led(config.led)
-        stack.callback(led.close)
-        led.set_brightness(config.led.brightness)
-        camera_name = chosen.sensor.camera
-        if recording is not None:  # as fast as it is read, each frame at its recorded time
-            from optitac_edge.io.cameras.recording import RecordingCamera
-
-            camera = stack.enter_context(RecordingCamera(recording))
-        else:
-            camera = stack.enter_context(open_board_camera(config, camera_name))
-        if cal_path is not None:
-            bundle = check_bundle_region(load_bundle(cal_path), chosen, cal_path)
-        else:
-            found = obtain_bundles(config, camera_name, camera, None, led)
-            bundle = next(b.bundle for b in found if b.sensor.sensor.id == chosen.sensor.id)
-        return Sensor(config, chosen, camera, bundle, stack)
+        return _open(config, chosen, cal_path, recording, stack)
     except BaseException:
         stack.close()
         raise
+
+
+def _open(config: Any, chosen: Any, cal_path: Path | None, recording: str | os.PathLike[str] | None,
+          stack: ExitStack) -> Sensor:
+    """The LED ring, the camera (or the recording) and the bundle of ``chosen``, closed with ``stack``."""
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.service.bundles import check_bundle_region, obtain_bundles
+    from optitac_edge.service.wiring import open_board_camera, open_led
+
+    led = open_led(config.led)
+    stack.callback(led.close)
+    led.set_brightness(config.led.brightness)
+    camera_name = chosen.sensor.camera
+    if recording is not None:  # as fast as it is read, each frame at its recorded time
+        from optitac_edge.io.cameras.recording import RecordingCamera
+
+        camera = stack.enter_context(RecordingCamera(Path(recording)))
+    else:
+        camera = stack.enter_context(open_board_camera(config, camera_name))
+    if cal_path is not None:
+        bundle = check_bundle_region(load_bundle(cal_path), chosen, cal_path)
+    else:
+        found = obtain_bundles(config, camera_name, camera, None, led)
+        bundle = next(b.bundle for b in found if b.sensor.sensor.id == chosen.sensor.id)
+    return Sensor(config, chosen, camera, bundle, stack)

@@ -203,7 +203,7 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
     h = track.head
     ts, xs, ys = track.t, track.x, track.y
     ts[h], xs[h], ys[h] = t_s, x, y
-    track.s[h] = strength = c.strength
+    track.s[h] = c.strength
     track.head = (h + 1) % WINDOW
     n = track.n = track.n + 1 if track.n < WINDOW else WINDOW
     if n < 2:
@@ -237,6 +237,14 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
         track.ax, track.ay = xm, ym
         c.sliding, c.slide_frame = False, -1
         return
+    _judge(track, c, frame, (vx, vy, stt, xm, ym, max(sxx - vx * stx + syy - vy * sty, 0.0)))
+    c.sliding, c.slide_frame = track.sliding, track.slide_frame
+
+
+def _judge(track: _Track, c: ContactEstimate, frame: int, fit: tuple[float, float, float, float, float, float]) -> None:
+    """The slip state of a full window: ``fit`` = velocity, ``Σ (t - t̄)²``, the window's mean and the
+    scatter about its line (``Σ r²``)."""
+    vx, vy, stt, xm, ym, ss = fit
     speed = math.sqrt(vx * vx + vy * vy)
     # a fainter contact's centroid is the noisier in proportion (a press being pressed in or lifted): the
     # noise scaled by the strength it was measured at (or the window's strongest) over the window's faintest
@@ -246,7 +254,6 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
     if not ratio <= STEADY_RATIO:  # being pressed in or lifted: no slip judged, nothing learned
         if not track.sliding:
             track.ax, track.ay = xm, ym
-        c.sliding, c.slide_frame = track.sliding, track.slide_frame
         return
     noise = track.noise * ratio
     level = max(SLIP_SIGMAS * noise / math.sqrt(stt), MIN_SLIP_SPEED_MM_S)
@@ -254,14 +261,13 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
         if speed < HOLD_FRACTION * level:
             track.sliding, track.slide_frame = False, -1
             track.ax, track.ay = xm, ym
-    elif speed > level and math.sqrt((x - track.ax) ** 2 + (y - track.ay) ** 2) > max(MIN_SLIP_SHIFT_MM,
-                                                                                      SLIP_SIGMAS * noise):
+    elif speed > level and math.sqrt((c.x_mm - track.ax) ** 2 + (c.y_mm - track.ay) ** 2) > max(
+            MIN_SLIP_SHIFT_MM, SLIP_SIGMAS * noise):
         track.sliding, track.slide_frame = True, frame
     else:  # held: the scatter about the line is its centroid noise; where it rests follows slowly
-        ss = max(sxx - vx * stx + syy - vy * sty, 0.0)
+        strength = c.strength
         track.noise += NOISE_RATE * (math.sqrt(ss / (2 * (WINDOW - 2))) - track.noise)
         track.strength = strength if math.isnan(track.strength) else (track.strength
                                                                       + NOISE_RATE * (strength - track.strength))
         track.ax += NOISE_RATE * (xm - track.ax)
         track.ay += NOISE_RATE * (ym - track.ay)
-    c.sliding, c.slide_frame = track.sliding, track.slide_frame

@@ -119,17 +119,27 @@ def single_threaded_opencv() -> Iterator[None]:
         cv2.setNumThreads(previous)
 
 
-def _track(tracker: ContactTracker, result: FrameResult, n: int, frame: int) -> None:
-    """Step 8: ids, touches and releases of the frame's ``n`` contacts (``result.contacts``), into ``result``."""
-    tracker.update(result.contacts, n, frame)
+def _track(pipe: Pipeline, n: int, now_ns: int, dt_ns: int | None) -> None:
+    """Steps 8 and 8b: ids, touches and releases of the frame's ``n`` contacts (``result.contacts``) into the
+    pipeline's result; then (``dt_ns`` given: the baseline is ready) their motion and the frame's vibration."""
+    result, tracker = pipe.result, pipe.tracker
+    tracker.update(result.contacts, n, result.frame)
     result.n_contacts = n
     result.n_released = tracker.n_released
-
-
-def _vibrate(meter: VibrationMeter, result: FrameResult, trunc: float, dt_ns: int) -> None:
-    """Step 8b: the frame's vibration (:class:`~optitac_edge.core.vibration.VibrationMeter`) into ``result``."""
-    result.vibration = meter.update(trunc, dt_ns)
+    if dt_ns is None:
+        result.vibration, result.vibrating, result.vibration_began = math.nan, False, False
+        return
+    pipe.motion.update(result.contacts, n, result.frame, now_ns)
+    meter = pipe.vibration
+    result.vibration = meter.update(float(pipe.levels.trunc), dt_ns)
     result.vibrating, result.vibration_began = meter.vibrating, meter.began
+
+
+def _motion_parts(signal: np.ndarray, live: np.ndarray, compiled: bool) -> tuple[ContactMotion, VibrationMeter]:
+    """Step 8b's parts: the kernel's (``compiled``) or the numpy ones."""
+    if compiled:
+        return compiled_motion(), compiled_vibration(signal, live)
+    return ContactMotion(), VibrationMeter(signal, live)
 
 
 def _rest_light(means: np.ndarray, gain: GainCompensation | None, baseline: Baseline) -> np.ndarray:
@@ -210,9 +220,6 @@ class Pipeline:
                                     float(grid.cell_area_mm2))
         #: Stable contact ids, touch frames and releases from frame to frame.
         self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
-        #: Step 8b: every contact's velocity and slip state, and the fibers' vibration.
-        self.motion: ContactMotion = ContactMotion()
-        self.vibration: VibrationMeter = VibrationMeter(self._signal, self._live)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
         self.result = FrameResult(self.contacts, self.tracker.released)
         #: The compiled kernel running steps 2-10 (None: the numpy parts do).
@@ -222,9 +229,9 @@ class Pipeline:
         self.set_corrector(ContactCorrector(bundle))
         if compiled or (compiled is None and kernel_status()[0]):
             self.kernel = FrameKernel(self)  # it keeps the contacts' shape features where it writes them
-            self.vibration = compiled_vibration(self._signal, self._live)
-            self.motion = compiled_motion()
             self.set_corrector(self.corrector)
+        #: Step 8b: every contact's velocity and slip state, and the fibers' vibration.
+        self.motion, self.vibration = _motion_parts(self._signal, self._live, self.kernel is not None)
 
     # -- state -----------------------------------------------------------------
 
@@ -351,9 +358,7 @@ class Pipeline:
             n = fk.run(frame, now_ns, dt_ns, est, self.contacts, None if self._kernel_corrects else self.corrector,
                        means_ready)
             result.light_changed = gain is not None and fk.light_changed
-            _track(self.tracker, result, n, est.frame)
-            self.motion.update(self.contacts, n, est.frame, now_ns)
-            _vibrate(self.vibration, result, float(self.levels.trunc), dt_ns)
+            _track(self, n, now_ns, dt_ns)
             if fk.raise_pending:
                 self._raise(fk.rest, fk.common)
             return result
@@ -366,17 +371,14 @@ class Pipeline:
                         g.reset_gain(now_ns)
             est.baseline_ready = False
             est.clear()
-            _track(self.tracker, result, 0, est.frame)
-            result.vibration, result.vibrating, result.vibration_began = math.nan, False, False
+            _track(self, 0, now_ns, None)
             return result
         est.baseline_ready = True
         signal = self.compute_signal(means, now_ns)
         result.light_changed = gain is not None and gain.light_changed
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
         n = self.finder.find(surface, est, self._in_contact, self.corrector)
-        _track(self.tracker, result, n, est.frame)
-        self.motion.update(self.contacts, n, est.frame, now_ns)
-        _vibrate(self.vibration, result, float(self.levels.trunc), dt_ns)
+        _track(self, n, now_ns, dt_ns)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
 

@@ -49,6 +49,19 @@ STAT_FIELDS = ("frames", "contacts", "frames_dropped", "camera_errors", "light_c
 JPEG_QUALITY = 80
 
 
+def contact_arrow(transform: Any, values: dict[str, float], sliding: bool) -> list[list[float]] | None:
+    """A moving contact's arrow in image pixels (``transform``: the bundle's): from its centroid to where it
+    will be in ARROW_S (at most ARROW_MAX_MM away); None for a contact held still or without a velocity."""
+    vx, vy = values["vx_mm_s"], values["vy_mm_s"]
+    speed = math.hypot(vx, vy) if math.isfinite(vx) and math.isfinite(vy) else 0.0
+    if not (sliding or speed >= ARROW_MIN_MM_S) or speed == 0.0:
+        return None
+    length = min(speed * ARROW_S, ARROW_MAX_MM) / speed
+    x, y = values["x_mm"], values["y_mm"]
+    uv = transform.layout_to_image(np.array([[x, y], [x + vx * length, y + vy * length]]))
+    return np.round(uv, 1).tolist()
+
+
 def lower_priority(niceness: int = 10) -> None:
     """Run the calling thread at a lower scheduling priority (Linux: per-thread nice), best effort.
 
@@ -247,20 +260,9 @@ class LiveView:
         sliding = values.pop("sliding") == 1.0
         out: dict[str, Any] = {k2: (round(v, 3) if math.isfinite(v) else None) for k2, v in values.items()}
         out.update(shape=b.shapes[k], u=round(float(uv[0, 0]), 1), v=round(float(uv[0, 1]), 1),
-                   outline=np.round(uv[1:], 1).tolist(), sliding=sliding, arrow=self._arrow(values, sliding))
+                   outline=np.round(uv[1:], 1).tolist(), sliding=sliding,
+                   arrow=contact_arrow(self.bundle.transform, values, sliding))
         return out
-
-    def _arrow(self, values: dict[str, float], sliding: bool) -> list[list[float]] | None:
-        """A moving contact's arrow in image pixels: from its centroid to where it will be in ARROW_S (at most
-        ARROW_MAX_MM away); None for a contact held still or without a velocity."""
-        vx, vy = values["vx_mm_s"], values["vy_mm_s"]
-        speed = math.hypot(vx, vy) if math.isfinite(vx) and math.isfinite(vy) else 0.0
-        if not (sliding or speed >= ARROW_MIN_MM_S) or speed == 0.0:
-            return None
-        length = min(speed * ARROW_S, ARROW_MAX_MM) / speed
-        x, y = values["x_mm"], values["y_mm"]
-        uv = self.bundle.transform.layout_to_image(np.array([[x, y], [x + vx * length, y + vy * length]]))
-        return np.round(uv, 1).tolist()
 
     def _state(self, b: _Buffers, surface: np.ndarray, contacts: list[dict[str, Any]]) -> dict[str, Any]:
         means = b.means
