@@ -79,7 +79,7 @@ def test_packaged_dbc_layout():
     by_name = {m.name: m for m in db.messages}
     assert {n: m.frame_id for n, m in by_name.items()} == {"CONTACT_A": 0x300, "CONTACT_B": 0x301,
                                                            "STATUS": 0x302,
-                                                           "CONTACT2": 0x303, "RELEASE": 0x304}
+                                                           "CONTACT2": 0x303, "RELEASE": 0x304, "MOTION": 0x305}
     for message in db.messages:
         assert message.length == 8 and not message.is_extended_frame
         assert "COUNTER" in [s.name for s in message.signals]
@@ -107,15 +107,16 @@ def test_packaged_dbc_layout():
 
 def test_message_ids_and_split():
     assert message_ids(0) == {"CONTACT_A": 0x300, "CONTACT_B": 0x301, "STATUS": 0x302,
-                              "CONTACT2": 0x303, "RELEASE": 0x304}  # the last two: protocol v2 only
+                              "CONTACT2": 0x303, "RELEASE": 0x304, "MOTION": 0x305}  # v2's two, v3's one
     assert message_ids(5) == {"CONTACT_A": 0x350, "CONTACT_B": 0x351, "STATUS": 0x352, "CONTACT2": 0x353,
-                              "RELEASE": 0x354}
+                              "RELEASE": 0x354, "MOTION": 0x355}
     top = max_sensor_id()
     assert top == 79 and message_ids(top)["STATUS"] <= 0x7FF
     for sensor in (0, 1, 17, top):
         for name, frame_id in message_ids(sensor).items():
             assert split_id(frame_id) == (sensor, name)
-    assert split_id(0x2FF) is None and split_id(0x305) is None and split_id(0x800) is None
+    assert split_id(0x2FF) is None and split_id(0x306) is None and split_id(0x800) is None
+    assert split_id(0x305) == (0, "MOTION")
     assert split_id(0x303) == (0, "CONTACT2") and split_id(0x314) == (1, "RELEASE")
     with pytest.raises(TransportError):
         message_ids(top + 1)
@@ -249,7 +250,8 @@ def test_custom_dbc_is_checked(tmp_path):
 
 def test_contacts_and_status_over_virtual_bus(link):
     tx, rx = link
-    assert tx.ids == {"CONTACT_A": 0x330, "CONTACT_B": 0x331, "STATUS": 0x332, "CONTACT2": 0x333, "RELEASE": 0x334}
+    assert tx.ids == {"CONTACT_A": 0x330, "CONTACT_B": 0x331, "STATUS": 0x332, "CONTACT2": 0x333, "RELEASE": 0x334,
+                      "MOTION": 0x335}
     msgs = [_contact(x_mm=0.1 * i, angle_deg=-80 + 7.3 * i, age_us=100 * i) for i in range(5)]
     for m in msgs:
         tx.send_contact(m)

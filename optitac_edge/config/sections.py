@@ -108,9 +108,10 @@ class LinkConfig:
                               "can: python-can interface")
     can_bitrate: int = _opt(_int(10_000, 1_000_000), 500_000,
                             "can: bit rate (socketcan: set on the interface, docs/deploy.md)")
-    can_protocol: int = _opt(_int(1, 2), 1,
+    can_protocol: int = _opt(_int(1, 3), 1,
                              "can: 2 adds protocol v2's CONTACT2 and RELEASE frames (every contact with depth, "
-                             "force and id) on their own ids beside the v1 frames (docs/can.md)")
+                             "force and id) on their own ids beside the v1 frames, 3 also each contact's MOTION "
+                             "(velocity, slip, vibration) (docs/can.md)")
     rate_divider: int = _opt(_int(1, 1000), 1, "send the contact of every Nth frame")
 
 

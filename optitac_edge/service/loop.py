@@ -122,7 +122,7 @@ class Service:
         self.network: NetworkOutput | None = None
         #: Protocol, streaming and rate divider, as the MCU's commands set them.
         self.link = LinkState(rate_divider=config.link.rate_divider, delivers=transport.delivers,
-                              v2_alongside_v1=transport.v2_alongside_v1)
+                              v2_alongside_v1=transport.v2_alongside_v1, v3_alongside=transport.motion_alongside)
         self._inbox: deque[Command] = deque()
         #: Every sensor's STATUS (``status.calibration_unsaved``: the bundle could not be saved, bit5).
         self.status = StatusReporter(self.channels, self.stats, self.link, transport, config.status.period_s)

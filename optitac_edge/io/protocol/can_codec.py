@@ -22,6 +22,7 @@ from optitac_edge.io.protocol.messages import (
     TEMP_UNKNOWN,
     ContactMessage,
     ContactV2Message,
+    MotionMessage,
     ShapeCode,
     StatusMessage,
     fold_angle_deg,
@@ -34,7 +35,8 @@ DBC_PATH = Path(__file__).with_name("optitac.dbc")
 BASE_ID = 0x300
 SENSOR_STRIDE = 0x10
 #: Message name -> offset from the sensor's base identifier.
-MESSAGE_OFFSETS: dict[str, int] = {"CONTACT_A": 0, "CONTACT_B": 1, "STATUS": 2, "CONTACT2": 3, "RELEASE": 4}
+MESSAGE_OFFSETS: dict[str, int] = {"CONTACT_A": 0, "CONTACT_B": 1, "STATUS": 2, "CONTACT2": 3, "RELEASE": 4,
+                                   "MOTION": 5}
 _MAX_STANDARD_ID = 0x7FF
 COUNTER_MODULO = 16
 
@@ -51,6 +53,10 @@ V2_SIGNALS: dict[str, tuple[str, ...]] = {
     "CONTACT2": ("PART", "SLOT", "COUNTER", "X", "Y", "MAJOR", "MINOR", "ANGLE", "STRENGTH", "SHAPE", "CONFIDENCE",
                  "N_CONTACTS", "DEPTH", "FORCE", "CONTACT_ID", "FLAGS", "AGE"),
     "RELEASE": ("CONTACT_ID", "COUNTER"),
+}
+#: Protocol v3's message (``link.can_protocol = 3``, with v2's): required only then.
+V3_SIGNALS: dict[str, tuple[str, ...]] = {
+    "MOTION": ("SLOT", "COUNTER", "FLAGS", "CONTACT_ID", "VX", "VY", "VIBRATION"),
 }
 
 #: STATUS.CPU_TEMP physical value meaning "unknown" (raw 255).
@@ -148,7 +154,7 @@ class CanCodec:
         self._messages: dict[str, Any] = {}
         self._limits: dict[str, dict[str, tuple[float, float]]] = {}
         self._signals: dict[str, dict[str, Any]] = {}
-        wanted = {**REQUIRED_SIGNALS, **(V2_SIGNALS if protocol == 2 else {})}
+        wanted = {**REQUIRED_SIGNALS, **(V2_SIGNALS if protocol >= 2 else {}), **(V3_SIGNALS if protocol == 3 else {})}
         for name, required in wanted.items():
             try:
                 message = self.db.get_message_by_name(name)
@@ -241,6 +247,13 @@ class CanCodec:
                                           "FORCE": _finite(msg.force_n), "CONTACT_ID": int(msg.contact_id),
                                           "FLAGS": int(msg.flags) & 0x7F, "AGE": _int_or_zero(msg.age_us)})
         return geometry, shape, force
+
+    def motion_payload(self, msg: MotionMessage, counter: int) -> bytes:
+        """The MOTION of one contact (SLOT = its index; the frame's vibration), with the frame's ``counter``."""
+        return self._encode("MOTION", {"SLOT": min(max(int(msg.index), 0), 3), "COUNTER": counter % COUNTER_MODULO,
+                                       "FLAGS": int(msg.flags) & 0x3F, "CONTACT_ID": int(msg.contact_id),
+                                       "VX": _finite(msg.vx_mm_s), "VY": _finite(msg.vy_mm_s),
+                                       "VIBRATION": _finite(msg.vibration)})
 
     def release_payload(self, contact_id: int, counter: int) -> bytes:
         """A RELEASE of ``contact_id`` in the frame of ``counter``."""

@@ -40,6 +40,8 @@ class LinkState:
         The version the MCU asked for with SET_PROTOCOL (1 until it does; 3 is v2 with MOTION).
     v2_alongside_v1 : bool
         v2's messages go out beside v1's from the start (CAN with ``link.can_protocol = 2``).
+    v3_alongside : bool
+        And v3's MOTION after each CONTACT2 (CAN with ``link.can_protocol = 3``).
     streaming : bool
         STREAM on (the default) or off.
     rate_divider : int
@@ -50,6 +52,7 @@ class LinkState:
 
     protocol: int = 1
     v2_alongside_v1: bool = False
+    v3_alongside: bool = False
     streaming: bool = True
     rate_divider: int = 1
     delivers: bool = True
@@ -107,8 +110,8 @@ class SensorOutbox:
         out = self._out
         out.clear()
         protocol, alongside = link.protocol, link.v2_alongside_v1
-        v2 = protocol >= 2 or alongside
-        v3 = protocol == 3
+        v3 = protocol == 3 or link.v3_alongside
+        v2 = protocol >= 2 or alongside or v3
         if v2:
             self.announcer.observe(result)
         if not send:

@@ -42,6 +42,8 @@ class Transport(Device, ABC):
     #: Protocol v2's messages go out on their own ids beside v1's, from the start (CAN with
     #: ``link.can_protocol = 2``: the MCU cannot ask, and a v1 MCU filters the new ids out).
     v2_alongside_v1: bool = False
+    #: Protocol v3's MOTION goes out beside v2's from the start (CAN with ``link.can_protocol = 3``).
+    motion_alongside: bool = False
 
     def __init__(self) -> None:
         self.counters = TransportCounters()
@@ -72,7 +74,8 @@ class Transport(Device, ABC):
         raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
 
     def send_motion(self, message: MotionMessage) -> None:
-        """Queue one MOTION (protocol v3, non-blocking); only called when 3 is in :attr:`protocols`."""
+        """Queue one MOTION (protocol v3, non-blocking); only called when 3 is in :attr:`protocols` or
+        :attr:`motion_alongside`."""
         raise NotImplementedError(f"{type(self).__name__} does not speak protocol v3")
 
     def send(self, message: ContactMessage | ContactV2Message | ReleaseMessage | MotionMessage) -> None:

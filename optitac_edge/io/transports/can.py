@@ -31,6 +31,7 @@ from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec
 from optitac_edge.io.protocol.messages import (
     ContactMessage,
     ContactV2Message,
+    MotionMessage,
     ReleaseMessage,
     StatusMessage,
 )
@@ -43,8 +44,8 @@ LINK_DOWN_ERRNOS = frozenset({errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.E
                               errno.ENETUNREACH})
 #: errnos of a full transmit queue (also what bus-off looks like on socketcan after a while).
 QUEUE_FULL_ERRNOS = frozenset({errno.ENOBUFS, errno.EAGAIN})
-#: The protocols the CAN link speaks (its database has no MOTION yet: SET_PROTOCOL 3 is refused and counted).
-CAN_PROTOCOLS = (1, 2)
+#: What ``link.can_protocol`` may say: 1, 2 (v2's messages beside v1's) or 3 (and each contact's MOTION).
+CAN_PROTOCOLS = (1, 2, 3)
 
 
 @dataclass
@@ -124,8 +125,9 @@ class CanTransport(Transport):
             raise TransportError(f"CAN link needs distinct sensor ids, got {sensor_ids}")
         self.codec = CanCodec(sensor_ids[0], dbc_path, base_id, protocol=protocol)
         #: Protocol 2: CONTACT2 and RELEASE frames on their own ids besides the v1 frames (a v1 MCU
-        #: filters them out and never notices).
-        self.v2_alongside_v1 = protocol == 2
+        #: filters them out and never notices); 3: and a MOTION after each contact's CONTACT2 parts.
+        self.v2_alongside_v1 = protocol >= 2
+        self.motion_alongside = protocol == 3
         #: Each sensor's identifiers and rolling counters.
         self.lanes = {sid: _Lane(message_ids(sid, self.codec.base_id)) for sid in sensor_ids}
         #: The first sensor's identifiers.
@@ -284,6 +286,13 @@ class CanTransport(Transport):
             for payload in self.codec.contact2_payloads(message, lane.frame_counter):
                 if not self._send(lane.ids["CONTACT2"], payload):
                     break
+
+    def send_motion(self, message: MotionMessage) -> None:
+        """Protocol v3 (``protocol=3``): one contact's MOTION, with the counter of the frame's CONTACT pair."""
+        with self._send_lock:
+            lane = self._lane(message.sensor_id)
+            if lane is not None:
+                self._send(lane.ids["MOTION"], self.codec.motion_payload(message, lane.frame_counter))
 
     def send_release(self, message: ReleaseMessage) -> None:
         """Protocol v2: a RELEASE with the counter of the frame's CONTACT pair."""
