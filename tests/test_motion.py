@@ -181,38 +181,33 @@ def test_a_slow_creep_below_the_level_is_not_a_slide(motion) -> None:
     assert not any(c.sliding for c in _feed(motion, xy))
 
 
-def test_a_press_being_lifted_is_not_a_slide(motion) -> None:
-    """Held at strength 100 for a second, then lifted over 0.1 s: the strength falls to 1 % and its centroid
-    wanders as much as a faint contact's does (the noise in inverse proportion to the strength)."""
-    rng = np.random.default_rng(7)
-    strength = np.r_[np.full(240, 100.0), 100.0 * np.geomspace(1.0, 0.01, 24)]
-    xy = 1.0 + rng.normal(0.0, 1.0, (264, 2)) * (0.004 * 100.0 / strength)[:, None]
+def _faint(motion, strength: np.ndarray, seed: int) -> tuple[list[ContactEstimate], np.ndarray]:
+    """One contact of the given strengths, its centroid noise in inverse proportion to them (0.004 mm at
+    100); the estimates, and their speeds."""
+    xy = 1.0 + np.random.default_rng(seed).normal(0.0, 1.0, (strength.size, 2)) * (0.4 / strength)[:, None]
     got = []
-    for k in range(264):
+    for k in range(strength.size):
         c = ContactEstimate(contact=True, x_mm=float(xy[k, 0]), y_mm=float(xy[k, 1]), contact_id=3, touch_frame=0,
                             strength=float(strength[k]))
         motion.update([c], 1, k, k * PERIOD_NS)
         got.append(c)
+    return got, np.hypot([c.vx_mm_s for c in got], [c.vy_mm_s for c in got])
+
+
+def test_a_press_being_lifted_is_not_a_slide(motion) -> None:
+    """Held at strength 100 for a second, then lifted over 0.1 s: the strength falls to 1 % and its centroid
+    wanders as much as a faint contact's does (the noise in inverse proportion to the strength)."""
+    got, speeds = _faint(motion, np.r_[np.full(240, 100.0), 100.0 * np.geomspace(1.0, 0.01, 24)], seed=7)
     assert not any(c.sliding for c in got)
-    speeds = np.hypot([c.vx_mm_s for c in got[240:]], [c.vy_mm_s for c in got[240:]])
-    assert speeds.max() > MIN_SLIP_SPEED_MM_S  # it did wander as fast as a slow slide
+    assert speeds[240:].max() > MIN_SLIP_SPEED_MM_S  # it did wander as fast as a slow slide
 
 
 def test_a_press_being_pressed_in_is_not_a_slide(motion) -> None:
     """A first contact pressed in over 0.1 s (its strength growing from 1 % to full), its centroid wandering as
     a faint contact's does, then held: never a slide."""
-    rng = np.random.default_rng(8)
-    strength = np.r_[100.0 * np.geomspace(0.01, 1.0, 24), np.full(240, 100.0)]
-    xy = 1.0 + rng.normal(0.0, 1.0, (264, 2)) * (0.004 * 100.0 / strength)[:, None]
-    got = []
-    for k in range(264):
-        c = ContactEstimate(contact=True, x_mm=float(xy[k, 0]), y_mm=float(xy[k, 1]), contact_id=3, touch_frame=0,
-                            strength=float(strength[k]))
-        motion.update([c], 1, k, k * PERIOD_NS)
-        got.append(c)
+    got, speeds = _faint(motion, np.r_[100.0 * np.geomspace(0.01, 1.0, 24), np.full(240, 100.0)], seed=8)
     assert not any(c.sliding for c in got)
-    speeds = np.hypot([c.vx_mm_s for c in got[1:24]], [c.vy_mm_s for c in got[1:24]])
-    assert speeds.max() > 3 * MIN_SLIP_SPEED_MM_S  # it did wander fast
+    assert speeds[1:24].max() > 3 * MIN_SLIP_SPEED_MM_S  # it did wander fast
 
 
 def test_a_new_touch_and_a_tare_start_the_window_again(motion) -> None:
