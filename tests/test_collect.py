@@ -45,16 +45,21 @@ def test_every_experiment_collects_over_the_virtual_rig(experiment, tmp_path) ->
     rec = Recording(out)
     truth, poses = rec.truth, rec.rig_poses
     assert truth is not None and poses is not None and rec.timestamped
-    assert len(poses.frame) == len(rec) and set(poses.phase) == {"rest", "approach", "hold", "release", "move"}
+    slides = experiment == "slide"
+    assert len(poses.frame) == len(rec) and set(poses.phase) == {"rest", "approach", "hold", "release", "move"} | (
+        {"slide"} if slides else set())
     held = np.flatnonzero(poses.phase == "hold")
     presses = spread(plan(experiment, hex_layout()), 3)
     hold = FAST.hold_frames
-    # the three presses' hold frames: the planned position and depth, in the sensor frame
+    # the three presses' hold frames (a slide's: at its start, then at its end): the planned position and depth
+    places = [[(p.x_mm, p.y_mm)] + ([(p.slide_x_mm, p.slide_y_mm)] if slides else []) for p in presses]
+    want = np.repeat([xy for each in places for xy in each], hold, axis=0)
     last = truth.contact & (np.isin(truth.frame, held))
-    xy = np.stack([truth.x_mm[last], truth.y_mm[last]], 1)[-3 * hold:]
-    want = np.repeat([(p.x_mm, p.y_mm) for p in presses], hold, axis=0)
+    xy = np.stack([truth.x_mm[last], truth.y_mm[last]], 1)[-len(want):]
     assert np.abs(xy - want).max() < 0.3
-    assert np.abs(truth.depth_mm[last][-3 * hold:] - np.repeat([p.depth_mm for p in presses], hold)).max() < 0.1
+    depths = np.repeat([p.depth_mm for p in presses for _ in places[0]], hold)
+    assert np.abs(truth.depth_mm[last][-len(want):] - depths).max() < 0.1
+    assert (truth.motion is not None) == slides
     frame = rec.meta.extra["collect"]["rig_frame"]
     assert abs(frame["rotation_deg"] + 12.0) < 0.5
 
@@ -200,3 +205,30 @@ def test_the_estimates_of_several_frames_are_each_frames_own(tmp_path, monkeypat
     monkeypatch.setattr(RigRecorder, "frames", spy)
     _collect(EXPERIMENTS[0], tmp_path / "c", "sim://", limit=1)
     assert seen and all(len(set(f)) == len(f) for f in seen), seen
+
+
+def test_a_slide_collection_is_evaluated_for_its_motion(tmp_path, capsys) -> None:
+    """``collect slide`` on the virtual rig at 240 fps, then ``evaluate``: truth.csv's motion comes from the rig's
+    pose; the velocity, the onsets and the held frames are scored (the rig's feed limit, 20 mm/s, caps the two
+    fastest slides)."""
+    from optitac_edge.bringup.rigs import open_rig
+    from optitac_edge.calibration.measure import measure_recording
+    from optitac_edge.calibration.motion_report import motion_report
+    from optitac_edge.config import load_board_config
+
+    rig, camera = open_rig(load_board_config("sim", env={}, overrides={"camera.fps": 240}), "sim://?rotation=20")
+    with rig, camera:
+        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(6)], "gray")
+        settings = CollectSettings(initial_rest_frames=12, rest_frames=12, hold_frames=60, approach_feed_mm_s=30.0,
+                                   hover_mm=1.0, touch_extra_mm=0.3)
+        Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", tmp_path / "slide")
+    rec = Recording(tmp_path / "slide")
+    truth = rec.truth
+    assert truth.motion is not None and "sliding" in set(truth.motion)
+    speeds = np.hypot(truth.vx_mm_s, truth.vy_mm_s)[truth.motion == "sliding"]
+    assert np.median(speeds) > 1.5 and speeds.max() < 20.5  # 2 mm/s ... the feed limit
+    report = motion_report(measure_recording(rec, bundle, progress=False), truth, rec.meta.fps)
+    assert report is not None and report.velocity_rmse_mm_s <= 3.0
+    fast = [f for s, f in report.onsets if s >= 10.0]
+    assert len(fast) >= 3 and all(f is not None and f <= 3 for f in fast), report.onsets
+    assert report.false_slips == 0 and max(report.ids_per_press) == 1

@@ -177,13 +177,14 @@ class Collector:
         kept_t = [t for entry in entries for t in entry["t_ns"]]
         segments = next((e["segments"] for e in reversed(entries) if "segments" in e), None)
         self.writer = RecordingWriter(out, None, self.camera.frame_shape, meta, rig_columns=True,
+                                      motion_columns=any(p.slide_mm_s > 0 for p in presses),
                                       keep_frames=kept, kept_t_ns=np.asarray(kept_t, np.int64) if kept else None,
                                       kept_segments=segments, replace=fresh, storage=self.storage,
                                       find_fibers=self.find_fibers)
         rec = RigRecorder(self.camera, self.rig, self.pipeline, self.writer, self.settings.read_timeout_s)
         journal = self.writer.path / JOURNAL
         try:
-            rec.write_rows([r for entry in entries for r in entry["rows"]])
+            rec.write_rows([r for entry in entries for r in entry["rows"]], kept_t)
             if setup:
                 symmetry, touch = self._resume(rec, setup, f"{len(done)} of {len(presses)}")
             else:
@@ -259,10 +260,13 @@ class Collector:
         s, frame = self.settings, rec.frame
         assert frame is not None
         targets = frame.to_rig(np.array([(p.x_mm, p.y_mm) for p in presses]).reshape(-1, 2))
+        ends = frame.to_rig(np.array([(p.slide_x_mm, p.slide_y_mm) for p in presses]).reshape(-1, 2))
         for k, p in enumerate(presses):  # every target inside the limits before anything more moves
-            for z in (frame.surface_z_mm + s.hover_mm, frame.surface_z_mm - p.depth_mm):
+            points = [(targets[k], z) for z in (frame.surface_z_mm + s.hover_mm, frame.surface_z_mm - p.depth_mm)]
+            points += [(ends[k], z) for _, z in points] if p.slide_mm_s > 0 else []
+            for (x, y), z in points:
                 try:
-                    self.rig.limits.check((float(targets[k, 0]), float(targets[k, 1]), z))
+                    self.rig.limits.check((float(x), float(y), z))
                 except RigError as exc:
                     raise RigError(f"press {k + 1} at sensor ({p.x_mm:.2f}, {p.y_mm:.2f}): {exc}") from None
         for k in range(first, len(presses)):
@@ -275,6 +279,10 @@ class Collector:
             rec.frames(s.rest_frames, "rest", p)
             rec.move((tx, ty, frame.surface_z_mm - p.depth_mm), "approach", p, s.approach_feed_mm_s)
             rec.frames(s.hold_frames, "hold", p)
+            if p.slide_mm_s > 0:  # in the skin to the slide's end at its speed, held there, lifted there
+                tx, ty = float(ends[k, 0]), float(ends[k, 1])
+                rec.move((tx, ty, frame.surface_z_mm - p.depth_mm), "slide", p, p.slide_mm_s)
+                rec.frames(s.hold_frames, "hold", p)
             rec.move((tx, ty, hover), "release", p, s.approach_feed_mm_s)
             rec.commit(journal, {"kind": "press", "index": k})
             if (k + 1) % 25 == 0:

@@ -11,6 +11,9 @@
             presses a block at random positions fully on the array, 3 mm deep.
 ``depths``  a 5 mm circle at the centre and 6 points half the radius out, at
             ``DEPTHS_MM``, twice each, in random order (for depth calibration).
+``slide``   a 5 mm circle pressed 2.5 mm deep, held, then slid in the skin through the centre at each of
+            ``SLIDE_SPEEDS_MM_S`` (capped at the rig's feed limit), held again and lifted (contact motion:
+            ``evaluate``'s motion metrics; truth.csv gets the motion columns from the rig's pose).
 
 Presses are grouped by indenter so the operator changes it once per block.
 """
@@ -24,7 +27,10 @@ import numpy as np
 
 from optitac_edge.core.layout import FiberLayout
 
-EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths")
+EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths", "slide")
+#: ``slide``: the speeds, mm/s (each capped at the rig's feed limit) and their directions in the sensor frame, deg.
+SLIDE_SPEEDS_MM_S: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+SLIDE_DIRECTIONS_DEG: tuple[float, ...] = (0.0, 72.0, 144.0, 216.0, 288.0, 36.0)
 WIDTHS_MM: tuple[float, ...] = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0)
 DEPTHS_MM: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
 #: The circle first: the collection's registration presses use the experiment's first circle.
@@ -49,6 +55,9 @@ class PlannedPress:
         Diameter of a circle, side of a square or triangle, major axis of an ellipse, width of an edge.
     angle_deg : float
         The indenter's angle as mounted, counter-clockwise from the rig's +X, degrees.
+    slide_x_mm, slide_y_mm, slide_mm_s : float
+        ``slide``: after the hold the tip slides in the skin to this point (sensor frame) at this speed
+        (0: no slide).
     """
 
     x_mm: float
@@ -57,6 +66,9 @@ class PlannedPress:
     shape: str = "circle"
     size_mm: float = 5.0
     angle_deg: float = 0.0
+    slide_x_mm: float = 0.0
+    slide_y_mm: float = 0.0
+    slide_mm_s: float = 0.0
 
     @property
     def indenter(self) -> str:
@@ -133,6 +145,15 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
             for angle in angles:
                 out += [PlannedPress(*_random_on_array(rng, layout, shape, size), 3.0, shape, size, angle)
                         for _ in range(per_block)]
+        return out
+    if experiment == "slide":  # through the centre, up to 8 mm, in a straight line at each speed
+        out = []
+        for k, speed in enumerate(SLIDE_SPEEDS_MM_S):
+            theta = math.radians(SLIDE_DIRECTIONS_DEG[k % len(SLIDE_DIRECTIONS_DEG)])
+            half = min(max(speed, 2.0), 8.0, layout.radius_mm - 4.0) / 2
+            ux, uy = math.cos(theta), math.sin(theta)
+            out.append(PlannedPress(-half * ux, -half * uy, 2.5, slide_x_mm=half * ux, slide_y_mm=half * uy,
+                                    slide_mm_s=speed))
         return out
     if experiment == "depths":
         ring = 0.5 * layout.radius_mm

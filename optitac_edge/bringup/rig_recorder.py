@@ -103,18 +103,21 @@ class RigRecorder:
         self.frame = frame
         self.rows = [self._complete(r, r.pop("_press")) for r in self.rows]
 
-    def write_rows(self, rows: list[dict[str, Any]]) -> None:
-        """Write truth rows into the recording (kept ones of an interrupted collection, or a step's)."""
-        for row in rows:
+    def write_rows(self, rows: list[dict[str, Any]], times: list[int]) -> None:
+        """Write truth rows into the recording (kept ones of an interrupted collection, or a step's), with
+        ``times`` their frames' (ns): the press's motion from the rig's pose when the recording has the
+        motion columns."""
+        motions = row_motions(rows, times)
+        for row, motion in zip(rows, motions):
             xyz = (float(row["rig"][0]), float(row["rig"][1]), float(row["rig"][2]))
             press = Press(row["shape"], row["x"], row["y"], row["angle"], row["size"], row["depth"]) \
                 if row.get("contact") else None
-            self.writer.write_truth(row["frame"], press, phase=row["phase"], rig_xyz_mm=xyz)
+            self.writer.write_truth(row["frame"], press, phase=row["phase"], rig_xyz_mm=xyz, motion=motion)
 
     def commit(self, journal: Path, entry: dict[str, Any], new: bool = False) -> None:
         """End a step: its rows written, its frames durable, then its journal line (``entry`` with the step's
         rows, times and the recording's segments) appended and made durable: the resume point."""
-        self.write_rows(self.rows)
+        self.write_rows(self.rows, self.times)
         self.writer.sync()
         append_entry(journal, {**entry, "end_frame": self.index, "rows": self.rows, "t_ns": self.times,
                                "segments": self.writer.segments}, new=new)
@@ -136,3 +139,33 @@ class RigRecorder:
         return {**row, "contact": True, "shape": press.shape, "x": round(float(sx), 4), "y": round(float(sy), 4),
                 "angle": round(self.frame.angle_in_sensor(press.angle_deg), 3) if press.shape != "circle" else 0.0,
                 "size": press.size_mm, "depth": round(depth, 4)}
+
+
+#: A contact moving slower than this while the tip slides is held (the rig at the slide's end), mm/s.
+HELD_BELOW_MM_S = 0.5
+
+
+def row_motions(rows: list[dict[str, Any]], times: list[int]) -> list[tuple[float, float, str]]:
+    """Each truth row's motion: the press's velocity in the sensor frame (mm/s) over the frame before it (from
+    the rig's poses; over the frame after it at the start of a run of rows in contact), and ``sliding``
+    (the ``slide`` phase, faster than :data:`HELD_BELOW_MM_S`), ``held`` (``hold``, or a slide at rest),
+    ``pressing`` (in contact while approaching or releasing) or '' (no contact)."""
+    out: list[tuple[float, float, str]] = []
+    n = len(rows)
+    for k, row in enumerate(rows):
+        if not row.get("contact"):
+            out.append((math.nan, math.nan, ""))
+            continue
+        if k > 0 and rows[k - 1].get("contact"):
+            a, b = k - 1, k
+        else:
+            a, b = k, (k + 1 if k + 1 < n and rows[k + 1].get("contact") else k)
+        dt = (times[b] - times[a]) * 1e-9 if b != a else 0.0
+        vx, vy = ((rows[b]["x"] - rows[a]["x"]) / dt, (rows[b]["y"] - rows[a]["y"]) / dt) if dt > 0 else (0.0, 0.0)
+        phase = row["phase"]
+        if phase == "slide":
+            state = "sliding" if math.hypot(vx, vy) > HELD_BELOW_MM_S else "held"
+        else:
+            state = "held" if phase == "hold" else "pressing"
+        out.append((vx, vy, state))
+    return out

@@ -5,8 +5,9 @@ has :data:`~optitac_edge.io.recording.MOTION_COLUMNS`) measured with
 :func:`~optitac_edge.calibration.measure.measure_recording` gives:
 
 * the velocity error (RMSE of the estimated against the true velocity, mm/s) over the frames whose whole
-  velocity window saw one steady true velocity (the window's first frames after a start, a stop or a
-  turn are a transient of the estimator by construction, and are left out), per speed;
+  velocity window saw one steady true velocity (within 5 %; the window's first frames after a start, a
+  stop or a turn are a transient of the estimator by construction, and are left out), per speed (to
+  0.5 mm/s);
 * each slide's onset latency: how many frames of sliding the estimate had seen when it first reported
   ``sliding`` with a slide frame within the slide (None: never found);
 * false slips: slide onsets in frames the truth says are pressed in, held, shaken or lifted, with the
@@ -65,18 +66,20 @@ def motion_report(m: Measurements, truth: Truth, fps: float) -> MotionReport | N
     ev = np.c_[mo.vx_mm_s, mo.vy_mm_s]
     sliding = state == "sliding"
     steady = sliding.copy()
-    for k in range(1, WINDOW):  # the whole window at one true velocity
-        steady[k:] &= sliding[:-k] & np.all(tv[k:] == tv[:-k], axis=1)
+    true_speed = np.hypot(tv[:, 0], tv[:, 1])
+    for k in range(1, WINDOW):  # the whole window at one true velocity (within 5 %: a rig's poses are rounded)
+        change = np.hypot(*(tv[k:] - tv[:-k]).T)
+        steady[k:] &= sliding[:-k] & (change <= np.maximum(0.05 * true_speed[k:], 0.1))
     steady[:WINDOW - 1] = False
     err2 = np.sum((ev - tv) ** 2, axis=1)
     ok = steady & np.isfinite(err2)
-    speed = np.round(np.hypot(tv[:, 0], tv[:, 1]), 3)
+    speed = np.round(true_speed * 2) / 2  # grouped to 0.5 mm/s
     by_speed = {float(s): (int(np.sum(ok & (speed == s))), float(np.sqrt(np.mean(err2[ok & (speed == s)]))))
                 for s in np.unique(speed[ok])}
     onsets: list[tuple[float, int | None]] = []
     for start, end in _runs(sliding):
         found = [k for k in range(start, end) if mo.sliding[k] and mo.slide_frame[k] >= start]
-        onsets.append((float(speed[start]), found[0] - start + 1 if found else None))
+        onsets.append((float(speed[(start + end) // 2]), found[0] - start + 1 if found else None))
     onset_frame = mo.sliding & (mo.slide_frame == np.arange(n))
     still = (state == "held") | (state == "vibrating") | (state == "pressing")
     false_slips = int(np.sum(onset_frame & still))

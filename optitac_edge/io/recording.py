@@ -49,9 +49,10 @@ MOTION_COLUMNS = ("vx_mm_s", "vy_mm_s", "motion")
 MOTION_STATES = ("pressing", "held", "sliding", "vibrating")
 #: Optional last column: the normal force a load cell measured, N ('' where none).
 FORCE_COLUMN = "force_n"
-#: Phases of a rig-collected frame; only ``rest`` and ``hold`` frames (and rows without a phase) are scored.
-PHASES = ("rest", "approach", "hold", "release", "move")
-SCORED_PHASES = ("", "rest", "hold")
+#: Phases of a rig-collected frame; only ``rest``, ``hold`` and ``slide`` frames (and rows without a phase) are
+#: scored (``slide``: the tip moving in the skin, ``collect slide``).
+PHASES = ("rest", "approach", "hold", "release", "move", "slide")
+SCORED_PHASES = ("", "rest", "hold", "slide")
 SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 MIN_REST_FRAMES = 5
 
