@@ -219,7 +219,7 @@ def test_a_slide_collection_is_evaluated_for_its_motion(tmp_path, capsys) -> Non
     rig, camera = open_rig(load_board_config("sim", env={}, overrides={"camera.fps": 240}), "sim://?rotation=20")
     with rig, camera:
         bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(6)], "gray")
-        settings = CollectSettings(initial_rest_frames=12, rest_frames=12, hold_frames=60, approach_feed_mm_s=30.0,
+        settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=30, approach_feed_mm_s=30.0,
                                    hover_mm=1.0, touch_extra_mm=0.3)
         Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", tmp_path / "slide")
     rec = Recording(tmp_path / "slide")

@@ -234,15 +234,15 @@ def test_contacts_that_are_gone_are_forgotten(motion) -> None:
 
 
 def test_the_kernels_motion_is_the_reference() -> None:
-    """Random contacts touching, moving, sliding, stopping and releasing, with frames dropped and clock
-    jitter: the kernel's velocities, slip states and slide frames are the reference's."""
+    """Random contacts touching, moving, sliding, fading, stopping and releasing over 10 000 frames, with frames
+    dropped and clock jitter: the kernel's velocities, slip states and slide frames are the reference's."""
     if not BUILT:
         pytest.skip("the compiled kernel is not built")
     rng = np.random.default_rng(12)
     ref, kern = ContactMotion(), compiled.compiled_motion()
     live: dict[int, list[float]] = {}  # id -> [x, y, vx, vy, touch frame, strength]
     next_id, t_ns, slides = 1, 0, 0
-    for frame in range(20_000):
+    for frame in range(10_000):
         t_ns += PERIOD_NS * (1 + int(rng.uniform() < 0.02)) + int(rng.integers(-20_000, 20_000))
         if live and rng.uniform() < 0.004:
             live.pop(int(rng.choice(list(live))))
@@ -267,4 +267,4 @@ def test_the_kernels_motion_is_the_reference() -> None:
             assert (p.sliding, p.slide_frame) == (q.sliding, q.slide_frame)
             np.testing.assert_allclose((p.vx_mm_s, p.vy_mm_s), (q.vx_mm_s, q.vy_mm_s), rtol=1e-12, atol=1e-9)
             slides += p.slide_frame == frame
-    assert slides > 50
+    assert slides > 25
