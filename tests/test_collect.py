@@ -18,7 +18,7 @@ from optitac_edge.io.recording import Recording
 from optitac_edge.sim.rig import parse_sim_url
 
 FAST = CollectSettings(initial_rest_frames=6, rest_frames=3, hold_frames=4, approach_feed_mm_s=30.0, hover_mm=1.0,
-                       touch_extra_mm=0.3)
+                       touch_extra_mm=0.3, shake_s=0.1)
 
 
 _BUNDLES: dict[str, object] = {}
@@ -45,21 +45,23 @@ def test_every_experiment_collects_over_the_virtual_rig(experiment, tmp_path) ->
     rec = Recording(out)
     truth, poses = rec.truth, rec.rig_poses
     assert truth is not None and poses is not None and rec.timestamped
-    slides = experiment == "slide"
+    slides, shakes = experiment == "slide", experiment == "vibrate"
     assert len(poses.frame) == len(rec) and set(poses.phase) == {"rest", "approach", "hold", "release", "move"} | (
-        {"slide"} if slides else set())
+        {"slide"} if slides else set()) | ({"shake"} if shakes else set())
     held = np.flatnonzero(poses.phase == "hold")
     presses = spread(plan(experiment, hex_layout()), 3)
     hold = FAST.hold_frames
-    # the three presses' hold frames (a slide's: at its start, then at its end): the planned position and depth
-    places = [[(p.x_mm, p.y_mm)] + ([(p.slide_x_mm, p.slide_y_mm)] if slides else []) for p in presses]
+    # the three presses' hold frames (a slide's: at its start, then at its end; a shaken one's: before and after
+    # the shake): the planned position and depth
+    places = [[(p.x_mm, p.y_mm)] + ([(p.slide_x_mm, p.slide_y_mm)] if slides else [(p.x_mm, p.y_mm)] if shakes
+                                   else []) for p in presses]
     want = np.repeat([xy for each in places for xy in each], hold, axis=0)
     last = truth.contact & (np.isin(truth.frame, held))
     xy = np.stack([truth.x_mm[last], truth.y_mm[last]], 1)[-len(want):]
     assert np.abs(xy - want).max() < 0.3
     depths = np.repeat([p.depth_mm for p in presses for _ in places[0]], hold)
     assert np.abs(truth.depth_mm[last][-len(want):] - depths).max() < 0.1
-    assert (truth.motion is not None) == slides
+    assert (truth.motion is not None) == (slides or shakes)
     frame = rec.meta.extra["collect"]["rig_frame"]
     assert abs(frame["rotation_deg"] + 12.0) < 0.5
 
@@ -232,3 +234,41 @@ def test_a_slide_collection_is_evaluated_for_its_motion(tmp_path, capsys) -> Non
     fast = [f for s, f in report.onsets if s >= 10.0]
     assert len(fast) >= 3 and all(f is not None and f <= 3 for f in fast), report.onsets
     assert report.false_slips == 0 and max(report.ids_per_press) == 1
+
+
+def test_a_vibrate_collection_shakes_each_press_and_its_events_are_scored(tmp_path) -> None:
+    """``collect vibrate`` on the virtual rig at 240 fps, three of its presses (30 Hz along the rig's x, 60 Hz along y,
+    100 Hz along z) shaken by 0.05 mm: ``evaluate`` finds every shake within 5 frames and no event in the quiet
+    holds."""
+    from optitac_edge.bringup.rigs import open_rig
+    from optitac_edge.calibration.measure import measure_recording
+    from optitac_edge.calibration.motion_report import motion_report
+    from optitac_edge.config import load_board_config
+
+    rig, camera = open_rig(load_board_config("sim", env={}, overrides={"camera.fps": 240}), "sim://?rotation=20")
+    with rig, camera:
+        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(6)], "gray")
+        settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=70, approach_feed_mm_s=30.0,
+                                   hover_mm=1.0, touch_extra_mm=0.3, shake_s=0.1)
+        Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("vibrate", tmp_path / "vib", limit=3)
+    rec = Recording(tmp_path / "vib")
+    assert set(rec.rig_poses.phase) >= {"shake"} and "vibrating" in set(rec.truth.motion)
+    report = motion_report(measure_recording(rec, bundle, progress=False), rec.truth, rec.meta.fps)
+    assert report is not None and len(report.shakes) == 3
+    assert all(f is not None and f <= 5 for f in report.shakes), report.shakes
+    assert report.false_vibrations == 0 and report.false_slips == 0
+
+
+def test_a_rig_that_cannot_shake_refuses_vibrate_before_moving(tmp_path) -> None:
+    from optitac_edge.bringup.rigs import open_rig
+    from optitac_edge.config import load_board_config
+
+    rig, camera = open_rig(load_board_config("sim", env={}), "sim://")
+    type(rig).shakes = False
+    try:
+        with rig, camera, pytest.raises(RigError, match="cannot shake the tip"):
+            bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(6)], "gray")
+            Collector(camera, rig, bundle, FAST, prompt=lambda line: None).run("vibrate", tmp_path / "v", limit=2)
+        assert rig.moves == 0 and not (tmp_path / "v").exists()
+    finally:
+        type(rig).shakes = True

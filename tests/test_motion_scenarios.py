@@ -127,6 +127,7 @@ def test_replay_writes_each_frames_motion_to_the_contacts_csv(slide_rec, tmp_pat
     truth = Recording(out).truth
     sliding = [r for r in rows if r["sliding"] == "1"]
     assert sliding and all(int(r["slide_frame"]) <= int(r["frame"]) for r in sliding)
+
     def whole_window(k: int) -> bool:  # sliding at one velocity over the velocity window
         return all(truth.motion[k - j] == "sliding" and truth.vx_mm_s[k - j] == truth.vx_mm_s[k]
                    and truth.vy_mm_s[k - j] == truth.vy_mm_s[k] for j in range(5))

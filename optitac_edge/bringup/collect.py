@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from optitac_edge.bringup.experiments import PlannedPress, plan, spread
+from optitac_edge.bringup.experiments import VIBRATE_AMPLITUDE_MM, PlannedPress, plan, spread
 from optitac_edge.bringup.journal import JOURNAL, read_journal
 from optitac_edge.bringup.rig_frame import RigFrame, fit_rig_frame
 from optitac_edge.bringup.rig_recorder import RigRecorder
@@ -85,6 +85,8 @@ class CollectSettings:
         Registration presses this fraction of the array radius from the start point.
     read_timeout_s : float
         Longest wait for a frame, seconds.
+    shake_s : float
+        How long a ``vibrate`` press is shaken, seconds.
     """
 
     initial_rest_frames: int = 30
@@ -97,6 +99,7 @@ class CollectSettings:
     register_depth_mm: float = 2.0
     register_fraction: float = 0.45
     read_timeout_s: float = 2.0
+    shake_s: float = 0.5
 
 
 @dataclass
@@ -169,6 +172,9 @@ class Collector:
             After retracting the tip; the recording is left incomplete and can be continued.
         """
         presses = spread(plan(experiment, self.bundle.layout, seed), limit)
+        if any(p.shake_hz > 0 for p in presses) and not self.rig.shakes:
+            raise RigError(f"{experiment}: this rig cannot shake the tip at 30-100 Hz (a machine's acceleration "
+                           "cannot reverse 0.05 mm that fast); use sim:// or a rig with a shaker")
         setup, done = ({}, []) if fresh else read_journal(out / JOURNAL, experiment, seed, len(presses))
         meta = RecordingMeta(rest_frames=self.settings.initial_rest_frames, fps=self.camera.fps,
                              extra={"collect": {"experiment": experiment, "seed": seed}})
@@ -177,7 +183,7 @@ class Collector:
         kept_t = [t for entry in entries for t in entry["t_ns"]]
         segments = next((e["segments"] for e in reversed(entries) if "segments" in e), None)
         self.writer = RecordingWriter(out, None, self.camera.frame_shape, meta, rig_columns=True,
-                                      motion_columns=any(p.slide_mm_s > 0 for p in presses),
+                                      motion_columns=any(p.slide_mm_s > 0 or p.shake_hz > 0 for p in presses),
                                       keep_frames=kept, kept_t_ns=np.asarray(kept_t, np.int64) if kept else None,
                                       kept_segments=segments, replace=fresh, storage=self.storage,
                                       find_fibers=self.find_fibers)
@@ -282,6 +288,10 @@ class Collector:
             if p.slide_mm_s > 0:  # in the skin to the slide's end at its speed, held there, lifted there
                 tx, ty = float(ends[k, 0]), float(ends[k, 1])
                 rec.move((tx, ty, frame.surface_z_mm - p.depth_mm), "slide", p, p.slide_mm_s)
+                rec.frames(s.hold_frames, "hold", p)
+            if p.shake_hz > 0:  # shaken where it is, then held quiet
+                self.rig.shake(p.shake_axis, VIBRATE_AMPLITUDE_MM, p.shake_hz, s.shake_s)
+                rec.frames(round(s.shake_s * self.camera.fps), "shake", p)
                 rec.frames(s.hold_frames, "hold", p)
             rec.move((tx, ty, hover), "release", p, s.approach_feed_mm_s)
             rec.commit(journal, {"kind": "press", "index": k})

@@ -14,6 +14,8 @@
 ``slide``   a 5 mm circle pressed 2.5 mm deep, held, then slid in the skin through the centre at each of
             ``SLIDE_SPEEDS_MM_S`` (capped at the rig's feed limit), held again and lifted (contact motion:
             ``evaluate``'s motion metrics; truth.csv gets the motion columns from the rig's pose).
+``vibrate`` a 5 mm circle pressed 2.5 mm deep, held, shaken by 0.05 mm at each of ``VIBRATE_HZ`` along the
+            rig's x, y and z, held quiet and lifted (a rig that can shake: ``sim://``).
 
 Presses are grouped by indenter so the operator changes it once per block.
 """
@@ -27,7 +29,10 @@ import numpy as np
 
 from optitac_edge.core.layout import FiberLayout
 
-EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths", "slide")
+EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths", "slide", "vibrate")
+#: ``vibrate``: the frequencies, Hz, each along the rig's x, y and z, and the amplitude, mm.
+VIBRATE_HZ: tuple[float, ...] = (30.0, 45.0, 60.0, 80.0, 100.0)
+VIBRATE_AMPLITUDE_MM = 0.05
 #: ``slide``: the speeds, mm/s (each capped at the rig's feed limit) and their directions in the sensor frame, deg.
 SLIDE_SPEEDS_MM_S: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
 SLIDE_DIRECTIONS_DEG: tuple[float, ...] = (0.0, 72.0, 144.0, 216.0, 288.0, 36.0)
@@ -58,6 +63,9 @@ class PlannedPress:
     slide_x_mm, slide_y_mm, slide_mm_s : float
         ``slide``: after the hold the tip slides in the skin to this point (sensor frame) at this speed
         (0: no slide).
+    shake_axis, shake_hz : str, float
+        ``vibrate``: after the hold the rig shakes the tip along its ``x``, ``y`` or ``z`` by
+        :data:`VIBRATE_AMPLITUDE_MM` at this frequency (0: no shake).
     """
 
     x_mm: float
@@ -69,6 +77,8 @@ class PlannedPress:
     slide_x_mm: float = 0.0
     slide_y_mm: float = 0.0
     slide_mm_s: float = 0.0
+    shake_axis: str = ""
+    shake_hz: float = 0.0
 
     @property
     def indenter(self) -> str:
@@ -155,6 +165,8 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
             out.append(PlannedPress(-half * ux, -half * uy, 2.5, slide_x_mm=half * ux, slide_y_mm=half * uy,
                                     slide_mm_s=speed))
         return out
+    if experiment == "vibrate":
+        return [PlannedPress(1.0, -0.5, 2.5, shake_axis=axis, shake_hz=hz) for hz in VIBRATE_HZ for axis in "xyz"]
     if experiment == "depths":
         ring = 0.5 * layout.radius_mm
         points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))

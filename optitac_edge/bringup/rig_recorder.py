@@ -148,8 +148,8 @@ HELD_BELOW_MM_S = 0.5
 def row_motions(rows: list[dict[str, Any]], times: list[int]) -> list[tuple[float, float, str]]:
     """Each truth row's motion: the press's velocity in the sensor frame (mm/s) over the frame before it (from
     the rig's poses; over the frame after it at the start of a run of rows in contact), and ``sliding``
-    (the ``slide`` phase, faster than :data:`HELD_BELOW_MM_S`), ``held`` (``hold``, or a slide at rest),
-    ``pressing`` (in contact while approaching or releasing) or '' (no contact)."""
+    (the ``slide`` phase, faster than :data:`HELD_BELOW_MM_S`), ``vibrating`` (``shake``), ``held`` (``hold``,
+    or a slide at rest), ``pressing`` (in contact while approaching or releasing) or '' (no contact)."""
     out: list[tuple[float, float, str]] = []
     n = len(rows)
     for k, row in enumerate(rows):
@@ -165,6 +165,8 @@ def row_motions(rows: list[dict[str, Any]], times: list[int]) -> list[tuple[floa
         phase = row["phase"]
         if phase == "slide":
             state = "sliding" if math.hypot(vx, vy) > HELD_BELOW_MM_S else "held"
+        elif phase == "shake":
+            state = "vibrating"
         else:
             state = "held" if phase == "hold" else "pressing"
         out.append((vx, vy, state))

@@ -50,9 +50,9 @@ MOTION_STATES = ("pressing", "held", "sliding", "vibrating")
 #: Optional last column: the normal force a load cell measured, N ('' where none).
 FORCE_COLUMN = "force_n"
 #: Phases of a rig-collected frame; only ``rest``, ``hold`` and ``slide`` frames (and rows without a phase) are
-#: scored (``slide``: the tip moving in the skin, ``collect slide``).
-PHASES = ("rest", "approach", "hold", "release", "move", "slide")
-SCORED_PHASES = ("", "rest", "hold", "slide")
+#: scored (``slide``: the tip moving in the skin, ``collect slide``; ``shake``: shaken, ``collect vibrate``).
+PHASES = ("rest", "approach", "hold", "release", "move", "slide", "shake")
+SCORED_PHASES = ("", "rest", "hold", "slide", "shake")
 SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 MIN_REST_FRAMES = 5
 

@@ -70,6 +70,7 @@ class SimRig(Rig):
     """
 
     changes_indenters = True
+    shakes = True
 
     def __init__(self, limits: RigLimits, clock: Clock, mount: SimMount = SimMount(),
                  start_xyz_mm: tuple[float, float, float] | None = None) -> None:
@@ -82,14 +83,28 @@ class SimRig(Rig):
         self.indenter = ("circle", 5.0, 0.0)
         self.moves = 0
         self.alarm = ""
+        #: A shake: (axis index, amplitude mm, Hz, start ns, end ns), or None.
+        self._shake: tuple[int, float, float, int, int] | None = None
 
     def pose_at(self, t_ns: int) -> tuple[float, float, float]:
-        """The tip's position at ``t_ns`` (rig coordinates, mm)."""
+        """The tip's position at ``t_ns`` (rig coordinates, mm), a shake included."""
         if t_ns >= self._t1 or self._t1 == self._t0:
-            return self._to
-        f = max(0.0, (t_ns - self._t0) / (self._t1 - self._t0))
-        a, b = self._from, self._to
-        return (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]))
+            pose = self._to
+        else:
+            f = max(0.0, (t_ns - self._t0) / (self._t1 - self._t0))
+            a, b = self._from, self._to
+            pose = (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]))
+        if self._shake is not None and self._shake[3] <= t_ns < self._shake[4]:
+            axis, amplitude, hz, t0, _ = self._shake
+            d = amplitude * math.sin(2 * math.pi * hz * (t_ns - t0) * 1e-9)
+            pose = tuple(v + d if k == axis else v for k, v in enumerate(pose))  # type: ignore[assignment]
+        return pose
+
+    def shake(self, axis: str, amplitude_mm: float, hz: float, duration_s: float) -> None:
+        if axis not in ("x", "y", "z") or not (0 < amplitude_mm <= 1.0 and 0 < hz <= 1000 and duration_s > 0):
+            raise RigError(f"sim rig: a shake along x, y or z by up to 1 mm, got {axis!r} {amplitude_mm} mm {hz} Hz")
+        now = self.clock.monotonic_ns()
+        self._shake = ("xyz".index(axis), amplitude_mm, hz, now, now + round(duration_s * 1e9))
 
     def indenter_at(self, t_ns: int) -> Indenter | None:
         """What the tip presses into the skin at ``t_ns`` (sensor frame), or None above it."""

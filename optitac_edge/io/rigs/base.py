@@ -114,6 +114,9 @@ class Rig(Device, ABC):
 
     #: True when the rig can swap indenters itself (the simulator); else the operator is asked.
     changes_indenters: bool = False
+    #: True when the rig can shake the tip at 30-100 Hz by a fraction of a millimetre (:meth:`shake`: the
+    #: simulator; a GRBL machine or an arm cannot: reversing 0.05 mm at 30 Hz takes 1.8 m/s² per cycle).
+    shakes: bool = False
 
     def __init__(self, limits: RigLimits, sleep: Callable[[float], None] = time.sleep) -> None:
         Device.__init__(self)
@@ -147,6 +150,17 @@ class Rig(Device, ABC):
             raise RigError("rig is closed")
         self.limits.check(xyz)
         self._move(xyz, self.limits.feed_mm_s if feed_mm_s is None else min(feed_mm_s, self.limits.feed_mm_s))
+
+    def shake(self, axis: str, amplitude_mm: float, hz: float, duration_s: float) -> None:
+        """Shake the tip where it is along ``axis`` (``x``, ``y`` or ``z`` of the rig) by ``amplitude_mm`` at
+        ``hz`` for ``duration_s`` (only when :attr:`shakes`).
+
+        Raises
+        ------
+        RigError
+            The rig cannot shake.
+        """
+        raise RigError(f"{type(self).__name__} cannot shake the tip (vibrate needs sim:// or a shaker)")
 
     def status(self) -> RigStatus:
         """The rig's state and position (a garbled report is polled again, see :meth:`poll`).
