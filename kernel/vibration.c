@@ -58,17 +58,18 @@ static double judge(ok_vibration *v, double ratio, int32_t n_fibers, int64_t dt_
     double sum = 0.0;
     for (int32_t i = 0; i < w; i++) sum += v->ring[i];
     double level = v->level = sum / w, quiet = v->quiet, tau;
-    double spread = sqrt(2.0 / ((double)n_fibers * w * 0.5));
+    double excess = v->on_sigmas * sqrt(2.0 / ((double)n_fibers * w * 0.5));
+    double top = quiet * (1.0 + excess); /* the on level; off below half its excess */
     if (v->vibrating) {
-        if (level < quiet * (1.0 + 0.5 * v->on_sigmas * spread)) v->vibrating = 0;
+        if (level < quiet * (1.0 + 0.5 * excess)) v->vibrating = 0;
         tau = v->vibrating_tau_s;
-    } else if (level > quiet * (1.0 + v->on_sigmas * spread)) {
+    } else if (level > top) {
         v->vibrating = v->began = 1;
         tau = v->vibrating_tau_s;
     } else {
         tau = v->quiet_tau_s;
     }
-    double top = quiet * (1.0 + v->on_sigmas * spread), rate = (double)dt_ns * 1e-9 / tau;
+    double rate = (double)dt_ns * 1e-9 / tau;
     v->quiet = quiet + ((level < top ? level : top) - quiet) * (rate < 1.0 ? rate : 1.0);
     return level;
 }

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from optitac_edge.core import motion, vibration
 from optitac_edge.core.baseline import BRIGHT_HOLD_S
 from optitac_edge.core.frame_check import CHECK_REASONS, check_kernel_arrays
 from optitac_edge.core.gain import LedGain
@@ -60,6 +61,14 @@ def _load() -> ModuleType | None:
     return _loaded
 
 
+def _require() -> ModuleType:
+    """The extension module, or ImportError saying why it is not here."""
+    mod = _load()
+    if mod is None:
+        raise ImportError(f"the compiled kernel is {_why_not}")
+    return mod
+
+
 def kernel_status() -> tuple[bool, str]:
     """(whether pipelines run the compiled kernel by default, a sentence saying what runs the frames)."""
     if os.environ.get(ENV, "").strip().lower() == "numpy":
@@ -86,14 +95,10 @@ def compiled_vibration(signal: np.ndarray, live: np.ndarray) -> Any:
     ImportError
         If the kernel is not built (see :func:`kernel_status`).
     """
-    from optitac_edge.core import vibration as v
-
-    mod = _load()
-    if mod is None:
-        raise ImportError(f"the compiled kernel is {_why_not}")
     live_idx = np.flatnonzero(np.asarray(live, dtype=bool)).astype(np.int32)
-    return mod.Vibration(signal, live_idx, v.CUTOFF_HZ, v.RATE_FRACTION, v.WINDOW, v.LEARN_FRAMES, v.MIN_FIBERS,
-                         v.ON_SIGMAS, v.QUIET_TAU_S, v.VIBRATING_TAU_S)
+    vib = vibration
+    return _require().Vibration(signal, live_idx, vib.CUTOFF_HZ, vib.RATE_FRACTION, vib.WINDOW, vib.LEARN_FRAMES,
+                                vib.MIN_FIBERS, vib.ON_SIGMAS, vib.QUIET_TAU_S, vib.VIBRATING_TAU_S)
 
 
 def compiled_motion() -> Any:
@@ -105,13 +110,9 @@ def compiled_motion() -> Any:
     ImportError
         If the kernel is not built (see :func:`kernel_status`).
     """
-    from optitac_edge.core import motion as m
-
-    mod = _load()
-    if mod is None:
-        raise ImportError(f"the compiled kernel is {_why_not}")
-    return mod.Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
-                      m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO)
+    m = motion
+    return _require().Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
+                             m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO)
 
 
 class FrameKernel:
@@ -129,9 +130,7 @@ class FrameKernel:
     """
 
     def __init__(self, pipe: Pipeline) -> None:
-        mod = _load()
-        if mod is None:
-            raise ImportError(f"the compiled kernel is {_why_not}")
+        mod = _require()
         o, grid, baseline = pipe.options, pipe.bundle.grid, pipe.baseline
         #: The contacts of the last frame, strongest first: (MAX_CONTACTS, fields) float64: strength, x, y,
         #: major, minor, angle, area, peak, 7 log-Hu, q4, depth, force, shape index (-1: none), confidence.

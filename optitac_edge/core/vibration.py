@@ -191,16 +191,16 @@ class VibrationMeter:
         level = self.level = sum(ring) / WINDOW
         quiet = self.quiet
         # the spread of a mean of n_fibers x WINDOW squares of noise (half of them independent)
-        spread = math.sqrt(2.0 / (n_fibers * WINDOW * 0.5))
+        excess = ON_SIGMAS * math.sqrt(2.0 / (n_fibers * WINDOW * 0.5))
+        top = quiet * (1.0 + excess)  # the on level; off below half its excess
         if self.vibrating:
-            if level < quiet * (1.0 + 0.5 * ON_SIGMAS * spread):
+            if level < quiet * (1.0 + 0.5 * excess):
                 self.vibrating = False
             tau = VIBRATING_TAU_S
-        elif level > quiet * (1.0 + ON_SIGMAS * spread):
+        elif level > top:
             self.vibrating = self.began = True
             tau = VIBRATING_TAU_S
         else:
             tau = QUIET_TAU_S
-        top = quiet * (1.0 + ON_SIGMAS * spread)
         self.quiet = quiet + (min(level, top) - quiet) * min(1.0, dt_ns * 1e-9 / tau)
         return level
