@@ -17,8 +17,6 @@ import pytest
 from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.can_codec import DBC_PATH, CanCodec, decode_frame
 from optitac_edge.io.protocol.messages import MotionFlags, MotionMessage
-from optitac_edge.sim.sensor import SimulatedSensor
-from optitac_edge.sim.skin import Indenter
 
 
 def test_a_motion_decodes_to_its_values_within_the_dbc_resolution_and_saturates():
@@ -51,6 +49,7 @@ def test_the_service_sends_each_contacts_motion_beside_unchanged_v1_and_v2_strea
     and one MOTION per contact with its slot and the frame's counter, the slide flagged."""
     import can
     from fakes.list_camera import ListCamera
+    from fakes.slide import slide_frames
 
     from optitac_edge.config import load_board_config
     from optitac_edge.io.bundle_file import load_bundle
@@ -58,10 +57,7 @@ def test_the_service_sends_each_contacts_motion_beside_unchanged_v1_and_v2_strea
     from optitac_edge.service.wiring import open_board_transport
 
     bundle = load_bundle(bundle_path)
-    sensor = SimulatedSensor(fps=240.0, seed=6)
-    xs = [None] * (bundle.baseline_frames + 20) + [-3.0] * 40 + [-3.0 + 30.0 * (k + 1) / 240 for k in range(40)]
-    frames = [sensor.frame(() if x is None else (Indenter("circle", x, 0.5, size_mm=5.0, depth_mm=2.5),))
-              for x in xs]
+    frames = slide_frames(bundle.baseline_frames + 20, 40, 40, 30.0, seed=6)
     config = load_board_config("sim", env={}, overrides={
         "link.transport": "can", "link.can_interface": "virtual", "link.can_channel": "v3-test",
         "link.can_protocol": 3})

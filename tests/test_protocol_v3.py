@@ -29,8 +29,6 @@ from optitac_edge.io.protocol.wire_v2 import (
     motion_fields,
     motion_payload,
 )
-from optitac_edge.sim.sensor import SimulatedSensor
-from optitac_edge.sim.skin import Indenter
 
 
 @given(vx=st.floats(-300, 300), vy=st.floats(-300, 300), vib=st.floats(0, 600), frame=st.integers(0, 10**6),
@@ -94,6 +92,7 @@ def test_a_slide_reaches_a_v3_mcu_and_a_v2_mcu_never_sees_motion(bundle_path):
     after every CONTACT2, the slide's onset flagged once and its velocity; STATUS says v2 and v3. One that asks
     for v2 gets the same CONTACT2s and no MOTION."""
     from fakes.mcu import FakeMcu
+    from fakes.slide import slide_frames
 
     from optitac_edge.config import load_board_config
     from optitac_edge.io.bundle_file import load_bundle
@@ -101,11 +100,7 @@ def test_a_slide_reaches_a_v3_mcu_and_a_v2_mcu_never_sees_motion(bundle_path):
     from optitac_edge.service.loop import Service
 
     bundle = load_bundle(bundle_path)
-    rest = bundle.baseline_frames + 20
-    sensor = SimulatedSensor(fps=240.0, seed=8)
-    xs = [None] * rest + [-3.0] * 60 + [-3.0 + 20.0 * (k + 1) / 240 for k in range(60)]
-    frames = [sensor.frame(() if x is None else (Indenter("circle", x, 0.5, size_mm=5.0, depth_mm=2.5),))
-              for x in xs]
+    frames = slide_frames(bundle.baseline_frames + 20, 60, 60, 20.0, seed=8)
     got = {}
     for version in (2, 3):
         mcu = FakeMcu()

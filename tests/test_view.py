@@ -16,6 +16,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -36,27 +37,36 @@ class Stats:
             setattr(self, name, 0)
 
 
+@contextmanager
+def _served(bundle, frames: list[np.ndarray], period_ns: int):
+    """A LiveView fed by a pipeline on ``frames`` (one every ``period_ns``), the last one observed, and its
+    server."""
+    pipeline = Pipeline(bundle)
+    view = LiveView(bundle, "gray", rate_hz=1e9)
+    stats = Stats()
+    t = 0
+    for frame in frames:
+        pipeline.process(frame, t)
+        stats.frames += 1
+        t += period_ns
+    view.observe(frames[-1], t, pipeline, stats)
+    assert view.wait_published(0) is not None
+    server = ViewServer(view, "127.0.0.1:0")
+    try:
+        yield view, server
+    finally:
+        server.close()
+        view.close()
+
+
 @pytest.fixture(scope="module")
 def fed_view():
     """A LiveView fed by a pipeline on simulated frames (a press in the last one), with its server."""
     sensor = SimulatedSensor(seed=2)
     bundle = calibrate_fibers([sensor.frame(()) for _ in range(8)], "gray")
-    pipeline = Pipeline(bundle)
-    view = LiveView(bundle, "gray", rate_hz=1e9)
-    stats = Stats()
     press = Indenter("circle", 3.0, -2.0, 0.0, 6.0, 3.0)
-    t = 0
-    for k in range(12):
-        frame = sensor.frame((press,) if k >= 8 else ())
-        pipeline.process(frame, t)
-        stats.frames += 1
-        t += 16_666_667
-    view.observe(frame, t, pipeline, stats)
-    assert view.wait_published(0) is not None
-    server = ViewServer(view, "127.0.0.1:0")
-    yield view, server, bundle
-    server.close()
-    view.close()
+    with _served(bundle, [sensor.frame((press,) if k >= 8 else ()) for k in range(12)], 16_666_667) as served:
+        yield (*served, bundle)
 
 
 def _get(url: str, method: str = "GET", headers: dict[str, str] | None = None, data: bytes | None = None):
@@ -404,24 +414,11 @@ def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> 
 @pytest.fixture(scope="module")
 def sliding_view():
     """A LiveView fed by a pipeline at 240 fps on a press held, then slid along +x at 30 mm/s, with its server."""
-    sensor = SimulatedSensor(seed=4, fps=240.0)
-    bundle = calibrate_fibers([sensor.frame(()) for _ in range(8)], "gray")
-    pipeline = Pipeline(bundle)
-    view = LiveView(bundle, "gray", rate_hz=1e9)
-    stats = Stats()
-    xs = [None] * 30 + [-3.0] * 60 + [-3.0 + 30.0 * (k + 1) / 240 for k in range(40)]
-    t, frame = 0, None
-    for x in xs:
-        frame = sensor.frame(() if x is None else (Indenter("circle", x, 1.0, 0.0, 5.0, 2.5),))
-        pipeline.process(frame, t)
-        stats.frames += 1
-        t += 4_166_667
-    view.observe(frame, t, pipeline, stats)
-    assert view.wait_published(0) is not None
-    server = ViewServer(view, "127.0.0.1:0")
-    yield view, server, bundle
-    server.close()
-    view.close()
+    from fakes.slide import slide_frames
+
+    bundle = calibrate_fibers([SimulatedSensor(seed=4, fps=240.0).frame(()) for _ in range(8)], "gray")
+    with _served(bundle, slide_frames(30, 60, 40, 30.0, seed=4, y_mm=1.0), 4_166_667) as served:
+        yield (*served, bundle)
 
 
 def test_a_sliding_contact_has_an_arrow_along_its_motion_and_the_frame_its_vibration(sliding_view) -> None:
