@@ -138,10 +138,7 @@ class SimulatedSensor:
         ``pin_gain`` (clipped to [0, 1]); for the nominal day exactly
         :func:`fiber_darkening`.
         """
-        d = fiber_darkening(self.layout.xy_mm, self.real_indenters(indenters), self.skin)
-        if self.drift.pin_gain != 1.0:
-            d = np.clip(d * self.drift.pin_gain, 0.0, 1.0)
-        return d
+        return self.press_darkening(self.real_indenters(indenters))
 
     def press_darkening(self, real_indenters: Sequence[Indenter]) -> np.ndarray:
         """:meth:`darkening` of indenters already at their real depths (no jitter drawn): a press that
