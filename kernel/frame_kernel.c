@@ -131,7 +131,9 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
     k->selected = zalloc(2 * (size_t)p->n_tri, sizeof(int32_t));
     k->tri_stamp = zalloc(p->n_tri, sizeof(uint32_t));
     k->blob = zalloc(nn, sizeof(float));
-    size_t max_runs = nn / 2 + 2;
+    /* a row of w cells holds at most (w + 1) / 2 runs (cells above the level and below it in turn):
+     * h (w + 1) / 2 in all, more than nn / 2 for an odd side */
+    size_t max_runs = (size_t)p->n * (((size_t)p->n + 1) / 2) + 2;
     k->cell_rc = zalloc(nn, sizeof(int32_t));
     k->tri_box = zalloc(4 * (size_t)p->n_tri, sizeof(int32_t));
     k->grad_w_t = zalloc(OK_CELL_TERMS * (size_t)p->n_tri, sizeof(float));

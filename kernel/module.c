@@ -519,7 +519,7 @@ static PyObject *mod_label8(PyObject *Py_UNUSED(mod), PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "label8: a (h, w) uint8 mask and (h, w) int32 labels");
     } else {
         int32_t h = (int32_t)m.shape[0], w = (int32_t)m.shape[1];
-        Py_ssize_t most = m.len / 2 + 2;
+        Py_ssize_t most = (Py_ssize_t)h * ((w + 1) / 2) + 2; /* at most (w + 1) / 2 runs a row */
         int32_t *a = PyMem_Malloc(6 * most * sizeof(int32_t));
         if (!a) {
             PyErr_NoMemory();

@@ -509,3 +509,70 @@ def test_the_kernel_built_for_aarch64_agrees_under_qemu(modelled, day, aarch64_t
     lines = aarch64_tool.check(solved, day[:90], [f"qemu-aarch64 {exe}"], tmp_path, "solve")
     assert len(lines) == 1 and ", 0 beyond the tolerances" in lines[0], lines
     assert " 0 contacts" not in lines[0]
+
+
+# -- memory safety: the run buffers are sized for the worst case ---------------------------------------------
+
+_STRIPES = """
+import sys
+import cv2
+import numpy as np
+from optitac_edge.core import _frame_kernel
+for h in range(1, 13):
+    for w in range(1, 12):
+        for phase in (0, 1):
+            mask = np.zeros((h, w), dtype=np.uint8)
+            mask[:, phase::2] = 1  # vertical lines: (w + 1) // 2 runs in every row, the most a row can hold
+            labels = np.zeros((h, w), dtype=np.int32)
+            n = _frame_kernel.label8(mask, labels)
+            n_cv = cv2.connectedComponents(mask, connectivity=8)[0]
+            if n != n_cv:
+                sys.exit(f"{h}x{w} phase {phase}: {n} labels, OpenCV {n_cv}")
+print("ok")
+"""
+
+_ODD_SIDE = """
+import sys
+import numpy as np
+from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.pipeline import Pipeline
+sys.path.insert(0, sys.argv[1])
+from test_kernel import synthetic_bundle, synthetic_frames
+bundle = synthetic_bundle("gray", rings=2)
+for n in (61, 101):
+    grid = bundle.grid.__class__(n=n, x0_mm=bundle.grid.x0_mm, y0_mm=bundle.grid.y0_mm,
+                                 step_mm=bundle.grid.step_mm * 60 / n)
+    # a crafted operator: every other mesh column copies the mean fiber signal, the others its negative
+    # (a column-striped surface: the most runs a box can hold)
+    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    matrix = np.repeat(np.tile(sign, n)[:, None], bundle.layout.n_fibers, axis=1) / bundle.layout.n_fibers
+    crafted = CalibrationBundle(layout=bundle.layout, transform=bundle.transform, fibers=bundle.fibers, grid=grid,
+                                interpolation=matrix.astype(np.float32), options=bundle.options)
+    ref, kern = Pipeline(crafted, compiled=False), Pipeline(crafted, compiled=True)
+    for k, frame in enumerate(synthetic_frames(bundle, 30, seed=4)):
+        a, b = ref.process(frame, k * 4_166_667), kern.process(frame, k * 4_166_667)
+        if a.n_contacts != b.n_contacts:
+            sys.exit(f"side {n}, frame {k}: {a.n_contacts} contacts, the kernel {b.n_contacts}")
+print("ok")
+"""
+
+
+def _run_isolated(code: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """``code`` in a Python of its own: a crash (a segfault, glibc's abort) is a failed test, not a dead worker."""
+    import sys
+
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
+
+
+def test_the_labelling_of_striped_masks_is_opencvs() -> None:
+    """Masks of vertical lines, every width from 1 to 11: a (10, 3) mask gave 7 labels for OpenCV's 3 and
+    glibc aborted ("double free or corruption"), an (h, 1) mask aborted: the runs were sized h * w / 2 + 2."""
+    r = _run_isolated(_STRIPES)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", (r.returncode, r.stdout[-500:], r.stderr[-2000:])
+
+
+def test_an_odd_mesh_side_with_a_striped_surface_agrees() -> None:
+    """Odd mesh sides (61, 101: a bundle may hold any side from 2 to 4096) with a column-striped surface:
+    the kernel segfaulted (exit 139) where the numpy pipeline returned."""
+    r = _run_isolated(_ODD_SIDE, str(Path(__file__).parent))
+    assert r.returncode == 0 and r.stdout.strip() == "ok", (r.returncode, r.stdout[-500:], r.stderr[-2000:])
