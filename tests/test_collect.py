@@ -136,7 +136,7 @@ def test_rig_frame_fit_recovers_rotation_origin_and_the_bundles_symmetry() -> No
     c, s = np.cos(-theta), np.sin(-theta)
     sensor = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]], 1)
     for h in (sym[0], sym[2], sym[9]):
-        frame, found = fit_rig_frame(rig, h.apply(sensor) + rng.normal(0, 0.05, sensor.shape), 2.0, sym)
+        frame, found = fit_rig_frame(rig, h.apply(sensor) + rng.normal(0, 0.05, sensor.shape), 2.0, sym, 1.5)
         assert found.label == h.label
         assert abs(frame.rotation_deg + 17.0) < 1.0 and np.allclose(frame.origin_xy_mm, (101.0, 79.0), atol=0.1)
         assert np.allclose(frame.to_sensor(rig), sensor, atol=0.15)

@@ -166,3 +166,44 @@ def test_bad_input_refused() -> None:
         build_fiber_map([], LAYOUT)
     with pytest.raises(FiberMapError, match="pixel format"):
         build_fiber_map(render(Synth(), 1), LAYOUT, pixel_format="bgr")
+
+
+def _with_corner_blobs(frames: np.ndarray, gray: float, where: list[tuple[int, int]]) -> np.ndarray:
+    import cv2
+
+    out = []
+    for f in frames:
+        g = f.astype(np.float32)
+        for c, r in where:
+            cv2.circle(g, (c, r), 8, gray, -1)
+        out.append(np.clip(np.rint(g), 0, 255).astype(np.uint8))
+    return np.stack(out)
+
+
+def test_stray_blobs_away_from_the_array_are_reported_and_left_out() -> None:
+    """A 61-fiber, 4 mm-pitch array with four lit blobs in the image corners (a real sensor's rest frames
+    had them): the map was refused ("4 bright blobs fit no layout fiber"); now every fiber is found, the
+    four are reported as stray and left out of the table's fibers."""
+    layout = hex_layout(4, 4.0)
+    sensor = SimulatedSensor(layout=layout, optics=CameraOptics(background_gray=18, led_peak_gray=60,
+                                                                fiber_diameter_mm=1.3))
+    corners = [(20, 20), (620, 25), (25, 460), (615, 455)]
+    frames = _with_corner_blobs(np.stack([sensor.frame() for _ in range(4)]), 50.0, corners)
+    result = build_fiber_map(frames, layout)
+    assert result.report.n_found == 61 and result.report.n_stray == 4 and result.report.n_unmatched == 4
+    np.testing.assert_allclose(result.table.centroid_px, sensor.fiber_centres_px, atol=0.5)
+    assert "4 away from the array" in result.report.summary()
+
+
+def test_unmatched_blobs_among_the_fibers_are_still_refused() -> None:
+    """Blobs between the fibers are no stray light: many of them mean a wrong layout, and the line says what
+    to check."""
+    layout = hex_layout(4, 4.0)
+    sensor = SimulatedSensor(layout=layout, optics=CameraOptics(background_gray=18, led_peak_gray=60,
+                                                                fiber_diameter_mm=1.3))
+    frames = np.stack([sensor.frame() for _ in range(3)])
+    centres = sensor.fiber_centres_px
+    between = [(int(round((centres[i, 0] + centres[i + 1, 0]) / 2)), int(round(centres[i, 1])))
+               for i in range(26, 32)]  # half a pitch right of six fibers of the middle row
+    with pytest.raises(FiberMapError, match="among the fibers fit no layout fiber.*layout CSV"):
+        build_fiber_map(_with_corner_blobs(frames, 60.0, between), layout)

@@ -62,3 +62,20 @@ def test_bad_layout_csv_names_file_and_problem(tmp_path, text, message):
 def test_missing_layout_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot read"):
         load_layout_csv(tmp_path / "nope.csv")
+
+
+def test_the_calibrated_mesh_and_the_smallest_contact_follow_the_pitch() -> None:
+    """The mesh has the paper's 6.2 cells a pitch (100 x 100 over its 217 fibers at 1.5 mm, as before) and the
+    smallest contact its 0.44 square pitches (1 mm2 there), for any pitch; a large array keeps at most 100 a
+    side (its matrix grows with cells x fibers)."""
+    from optitac_edge.core.grid import SurfaceGrid
+    from optitac_edge.core.options import ContactThresholds
+
+    for rings, pitch, side in ((8, 1.5, 100), (4, 4.0, 51), (4, 1.0, 51), (2, 1.5, 26), (18, 1.5, 100)):
+        layout = hex_layout(rings, pitch)
+        grid = SurfaceGrid.for_layout(layout)
+        assert grid.n == side, (rings, pitch)
+        if side < 100:
+            assert abs(pitch / grid.step_mm - 99 / 16) < 0.1
+        assert ContactThresholds.for_pitch(layout.pitch_mm).min_area_mm2 == pytest.approx(pitch ** 2 / 2.25)
+    assert SurfaceGrid.for_layout(hex_layout()) == SurfaceGrid.over_layout(hex_layout())

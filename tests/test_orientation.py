@@ -53,7 +53,7 @@ def test_fit_finds_the_symmetry_presses_were_read_through(k) -> None:
     rng = np.random.default_rng(k)
     true = rng.uniform(-9, 9, (20, 2))
     measured = sym[k].apply(true) + rng.normal(0, 0.3, true.shape)
-    fit = fit_orientation(measured, true, sym)
+    fit = fit_orientation(measured, true, sym, 1.5)
     assert fit.symmetry is sym[k] and fit.best_rmse_mm < 0.6
 
 
@@ -63,14 +63,14 @@ def test_fit_finds_the_symmetry_presses_were_read_through(k) -> None:
 ])
 def test_presses_that_cannot_tell_are_refused(true, why) -> None:
     sym = layout_symmetries(hex_layout())
-    fit = fit_orientation(true.copy(), true, sym)
+    fit = fit_orientation(true.copy(), true, sym, 1.5)
     assert fit.symmetry is None and why in fit.reason
 
 
 def test_no_symmetry_fits_presses_read_elsewhere() -> None:
     sym = layout_symmetries(hex_layout())
     true = np.array([[5.0, 1.0], [-3.0, 6.0], [2.0, -7.0]])
-    fit = fit_orientation(true + 6.0, true, sym)
+    fit = fit_orientation(true + 6.0, true, sym, 1.5)
     assert fit.symmetry is None and "no orientation fits" in fit.reason
 
 
@@ -205,3 +205,21 @@ def test_a_bad_fiducial_cell_is_refused(tmp_path) -> None:
     path.write_text(path.read_text().replace(",dark", ",grey"))
     with pytest.raises(ConfigError, match="line 5: fiducial must be 'dark', 'bright' or empty"):
         load_layout_csv(path)
+
+
+def test_the_gates_are_in_pitches_of_the_array() -> None:
+    """A 61-fiber array at 4 mm pitch whose presses read through it mirrored fit to 3 mm RMS (0.75 pitch):
+    accepted, where the absolute 2 mm gate refused a real sensor's presses at 3.05 mm; read 6 mm off (1.5
+    pitch) they are refused, and the line says what to check."""
+    layout = hex_layout(4, 4.0)
+    sym = layout_symmetries(layout)
+    mirrored = next(h for h in sym if h.mirror and h.rotation_deg == 0)
+    rng = np.random.default_rng(3)
+    true = rng.uniform(-12, 12, (30, 2))
+    noise = rng.normal(0, 1.0, true.shape)
+    noise *= 3.0 / np.sqrt(np.mean(np.sum(noise ** 2, axis=1)))  # exactly 3 mm RMS
+    fit = fit_orientation(mirrored.apply(true) + noise, true, sym, layout.pitch_mm)
+    assert fit.symmetry is mirrored and abs(fit.best_rmse_mm - 3.0) < 1e-9
+    off = fit_orientation(mirrored.apply(true) + 2 * noise, true, sym, layout.pitch_mm)
+    assert off.symmetry is None and "1.50 pitch, accepted below 1.33 pitch" in off.reason
+    assert "sensor frame" in off.reason and "layout" in off.reason

@@ -26,7 +26,7 @@ class Frames:
 
     def __init__(self) -> None:
         self.contacts = [ContactEstimate() for _ in range(4)]
-        self.tracker = ContactTracker(max_contacts=4)
+        self.tracker = ContactTracker(4.0, max_contacts=4)
         self.result = FrameResult(self.contacts, self.tracker.released)
         self.frame = 0
 

@@ -25,7 +25,7 @@ def step(tr: ContactTracker, frame: int, *xy: tuple[float, float]) -> list[Conta
 
 
 def test_two_presses_keep_their_ids_while_they_move_and_swap_rank():
-    tr = ContactTracker()
+    tr = ContactTracker(4.0)
     first = step(tr, 0, (-5.0, 0.0), (5.0, 0.0))
     ids = {round(c.x_mm): c.contact_id for c in first}
     assert sorted(ids.values()) == [1, 2] and all(c.touch_frame == 0 for c in first)
@@ -38,7 +38,7 @@ def test_two_presses_keep_their_ids_while_they_move_and_swap_rank():
 
 
 def test_a_release_is_reported_in_the_frame_the_contact_is_gone_and_a_new_press_gets_a_new_id():
-    tr = ContactTracker()
+    tr = ContactTracker(4.0)
     (c,) = step(tr, 10, (0.0, 0.0))
     step(tr, 11, (0.1, 0.0))
     assert tr.n_released == 0
@@ -59,7 +59,7 @@ def test_a_jump_beyond_the_gate_is_a_release_and_a_touch_in_the_same_frame():
 
 
 def test_the_closest_pair_wins_and_a_third_contact_is_new():
-    tr = ContactTracker()
+    tr = ContactTracker(4.0)
     a, b = step(tr, 0, (0.0, 0.0), (3.0, 0.0))
     cs = step(tr, 1, (2.0, 0.0), (0.5, 0.0), (9.0, 9.0))
     assert [c.contact_id for c in cs] == [b.contact_id, a.contact_id, 3]
@@ -67,7 +67,7 @@ def test_the_closest_pair_wins_and_a_third_contact_is_new():
 
 
 def test_ids_wrap_and_skip_ids_in_use():
-    tr = ContactTracker()
+    tr = ContactTracker(4.0)
     (held,) = step(tr, 0, (50.0, 50.0))  # id 1, held throughout
     f = 1
     seen = []
@@ -81,7 +81,7 @@ def test_ids_wrap_and_skip_ids_in_use():
 
 
 def test_nan_centroids_never_match_and_reset_forgets_without_releasing():
-    tr = ContactTracker()
+    tr = ContactTracker(4.0)
     (a,) = step(tr, 0, (math.nan, 0.0))
     (b,) = step(tr, 1, (math.nan, 0.0))
     assert b.contact_id != a.contact_id

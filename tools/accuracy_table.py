@@ -156,9 +156,9 @@ def evaluate_config(cal: dict[str, Recording], ev: dict[str, Recording], config:
                 f, press = truth.frame[rows], press_ids(truth)[rows]
                 out["centroid_floor"] = (frame_noise(calibrated.x_mm[f], press), frame_noise(calibrated.y_mm[f], press))
         elif name == "repeat":
-            out["repeat"] = repeatability(calibrated, truth)
+            out["repeat"] = repeatability(calibrated, truth, bundle.layout.pitch_mm)
         elif name == "widths":
-            out["widths"] = width_accuracy(calibrated, truth)
+            out["widths"] = width_accuracy(calibrated, truth, bundle.layout.pitch_mm)
             rows = np.flatnonzero(detected_rows(calibrated, truth))
             f, press = truth.frame[rows], press_ids(truth)[rows]
             out["width_floor"] = (frame_noise(calibrated.major_mm[f], press), frame_noise(calibrated.minor_mm[f], press))

@@ -55,10 +55,11 @@ from optitac_edge.io.rigs.base import Rig
 
 log = logging.getLogger(__name__)
 
-#: Registration fit RMS (mm) above which the operator is warned (docs/bring-up.md: good is <= 0.3 mm) ...
-REGISTER_WARN_MM = 0.3
+#: Registration fit RMS (pitches) above which the operator is warned (docs/bring-up.md: good is <= 0.2 pitch,
+#: 0.3 mm on the paper's 1.5 mm array) ...
+REGISTER_WARN_PITCH = 0.2
 #: ... and above which the collection is refused: the rig frame would misplace every press.
-REGISTER_REFUSE_MM = 0.6
+REGISTER_REFUSE_PITCH = 0.4
 
 
 @dataclass(frozen=True)
@@ -242,9 +243,11 @@ class Collector:
         surface, touch = touch_off(rec, (x0, y0, z0), tip, s)
         self.prompt(f"registration: 5 presses around ({x0:.2f}, {y0:.2f})")
         frame, h = register(rec, (x0, y0, surface), tip, s, self.bundle.layout)
-        if frame.fit_rms_mm > REGISTER_REFUSE_MM:
+        pitch = self.bundle.layout.pitch_mm
+        if frame.fit_rms_mm > REGISTER_REFUSE_PITCH * pitch:
             raise RigError(f"registration fit RMS {frame.fit_rms_mm:.2f} mm is too poor (good: <= "
-                           f"{REGISTER_WARN_MM} mm): every press would be misplaced; check that the indenter sits "
+                           f"{REGISTER_WARN_PITCH * pitch:.2f} mm = {REGISTER_WARN_PITCH} pitch): every press would "
+                           "be misplaced; check that the indenter sits "
                            "tight, the start point is over the middle of the skin and the bundle is this sensor's")
         rec.set_frame(frame)
         rec.commit(journal, {"kind": "setup", **made, "presses": len(presses), "rig_frame": asdict(frame),
@@ -253,8 +256,9 @@ class Collector:
         self.prompt(f"sensor origin at rig ({frame.origin_xy_mm[0]:.2f}, {frame.origin_xy_mm[1]:.2f}), "
                     f"+x at {frame.rotation_deg:+.1f}° from the rig's +X, surface z {frame.surface_z_mm:.2f}, "
                     f"fit RMS {frame.fit_rms_mm:.2f} mm")
-        if frame.fit_rms_mm > REGISTER_WARN_MM:
-            self.prompt(f"warning: registration fit RMS {frame.fit_rms_mm:.2f} mm (good: <= {REGISTER_WARN_MM} mm): "
+        if frame.fit_rms_mm > REGISTER_WARN_PITCH * pitch:
+            self.prompt(f"warning: registration fit RMS {frame.fit_rms_mm:.2f} mm (good: <= "
+                        f"{REGISTER_WARN_PITCH * pitch:.2f} mm = {REGISTER_WARN_PITCH} pitch): "
                         "check that the indenter sits tight and the bundle's fiber map is this sensor's")
         if not h.is_identity:
             self.prompt(f"warning: the bundle's fiber map is {h.label} from the rig's presses; after this "
@@ -392,6 +396,6 @@ def register(rec: RigRecorder, centre: tuple[float, float, float], tip: PlannedP
         seen.append((np.mean([e.x_mm for e in est]), np.mean([e.y_mm for e in est])))
         rec.move((px, py, hover), "release", tip, s.approach_feed_mm_s)
     try:
-        return fit_rig_frame(np.array(points), np.array(seen), surface, layout_symmetries(layout))
+        return fit_rig_frame(np.array(points), np.array(seen), surface, layout_symmetries(layout), layout.pitch_mm)
     except ValueError as exc:
         raise RigError(str(exc)) from None

@@ -20,8 +20,9 @@ import numpy as np
 
 from optitac_edge.calibration.orientation import Symmetry
 
-#: Registration presses must agree with the fitted transform to within this RMS, mm.
-MAX_FIT_RMS_MM = 1.0
+#: Registration presses must agree with the fitted transform to within this RMS, pitches (1 mm on the
+#: paper's 1.5 mm array).
+MAX_FIT_RMS_PITCH = 1.0 / 1.5
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,7 @@ def _procrustes(rig: np.ndarray, sensor: np.ndarray) -> tuple[float, np.ndarray,
 
 
 def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float,
-                  symmetries: list[Symmetry]) -> tuple[RigFrame, Symmetry]:
+                  symmetries: list[Symmetry], pitch_mm: float) -> tuple[RigFrame, Symmetry]:
     """The rig frame and the symmetry the bundle is off by, from registration presses.
 
     Parameters
@@ -101,6 +102,8 @@ def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float
         Where the bundle read those presses (raw centroids), mm.
     symmetries : list of Symmetry
         The layout's (:func:`~optitac_edge.calibration.orientation.layout_symmetries`).
+    pitch_mm : float
+        The layout's fiber pitch.
 
     Returns
     -------
@@ -111,7 +114,7 @@ def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float
     Raises
     ------
     ValueError
-        If the presses do not fit any rigid map within ``MAX_FIT_RMS_MM``.
+        If the presses do not fit any rigid map within :data:`MAX_FIT_RMS_PITCH` pitches.
     """
     rig = np.asarray(rig_xy, dtype=np.float64).reshape(-1, 2)
     seen = np.asarray(sensor_xy, dtype=np.float64).reshape(-1, 2)
@@ -130,7 +133,7 @@ def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float
                          surface_z_mm=surface_z_mm, fit_rms_mm=rms)
         if best is None or rms < best[0]:
             best = (rms, frame, h)
-    if best is None or best[0] > MAX_FIT_RMS_MM:
+    if best is None or best[0] > MAX_FIT_RMS_PITCH * pitch_mm:
         raise ValueError(f"the registration presses fit no rigid placement of the sensor "
                          f"(best RMS {best[0] if best else math.inf:.2f} mm): is the sensor fixed to the rig?")
     return best[1], best[2]

@@ -19,9 +19,10 @@ from optitac_edge.core.layout import FiberLayout
 
 #: Where the two presses are expected, as a fraction of the array radius along +x and +y.
 EDGE_FRACTION = 0.7
-#: A press is taken once held this long with its centroid within ``STILL_MM``, s.
+#: A press is taken once held this long with its centroid within ``STILL_PITCH`` pitches (1 mm on the
+#: paper's 1.5 mm array), s.
 HOLD_S = 0.6
-STILL_MM = 1.0
+STILL_PITCH = 1.0 / 1.5
 #: Then the skin must be released for this long, s.
 RELEASE_S = 0.3
 #: A press nearer the centre than this fraction of the radius cannot tell directions apart.
@@ -91,7 +92,7 @@ class EdgePresses:
             return
         self._held.append((t_ns, x_mm, y_mm))
         xy = np.array([(x, y) for _, x, y in self._held])
-        if np.max(np.hypot(*(xy - xy.mean(axis=0)).T)) > STILL_MM:
+        if np.max(np.hypot(*(xy - xy.mean(axis=0)).T)) > STILL_PITCH * self.layout.pitch_mm:
             self._held = self._held[-1:]  # moved: start the hold again from here
             return
         if t_ns - self._held[0][0] < HOLD_S * 1e9:
@@ -127,5 +128,5 @@ def resolve_edge_presses(measured_mm: np.ndarray, layout: FiberLayout,
     """
     r = EDGE_FRACTION * layout.radius_mm
     targets = np.array([[r, 0.0], [0.0, r]])
-    return fit_orientation(measured_mm, targets, symmetries or layout_symmetries(layout),
+    return fit_orientation(measured_mm, targets, symmetries or layout_symmetries(layout), layout.pitch_mm,
                            accept_mm=0.45 * r, margin_mm=0.1 * r, margin_ratio=1.3)

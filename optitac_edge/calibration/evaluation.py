@@ -19,10 +19,12 @@ from optitac_edge.calibration.measure import Measurements
 from optitac_edge.errors import RecordingError
 from optitac_edge.io.recording import SHAPES, Truth
 
-#: Repeated presses of one indenter closer than this (mm) count as one position.
-REPEAT_RADIUS_MM = 0.2
-#: Widths are reported separately below and above this diameter (mm), as in the paper.
-WIDTH_SPLIT_MM = 10.0
+#: Repeated presses of one indenter closer than this (pitches; 0.2 mm on the paper's 1.5 mm array) count as
+#: one position.
+REPEAT_RADIUS_PITCH = 0.2 / 1.5
+#: Widths are reported separately below and above this diameter (pitches), as in the paper (10 mm on its
+#: 1.5 mm array).
+WIDTH_SPLIT_PITCH = 10.0 / 1.5
 
 
 def read_contacts_csv(path: str | Path) -> Measurements:
@@ -181,12 +183,12 @@ def press_ids(truth: Truth) -> np.ndarray:
     return ids
 
 
-def repeatability(m: Measurements, truth: Truth, min_presses: int = 5) -> list[RepeatPosition]:
+def repeatability(m: Measurements, truth: Truth, pitch_mm: float, min_presses: int = 5) -> list[RepeatPosition]:
     """Per repeated position: mean centroid error and its range over the presses there.
 
     Each press contributes the mean error of its detected frames; a position
     is at least ``min_presses`` presses of the same indenter (shape and size)
-    whose true centres lie within ``REPEAT_RADIUS_MM`` of the first.
+    whose true centres lie within :data:`REPEAT_RADIUS_PITCH` pitches (``pitch_mm``: the array's) of the first.
     """
     ids = press_ids(truth)
     both = detected_rows(m, truth)
@@ -211,7 +213,7 @@ def repeatability(m: Measurements, truth: Truth, min_presses: int = 5) -> list[R
         if not unassigned[k]:
             continue
         near = unassigned & (kind == kind[k]) & (
-            np.hypot(arr[:, 0] - arr[k, 0], arr[:, 1] - arr[k, 1]) < REPEAT_RADIUS_MM)
+            np.hypot(arr[:, 0] - arr[k, 0], arr[:, 1] - arr[k, 1]) < REPEAT_RADIUS_PITCH * pitch_mm)
         unassigned &= ~near
         group = arr[near]
         if len(group) >= min_presses:
@@ -222,15 +224,16 @@ def repeatability(m: Measurements, truth: Truth, min_presses: int = 5) -> list[R
     return positions
 
 
-def width_accuracy(m: Measurements, truth: Truth) -> WidthReport | None:
-    """Width error over detected circular presses; None without circles of two or more sizes."""
+def width_accuracy(m: Measurements, truth: Truth, pitch_mm: float) -> WidthReport | None:
+    """Width error over detected circular presses, below and above :data:`WIDTH_SPLIT_PITCH` pitches
+    (``pitch_mm``: the array's) too; None without circles of two or more sizes."""
     rows = np.flatnonzero(detected_rows(m, truth) & (truth.shape == "circle"))
     if rows.size == 0 or np.unique(truth.size_mm[rows]).size < 2:
         return None
     frames = truth.frame[rows]
     true = truth.size_mm[rows]
     major, minor = m.major_mm[frames], m.minor_mm[frames]
-    small = true < WIDTH_SPLIT_MM
+    small = true < WIDTH_SPLIT_PITCH * pitch_mm
     return WidthReport(
         n=int(rows.size), rmse_major=_rmse(major - true), rmse_minor=_rmse(minor - true),
         r2_major=_r2(major, true), r2_minor=_r2(minor, true),
@@ -303,8 +306,8 @@ def shape_accuracy(m: Measurements, truth: Truth) -> ShapeReport | None:
     return ShapeReport(classes=classes, confusion=square, unclassified=confusion[:, -1], f1=f1)
 
 
-def format_evaluation(m: Measurements, truth: Truth) -> list[str]:
-    """The metrics that apply to this recording, as printable lines."""
+def format_evaluation(m: Measurements, truth: Truth, pitch_mm: float) -> list[str]:
+    """The metrics that apply to this recording (``pitch_mm``: the array's fiber pitch), as printable lines."""
     lines = []
     d = detection(m, truth)
     lines.append(f"detection: {d.detected}/{d.contact_frames} contact frames ({100 * d.rate:.1f} %), "
@@ -313,7 +316,7 @@ def format_evaluation(m: Measurements, truth: Truth) -> list[str]:
     if c.n:
         lines.append(f"centroid ({c.n} frames): RMSE x {c.rmse_x:.3f} mm, y {c.rmse_y:.3f} mm; "
                      f"R² x {c.r2_x:.4f}, y {c.r2_y:.4f}; max |error| x {c.max_abs_x:.3f}, y {c.max_abs_y:.3f} mm")
-    positions = repeatability(m, truth)
+    positions = repeatability(m, truth, pitch_mm)
     if positions:
         lines.append("repeatability (position: presses, mean error x/y, range x/y, mm):")
         for p in positions:
@@ -321,11 +324,11 @@ def format_evaluation(m: Measurements, truth: Truth) -> list[str]:
                          f"{p.mean_error_x:+.3f}/{p.mean_error_y:+.3f}, {p.range_x:.3f}/{p.range_y:.3f}")
         lines.append(f"  average range x {np.mean([p.range_x for p in positions]):.3f} mm, "
                      f"y {np.mean([p.range_y for p in positions]):.3f} mm")
-    w = width_accuracy(m, truth)
+    w = width_accuracy(m, truth, pitch_mm)
     if w is not None:
         lines.append(f"width ({w.n} frames): RMSE major {w.rmse_major:.3f} mm, minor {w.rmse_minor:.3f} mm; "
                      f"R² major {w.r2_major:.4f}, minor {w.r2_minor:.4f}")
-        lines.append(f"  below {WIDTH_SPLIT_MM:g} mm: RMSE {w.rmse_major_small:.3f}/{w.rmse_minor_small:.3f} mm; "
+        lines.append(f"  below {WIDTH_SPLIT_PITCH * pitch_mm:.3g} mm: RMSE {w.rmse_major_small:.3f}/{w.rmse_minor_small:.3f} mm; "
                      f"above: {w.rmse_major_large:.3f}/{w.rmse_minor_large:.3f} mm")
     dr = depth_accuracy(m, truth)
     if dr is not None:

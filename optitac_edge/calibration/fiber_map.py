@@ -55,7 +55,11 @@ class MapLimits:
     max_rms_pitch : float
         Largest acceptable RMS registration residual, pitches.
     max_unmatched_fraction : float
-        Largest number of blobs fitting no fiber, as a fraction of the layout size.
+        Largest number of blobs fitting no fiber within the array (a blob farther than ``stray_pitch`` from
+        every fiber is stray light, reported and left out), as a fraction of the layout size.
+    stray_pitch : float
+        A blob farther than this many pitches from every fiber's place is outside the array: stray light
+        (a reflection, a lit corner), not a sign of a wrong layout.
     min_pitch_px : float
         Smallest fiber pitch in the image, px.
     max_abs_k1 : float
@@ -67,6 +71,7 @@ class MapLimits:
     min_found_fraction: float = 0.8
     max_rms_pitch: float = 0.15
     max_unmatched_fraction: float = 0.05
+    stray_pitch: float = 1.0
     min_pitch_px: float = 4.0
     max_abs_k1: float = 0.3
     dark_ratio: float = 0.35
@@ -84,6 +89,9 @@ class FiberMapReport:
         Layout indices (0..N-1) of fibers not found.
     n_unmatched, n_merged : int
         Blobs fitting no fiber; blobs larger than 1.8x the median (merged faces).
+    n_stray : int
+        Of the unmatched blobs, those away from the array (farther than ``MapLimits.stray_pitch`` from every
+        fiber): stray light, left out.
     residual_rms_px, residual_rms_pitch : float
         RMS distance of found centroids from the fitted transform, px and pitches.
     pitch_px : float
@@ -107,12 +115,14 @@ class FiberMapReport:
     blob_radius_px: float
     detect_params: DetectParams
     attempts: int
+    n_stray: int = 0
 
     def summary(self) -> str:
         """One-line human-readable summary."""
+        stray = f" ({self.n_stray} away from the array: stray light, left out)" if self.n_stray else ""
         return (
             f"fiber map: {self.n_found}/{self.n_fibers} fibers found, {len(self.dead_fibers)} dead"
-            f"{list(self.dead_fibers) if self.dead_fibers else ''}, {self.n_unmatched} unmatched blobs, "
+            f"{list(self.dead_fibers) if self.dead_fibers else ''}, {self.n_unmatched} unmatched blobs{stray}, "
             f"residual {self.residual_rms_px:.2f} px ({self.residual_rms_pitch:.3f} pitch), "
             f"pitch {self.pitch_px:.1f} px, {self.attempts} detection attempt(s)"
         )
@@ -133,6 +143,7 @@ class _Attempt:
     reg: Registration
     fiber_blob: np.ndarray  # (N,) blob per fiber, -1 dead (incl. too dark)
     n_merged: int
+    n_stray: int  # unmatched blobs away from the array (stray light)
 
     @property
     def n_found(self) -> int:
@@ -142,8 +153,23 @@ class _Attempt:
     def n_unmatched(self) -> int:
         return int(self.reg.unmatched.size)
 
+    @property
+    def n_within(self) -> int:
+        """Unmatched blobs among the fibers (not stray light)."""
+        return self.n_unmatched - self.n_stray
+
     def score(self) -> tuple[int, int, float]:
-        return (self.n_found, -(self.n_unmatched + self.n_merged), -self.reg.rms_pitch)
+        return (self.n_found, -(self.n_within + self.n_merged), -self.reg.rms_pitch)
+
+
+def _stray(blobs: Blobs, reg: Registration, layout: FiberLayout, stray_pitch: float) -> int:
+    """Unmatched blobs farther than ``stray_pitch`` pitches from every fiber's place: outside the array."""
+    centres = blobs.centroid_px[reg.unmatched].reshape(-1, 2)
+    if not centres.size:
+        return 0
+    places = reg.transform.layout_to_image(layout.xy_mm)
+    d = np.hypot(centres[:, None, 0] - places[None, :, 0], centres[:, None, 1] - places[None, :, 1]).min(axis=1)
+    return int(np.count_nonzero(d > stray_pitch * reg.pitch_px))
 
 
 def _mean_image(frames: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
@@ -204,7 +230,7 @@ def _attempt(
         level = blobs.mean_gray[fiber_blob[found]]
         dark = level < limits.dark_ratio * np.median(level)
         fiber_blob[np.flatnonzero(found)[dark]] = -1
-    return _Attempt(blobs, reg, fiber_blob, blobs.merged_count())
+    return _Attempt(blobs, reg, fiber_blob, blobs.merged_count(), _stray(blobs, reg, layout, limits.stray_pitch))
 
 
 def _check_trust(
@@ -227,9 +253,10 @@ def _check_trust(
         raise FiberMapError(
             f"fiber centres fit the layout poorly (residual {a.reg.rms_pitch:.2f} pitch); wrong layout?"
         )
-    if a.n_unmatched > max(3, limits.max_unmatched_fraction * n):
+    if a.n_within > max(3, limits.max_unmatched_fraction * n):
         raise FiberMapError(
-            f"{a.n_unmatched} bright blobs fit no layout fiber (stray light or wrong layout?)"
+            f"{a.n_within} bright blobs among the fibers fit no layout fiber (dust on the fiber ends, or a wrong "
+            "layout: check the layout CSV's pitch and fiber count against the image in 'optitac-edge view')"
         )
 
 
@@ -333,11 +360,11 @@ def build_fiber_map(
         except FiberMapError as exc:
             failure = failure or exc
             continue
-        clean = a.n_unmatched == 0 and a.n_merged == 0
+        clean = a.n_within == 0 and a.n_merged == 0
         confirmed = (
             best is not None
             and clean
-            and best.n_unmatched == 0
+            and best.n_within == 0
             and best.n_merged == 0
             and np.array_equal(best.fiber_blob < 0, a.fiber_blob < 0)
         )
@@ -362,6 +389,7 @@ def build_fiber_map(
         blob_radius_px=best.blobs.median_radius_px,
         detect_params=best.blobs.params,
         attempts=tried,
+        n_stray=best.n_stray,
     )
     log.info(report.summary())
     return FiberMapResult(

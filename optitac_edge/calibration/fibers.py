@@ -61,7 +61,7 @@ def calibrate_fibers(
     rotation_hint_deg, mirror
         Orientation hint (see docs/formats.md); the hint must be within 20 degrees.
     thresholds : ContactThresholds, optional
-        Contact thresholds to store.
+        Contact thresholds to store (default: :meth:`ContactThresholds.for_pitch` of the layout's pitch).
     options : ContactOptions, optional
         Contact options to store (default: ``ContactOptions()``); their
         measured fields (``noise_rel``, ``noise_gray``, ``black_level``) are
@@ -82,7 +82,7 @@ def calibrate_fibers(
     gray = np.stack([to_gray(np.asarray(f), pixel_format) for f in rest_frames])
     result = build_fiber_map(gray, layout, rotation_hint_deg=rotation_hint_deg, mirror=mirror,
                              pixel_format=pixel_format)
-    grid = SurfaceGrid.over_layout(layout)
+    grid = SurfaceGrid.for_layout(layout)
     matrix, factors = build_interpolation(layout, grid)
     report = _jsonable(result.report)
     log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, fields(report))
@@ -91,7 +91,7 @@ def calibrate_fibers(
     options = dataclasses.replace(options or ContactOptions(), **noise)
     bundle = CalibrationBundle(
         layout=layout, transform=result.transform, fibers=result.table, grid=grid,
-        interpolation=matrix, thresholds=thresholds or ContactThresholds(), options=options,
+        interpolation=matrix, thresholds=thresholds or ContactThresholds.for_pitch(layout.pitch_mm), options=options,
         fiber_map_report=report, surface_factors=factors,
     )
     if layout.fiducial is not None and np.any(layout.fiducial):

@@ -27,10 +27,12 @@ from optitac_edge.core.layout import FiberLayout
 
 #: Two layout points closer than this fraction of the pitch are the same point.
 MATCH_TOL_PITCH = 0.1
-#: The best symmetry is accepted only if its centroid RMS error is below this, mm.
-ACCEPT_RMSE_MM = 2.0
-#: ... and the second best is at least this much worse (mm), and this many times worse.
-MARGIN_MM = 1.0
+#: The best symmetry is accepted only if its centroid RMS error is below this, pitches (2 mm on the
+#: paper's 1.5 mm array: an absolute 2 mm refused a 4 mm-pitch sensor whose presses fitted to 0.76 pitch)...
+ACCEPT_RMSE_PITCH = 2.0 / 1.5
+#: ... and the second best is at least this much worse (pitches, 1 mm on the paper's array), and this many
+#: times worse.
+MARGIN_PITCH = 1.0 / 1.5
 MARGIN_RATIO = 2.0
 #: Key of the orientation record in a bundle's ``extra_meta``.
 ORIENTATION_KEY = "orientation"
@@ -136,8 +138,8 @@ class OrientationFit:
         return self.labels[k], self.rmse_mm[k]
 
 
-def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: list[Symmetry],
-                    accept_mm: float = ACCEPT_RMSE_MM, margin_mm: float = MARGIN_MM,
+def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: list[Symmetry], pitch_mm: float,
+                    accept_mm: float | None = None, margin_mm: float | None = None,
                     margin_ratio: float = MARGIN_RATIO) -> OrientationFit:
     """Choose the symmetry ``h`` with ``measured ≈ h(true)``, or refuse when the presses can't tell.
 
@@ -148,6 +150,10 @@ def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: li
         true press positions, mm, sensor frame.
     symmetries : list of Symmetry
         From :func:`layout_symmetries`.
+    pitch_mm : float
+        The layout's fiber pitch: the gates below are in pitches.
+    accept_mm, margin_mm : float, optional
+        Default :data:`ACCEPT_RMSE_PITCH` and :data:`MARGIN_PITCH` pitches.
 
     Notes
     -----
@@ -156,6 +162,8 @@ def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: li
     times as large. Presses on the array's centre or only along one mirror axis fit
     several symmetries equally well and are refused.
     """
+    accept_mm = ACCEPT_RMSE_PITCH * pitch_mm if accept_mm is None else accept_mm
+    margin_mm = MARGIN_PITCH * pitch_mm if margin_mm is None else margin_mm
     m = np.asarray(measured_mm, dtype=np.float64).reshape(-1, 2)
     t = np.asarray(true_mm, dtype=np.float64).reshape(-1, 2)
     ok = np.all(np.isfinite(m), axis=1) & np.all(np.isfinite(t), axis=1)
@@ -169,8 +177,10 @@ def fit_orientation(measured_mm: np.ndarray, true_mm: np.ndarray, symmetries: li
     fit = OrientationFit(symmetries[best], rmse, labels, int(m.shape[0]))
     if rmse[best] > accept_mm:
         return replace(fit, symmetry=None, reason=(
-            f"no orientation fits these presses (best {labels[best]}: RMS {rmse[best]:.2f} mm, "
-            f"accepted below {accept_mm:g} mm)"))
+            f"no orientation fits these presses (best {labels[best]}: RMS {rmse[best]:.2f} mm = "
+            f"{rmse[best] / pitch_mm:.2f} pitch, accepted below {accept_mm / pitch_mm:.2f} pitch): check that the "
+            "truth's x_mm, y_mm are in the sensor frame (mm from the central fiber, +x along the rows of fibers) "
+            "and that the bundle's layout is this sensor's"))
     if len(order) > 1:
         second = rmse[int(order[1])]
         if second < rmse[best] + margin_mm or second < margin_ratio * rmse[best]:

@@ -212,7 +212,7 @@ def _repeatability_figure(plt: Any, bundle: CalibrationBundle, repeat: Path, pat
     """Each position's calibrated centroid error, mean and range over its presses."""
     from optitac_edge.calibration.evaluation import repeatability
 
-    positions = repeatability(*_measure_truth(repeat, bundle, corrected=True))
+    positions = repeatability(*_measure_truth(repeat, bundle, corrected=True), bundle.layout.pitch_mm)
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
     k = np.arange(len(positions))
     for off, axis, colour in ((-0.12, "x", "tab:blue"), (0.12, "y", "tab:orange")):

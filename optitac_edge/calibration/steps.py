@@ -39,8 +39,8 @@ from optitac_edge.errors import OrientationError, RecordingError
 from optitac_edge.io.recording import SHAPES, Recording, Truth
 
 log = logging.getLogger(__name__)
-#: The centroid maps reach this far beyond the outermost fiber, mm.
-MAP_MARGIN_MM = 3.0
+#: The centroid maps reach this far beyond the outermost fiber, pitches (3 mm on the paper's 1.5 mm array).
+MAP_MARGIN_PITCH = 2.0
 
 
 def _truth(rec: Recording) -> Any:
@@ -70,7 +70,7 @@ def press_orientation(m: Measurements, truth: Truth, bundle: CalibrationBundle) 
             measured.append((np.mean(m.x_mm[frames]), np.mean(m.y_mm[frames])))
             true.append((truth.x_mm[sel[0]], truth.y_mm[sel[0]]))
     return fit_orientation(np.array(measured).reshape(-1, 2), np.array(true).reshape(-1, 2),
-                           layout_symmetries(bundle.layout))
+                           layout_symmetries(bundle.layout), bundle.layout.pitch_mm)
 
 
 def calibrate_orientation(rec: Recording, bundle: CalibrationBundle
@@ -120,7 +120,7 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "a
     frames = truth.frame[rows]
     measured = np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1)
     true = np.stack([truth.x_mm[rows], truth.y_mm[rows]], axis=1)
-    span = bundle.layout.radius_mm + MAP_MARGIN_MM
+    span = bundle.layout.radius_mm + MAP_MARGIN_PITCH * bundle.layout.pitch_mm
     groups = press_ids(truth)[rows]
     try:
         candidates = held_out_fills(measured, true, groups, span, FILLS if fill == "auto" else (fill,))

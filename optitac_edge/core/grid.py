@@ -15,6 +15,12 @@ import numpy as np
 from optitac_edge.core.layout import FiberLayout
 
 DEFAULT_GRID_SIZE = 100
+#: Mesh cells per fiber pitch of a bundle's mesh (the paper's array: 100 cells over its 16 pitches).
+CELLS_PER_PITCH = 99 / 16
+#: Most cells a side of a calibrated mesh has: the per-frame buffers and the dense interpolation matrix
+#: (cells x fibers) grow with the square (1027 fibers on 100 x 100: 41 MiB); a larger array gets fewer
+#: cells per pitch.
+MAX_CALIBRATED_SIDE = DEFAULT_GRID_SIZE
 #: The mesh sizes a grid may have (a bundle claiming more is refused before anything is allocated).
 MIN_GRID_SIZE, MAX_GRID_SIZE = 2, 4096
 
@@ -46,6 +52,17 @@ class SurfaceGrid:
         centre = (lo + hi) / 2.0
         return cls(n=n, x0_mm=float(centre[0] - span / 2), y0_mm=float(centre[1] - span / 2),
                    step_mm=span / (n - 1))
+
+    @classmethod
+    def for_layout(cls, layout: FiberLayout) -> SurfaceGrid:
+        """The mesh a bundle of ``layout`` is calibrated with: :data:`CELLS_PER_PITCH` cells a pitch over the
+        layout's bounding box (at most :data:`MAX_CALIBRATED_SIDE` a side), whatever the pitch and fiber count:
+        100 x 100 for the paper's 217 fibers at 1.5 mm, 51 x 51 for 61 fibers in 4 rings, 100 x 100
+        (2.75 cells a pitch) for 1027 fibers in 18 rings."""
+        lo, hi = layout.xy_mm.min(axis=0), layout.xy_mm.max(axis=0)
+        pitches = float((hi - lo).max()) / layout.pitch_mm
+        n = min(round(pitches * CELLS_PER_PITCH) + 1, MAX_CALIBRATED_SIDE)
+        return cls.over_layout(layout, max(n, MIN_GRID_SIZE))
 
     @property
     def x_mm(self) -> np.ndarray:

@@ -12,6 +12,8 @@ from typing import Any
 
 #: Most simultaneous contacts the pipeline reports.
 MAX_CONTACTS = 4
+#: Smallest contact area, square pitches (1 mm2 on the paper's 1.5 mm array).
+MIN_AREA_PITCH2 = 1.0 / 1.5**2
 
 
 def _require_non_negative(obj: Any, names: tuple[str, ...]) -> None:
@@ -40,6 +42,11 @@ class ContactThresholds:
 
     def __post_init__(self) -> None:
         _require_non_negative(self, ("threshold", "min_area_mm2"))
+
+    @classmethod
+    def for_pitch(cls, pitch_mm: float) -> ContactThresholds:
+        """The defaults for an array of this pitch: the smallest contact :data:`MIN_AREA_PITCH2` square pitches."""
+        return cls(min_area_mm2=MIN_AREA_PITCH2 * pitch_mm * pitch_mm)
 
 
 @dataclass(frozen=True)

@@ -97,7 +97,7 @@ from optitac_edge.core.motion import ContactMotion
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
 from optitac_edge.core.surface import DenseSurface, TriangleSurface
-from optitac_edge.core.tracking import ContactTracker
+from optitac_edge.core.tracking import GATE_PITCH, ContactTracker
 from optitac_edge.core.vibration import VibrationMeter
 
 
@@ -219,7 +219,7 @@ class Pipeline:
         self.finder = ContactFinder(self.segmenter, self.blobs, self.levels, self.contacts, o.max_contacts,
                                     float(grid.cell_area_mm2))
         #: Stable contact ids, touch frames and releases from frame to frame.
-        self.tracker = ContactTracker(max_contacts=MAX_CONTACTS)
+        self.tracker = ContactTracker(GATE_PITCH * bundle.layout.pitch_mm, max_contacts=MAX_CONTACTS)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
         self.result = FrameResult(self.contacts, self.tracker.released)
         #: The compiled kernel running steps 2-10 (None: the numpy parts do).

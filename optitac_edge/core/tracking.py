@@ -27,8 +27,9 @@ from optitac_edge.core.contact import ContactEstimate
 
 #: Largest contact id; ids run 1 … MAX_ID and wrap (0 means no contact).
 MAX_ID = 255
-#: Default gate: the largest centroid step from one frame to the next that is the same contact, mm.
-GATE_MM = 4.0
+#: The gate: the largest centroid step from one frame to the next that is the same contact, pitches of the
+#: array (4 mm on the paper's 1.5 mm array).
+GATE_PITCH = 4.0 / 1.5
 
 
 class ContactTracker:
@@ -38,7 +39,7 @@ class ContactTracker:
     ----------
     gate_mm : float
         Largest centroid distance between a contact and the previous frame's
-        contact it continues, mm (> 0).
+        contact it continues, mm (> 0; the pipeline's: :data:`GATE_PITCH` pitches).
     max_contacts : int
         Most contacts per frame (the pipeline's ``max_contacts``).
 
@@ -50,7 +51,7 @@ class ContactTracker:
     n_released : int
     """
 
-    def __init__(self, gate_mm: float = GATE_MM, max_contacts: int = 4) -> None:
+    def __init__(self, gate_mm: float, max_contacts: int = 4) -> None:
         if not gate_mm > 0 or not math.isfinite(gate_mm):
             raise ValueError(f"tracking gate must be a finite distance > 0 mm, got {gate_mm!r}")
         self.gate_mm = float(gate_mm)

@@ -83,10 +83,12 @@ def _fibers(args: argparse.Namespace) -> int:
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
     placed = f" in region {list(region)}" if region else ""
+    stray = int(report.get("n_stray", 0))
+    away = f" ({stray} away from the array: stray light, left out)" if stray else ""
     print(f"wrote {output} (id {bundle.calibration_id}){placed}: "
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
-          f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs; "
-          f"residual {report.get('residual_rms_px', float('nan')):.2f} px")
+          f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs"
+          f"{away}; residual {report.get('residual_rms_px', float('nan')):.2f} px")
     return 0
 
 

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from optitac_edge.calibration.verdict import judge
 
     print(f"{rec.path} with {args.cal} (id {bundle.calibration_id}):")
-    for line in format_evaluation(m, rec.truth):
+    for line in format_evaluation(m, rec.truth, bundle.layout.pitch_mm):
         print(line)
     from optitac_edge.calibration.motion_report import format_motion, motion_report
 
