@@ -203,7 +203,7 @@ def test_unmatched_blobs_among_the_fibers_are_still_refused() -> None:
                                                                 fiber_diameter_mm=1.3))
     frames = np.stack([sensor.frame() for _ in range(3)])
     centres = sensor.fiber_centres_px
-    between = [(int(round((centres[i, 0] + centres[i + 1, 0]) / 2)), int(round(centres[i, 1])))
+    between = [(round(float(centres[i, 0] + centres[i + 1, 0]) / 2), round(float(centres[i, 1])))
                for i in range(26, 32)]  # half a pitch right of six fibers of the middle row
     with pytest.raises(FiberMapError, match="among the fibers fit no layout fiber.*layout CSV"):
         build_fiber_map(_with_corner_blobs(frames, 60.0, between), layout)
