@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from optitac_edge.cli import main
+from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.recording import Recording, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
 
@@ -351,3 +352,23 @@ def test_every_command_says_what_it_does_with_examples_and_every_option_has_help
         main(["calibrate", "depth", "--help"])
     out = capsys.readouterr().out
     assert "load cell" in out and "examples:" in out
+
+
+def test_a_61_fiber_array_is_simulated_mapped_and_oriented_from_its_layout_csv(tmp_path, capsys) -> None:
+    """'layout' writes a hexagonal array's CSV; 'sim --layout' simulates that array (its skin and presses
+    scaled with its 4 mm pitch), and the calibration steps map, orient and correct it."""
+    layout = tmp_path / "hex61.csv"
+    assert main(["layout", "--rings", "4", "--pitch-mm", "4", "-o", str(layout)]) == 0
+    assert "61 fibers at 4 mm, 32 mm across" in capsys.readouterr().out
+    rest, seen, cal = tmp_path / "rest", tmp_path / "seen", tmp_path / "cal.npz"
+    for out, scenario, seed in ((rest, "rest", 0), (seen, "seen", 2)):
+        assert main(["sim", str(out), "--scenario", scenario, "--seed", str(seed), "--layout", str(layout)]) == 0
+    assert main(["calibrate", "fibers", str(rest), "-o", str(cal), "--layout", str(layout)]) == 0
+    assert "61/61 fibers found" in capsys.readouterr().out
+    truth = Recording(seen).truth
+    assert truth is not None and set(truth.size_mm[truth.contact]) == {13.35}  # the 5 mm circle at 4 mm pitch
+    assert main(["calibrate", "orientation", str(seen), "--cal", str(cal)]) == 0
+    assert main(["calibrate", "centroid", str(seen), "--cal", str(cal)]) == 0
+    bundle = load_bundle(cal)
+    assert bundle.grid.n == 51 and bundle.thresholds.min_area_mm2 == pytest.approx(16 / 2.25)
+    assert max(bundle.extra_meta["centroid_fit"]["heldout_rmse_mm"]) < 0.25 * 4.0  # a quarter pitch

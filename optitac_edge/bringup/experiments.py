@@ -17,7 +17,10 @@
 ``vibrate`` a 5 mm circle pressed 2.5 mm deep, held, shaken by 0.05 mm at each of ``VIBRATE_HZ`` along the
             rig's x, y and z, held quiet and lifted (a rig that can shake: ``sim://``).
 
-Presses are grouped by indenter so the operator changes it once per block.
+Presses are grouped by indenter so the operator changes it once per block. The sizes and steps above are the
+paper's, for its 1.5 mm array; on an array of another pitch every indenter size, step and lateral margin scales
+with the pitch (:func:`~optitac_edge.core.layout.scaled_mm`: a 61-fiber array at 4 mm is pressed with a 13.35 mm
+circle in 0.65 mm steps), the depths stay as they are (the skin's, in mm).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from optitac_edge.core.layout import FiberLayout
+from optitac_edge.core.layout import FiberLayout, pitch_scale, scaled_mm
 
 EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths", "slide", "vibrate")
 #: ``vibrate``: the frequencies, Hz, each along the rig's x, y and z, and the amplitude, mm.
@@ -93,16 +96,16 @@ def inscribed_radius(layout: FiberLayout) -> float:
     return float(-ConvexHull(layout.xy_mm).equations[:, 2].max())
 
 
-def _reach(shape: str, size: float) -> float:
+def _reach(shape: str, size: float, scale: float) -> float:
     if shape == "edge":
-        return EDGE_LENGTH_MM / 2.0
+        return scaled_mm(EDGE_LENGTH_MM, scale) / 2.0
     if shape == "ellipse" or shape == "triangle":
         return size / 2.0 if shape == "ellipse" else size / math.sqrt(3.0)
     return size / 2.0 * (math.sqrt(2.0) if shape == "square" else 1.0)
 
 
 def _random_on_array(rng: np.random.Generator, layout: FiberLayout, shape: str, size: float) -> tuple[float, float]:
-    room = inscribed_radius(layout) - _reach(shape, size)
+    room = inscribed_radius(layout) - _reach(shape, size, pitch_scale(layout))
     if room < inscribed_radius(layout) / 4:
         return 0.0, 0.0
     r, t = room * math.sqrt(rng.uniform()), rng.uniform(0.0, 2 * math.pi)
@@ -130,27 +133,31 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
         For an unknown experiment.
     """
     rng = np.random.default_rng(seed)
+    k = pitch_scale(layout)
+    circle = scaled_mm(5.0, k)
     if experiment == "seen":
-        return [PlannedPress(float(x), float(y), 3.0) for x, y in layout.xy_mm]
+        return [PlannedPress(float(x), float(y), 3.0, size_mm=circle) for x, y in layout.xy_mm]
     if experiment == "unseen":
-        step = 0.25
-        lim = math.floor((layout.radius_mm - 2.5 - 0.5) / step + 1e-9) * step
+        step = scaled_mm(0.25, k)
+        lim = math.floor((layout.radius_mm - circle / 2 - scaled_mm(0.5, k)) / step + 1e-9) * step
         line = np.arange(-lim, lim + step / 2, step)
-        return ([PlannedPress(float(v), 0.0, 3.0) for v in line]
-                + [PlannedPress(0.0, float(v), 3.0) for v in line])
+        return ([PlannedPress(float(v), 0.0, 3.0, size_mm=circle) for v in line]
+                + [PlannedPress(0.0, float(v), 3.0, size_mm=circle) for v in line])
     if experiment == "repeat":
         ring = 0.5 * layout.radius_mm
         points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
                                  for a in (45.0, 135.0, 225.0, 315.0)]
-        return [PlannedPress(x, y, 3.0) for x, y in points for _ in range(10)]
+        return [PlannedPress(x, y, 3.0, size_mm=circle) for x, y in points for _ in range(10)]
     if experiment == "widths":
+        widths = [scaled_mm(d, k) for d in WIDTHS_MM]
         return [PlannedPress(*_random_on_array(rng, layout, "circle", d), 3.0, "circle", d)
-                for d in WIDTHS_MM for _ in range(5)]
+                for d in widths for _ in range(5)]
     if experiment == "shapes":
         out = []
-        for shape, size in SHAPE_SIZE_MM.items():
+        for shape, size_mm in SHAPE_SIZE_MM.items():
+            size = scaled_mm(size_mm, k)
             period = ANGLE_PERIOD_DEG[shape]
-            angles = [0.0] if not period else [period * k / 4 for k in range(4)]
+            angles = [0.0] if not period else [period * a / 4 for a in range(4)]
             per_block = 40 // len(angles)
             for angle in angles:
                 out += [PlannedPress(*_random_on_array(rng, layout, shape, size), 3.0, shape, size, angle)
@@ -158,19 +165,20 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
         return out
     if experiment == "slide":  # through the centre, up to 8 mm, in a straight line at each speed
         out = []
-        for k, speed in enumerate(SLIDE_SPEEDS_MM_S):
-            theta = math.radians(SLIDE_DIRECTIONS_DEG[k % len(SLIDE_DIRECTIONS_DEG)])
-            half = min(max(speed, 2.0), 8.0, layout.radius_mm - 4.0) / 2
+        for i, speed in enumerate(SLIDE_SPEEDS_MM_S):
+            theta = math.radians(SLIDE_DIRECTIONS_DEG[i % len(SLIDE_DIRECTIONS_DEG)])
+            half = min(max(speed, 2.0), scaled_mm(8.0, k), layout.radius_mm - scaled_mm(4.0, k)) / 2
             ux, uy = math.cos(theta), math.sin(theta)
-            out.append(PlannedPress(-half * ux, -half * uy, 2.5, slide_x_mm=half * ux, slide_y_mm=half * uy,
-                                    slide_mm_s=speed))
+            out.append(PlannedPress(-half * ux, -half * uy, 2.5, size_mm=circle, slide_x_mm=half * ux,
+                                    slide_y_mm=half * uy, slide_mm_s=speed))
         return out
     if experiment == "vibrate":
-        return [PlannedPress(1.0, -0.5, 2.5, shake_axis=axis, shake_hz=hz) for hz in VIBRATE_HZ for axis in "xyz"]
+        return [PlannedPress(scaled_mm(1.0, k), scaled_mm(-0.5, k), 2.5, size_mm=circle, shake_axis=axis,
+                             shake_hz=hz) for hz in VIBRATE_HZ for axis in "xyz"]
     if experiment == "depths":
         ring = 0.5 * layout.radius_mm
         points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
                                  for a in range(0, 360, 60)]
-        presses = [PlannedPress(x, y, d) for x, y in points for d in DEPTHS_MM for _ in range(2)]
-        return [presses[k] for k in rng.permutation(len(presses))]
+        presses = [PlannedPress(x, y, d, size_mm=circle) for x, y in points for d in DEPTHS_MM for _ in range(2)]
+        return [presses[i] for i in rng.permutation(len(presses))]
     raise ValueError(f"unknown experiment {experiment!r} (known: {', '.join(EXPERIMENTS)})")

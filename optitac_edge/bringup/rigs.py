@@ -84,5 +84,6 @@ def open_rig(config: BoardConfig, url: str | None = None) -> tuple[Rig, Camera |
     rig = SimRig(limits, clock, mount)
     cam = config.camera
     camera = SimCamera(fps=cam.fps, width=cam.width, height=cam.height, rgb=cam.pixel_format == "rgb",
-                       realtime=False, clock=clock, program=rig, physics=mount.physics, day=mount.day)
+                       realtime=False, clock=clock, program=rig, physics=mount.physics, day=mount.day,
+                       layout=str(cam.options.get("layout", "")))
     return rig, camera

@@ -20,7 +20,14 @@ COMMANDS: dict[str, tuple[str, list[str]]] = {
         ["optitac-edge sim out/rest --scenario rest",
          "optitac-edge sim out/seen --scenario seen --seed 2",
          "optitac-edge sim out/depths --scenario depths --seed 5 --day 1",
-         "optitac-edge sim out/depths-linear --scenario depths --physics linear --day 2"]),
+         "optitac-edge sim out/depths-linear --scenario depths --physics linear --day 2",
+         "optitac-edge sim out/seen61 --scenario seen --layout hex61.csv"]),
+    "layout": (
+        ("Write a hexagonal fiber array's layout CSV: a central fiber and rings of fibers at one pitch, rows "
+         "along +x. Give it to 'calibrate fibers --layout', to '[calibration] layout' of a board, and to the "
+         "simulator ('sim --layout', '[camera.options] layout') to bring up an array of another size."),
+        ["optitac-edge layout --rings 4 --pitch-mm 4 -o hex61.csv",
+         "optitac-edge layout --rings 18 --pitch-mm 1.5 -o hex1027.csv"]),
     "calibrate fibers": (
         ("Build a calibration bundle from a recording's rest frames: where every fiber of the layout is in the "
         "image, the surface grid and the noise-derived contact levels."),
@@ -128,6 +135,7 @@ ARGUMENTS: dict[str, dict[str, str]] = {
     "collect": {"--output": "the recording to write (continued if it is an interrupted collection)"},
     "monitor": {"--baud": "serial baud rate (default 921600)", "--duration": "stop after S seconds"},
     "snapshot": {"--output": "the PNG to write"},
+    "layout": {"--output": "the layout CSV to write"},
 }
 for _step in ("fibers", "orientation", "centroid", "width", "shapes", "depth"):
     ARGUMENTS[f"calibrate {_step}"] = {"recording": "the recording (directory or .mcap)"}

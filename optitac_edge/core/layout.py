@@ -16,6 +16,9 @@ MIN_FIBERS = 7
 MAX_EXTENT_MM = 1000.0
 #: Fibers closer than this (mm) are a layout in other units: no fiber array is that dense.
 MIN_SPACING_MM = 0.01
+#: The paper's array pitch, mm: the simulator's skin and the experiments' indenters are sized for it, and scale
+#: with another array's pitch (:func:`pitch_scale`).
+PAPER_PITCH_MM = 1.5
 
 
 def _closest_pair_mm(xy: np.ndarray) -> float:
@@ -125,3 +128,12 @@ def hex_layout(rings: int = 8, pitch_mm: float = 1.5) -> FiberLayout:
     return FiberLayout(ids=np.arange(len(xy), dtype=np.int64), xy_mm=xy)
 
 
+def pitch_scale(layout: FiberLayout) -> float:
+    """The layout's pitch in units of :data:`PAPER_PITCH_MM` (1 for the paper's array)."""
+    return layout.pitch_mm / PAPER_PITCH_MM
+
+
+def scaled_mm(value_mm: float, scale: float) -> float:
+    """A length sized for the paper's array, for an array ``scale`` times its pitch: as it is at scale 1,
+    else to the nearest 0.05 mm (an indenter one can make)."""
+    return value_mm if scale == 1.0 else round(value_mm * scale * 20.0) / 20.0

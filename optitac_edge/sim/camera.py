@@ -12,11 +12,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from optitac_edge.core.layout import hex_layout
 from optitac_edge.core.region import Region
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
 from optitac_edge.io.clock import Clock
+from optitac_edge.io.layout_csv import load_layout_csv
+from optitac_edge.sim.arrays import optics_for, skin_for
 from optitac_edge.sim.drift import SessionDrift
 from optitac_edge.sim.optics import CameraOptics
 from optitac_edge.sim.patches import PatchFrames
@@ -131,6 +134,10 @@ class SimCamera(Camera):
         The skin's simulated physics (:data:`~optitac_edge.sim.physics.PHYSICS`, default ``default``).
     day : int
         The session's drift (:meth:`~optitac_edge.sim.drift.SessionDrift.for_day`, default 0: none).
+    layout : str
+        A layout CSV (docs/formats.md): the simulated array (default '': the paper's 217 fibers at 1.5 mm);
+        its skin and end faces scale with its pitch (:mod:`~optitac_edge.sim.arrays`). A board sets it in
+        ``[camera.options] layout``.
     """
 
     @classmethod
@@ -148,16 +155,20 @@ class SimCamera(Camera):
                  realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None,
                  program: PressSource | None = None,
                  regions: Sequence[tuple[int, int, int, int]] | None = None, physics: str = "default",
-                 day: int = 0) -> None:
+                 day: int = 0, layout: str = "") -> None:
         super().__init__()
         if realtime and clock is not None:
             raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
         check_queue_frames(queue_frames)
 
         world = physics_named(physics)
+        array = load_layout_csv(layout) if layout else hex_layout()
         self.sensor = SimulatedSensor(
-            optics=CameraOptics(width=width, height=height, rgb=rgb, rotation_deg=rotation_deg, mirror=mirror),
-            skin=world.skin, seed=seed, drift=SessionDrift.for_day(day, scale=world.day_drift), fps=fps,
+            layout=array,
+            optics=optics_for(array, CameraOptics(width=width, height=height, rgb=rgb, rotation_deg=rotation_deg,
+                                                  mirror=mirror)),
+            skin=skin_for(array, world.skin), seed=seed, drift=SessionDrift.for_day(day, scale=world.day_drift),
+            fps=fps,
         )
         self.pixel_format = "rgb" if rgb else "gray"
         self.height, self.width, self.fps = height, width, float(fps)

@@ -31,6 +31,9 @@ contact-free frame. ``truth.csv`` has a row for every frame. Scenarios:
              random press (as ``demo``, 3 mm deep) held :data:`DRIFT_HOLD`
              frames, repeated (default 1200 frames = 20 s).
 
+Sizes, steps and margins are the paper's, for its 1.5 mm array; a layout of another pitch scales them
+(:func:`~optitac_edge.core.layout.scaled_mm`), and its skin and end faces (:mod:`~optitac_edge.sim.arrays`).
+
 Angles are drawn within each shape's symmetry period (circle 0; square
 [0, 90); triangle [0, 120); ellipse and edge [0, 180)). ``seed`` controls
 positions, sizes and frame noise; the physical sensor (fiber transmission,
@@ -54,9 +57,10 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from optitac_edge.core.fiber_table import FiberTable
-from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.core.layout import FiberLayout, hex_layout, pitch_scale, scaled_mm
 from optitac_edge.io.recording import SHAPES, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
+from optitac_edge.sim.arrays import optics_for, skin_for
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
 from optitac_edge.sim.motion_scenarios import DEPTH_MM as MOTION_DEPTH_MM
 from optitac_edge.sim.motion_scenarios import (
@@ -145,81 +149,92 @@ def _place(
 
 
 def _demo(rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int) -> list[Indenter]:
+    k = pitch_scale(layout)
     out = []
     for _ in range(n):
         shape = str(rng.choice(SHAPES))
         size = rng.uniform(1.5, 3.0) if shape == "edge" else rng.uniform(3.0, 10.0)
-        out.append(_place(rng, shape, float(size), float(rng.uniform(1.5, 3.5)), layout, skin))
+        out.append(_place(rng, shape, float(size) * k, float(rng.uniform(1.5, 3.5)), layout, skin))
     return out
 
 
+def _circle(layout: FiberLayout) -> float:
+    """The experiments' circle: 5 mm on the paper's array."""
+    return scaled_mm(5.0, pitch_scale(layout))
+
+
 def _seen(rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int) -> list[Indenter]:
-    return [Indenter("circle", float(x), float(y), 0.0, 5.0, 3.0) for x, y in layout.xy_mm]
+    size = _circle(layout)
+    return [Indenter("circle", float(x), float(y), 0.0, size, 3.0) for x, y in layout.xy_mm]
 
 
 def _unseen(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
-    step = 0.25
-    lim = math.floor((layout.radius_mm - 2.5 - 0.5) / step + 1e-9) * step
+    k, size = pitch_scale(layout), _circle(layout)
+    step = scaled_mm(0.25, k)
+    lim = math.floor((layout.radius_mm - size / 2 - scaled_mm(0.5, k)) / step + 1e-9) * step
     line = np.arange(-lim, lim + step / 2, step)
-    return [Indenter("circle", float(v), 0.0, 0.0, 5.0, 3.0) for v in line] + [
-        Indenter("circle", 0.0, float(v), 0.0, 5.0, 3.0) for v in line
+    return [Indenter("circle", float(v), 0.0, 0.0, size, 3.0) for v in line] + [
+        Indenter("circle", 0.0, float(v), 0.0, size, 3.0) for v in line
     ]
 
 
 def _repeat(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
-    ring = 0.5 * layout.radius_mm
+    ring, size, jitter = 0.5 * layout.radius_mm, _circle(layout), scaled_mm(0.05, pitch_scale(layout))
     angles = np.radians([45.0, 135.0, 225.0, 315.0])
     points = [(0.0, 0.0), *zip(ring * np.cos(angles), ring * np.sin(angles))]
     out = []
     for px, py in points:
         for _ in range(10):
-            jx, jy = rng.uniform(-0.05, 0.05, 2)
-            out.append(Indenter("circle", float(px + jx), float(py + jy), 0.0, 5.0, 3.0))
+            jx, jy = rng.uniform(-jitter, jitter, 2)
+            out.append(Indenter("circle", float(px + jx), float(py + jy), 0.0, size, 3.0))
     return out
 
 
 def _drift(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
+    k = pitch_scale(layout)
     out = []
     for _ in range(n):
         shape = str(rng.choice(SHAPES))
         size = rng.uniform(1.5, 3.0) if shape == "edge" else rng.uniform(3.0, 10.0)
-        out.append(_place(rng, shape, float(size), 3.0, layout, skin))
+        out.append(_place(rng, shape, float(size) * k, 3.0, layout, skin))
     return out
 
 
 def _widths(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
-    return [_place(rng, "circle", d, 3.0, layout, skin) for d in WIDTHS_MM for _ in range(5)]
+    k = pitch_scale(layout)
+    return [_place(rng, "circle", scaled_mm(d, k), 3.0, layout, skin) for d in WIDTHS_MM for _ in range(5)]
 
 
 def _shapes(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
+    k = pitch_scale(layout)
     order = rng.permutation(np.repeat(np.arange(len(SHAPES)), 40))
     out = []
-    for k in order:
-        shape = SHAPES[k]
+    for i in order:
+        shape = SHAPES[i]
         size = rng.uniform(1.5, 2.0) if shape == "edge" else rng.uniform(4.0, 8.0)
-        out.append(_place(rng, shape, float(size), 3.0, layout, skin))
+        out.append(_place(rng, shape, float(size) * k, 3.0, layout, skin))
     return out
 
 
 def _depths(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
-    ring = 0.5 * layout.radius_mm
+    ring, size = 0.5 * layout.radius_mm, _circle(layout)
     angles = np.radians(np.arange(0.0, 360.0, 60.0))
     points = [(0.0, 0.0), *zip(ring * np.cos(angles), ring * np.sin(angles))]
-    presses = [Indenter("circle", float(px), float(py), 0.0, 5.0, d)
+    presses = [Indenter("circle", float(px), float(py), 0.0, size, d)
                for px, py in points for d in DEPTHS_MM for _ in range(2)]
-    return [presses[k] for k in rng.permutation(len(presses))]
+    return [presses[i] for i in rng.permutation(len(presses))]
 
 
 _PressMaker = Callable[[np.random.Generator, FiberLayout, SkinModel, int], list[Indenter]]
@@ -393,8 +408,8 @@ def write_scenario(  # noqa: PLR0913
         sensor_seed = patch.frames.sensors[patch.index].sensor_seed
     world = physics_named(physics)
     overrides, variant_skin = sensor_variant(variant, optics.width, optics.height, layout, world.skin)
-    optics = replace(optics, **overrides) if overrides else optics
-    skin = variant_skin if skin is None else skin
+    optics = optics_for(layout, replace(optics, **overrides) if overrides else optics)
+    skin = skin_for(layout, variant_skin) if skin is None else skin
     sensor_seed = variant_sensor_seed(variant) if sensor_seed is None else sensor_seed
     moving = name in MOTION_SCENARIOS
     fps = MOTION_FPS if moving else FPS

@@ -65,6 +65,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--physics", choices=_SimNames("physics"), default="default", metavar="NAME",
                    help="%(choices)s: the simulated skin's physics (docs/simulator.md); default: the simulator's own guess")
     p.add_argument("--warmup", type=number(-0.5, 0.5), default=0.03, help="LED change over a 'drift' recording")
+    p.add_argument("--layout", type=Path, default=None, metavar="CSV",
+                   help="the simulated fiber array (a layout CSV, 'optitac-edge layout' writes a hexagonal one); "
+                        "default: the paper's 217 fibers at 1.5 mm. Its skin, end faces and presses scale with "
+                        "its pitch")
     add_fresh(p)
     add_storage(p, "raw", "raw (default): every frame as it is; fibers: the rest frames and each fiber's light")
     add_orientation(p)
@@ -73,10 +77,12 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from optitac_edge.core.layout import hex_layout
+    from optitac_edge.io.layout_csv import load_layout_csv
     from optitac_edge.sim.optics import CameraOptics
     from optitac_edge.sim.scenarios import write_scenario
 
-    n_fibers = hex_layout().n_fibers
+    layout = load_layout_csv(args.layout) if args.layout else hex_layout()
+    n_fibers = layout.n_fibers
     try:
         dark = tuple(int(s) for s in args.dark_fibers.split(",") if s.strip())
     except ValueError:
@@ -103,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         raise OptiTacError("--storage fibers: an MCAP recording holds raw frames (simulate into a directory)")
     path = write_scenario(out, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
                           day=args.day, variant=args.variant, warmup=args.warmup, patch=patch,
-                          fresh=args.fresh and not mcap, storage=args.storage, physics=args.physics)
+                          fresh=args.fresh and not mcap, storage=args.storage, physics=args.physics, layout=layout)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
