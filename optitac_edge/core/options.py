@@ -124,6 +124,12 @@ class ContactOptions:
     floor_trunc, floor_off, floor_on : float
         Lower bounds of the levels, relative units (converted to gray levels
         with the median rest level when ``relative`` is off).
+    gap_s : float
+        Frames further apart than this (s, the frames' own times) are independent snapshots (a labelled
+        data set, a rig that photographs each press, a camera that stalled): nothing is carried across
+        the gap -- no hysteresis, motion, vibration filter, baseline tracking step, bright-fiber timer, and
+        no contact id (every contact before it is released, every contact after it touches anew). The
+        baseline itself is kept (a tare retakes it).
     baseline_tau_s, holdoff_s : float
         See ``track_baseline``. The holdoff defaults to 0: the quiet-frame check
         already keeps a press's residue out of the baseline, and with presses in
@@ -158,6 +164,7 @@ class ContactOptions:
     baseline_tau_s: float = 1.0
     holdoff_s: float = 0.0
     gain_rate_per_s: float = 0.005
+    gap_s: float = 0.5
     noise_rel: float = 0.0
     noise_gray: float = 0.0
     black_level: float = 0.0
@@ -177,12 +184,14 @@ class ContactOptions:
         _require_non_negative(self, ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off",
                                      "k_on", "floor_trunc", "floor_off", "floor_on", "baseline_tau_s",
                                      "holdoff_s", "gain_rate_per_s", "noise_rel", "noise_gray",
-                                     "black_level"))
+                                     "black_level", "gap_s"))
         for name in ("peak_fraction", "shape_fraction", "split_fraction"):
             if not getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be < 1, got {getattr(self, name)!r}")
         if self.baseline_tau_s <= 0:
             raise ValueError(f"baseline_tau_s must be > 0, got {self.baseline_tau_s!r}")
+        if self.gap_s <= 0:
+            raise ValueError(f"gap_s must be > 0, got {self.gap_s!r}")
 
     @classmethod
     def paper(cls, **measured: Any) -> ContactOptions:
@@ -211,7 +220,7 @@ class ContactOptions:
         values = dict(d)
         for key in ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
                     "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
-                    "noise_gray", "black_level"):
+                    "noise_gray", "black_level", "gap_s"):
             if key in values and isinstance(values[key], int) and not isinstance(values[key], bool):
                 values[key] = float(values[key])
         return cls(**values)

@@ -123,7 +123,7 @@ def _track(pipe: Pipeline, n: int, now_ns: int, dt_ns: int | None) -> None:
     """Steps 8 and 8b: ids, touches and releases of the frame's ``n`` contacts (``result.contacts``) into the
     pipeline's result; then (``dt_ns`` given: the baseline is ready) their motion and the frame's vibration."""
     result, tracker = pipe.result, pipe.tracker
-    tracker.update(result.contacts, n, result.frame)
+    tracker.update(result.contacts, n, result.frame, pipe.after_gap)
     result.n_contacts = n
     result.n_released = tracker.n_released
     if dt_ns is None:
@@ -211,6 +211,9 @@ class Pipeline:
         self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
         self._n, self._frame, self._in_contact = grid.n, 0, False
         self._last_ns: int | None = None
+        self._gap_ns = round(o.gap_s * 1e9)
+        #: The last frame followed a gap longer than ``options.gap_s``: it was processed as a snapshot.
+        self.after_gap = False
         self._contact_end_ns: int | None = None
         #: All contacts of the last frame, valid ``[:n_contacts]``, strongest first.
         self.contacts: list[ContactEstimate] = [ContactEstimate() for _ in range(MAX_CONTACTS)]
@@ -351,6 +354,10 @@ class Pipeline:
         est.frame, est.t_ns = self._frame, now_ns
         self._frame += 1
         dt_ns = 0 if self._last_ns is None else now_ns - self._last_ns
+        self.after_gap = dt_ns > self._gap_ns
+        if self.after_gap:
+            self._forget(now_ns)
+            dt_ns = 0  # no baseline tracking step across the gap
         self._last_ns = now_ns
         baseline, gain = self.baseline, self.gain_compensation
         if fk is not None and baseline.ready:  # steps 2-10 in the kernel
@@ -381,6 +388,17 @@ class Pipeline:
         _track(self, n, now_ns, dt_ns)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
+
+    def _forget(self, now_ns: int) -> None:
+        """A gap: what the frames before it left (hysteresis, motion, the vibration filter, the bright-fiber
+        timer) is dropped; the tracker releases their contacts with this frame (``after_gap``)."""
+        self._in_contact = False
+        self._contact_end_ns = None
+        self.bright_fibers.reset()
+        self.motion.reset()
+        self.vibration.reset()
+        if self.kernel is not None:
+            self.kernel.kernel.reset_contact()
 
     def _raise(self, rest: np.ndarray, common: float) -> None:
         """Step 10's action: the fibers brighter than their baseline raised to ``rest``, the levels after."""

@@ -75,17 +75,18 @@ class ContactTracker:
         self._next_id = cid % MAX_ID + 1
         return cid
 
-    def update(self, contacts: Sequence[ContactEstimate], n: int, frame: int) -> None:
+    def update(self, contacts: Sequence[ContactEstimate], n: int, frame: int, separate: bool = False) -> None:
         """Match the first ``n`` of ``contacts`` (one frame's) to the previous frame's, in place.
 
         Sets ``contact_id`` and ``touch_frame`` of each (``touch_frame == frame``:
         it touched in this frame) and fills :attr:`released` with the previous
-        frame's contacts that are gone.
+        frame's contacts that are gone. ``separate``: the frame follows a gap (a snapshot): every previous
+        contact is released and every contact is a new touch.
         """
         prev = self._prev
         n_prev = len(prev)
         match = [-1] * n  # index into prev, per contact
-        if n and n_prev:
+        if n and n_prev and not separate:
             pairs = []
             for i in range(n):
                 c = contacts[i]
