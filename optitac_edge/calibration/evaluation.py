@@ -168,9 +168,11 @@ def press_ids(truth: Truth) -> np.ndarray:
     ids = np.full(len(truth), -1, dtype=np.int64)
     press = -1
     previous = None
+    session = truth.session
     for k in range(len(truth)):
+        if not truth.contact[k] or (session is not None and k and session[k] != session[k - 1]):
+            previous = None  # a press never spans two recordings
         if not truth.contact[k]:
-            previous = None
             continue
         # a blank cell (NaN, e.g. a circle's angle) is None: NaN != NaN made every frame a press of its own
         pose = tuple(None if isinstance(v, float) and math.isnan(v) else v for v in (

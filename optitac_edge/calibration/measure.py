@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -13,7 +14,8 @@ from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.corrections import ContactCorrector
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
-from optitac_edge.io.recording import Recording
+from optitac_edge.errors import RecordingError
+from optitac_edge.io.recording import Recording, Truth
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,7 +98,8 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     """Every frame of ``rec`` through ``pipeline`` at its capture time (``rec.t_ns``; ``i / fps`` when not stamped).
 
     Yields ``(frame index, estimate)``; the estimate is the pipeline's reused
-    object (copy it to keep it). The baseline comes from the leading rest frames.
+    object (copy it to keep it). The baseline comes from the leading rest frames, and is taken again at
+    each of the recording's tare points (``rec.tares``).
 
     Parameters
     ----------
@@ -112,8 +115,11 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
 
     pipeline.bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
     t_ns = rec.t_ns
+    tares = {t.frame: t.frames for t in rec.tares}
     show = sys.stderr.isatty() if progress is None else progress
     for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
+        if i in tares:
+            pipeline.reset_baseline(tares[i])
         yield i, pipeline.process(rec.frames[i], int(t_ns[i])).primary
 
 
@@ -155,3 +161,71 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
         features[i] = est.features
         shape[i] = est.shape
     return Measurements(contact=contact, hu=hu, features=features, shape=shape.astype(str), motion=motion, **cols)
+
+
+def recordings_named(recs: Sequence[Recording]) -> str:
+    """The recordings' paths, for a line a person reads."""
+    return ", ".join(str(r.path) for r in recs)
+
+
+def measure_sessions(recs: Sequence[Recording], bundle: CalibrationBundle, corrected: bool = True,
+                     progress: bool | None = None, shape_backend: str = "numpy",
+                     onnx_path: str | None = None) -> tuple[Measurements, Truth]:
+    """Several recordings (days, sessions) measured as one, each with its own baseline (its rest frames and
+    tare points) and a pipeline of its own, then joined: frames numbered on from one recording to the next,
+    every truth row with its recording's number (``Truth.session``: a press never spans two).
+
+    Raises
+    ------
+    RecordingError
+        When a recording has no truth.csv.
+    """
+    if not recs:
+        raise RecordingError("no recordings given")
+    parts, truths, offset = [], [], 0
+    for k, rec in enumerate(recs):
+        if rec.truth is None:
+            raise RecordingError(f"{rec.path}: needs truth.csv")
+        parts.append(measure_recording(rec, bundle, corrected, progress, shape_backend, onnx_path))
+        truths.append((rec.truth, offset, k))
+        offset += len(rec)
+    return join_measurements(parts), join_truths(truths)
+
+
+def join_measurements(parts: Sequence[Measurements]) -> Measurements:
+    """Measurements of several recordings, one after the other."""
+    if len(parts) == 1:
+        return parts[0]
+    values: dict[str, Any] = {}
+    for f in fields(Measurements):
+        got = [getattr(p, f.name) for p in parts]
+        if f.name == "motion":
+            values[f.name] = None if any(g is None for g in got) else FrameMotion(
+                *(np.concatenate([getattr(g, h.name) for g in got]) for h in fields(FrameMotion)))
+        elif any(g is None for g in got):
+            values[f.name] = None
+        else:
+            values[f.name] = np.concatenate(got)
+    return Measurements(**values)
+
+
+def join_truths(parts: Sequence[tuple[Truth, int, int]]) -> Truth:
+    """The truths of several recordings as one: each ``(truth, its first frame's number, its session)``."""
+    if len(parts) == 1 and parts[0][1] == 0:
+        return parts[0][0]
+    n = [len(t) for t, _, _ in parts]
+
+    def column(name: str, fill: object) -> np.ndarray | None:
+        got = [getattr(t, name) for t, _, _ in parts]
+        if all(g is None for g in got):
+            return None
+        return np.concatenate([np.full(k, fill) if g is None else g for g, k in zip(got, n)])
+
+    frame = np.concatenate([t.frame + offset for t, offset, _ in parts])
+    session = np.concatenate([np.full(len(t), k, dtype=np.int64) for t, _, k in parts])
+    required = {name: np.concatenate([getattr(t, name) for t, _, _ in parts])
+                for name in ("contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")}
+    motion = column("motion", "")
+    return Truth(frame=frame, **required, force_n=column("force_n", np.nan), vx_mm_s=column("vx_mm_s", np.nan),
+                 vy_mm_s=column("vy_mm_s", np.nan), motion=None if motion is None else motion.astype(str),
+                 session=session)

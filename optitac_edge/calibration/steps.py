@@ -1,14 +1,17 @@
 """The calibration steps after ``calibrate fibers``: orientation, centroid, width, shapes, depth.
 
-Each step replays a recording with known truth through the raw pipeline
-(baseline from its rest frames), fits its model, and returns an updated
-bundle; the CLI saves it atomically. The fitted data are kept in the bundle
+Each step replays recordings with known truth through the raw pipeline
+(each recording with its own baseline: its rest frames and tare points; several
+recordings -- days, sessions -- are measured each on its own and joined,
+:func:`~optitac_edge.calibration.measure.measure_sessions`), fits its model,
+and returns an updated bundle; the CLI saves it atomically. The fitted data are kept in the bundle
 (``report/*`` arrays) so ``optitac-edge report`` can draw them later.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +26,7 @@ from optitac_edge.calibration.bundle_models import (
 from optitac_edge.calibration.centroid_fit import FILLS, fit_centroid_map, held_out_fills
 from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, grouped_means, select_feature
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
-from optitac_edge.calibration.measure import Measurements, measure_recording
+from optitac_edge.calibration.measure import Measurements, measure_sessions, recordings_named
 from optitac_edge.calibration.orientation import (
     OrientationFit,
     fit_orientation,
@@ -43,10 +46,22 @@ log = logging.getLogger(__name__)
 MAP_MARGIN_PITCH = 2.0
 
 
-def _truth(rec: Recording) -> Any:
-    if rec.truth is None:
-        raise RecordingError(f"{rec.path}: calibration needs truth.csv")
-    return rec.truth
+#: One recording, or several (days, sessions) calibrated from together.
+Recordings = Recording | Sequence[Recording]
+
+
+def _listed(recs: Recordings) -> tuple[Recording, ...]:
+    return (recs,) if isinstance(recs, Recording) else tuple(recs)
+
+
+def _measured(recs: Recordings, bundle: CalibrationBundle) -> tuple[Measurements, Truth, str]:
+    """The raw pipeline's measurements of ``recs``, their truth and their names (for the lines)."""
+    listed = _listed(recs)
+    for rec in listed:
+        if rec.truth is None:
+            raise RecordingError(f"{rec.path}: calibration needs truth.csv")
+    m, truth = measure_sessions(listed, bundle, corrected=False)
+    return m, truth, recordings_named(listed)
 
 
 def _with_report_arrays(bundle: CalibrationBundle, **arrays: np.ndarray) -> CalibrationBundle:
@@ -73,24 +88,25 @@ def press_orientation(m: Measurements, truth: Truth, bundle: CalibrationBundle) 
                            layout_symmetries(bundle.layout), bundle.layout.pitch_mm)
 
 
-def calibrate_orientation(rec: Recording, bundle: CalibrationBundle
+def calibrate_orientation(recs: Recordings, bundle: CalibrationBundle
                           ) -> tuple[CalibrationBundle, OrientationFit]:
-    """Check the bundle's fiber map against the recording's presses; correct it if off by a symmetry.
+    """Check the bundle's fiber map against the recordings' presses; correct it if off by a symmetry.
 
     Raises
     ------
     OrientationError
         When the presses cannot tell the layout's symmetries apart, or none fits.
     """
-    truth = _truth(rec)
-    fit = press_orientation(measure_recording(rec, bundle, corrected=False), truth, bundle)
+    m, truth, where = _measured(recs, bundle)
+    fit = press_orientation(m, truth, bundle)
     if fit.symmetry is None:
-        raise OrientationError(f"{rec.path}: {fit.reason}")
-    evidence = f"{fit.presses} presses of {rec.path.name}, RMS {fit.best_rmse_mm:.2f} mm"
+        raise OrientationError(f"{where}: {fit.reason}")
+    names = ", ".join(r.path.name for r in _listed(recs))
+    evidence = f"{fit.presses} presses of {names}, RMS {fit.best_rmse_mm:.2f} mm"
     return reorient_bundle(bundle, fit.symmetry, evidence), fit
 
 
-def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "auto",
+def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = "auto",
                        bundle_path: str = "CAL") -> tuple[CalibrationBundle, dict[str, Any]]:
     """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map;
     ``auto``, default: the fill with the smaller error on presses held out of the map).
@@ -103,20 +119,20 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "a
         If the presses show the fiber map off by a symmetry of the layout, or
         cannot confirm an orientation that was never verified.
     """
-    truth = _truth(rec)
-    m = measure_recording(rec, bundle, corrected=False)
+    m, truth, where = _measured(recs, bundle)
     fit = press_orientation(m, truth, bundle)
-    fix = f"fix it with: optitac-edge calibrate orientation {rec.path} --cal {bundle_path}"
+    fix = (f"fix it with: optitac-edge calibrate orientation {' '.join(str(r.path) for r in _listed(recs))} "
+           f"--cal {bundle_path}")
     if fit.symmetry is not None and not fit.symmetry.is_identity:
         raise OrientationError(
-            f"{rec.path}: the bundle's fiber map is {fit.symmetry.label} from these presses "
+            f"{where}: the bundle's fiber map is {fit.symmetry.label} from these presses "
             f"(RMS {fit.best_rmse_mm:.2f} mm that way, {fit.rmse_mm[0]:.2f} mm as it is); {fix}")
     if fit.symmetry is None and not is_verified(bundle):
-        raise OrientationError(f"{rec.path}: cannot confirm the bundle's orientation: {fit.reason}; "
+        raise OrientationError(f"{where}: cannot confirm the bundle's orientation: {fit.reason}; "
                                "verify it with 'optitac-edge orient' or 'calibrate orientation' on other presses")
     rows = np.flatnonzero(detected_rows(m, truth))
     if rows.size < 3:
-        raise RecordingError(f"{rec.path}: only {rows.size} detected presses to calibrate the centroid")
+        raise RecordingError(f"{where}: only {rows.size} detected presses to calibrate the centroid")
     frames = truth.frame[rows]
     measured = np.stack([m.x_mm[frames], m.y_mm[frames]], axis=1)
     true = np.stack([truth.x_mm[rows], truth.y_mm[rows]], axis=1)
@@ -125,7 +141,7 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "a
     try:
         candidates = held_out_fills(measured, true, groups, span, FILLS if fill == "auto" else (fill,))
     except ValueError as exc:
-        raise RecordingError(f"{rec.path}: {exc}") from None
+        raise RecordingError(f"{where}: {exc}") from None
     chosen = min(candidates, key=lambda c: c["score_mm"])
     fill = chosen["fill"]
     error_map = fit_centroid_map(measured, true, half_span_mm=span, fill=fill)
@@ -137,14 +153,15 @@ def calibrate_centroid(rec: Recording, bundle: CalibrationBundle, fill: str = "a
         "heldout_rmse_mm": chosen["heldout_rmse_mm"], "heldout_spread_mm": chosen["heldout_spread_mm"],
     }
     if fit.symmetry is not None:
-        bundle = mark_verified(bundle, f"{fit.presses} presses of {rec.path.name}, RMS {fit.best_rmse_mm:.2f} mm")
+        names = ", ".join(r.path.name for r in _listed(recs))
+        bundle = mark_verified(bundle, f"{fit.presses} presses of {names}, RMS {fit.best_rmse_mm:.2f} mm")
     bundle = with_centroid_map(bundle, error_map)
     bundle = _with_report_arrays(bundle, centroid_measured=measured, centroid_true=true)
     details = {**summary, "candidates": candidates}
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "centroid_fit": details}), summary
 
 
-def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto"
+def calibrate_width(recs: Recordings, bundle: CalibrationBundle, kind: str = "auto"
                     ) -> tuple[CalibrationBundle, dict[str, Any]]:
     """Per-axis width model from circular presses of known diameter.
 
@@ -152,11 +169,10 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto
     presses held out of the fit; a form's name fits that form (its held-out figures are still reported;
     ``linear``: the paper's).
     """
-    truth = _truth(rec)
-    m = measure_recording(rec, bundle, corrected=False)
+    m, truth, where = _measured(recs, bundle)
     rows = np.flatnonzero(detected_rows(m, truth) & (truth.shape == "circle"))
     if rows.size < 2 or np.unique(truth.size_mm[rows]).size < 2:
-        raise RecordingError(f"{rec.path}: width calibration needs circles of at least two diameters")
+        raise RecordingError(f"{where}: width calibration needs circles of at least two diameters")
     frames = truth.frame[rows]
     major, minor, true = m.major_mm[frames], m.minor_mm[frames], truth.size_mm[rows]
     radius = float(bundle.layout.radius_mm)
@@ -166,7 +182,7 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto
         form, model, candidates = select_width_form(major, minor, rho2, true, press_ids(truth)[rows], radius,
                                                     forms)
     except ValueError as exc:
-        raise RecordingError(f"{rec.path}: {exc}") from None
+        raise RecordingError(f"{where}: {exc}") from None
     fitted = np.array([model.correct(a, b, x, y) for a, b, x, y in
                        zip(major, minor, m.x_mm[frames], m.y_mm[frames])])
     chosen = next(c for c in candidates if c["form"] == form)
@@ -185,17 +201,16 @@ def calibrate_width(rec: Recording, bundle: CalibrationBundle, kind: str = "auto
     return bundle.with_updates(extra_meta={**bundle.extra_meta, "width_fit": details}), summary
 
 
-def calibrate_shapes(rec: Recording, bundle: CalibrationBundle, seed: int = 0
+def calibrate_shapes(recs: Recordings, bundle: CalibrationBundle, seed: int = 0
                      ) -> tuple[CalibrationBundle, dict[str, Any]]:
     """Shape classifier from labelled presses (the paper's GMM search and a supervised alternative)."""
     from optitac_edge.calibration.shape_fit import ShapeFitSettings, fit_shape_model
 
-    truth = _truth(rec)
-    m = measure_recording(rec, bundle, corrected=False)
+    m, truth, where = _measured(recs, bundle)
     rows = np.flatnonzero(detected_rows(m, truth))
     labels = truth.shape[rows]
     if np.unique(labels).size < 2:
-        raise RecordingError(f"{rec.path}: shape calibration needs presses of at least two shapes")
+        raise RecordingError(f"{where}: shape calibration needs presses of at least two shapes")
     features = m.features[truth.frame[rows]]
     report = fit_shape_model(features, labels, press_ids(truth)[rows], ShapeFitSettings(seed=seed))
     bundle = with_shape_model(bundle, report.model)
@@ -240,20 +255,19 @@ class DepthPresses:
     with_force: bool
 
 
-def depth_presses(rec: Recording, bundle: CalibrationBundle, names: tuple[str, ...] = DEPTH_FEATURES
+def depth_presses(recs: Recordings, bundle: CalibrationBundle, names: tuple[str, ...] = DEPTH_FEATURES
                   ) -> DepthPresses:
-    """The raw pipeline's presses of ``rec`` (a ``depths`` recording) with the features ``names``.
+    """The raw pipeline's presses of ``recs`` (``depths`` recordings) with the features ``names``.
 
     Raises
     ------
     RecordingError
         Without truth, or with detected presses at fewer than 3 depths.
     """
-    truth = _truth(rec)
-    m = measure_recording(rec, bundle, corrected=False)
+    m, truth, where = _measured(recs, bundle)
     rows = np.flatnonzero(detected_rows(m, truth))
     if np.unique(truth.depth_mm[rows]).size < 3:
-        raise RecordingError(f"{rec.path}: depth calibration needs detected presses at 3 depths or more "
+        raise RecordingError(f"{where}: depth calibration needs detected presses at 3 depths or more "
                              f"(the 'depths' experiment), got {np.unique(truth.depth_mm[rows]).size}")
     frames = truth.frame[rows]
     rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / float(bundle.layout.radius_mm) ** 2
@@ -265,7 +279,7 @@ def depth_presses(rec: Recording, bundle: CalibrationBundle, names: tuple[str, .
                         counts, bool(np.isfinite(force).all()))
 
 
-def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | None = None,
+def calibrate_depth(recs: Recordings, bundle: CalibrationBundle, feature: str | None = None,
                     drift: float = RESPONSE_DRIFT) -> tuple[CalibrationBundle, dict[str, Any]]:
     """Depth model, and force model when ``truth.csv`` has a load cell's ``force_n``, from presses of known
     depth (the ``depths`` experiment: one indenter, several depths and positions).
@@ -276,7 +290,7 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | No
     it guards against), separately for depth and force; ``feature`` fixes it instead (the held-out figures
     are still reported).
     """
-    p = depth_presses(rec, bundle, DEPTH_FEATURES if feature is None else (feature,))
+    p = depth_presses(recs, bundle, DEPTH_FEATURES if feature is None else (feature,))
     counts, level = p.frames, p.level
     radius = float(bundle.layout.radius_mm)
     groups = np.arange(counts.size)  # one row per press: a fold never splits a press
@@ -285,7 +299,7 @@ def calibrate_depth(rec: Recording, bundle: CalibrationBundle, feature: str | No
         force_sel = (select_feature(p.features, p.rho2, p.force, radius, level, counts, groups, drift)
                      if p.with_force else None)
     except ValueError as exc:
-        raise RecordingError(f"{rec.path}: {exc}") from None
+        raise RecordingError(f"{recordings_named(_listed(recs))}: {exc}") from None
     model = DepthForceModel(depth.feature, depth.fit.model, None if force_sel is None else force_sel.fit.model,
                             "" if force_sel is None else force_sel.feature)
     chosen = depth.chosen

@@ -137,8 +137,7 @@ ARGUMENTS: dict[str, dict[str, str]] = {
     "snapshot": {"--output": "the PNG to write"},
     "layout": {"--output": "the layout CSV to write"},
 }
-for _step in ("fibers", "orientation", "centroid", "width", "shapes", "depth"):
-    ARGUMENTS[f"calibrate {_step}"] = {"recording": "the recording (directory or .mcap)"}
+ARGUMENTS["calibrate fibers"] = {"recording": "the recording (directory or .mcap)"}
 
 
 def describe(parser: argparse.ArgumentParser, name: str = "") -> None:

@@ -30,7 +30,7 @@ class Baseline:
     """
 
     def __init__(self, n_fibers: int, n_frames: int, black_level: float, tau_s: float, holdoff_s: float) -> None:
-        self.n_frames = max(int(n_frames), 1)
+        self._default_frames = self.n_frames = max(int(n_frames), 1)
         #: Per-fiber baseline gray levels, shape (N,), float32 (zeros until ready).
         self.values = np.zeros(n_fibers, dtype=np.float32)
         #: ``max(values - black_level, 1)``, shape (N,), float32: the rest light above black.
@@ -54,8 +54,9 @@ class Baseline:
         """The first ``n_frames`` frames have been averaged."""
         return self._count >= self.n_frames
 
-    def reset(self) -> None:
-        """Start again: the next ``n_frames`` frames are averaged (tare)."""
+    def reset(self, n_frames: int | None = None) -> None:
+        """Start again: the next ``n_frames`` frames (default: as many as at construction) are averaged (tare)."""
+        self.n_frames = self._default_frames if n_frames is None else max(int(n_frames), 1)
         self._sum.fill(0.0)
         self._count = 0
 

@@ -288,9 +288,9 @@ class Pipeline:
         if self.baseline.ready:
             self._levels_changed()
 
-    def reset_baseline(self) -> None:
-        """Tare: re-baseline from the next ``baseline_frames`` frames."""
-        self.baseline.reset()
+    def reset_baseline(self, frames: int | None = None) -> None:
+        """Tare: re-baseline from the next ``frames`` frames (default: the bundle's ``baseline_frames``)."""
+        self.baseline.reset(frames)
         self.bright_fibers.reset()
         self._in_contact = False
         self._contact_end_ns = None

@@ -17,6 +17,10 @@ Layout of a recording directory (a contract; see docs/formats.md):
                 ``frame,contact,shape,x_mm,y_mm,angle_deg,size_mm,depth_mm``,
                 optionally followed by ``phase,rig_x_mm,rig_y_mm,rig_z_mm``
                 (a rig's pose for every frame, written by ``collect``).
+``meta.json``'s ``tares`` (optional): frames where the baseline was taken again (a tare mid-recording),
+                each ``F`` or ``{"frame": F, "frames": K}`` (the baseline from frames F..F+K-1;
+                default K: the bundle's baseline frames), in order; every reader that
+                processes the frames honours them (:attr:`Recording.tares`).
 ``timestamps.npy`` optional, int64 shape (N,): each frame's capture time,
                 CLOCK_MONOTONIC ns (the camera's own where it gives one),
                 non-decreasing; without it frame ``i`` is at ``i / fps``.
@@ -31,7 +35,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -69,6 +73,50 @@ class RecordingMeta:
         return {"rest_frames": self.rest_frames, "fps": self.fps, **self.extra}
 
 
+@dataclass(frozen=True)
+class Tare:
+    """A tare point of a recording: the baseline taken again from frame ``frame`` on, over ``frames`` frames
+    (None: as many as the bundle averages)."""
+
+    frame: int
+    frames: int | None = None
+
+
+#: Most tare points a recording may list.
+MAX_TARES = 100_000
+
+
+def _whole(value: object) -> TypeGuard[int]:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def read_tares(raw: object, n_frames: int, where: Path) -> tuple[Tare, ...]:
+    """``meta.json``'s ``tares``: a list of frame numbers or ``{"frame": F, "frames": K}`` objects, in order,
+    each past the leading rest frames' start and before the recording's end.
+
+    Raises
+    ------
+    RecordingError
+        One line naming the file and the entry.
+    """
+    if raw is None:
+        return ()
+    if not isinstance(raw, list) or len(raw) > MAX_TARES:
+        raise RecordingError(f"{where}: 'tares' must be a list of frame numbers or {{\"frame\": F, \"frames\": K}} "
+                             f"(at most {MAX_TARES})")
+    out: list[Tare] = []
+    for k, entry in enumerate(raw):
+        item = entry if isinstance(entry, dict) else {"frame": entry}
+        frame, frames = item.get("frame"), item.get("frames")
+        if (set(item) - {"frame", "frames"} or not _whole(frame) or not 1 <= frame < n_frames
+                or (frames is not None and not (_whole(frames) and frames >= 1))
+                or (out and frame <= out[-1].frame)):
+            raise RecordingError(f"{where}: tares[{k}] = {json.dumps(entry)[:80]}: a tare is a frame 1..{n_frames - 1} "
+                                 "after the one before it, or {\"frame\": F, \"frames\": K} with K >= 1")
+        out.append(Tare(frame, frames))
+    return tuple(out)
+
+
 @dataclass(frozen=True, eq=False)
 class Truth:
     """Ground truth per frame (columns of ``truth.csv``); NaN / '' where no contact."""
@@ -88,6 +136,8 @@ class Truth:
     vy_mm_s: np.ndarray | None = None
     #: (N,) str: ``held``, ``sliding`` or ``vibrating`` ('' without contact); None: no motion columns.
     motion: np.ndarray | None = None
+    #: (N,) int64: which recording of several each row comes from (a press never spans two); None: one.
+    session: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
@@ -406,6 +456,8 @@ class Recording:
         self.rig_poses: RigPoses | None = None
         if truth_path.exists():
             self.truth, self.rig_poses = read_truth_file(truth_path, len(frames))
+        #: The tare points (``meta.json``'s ``tares``), in order.
+        self.tares = read_tares(self.meta.extra.get("tares"), len(frames), self.path / "meta.json")
         stamps = self.path / TIMESTAMPS
         #: True when ``t_ns`` holds the capture times, False when they are nominal (``i / fps``).
         self.timestamped = stamps.exists()
@@ -425,6 +477,7 @@ class Recording:
             raise RecordingError(f"{self.path}: rest_frames={self.meta.rest_frames} but only {len(frames)} frames")
         self.truth = None
         self.rig_poses = None
+        self.tares = read_tares(self.meta.extra.get("tares"), len(frames), self.path)
         if truth is not None:
             self.truth, self.rig_poses = read_truth_file(Path(f"{self.path}#truth.csv"), len(frames), text=truth)
         self.timestamped = True

@@ -30,7 +30,8 @@ def add_parser(sub: Any) -> None:
                        ("shapes", "shape classifier from labelled presses"),
                        ("depth", "depth (and force, with a load cell's force_n column) from known depths")):
         p = cal.add_parser(step, help=text)
-        p.add_argument("recording", type=Path)
+        p.add_argument("recording", type=Path, nargs="+",
+                       help="one or more recordings with truth.csv (days, sessions: each with its own baseline)")
         p.add_argument("--cal", type=Path, default=None, metavar="CAL",
                        help="bundle to update in place (required, unless --sensor: that sensor's bundle)")
         add_board(p, default=None)
@@ -113,7 +114,7 @@ def _model(args: argparse.Namespace) -> int:
     from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.io.recording import Recording
 
-    rec = Recording(args.recording)
+    rec = [Recording(path) for path in args.recording]
     args.cal, bundle = _step_bundle(args)
     if args.step == "orientation":
         bundle, fit = calibrate_steps.calibrate_orientation(rec, bundle)
