@@ -374,8 +374,8 @@ static float select_kth(float *a, int32_t n, int32_t k) {
 /* ---------------------------------------------------------------- step 2: fiber means (FiberSampler) */
 
 /* cv2.cvtColor(COLOR_RGB2GRAY) of one 8-bit pixel: BT.601 in 15-bit fixed point, rounded (exact). */
-static inline uint32_t rgb_gray(const uint8_t *px) {
-    return ((uint32_t)px[0] * 9798u + (uint32_t)px[1] * 19235u + (uint32_t)px[2] * 3735u + 16384u) >> 15;
+static inline uint32_t rgb_gray(const uint8_t *px, const uint32_t *w) {
+    return ((uint32_t)px[0] * w[0] + (uint32_t)px[1] * w[1] + (uint32_t)px[2] * w[2] + 16384u) >> 15;
 }
 
 #define LANES16 0x00FF00FF00FF00FFull
@@ -454,11 +454,15 @@ void ok_means(ok_kernel *k, const uint8_t *frame) {
         return;
     }
     const int32_t *start = k->run_start, *len = k->run_len, *fr = k->fiber_run;
+    /* BT.601 (OpenCV's COLOR_RGB2GRAY to the bit) unless the plan gives another colour mix */
+    uint32_t w[3] = {9798u, 19235u, 3735u};
+    if (p->rgb_weights)
+        for (int c = 0; c < 3; c++) w[c] = (uint32_t)p->rgb_weights[c];
     for (int32_t f = 0; f < p->n_fibers; f++) {
         uint32_t sum = 0;
         for (int32_t r = fr[f]; r < fr[f + 1]; r++) {
             const uint8_t *q = frame + 3 * (int64_t)start[r];
-            for (int32_t i = 0; i < len[r]; i++) sum += rgb_gray(q + 3 * i);
+            for (int32_t i = 0; i < len[r]; i++) sum += rgb_gray(q + 3 * i, w);
         }
         p->means[f] = (float)sum * p->inv_count[f];
     }
@@ -531,6 +535,16 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
         }
     }
     for (int32_t i = 0; i < p->n_dead; i++) p->signal[p->dead[i]] = 0.0f;
+    if (p->band) { /* each fiber's band: s - clip(s, -band, band), as the numpy pipeline's two steps */
+        const float *band = p->band;
+        float *s = p->signal;
+        for (int32_t i = 0; i < nf; i++) {
+            float v = s[i], b = band[i];
+            float c = v < b ? v : b;
+            c = c > -b ? c : -b;
+            s[i] = v - c;
+        }
+    }
 }
 
 /* ---------------------------------------------------------------- step 5: surface (TriangleSurface) */

@@ -75,6 +75,7 @@ typedef struct {
     /* step 2: the fiber table */
     int32_t n_fibers;          /* N */
     int32_t rgb;               /* 1: (H, W, 3) frames; 0: gray or yuv420 (the luminance plane first) */
+    const int32_t *rgb_weights; /* (3,) Q15 weights of the colour mix, summing to 32768 (NULL: BT.601) */
     const int32_t *pixel_index; /* (P,) flat pixel indices grouped by fiber */
     const int64_t *pixel_start; /* (N + 1,) */
     const float *inv_count;     /* (N,) float32(1 / pixels of the fiber) */
@@ -132,6 +133,7 @@ typedef struct {
     float *baseline;            /* (N,) Baseline.values */
     float *level;               /* (N,) Baseline.level */
     float *inv_level;           /* (N,) Baseline.inv_level */
+    const float *band;          /* (N,) ContactLevels.band: each fiber's band (NULL: none) */
     float *rest;                /* (N,) the rest light of the last frame, for a raise (see ok_follow) */
     double *contacts;           /* (max_contacts, OK_FIELDS) the frame's contacts, strongest first */
     ok_models models;           /* applied to each contact when ok_kernel.correct is set */

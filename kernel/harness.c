@@ -126,6 +126,7 @@ int main(int argc, char **argv) {
     p.pixel_index = arr("pixel_index");
     p.pixel_start = arr("pixel_start");
     p.inv_count = arr("inv_count");
+    p.rgb_weights = arr("rgb_weights"); /* NULL: BT.601 */
     p.dead = arr("dead");
     p.n_dead = (int32_t)count("dead");
     p.live = arr("live");
@@ -136,6 +137,7 @@ int main(int argc, char **argv) {
     p.baseline = arr("baseline");
     p.level = arr("level");
     p.inv_level = arr("inv_level");
+    p.band = arr("band"); /* NULL when the plan has none */
     p.rest = arr("rest");
     p.contacts = arr("contacts");
     p.dense = arr("dense");

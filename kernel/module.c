@@ -256,6 +256,12 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
         if (!p.field && PyErr_Occurred()) return -1;                                           \
     } while (0)
     ARR(inv_count, const float *, "inv_count", F32, 4, nf, 0);
+    OPT(rgb_weights, const int32_t *, "rgb_weights", I32, 4, 3, NULL);
+    if (p.rgb_weights && (p.rgb_weights[0] < 0 || p.rgb_weights[1] < 0 || p.rgb_weights[2] < 0
+                          || p.rgb_weights[0] + p.rgb_weights[1] + p.rgb_weights[2] != 32768)) {
+        PyErr_SetString(PyExc_ValueError, "kernel plan: rgb_weights must be 3 weights >= 0 summing to 32768");
+        return -1;
+    }
     Py_ssize_t n_dead = 0, n_live = 0, n_rows = 0;
     OPT(dead, const int32_t *, "dead", I32, 4, 0, &n_dead);
     OPT(live, const int32_t *, "live", I32, 4, 0, &n_live);
@@ -271,6 +277,7 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
     ARR(baseline, float *, "baseline", F32, 4, nf, 1);
     ARR(level, float *, "level", F32, 4, nf, 1);
     ARR(inv_level, float *, "inv_level", F32, 4, nf, 1);
+    OPT(band, const float *, "band", F32, 4, nf, NULL);
     ARR(rest, float *, "rest", F32, 4, nf, 1);
     ARR(contacts, double *, "contacts", F64, 8, (Py_ssize_t)p.max_contacts * OK_FIELDS, 1);
     OPT(dense, const float *, "dense", F32, 4, cells * nf, NULL);

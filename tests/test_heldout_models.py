@@ -72,3 +72,21 @@ def test_a_smooth_error_field_is_followed_better_by_the_linear_fill_between_pres
     out = {c["fill"]: c for c in held_out_fills(measured, true, np.arange(len(true)), 12.0)}
     assert out["linear"]["score_mm"] < 0.8 * out["nearest"]["score_mm"]
     assert all(len(c["heldout_rmse_mm"]) == 2 and c["heldout_spread_mm"] >= 0 for c in out.values())
+
+
+def test_no_map_is_adopted_where_held_out_presses_show_none_helps():
+    """Presses whose error is noise about the truth (no field a map could learn, as a few presses of a sparse,
+    noisy sensor gave): a map fitted to some presses misplaces the others, the raw estimate ('none') wins, and
+    calibrate centroid would keep it; where the error is a field, a map wins by far."""
+    rng = np.random.default_rng(4)
+    true = rng.uniform(-12.0, 12.0, (14, 2))
+    noisy = true + rng.normal(0.0, 3.0, true.shape)
+    out = {c["fill"]: c for c in held_out_fills(noisy, true, np.arange(len(true)), 16.0)}
+    assert min(out, key=lambda f: out[f]["score_mm"]) == "none"
+    field = true + 0.2 * true  # 20 % too far out: a map learns it
+    out = {c["fill"]: c for c in held_out_fills(field, true, np.arange(len(true)), 16.0)}
+    assert out["none"]["score_mm"] > 2 * min(c["score_mm"] for c in out.values())
+    from optitac_edge.calibration.centroid_fit import fit_centroid_map
+
+    zero = fit_centroid_map(noisy, true, 16.0, fill="none")
+    assert zero.correct(3.0, -4.0) == (3.0, -4.0)

@@ -35,7 +35,7 @@ def test_replay_and_evaluate_read_it_as_the_directory(unseen_rec, unseen_mcap, b
     for rec in (unseen_rec, unseen_mcap):
         main(["evaluate", str(rec), "--cal", str(bundle_path)])
         lines.append(capsys.readouterr().out.splitlines()[1:3])
-    assert lines[0] == lines[1] and lines[0][0].startswith("detection: 292/292")
+    assert lines[0] == lines[1] and lines[0][1].startswith("detection: 292/292")  # after the levels line
 
 
 def test_record_writes_an_mcap_that_calibrates(tmp_path, capsys):

@@ -65,8 +65,11 @@ def test_a_stiff_rim_darkens_less_near_it_than_a_soft_one():
 def test_every_physics_is_different_and_the_drifty_one_drifts_more():
     from optitac_edge.sim.drift import SessionDrift
 
-    skins = {name: json.dumps(p.skin.to_dict(), sort_keys=True) for name, p in PHYSICS.items() if name != "drifty"}
+    skins = {name: json.dumps(p.skin.to_dict(), sort_keys=True) for name, p in PHYSICS.items()
+             if name not in ("drifty", "real")}  # those two differ in how the sensor drifts, not in the skin
     assert len(set(skins.values())) == len(skins)
+    real = physics("real")
+    assert real.wander is not None and real.colour_coded and real.array == (4, 4.0)
     base, drifty = SessionDrift.for_day(2), SessionDrift.for_day(2, scale=physics("drifty").day_drift)
     assert drifty.pin_gain - 1 == pytest.approx(3 * (base.pin_gain - 1), abs=1e-4)
     assert drifty.led_gain - 1 == pytest.approx(3 * (base.led_gain - 1), abs=1e-4)

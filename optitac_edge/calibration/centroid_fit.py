@@ -6,7 +6,9 @@ meshes by nearest neighbour through a k-d tree of the measured positions
 cells on a 1000-cell mesh) smooths the boundaries. The result,
 :class:`~optitac_edge.core.centroid_map.CentroidErrorMap`, is looked up per contact.
 
-:func:`held_out_fills` judges each fill on presses held out of the fit (``GroupKFold`` over presses).
+:func:`held_out_fills` judges each fill on presses held out of the fit (``GroupKFold`` over presses), and
+the raw estimate beside them (``none``: a map of zeros): a map is adopted only where held-out presses show
+it helps (a few presses of a sparse, noisy sensor can make a map that misplaces the presses it did not see).
 """
 
 from __future__ import annotations
@@ -40,11 +42,12 @@ def fit_centroid_map(
         Mesh size (the paper: 1000).
     sigma_cells : float
         Gaussian filter σ in cells (the paper: 10).
-    fill : {"nearest", "linear"}
+    fill : {"nearest", "linear", "none"}
         ``nearest``: the paper's k-d tree nearest-neighbour fill. ``linear``:
         piecewise-linear interpolation on the Delaunay triangulation of the
         measured positions inside their hull, nearest neighbour outside —
-        no steps between presses for the filter to smooth.
+        no steps between presses for the filter to smooth. ``none``: no
+        correction (maps of zeros).
     """
     from scipy.ndimage import gaussian_filter
     from scipy.spatial import cKDTree
@@ -56,6 +59,10 @@ def fit_centroid_map(
         raise ValueError(f"need at least 3 presses with a measured contact, got {int(ok.sum())}")
     measured, error = measured[ok], error[ok]
     axis = np.linspace(-half_span_mm, half_span_mm, cells)
+    if fill == "none":
+        zero = np.zeros((cells, cells), dtype=np.float32)
+        return CentroidErrorMap(x0_mm=float(axis[0]), y0_mm=float(axis[0]), step_mm=float(axis[1] - axis[0]),
+                                error_x=zero, error_y=zero.copy())
     xx, yy = np.meshgrid(axis, axis)
     points = np.stack([xx.ravel(), yy.ravel()], axis=1)
     _, nearest = cKDTree(measured).query(points)
@@ -75,8 +82,8 @@ def fit_centroid_map(
     )
 
 
-#: The fills ``calibrate centroid`` chooses among.
-FILLS = ("nearest", "linear")
+#: The fills ``calibrate centroid`` chooses among (``none``: the raw estimate, no map).
+FILLS = ("nearest", "linear", "none")
 #: The held-out check builds its maps on a mesh this many times coarser, the filter's sigma in mm unchanged.
 HELD_OUT_COARSENING = 4
 
@@ -96,6 +103,8 @@ def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: n
     out = []
     for fill in fills:
         def error(train: np.ndarray, test: np.ndarray, fill: str = fill) -> np.ndarray:
+            if fill == "none":
+                return measured[test] - true[test]
             m = fit_centroid_map(measured[train], true[train], half_span_mm, cells, sigma, fill)
             return np.array([m.correct(x, y) for x, y in measured[test]]) - true[test]
 

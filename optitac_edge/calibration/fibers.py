@@ -6,6 +6,7 @@ import dataclasses
 import logging
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -15,14 +16,12 @@ from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.frames import frame_geometry, to_gray
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.core.levels import LEVELS_KEY, NOISE_KEY
 from optitac_edge.core.options import ContactOptions, ContactThresholds
 from optitac_edge.errors import FiberMapError
 from optitac_edge.text import fields
 
 log = logging.getLogger(__name__)
-
-#: Percentile of the per-cell surface noise std reported as the noise level.
-NOISE_PERCENTILE = 95.0
 
 
 def _jsonable(obj: Any) -> Any:
@@ -86,13 +85,16 @@ def calibrate_fibers(
     matrix, factors = build_interpolation(layout, grid)
     report = _jsonable(result.report)
     log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, fields(report))
-    noise: dict[str, Any] = measure_rest_noise(rest_frames, result.table, matrix, gray.mean(axis=0))
-    log.info("rest noise: %s", fields(noise))
-    options = dataclasses.replace(options or ContactOptions(), **noise)
+    noise = measure_rest_noise(rest_frames, result.table, gray.mean(axis=0))
+    log.info("rest noise: %s", fields(noise.summary()))
+    options = dataclasses.replace(options or ContactOptions(), noise_rel=noise.noise_rel, noise_gray=noise.noise_gray,
+                                  black_level=noise.black_level)
     bundle = CalibrationBundle(
         layout=layout, transform=result.transform, fibers=result.table, grid=grid,
         interpolation=matrix, thresholds=thresholds or ContactThresholds.for_pitch(layout.pitch_mm), options=options,
         fiber_map_report=report, surface_factors=factors,
+        extra_arrays={NOISE_KEY: noise.fiber_noise} if noise.samples >= 2 else {},
+        extra_meta={LEVELS_KEY: {"noise_samples": noise.samples}} if noise.samples >= 2 else {},
     )
     if layout.fiducial is not None and np.any(layout.fiducial):
         bundle = _orient_by_fiducials(bundle, rest_frames)
@@ -120,58 +122,80 @@ def _orient_by_fiducials(bundle: CalibrationBundle, rest_frames: Sequence[np.nda
     return reorient_bundle(bundle, fit.symmetry, f"{fit.presses} fiducials")
 
 
+@dataclass(frozen=True, eq=False)
+class RestNoise:
+    """What contact-free frames say of the noise (:func:`measure_rest_noise`).
+
+    Attributes
+    ----------
+    fiber_noise : ndarray, shape (N,), float32
+        Each fiber's frame-to-frame noise, gray levels (0 for dead fibers): the camera's noise is additive,
+        so relative to a fiber's light it grows as the light falls (:mod:`optitac_edge.core.levels`).
+    samples : int
+        Frame-to-frame differences each fiber's figure is from (0: fewer than 3 frames, nothing measured).
+    noise_rel, noise_gray : float
+        The typical (median) live fiber's noise, relative units and gray levels, times
+        ``sqrt(1 + 1 / baseline_frames)`` (the averaged baseline's own noise).
+    black_level : float
+        Median gray level of the pixels that belong to no fiber.
+    """
+
+    fiber_noise: np.ndarray
+    samples: int
+    noise_rel: float
+    noise_gray: float
+    black_level: float
+
+    def summary(self) -> dict[str, float]:
+        """For a line a person reads: the typical noise, the black level and the spread of the fibers' noise."""
+        live = self.fiber_noise[self.fiber_noise > 0]
+        spread = ({"fiber noise gray p90": float(np.percentile(live, 90)), "fiber noise gray max": float(live.max())}
+                  if live.size else {})
+        return {"noise rel": self.noise_rel, "noise gray": self.noise_gray, "black level": self.black_level, **spread}
+
+
 def measure_rest_noise(
     rest_frames: Sequence[np.ndarray] | np.ndarray,
     table: Any,
-    matrix: np.ndarray,
     mean_gray: np.ndarray,
     baseline_frames: int = BASELINE_FRAMES,
-) -> dict[str, float]:
-    """Noise of the contact surface and black level, from contact-free frames.
+) -> RestNoise:
+    """Noise of each fiber and of the typical fiber, and the black level, from contact-free frames.
 
     Per-fiber temporal std from frame-to-frame differences (``std(diff) /
-    sqrt(2)``: insensitive to slow drift such as LED warm-up), propagated
-    through the interpolation matrix (``var_k = sum_j A_kj^2 sigma_j^2``) and
-    scaled by ``sqrt(1 + 1/baseline_frames)`` for the noise of the averaged
-    baseline; the :data:`NOISE_PERCENTILE` percentile over the mesh cells
-    inside the array is reported (robust to the few fibers whose std estimate
-    from a handful of frames is high by chance). Dead fibers are left out.
+    sqrt(2)``: insensitive to slow drift such as LED warm-up), relative to the
+    fiber's light above black; the typical fiber's (the median over the live
+    fibers: one noisy fiber, or a noisy outer ring of a small array, does not
+    set everyone's level: it gets a band of its own,
+    :mod:`optitac_edge.core.levels`), scaled by ``sqrt(1 + 1/baseline_frames)``
+    for the noise of the averaged baseline. Dead fibers are left out.
 
     Parameters
     ----------
     rest_frames : sequence of ndarray, uint8
         Contact-free frames in the table's pixel format.
     table : FiberTable
-    matrix : ndarray, shape (n*n, N)
-        Interpolation matrix.
     mean_gray : ndarray, shape (H, W)
         Mean gray image of the rest frames (for the black level).
-
-    Returns
-    -------
-    dict
-        ``noise_gray`` (gray levels), ``noise_rel`` (relative units), both 0
-        with fewer than 3 frames; ``black_level`` (median gray level of the
-        pixels that belong to no fiber).
     """
     from optitac_edge.core.fiber_table import FiberSampler
 
     labels = table.label_image()
     background = mean_gray[labels == 0]
     black = float(np.median(background)) if background.size else 0.0
+    n = table.n_fibers
     if len(rest_frames) < 3:
-        return {"noise_gray": 0.0, "noise_rel": 0.0, "black_level": black}
+        return RestNoise(np.zeros(n, dtype=np.float32), 0, 0.0, 0.0, black)
     sampler = FiberSampler(table)
-    buf = np.zeros(table.n_fibers, dtype=np.float32)
+    buf = np.zeros(n, dtype=np.float32)
     means = np.stack([sampler.means(np.ascontiguousarray(f), buf).astype(np.float64)
                       for f in rest_frames])
     sigma = np.std(np.diff(means, axis=0), axis=0, ddof=1) / math.sqrt(2.0)
-    sigma[table.dead] = 0.0
+    live = ~np.asarray(table.dead, dtype=bool)
+    sigma[~live] = 0.0
     level = np.maximum(means.mean(axis=0) - black, 1.0)
-    a2 = np.square(np.asarray(matrix, dtype=np.float64))
+    relative = sigma / level
     factor = math.sqrt(1.0 + 1.0 / max(baseline_frames, 1))
-    inside = a2.sum(axis=1) > 0
-    noise_gray = factor * math.sqrt(float(np.percentile((a2 @ sigma**2)[inside], NOISE_PERCENTILE)))
-    noise_rel = factor * math.sqrt(float(np.percentile((a2 @ (sigma / level) ** 2)[inside],
-                                                       NOISE_PERCENTILE)))
-    return {"noise_gray": noise_gray, "noise_rel": noise_rel, "black_level": black}
+    alive = live if live.any() else np.ones(n, dtype=bool)
+    return RestNoise(sigma.astype(np.float32), len(rest_frames) - 1,
+                     factor * float(np.median(relative[alive])), factor * float(np.median(sigma[alive])), black)

@@ -229,3 +229,43 @@ def join_truths(parts: Sequence[tuple[Truth, int, int]]) -> Truth:
     return Truth(frame=frame, **required, force_n=column("force_n", np.nan), vx_mm_s=column("vx_mm_s", np.nan),
                  vy_mm_s=column("vy_mm_s", np.nan), motion=None if motion is None else motion.astype(str),
                  session=session)
+
+
+def fiber_signals(recs: Sequence[Recording], bundle: CalibrationBundle, progress: bool | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, Truth, np.ndarray]:
+    """Every truth row's per-fiber signal (relative to the baseline, the LED gain divided out, no fiber's band:
+    what each fiber's band and the levels are chosen from), each recording with its own baseline.
+
+    Returns
+    -------
+    signals : ndarray, shape (rows, N), float64
+        NaN on a row whose frame came while the baseline was being taken (the leading rest frames, a tare).
+    light : ndarray, shape (rows, N), float64
+        Each fiber's rest light above black in the baseline the row was measured against, gray levels.
+    truth : Truth
+        The recordings' truth rows joined (:func:`measure_sessions`).
+    t_ns : ndarray, shape (rows,), int64
+        Each row's frame time.
+    """
+    plain = bundle.with_updates(extra_arrays={k: v for k, v in bundle.extra_arrays.items()
+                                              if not k.startswith("levels/")})
+    rows, lights, truths, times, offset = [], [], [], [], 0
+    for k, rec in enumerate(recs):
+        if rec.truth is None:
+            raise RecordingError(f"{rec.path}: needs truth.csv")
+        times.append(rec.t_ns[rec.truth.frame])
+        pipeline = Pipeline(plain)
+        pipeline.set_corrector(None)
+        wanted = {int(f): j for j, f in enumerate(rec.truth.frame)}
+        got = np.full((len(rec.truth), bundle.layout.n_fibers), np.nan)
+        light = np.ones_like(got)
+        for i, est in replay_recording(rec, pipeline, progress, desc=f"signals {rec.path.name}"):
+            j = wanted.get(i)
+            if j is not None and est.baseline_ready:
+                got[j] = pipeline.signal
+                light[j] = pipeline.baseline.level
+        rows.append(got)
+        lights.append(light)
+        truths.append((rec.truth, offset, k))
+        offset += len(rec)
+    return np.concatenate(rows), np.concatenate(lights), join_truths(truths), np.concatenate(times)

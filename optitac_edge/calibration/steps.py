@@ -1,4 +1,4 @@
-"""The calibration steps after ``calibrate fibers``: orientation, centroid, width, shapes, depth.
+"""The calibration steps after ``calibrate fibers``: orientation, levels, centroid, width, shapes, depth.
 
 Each step replays recordings with known truth through the raw pipeline
 (each recording with its own baseline: its rest frames and tare points; several
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -26,7 +26,17 @@ from optitac_edge.calibration.bundle_models import (
 from optitac_edge.calibration.centroid_fit import FILLS, fit_centroid_map, held_out_fills
 from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, grouped_means, select_feature
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
-from optitac_edge.calibration.measure import Measurements, measure_sessions, recordings_named
+from optitac_edge.calibration.levels_fit import (
+    HeldOutLevels,
+    choose_level,
+    excursion_of,
+    fiber_drift,
+    frame_statistic,
+    held_out_levels,
+    rest_runs,
+    spread,
+)
+from optitac_edge.calibration.measure import Measurements, fiber_signals, measure_sessions, recordings_named
 from optitac_edge.calibration.orientation import (
     OrientationFit,
     fit_orientation,
@@ -37,7 +47,9 @@ from optitac_edge.calibration.orientation import (
 )
 from optitac_edge.calibration.width_fit import WIDTH_FORMS, select_width_form
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.colour import COLOUR_MIXES
 from optitac_edge.core.depth_model import DEPTH_FEATURES, DepthForceModel, depth_feature
+from optitac_edge.core.levels import DRIFT_KEY, LEVELS_KEY, NOISE_KEY, fiber_excess
 from optitac_edge.errors import OrientationError, RecordingError
 from optitac_edge.io.recording import SHAPES, Recording, Truth
 
@@ -104,6 +116,94 @@ def calibrate_orientation(recs: Recordings, bundle: CalibrationBundle
     names = ", ".join(r.path.name for r in _listed(recs))
     evidence = f"{fit.presses} presses of {names}, RMS {fit.best_rmse_mm:.2f} mm"
     return reorient_bundle(bundle, fit.symmetry, evidence), fit
+
+
+def calibrate_levels(recs: Recordings, bundle: CalibrationBundle) -> tuple[CalibrationBundle, dict[str, Any]]:
+    """The contact levels, each fiber's band and (RGB frames) the colour mix, from the recordings' own rest and
+    contact frames.
+
+    Each fiber's drift since the baseline (its rest excursion over every rest frame of the recordings beyond
+    what its frame-to-frame noise explains) gives, with the noise, its band (:mod:`optitac_edge.core.levels`);
+    the on level is chosen where the rest and contact frames are best told apart
+    (:func:`~optitac_edge.calibration.levels_fit.choose_level`), and how that choice does on frames it was not
+    made on is measured fold by fold (whole presses and runs of rest frames held out,
+    :func:`~optitac_edge.calibration.levels_fit.held_out_levels`). With RGB frames every colour mix
+    (:data:`~optitac_edge.core.colour.COLOUR_MIXES`) is tried the same way, and one other than luma is adopted
+    only where its held-out error (missed contact frames plus false contacts, as fractions) is lower. The
+    rest-frame noise of ``calibrate fibers`` stays the fallback of a bundle this step never saw.
+
+    Raises
+    ------
+    RecordingError
+        Without truth, or with too few rest or contact frames to choose on held-out ones.
+    """
+    listed = _listed(recs)
+    where = recordings_named(listed)
+    mixes = COLOUR_MIXES if bundle.fibers.pixel_format == "rgb" else {"luma": COLOUR_MIXES["luma"]}
+    tried = {mix: _levels_of_mix(listed, bundle, mix, where) for mix in mixes}
+    errors = {mix: (1.0 - t.held.detection) + t.held.false_rate for mix, t in tried.items()}
+    best = min(tried, key=lambda mix: (errors[mix], mix != "luma"))
+    chosen = tried[best]
+    summary = _levels_summary(chosen)
+    if len(tried) > 1:
+        summary["colour_mix"] = best
+        summary["mixes_heldout_error"] = {mix: round(e, 4) for mix, e in errors.items()}
+    options = replace(bundle.options, on_level=chosen.level, colour_mix=best)
+    meta = {**bundle.extra_meta.get(LEVELS_KEY, {}), "drift_samples": chosen.rest_frames, **summary}
+    arrays = {**bundle.extra_arrays, DRIFT_KEY: chosen.drift.astype(np.float32)}
+    return bundle.with_updates(options=options, extra_arrays=arrays,
+                               extra_meta={**bundle.extra_meta, LEVELS_KEY: meta}), summary
+
+
+@dataclass(frozen=True, eq=False)
+class _MixLevels:
+    """What one colour mix gives: the level, each fiber's drift and excursion, the held-out figures."""
+
+    level: float
+    drift: np.ndarray
+    excursion: np.ndarray
+    banded: int
+    held: HeldOutLevels
+    rest_frames: int
+    live: np.ndarray
+
+
+def _levels_of_mix(recs: tuple[Recording, ...], bundle: CalibrationBundle, mix: str, where: str) -> _MixLevels:
+    """The levels the recordings give read through colour mix ``mix``."""
+    if mix != bundle.options.colour_mix:
+        bundle = bundle.with_updates(options=replace(bundle.options, colour_mix=mix))
+    signals, light, truth, t_ns = fiber_signals(recs, bundle)
+    ok = np.all(np.isfinite(signals), axis=1)
+    sessions = np.zeros(len(truth), dtype=np.int64) if truth.session is None else truth.session
+    contact = truth.contact[ok]
+    signals, light = signals[ok], light[ok]
+    live = ~np.asarray(bundle.fibers.dead, dtype=bool)
+    noise = bundle.extra_arrays.get(NOISE_KEY)
+    part = (None if noise is None else
+            np.square(np.asarray(noise, dtype=np.float64) / light) * (1.0 + 1.0 / bundle.baseline_frames))
+    runs = rest_runs(contact, sessions[ok], truth.frame[ok], t_ns[ok], round(bundle.options.gap_s * 1e9))
+    groups = np.where(contact, press_ids(truth)[ok], runs)
+    try:
+        held = held_out_levels(signals, part, contact, groups, live)
+    except ValueError as exc:
+        raise RecordingError(f"{where}: {exc}") from None
+    rest_part = None if part is None else part[~contact]
+    drift = fiber_drift(signals[~contact], rest_part)
+    excursion = excursion_of(drift, rest_part)
+    excess = fiber_excess(excursion, live, int((~contact).sum()))
+    z = frame_statistic(signals, excess, live)
+    level = choose_level(z[~contact], z[contact])
+    return _MixLevels(level, drift, excursion, 0 if excess is None else int(np.count_nonzero(excess)), held,
+                      int((~contact).sum()), live)
+
+
+def _levels_summary(m: _MixLevels) -> dict[str, Any]:
+    held = m.held
+    return {"on_level": round(m.level, 5), "heldout_detection": round(held.detection, 4),
+            "heldout_false_contacts": round(held.false_rate, 4), "contact_frames": held.contact_frames,
+            "rest_frames": held.rest_frames, "folds": held.folds,
+            "fold_levels": spread(np.array(held.levels)), "rest_excursion": spread(m.excursion[m.live]),
+            "drift": spread(m.drift[m.live]), "banded_fibers": m.banded}
 
 
 def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = "auto",

@@ -40,6 +40,7 @@ from optitac_edge.calibration.measure import Measurements
 from optitac_edge.calibration.orientation import is_verified
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.corrections import CENTROID_KEY, DEPTH_KEY, WIDTH_KEY
+from optitac_edge.core.levels import LEVELS_KEY
 from optitac_edge.io.recording import Truth
 
 MAX_RESIDUAL_PITCH = 0.15
@@ -129,6 +130,20 @@ def bundle_checks(bundle: CalibrationBundle) -> list[Check]:
     return checks
 
 
+def levels_line(bundle: CalibrationBundle) -> str:
+    """The bundle's contact levels and how they were chosen, for a line a person reads."""
+    o = bundle.options
+    if not o.noise_levels:
+        return f"levels: the paper's threshold ({bundle.thresholds.threshold:g} gray levels)"
+    meta = bundle.extra_meta.get(LEVELS_KEY, {})
+    if o.on_level > 0 and _numbers(meta.get("heldout_detection"), meta.get("heldout_false_contacts")):
+        return (f"levels: on {o.on_level:.4f} (relative), chosen on {meta.get('contact_frames')} contact and "
+                f"{meta.get('rest_frames')} rest frames; held out at calibration: detection "
+                f"{100 * meta['heldout_detection']:.1f} %, false contacts {100 * meta['heldout_false_contacts']:.1f} %")
+    return (f"levels: {o.k_on:g} x the rest frames' noise (each fiber's own beyond the typical one a band); "
+            "'calibrate levels' on presses chooses them on held-out frames")
+
+
 def judge(bundle: CalibrationBundle, m: Measurements, truth: Truth) -> Verdict:
     """The verdict on ``bundle`` from a recording of presses it was not calibrated on."""
     checks = bundle_checks(bundle)
@@ -143,8 +158,9 @@ def judge(bundle: CalibrationBundle, m: Measurements, truth: Truth) -> Verdict:
     d = detection(m, truth)
     rate = d.rate if d.contact_frames else math.nan
     checks.append(Check("detection", d.contact_frames > 0 and rate >= MIN_DETECTION and d.false_contacts == 0,
-                        f"{d.detected}/{d.contact_frames} contact frames, {d.false_contacts} false contacts "
-                        f"(limits {100 * MIN_DETECTION:g} %, 0)",
+                        f"{d.detected}/{d.contact_frames} contact frames, {d.false_contacts} false contacts on "
+                        f"{d.rest_frames} rest frames (limits {100 * MIN_DETECTION:g} %, 0); "
+                        f"{levels_line(bundle).removeprefix('levels: ')}",
                         "check the LED and the rest frames; take the baseline again (tare)"))
     checks += model_checks(bundle, m, truth)
     return Verdict(tuple(checks))

@@ -37,6 +37,15 @@ COMMANDS: dict[str, tuple[str, list[str]]] = {
         ("Check the bundle's fiber map against presses of known position; fix a rotation or mirror of the "
         "layout (this removes the centroid, width and shape models: calibrate them again)."),
         ["optitac-edge calibrate orientation out/unseen --cal out/cal.npz"]),
+    "calibrate levels": (
+        ("Choose the contact levels from your own recordings: each fiber's rest excursion (its noise and its "
+         "drift since the baseline, over every rest frame) gives it a band of its own, and the on level is put "
+         "where rest and contact frames are best told apart, checked on presses and rest frames held out of the "
+         "choice (detection and false contacts reported). Several recordings (days, sessions) each keep their "
+         "own baseline; a recording's tare points are honoured. Without this step the levels come from the rest "
+         "frames' noise."),
+        ["optitac-edge calibrate levels rec/seen --cal cal.npz",
+         "optitac-edge calibrate levels day1/presses day2/presses --cal cal.npz"]),
     "calibrate centroid": (
         ("Centroid error maps from presses of known position (a 'seen' recording or collection); the fill between "
          "presses is chosen by presses held out of the map."),

@@ -97,6 +97,13 @@ class CalibrationBundle:
             a = np.asarray(arr)
             if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
                 raise ValueError(f"extra array {name!r} holds non-finite values")
+            if name.startswith("levels/") and (a.shape != (n,) or a.dtype.kind != "f" or np.any(a < 0)):
+                raise ValueError(f"extra array {name!r} must hold {n} values >= 0 (one a fiber)")
+        levels = self.extra_meta.get("levels", {})
+        if not isinstance(levels, dict) or any(
+                not isinstance(levels.get(k, 0), int) or isinstance(levels.get(k, 0), bool) or levels.get(k, 0) < 0
+                for k in ("noise_samples", "drift_samples")):
+            raise ValueError("extra levels: noise_samples and drift_samples must be whole numbers >= 0")
         if self.surface_factors is not None:
             _check_factors(self.surface_factors, self.interpolation)
 

@@ -159,6 +159,8 @@ class FrameKernel:
             "baseline": baseline.values, "level": baseline.level, "inv_level": baseline.inv_level,
             "rest": self.rest, "contacts": self.contacts,
         }
+        if pipe.levels.band is not None:  # each fiber's band (the levels write it; the kernel reads it)
+            plan["band"] = pipe.levels.band
         #: The corrector whose models the kernel applies (None: the kernel gives raw contacts).
         self.corrector = pipe.corrector
         models = None if pipe.corrector is None else pipe.corrector.kernel_arrays()

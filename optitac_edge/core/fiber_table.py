@@ -13,6 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from optitac_edge.core.colour import mix_pixels, mix_weights
 from optitac_edge.core.frames import PIXEL_FORMATS, frame_geometry
 from optitac_edge.errors import FrameMismatchError
 
@@ -125,11 +126,15 @@ class FiberSampler:
     """Per-frame fiber means from a :class:`FiberTable`, with preallocated buffers.
 
     Only the fiber pixels are read; for RGB frames only they are converted to
-    gray (BT.601), for YUV420 frames the Y plane is used as it is.
+    gray (BT.601, or another colour mix, :mod:`optitac_edge.core.colour`), for
+    YUV420 frames the Y plane is used as it is.
     """
 
-    def __init__(self, table: FiberTable) -> None:
+    def __init__(self, table: FiberTable, colour_mix: str = "luma") -> None:
         self.table = table
+        #: RGB frames: the Q15 weights of a mix other than luma (None: luma, OpenCV's conversion).
+        self.mix: np.ndarray | None = (mix_weights(colour_mix) if table.pixel_format == "rgb"
+                                       and colour_mix != "luma" else None)
         self._index = table.pixel_index.astype(np.intp)
         self._starts = table.pixel_start[:-1].astype(np.intp)
         self._inv_count = (1.0 / table.pixel_count).astype(np.float32)
@@ -151,6 +156,7 @@ class FiberSampler:
         self._sums32 = np.zeros(table.n_fibers, dtype=np.float32)  # the sums as float32 (no mixed-type product)
         self._gathered = np.empty(p, dtype=np.uint8)
         self._gathered_row = self._gathered.reshape(1, p)
+        self._mix_work = np.empty(p if self.mix is not None else 0, dtype=np.int32)
         # one byte of every 64-byte block of the frame the gather reads, in address order
         flat = self._index3
         self._probe = (np.unique(flat // CACHE_LINE) * CACHE_LINE).astype(np.intp)
@@ -163,9 +169,13 @@ class FiberSampler:
         frame_bytes = t.height * t.width * (3 if t.pixel_format == "rgb" else 1)
         if t.pixel_format == "yuv420":
             frame_bytes = t.height * 3 // 2 * t.width
-        return {"pixel_index": t.pixel_index.astype(np.int32), "pixel_start": t.pixel_start.astype(np.int64),
-                "inv_count": self._inv_count, "rgb": int(t.pixel_format == "rgb"),
-                "frame_pixels": t.height * t.width, "frame_bytes": frame_bytes}
+        out: dict[str, np.ndarray | int] = {
+            "pixel_index": t.pixel_index.astype(np.int32), "pixel_start": t.pixel_start.astype(np.int64),
+            "inv_count": self._inv_count, "rgb": int(t.pixel_format == "rgb"),
+            "frame_pixels": t.height * t.width, "frame_bytes": frame_bytes}
+        if self.mix is not None:
+            out["rgb_weights"] = self.mix
+        return out
 
     def means(self, frame: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Mean gray level of each fiber.
@@ -197,7 +207,10 @@ class FiberSampler:
         flat.take(self._probe, out=self._probed, mode="wrap")
         if self._rgb is not None:
             flat.take(self._index3, out=self._rgb.reshape(-1), mode="wrap")
-            cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY, dst=self._gathered_row)
+            if self.mix is None:
+                cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY, dst=self._gathered_row)
+            else:
+                mix_pixels(self._rgb[0], self.mix, self._mix_work, self._gathered)
         else:
             flat.take(self._index, out=self._gathered, mode="wrap")
         return self._gathered

@@ -1,25 +1,136 @@
-"""The contact levels in signal units: truncation, contact off and contact on.
+"""The contact levels in signal units: truncation, contact off and contact on, and each fiber's band.
 
 The paper truncates the surface at one calibrated threshold. With
-``noise_levels`` the three levels are ``k`` times the noise measured at
-calibration (each at least a floor fraction of the rest light); with
-``hysteresis`` a contact ends at the lower off level. The MCU's
+``noise_levels`` the three levels are ``k`` times the noise of the typical
+fiber (each at least a floor fraction of the rest light), or, where
+``calibrate levels`` chose the on level on held-out presses
+(``ContactOptions.on_level``), that level and the others in the same ratios;
+with ``hysteresis`` a contact ends at the lower off level. The MCU's
 SET_THRESHOLD overrides the on level (relative units of the rest light).
+
+Each fiber's rest excursion is modelled in two parts, measured apart:
+
+* its frame-to-frame **noise**, in gray levels (``calibrate fibers``: the
+  camera's noise is additive, so a fiber's noise relative to its light grows
+  as the light falls: a dim fiber, or one darkened by a press when the
+  baseline was taken, is noisier in relative units);
+* its slow **drift** since the baseline, relative to its light (``calibrate
+  levels``: what every rest frame of the user's own recordings shows beyond
+  the noise; minutes apart, a few percent).
+
+At every new baseline ``e_i = sqrt((noise_i / light_i)^2 + drift_i^2)``. A
+fiber whose ``e_i`` exceeds the typical fiber's ``e_ref`` (the median over the
+live ones) by more than the estimate's own uncertainty ``tol`` gets a *band*
+``on * (e_i / e_ref - 1 - tol)``, and its signal is shrunk towards 0 by that
+much (``s - clip(s, -band, band)``) before the surface; so no fiber wanders
+further than ``e_ref (1 + tol)`` at the on level, and that is the noise the
+levels are ``k`` times where no on level was chosen. A fiber that wanders four times as much as the others then reaches
+the on level only as often as they do, and raises no level of every fiber (a
+level over the whole surface from its noisiest part did: on a real 61-fiber
+sensor the contact level came out at 54 % darkening, and 1 of 30 presses was
+found).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.options import ContactOptions
+
+#: Bundle arrays, shape (N,): each fiber's frame-to-frame noise in the rest frames, gray levels (``calibrate
+#: fibers``), and its drift since the baseline in use, relative units (``calibrate levels``).
+NOISE_KEY, DRIFT_KEY = "levels/fiber_noise", "levels/fiber_drift"
+#: ``extra_meta`` of the levels: ``noise_samples``, ``drift_samples`` (how many values each fiber's figure is
+#: from) and what ``calibrate levels`` found.
+LEVELS_KEY = "levels"
+#: A fiber's band starts this many standard errors of its excursion's estimate above the typical fiber's.
+TOLERANCE_ERRORS = 2.0
 
 #: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
 #: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
 GAIN_TOLERANCE = 0.1
 
 
+def tolerance(samples: int) -> float:
+    """How far above the typical fiber's excursion a fiber's may lie before it gets a band, as a fraction:
+    :data:`TOLERANCE_ERRORS` relative standard errors of a standard deviation from ``samples`` values."""
+    return TOLERANCE_ERRORS / math.sqrt(2.0 * max(samples - 1, 1))
+
+
+def fiber_excess(excursion: np.ndarray, live: np.ndarray, samples: int) -> np.ndarray | None:
+    """Each fiber's excursion beyond the typical fiber's, as a fraction of it: ``max(e / e_ref - 1 - tol, 0)``.
+
+    Parameters
+    ----------
+    excursion : ndarray, shape (N,)
+        Each fiber's rest excursion ``e_i`` (any units).
+    live : ndarray of bool, shape (N,)
+        The live fibers (the reference ``e_ref`` is their median; dead fibers get 0).
+    samples : int
+        How many values each ``e_i`` was estimated from: ``tol = 2 / sqrt(2 (samples - 1))``, twice the
+        relative standard error of a standard deviation from that many, so only fibers clearly above the
+        typical one get a band (about 2 % of them by chance).
+
+    Returns
+    -------
+    ndarray, shape (N,), float32, or None
+        None when no fiber is in excess (nothing to do per frame).
+    """
+    e = np.asarray(excursion, dtype=np.float64)
+    alive = np.asarray(live, dtype=bool) & np.isfinite(e)
+    if samples < 2 or not alive.any():
+        return None
+    ref = float(np.median(e[alive]))
+    if not ref > 0:
+        return None
+    tol = tolerance(samples)
+    out = np.where(alive, np.maximum(e / ref - 1.0 - tol, 0.0), 0.0).astype(np.float32)
+    return out if bool(np.any(out > 0)) else None
+
+
+def rest_excursion(noise_gray: np.ndarray | None, drift: np.ndarray | None, light: np.ndarray,
+                   baseline_frames: int) -> np.ndarray:
+    """Each fiber's rest excursion, relative units: ``sqrt((noise / light)^2 (1 + 1 / baseline_frames) +
+    drift^2)`` (the averaged baseline's own noise included), shape (N,).
+
+    Parameters
+    ----------
+    noise_gray, drift : ndarray, shape (N,), or None
+        Each fiber's frame-to-frame noise (gray levels) and drift (relative); None: not measured (0).
+    light : ndarray, shape (N,)
+        Each fiber's rest light above black, gray levels (> 0).
+    """
+    e2 = np.zeros(light.shape, dtype=np.float64)
+    if noise_gray is not None:
+        e2 += np.square(np.asarray(noise_gray, dtype=np.float64) / np.maximum(light, 1.0)) * (
+            1.0 + 1.0 / max(baseline_frames, 1))
+    if drift is not None:
+        e2 += np.square(np.asarray(drift, dtype=np.float64))
+    return np.sqrt(e2)
+
+
+class FiberModel:
+    """A bundle's per-fiber noise (gray levels) and drift (relative), and how many values each is from."""
+
+    def __init__(self, bundle: CalibrationBundle) -> None:
+        meta = bundle.extra_meta.get(LEVELS_KEY, {})
+        arrays = bundle.extra_arrays
+        self.noise: np.ndarray | None = arrays.get(NOISE_KEY)
+        self.drift: np.ndarray | None = arrays.get(DRIFT_KEY)
+        self.samples = int(meta.get("drift_samples" if self.drift is not None else "noise_samples", 0))
+        self.baseline_frames = bundle.baseline_frames
+        self.n_fibers = bundle.layout.n_fibers
+
+    @property
+    def known(self) -> bool:
+        return (self.noise is not None or self.drift is not None) and self.samples >= 2
+
+
 class ContactLevels:
-    """Truncation, off and on levels (float32, signal units), set when the baseline is ready.
+    """Truncation, off and on levels (float32, signal units), set when the baseline is ready; each fiber's band.
 
     Parameters
     ----------
@@ -27,9 +138,11 @@ class ContactLevels:
         The switches and the measured noise.
     threshold : float
         The bundle's calibrated threshold (gray levels): all three levels until the baseline is ready.
+    fibers : FiberModel, optional
+        Each fiber's noise and drift (None, or not known: the levels from ``options.noise_rel``, no bands).
     """
 
-    def __init__(self, options: ContactOptions, threshold: float) -> None:
+    def __init__(self, options: ContactOptions, threshold: float, fibers: FiberModel | None = None) -> None:
         self.options = options
         self._threshold = float(threshold)
         self.trunc = self.off = self.on = np.float32(threshold)
@@ -41,6 +154,15 @@ class ContactLevels:
         self.gain_tolerance = 0.0
         #: The truncation level, relative units: a smaller change of the light cannot make a contact.
         self.gain_significant = 0.0
+        per_fiber = fibers is not None and fibers.known and options.noise_levels and options.relative
+        self._fibers = fibers if per_fiber else None
+        #: Each fiber's band, signal units, shape (N,), float32 (None: no per-fiber model); ``-band`` beside it.
+        self.band: np.ndarray | None = (np.zeros(fibers.n_fibers, dtype=np.float32)
+                                        if per_fiber and fibers is not None else None)
+        self.neg_band: np.ndarray | None = None if self.band is None else np.zeros_like(self.band)
+        #: The widest rest excursion of a fiber once banded, ``e_ref (1 + tol)``, at the last baseline, relative
+        #: units (NaN: not per fiber): what the levels are ``k`` times where none was chosen.
+        self.noise = math.nan
 
     def update(self, baseline: np.ndarray, live: np.ndarray) -> None:
         """Set the levels from a ready ``baseline`` (shape (N,)) and the ``live`` fibers (bool, (N,))."""
@@ -49,8 +171,22 @@ class ContactLevels:
         rest = float(np.median(values)) - o.black_level if values.size else 1.0
         rest = max(rest, 1.0)
         unit = 1.0 if o.relative else rest  # signal units per relative unit
-        if o.noise_levels:
-            sigma = o.noise_rel if o.relative else o.noise_gray
+        excess = None
+        sigma_rel = o.noise_rel
+        if self._fibers is not None:
+            f = self._fibers
+            e = rest_excursion(f.noise, f.drift, np.asarray(baseline, dtype=np.float64) - o.black_level,
+                               f.baseline_frames)
+            alive = live if live.any() else np.ones(e.shape, dtype=bool)
+            self.noise = sigma_rel = float(np.median(e[alive])) * (1.0 + tolerance(f.samples))
+            excess = fiber_excess(e, alive, f.samples)
+        if o.noise_levels and o.on_level > 0:  # chosen on held-out presses
+            on = max(o.on_level, o.floor_on) * unit
+            off = max(on * o.k_off / o.k_on, o.floor_off * unit)
+            trunc = max(on * o.k_trunc / o.k_on, o.floor_trunc * unit)
+            off, trunc = min(off, on), min(trunc, on)
+        elif o.noise_levels:
+            sigma = sigma_rel * unit if o.relative or self._fibers is not None else o.noise_gray
             trunc = max(o.k_trunc * sigma, o.floor_trunc * unit)
             off = max(o.k_off * sigma, o.floor_off * unit, trunc)
             on = max(o.k_on * sigma, o.floor_on * unit, off)
@@ -66,6 +202,12 @@ class ContactLevels:
         self.gain_delta = float(off) / unit
         self.gain_tolerance = GAIN_TOLERANCE * float(trunc) / unit
         self.gain_significant = float(trunc) / unit
+        if self.band is not None and self.neg_band is not None:
+            if excess is None:
+                self.band.fill(0.0)
+            else:
+                np.multiply(excess, self.on, out=self.band)
+            np.negative(self.band, out=self.neg_band)
 
     def as_tuple(self) -> tuple[float, float, float]:
         """(truncation, off, on) as floats."""

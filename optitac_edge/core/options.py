@@ -10,6 +10,8 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from optitac_edge.core.colour import COLOUR_MIXES
+
 #: Most simultaneous contacts the pipeline reports.
 MAX_CONTACTS = 4
 #: Smallest contact area, square pitches (1 mm2 on the paper's 1.5 mm array).
@@ -72,9 +74,12 @@ class ContactOptions:
         the signal invariant to the overall brightness. The paper threshold
         (when ``noise_levels`` is off) is converted with the median rest level.
     noise_levels : bool
-        Truncation / off / on levels from the rest-frame noise measured at
-        calibration: ``max(k * noise, floor)`` (``noise_rel`` or ``noise_gray``,
-        the worst surface cell's noise std). Off: the paper's single
+        Truncation / off / on levels from the data: ``on_level`` where
+        ``calibrate levels`` chose it on held-out presses (the others in the
+        ``k`` ratios), else ``max(k * noise, floor)`` of the rest-frame noise
+        measured at calibration (``noise_rel`` or ``noise_gray``); and each
+        fiber's band from its own rest excursion
+        (:mod:`optitac_edge.core.levels`). Off: the paper's single
         ``ContactThresholds.threshold`` for all three.
     hysteresis : bool
         A contact starts when a blob's peak exceeds the *on* level and stays
@@ -136,10 +141,21 @@ class ContactOptions:
         quick succession (a rest frame or two between them) any holdoff stops
         the tracking, so per-fiber drift accumulates (then, with the LED gain
         compensated, it alone can hold a contact on through a rest frame).
+    colour_mix : str
+        RGB frames: the mix of the three channels each fiber's light is read
+        through (:data:`~optitac_edge.core.colour.COLOUR_MIXES`; ``luma``,
+        BT.601, unless ``calibrate levels`` found on held-out presses that
+        another tells contact from rest frames better: the relative change of
+        a mix is the luma's plus a chromaticity change).
+    on_level : float
+        Chosen by ``calibrate levels`` on held-out presses of the user's own
+        recordings (relative units; 0: not chosen, the levels come from
+        ``noise_rel``).
     noise_rel, noise_gray : float
-        Measured by calibration: the largest per-cell std of the surface
-        interpolated from the rest frames' per-fiber temporal noise, relative
-        units and gray levels; 0 if unknown (then only the floors apply).
+        Measured by calibration: the typical (median) live fiber's
+        frame-to-frame noise in the rest frames (times the averaged baseline's
+        own noise factor), relative units and gray levels; 0 if unknown (then
+        only the floors apply). Fibers noisier than that get bands of their own.
     black_level : float
         Measured by calibration: gray level of the image between the fibers
         (median), subtracted from the baseline in the relative signal.
@@ -165,6 +181,8 @@ class ContactOptions:
     holdoff_s: float = 0.0
     gain_rate_per_s: float = 0.005
     gap_s: float = 0.5
+    colour_mix: str = "luma"
+    on_level: float = 0.0
     noise_rel: float = 0.0
     noise_gray: float = 0.0
     black_level: float = 0.0
@@ -184,7 +202,7 @@ class ContactOptions:
         _require_non_negative(self, ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off",
                                      "k_on", "floor_trunc", "floor_off", "floor_on", "baseline_tau_s",
                                      "holdoff_s", "gain_rate_per_s", "noise_rel", "noise_gray",
-                                     "black_level", "gap_s"))
+                                     "black_level", "gap_s", "on_level"))
         for name in ("peak_fraction", "shape_fraction", "split_fraction"):
             if not getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be < 1, got {getattr(self, name)!r}")
@@ -192,6 +210,8 @@ class ContactOptions:
             raise ValueError(f"baseline_tau_s must be > 0, got {self.baseline_tau_s!r}")
         if self.gap_s <= 0:
             raise ValueError(f"gap_s must be > 0, got {self.gap_s!r}")
+        if self.colour_mix not in COLOUR_MIXES:
+            raise ValueError(f"colour_mix must be one of {', '.join(COLOUR_MIXES)}, got {self.colour_mix!r}")
 
     @classmethod
     def paper(cls, **measured: Any) -> ContactOptions:
@@ -220,7 +240,7 @@ class ContactOptions:
         values = dict(d)
         for key in ("peak_fraction", "shape_fraction", "split_fraction", "k_trunc", "k_off", "k_on", "floor_trunc", "floor_off",
                     "floor_on", "baseline_tau_s", "holdoff_s", "gain_rate_per_s", "noise_rel",
-                    "noise_gray", "black_level", "gap_s"):
+                    "noise_gray", "black_level", "gap_s", "on_level"):
             if key in values and isinstance(values[key], int) and not isinstance(values[key], bool):
                 values[key] = float(values[key])
         return cls(**values)

@@ -92,7 +92,7 @@ from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.frame_check import FrameCheck
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.gain import GainCompensation, LedGain
-from optitac_edge.core.levels import ContactLevels
+from optitac_edge.core.levels import ContactLevels, FiberModel
 from optitac_edge.core.motion import ContactMotion
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
@@ -184,13 +184,13 @@ class Pipeline:
         self._live = ~np.asarray(table.dead, dtype=bool)
         live_idx = np.flatnonzero(self._live)
         #: Step 2: the fiber means of a frame.
-        self.sampler = FiberSampler(table)
+        self.sampler = FiberSampler(table, o.colour_mix)
         #: Step 3 and 9: the rest light, averaged then tracked.
         self.baseline = Baseline(n_fibers, bundle.baseline_frames, o.black_level, o.baseline_tau_s, o.holdoff_s)
         #: Step 10: a baseline taken over a press, found from fibers brighter than it.
         self.bright_fibers = BrightFibers(n_fibers, from_common=not o.compensate_gain)
         #: The truncation, off and on levels.
-        self.levels = ContactLevels(o, bundle.thresholds.threshold)
+        self.levels = ContactLevels(o, bundle.thresholds.threshold, FiberModel(bundle))
         #: Step 4 with ``compensate_gain``: the frame's LED gain divided out (None when off).
         self.gain_compensation = (GainCompensation(live_idx if live_idx.size else np.arange(n_fibers), n_fibers,
                                                    o.black_level, o.gain_rate_per_s, o.relative)
@@ -208,6 +208,7 @@ class Pipeline:
         #: Step 7: each contact's moments and shape features.
         self.blobs = BlobMeasurer(grid, self.levels, min_area, o.peak_fraction, o.shape_fraction)
         self._means, self._signal = np.zeros(n_fibers, dtype=np.float32), np.zeros(n_fibers, dtype=np.float32)
+        self._clipped = np.zeros(n_fibers, dtype=np.float32)
         self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
         self._n, self._frame, self._in_contact = grid.n, 0, False
         self._last_ns: int | None = None
@@ -442,6 +443,11 @@ class Pipeline:
                 np.multiply(signal, self.baseline.inv_level, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
+        band = self.levels.band
+        if band is not None and self.levels.neg_band is not None:  # each fiber's band: s - clip(s, -band, band)
+            clipped = np.minimum(signal, band, out=self._clipped)
+            np.maximum(clipped, self.levels.neg_band, out=clipped)
+            signal -= clipped
         return signal
 
 

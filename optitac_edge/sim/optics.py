@@ -75,6 +75,9 @@ class CameraOptics:
         Per-channel gains of the fiber light when ``rgb`` (default (1.0, 0.96, 0.88)).
     dark_fibers : tuple of int
         Layout indices (0..N-1) of fibers that transmit nothing (default ()).
+    stray_light : tuple of (col, row, radius_px, gray)
+        Dim blobs of stray light on the background (a reflection, a lit corner): centre, radius and gray levels
+        above the background (default none).
     """
 
     width: int = 640
@@ -100,6 +103,7 @@ class CameraOptics:
     vignetting: float = 0.15
     rgb_gains: tuple[float, float, float] = (1.0, 0.96, 0.88)
     dark_fibers: tuple[int, ...] = ()
+    stray_light: tuple[tuple[float, float, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:

@@ -22,13 +22,22 @@ real skin may do; docs/simulator.md describes each.
 ``wide-tilt``  pins that tilt 2 mm further out than the skin deflects, twice as much
 ``drifty``     the default skin with 3x the LED and pin drift between days
                (±6-15 % instead of ±2-5 %)
+``real``       the statistics a real fiber sensor showed (:mod:`optitac_edge.sim.real`): 61
+               colour-coded fibers at 4 mm under the default skin scaled to them, each
+               fiber's light wandering by a few percent over minutes (the outer ring
+               most, one fiber brightening 39 % in half an hour), up to 30 % between
+               days, stray light in the image corners, a webcam's RGB frames
 =============  ==========================================================================
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
 
+from optitac_edge.sim.real import REAL_OPTICS, REAL_PITCH_MM, REAL_RINGS, FiberWander
 from optitac_edge.sim.skin import SkinModel
 
 _BASE = SkinModel()
@@ -47,12 +56,25 @@ class Physics:
         The default sensor's skin under this physics (a sensor variant scales its fields).
     day_drift : float
         Scale of the LED and pin gain changes between days (``SessionDrift.for_day``'s ``scale``).
+    array : (int, float) or None
+        The hexagonal array (rings, pitch mm) a recording of this physics has unless a layout is given
+        (None: the paper's 217 fibers at 1.5 mm).
+    optics : mapping
+        The camera's fields this physics sets (:class:`~optitac_edge.sim.optics.CameraOptics`).
+    wander : FiberWander or None
+        Each fiber's light wandering over time and between days.
+    colour_coded : bool
+        Colour-coded fibers under a coloured skin (RGB frames).
     """
 
     name: str
     summary: str
     skin: SkinModel
     day_drift: float = 1.0
+    array: tuple[int, float] | None = None
+    optics: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    wander: FiberWander | None = None
+    colour_coded: bool = False
 
 
 PHYSICS: dict[str, Physics] = {p.name: p for p in (
@@ -69,6 +91,9 @@ PHYSICS: dict[str, Physics] = {p.name: p for p in (
             replace(_BASE, rim_width_mm=12.0, rim_stiffening=3.0)),
     Physics("wide-tilt", "pins that tilt beyond the indenter", replace(_BASE, tilt_spread_mm=2.0, tilt_gain=0.8)),
     Physics("drifty", "3x the LED and pin drift between days", _BASE, day_drift=3.0),
+    Physics("real", "a real 61-fiber sensor's statistics: fibers that wander, days apart, colour, stray light",
+            _BASE, array=(REAL_RINGS, REAL_PITCH_MM), optics=MappingProxyType({**REAL_OPTICS, "rgb": True}),
+            wander=FiberWander(), colour_coded=True),
 )}
 
 #: The names of :data:`PHYSICS`, in order.

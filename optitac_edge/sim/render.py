@@ -109,6 +109,8 @@ class FrameRenderer:
         sensor_rng = np.random.default_rng([sensor_seed, 1])
         rows = optics.background_gray + optics.row_noise_sigma * sensor_rng.standard_normal(h)
         base = np.repeat(rows.astype(np.float32), w * channels).reshape(h * w, channels)
+        if optics.stray_light:
+            base += _stray_light(optics)[:, None]
         self._buf = base.copy()  # (H*W, C), fiber pixels rewritten every frame
         self._base_pix = base[self._pix]
         self._tint = np.asarray(optics.rgb_gains if optics.rgb else (1.0,), dtype=np.float32)
@@ -145,7 +147,8 @@ class FrameRenderer:
         pix = rows[keep] * o.width + cols[keep]
         return pix.astype(np.intp), fid[keep].astype(np.intp), weight[keep].astype(np.float32)
 
-    def render(self, fiber_gain: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def render(self, fiber_gain: np.ndarray, rng: np.random.Generator, fiber_rgb: np.ndarray | None = None
+               ) -> np.ndarray:
         """One frame.
 
         Parameters
@@ -154,6 +157,9 @@ class FrameRenderer:
             Light of every fiber relative to rest (1 = rest, 0 = dark), layout order.
         rng : numpy.random.Generator
             Picks the slice of the noise bank.
+        fiber_rgb : ndarray, shape (N, 3), optional
+            RGB frames: each fiber's own channel gains (colour-coded fibers), instead of the optics' ``rgb_gains``
+            for all.
 
         Returns
         -------
@@ -164,8 +170,23 @@ class FrameRenderer:
         if gain.shape[0] != self.layout.n_fibers:
             raise ValueError(f"fiber_gain must have shape ({self.layout.n_fibers},)")
         level = (gain * self._peak32)[self._fid] * self._weight
-        self._buf[self._pix] = self._base_pix + level[:, None] * self._tint
+        if fiber_rgb is not None and self.optics.rgb:
+            tint = (np.asarray(fiber_rgb, dtype=np.float32) * self._tint)[self._fid]
+            self._buf[self._pix] = self._base_pix + level[:, None] * tint
+        else:
+            self._buf[self._pix] = self._base_pix + level[:, None] * self._tint
         n = self._buf.size
         k = int(rng.integers(0, self._noise.size - n + 1))
         noise = self._noise[k : k + n].reshape(self.frame_shape)
         return cv2.add(self._buf.reshape(self.frame_shape), noise, dtype=cv2.CV_8U)
+
+
+def _stray_light(optics: CameraOptics) -> np.ndarray:
+    """The stray light's gray levels over the background, shape (H * W,): soft discs."""
+    h, w = optics.height, optics.width
+    rows, cols = np.mgrid[0:h, 0:w]
+    out = np.zeros((h, w), dtype=np.float32)
+    for col, row, radius, gray in optics.stray_light:
+        d = np.hypot(cols - col, rows - row)
+        out += np.float32(gray) * (0.5 * erfc((d - radius) / np.sqrt(2.0))).astype(np.float32)
+    return out.ravel()

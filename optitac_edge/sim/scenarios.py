@@ -24,6 +24,9 @@ contact-free frame. ``truth.csv`` has a row for every frame. Scenarios:
              order; ``truth.csv`` ends with the load cell's ``force_n`` (the
              simulator's force model at the press's real depth, see
              :func:`~optitac_edge.sim.skin.contact_force_n`).
+``snapshots`` an hour of snapshots 20 s apart, presses of known force at random places and depths
+             and the skin at rest, the baseline taken again every 5 minutes
+             (:mod:`optitac_edge.sim.snapshots`).
 ``drift``    baseline tracking: long contact-free stretches with the LEDs warming
              up (+:data:`DRIFT_WARMUP` brightness over the recording, per-fiber
              drift of sigma :data:`DRIFT_FIBER_SIGMA`) and an occasional press:
@@ -75,6 +78,7 @@ from optitac_edge.sim.motion_scenarios import (
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
 from optitac_edge.sim.patches import PatchPlacement
 from optitac_edge.sim.physics import physics as physics_named
+from optitac_edge.sim.real import FiberColours, WanderingLight
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import (
     DEFAULT_SKIN,
@@ -84,6 +88,7 @@ from optitac_edge.sim.skin import (
     clamp_radius_mm,
     contact_force_n,
 )
+from optitac_edge.sim.snapshots import LEAD_FRAMES, SNAPSHOT_SCENARIOS, Snapshot, snapshot_session
 
 log = logging.getLogger(__name__)
 
@@ -297,8 +302,12 @@ def scenario_drift(
     ``drift`` itself, except for the ``drift`` scenario, which imposes its LED
     warm-up (brightness x (1 + ``warmup``) from the first to the last frame;
     negative: the LEDs dim) and per-fiber drift (sigma :data:`DRIFT_FIBER_SIGMA`
-    over the recording), keeping the day's other drift.
+    over the recording), keeping the day's other drift; and ``snapshots``, an hour
+    long, which keeps the day's gains but not its within-recording ramps (made for
+    seconds, they would run away; the ``real`` physics' wander is its slow drift).
     """
+    if name == "snapshots":
+        return replace(drift, led_drift_per_s=0.0, fiber_drift_per_s=0.0)
     if name not in ("drift", "hold"):
         return drift
     duration = max(n_frames - 1, 1) / fps
@@ -401,45 +410,76 @@ def write_scenario(  # noqa: PLR0913
         ([first frame, real depth] of every press; ``truth.csv`` has the
         commanded depth).
     """
-    layout = hex_layout() if layout is None else layout
+    world = physics_named(physics)
+    if layout is None:
+        layout = hex_layout(*world.array) if world.array is not None else hex_layout()
     if patch is not None:
         region = patch.region
         optics = replace(optics, width=region.width, height=region.height)
         sensor_seed = patch.frames.sensors[patch.index].sensor_seed
-    world = physics_named(physics)
     overrides, variant_skin = sensor_variant(variant, optics.width, optics.height, layout, world.skin)
     optics = optics_for(layout, replace(optics, **overrides) if overrides else optics)
+    if world.optics:  # the physics' own camera, for its own array
+        optics = replace(optics, **{k: v for k, v in world.optics.items() if k not in ("width", "height")})
     skin = skin_for(layout, variant_skin) if skin is None else skin
     sensor_seed = variant_sensor_seed(variant) if sensor_seed is None else sensor_seed
     moving = name in MOTION_SCENARIOS
     fps = MOTION_FPS if moving else FPS
+    shots, tares = snapshot_session(layout, seed, frames=frames) if name in SNAPSHOT_SCENARIOS else ([], [])
     plan: list[Frame] | list[MotionFrame] = (motion_schedule(name, seed, frames, layout) if moving
+                                             else [s.press for s in shots] if shots
                                              else schedule(name, seed, frames, layout, skin))
     if drift is None:
         drift = SessionDrift.for_day(day, sensor_seed, scale=world.day_drift)
     drift = scenario_drift(name, drift, len(plan), warmup, fps)
     sensor = SimulatedSensor(
-        layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=fps
+        layout, optics, skin, seed=seed, sensor_seed=sensor_seed, drift=drift, fps=fps,
+        wander=None if world.wander is None else WanderingLight(layout, world.wander, sensor_seed, day, seed),
+        colours=FiberColours.draw(layout.n_fibers, sensor_seed) if world.colour_coded and optics.rgb else None,
     )
     simulator = _simulator_meta(sensor, patch, scenario=name, seed=seed, sensor_seed=sensor_seed, day=day,
                                 variant=variant, physics=physics, optics=optics.to_dict(), skin=skin.to_dict(),
                                 drift=drift.to_dict())
     frame_shape = sensor.frame_shape if patch is None else patch.frames.frame_shape
-    meta = RecordingMeta(rest_frames=MOTION_REST_FRAMES if moving else REST_FRAMES, fps=fps,
-                         extra={"simulator": simulator})
+    extra: dict[str, object] = {"simulator": simulator}
+    if tares:
+        extra["tares"] = tares
+    meta = RecordingMeta(rest_frames=MOTION_REST_FRAMES if moving else LEAD_FRAMES if shots else REST_FRAMES,
+                         fps=1.0 if shots else fps, extra=extra)
     out = Path(out_dir)
     log.info("simulating %s (seed %d, day %d, variant %d, %s physics): %d frames of %s into %s",
              name, seed, day, variant, physics, len(plan), frame_shape, out)
-    load_cell = name == "depths"
+    load_cell = name in ("depths", "snapshots")
     with RecordingWriter(out, len(plan), frame_shape, meta, with_truth=True,
                          force_column=load_cell, replace=fresh, storage=storage, motion_columns=moving,
                          find_fibers=_find_fibers(layout, optics) if storage == "fibers" else None) as writer:
         if moving:
             simulator["real_depth_mm"] = _render_motion(writer, sensor, plan, patch, seed)  # type: ignore[arg-type]
+        elif shots:
+            simulator["real_depth_mm"] = _render_snapshots(writer, sensor, shots, clamp_radius_mm(layout.xy_mm, skin))
         else:
             simulator["real_depth_mm"] = _render(writer, sensor, plan, patch,  # type: ignore[arg-type]
                                                  clamp_radius_mm(layout.xy_mm, skin) if load_cell else None)
     return out
+
+
+def _render_snapshots(writer: RecordingWriter, sensor: SimulatedSensor, shots: list[Snapshot],
+                      clamp_r: float) -> list[list[float]]:
+    """Every snapshot at its own time, its truth row where it is scored (a press with its load cell's force);
+    ``[frame, real depth]`` of each press."""
+    real_depths: list[list[float]] = []
+    for i, shot in enumerate(shots):
+        dark = sensor.darkening(() if shot.press is None else (shot.press,))
+        force = math.nan
+        if shot.press is not None:
+            real = sensor.last_real_indenters[0]
+            real_depths.append([i, round(real.depth_mm, 5)])
+            force = contact_force_n(real, clamp_r, sensor.skin)
+        writer.write(i, sensor.frame_from_darkening(dark, t_s=shot.t_s), round(shot.t_s * 1e9))
+        if shot.scored:
+            writer.write_truth(i, shot.press, force_n=force)
+        sensor.darkening(())  # the next snapshot is a press of its own
+    return real_depths
 
 
 def _render_motion(writer: RecordingWriter, sensor: SimulatedSensor, plan: list[MotionFrame],

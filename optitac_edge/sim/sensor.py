@@ -10,6 +10,7 @@ import numpy as np
 from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.sim.drift import NO_DRIFT, SessionDrift
 from optitac_edge.sim.optics import DEFAULT_OPTICS, CameraOptics
+from optitac_edge.sim.real import FiberColours, WanderingLight
 from optitac_edge.sim.render import SENSOR_SEED, FrameRenderer
 from optitac_edge.sim.skin import DEFAULT_SKIN, Indenter, SkinModel, fiber_darkening
 
@@ -39,6 +40,10 @@ class SimulatedSensor:
     fps : float
         Frame rate (default 60): frame k is at ``t = k / fps`` for the
         within-recording drift, unless a time is given explicitly.
+    wander : WanderingLight, optional
+        Each fiber's light wandering over the session's time and its day's gain (the ``real`` physics).
+    colours : FiberColours, optional
+        Colour-coded fibers (RGB frames): each fiber's tint, and the chromaticity a press gives it.
 
     Attributes
     ----------
@@ -62,7 +67,7 @@ class SimulatedSensor:
     no indenters ends a press).
     """
 
-    def __init__(
+    def __init__(  # noqa: PLR0913
         self,
         layout: FiberLayout | None = None,
         optics: CameraOptics = DEFAULT_OPTICS,
@@ -71,6 +76,8 @@ class SimulatedSensor:
         sensor_seed: int = SENSOR_SEED,
         drift: SessionDrift = NO_DRIFT,
         fps: float = 60.0,
+        wander: WanderingLight | None = None,
+        colours: FiberColours | None = None,
     ) -> None:
         if not fps > 0:
             raise ValueError("fps must be > 0")
@@ -81,6 +88,8 @@ class SimulatedSensor:
         self.sensor_seed = sensor_seed
         self.drift = drift
         self.fps = float(fps)
+        self.wander = wander
+        self.colours = colours
         self.renderer = FrameRenderer(
             self.layout,
             optics,
@@ -177,5 +186,8 @@ class SimulatedSensor:
         b = self.brightness(t)
         if np.any(np.asarray(b) != 1.0):
             gain = gain * b
+        if self.wander is not None:
+            gain = gain * self.wander.factor(t)
         self.frame_index += 1
-        return self.renderer.render(gain, self._rng)
+        rgb = None if self.colours is None else self.colours.rgb(np.asarray(darkening, dtype=np.float64))
+        return self.renderer.render(gain, self._rng, rgb)

@@ -25,6 +25,8 @@ def add_parser(sub: Any) -> None:
 
     for step, text in (("orientation", ("check the fiber map against presses of known position; fix a "
                                         "rotation or mirror of the layout")),
+                       ("levels", ("contact levels and each fiber's band from rest and contact frames, chosen "
+                                   "on held-out presses")),
                        ("centroid", "centroid error maps from presses of known position"),
                        ("width", "linear width model from circles of known diameter"),
                        ("shapes", "shape classifier from labelled presses"),
@@ -43,9 +45,9 @@ def add_parser(sub: Any) -> None:
                            help="per-axis map: auto (default) chooses by presses held out of the fit; linear is "
                                 "the paper's; -radial reads the width scaled by the distance from the centre")
         if step == "centroid":
-            p.add_argument("--fill", choices=("auto", "nearest", "linear"), default="auto",
-                           help="error between presses: auto (default) chooses by presses held out of the map; "
-                                "the paper's nearest neighbour, or linear")
+            p.add_argument("--fill", choices=("auto", "nearest", "linear", "none"), default="auto",
+                           help="error between presses: auto (default) chooses by presses held out of the map "
+                                "(none: no map, where no map helps them); the paper's nearest neighbour, or linear")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,7 +131,9 @@ def _model(args: argparse.Namespace) -> int:
             print(f"corrected {args.cal} (id {bundle.calibration_id}): its fiber map was {fit.symmetry.label} "
                   f"({evidence}); centroid, width and shape models were removed: calibrate them again")
         return 0
-    if args.step == "shapes":
+    if args.step == "levels":
+        bundle, summary = calibrate_steps.calibrate_levels(rec, bundle)
+    elif args.step == "shapes":
         bundle, summary = calibrate_steps.calibrate_shapes(rec, bundle, seed=args.seed)
     elif args.step == "depth":
         bundle, summary = calibrate_steps.calibrate_depth(rec, bundle)

@@ -33,9 +33,10 @@ def run(args: argparse.Namespace) -> int:
     bundle = load_bundle(args.cal)
     m, truth = measure_sessions(recs, bundle, shape_backend=args.shape_backend,
                                 onnx_path=str(args.onnx) if args.onnx else None)
-    from optitac_edge.calibration.verdict import judge
+    from optitac_edge.calibration.verdict import judge, levels_line
 
     print(f"{recordings_named(recs)} with {args.cal} (id {bundle.calibration_id}):")
+    print(levels_line(bundle))
     for line in format_evaluation(m, truth, bundle.layout.pitch_mm):
         print(line)
     from optitac_edge.calibration.motion_report import format_motion, motion_report

@@ -35,8 +35,9 @@ class _SimNames:
             return PHYSICS_NAMES
         from optitac_edge.sim.motion_scenarios import MOTION_SCENARIOS
         from optitac_edge.sim.scenarios import SCENARIOS
+        from optitac_edge.sim.snapshots import SNAPSHOT_SCENARIOS
 
-        return SCENARIOS + MOTION_SCENARIOS
+        return SCENARIOS + MOTION_SCENARIOS + SNAPSHOT_SCENARIOS
 
     def __contains__(self, name: object) -> bool:
         return name in self._names()
@@ -79,10 +80,12 @@ def run(args: argparse.Namespace) -> int:
     from optitac_edge.core.layout import hex_layout
     from optitac_edge.io.layout_csv import load_layout_csv
     from optitac_edge.sim.optics import CameraOptics
+    from optitac_edge.sim.physics import physics
     from optitac_edge.sim.scenarios import write_scenario
 
-    layout = load_layout_csv(args.layout) if args.layout else hex_layout()
-    n_fibers = layout.n_fibers
+    world = physics(args.physics)
+    layout = load_layout_csv(args.layout) if args.layout else None  # None: the physics' array
+    n_fibers = (layout if layout is not None else hex_layout(*world.array) if world.array else hex_layout()).n_fibers
     try:
         dark = tuple(int(s) for s in args.dark_fibers.split(",") if s.strip())
     except ValueError:

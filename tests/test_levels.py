@@ -1,0 +1,138 @@
+"""Contact levels from the data, per fiber (issue 37): each fiber's band from its own rest excursion, the typical
+fiber's noise for the levels."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optitac_edge.calibration.fibers import calibrate_fibers
+from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.levels import NOISE_KEY, fiber_excess
+from optitac_edge.core.pipeline import Pipeline
+from optitac_edge.sim.sensor import SimulatedSensor
+from optitac_edge.sim.skin import Indenter
+
+PERIOD = 16_666_667
+
+
+def test_the_excess_is_each_fibers_excursion_beyond_the_typical_one() -> None:
+    e = np.array([1.0, 1.0, 1.1, 0.9, 4.0, 2.0, 1.0, 9.0])
+    live = np.ones(8, dtype=bool)
+    live[-1] = False  # a dead fiber: no band, not in the median
+    x = fiber_excess(e, live, samples=51)  # tol = 2 / sqrt(100) = 0.2
+    assert x is not None and x.dtype == np.float32
+    np.testing.assert_allclose(x, [0, 0, 0, 0, 4.0 - 1.2, 2.0 - 1.2, 0, 0], atol=1e-6)
+    assert fiber_excess(np.ones(8), live, 51) is None  # nothing to do per frame
+    assert fiber_excess(e, live, 1) is None  # one sample says nothing of a spread
+    # fewer samples, a wider tolerance: 2 / sqrt(2 * 4) = 0.71
+    np.testing.assert_allclose(fiber_excess(e, live, 5), np.maximum(e / 1.0 - 1 - 2 / math.sqrt(8), 0) * live,
+                               atol=1e-6)
+
+
+def _ring_jitter(sensor: SimulatedSensor, ring: np.ndarray, presses: list[Indenter | None], sigma: float,
+                 seed: int) -> list[np.ndarray]:
+    """Frames whose ``ring`` fibers' light jitters by ``sigma`` (relative) from frame to frame."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for p in presses:
+        d = sensor.darkening(() if p is None else (p,))
+        d[ring] += rng.normal(0.0, sigma, ring.size)
+        out.append(sensor.frame_from_darkening(d))
+    return out
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_noisy_outer_ring_gets_bands_of_its_own_and_raises_no_level(compiled) -> None:
+    """A 61-fiber array whose outer ring (24 fibers) jitters by 3 % from frame to frame, four times as much as
+    the others: the levels come from the typical fiber (the 95th percentile over the surface took them from the
+    ring), the ring's fibers get bands, no rest frame makes a contact, and a press in the middle is found.
+    Without the bands the ring's jitter is a contact in most frames."""
+    layout = hex_layout(4, 4.0)
+    sensor = SimulatedSensor(layout=layout, seed=3)
+    ring = np.flatnonzero(np.hypot(*layout.xy_mm.T) > 3.6 * 4.0 * 0.95)
+    assert ring.size == 24
+    rest = _ring_jitter(sensor, ring, [None] * 40, 0.03, seed=1)
+    bundle = calibrate_fibers(rest, "gray", layout=layout)
+    noise = bundle.extra_arrays[NOISE_KEY]
+    inner = np.setdiff1d(np.arange(61), ring)
+    assert np.median(noise[ring]) > 4 * np.median(noise[inner])
+    assert bundle.options.noise_rel < 2 * np.median(noise[inner])  # the typical fiber's, not the ring's
+    press = Indenter("circle", 0.0, 0.0, size_mm=10.0, depth_mm=0.6)
+    frames = rest[:10] + _ring_jitter(sensor, ring, [None] * 150 + [press] * 10, 0.03, seed=2)
+    for banded in (True, False):
+        b = bundle if banded else bundle.with_updates(extra_arrays={})
+        pipe = Pipeline(b, compiled=compiled)
+        contacts = [pipe.process(f, k * PERIOD).n_contacts for k, f in enumerate(frames)]
+        false = sum(n > 0 for n in contacts[10:160])
+        if banded:
+            assert pipe.levels.band is not None and np.count_nonzero(pipe.levels.band[ring]) >= 20
+            assert np.count_nonzero(pipe.levels.band[inner]) <= 2
+            assert false == 0 and all(n == 1 for n in contacts[160:]), (false, contacts[160:])
+        else:
+            assert false > 75
+
+
+def test_the_level_sits_in_the_middle_of_the_widest_gap_of_least_error() -> None:
+    from optitac_edge.calibration.levels_fit import choose_level
+
+    # apart: the geometric middle of the highest rest and the lowest contact statistic
+    assert choose_level(np.array([0.01, 0.02, 0.04]), np.array([0.16, 0.3])) == pytest.approx(0.08)
+    # overlapping: one rest frame above two contacts; the least balanced error (1/4 + 0) is between them
+    level = choose_level(np.array([0.01, 0.02, 0.03, 0.2]), np.array([0.05, 0.1, 0.3]))
+    assert level == pytest.approx(math.sqrt(0.03 * 0.05))
+    # below the floor counts as the floor; empty sides are refused
+    assert choose_level(np.array([-0.5, 0.0]), np.array([0.004])) == pytest.approx(math.sqrt(0.001 * 0.004))
+    with pytest.raises(ValueError, match="rest frames and contact frames"):
+        choose_level(np.array([]), np.array([0.1]))
+
+
+def test_held_out_levels_never_see_the_frames_they_are_scored_on() -> None:
+    """Statistics of rest frames (runs of 3) and presses (3 frames each) that never overlap: every fold's
+    level lies between them and the held-out rates are perfect; a fiber of every rest frame 10 times noisier
+    than the others gets a band, so it does not decide the level."""
+    from optitac_edge.calibration.levels_fit import held_out_levels, rest_runs
+
+    rng = np.random.default_rng(0)
+    n_fibers, rest_frames, presses = 30, 60, 20
+    signals = rng.normal(0.0, 0.01, (rest_frames + 3 * presses, n_fibers))
+    signals[:, 7] *= 10  # a noisy fiber: at rest it reaches 0.2 and more
+    for p in range(presses):  # none on the noisy fiber
+        fiber = p % (n_fibers - 1)
+        signals[rest_frames + 3 * p:rest_frames + 3 * p + 3, fiber + (fiber >= 7)] += 0.5
+    contact = np.arange(signals.shape[0]) >= rest_frames
+    frames = np.arange(signals.shape[0])
+    frames[:rest_frames] += frames[:rest_frames] // 3  # runs of three consecutive frames
+    runs = rest_runs(contact, np.zeros(contact.size, dtype=np.int64), frames, frames * 16_666_667, 500_000_000)
+    assert runs.min() == -20 and np.all(runs[rest_frames:] == 0)
+    groups = np.where(contact, (np.arange(signals.shape[0]) - rest_frames) // 3, runs)
+    held = held_out_levels(signals, None, contact, groups, np.ones(n_fibers, dtype=bool))
+    assert held.folds == 8 and held.detection == 1.0 and held.false_rate == 0.0
+    assert all(0.05 < level < 0.5 for level in held.levels)
+
+
+def test_calibrate_levels_chooses_on_the_recordings_and_evaluate_reports_it(tmp_path, bundle_path, capsys) -> None:
+    """On simulated presses: a level between the rest frames' statistics and the presses', each fiber's rest
+    excursion kept, held-out rates in the bundle, and evaluate saying the level and its rates."""
+    import shutil
+
+    from optitac_edge.cli import main
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.sim.scenarios import write_scenario
+
+    seen = write_scenario(tmp_path / "seen", "seen", seed=3, frames=200)
+    cal = tmp_path / "cal.npz"
+    shutil.copy(bundle_path, cal)
+    assert main(["calibrate", "levels", str(seen), "--cal", str(cal)]) == 0
+    out = capsys.readouterr().out
+    assert "heldout detection 1" in out and "heldout false contacts 0" in out
+    bundle = load_bundle(cal)
+    meta = bundle.extra_meta["levels"]
+    assert bundle.options.on_level == pytest.approx(meta["on_level"], abs=1e-5)
+    assert bundle.options.on_level > 5 * bundle.options.noise_rel
+    assert bundle.extra_arrays["levels/fiber_drift"].shape == (217,) and meta["drift_samples"] > 40
+    assert main(["evaluate", str(seen), "--cal", str(cal)]) == 0
+    out = capsys.readouterr().out
+    assert f"levels: on {meta['on_level']:.4f}" in out and "held out at calibration: detection 100.0 %" in out
