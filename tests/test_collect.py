@@ -272,3 +272,41 @@ def test_a_rig_that_cannot_shake_refuses_vibrate_before_moving(tmp_path) -> None
         assert rig.moves == 0 and not (tmp_path / "v").exists()
     finally:
         type(rig).shakes = True
+
+
+def test_a_61_fiber_array_is_collected_on_the_simulated_rig_from_its_layout(tmp_path, capsys) -> None:
+    """The bring-up's collection on another array: the board names the layout for the simulated camera and for
+    calibration; the rig's first collection maps 61 fibers, presses the 13.35 mm circle (the 5 mm one at 4 mm
+    pitch) and registers within the pitch-scaled gate; levels and orientation calibrate from it."""
+    from optitac_edge.io.bundle_file import load_bundle
+
+    layout = tmp_path / "hex61.csv"
+    assert main(["layout", "--rings", "4", "--pitch-mm", "4", "-o", str(layout)]) == 0
+    board = tmp_path / "b61.toml"
+    board.write_text(f"""config_version = 1
+[sensor]
+id = 0
+[camera]
+backend = "sim"
+fps = 60
+warmup_frames = 0
+[camera.options]
+layout = "{layout}"
+[calibration]
+bundle = "{tmp_path / 'cal.npz'}"
+layout = "{layout}"
+rest_frames = 10
+[link]
+transport = "none"
+""")
+    out = tmp_path / "seen"
+    assert main(["collect", "seen", "--rig", "sim://", "--board", str(board), "-o", str(out), "--limit", "14"]) == 0
+    text = capsys.readouterr().out
+    assert "registration fit RMS" not in text or "too poor" not in text
+    rec = Recording(out)
+    assert rec.truth is not None and set(rec.truth.size_mm[rec.truth.contact]) == {13.35}
+    cal = tmp_path / "cal.npz"
+    assert load_bundle(cal).layout.n_fibers == 61
+    assert main(["calibrate", "levels", str(out), "--cal", str(cal)]) == 0
+    assert main(["calibrate", "orientation", str(out), "--cal", str(cal)]) == 0
+    assert "confirmed" in capsys.readouterr().out
