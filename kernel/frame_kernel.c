@@ -545,6 +545,26 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
             s[i] = v - c;
         }
     }
+    if (p->support_nbr) { /* NeighbourSupport.peak: the frame's supported peak, a gate on its contacts */
+        const float *s = p->signal;
+        float top = -INFINITY;
+        for (int32_t i = 0; i < nf; i++) {
+            const int32_t *nb = p->support_nbr + 6 * (int64_t)i;
+            float first = -INFINITY, second = -INFINITY;
+            for (int j = 0; j < 6; j++) {
+                float v = nb[j] >= 0 ? s[nb[j]] : 0.0f; /* a missing neighbour: at rest */
+                if (v > first) {
+                    second = first;
+                    first = v;
+                } else if (v > second) {
+                    second = v;
+                }
+            }
+            float limited = s[i] < second ? s[i] : second;
+            if (limited > top) top = limited;
+        }
+        k->support_peak = top;
+    }
 }
 
 /* ---------------------------------------------------------------- step 5: surface (TriangleSurface) */
@@ -1582,12 +1602,18 @@ int32_t ok_check(ok_kernel *k, const uint8_t *frame) {
     return 0;
 }
 
+static int p_gated(const ok_kernel *k, float level) {
+    return k->p.support_nbr && !(k->support_peak > level);
+}
+
 int32_t ok_frame(ok_kernel *k, const uint8_t *frame, int64_t now_ns, int64_t dt_ns, int means_ready) {
     if (!means_ready) ok_means(k, frame);
     int32_t n = 0;
     k->clear_strength = k->clear_area = 0.0;
     if (ok_surface(k, now_ns) > 0) {
-        n = ok_find(k, k->in_contact ? k->off : k->on);
+        float level = k->in_contact ? k->off : k->on;
+        /* neighbour support: a frame whose supported peak stays below the level has no contact */
+        n = ok_find(k, p_gated(k, level) ? INFINITY : level);
     }
     ok_follow(k, n, now_ns, dt_ns);
     return n;

@@ -134,6 +134,7 @@ typedef struct {
     float *level;               /* (N,) Baseline.level */
     float *inv_level;           /* (N,) Baseline.inv_level */
     const float *band;          /* (N,) ContactLevels.band: each fiber's band (NULL: none) */
+    const int32_t *support_nbr; /* (N, 6) each fiber's neighbours, -1 for none (NULL: no neighbour support) */
     float *rest;                /* (N,) the rest light of the last frame, for a raise (see ok_follow) */
     double *contacts;           /* (max_contacts, OK_FIELDS) the frame's contacts, strongest first */
     ok_models models;           /* applied to each contact when ok_kernel.correct is set */
@@ -178,6 +179,7 @@ typedef struct {
     float *absw;       /* (3N,) |w| */
     float *gs_y;       /* (2N,) the gradient solve's unknowns in the factor's order */
     float *ratio;      /* (N,) */
+    float support_peak;        /* NeighbourSupport.peak of the last frame's signal */
     float *sorted;     /* (max(N, 1),) */
     uint32_t *sort_scratch; /* OK_SORT_SCRATCH(N) */
     float *bound;      /* (T,) */

@@ -138,6 +138,7 @@ int main(int argc, char **argv) {
     p.level = arr("level");
     p.inv_level = arr("inv_level");
     p.band = arr("band"); /* NULL when the plan has none */
+    p.support_nbr = arr("support_nbr");
     p.rest = arr("rest");
     p.contacts = arr("contacts");
     p.dense = arr("dense");

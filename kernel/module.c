@@ -278,6 +278,12 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
     ARR(level, float *, "level", F32, 4, nf, 1);
     ARR(inv_level, float *, "inv_level", F32, 4, nf, 1);
     OPT(band, const float *, "band", F32, 4, nf, NULL);
+    OPT(support_nbr, const int32_t *, "support_nbr", I32, 4, 6 * nf, NULL);
+    for (Py_ssize_t i = 0; p.support_nbr && i < 6 * nf; i++)
+        if (p.support_nbr[i] < -1 || p.support_nbr[i] >= nf) {
+            PyErr_SetString(PyExc_ValueError, "kernel plan: support_nbr outside the fibers");
+            return -1;
+        }
     ARR(rest, float *, "rest", F32, 4, nf, 1);
     ARR(contacts, double *, "contacts", F64, 8, (Py_ssize_t)p.max_contacts * OK_FIELDS, 1);
     OPT(dense, const float *, "dense", F32, 4, cells * nf, NULL);

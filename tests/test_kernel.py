@@ -229,6 +229,7 @@ OPTIONS = {
     "no gain": {"compensate_gain": False},
     "no gain, gray levels": {"compensate_gain": False, "relative": False},
     "holdoff": {"holdoff_s": 0.05},
+    "neighbour support": {"support": True},
 }
 
 
@@ -364,6 +365,20 @@ def test_pixel_formats_and_a_dense_matrix_agree(fmt) -> None:
     bundle = synthetic_bundle(fmt, dead=(5, 60))
     assert bundle.surface_factors is None  # the dense surface, in both
     run_both(bundle, synthetic_frames(bundle, 60, seed=1))
+
+
+@pytest.mark.parametrize("mix", ["green", "red", "mean"])
+def test_a_colour_mix_agrees(mix) -> None:
+    """RGB frames read through another colour mix than luma (issue 37): the kernel's fixed-point weights give
+    the numpy sampler's means to the bit, and the same contacts."""
+    bundle = synthetic_bundle("rgb", dead=(5, 60))
+    bundle = bundle.with_updates(options=dataclasses.replace(bundle.options, colour_mix=mix))
+    ref, kern, _ = run_both(bundle, synthetic_frames(bundle, 40, seed=5))
+    assert kern.kernel is not None and "rgb_weights" in kern.kernel.plan
+    luma = Pipeline(synthetic_bundle("rgb", dead=(5, 60)), compiled=False)
+    frame = synthetic_frames(bundle, 1, seed=5)[0]
+    assert not np.array_equal(luma.sampler.means(frame, np.zeros(217, np.float32)),
+                              ref.sampler.means(frame, np.zeros(217, np.float32)))
 
 
 def _centres_at(frame: np.ndarray, table: FiberTable, which: np.ndarray, value: int) -> np.ndarray:

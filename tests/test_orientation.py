@@ -223,3 +223,20 @@ def test_the_gates_are_in_pitches_of_the_array() -> None:
     off = fit_orientation(mirrored.apply(true) + 2 * noise, true, sym, layout.pitch_mm)
     assert off.symmetry is None and "1.50 pitch, accepted below 1.33 pitch" in off.reason
     assert "sensor frame" in off.reason and "layout" in off.reason
+
+
+def test_many_noisy_presses_decide_by_their_evidence() -> None:
+    """17 presses read 4.2 mm RMS off through a mirrored 4 mm array (a real sensor's), the next symmetry 7 mm:
+    a ratio under 2 that the gate refused, evidence of 10^7 to one that decides; two such presses do not."""
+    layout = hex_layout(4, 4.0)
+    sym = layout_symmetries(layout)
+    mirrored = next(h for h in sym if h.mirror and h.rotation_deg == 0)
+    rng = np.random.default_rng(8)
+    true = rng.uniform(-11, 11, (17, 2))
+    noise = rng.normal(0, 1.0, true.shape)
+    noise *= 4.2 / np.sqrt(np.mean(np.sum(noise ** 2, axis=1)))
+    fit = fit_orientation(mirrored.apply(true) + noise, true, sym, layout.pitch_mm)
+    second = sorted(fit.rmse_mm)[1]
+    assert fit.symmetry is mirrored and second < 2 * fit.best_rmse_mm
+    few = fit_orientation(mirrored.apply(true[:2]) + noise[:2], true[:2], sym, layout.pitch_mm)
+    assert few.symmetry is None

@@ -28,6 +28,7 @@ import numpy as np
 
 from optitac_edge.calibration.folds import MAX_FOLDS, stratified_group_folds
 from optitac_edge.core.levels import fiber_excess
+from optitac_edge.core.support import supported
 
 #: The smallest statistic a level is chosen among (relative units): below it a fiber's light is noise in
 #: the camera's last bit.
@@ -60,8 +61,10 @@ def excursion_of(drift: np.ndarray, noise_part: np.ndarray | None) -> np.ndarray
     return np.sqrt(e2)
 
 
-def frame_statistic(signals: np.ndarray, excess: np.ndarray | None, live: np.ndarray) -> np.ndarray:
-    """Each frame's ``z = max_i s_i / (1 + x_i)`` over the live fibers, shape (F,).
+def frame_statistic(signals: np.ndarray, excess: np.ndarray | None, live: np.ndarray,
+                    support: np.ndarray | None = None) -> np.ndarray:
+    """Each frame's ``z = max_i s_i / (1 + x_i)`` over the live fibers, shape (F,); with neighbour support
+    (:mod:`optitac_edge.core.support`) of ``s / (1 + x)``: the band and the support commute at the on level.
 
     Parameters
     ----------
@@ -69,10 +72,17 @@ def frame_statistic(signals: np.ndarray, excess: np.ndarray | None, live: np.nda
     excess : ndarray, shape (N,), or None
         Each fiber's excess (None: none has a band).
     live : ndarray of bool, shape (N,)
+    support : ndarray, shape (N, 6), int, optional
+        Each fiber's neighbours (-1: none): the frames' values with neighbour support.
     """
-    s = np.asarray(signals, dtype=np.float64)[:, np.asarray(live, dtype=bool)]
+    s = np.asarray(signals, dtype=np.float64)
     if excess is not None:
-        s = s / (1.0 + np.asarray(excess, dtype=np.float64)[np.asarray(live, dtype=bool)])
+        s = s / (1.0 + np.asarray(excess, dtype=np.float64))
+    alive = np.asarray(live, dtype=bool)
+    s = np.where(alive, s, 0.0)  # a dead fiber's signal is 0
+    if support is not None:
+        s = supported(s, support)
+    s = s[:, alive]
     return s.max(axis=1) if s.shape[1] else np.zeros(s.shape[0])
 
 
@@ -119,6 +129,9 @@ class HeldOutLevels:
     contact_frames, rest_frames, folds : int
     levels : tuple of float
         Each fold's on level.
+    margin : float
+        How far apart the held-out frames' statistics are, in units of each fold's level:
+        ``ln(p10 of contact frames' / p90 of rest frames')`` (larger: the choice holds with more room).
     """
 
     detection: float
@@ -127,6 +140,7 @@ class HeldOutLevels:
     rest_frames: int
     folds: int
     levels: tuple[float, ...]
+    margin: float = 0.0
 
 
 def rest_runs(is_contact: np.ndarray, session: np.ndarray, frame: np.ndarray, t_ns: np.ndarray,
@@ -152,7 +166,8 @@ def rest_runs(is_contact: np.ndarray, session: np.ndarray, frame: np.ndarray, t_
 
 
 def held_out_levels(signals: np.ndarray, noise_part: np.ndarray | None, is_contact: np.ndarray,
-                    groups: np.ndarray, live: np.ndarray, seed: int = 0) -> HeldOutLevels:
+                    groups: np.ndarray, live: np.ndarray, seed: int = 0,
+                    support: np.ndarray | None = None) -> HeldOutLevels:
     """Levels chosen fold by fold (each fiber's drift and the level from the other folds' frames), scored on
     the fold's own frames.
 
@@ -167,6 +182,8 @@ def held_out_levels(signals: np.ndarray, noise_part: np.ndarray | None, is_conta
         A press's frames share a group, and so do a run of rest frames (:func:`rest_runs`); a fold never
         splits a group.
     live : ndarray of bool, shape (N,)
+    support : ndarray, shape (N, 6), optional
+        Each fiber's neighbours: the statistic with neighbour support.
 
     Raises
     ------
@@ -182,19 +199,24 @@ def held_out_levels(signals: np.ndarray, noise_part: np.ndarray | None, is_conta
                          f"frames, got {n_rest_groups} and {n_press}")
     found = false = 0
     levels = []
+    rel_contact, rel_rest = [], []
     for test in stratified_group_folds(y, groups, folds, np.random.default_rng(seed)):
         train = np.setdiff1d(np.arange(y.size), test)
         rest_train = train[y[train] == 0]
         part = None if noise_part is None else noise_part[rest_train]
         excursion = excursion_of(fiber_drift(signals[rest_train], part), part)
         excess = fiber_excess(excursion, live, rest_train.size)
-        z = frame_statistic(signals, excess, live)
+        z = frame_statistic(signals, excess, live, support)
         level = choose_level(z[rest_train], z[train[y[train] == 1]])
         levels.append(level)
         found += int(np.count_nonzero(z[test[y[test] == 1]] >= level))
         false += int(np.count_nonzero(z[test[y[test] == 0]] >= level))
+        rel_contact.append(np.maximum(z[test[y[test] == 1]], LEVEL_FLOOR) / level)
+        rel_rest.append(np.maximum(z[test[y[test] == 0]], LEVEL_FLOOR) / level)
     n_contact, n_rest = int(y.sum()), int((y == 0).sum())
-    return HeldOutLevels(found / n_contact, false / n_rest, n_contact, n_rest, folds, tuple(levels))
+    margin = math.log(float(np.percentile(np.concatenate(rel_contact), 10))
+                      / float(np.percentile(np.concatenate(rel_rest), 90)))
+    return HeldOutLevels(found / n_contact, false / n_rest, n_contact, n_rest, folds, tuple(levels), margin)
 
 
 def spread(values: np.ndarray) -> dict[str, float]:

@@ -11,6 +11,7 @@ and returns an updated bundle; the CLI saves it atomically. The fitted data are 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -50,6 +51,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.colour import COLOUR_MIXES
 from optitac_edge.core.depth_model import DEPTH_FEATURES, DepthForceModel, depth_feature
 from optitac_edge.core.levels import DRIFT_KEY, LEVELS_KEY, NOISE_KEY, fiber_excess
+from optitac_edge.core.support import neighbour_table
 from optitac_edge.errors import OrientationError, RecordingError
 from optitac_edge.io.recording import SHAPES, Recording, Truth
 
@@ -127,10 +129,11 @@ def calibrate_levels(recs: Recordings, bundle: CalibrationBundle) -> tuple[Calib
     the on level is chosen where the rest and contact frames are best told apart
     (:func:`~optitac_edge.calibration.levels_fit.choose_level`), and how that choice does on frames it was not
     made on is measured fold by fold (whole presses and runs of rest frames held out,
-    :func:`~optitac_edge.calibration.levels_fit.held_out_levels`). With RGB frames every colour mix
-    (:data:`~optitac_edge.core.colour.COLOUR_MIXES`) is tried the same way, and one other than luma is adopted
-    only where its held-out error (missed contact frames plus false contacts, as fractions) is lower. The
-    rest-frame noise of ``calibrate fibers`` stays the fallback of a bundle this step never saw.
+    :func:`~optitac_edge.calibration.levels_fit.held_out_levels`). Neighbour support
+    (:mod:`optitac_edge.core.support`) and, with RGB frames, every colour mix
+    (:data:`~optitac_edge.core.colour.COLOUR_MIXES`) are tried the same way, and adopted only where their
+    held-out error (missed contact frames plus false contacts, as fractions) is lower than luma's without
+    support. The rest-frame noise of ``calibrate fibers`` stays the fallback of a bundle this step never saw.
 
     Raises
     ------
@@ -140,19 +143,63 @@ def calibrate_levels(recs: Recordings, bundle: CalibrationBundle) -> tuple[Calib
     listed = _listed(recs)
     where = recordings_named(listed)
     mixes = COLOUR_MIXES if bundle.fibers.pixel_format == "rgb" else {"luma": COLOUR_MIXES["luma"]}
-    tried = {mix: _levels_of_mix(listed, bundle, mix, where) for mix in mixes}
-    errors = {mix: (1.0 - t.held.detection) + t.held.false_rate for mix, t in tried.items()}
-    best = min(tried, key=lambda mix: (errors[mix], mix != "luma"))
+    table = neighbour_table(bundle.layout)
+    tried: dict[tuple[str, bool], _MixLevels] = {}
+    for mix in mixes:
+        signals = _mix_signals(listed, bundle, mix, where)
+        for support in (False, True):
+            tried[mix, support] = _levels_of(signals, bundle, where, table if support else None)
+    errors = {key: (1.0 - t.held.detection) + t.held.false_rate for key, t in tried.items()}
+    # the least held-out error; on a tie the most room between the held-out frames, then luma, then no support;
+    # and no choice that places the calibration presses worse than luma without support (detection is not
+    # bought with location: a colour mix moves every contact's moments, not only its detection)
+    ranked = sorted(tried, key=lambda key: (round(errors[key], 9), -round(tried[key].held.margin, 3),
+                                            key[0] != "luma", key[1]))
+    plain = ("luma", False)
+    located = {plain: _location_rms(listed, _with_levels(bundle, plain, tried[plain]))}
+    best = plain
+    for key in ranked:
+        if key == plain:
+            break
+        located[key] = _location_rms(listed, _with_levels(bundle, key, tried[key]))
+        if located[key] <= LOCATION_TOLERANCE * located[plain]:
+            best = key
+            break
     chosen = tried[best]
     summary = _levels_summary(chosen)
-    if len(tried) > 1:
-        summary["colour_mix"] = best
-        summary["mixes_heldout_error"] = {mix: round(e, 4) for mix, e in errors.items()}
-    options = replace(bundle.options, on_level=chosen.level, colour_mix=best)
-    meta = {**bundle.extra_meta.get(LEVELS_KEY, {}), "drift_samples": chosen.rest_frames, **summary}
-    arrays = {**bundle.extra_arrays, DRIFT_KEY: chosen.drift.astype(np.float32)}
+    summary["support"] = best[1]
+    summary["heldout_error"] = {f"{mix}{' support' if support else ''}": round(e, 4)
+                                for (mix, support), e in errors.items()}
+    summary["heldout_margin"] = round(chosen.held.margin, 3)
+    summary["location_rms_mm"] = {f"{mix}{' support' if support else ''}": round(v, 3)
+                                  for (mix, support), v in located.items()}
+    if len(mixes) > 1:
+        summary["colour_mix"] = best[0]
+    levelled = _with_levels(bundle, best, chosen)
+    meta = {**levelled.extra_meta[LEVELS_KEY], **summary}
+    return levelled.with_updates(extra_meta={**levelled.extra_meta, LEVELS_KEY: meta}), summary
+
+
+#: calibrate levels adopts a colour mix or neighbour support only where the calibration presses' location (RMS
+#: under their best symmetry) stays within this factor of luma's without support.
+LOCATION_TOLERANCE = 1.1
+
+
+def _with_levels(bundle: CalibrationBundle, key: tuple[str, bool], m: _MixLevels) -> CalibrationBundle:
+    """The bundle with the levels ``m`` of colour mix and support ``key``."""
+    options = replace(bundle.options, on_level=m.level, colour_mix=key[0], support=key[1])
+    meta = {**bundle.extra_meta.get(LEVELS_KEY, {}), "drift_samples": m.rest_frames}
+    arrays = {**bundle.extra_arrays, DRIFT_KEY: m.drift.astype(np.float32)}
     return bundle.with_updates(options=options, extra_arrays=arrays,
-                               extra_meta={**bundle.extra_meta, LEVELS_KEY: meta}), summary
+                               extra_meta={**bundle.extra_meta, LEVELS_KEY: meta})
+
+
+def _location_rms(recs: tuple[Recording, ...], bundle: CalibrationBundle) -> float:
+    """The recordings' presses as ``bundle`` places them: RMS error under their best symmetry, mm (inf: none
+    detected)."""
+    m, truth = measure_sessions(recs, bundle, corrected=False)
+    fit = press_orientation(m, truth, bundle)
+    return fit.best_rmse_mm if fit.presses else math.inf
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,30 +215,48 @@ class _MixLevels:
     live: np.ndarray
 
 
-def _levels_of_mix(recs: tuple[Recording, ...], bundle: CalibrationBundle, mix: str, where: str) -> _MixLevels:
-    """The levels the recordings give read through colour mix ``mix``."""
-    if mix != bundle.options.colour_mix:
-        bundle = bundle.with_updates(options=replace(bundle.options, colour_mix=mix))
+@dataclass(frozen=True, eq=False)
+class _Signals:
+    """The recordings' scored frames read through one colour mix: each fiber's signal and light, what they
+    are, their groups for the folds, the expected squared noise."""
+
+    signals: np.ndarray
+    contact: np.ndarray
+    groups: np.ndarray
+    noise_part: np.ndarray | None
+    live: np.ndarray
+
+
+def _mix_signals(recs: tuple[Recording, ...], bundle: CalibrationBundle, mix: str, where: str) -> _Signals:
+    """The frames the recordings give read through colour mix ``mix`` (no band, no support)."""
+    bundle = bundle.with_updates(options=replace(bundle.options, colour_mix=mix, support=False))
     signals, light, truth, t_ns = fiber_signals(recs, bundle)
     ok = np.all(np.isfinite(signals), axis=1)
     sessions = np.zeros(len(truth), dtype=np.int64) if truth.session is None else truth.session
     contact = truth.contact[ok]
     signals, light = signals[ok], light[ok]
-    live = ~np.asarray(bundle.fibers.dead, dtype=bool)
     noise = bundle.extra_arrays.get(NOISE_KEY)
     part = (None if noise is None else
             np.square(np.asarray(noise, dtype=np.float64) / light) * (1.0 + 1.0 / bundle.baseline_frames))
     runs = rest_runs(contact, sessions[ok], truth.frame[ok], t_ns[ok], round(bundle.options.gap_s * 1e9))
-    groups = np.where(contact, press_ids(truth)[ok], runs)
+    if contact.all() or not contact.any():
+        raise RecordingError(f"{where}: choosing levels needs rest frames and contact frames in the truth")
+    return _Signals(signals, contact, np.where(contact, press_ids(truth)[ok], runs), part,
+                    ~np.asarray(bundle.fibers.dead, dtype=bool))
+
+
+def _levels_of(f: _Signals, bundle: CalibrationBundle, where: str, support: np.ndarray | None) -> _MixLevels:
+    """The levels of frames ``f``, with neighbour support (``support``: the neighbour table) or without."""
+    contact, live = f.contact, f.live
     try:
-        held = held_out_levels(signals, part, contact, groups, live)
+        held = held_out_levels(f.signals, f.noise_part, contact, f.groups, live, support=support)
     except ValueError as exc:
         raise RecordingError(f"{where}: {exc}") from None
-    rest_part = None if part is None else part[~contact]
-    drift = fiber_drift(signals[~contact], rest_part)
+    rest_part = None if f.noise_part is None else f.noise_part[~contact]
+    drift = fiber_drift(f.signals[~contact], rest_part)
     excursion = excursion_of(drift, rest_part)
     excess = fiber_excess(excursion, live, int((~contact).sum()))
-    z = frame_statistic(signals, excess, live)
+    z = frame_statistic(f.signals, excess, live, support)
     level = choose_level(z[~contact], z[contact])
     return _MixLevels(level, drift, excursion, 0 if excess is None else int(np.count_nonzero(excess)), held,
                       int((~contact).sum()), live)

@@ -161,6 +161,8 @@ class FrameKernel:
         }
         if pipe.levels.band is not None:  # each fiber's band (the levels write it; the kernel reads it)
             plan["band"] = pipe.levels.band
+        if pipe.support is not None:  # each fiber's neighbours, for its support
+            plan["support_nbr"] = pipe.support.table.reshape(-1)
         #: The corrector whose models the kernel applies (None: the kernel gives raw contacts).
         self.corrector = pipe.corrector
         models = None if pipe.corrector is None else pipe.corrector.kernel_arrays()

@@ -46,19 +46,20 @@ class ContactFinder:
         self._cands = [ContactEstimate() for _ in range(MAX_CANDIDATES)]
 
     def find(self, surface: np.ndarray, est: ContactEstimate, in_contact: bool,
-             corrector: ContactCorrector | None) -> int:
+             corrector: ContactCorrector | None, gated: bool = False) -> int:
         """Truncate ``surface`` (shape (n*n,), float32, in place), find and measure its contacts.
 
         The contacts go to ``contacts[:n]``, strongest first, each stamped with ``est``'s frame and
         time and corrected by ``corrector`` (None: raw); with none, ``est`` says so (with the
-        frame's strength and area above the level when there was some). Returns ``n``.
+        frame's strength and area above the level when there was some). ``gated``: the frame can have
+        no contact (neighbour support, :mod:`optitac_edge.core.support`). Returns ``n``.
         """
         seg, blobs = self.segmenter, self.blobs
         cells = seg.truncate(surface)
         if cells == 0:
             est.clear()
             return 0
-        level = self.levels.off if in_contact else self.levels.on
+        level = np.float32(np.inf) if gated else (self.levels.off if in_contact else self.levels.on)
         # everything below reads only the bounding box of the cells above the truncation level
         box = seg.box(surface)
         n_cand = 0

@@ -147,6 +147,11 @@ class ContactOptions:
         BT.601, unless ``calibrate levels`` found on held-out presses that
         another tells contact from rest frames better: the relative change of
         a mix is the luma's plus a chromaticity change).
+    support : bool
+        Each fiber's signal limited to its second-strongest neighbour's
+        (:mod:`optitac_edge.core.support`): a fiber that darkens alone makes
+        no contact. Adopted by ``calibrate levels`` only where held-out presses
+        show it helps (off by default).
     on_level : float
         Chosen by ``calibrate levels`` on held-out presses of the user's own
         recordings (relative units; 0: not chosen, the levels come from
@@ -182,6 +187,7 @@ class ContactOptions:
     gain_rate_per_s: float = 0.005
     gap_s: float = 0.5
     colour_mix: str = "luma"
+    support: bool = False
     on_level: float = 0.0
     noise_rel: float = 0.0
     noise_gray: float = 0.0
@@ -193,7 +199,7 @@ class ContactOptions:
 
     def __post_init__(self) -> None:
         for name in ("relative", "noise_levels", "hysteresis", "fill_dead", "track_baseline",
-                     "compensate_gain"):
+                     "compensate_gain", "support"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be true or false, got {getattr(self, name)!r}")
         mc = self.max_contacts

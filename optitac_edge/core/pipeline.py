@@ -96,6 +96,7 @@ from optitac_edge.core.levels import ContactLevels, FiberModel
 from optitac_edge.core.motion import ContactMotion
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
+from optitac_edge.core.support import NeighbourSupport, neighbour_table
 from optitac_edge.core.surface import DenseSurface, TriangleSurface
 from optitac_edge.core.tracking import GATE_PITCH, ContactTracker
 from optitac_edge.core.vibration import VibrationMeter
@@ -209,6 +210,8 @@ class Pipeline:
         self.blobs = BlobMeasurer(grid, self.levels, min_area, o.peak_fraction, o.shape_fraction)
         self._means, self._signal = np.zeros(n_fibers, dtype=np.float32), np.zeros(n_fibers, dtype=np.float32)
         self._clipped = np.zeros(n_fibers, dtype=np.float32)
+        #: Neighbour support of each fiber's signal (None: off).
+        self.support = NeighbourSupport(neighbour_table(bundle.layout)) if o.support else None
         self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
         self._n, self._frame, self._in_contact = grid.n, 0, False
         self._last_ns: int | None = None
@@ -385,10 +388,17 @@ class Pipeline:
         signal = self.compute_signal(means, now_ns)
         result.light_changed = gain is not None and gain.light_changed
         surface = self.surface_op.compute(signal, self._surface, self.levels.trunc)
-        n = self.finder.find(surface, est, self._in_contact, self.corrector)
+        n = self.finder.find(surface, est, self._in_contact, self.corrector, self._gated(signal))
         _track(self, n, now_ns, dt_ns)
         self._follow_light(n, means, signal, now_ns, dt_ns)
         return result
+
+    def _gated(self, signal: np.ndarray) -> bool:
+        """With neighbour support: the frame's supported peak stays below the level (no contact)."""
+        if self.support is None:
+            return False
+        level = self.levels.off if self._in_contact else self.levels.on
+        return not self.support.peak(signal) > float(level)
 
     def _forget(self, now_ns: int) -> None:
         """A gap: what the frames before it left (hysteresis, motion, the vibration filter, the bright-fiber
