@@ -18,6 +18,7 @@ from optitac_edge.calibration.orientation import (
 from optitac_edge.calibration.steps import calibrate_centroid, calibrate_orientation
 from optitac_edge.cli import main
 from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.core.levels import DRIFT_KEY, NOISE_KEY
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.scenarios import write_scenario
@@ -240,3 +241,20 @@ def test_many_noisy_presses_decide_by_their_evidence() -> None:
     assert fit.symmetry is mirrored and second < 2 * fit.best_rmse_mm
     few = fit_orientation(mirrored.apply(true[:2]) + noise[:2], true[:2], sym, layout.pitch_mm)
     assert few.symmetry is None
+
+
+def test_reorienting_carries_each_fibers_noise_and_drift_with_its_pixels(presses) -> None:
+    """The per-fiber levels (calibrate fibers' noise, calibrate levels' drift) belong to the fiber whose
+    pixels they were measured on: when those pixels move to another fiber id, so do they (a stale array
+    put a noisy fiber's wide band on a quiet one and left the noisy one bare: false contacts)."""
+    _, right = presses
+    n = right.layout.n_fibers
+    noise, drift = np.arange(n, dtype=np.float32) + 1.0, np.arange(n, dtype=np.float32) / n
+    bundle = right.with_updates(extra_arrays={NOISE_KEY: noise, DRIFT_KEY: drift})
+    h = layout_symmetries(bundle.layout)[7]
+    turned = reorient_bundle(bundle, h, "test")
+    moved = turned.fibers.centroid_px
+    for i in (0, 5, n - 1):  # fiber i now holds the pixels (and so the light) that were fiber p[i]'s
+        j = int(h.permutation[i])
+        assert np.allclose(moved[i], right.fibers.centroid_px[j])
+        assert turned.extra_arrays[NOISE_KEY][i] == noise[j] and turned.extra_arrays[DRIFT_KEY][i] == drift[j]

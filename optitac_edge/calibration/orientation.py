@@ -24,6 +24,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.corrections import CENTROID_KEY, SHAPES_KEY, WIDTH_KEY
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.layout import FiberLayout
+from optitac_edge.core.levels import FIBER_ARRAYS
 
 #: Two layout points closer than this fraction of the pitch are the same point.
 MATCH_TOL_PITCH = 0.1
@@ -214,7 +215,7 @@ def reorient_bundle(bundle: CalibrationBundle, h: Symmetry, evidence: str) -> Ca
 
     The identity changes nothing but the record: the orientation was checked
     (:func:`mark_verified`). Otherwise fiber ``i`` takes the pixels of the fiber at ``h(x_i)``; the transform
-    becomes ``T ∘ h``. Models fitted through the wrong fiber map (centroid,
+    becomes ``T ∘ h``; each fiber's levels (noise, drift) go with its pixels. Models fitted through the wrong fiber map (centroid,
     width, shapes) are removed: calibrate them again. The orientation record
     (``extra_meta['orientation']``) says it was verified and how.
     """
@@ -226,7 +227,7 @@ def reorient_bundle(bundle: CalibrationBundle, h: Symmetry, evidence: str) -> Ca
     stale = (CENTROID_KEY, WIDTH_KEY, SHAPES_KEY)
     extra_meta = {k: v for k, v in bundle.extra_meta.items()
                   if k not in stale and k not in ("centroid_fit", "width_fit", "shapes_fit")}
-    extra_arrays = {k: v for k, v in bundle.extra_arrays.items()
+    extra_arrays = {k: v[h.permutation] if k in FIBER_ARRAYS else v for k, v in bundle.extra_arrays.items()
                     if not k.startswith(tuple(f"{s}/" for s in stale)) and not k.startswith("report/")}
     extra_meta[ORIENTATION_KEY] = {"verified": True, "corrected": h.label, "evidence": evidence}
     return bundle.with_updates(fibers=reorient_table(bundle.fibers, h.permutation), transform=transform,

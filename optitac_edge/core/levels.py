@@ -43,6 +43,9 @@ from optitac_edge.core.options import ContactOptions
 #: Bundle arrays, shape (N,): each fiber's frame-to-frame noise in the rest frames, gray levels (``calibrate
 #: fibers``), and its drift since the baseline in use, relative units (``calibrate levels``).
 NOISE_KEY, DRIFT_KEY = "levels/fiber_noise", "levels/fiber_drift"
+#: The bundle's extra arrays indexed by fiber (shape (N,)): they move with a fiber's pixels when the fiber map
+#: is reoriented.
+FIBER_ARRAYS = (NOISE_KEY, DRIFT_KEY)
 #: ``extra_meta`` of the levels: ``noise_samples``, ``drift_samples`` (how many values each fiber's figure is
 #: from) and what ``calibrate levels`` found.
 LEVELS_KEY = "levels"
