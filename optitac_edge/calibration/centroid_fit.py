@@ -7,17 +7,19 @@ cells on a 1000-cell mesh) smooths the boundaries. The result,
 :class:`~optitac_edge.core.centroid_map.CentroidErrorMap`, is looked up per contact.
 
 :func:`held_out_fills` judges each fill on presses held out of the fit (``GroupKFold`` over presses), and
-the raw estimate beside them (``none``: a map of zeros): a map is adopted only where held-out presses show
-it helps (a few presses of a sparse, noisy sensor can make a map that misplaces the presses it did not see).
+the raw estimate beside them (``none``: a map of zeros); :func:`choose_fill` adopts a map only where
+held-out presses show it helps by more than their scatter (a few presses of a sparse, noisy sensor can make
+a map that misplaces the presses it did not see).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
-from optitac_edge.calibration.folds import fold_count, held_out_errors
+from optitac_edge.calibration.folds import fold_count, held_out_errors, press_folds
 from optitac_edge.core.centroid_map import MAP_CELLS, MAP_SIGMA_CELLS, CentroidErrorMap
 
 
@@ -96,10 +98,42 @@ def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: n
     deviation) of the folds' RMSEs and their mean (the score). The maps of the check are
     :data:`HELD_OUT_COARSENING` times coarser than the runtime's (the same smoothing in mm).
     """
+    return [summary for summary, _ in _fill_checks(measured_xy_mm, true_xy_mm, groups, half_span_mm, fills)]
+
+
+def choose_fill(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: np.ndarray, half_span_mm: float,
+                fills: tuple[str, ...] = FILLS) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The fill ``calibrate centroid`` adopts, and every fill's held-out figures (:func:`held_out_fills`).
+
+    The fill with the smallest score, but the raw estimate (``none``, when among ``fills``) unless that fill
+    places the held-out presses better by more than one standard error of the per-press difference of
+    their squared errors: the one-standard-error rule (of models the held-out errors cannot tell apart,
+    the simplest; Hastie, Tibshirani and Friedman, *The Elements of Statistical Learning*, 2nd ed., 7.10).
+    The best map's candidate says by how much (``gain_mm2``, ``gain_se_mm2``: mean and standard error of
+    the per-press difference, mm²).
+    """
+    checks = _fill_checks(measured_xy_mm, true_xy_mm, groups, half_span_mm, fills)
+    best = min(range(len(checks)), key=lambda k: checks[k][0]["score_mm"])
+    raw = next((k for k, (c, _) in enumerate(checks) if c["fill"] == "none"), None)
+    if raw is not None and best != raw:
+        gain = checks[raw][1] - checks[best][1]
+        se = float(np.std(gain, ddof=1) / np.sqrt(gain.size)) if gain.size > 1 else math.inf
+        checks[best][0].update(gain_mm2=round(float(gain.mean()), 4), gain_se_mm2=round(se, 4))
+        if not float(gain.mean()) > se:
+            best = raw
+    return checks[best][0], [c for c, _ in checks]
+
+
+def _fill_checks(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: np.ndarray, half_span_mm: float,
+                 fills: tuple[str, ...]) -> list[tuple[dict[str, Any], np.ndarray]]:
+    """Each fill's held-out figures and each press's mean squared held-out error (shape (presses,), mm²)."""
     measured, true = np.asarray(measured_xy_mm, dtype=np.float64), np.asarray(true_xy_mm, dtype=np.float64)
     folds = fold_count(groups, 4, "check the centroid map")
     cells = MAP_CELLS // HELD_OUT_COARSENING
     sigma = MAP_SIGMA_CELLS / HELD_OUT_COARSENING
+    order = np.concatenate([test for _, test in press_folds(groups, folds)])  # the rows' order in the errors
+    press = np.unique(np.asarray(groups), return_inverse=True)[1].ravel()
+    frames_of = np.bincount(press).astype(np.float64)
     out = []
     for fill in fills:
         def error(train: np.ndarray, test: np.ndarray, fill: str = fill) -> np.ndarray:
@@ -109,6 +143,9 @@ def held_out_fills(measured_xy_mm: np.ndarray, true_xy_mm: np.ndarray, groups: n
             return np.array([m.correct(x, y) for x, y in measured[test]]) - true[test]
 
         h = held_out_errors(groups, folds, error)
-        out.append({"fill": fill, "heldout_rmse_mm": h.rmse.round(4).tolist(),
-                    "heldout_spread_mm": round(h.spread, 4), "score_mm": round(float(h.rmse.mean()), 4)})
+        squared = np.empty(order.size)
+        squared[order] = np.sum(h.errors ** 2, axis=1)
+        out.append(({"fill": fill, "heldout_rmse_mm": h.rmse.round(4).tolist(),
+                     "heldout_spread_mm": round(h.spread, 4), "score_mm": round(float(h.rmse.mean()), 4)},
+                    np.bincount(press, squared) / frames_of))
     return out

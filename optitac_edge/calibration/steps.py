@@ -24,7 +24,8 @@ from optitac_edge.calibration.bundle_models import (
     with_shape_model,
     with_width_model,
 )
-from optitac_edge.calibration.centroid_fit import FILLS, fit_centroid_map, held_out_fills
+from optitac_edge.calibration.centroid_fit import FILLS, choose_fill, fit_centroid_map
+from optitac_edge.calibration.contact_count import one_contact_evidence
 from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, grouped_means, select_feature
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.levels_fit import (
@@ -272,9 +273,12 @@ def _levels_summary(m: _MixLevels) -> dict[str, Any]:
 
 
 def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = "auto",
-                       bundle_path: str = "CAL") -> tuple[CalibrationBundle, dict[str, Any]]:
+                       bundle_path: str = "CAL", contacts: str = "auto") -> tuple[CalibrationBundle, dict[str, Any]]:
     """The paper's centroid error maps from presses of known position (``fill``: see fit_centroid_map;
-    ``auto``, default: the fill with the smaller error on presses held out of the map).
+    ``auto``, default: :func:`~optitac_edge.calibration.centroid_fit.choose_fill` on presses held out of the map).
+
+    ``contacts``: ``auto`` (default) reads the presses as one contact a frame instead of the configured
+    several where that places them better (:func:`one_contact_evidence`), ``keep`` keeps the configured count.
 
     The bundle's orientation is checked against the same presses first.
 
@@ -295,6 +299,16 @@ def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = 
     if fit.symmetry is None and not is_verified(bundle):
         raise OrientationError(f"{where}: cannot confirm the bundle's orientation: {fit.reason}; "
                                "verify it with 'optitac-edge orient' or 'calibrate orientation' on other presses")
+    contact_summary: dict[str, Any] = {}
+    if contacts == "auto" and bundle.options.max_contacts > 1:
+        one = bundle.with_updates(options=replace(bundle.options, max_contacts=1))
+        m_one = measure_sessions(_listed(recs), one, corrected=False)[0]
+        evidence = one_contact_evidence(m, m_one, truth)
+        contact_summary = {"max_contacts": 1 if evidence.adopt else bundle.options.max_contacts,
+                           "rms_mm_several": round(evidence.several_rms_mm, 3),
+                           "rms_mm_one": round(evidence.one_rms_mm, 3)}
+        if evidence.adopt:
+            bundle, m = one, m_one
     rows = np.flatnonzero(detected_rows(m, truth))
     if rows.size < 3:
         raise RecordingError(f"{where}: only {rows.size} detected presses to calibrate the centroid")
@@ -304,10 +318,9 @@ def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = 
     span = bundle.layout.radius_mm + MAP_MARGIN_PITCH * bundle.layout.pitch_mm
     groups = press_ids(truth)[rows]
     try:
-        candidates = held_out_fills(measured, true, groups, span, FILLS if fill == "auto" else (fill,))
+        chosen, candidates = choose_fill(measured, true, groups, span, FILLS if fill == "auto" else (fill,))
     except ValueError as exc:
         raise RecordingError(f"{where}: {exc}") from None
-    chosen = min(candidates, key=lambda c: c["score_mm"])
     fill = chosen["fill"]
     error_map = fit_centroid_map(measured, true, half_span_mm=span, fill=fill)
     corrected = np.array([error_map.correct(x, y) for x, y in measured])
@@ -316,6 +329,7 @@ def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = 
         "raw_rmse_mm": np.sqrt(np.mean((measured - true) ** 2, axis=0)).round(4).tolist(),
         "fitted_rmse_mm": np.sqrt(np.mean((corrected - true) ** 2, axis=0)).round(4).tolist(),
         "heldout_rmse_mm": chosen["heldout_rmse_mm"], "heldout_spread_mm": chosen["heldout_spread_mm"],
+        **contact_summary,
     }
     if fit.symmetry is not None:
         names = ", ".join(r.path.name for r in _listed(recs))

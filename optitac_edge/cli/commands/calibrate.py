@@ -48,6 +48,9 @@ def add_parser(sub: Any) -> None:
             p.add_argument("--fill", choices=("auto", "nearest", "linear", "none"), default="auto",
                            help="error between presses: auto (default) chooses by presses held out of the map "
                                 "(none: no map, where no map helps them); the paper's nearest neighbour, or linear")
+            p.add_argument("--contacts", choices=("auto", "keep"), default="auto",
+                           help="auto (default): one contact a frame where the presses show it places them "
+                                "better than the configured several; keep: the configured count")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -139,7 +142,7 @@ def _model(args: argparse.Namespace) -> int:
         bundle, summary = calibrate_steps.calibrate_depth(rec, bundle)
     elif args.step == "centroid":
         bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill,
-                                                               bundle_path=str(args.cal))
+                                                               bundle_path=str(args.cal), contacts=args.contacts)
     else:
         bundle, summary = calibrate_steps.calibrate_width(rec, bundle, kind=args.model)
     bundle = save_bundle(bundle, args.cal)
