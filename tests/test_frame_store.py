@@ -10,6 +10,7 @@ import pytest
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.cli import main
 from optitac_edge.core.fiber_table import FiberSampler
+from optitac_edge.core.layout import hex_layout
 from optitac_edge.errors import RecordingError
 from optitac_edge.io.recording import Recording
 
@@ -124,3 +125,70 @@ def test_a_collection_continues_in_the_storage_it_began_in(tmp_path, capsys) -> 
     assert len(err) == 1 and "continue it with the same storage" in err[0]
     assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "4"]) == 0
     assert Recording(out).meta.extra["frame_storage"]["storage"] == "fibers"
+
+
+@pytest.fixture(scope="module")
+def coloured(tmp_path_factory):
+    """Colour-coded fibers (the 'real' physics), RGB, raw and as fiber sums."""
+    work = tmp_path_factory.mktemp("colour")
+    for name, extra in (("raw", []), ("fibers", ["--storage", "fibers"])):
+        assert main(["sim", str(work / name), "--scenario", "unseen", "--seed", "5", "--frames", "40", "--rgb",
+                     "--physics", "real", *extra]) == 0
+    return Recording(work / "raw"), Recording(work / "fibers")
+
+
+def test_opencvs_gray_is_the_one_the_colours_are_rebuilt_to() -> None:
+    """gray_of and green_for against cv2.cvtColor (the reference the per-frame loop reads RGB with)."""
+    import cv2
+
+    from optitac_edge.io.fiber_sums import gray_of, green_for
+
+    rng = np.random.default_rng(0)
+    px = rng.integers(0, 256, (20000, 3))
+    want = cv2.cvtColor(px.astype(np.uint8).reshape(1, -1, 3), cv2.COLOR_RGB2GRAY).reshape(-1)
+    np.testing.assert_array_equal(gray_of(px[:, 0], px[:, 1], px[:, 2]), want)
+    g = green_for(want, px[:, 0], px[:, 2])
+    fits = (g >= 0) & (g <= 255)
+    assert fits.mean() > 0.99 and np.all(g[fits] <= px[fits, 1])  # the smallest such green
+    np.testing.assert_array_equal(gray_of(px[fits, 0], g[fits], px[fits, 2]), want[fits])
+
+
+def test_an_rgb_recording_of_fiber_sums_keeps_each_fibers_colour(coloured) -> None:
+    """colours.npy holds each fiber's red, green and blue sums exactly; the frames made from it read every
+    fiber's gray exactly and each channel's mean within a quarter of a level, so a colour mix sees the
+    colours."""
+    raw, fibers = coloured
+    table = calibrate_fibers(fibers.rest_frames(), fibers.pixel_format, hex_layout(4, 4.0)).fibers
+    assert fibers.frames.exact_for(table)
+    colours = np.load(fibers.path / "colours.npy")
+    rest = fibers.meta.rest_frames
+    assert colours.shape == (len(raw) - rest, table.n_fibers, 3)
+    starts, index = table.pixel_start, table.pixel_index.astype(np.intp)
+    luma, red = FiberSampler(table), FiberSampler(table, "red")
+    a, b = np.zeros(table.n_fibers, np.float32), np.zeros(table.n_fibers, np.float32)
+    spread = []
+    for i in range(rest, len(raw), 7):
+        pixels = raw.frame(i).reshape(-1, 3)[index].astype(np.int64)
+        np.testing.assert_array_equal(colours[i - rest], np.add.reduceat(pixels, starts[:-1], axis=0))
+        made = fibers.frame(i)
+        assert made.shape == raw.frame(i).shape
+        np.testing.assert_array_equal(luma.means(raw.frame(i), a), luma.means(made, b))
+        mine = np.add.reduceat(made.reshape(-1, 3)[index].astype(np.int64), starts[:-1], axis=0)
+        err = np.abs(mine - colours[i - rest]) / table.pixel_count[:, None]
+        assert err.max() <= 0.25 and err.mean() < 0.01
+        np.testing.assert_allclose(red.means(raw.frame(i), a), red.means(made, b), atol=0.6)
+        spread.append(np.ptp(colours[i - rest] / colours[i - rest].sum(axis=1, keepdims=True), axis=0))
+    assert np.max(spread) > 0.05  # the fibers are coloured: not gray in three channels
+
+
+def test_garbled_fiber_colours_are_one_line(coloured, tmp_path) -> None:
+    import shutil
+
+    rec = tmp_path / "r"
+    shutil.copytree(coloured[1].path, rec)
+    np.save(rec / "colours.npy", np.zeros((3, 4, 3), np.uint16))
+    with pytest.raises(RecordingError, match="colours.npy: must be uint16 of shape"):
+        Recording(rec)
+    (rec / "colours.npy").write_bytes(b"\x93NUMPY garbage")
+    with pytest.raises(RecordingError, match="colours.npy: garbled or truncated fiber colours"):
+        Recording(rec)

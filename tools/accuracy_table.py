@@ -497,6 +497,11 @@ PAPER_FOR_ROW = {
 }
 
 
+#: What follows this line in the output is written by other tools (tools/real_table.py, bringup_check.py,
+#: real_dataset.py) and kept when the table is written again.
+KEPT = "<!-- the sections below are written by other tools and kept when accuracy_table.py runs again -->"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("-o", "--output", type=Path, default=Path("docs/accuracy.md"))
@@ -601,8 +606,10 @@ def write_markdown(path: Path, results: dict[str, Any], ablation: dict[str, Any]
                "sensors process the pressed sensor's recording (`python tools/board_accuracy.py`)."), "",
               *board_table("sim-hand", args.workdir / "board")]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
-    print(f"wrote {path}")
+    kept = path.read_text().split(KEPT, 1) if path.exists() else []
+    tail = [KEPT + kept[1].rstrip("\n")] if len(kept) == 2 else []
+    path.write_text("\n".join(lines + [""] + tail) + "\n")
+    print(f"wrote {path}" + (" (the sections after its marker kept)" if tail else ""))
 
 
 if __name__ == "__main__":

@@ -12,8 +12,19 @@ frame's sum of every fiber's gray levels:
   are scaled the same way, so that a fiber map found elsewhere, whose groups
   are a pixel larger or smaller, reads nearly the same light
   (:meth:`FiberSumFrames.exact_for` tells which case it is);
-* everything else is the rest frames' mean. RGB recordings give gray frames
-  in three channels (their BT.601 gray is the gray level itself).
+* everything else is the rest frames' mean.
+
+An RGB recording with its fibers' colours (``colours.npy``) gives RGB frames:
+each fiber pixel takes the red and blue its fiber's recorded colour gives at
+the pixel's gray level (shared so that the group's sums are the recorded
+ones), and a green that makes OpenCV's BT.601 gray of the pixel that gray
+level exactly (:func:`green_for`; of two that do, the one that brings the
+group's green nearer its sum; where none in 0..255 does, the pixel is gray):
+the gray a bundle reads stays exact, and each channel's mean over a group is
+the recorded one to within a fraction of a level. Around the groups and elsewhere: the rest frames' colour, scaled with
+the fiber's light. Without ``colours.npy`` (gray recordings, or RGB ones
+recorded before colours were kept) an RGB recording gives gray frames in
+three channels (their BT.601 gray is the gray level itself).
 """
 
 from __future__ import annotations
@@ -27,10 +38,31 @@ import numpy as np
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, RecordingError
-from optitac_edge.io.frame_store import REST_FRAMES, SPOTS, SUMS, read_spots
+from optitac_edge.io.frame_store import COLOURS, REST_FRAMES, SPOTS, SUMS, read_spots
 
 #: Pixels around a fiber's group, up to this fraction of its radius, follow its light.
 ZONE_FRACTION = 0.5
+#: OpenCV's fixed-point BT.601 RGB -> gray for 8-bit pixels (``cv2.cvtColor(..., COLOR_RGB2GRAY)``,
+#: modules/imgproc/src/color_rgb.simd.hpp: ``RY15 = 9798, GY15 = 19235, BY15 = 3735``, ``gray_shift = 15``,
+#: rounded). :meth:`FiberSumFrames.frame` checks the pixels it makes with OpenCV itself all the same.
+GRAY_WEIGHTS, GRAY_SHIFT = (9798, 19235, 3735), 15
+
+
+def gray_of(r: np.ndarray, g: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """OpenCV's BT.601 gray of 8-bit pixels (integer arrays of one shape), int64."""
+    wr, wg, wb = GRAY_WEIGHTS
+    total = wr * r.astype(np.int64) + wg * g.astype(np.int64) + wb * b.astype(np.int64)
+    return (total + (1 << (GRAY_SHIFT - 1))) >> GRAY_SHIFT
+
+
+def green_for(gray: np.ndarray, r: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest green whose pixel ``(r, green, b)`` has OpenCV's gray ``gray`` (int64; outside 0..255
+    where none in range has). A green step moves the gray by 0.587: every gray level is reached, by one
+    green or two."""
+    wr, wg, wb = GRAY_WEIGHTS
+    need = (gray.astype(np.int64) << GRAY_SHIFT) - (1 << (GRAY_SHIFT - 1)) - wr * r.astype(np.int64) \
+        - wb * b.astype(np.int64)
+    return -((-need) // wg)  # ceil(need / wg)
 
 
 def _load(path: Path, what: str) -> np.ndarray:
@@ -80,6 +112,13 @@ class FiberSumFrames:
         counts = self.table.pixel_count
         if sums.shape[0] and np.any(np.asarray(sums).max(axis=0) > 255 * counts):
             raise RecordingError(f"{directory / SUMS}: a sum larger than its fiber's pixels can hold")
+        self._colours: np.ndarray | None = None
+        if len(frame_shape) == 3 and (directory / COLOURS).exists():
+            colours = _load(directory / COLOURS, "fiber colours")
+            if colours.dtype != sums.dtype or colours.shape != (sums.shape[0], n, 3):
+                raise RecordingError(f"{directory / COLOURS}: must be {sums.dtype} of shape ({sums.shape[0]}, {n}, "
+                                     f"3) beside {SUMS}, got {colours.dtype} {colours.shape}")
+            self._colours = colours
         self._rest, self._sums = rest, sums
         self.rest_frames = rest_frames
         self.shape: tuple[int, ...] = (rest_frames + int(sums.shape[0]), *frame_shape)
@@ -118,6 +157,11 @@ class FiberSumFrames:
         self._zone_fiber = label[(rows.reshape(-1) * w + cols.reshape(-1))[zone]]
         self._zone_level = flat[zone]
         self._label = label
+        if self._colours is not None:  # the rest frames' colour, pixel by pixel, (H*W, 3) float64
+            colour = np.zeros((h * w, 3), dtype=np.float64)
+            for frame in self._rest:
+                colour += frame.reshape(-1, 3)
+            self._rest_colour = colour / len(self._rest)
 
     # -- array-like ------------------------------------------------------------------
 
@@ -154,11 +198,57 @@ class FiberSumFrames:
         out[self._zone] = np.clip(np.rint(self._zone_level * ratio[self._zone_fiber]), 0, 255)
         out[self._index] = self._share(sums, ratio)
         gray = out.reshape(self.shape[1:3])
-        return gray if len(self.shape) == 3 else np.repeat(gray[:, :, None], 3, axis=2)
+        if len(self.shape) == 3:
+            return gray
+        if self._colours is None:
+            return np.repeat(gray[:, :, None], 3, axis=2)
+        return self._coloured(out, ratio, np.asarray(self._colours[index - self.rest_frames], dtype=np.float64),
+                              sums)
+
+    def _coloured(self, gray: np.ndarray, ratio: np.ndarray, colour_sums: np.ndarray,
+                  sums: np.ndarray) -> np.ndarray:
+        """The RGB frame of gray levels ``gray`` (H*W,) whose fibers have the channel sums ``colour_sums``
+        (N, 3) and gray sums ``sums``: see the module docstring."""
+        out = np.clip(np.rint(self._rest_colour), 0, 255).astype(np.uint8)
+        zone = self._zone
+        out[zone] = np.clip(np.rint(self._rest_colour[zone] * ratio[self._zone_fiber][:, None]), 0, 255)
+        per_gray = colour_sums / np.maximum(sums, 1.0)[:, None]  # each fiber's channel per gray level
+        g = gray[self._index].astype(np.int64)
+        fiber = self._fiber
+        # red and blue: each group's recorded sum exactly (within 0..255), in proportion to the pixels' gray
+        r = np.clip(self._rounded(g * per_gray[fiber, 0], colour_sums[:, 0]), 0, 255).astype(np.int64)
+        b = np.clip(self._rounded(g * per_gray[fiber, 2], colour_sums[:, 2]), 0, 255).astype(np.int64)
+        green = green_for(g, r, b)
+        # where green + 1 gives the same gray too, take it on as many pixels as bring the group's green to
+        # its recorded sum (the smallest green alone reads about a third of a level dark)
+        spare = (green >= 0) & (green < 255) & (gray_of(r, green + 1, b) == g)
+        short = colour_sums[:, 1] - np.bincount(fiber, np.clip(green, 0, 255), minlength=sums.size)
+        before = np.cumsum(spare) - spare
+        rank = before - before[self._starts][fiber]  # spare pixels before this one in its group
+        green = green + (spare & (rank < short[fiber]))
+        fits = (green >= 0) & (green <= 255)
+        pixels = np.where(fits[:, None], np.stack([r, np.clip(green, 0, 255), b], axis=1), g[:, None])
+        pixels = pixels.astype(np.uint8)
+        seen = cv2.cvtColor(pixels.reshape(1, -1, 3), cv2.COLOR_RGB2GRAY).reshape(-1)
+        off = seen != g  # (another OpenCV's rounding): gray pixels, whose gray is exact in any
+        pixels[off] = g[off, None]
+        out[self._index] = pixels
+        return out.reshape(*self.shape[1:3], 3)
 
     def _share(self, sums: np.ndarray, ratio: np.ndarray) -> np.ndarray:
         """Each group's pixels, in proportion to their rest level, adding up to the group's sum exactly."""
-        part = self._weight * ratio[self._fiber]
+        values = self._rounded(self._weight * ratio[self._fiber], sums)
+        bad = (values < 0) | (values > 255)
+        if bad.any():  # a group brighter than its rest level allows: equal shares, still exact
+            for f in np.unique(self._fiber[bad]):
+                lo, n = int(self._starts[f]), int(self._counts[f])
+                q, r = divmod(int(sums[f]), n)
+                values[lo:lo + n] = q + (np.arange(n) < r)
+        return values.astype(np.uint8)
+
+    def _rounded(self, part: np.ndarray, sums: np.ndarray) -> np.ndarray:
+        """Integers near ``part`` (one value per fiber pixel, float64) whose groups add up to ``sums``
+        exactly: the rounded running total within each group, differenced (float64)."""
         total = np.cumsum(part)
         before = np.concatenate([[0.0], total[self._ends[:-1]]])
         within = total - before[self._fiber]
@@ -167,14 +257,7 @@ class FiberSumFrames:
         prev = np.empty_like(rounded)
         prev[1:] = rounded[:-1]
         prev[self._starts] = 0.0
-        values = rounded - prev
-        bad = (values < 0) | (values > 255)
-        if bad.any():  # a group brighter than its rest level allows: equal shares, still exact
-            for f in np.unique(self._fiber[bad]):
-                lo, n = int(self._starts[f]), int(self._counts[f])
-                q, r = divmod(int(sums[f]), n)
-                values[lo:lo + n] = q + (np.arange(n) < r)
-        return values.astype(np.uint8)
+        return rounded - prev
 
     def exact_for(self, table: FiberTable) -> bool:
         """True when every fiber of ``table`` reads exactly one of the recording's pixel groups (a bundle

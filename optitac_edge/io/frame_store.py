@@ -11,7 +11,11 @@
     those rest frames (the fiber map's pixel groups, the same
     :func:`~optitac_edge.calibration.fibers.calibrate_fibers` finds there);
     ``sums.npy``: for every later frame, the sum of each fiber's gray levels
-    (uint16, 434 bytes a frame for 217 fibers: 100 kB/s at 240 fps). The
+    (uint16, 434 bytes a frame for 217 fibers: 100 kB/s at 240 fps);
+    ``colours.npy``, RGB recordings only: for every later frame the sums of
+    each fiber's red, green and blue levels (N x 3, the same integer type: 1.3 kB
+    a frame for 217 fibers), each fiber's colour kept for a colour mix and for
+    later shear and torsion from colour. The
     per-frame loop reads nothing of a frame but those pixels, so a bundle
     whose fiber map is the recording's own sees exactly the fiber light it
     would see in the raw frames (:mod:`optitac_edge.io.fiber_sums` gives the
@@ -47,6 +51,7 @@ RAW_FRAMES = "frames.npy"
 REST_FRAMES = "rest.npy"
 SPOTS = "spots.npz"
 SUMS = "sums.npy"
+COLOURS = "colours.npy"
 #: Frames waiting in memory for the fiber map before the writer waits for it instead, bytes.
 PENDING_BYTES = 256 << 20
 
@@ -166,6 +171,8 @@ class FiberSumStore(FrameStore):
         self._found: FiberTable | BaseException | None = None
         self._sampler: FiberSampler | None = None
         self._sums: NpyRows | None = None
+        self._colours: NpyRows | None = None
+        self._channels: np.ndarray | None = None  # an RGB frame's fiber pixels, (P, 3) flat indices
         self._rest: NpyRows | None = None
         if keep_frames:
             self._resume(keep_frames)
@@ -184,6 +191,13 @@ class FiberSumStore(FrameStore):
         self._sampler = FiberSampler(table)
         self._sums = NpyRows(self.directory / SUMS, (table.n_fibers,), self._sampler.sum_dtype, None,
                              keep_rows=keep_rows)
+        if self.pixel_format == "rgb":
+            if keep_rows and not (self.directory / COLOURS).exists():
+                raise RecordingError(f"{self.directory}: holds no fiber colours to continue after frame "
+                                     f"{keep_rows + self.rest_frames} (recorded before colours were kept)")
+            self._channels = table.pixel_index.astype(np.intp)[:, None] * 3 + np.arange(3)
+            self._colours = NpyRows(self.directory / COLOURS, (table.n_fibers, 3), self._sampler.sum_dtype, None,
+                                    keep_rows=keep_rows)
         self._found = table
 
     # -- finding the fibers off the frame thread -------------------------------------
@@ -232,6 +246,11 @@ class FiberSumStore(FrameStore):
         assert self._sampler is not None and self._sums is not None
         self._sampler.gather(frame)
         self._sums.write(index - self.rest_frames, self._sampler.sums())
+        if self._colours is not None and self._channels is not None:
+            pixels = frame.reshape(-1).take(self._channels)  # (P, 3) uint8, table order
+            sums = np.add.reduceat(pixels, self._sampler.table.pixel_start[:-1].astype(np.intp), axis=0,
+                                   dtype=np.int64)
+            self._colours.write(index - self.rest_frames, sums.astype(self._sampler.sum_dtype))
 
     def write(self, index: int, frame: np.ndarray) -> None:
         if index != self._written:
@@ -256,10 +275,9 @@ class FiberSumStore(FrameStore):
 
     def sync(self) -> None:
         self._ready(wait=True)
-        if self._rest is not None:
-            self._rest.sync()
-        if self._sums is not None:
-            self._sums.sync()
+        for rows in (self._rest, self._sums, self._colours):
+            if rows is not None:
+                rows.sync()
 
     def finish(self, n_frames: int) -> dict[str, Any]:
         if n_frames < self.rest_frames:
@@ -270,11 +288,13 @@ class FiberSumStore(FrameStore):
         if self._rest is not None:
             self._rest.finish(self.rest_frames)
         self._sums.finish(n_frames - self.rest_frames)
+        if self._colours is not None:
+            self._colours.finish(n_frames - self.rest_frames)
         return {"storage": "fibers", "frame_shape": list(self.frame_shape), "fibers": self._found.n_fibers}
 
     def close(self) -> None:
         if self._finder is not None and self._finder.is_alive():
             self._finder.join()
-        for rows in (self._rest, self._sums):
+        for rows in (self._rest, self._sums, self._colours):
             if rows is not None:
                 rows.close()

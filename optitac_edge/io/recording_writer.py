@@ -20,6 +20,7 @@ from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, OutputError, RecordingError
 from optitac_edge.io.files import AtomicFile, check_output_path, fsync_directory, write_file_atomic
 from optitac_edge.io.frame_store import (
+    COLOURS,
     RAW_FRAMES,
     REST_FRAMES,
     SPOTS,
@@ -203,7 +204,7 @@ class RecordingWriter:
             for stale in ("meta.json", "truth.csv", TIMESTAMPS):
                 (self.path / stale).unlink(missing_ok=True)
             if not keep_frames:
-                for stale in (INCOMPLETE_MARKER, RAW_FRAMES, REST_FRAMES, SPOTS, SUMS):
+                for stale in (INCOMPLETE_MARKER, RAW_FRAMES, REST_FRAMES, SPOTS, SUMS, COLOURS):
                     (self.path / stale).unlink(missing_ok=True)
             self._written = keep_frames
             self._mark_incomplete("being written")
