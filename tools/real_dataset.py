@@ -20,9 +20,10 @@ public label files; nothing of it is copied here) and writes one recording a day
   the labels have it (else 1 mm), the force (N).
 
 Then, leaving one day out at a time, it calibrates the days left (``calibrate fibers`` on the first day's
-rest frames, ``levels``, ``orientation``, ``centroid``) and scores the day left out: detection of contact
-frames, false contacts on rest frames, location (RMS, mm and pitches, against predicting the mean
-position), printed per day and pooled.
+rest frames, ``levels``, ``orientation``, ``centroid``, ``depth``: the force model is chosen on the load
+cell's forces alone) and scores the day left out: detection of contact frames, false contacts on rest
+frames, location (RMS, mm and pitches, against predicting the scored presses' mean position), force (RMS,
+against predicting their mean force), printed per day and pooled.
 """
 
 from __future__ import annotations
@@ -168,12 +169,12 @@ def main() -> int:
             days[day] = a.output / day
     layout = a.output / "hex61.csv"
     quiet(["layout", "--rings", "4", "--pitch-mm", "4", "-o", str(layout)])
-    pooled: dict[str, list] = {"found": [], "false": [], "err": [], "truth": []}
+    pooled: dict[str, list] = {"found": [], "false": [], "err": [], "truth": [], "force": [], "mean_force": []}
     for left, held_out in days.items():
         cal = a.output / f"cal-without-{left}.npz"
         train = [str(p) for d, p in days.items() if d != left]
         quiet(["calibrate", "fibers", train[0], "-o", str(cal), "--layout", str(layout)])
-        for step in ("levels", "orientation", "centroid"):
+        for step in ("levels", "orientation", "centroid", "depth"):
             try:
                 print(f"  without {left}: {quiet(['calibrate', step, *train, '--cal', str(cal)])[:160]}")
             except SystemExit as exc:
@@ -187,6 +188,11 @@ def main() -> int:
         pooled["false"] += [d.false_contacts, d.rest_frames]
         pooled["err"].append(err)
         pooled["truth"].append(np.stack([truth.x_mm[truth.contact], truth.y_mm[truth.contact]], 1))
+        seen = [Recording(days[d]).truth for d in days if d != left]
+        mean_force = float(np.mean(np.concatenate([t.force_n[t.contact] for t in seen if t.force_n is not None])))
+        assert truth.force_n is not None
+        pooled["force"].append(m.force_n[truth.frame[rows]] - truth.force_n[rows])
+        pooled["mean_force"].append(mean_force - truth.force_n[truth.contact])
         print(f"{left} held out: detection {d.detected}/{d.contact_frames}, false contacts {d.false_contacts}/"
               f"{d.rest_frames}, location RMSE {math.hypot(c.rmse_x, c.rmse_y):.2f} mm")
     found = sum(pooled["found"][0::2]), sum(pooled["found"][1::2])
@@ -194,8 +200,12 @@ def main() -> int:
     err, truth_xy = np.concatenate(pooled["err"]), np.concatenate(pooled["truth"])
     rmse = float(np.sqrt(np.mean(np.sum(err ** 2, axis=1))))
     mean = float(np.sqrt(np.mean(np.sum((truth_xy - truth_xy.mean(axis=0)) ** 2, axis=1))))
+    force = np.concatenate(pooled["force"])
+    force_rmse = float(np.sqrt(np.mean(force[np.isfinite(force)] ** 2))) if np.isfinite(force).any() else math.nan
+    mean_force = float(np.sqrt(np.mean(np.concatenate(pooled["mean_force"]) ** 2)))
     figures = {"detection": found, "false_contacts": false, "location_rmse_mm": round(rmse, 2),
-               "location_rmse_pitch": round(rmse / 4.0, 3), "mean_predictor_mm": round(mean, 2)}
+               "location_rmse_pitch": round(rmse / 4.0, 3), "mean_predictor_mm": round(mean, 2),
+               "force_rmse_n": round(force_rmse, 2), "mean_force_predictor_n": round(mean_force, 2)}
     print("pooled over the days left out:", json.dumps(figures))
     return 0
 
