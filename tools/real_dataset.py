@@ -23,7 +23,7 @@ Then, leaving one day out at a time, it calibrates the days left (``calibrate fi
 rest frames, ``levels``, ``orientation``, ``centroid``, ``depth``: the force model is chosen on the load
 cell's forces alone) and scores the day left out: detection of contact frames, false contacts on rest
 frames, location (RMS, mm and pitches, against predicting the scored presses' mean position), force (RMS,
-against predicting their mean force), printed per day and pooled.
+against predicting the calibration days' mean force), printed per day and pooled.
 """
 
 from __future__ import annotations
