@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -61,3 +62,29 @@ def test_calibrate_centroid_keeps_several_contacts_on_a_sensor_whose_presses_do_
     kept, kept_summary = calibrate_centroid(rec, calibrate_fibers(rec.rest_frames(), rec.pixel_format),
                                             contacts="keep")
     assert "max_contacts" not in kept_summary and kept.options.max_contacts == 4
+
+
+def test_orientation_is_settled_on_the_reading_that_places_the_presses(tmp_path, monkeypatch) -> None:
+    """Presses that several contacts a frame misplace (every other one onto a piece two pitches off, as a real
+    skin's split presses were) fail the orientation gate read that way; read as one contact a frame they
+    settle it, and the bundle records how."""
+    from optitac_edge.calibration import steps
+    from optitac_edge.calibration.orientation import is_verified
+
+    rec = Recording(write_scenario(tmp_path / "unseen", "unseen", seed=4, frames=400))
+    bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format)
+    measure = steps.measure_sessions
+
+    def pieces(recs, b, corrected=True, **kw):
+        m, truth = measure(recs, b, corrected, **kw)
+        if b.options.max_contacts > 1:
+            shift = np.where(np.arange(m.x_mm.size) % 2 == 0, 2.0 * b.layout.pitch_mm, 0.0)
+            m = replace(m, x_mm=m.x_mm + shift, y_mm=m.y_mm - shift)
+        return m, truth
+
+    monkeypatch.setattr(steps, "measure_sessions", pieces)
+    several = steps.press_orientation(*pieces([rec], bundle, corrected=False), bundle)
+    assert several.symmetry is None  # the configured reading alone refuses
+    fixed, fit = steps.calibrate_orientation(rec, bundle)
+    assert fit.symmetry is not None and fit.symmetry.is_identity and is_verified(fixed)
+    assert "read as one contact a frame" in fixed.extra_meta["orientation"]["evidence"]

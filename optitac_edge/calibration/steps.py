@@ -103,9 +103,39 @@ def press_orientation(m: Measurements, truth: Truth, bundle: CalibrationBundle) 
                            layout_symmetries(bundle.layout), bundle.layout.pitch_mm)
 
 
+@dataclass(frozen=True, eq=False)
+class _Oriented:
+    """The presses' orientation fit, from the reading that places them better: as configured or, with several
+    contacts a frame, as one (``one``: those measurements; None when the bundle reads one already)."""
+
+    fit: OrientationFit
+    one: Measurements | None
+    by_one: bool
+
+
+def _oriented(recs: Recordings, bundle: CalibrationBundle, m: Measurements, truth: Truth) -> _Oriented:
+    """A real skin's press can split into pieces that several contacts a frame report apart
+    (:mod:`~optitac_edge.calibration.contact_count`): the orientation is fitted to the presses read both
+    ways, and the fit that accepts an orientation with the smaller error is taken (either, on a sensor whose
+    presses do not split)."""
+    fit = press_orientation(m, truth, bundle)
+    if bundle.options.max_contacts == 1:
+        return _Oriented(fit, None, False)
+    one = measure_sessions(_listed(recs), _one_contact(bundle), corrected=False)[0]
+    fit_one = press_orientation(one, truth, bundle)
+    by_one = (fit_one.symmetry is not None, -fit_one.best_rmse_mm) > (fit.symmetry is not None, -fit.best_rmse_mm)
+    return _Oriented(fit_one if by_one else fit, one, by_one)
+
+
+def _one_contact(bundle: CalibrationBundle) -> CalibrationBundle:
+    return bundle.with_updates(options=replace(bundle.options, max_contacts=1))
+
+
 def calibrate_orientation(recs: Recordings, bundle: CalibrationBundle
                           ) -> tuple[CalibrationBundle, OrientationFit]:
     """Check the bundle's fiber map against the recordings' presses; correct it if off by a symmetry.
+
+    The presses are read as configured and, with several contacts a frame, as one (:func:`_oriented`).
 
     Raises
     ------
@@ -113,11 +143,13 @@ def calibrate_orientation(recs: Recordings, bundle: CalibrationBundle
         When the presses cannot tell the layout's symmetries apart, or none fits.
     """
     m, truth, where = _measured(recs, bundle)
-    fit = press_orientation(m, truth, bundle)
+    oriented = _oriented(recs, bundle, m, truth)
+    fit = oriented.fit
     if fit.symmetry is None:
         raise OrientationError(f"{where}: {fit.reason}")
     names = ", ".join(r.path.name for r in _listed(recs))
-    evidence = f"{fit.presses} presses of {names}, RMS {fit.best_rmse_mm:.2f} mm"
+    read = ", read as one contact a frame" if oriented.by_one else ""
+    evidence = f"{fit.presses} presses of {names}{read}, RMS {fit.best_rmse_mm:.2f} mm"
     return reorient_bundle(bundle, fit.symmetry, evidence), fit
 
 
@@ -289,7 +321,8 @@ def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = 
         cannot confirm an orientation that was never verified.
     """
     m, truth, where = _measured(recs, bundle)
-    fit = press_orientation(m, truth, bundle)
+    oriented = _oriented(recs, bundle, m, truth)
+    fit = oriented.fit
     fix = (f"fix it with: optitac-edge calibrate orientation {' '.join(str(r.path) for r in _listed(recs))} "
            f"--cal {bundle_path}")
     if fit.symmetry is not None and not fit.symmetry.is_identity:
@@ -300,15 +333,13 @@ def calibrate_centroid(recs: Recordings, bundle: CalibrationBundle, fill: str = 
         raise OrientationError(f"{where}: cannot confirm the bundle's orientation: {fit.reason}; "
                                "verify it with 'optitac-edge orient' or 'calibrate orientation' on other presses")
     contact_summary: dict[str, Any] = {}
-    if contacts == "auto" and bundle.options.max_contacts > 1:
-        one = bundle.with_updates(options=replace(bundle.options, max_contacts=1))
-        m_one = measure_sessions(_listed(recs), one, corrected=False)[0]
-        evidence = one_contact_evidence(m, m_one, truth)
+    if contacts == "auto" and oriented.one is not None:
+        evidence = one_contact_evidence(m, oriented.one, truth)
         contact_summary = {"max_contacts": 1 if evidence.adopt else bundle.options.max_contacts,
                            "rms_mm_several": round(evidence.several_rms_mm, 3),
                            "rms_mm_one": round(evidence.one_rms_mm, 3)}
         if evidence.adopt:
-            bundle, m = one, m_one
+            bundle, m = _one_contact(bundle), oriented.one
     rows = np.flatnonzero(detected_rows(m, truth))
     if rows.size < 3:
         raise RecordingError(f"{where}: only {rows.size} detected presses to calibrate the centroid")
