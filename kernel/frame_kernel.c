@@ -1671,7 +1671,10 @@ static double depth_feature(const double *c, int32_t feature) {
 
 /* RadialMonotoneMap.__call__ */
 static double radial_map(const ok_radial_map *m, double feature, double x, double y) {
-    double v = feature * (1.0 + m->radial * rim_rho2(x, y, m->radius_mm));
+    double rho2 = rim_rho2(x, y, m->radius_mm), term = rho2;
+    for (int32_t k = 1; k < m->power; k++)
+        term *= rho2;
+    double v = feature * (1.0 + m->radial * term);
     return isnan(v) ? NAN : axis_map(&m->curve, v);
 }
 

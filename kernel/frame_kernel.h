@@ -43,6 +43,7 @@ typedef struct {
 
 typedef struct {
     int32_t feature;       /* depth_model.DEPTH_FEATURES index */
+    int32_t power;         /* the radial term's power of rho^2, 1..4 */
     double radial, radius_mm;
     ok_axis curve;
 } ok_radial_map;

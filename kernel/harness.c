@@ -86,6 +86,8 @@ static void radial(ok_radial_map *m, const char *prefix) {
     char name[64];
     snprintf(name, sizeof name, "%s_feature", prefix);
     m->feature = (int32_t)num(name);
+    snprintf(name, sizeof name, "%s_power", prefix);
+    m->power = (int32_t)num(name);
     snprintf(name, sizeof name, "%s_radial", prefix);
     m->radial = num(name);
     snprintf(name, sizeof name, "%s_radius_mm", prefix);

@@ -109,6 +109,9 @@ static int plan_radial(KernelObject *self, PyObject *plan, const char *prefix, o
     snprintf(name, sizeof name, "%s_feature", prefix);
     if (plan_int(plan, name, 0, 7, &v) < 0) return -1;
     m->feature = (int32_t)v;
+    snprintf(name, sizeof name, "%s_power", prefix);
+    if (plan_int(plan, name, 1, 4, &v) < 0) return -1;
+    m->power = (int32_t)v;
     snprintf(name, sizeof name, "%s_radial", prefix);
     if (plan_double(plan, name, &m->radial) < 0) return -1;
     snprintf(name, sizeof name, "%s_radius_mm", prefix);

@@ -77,6 +77,27 @@ def test_the_fit_recovers_a_known_radial_gain_and_curve():
     assert m(float(strength[7]), math.sqrt(float(rho2[7])) * 12.0, 0.0) == pytest.approx(depths[7])
 
 
+def test_a_rim_that_stiffens_late_is_fitted_with_a_higher_power_where_the_presses_tell():
+    """A wide array's rim stiffens the skin only near it: depth = g(s * (1 + 0.8 rho^8)). Presses at the
+    centre and two rings (the depths experiment on 1027 fibers) recover it; at the centre and one ring
+    a power cannot be told from a gain, and the quadratic stays."""
+    depths = np.repeat([0.5, 1.0, 1.5, 2.0, 3.0, 4.0], 3)
+    rho2 = np.tile([0.0, 0.25, 0.79], 6)
+    strength = 10.0 * depths ** 1.5 / (1.0 + 0.8 * rho2 ** 4)
+    fit = fit_radial_monotone(strength, rho2, depths, 27.0, level=depths)
+    assert (fit.model.power, fit.model.radial) == (4, pytest.approx(0.8)) and fit.rmse < 1e-9
+    two = rho2 < 0.5
+    fit = fit_radial_monotone(strength[two], rho2[two], depths[two], 27.0, level=depths[two])
+    assert fit.model.power == 1
+    m = RadialMonotoneMap(0.8, 10.0, AxisMap(np.array([1.0, 2.0]), np.array([1.0, 2.0])), power=4)
+    assert m.scaled(1.0, 5.0, 0.0) == pytest.approx(1.0 + 0.8 * 0.25 ** 4)
+    assert RadialMonotoneMap.from_dict({k: v for k, v in m.to_dict().items() if k != "power"}).power == 1
+    assert RadialMonotoneMap.from_dict(m.to_dict()).power == 4
+    for bad in (0, 5, 2.0, True):
+        with pytest.raises(ValueError, match="radial power"):
+            RadialMonotoneMap.from_dict({**m.to_dict(), "power": bad})
+
+
 def test_the_fit_refuses_presses_at_fewer_than_three_depths():
     with pytest.raises(ValueError, match="3 depths"):
         fit_radial_monotone(np.array([1.0, 2.0, 3.0]), np.zeros(3), np.array([1.0, 2.0, 2.0]), 12.0,
@@ -198,16 +219,18 @@ def test_the_width_feature_is_the_mean_raw_fwhm_and_the_model_runs_before_the_wi
     assert est.depth_mm == pytest.approx(2.0) and (est.major_mm, est.minor_mm) == (12.0, 8.0)
 
 
-def test_the_simulated_depths_scenario_presses_where_and_as_deep_as_the_rig_experiment():
+@pytest.mark.parametrize("rings, points", [(8, 7), (18, 13)])
+def test_the_simulated_depths_scenario_presses_where_and_as_deep_as_the_rig_experiment(rings, points):
     """The simulator's ``depths`` scenario mirrors the bring-up experiment of that name (the simulator sits
-    below bring-up and keeps its own copy): the same indenter, points and depths, twice each."""
+    below bring-up and keeps its own copy): the same indenter, points and depths, twice each; the paper's
+    array at the centre and half its radius out, 1027 fibers at 13.5 and 24 mm too."""
     from collections import Counter
 
     from optitac_edge.bringup.experiments import plan
     from optitac_edge.core.layout import hex_layout
     from optitac_edge.sim.scenarios import schedule
 
-    layout = hex_layout()
+    layout = hex_layout(rings)
     frames = schedule("depths", seed=3, layout=layout)
     sim = [p for k, p in enumerate(frames) if p is not None and p is not frames[k - 1]]
     rig = plan("depths", layout, seed=3)
@@ -217,7 +240,7 @@ def test_the_simulated_depths_scenario_presses_where_and_as_deep_as_the_rig_expe
 
     assert Counter(key(p.shape, p.size_mm, p.x_mm, p.y_mm, p.depth_mm) for p in sim) == \
         Counter(key(p.shape, p.size_mm, p.x_mm, p.y_mm, p.depth_mm) for p in rig)
-    assert len(sim) == 7 * 8 * 2
+    assert len(sim) == points * 8 * 2
 
 
 def test_collect_calibrate_and_evaluate_depth_without_a_load_cell(tmp_path, capsys):

@@ -2,15 +2,18 @@
 
 ``seen``    5 mm circle, 3 mm deep, over every fiber.
 ``unseen``  5 mm circle, 3 mm deep, in 0.25 mm steps along x (y = 0), then y
-            (x = 0), as far as it stays 0.5 mm inside the array.
+            (x = 0), as far as it stays 0.5 mm inside the array
+            (:func:`~optitac_edge.core.reach.unseen_line`).
 ``repeat``  5 mm circle, 3 mm deep, 10 presses at each of 5 points (the centre and
             half the radius out at 45, 135, 225, 315 degrees).
 ``widths``  circles of ``WIDTHS_MM``, 3 mm deep, 5 presses each at random positions
             fully on the array; one block per indenter (the operator changes it).
 ``shapes``  5 shapes (the circle first), each in 4 blocks of angles across its symmetry period, 10
             presses a block at random positions fully on the array, 3 mm deep.
-``depths``  a 5 mm circle at the centre and 6 points half the radius out, at
-            ``DEPTHS_MM``, twice each, in random order (for depth calibration).
+``depths``  a 5 mm circle at the centre and 6 points half the radius out (on an array wider than the
+            paper's, 6 more as far out as ``unseen`` presses go:
+            :func:`~optitac_edge.core.reach.depth_rings`), at ``DEPTHS_MM``, twice each, in random
+            order (for depth calibration).
 ``slide``   a 5 mm circle pressed 2.5 mm deep, held, then slid in the skin through the centre at each of
             ``SLIDE_SPEEDS_MM_S`` (capped at the rig's feed limit), held again and lifted (contact motion:
             ``evaluate``'s motion metrics; truth.csv gets the motion columns from the rig's pose).
@@ -31,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from optitac_edge.core.layout import FiberLayout, pitch_scale, scaled_mm
+from optitac_edge.core.reach import depth_rings, unseen_line
 
 EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths", "slide", "vibrate")
 #: ``vibrate``: the frequencies, Hz, each along the rig's x, y and z, and the amplitude, mm.
@@ -139,10 +143,9 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
         return [PlannedPress(float(x), float(y), 3.0, size_mm=circle) for x, y in layout.xy_mm]
     if experiment == "unseen":
         step = scaled_mm(0.25, k)
-        lim = math.floor((layout.radius_mm - circle / 2 - scaled_mm(0.5, k)) / step + 1e-9) * step
-        line = np.arange(-lim, lim + step / 2, step)
-        return ([PlannedPress(float(v), 0.0, 3.0, size_mm=circle) for v in line]
-                + [PlannedPress(0.0, float(v), 3.0, size_mm=circle) for v in line])
+        x_line, y_line = (unseen_line(layout, axis, circle, step, k) for axis in (0, 1))
+        return ([PlannedPress(float(v), 0.0, 3.0, size_mm=circle) for v in x_line]
+                + [PlannedPress(0.0, float(v), 3.0, size_mm=circle) for v in y_line])
     if experiment == "repeat":
         ring = 0.5 * layout.radius_mm
         points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
@@ -176,9 +179,8 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
         return [PlannedPress(scaled_mm(1.0, k), scaled_mm(-0.5, k), 2.5, size_mm=circle, shake_axis=axis,
                              shake_hz=hz) for hz in VIBRATE_HZ for axis in "xyz"]
     if experiment == "depths":
-        ring = 0.5 * layout.radius_mm
         points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
-                                 for a in range(0, 360, 60)]
+                                 for ring in depth_rings(layout) for a in range(0, 360, 60)]
         presses = [PlannedPress(x, y, d, size_mm=circle) for x, y in points for d in DEPTHS_MM for _ in range(2)]
         return [presses[i] for i in rng.permutation(len(presses))]
     raise ValueError(f"unknown experiment {experiment!r} (known: {', '.join(EXPERIMENTS)})")

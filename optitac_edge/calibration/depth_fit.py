@@ -1,9 +1,10 @@
 """Fit the depth and force model (:class:`~optitac_edge.core.depth_model.DepthForceModel`) from presses
 of known depth, and force when the rig carries a load cell; choose its input by held-out presses.
 
-Each target is ``h(feature * (1 + radial * rho^2))`` (see
+Each target is ``h(feature * (1 + radial * rho^(2 power)))`` (see
 :mod:`optitac_edge.core.depth_model`). The rig presses at a few commanded
-depths (the levels); for every ``radial`` on a grid, ``h``'s knots are each
+depths (the levels); for every ``radial`` on a grid (and ``power``, where the presses stand at enough
+radii to tell it), ``h``'s knots are each
 level's mean scaled feature and mean target, made monotone by an isotonic
 regression (scikit-learn) weighted by the level's frames, and the ``radial``
 with the smallest RMSE over the presses (each press one point, the mean of
@@ -35,6 +36,10 @@ from optitac_edge.core.width_model import AxisMap
 
 #: The radial gains tried.
 RADIAL_GRID = tuple(float(v) for v in np.round(np.linspace(-0.8, 2.0, 57), 3))
+#: The powers of ``rho^2`` tried, where the presses stand at :data:`POWER_RADII` distinct radii or more (two
+#: radii, the centre and a ring, cannot tell a power from a gain: the quadratic stays).
+RADIAL_POWERS = (1, 2, 4)
+POWER_RADII = 3
 #: How much the skin's response may change between days, relative (a gain on every fiber's darkening that
 #: the rest frames cannot see, unlike the LED's): the prior the choice of feature guards against.
 RESPONSE_DRIFT = 0.05
@@ -83,7 +88,8 @@ def _curve(scaled: np.ndarray, target: np.ndarray, weight: np.ndarray, level: np
 
 def fit_radial_monotone(feature: np.ndarray, rho2: np.ndarray, target: np.ndarray, radius_mm: float,
                         level: np.ndarray, weight: np.ndarray | None = None) -> RadialFit:
-    """Fit ``target ~ h(feature * (1 + radial * rho2))`` over presses.
+    """Fit ``target ~ h(feature * (1 + radial * rho2 ** power))`` over presses (``power`` 1 unless the presses
+    stand at :data:`POWER_RADII` radii or more).
 
     Parameters
     ----------
@@ -109,15 +115,18 @@ def fit_radial_monotone(feature: np.ndarray, rho2: np.ndarray, target: np.ndarra
     if np.unique(lv).size < 3:
         raise ValueError(f"need presses at 3 depths or more, got {np.unique(lv).size}")
     best: RadialFit | None = None
-    for radial in RADIAL_GRID:
-        scaled = f * (1.0 + radial * r2)
-        curve = _curve(scaled, y, w, lv)
-        if curve is None:
-            continue
-        pred = np.array([curve(v) for v in scaled])
-        rmse = float(np.sqrt(np.average((pred - y) ** 2, weights=w)))
-        if best is None or rmse < best.rmse - 1e-12:
-            best = RadialFit(RadialMonotoneMap(radial, float(radius_mm), curve), rmse)
+    radii = np.unique(np.round(np.sqrt(r2), 1)).size  # tenths of the radius
+    for power in RADIAL_POWERS if radii >= POWER_RADII else (1,):
+        term = r2 ** power
+        for radial in RADIAL_GRID:
+            scaled = f * (1.0 + radial * term)
+            curve = _curve(scaled, y, w, lv)
+            if curve is None:
+                continue
+            pred = np.array([curve(v) for v in scaled])
+            rmse = float(np.sqrt(np.average((pred - y) ** 2, weights=w)))
+            if best is None or rmse < best.rmse - 1e-12:
+                best = RadialFit(RadialMonotoneMap(radial, float(radius_mm), curve, power), rmse)
     if best is None or not np.ptp(best.model.curve.knots_true) > 0:
         raise ValueError("the target does not increase with the contact's feature")
     return best

@@ -9,10 +9,12 @@ or the LED's response drifts from day to day (the FWHM is relative to the
 contact's own peak). The clamped rim makes the skin respond less (and push
 back harder) the further out the contact is, so each target is
 
-``target = h(feature * (1 + radial * rho^2))``,  ``rho = r / radius_mm``
+``target = h(feature * (1 + radial * rho^(2 power)))``,  ``rho = r / radius_mm``
 
 with ``h`` monotone increasing and piecewise linear (linear beyond its end
-knots, clipped at 0) and ``radial`` fitted per target. The feature is one
+knots, clipped at 0), and ``radial`` and ``power`` (1, 2 or 4: on a wide
+array the rim stiffens the skin only within a few pitches of it, a term
+that stays flat over most of the radius) fitted per target. The feature is one
 of :data:`DEPTH_FEATURES`, chosen per target at calibration by presses held
 out of the fit (:mod:`optitac_edge.calibration.depth_fit`): how a real skin
 darkens with depth is not known in advance. The model reads the raw
@@ -49,6 +51,8 @@ GAIN_EXPONENT: dict[str, float] = {
     "strength_width": 1.0, "root_strength_width": 0.5, "fullness_width": 0.0,
 }
 DEPTH_FEATURES = tuple(GAIN_EXPONENT)
+#: The largest power of ``rho^2`` a radial term may have (the kernel's limit too).
+MAX_RADIAL_POWER = 4
 #: The products with the width: feature -> (the other factor, its power).
 _TIMES_WIDTH = {"strength_width": ("strength", 1.0), "root_strength_width": ("strength", 0.5),
                 "fullness_width": ("fullness", 1.0)}
@@ -75,7 +79,7 @@ def depth_feature(est: Any, feature: str) -> Any:
 
 @dataclass(frozen=True, eq=False)
 class RadialMonotoneMap:
-    """``h(feature * (1 + radial * (r / radius_mm)^2))`` with ``h`` an :class:`AxisMap`.
+    """``h(feature * (1 + radial * ((r / radius_mm)^2)^power))`` with ``h`` an :class:`AxisMap`.
 
     Attributes
     ----------
@@ -85,13 +89,19 @@ class RadialMonotoneMap:
         The array's radius, mm (> 0).
     curve : AxisMap
         ``h``: scaled feature -> target.
+    power : int
+        The power of ``rho^2`` in the radial term, 1 to :data:`MAX_RADIAL_POWER` (1: the paper-sized
+        array's quadratic).
     """
 
     radial: float
     radius_mm: float
     curve: AxisMap
+    power: int = 1
 
     def __post_init__(self) -> None:
+        if isinstance(self.power, bool) or not isinstance(self.power, int) or not 1 <= self.power <= MAX_RADIAL_POWER:
+            raise ValueError(f"radial power must be an integer in 1..{MAX_RADIAL_POWER}, got {self.power!r}")
         if not (math.isfinite(self.radial) and self.radial > -1.0):
             raise ValueError(f"radial gain must be finite and > -1, got {self.radial!r}")
         if not (math.isfinite(self.radius_mm) and self.radius_mm > 0):
@@ -99,7 +109,11 @@ class RadialMonotoneMap:
 
     def scaled(self, feature: float, x_mm: float, y_mm: float) -> float:
         """The feature times the radial factor at ``(x_mm, y_mm)`` (the factor capped at the rim)."""
-        return feature * (1.0 + self.radial * rim_rho2(x_mm, y_mm, self.radius_mm))
+        rho2 = rim_rho2(x_mm, y_mm, self.radius_mm)
+        term = rho2
+        for _ in range(1, self.power):  # the kernel's product, the same rounding
+            term *= rho2
+        return feature * (1.0 + self.radial * term)
 
     def __call__(self, feature: float, x_mm: float, y_mm: float) -> float:
         """The target (>= 0) of a contact; NaN when the feature or position is NaN."""
@@ -109,10 +123,11 @@ class RadialMonotoneMap:
     def kernel_arrays(self, prefix: str, feature: str) -> dict[str, Any]:
         """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`), under ``prefix``."""
         return {**self.curve.kernel_arrays(prefix), f"{prefix}_feature": DEPTH_FEATURES.index(feature),
-                f"{prefix}_radial": float(self.radial), f"{prefix}_radius_mm": float(self.radius_mm)}
+                f"{prefix}_radial": float(self.radial), f"{prefix}_radius_mm": float(self.radius_mm),
+                f"{prefix}_power": int(self.power)}
 
     def to_dict(self) -> dict[str, Any]:
-        return {"radial": self.radial, "radius_mm": self.radius_mm,
+        return {"radial": self.radial, "radius_mm": self.radius_mm, "power": self.power,
                 "knots_feature": self.curve.knots_measured.tolist(), "knots_target": self.curve.knots_true.tolist()}
 
     @classmethod
@@ -120,7 +135,8 @@ class RadialMonotoneMap:
         curve = AxisMap(np.asarray(d["knots_feature"], dtype=np.float64), np.asarray(d["knots_target"], dtype=np.float64))
         if np.any(np.diff(curve.knots_true) < 0):
             raise ValueError("depth / force knots must not decrease")
-        return cls(float(d["radial"]), float(d["radius_mm"]), curve)
+        # bundles from before the power: the quadratic; checked in __post_init__
+        return cls(float(d["radial"]), float(d["radius_mm"]), curve, d.get("power", 1))
 
 
 @dataclass(frozen=True, eq=False)

@@ -61,6 +61,7 @@ from scipy.spatial import ConvexHull
 
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.layout import FiberLayout, hex_layout, pitch_scale, scaled_mm
+from optitac_edge.core.reach import depth_rings, unseen_line
 from optitac_edge.io.recording import SHAPES, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.arrays import optics_for, skin_for
@@ -178,10 +179,9 @@ def _unseen(
 ) -> list[Indenter]:
     k, size = pitch_scale(layout), _circle(layout)
     step = scaled_mm(0.25, k)
-    lim = math.floor((layout.radius_mm - size / 2 - scaled_mm(0.5, k)) / step + 1e-9) * step
-    line = np.arange(-lim, lim + step / 2, step)
-    return [Indenter("circle", float(v), 0.0, 0.0, size, 3.0) for v in line] + [
-        Indenter("circle", 0.0, float(v), 0.0, size, 3.0) for v in line
+    x_line, y_line = (unseen_line(layout, axis, size, step, k) for axis in (0, 1))
+    return [Indenter("circle", float(v), 0.0, 0.0, size, 3.0) for v in x_line] + [
+        Indenter("circle", 0.0, float(v), 0.0, size, 3.0) for v in y_line
     ]
 
 
@@ -234,9 +234,10 @@ def _shapes(
 def _depths(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
-    ring, size = 0.5 * layout.radius_mm, _circle(layout)
+    size = _circle(layout)
     angles = np.radians(np.arange(0.0, 360.0, 60.0))
-    points = [(0.0, 0.0), *zip(ring * np.cos(angles), ring * np.sin(angles))]
+    points = [(0.0, 0.0)] + [(float(x), float(y)) for ring in depth_rings(layout)
+                             for x, y in zip(ring * np.cos(angles), ring * np.sin(angles))]
     presses = [Indenter("circle", float(px), float(py), 0.0, size, d)
                for px, py in points for d in DEPTHS_MM for _ in range(2)]
     return [presses[i] for i in rng.permutation(len(presses))]
