@@ -535,8 +535,12 @@ def main() -> None:
     extra: list[str] = []
     if args.physics != "none":
         from optitac_edge.sim.physics import PHYSICS_NAMES
+        from optitac_edge.sim.physics import physics as physics_named
 
-        names = list(PHYSICS_NAMES) if args.physics == "all" else args.physics.split(",")
+        # a physics with an array of its own (``real``: 61 colour-coded fibers at 4 mm, snapshot sessions) is not
+        # the default sensor: tools/real_table.py scores it, in the section kept after the marker
+        names = ([n for n in PHYSICS_NAMES if physics_named(n).array is None] if args.physics == "all"
+                 else args.physics.split(","))
         extra += ["", "## Every simulated physics (sensor 0)", "",
                   (f"The default sensor, calibrated on day {CAL_DAY} and evaluated on day {EVAL_DAY} as above, under "
                    "each simulated physics: the same code, the same defaults, no setting of its own. A floor is "
