@@ -252,15 +252,21 @@ def test_an_interrupt_whose_retract_fails_says_the_tip_was_not_retracted(grbl, t
     assert "home the machine ($H)" in str(caught.value)
 
 
-def test_collect_slide_through_grbl_slides_at_the_feed_rate(grbl, tmp_path) -> None:
+def test_collect_slide_through_grbl_slides_at_the_feed_rate(tmp_path) -> None:
     """``collect slide`` on a GRBL machine: each slide is one G1 in the skin at its speed (capped at the rig's feed
-    limit, here 10 mm/s), and truth.csv's motion columns say the press slid."""
+    limit, here 10 mm/s), and truth.csv's motion columns say the press slid. The machine's time moves 1/60 s at
+    each status report (one a frame), so the frames in each slide are the same on any machine (on the wall clock
+    a busy CI machine once caught 17 sliding frames where more than 20 were asked)."""
     out = tmp_path / "slide"
     settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=5)
-    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
-    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
-    with GcodeRig(grbl.port, LIMITS) as rig:
-        Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", out, limit=3)
+    grbl = FakeGrbl(speed=4.0, tick_s=1 / 60)
+    try:
+        camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+        with GcodeRig(grbl.port, LIMITS) as rig:
+            Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", out, limit=3)
+    finally:
+        grbl.close()
     feeds = [float(m.group(1)) / 60 for line in grbl.lines if (m := re.search(r"^G1 .*F([\d.]+)", line))]
     assert {round(f, 3) for f in feeds} >= {2.0, 10.0}  # 2 mm/s, and 20 and 100 mm/s capped at 10
     truth = Recording(out).truth

@@ -4,7 +4,10 @@ Line commands are answered ``ok`` or ``error:N``; realtime bytes: ``?`` status
 report ``<Idle|MPos:x,y,z|FS:f,0>``, ``!`` feed hold (``Hold:1`` then
 ``Hold:0``), ``~`` resume, Ctrl-X soft reset (a reset while moving, not held,
 loses the position: ``ALARM:3``). ``$H`` homes, ``$X`` unlocks. Motion runs in
-real time, ``speed`` times faster than commanded (to keep tests short).
+real time, ``speed`` times faster than commanded (to keep tests short); or,
+with ``tick_s``, on a virtual clock that moves ``tick_s`` at each status
+report the host asks for: a test that counts the frames of a move (one report
+a frame) then counts the same on a busy machine.
 
 Alarms follow the firmware (gnea/grbl: grbl/protocol.c, grbl/limits.c,
 doc/markdown/realtime_cmds.md, doc/csv/alarm_codes_en_US.csv):
@@ -39,7 +42,9 @@ BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 
 class FakeGrbl:
     def __init__(self, start=(100.6, 79.6, 5.0), travel=((0.0, 200.0), (0.0, 200.0), (-10.0, 40.0)),
-                 speed: float = 1.0, locked: bool = False) -> None:
+                 speed: float = 1.0, locked: bool = False, tick_s: float | None = None) -> None:
+        self.tick_s = tick_s
+        self._ticks = 0
         self.master, self.slave = pty.openpty()
         tty.setraw(self.slave)
         self.port = os.ttyname(self.slave)
@@ -47,7 +52,7 @@ class FakeGrbl:
         self.speed = speed
         self._lock = threading.Lock()
         self._from = self._to = tuple(start)
-        self._t0 = self._t1 = time.monotonic()
+        self._t0 = self._t1 = self._clock()
         self._held_at: float | None = None
         self.state = "Alarm" if locked else "Idle"
         #: A critical alarm (hard or soft limit) was raised and no reset came since: nothing is answered.
@@ -64,7 +69,7 @@ class FakeGrbl:
 
     def position(self, now: float | None = None) -> tuple[float, float, float]:
         with self._lock:
-            return self._position(time.monotonic() if now is None else now)
+            return self._position(self._clock() if now is None else now)
 
     def _position(self, now: float) -> tuple[float, float, float]:
         if self._held_at is not None:
@@ -78,7 +83,7 @@ class FakeGrbl:
         return self._held_at is None and now < self._t1
 
     def _status(self) -> bytes:
-        now = time.monotonic()
+        now = self._clock()
         with self._lock:
             pos = self._position(now)
             if self._garbled:
@@ -114,7 +119,7 @@ class FakeGrbl:
     def inject_alarm(self, code: int = 1) -> None:
         """Raise ``ALARM:code`` now: motion stops where it is (a hard limit: the switch halts it at once)."""
         with self._lock:
-            now = time.monotonic()
+            now = self._clock()
             self._from = self._to = self._position(now)
             self._t0 = self._t1 = now
             self._held_at = None
@@ -149,8 +154,13 @@ class FakeGrbl:
                 else:
                     line += b
 
+    def _clock(self) -> float:
+        return time.monotonic() if self.tick_s is None else self._ticks * self.tick_s
+
     def _realtime(self, b: bytes) -> None:
-        now = time.monotonic()
+        if b == b"?" and self.tick_s is not None:
+            self._ticks += 1
+        now = self._clock()
         if b == b"?":
             self._send(self._status())
         elif b == b"!":
@@ -210,7 +220,7 @@ class FakeGrbl:
             self._send(b"ok\r\n")
             return
         if upper.startswith(("G0", "G1")):
-            now = time.monotonic()
+            now = self._clock()
             with self._lock:
                 pos = self._position(now)
                 target = tuple(float(words.get(axis, pos[k])) for k, axis in enumerate("XYZ"))
