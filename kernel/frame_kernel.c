@@ -535,13 +535,13 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
         }
     }
     for (int32_t i = 0; i < p->n_dead; i++) p->signal[p->dead[i]] = 0.0f;
-    if (p->band) { /* levels.banded: sign(s) * min(k * max(|s| - b, 0), |s|), float32 as numpy's steps */
-        const float *band = p->band, *slope = p->band + nf;
+    if (p->band) { /* levels.banded: sign(s) * min(2 max(|s| - b, 0), |s|), float32 as numpy's steps */
+        const float *band = p->band;
         float *s = p->signal;
         for (int32_t i = 0; i < nf; i++) {
             float v = s[i], a = fabsf(v), t = a - band[i];
             t = t > 0.0f ? t : 0.0f;
-            t = t * slope[i];
+            t = t * 2.0f;
             t = t < a ? t : a;
             s[i] = copysignf(t, v);
         }

@@ -21,24 +21,19 @@ Each fiber's rest excursion is modelled in two parts, measured apart:
 At every new baseline ``e_i = sqrt((noise_i / light_i)^2 + drift_i^2)``. A
 fiber whose ``e_i`` exceeds the typical fiber's ``e_ref`` (the median over the
 live ones) by more than the estimate's own uncertainty ``tol``, by the
-*excess* ``x_i = e_i / e_ref - 1 - tol > 0``, gets a *band* ``b_i`` and a
-*slope* ``k_i = 1 + x_i``: before the surface its signal ``s`` becomes
-(:func:`banded`)
+*excess* ``x_i = e_i / e_ref - 1 - tol > 0``, gets a *band* ``b_i = on * (x_i + 1/2)``:
+before the surface its signal ``s`` becomes (:func:`banded`)
 
-    ``sign(s) min(k (|s| - b)_+, |s|)``,  ``b = on (1 + x - 1 / (1 + x))``:
+    0 where ``|s| <= b``,  ``2 (|s| - b)`` (its sign) up to ``|s| = 2 b``,  ``s`` beyond:
 
-0 up to the band, then rising ``k`` times as fast as ``s`` until it is ``s``
-again at ``|s| = on (2 + x)``. It reaches the on level where ``s`` reaches
-``on (1 + x_i)``, so no fiber wanders further than ``e_ref (1 + tol)`` at the
-on level, and that is the noise the levels are ``k`` times where no on level
-was chosen; a press's values from ``on (2 + x)`` up are the fiber's own; and
-a fiber barely beyond the others is barely changed (``b -> 0``, ``k -> 1`` as
-``x -> 0``). Subtracting the band from every value, ``s - clip(s, -b, b)``,
-moved a banded fiber's values inside every contact (a 217-fiber simulated
-array, whose dimmest fibers are banded from their noise alone, read its widths
-~10 % worse and its shapes worse); a fixed slope 2 from ``b = on (x + 1/2)``
-silenced a fiber barely beyond the others up to half the on level, a hole
-that split a faint press in two. A fiber that wanders four times as much as the others then reaches
+it reaches the on level where ``s`` reaches ``b + on / 2 = on (1 + x_i)``, so
+no fiber wanders further than ``e_ref (1 + tol)`` at the on level, and that is
+the noise the levels are ``k`` times where no on level was chosen; and a
+press's values from ``2 b`` up are the fiber's own (subtracting the band from
+every value, ``s - clip(s, -b, b)``, moved a banded fiber's values inside every
+contact: a 217-fiber simulated array, whose dimmest fibers are banded from
+their noise alone, read its widths ~10 % worse and its shapes worse that
+way). A fiber that wanders four times as much as the others then reaches
 the on level only as often as they do, and raises no level of every fiber (a
 level over the whole surface from its noisiest part did: on a real 61-fiber
 sensor the contact level came out at 54 % darkening, and 1 of 30 presses was
@@ -65,44 +60,25 @@ FIBER_ARRAYS = (NOISE_KEY, DRIFT_KEY)
 LEVELS_KEY = "levels"
 #: A fiber's band starts this many standard errors of its excursion's estimate above the typical fiber's.
 TOLERANCE_ERRORS = 2.0
+#: A band is ``on * (excess + BAND_OFFSET)``: with :func:`banded`'s doubling above it, the fiber reaches the on
+#: level at ``on * (1 + excess)``.
+BAND_OFFSET = 0.5
+
 #: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
 #: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
 GAIN_TOLERANCE = 0.1
 
 
-def banded(signal: np.ndarray, band: np.ndarray, slope: np.ndarray, magnitude: np.ndarray,
-           work: np.ndarray) -> np.ndarray:
-    """Each fiber's signal through its band ``b`` and slope ``k``, in place: ``sign(s) min(k (|s| - b)_+, |s|)``.
-
-    Parameters
-    ----------
-    signal : ndarray, shape (N,), float32
-        Each fiber's signal, relative units; overwritten.
-    band, slope : ndarray, shape (N,), float32
-        Each fiber's band (0: none) and slope (1: none), :meth:`ContactLevels.update`.
-    magnitude, work : ndarray, shape (N,), float32
-        Buffers.
-
-    Returns
-    -------
-    ndarray
-        ``signal``. The float32 steps are the kernel's, one for one.
-    """
+def banded(signal: np.ndarray, band: np.ndarray, magnitude: np.ndarray, work: np.ndarray) -> np.ndarray:
+    """Each fiber's signal through its band ``b``, in place (float32 arrays of shape (N,); ``magnitude`` and
+    ``work`` buffers): 0 where ``|s| <= b``, ``2 (|s| - b)`` with the sign of ``s`` where ``b < |s| < 2 b``,
+    ``s`` from ``2 b`` up, i.e. ``sign(s) * min(2 max(|s| - b, 0), |s|)`` (the kernel's float32 steps)."""
     np.abs(signal, out=magnitude)
     np.subtract(magnitude, band, out=work)
     np.maximum(work, 0.0, out=work)
-    np.multiply(work, slope, out=work)
+    np.multiply(work, 2.0, out=work)
     np.minimum(work, magnitude, out=work)
     return np.copysign(work, signal, out=signal)
-
-
-def band_and_slope(excess: np.ndarray, on: float, out: np.ndarray) -> np.ndarray:
-    """Each fiber's band and slope from its ``excess`` (shape (N,)) at the on level ``on``: ``out`` (shape (2, N),
-    float32) rows ``on (1 + x - 1 / (1 + x))`` and ``1 + x``, so ``banded`` maps ``on (1 + x)`` to ``on``."""
-    x = np.maximum(np.asarray(excess, dtype=np.float64), 0.0)
-    out[0] = on * (1.0 + x - 1.0 / (1.0 + x))
-    out[1] = 1.0 + x
-    return out
 
 
 def tolerance(samples: int) -> float:
@@ -207,15 +183,9 @@ class ContactLevels:
         self.gain_significant = 0.0
         per_fiber = fibers is not None and fibers.known and options.noise_levels and options.relative
         self._fibers = fibers if per_fiber else None
-        #: Each fiber's band (signal units) and slope, shape (2, N), float32, as the kernel reads them (None: no
-        #: per-fiber model); ``band`` and ``slope`` are its rows (0 and 1: none).
-        self.band_slope: np.ndarray | None = None
-        self.band: np.ndarray | None = None
-        self.slope: np.ndarray | None = None
-        if per_fiber and fibers is not None:
-            self.band_slope = np.zeros((2, fibers.n_fibers), dtype=np.float32)
-            self.band_slope[1] = 1.0
-            self.band, self.slope = self.band_slope[0], self.band_slope[1]
+        #: Each fiber's band, signal units, shape (N,), float32 (0: none; None: no per-fiber model).
+        self.band: np.ndarray | None = (np.zeros(fibers.n_fibers, dtype=np.float32)
+                                        if per_fiber and fibers is not None else None)
         #: The widest rest excursion of a fiber once banded, ``e_ref (1 + tol)``, at the last baseline, relative
         #: units (NaN: not per fiber): what the levels are ``k`` times where none was chosen.
         self.noise = math.nan
@@ -258,9 +228,11 @@ class ContactLevels:
         self.gain_delta = float(off) / unit
         self.gain_tolerance = GAIN_TOLERANCE * float(trunc) / unit
         self.gain_significant = float(trunc) / unit
-        if self.band_slope is not None:
-            band_and_slope(np.zeros(self.band_slope.shape[1]) if excess is None else excess, float(self.on),
-                           self.band_slope)
+        if self.band is not None:
+            if excess is None:
+                self.band.fill(0.0)
+            else:
+                np.multiply(np.where(excess > 0.0, excess + BAND_OFFSET, 0.0), self.on, out=self.band)
 
     def as_tuple(self) -> tuple[float, float, float]:
         """(truncation, off, on) as floats."""

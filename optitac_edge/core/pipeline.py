@@ -454,9 +454,9 @@ class Pipeline:
                 np.multiply(signal, self.baseline.inv_level, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
-        band, slope = self.levels.band, self.levels.slope
-        if band is not None and slope is not None:  # each fiber's band (core/levels.py)
-            banded(signal, band, slope, self._clipped, self._band_work)
+        band = self.levels.band
+        if band is not None:  # each fiber's band (core/levels.py)
+            banded(signal, band, self._clipped, self._band_work)
         return signal
 
 
