@@ -535,15 +535,14 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
         }
     }
     for (int32_t i = 0; i < p->n_dead; i++) p->signal[p->dead[i]] = 0.0f;
-    if (p->band) { /* levels.banded: sign(s) * min(2 max(|s| - b, 0), |s|), float32 as numpy's steps */
+    if (p->band) { /* each fiber's band: s - clip(s, -band, band), as the numpy pipeline's two steps */
         const float *band = p->band;
         float *s = p->signal;
         for (int32_t i = 0; i < nf; i++) {
-            float v = s[i], a = fabsf(v), t = a - band[i];
-            t = t > 0.0f ? t : 0.0f;
-            t = t * 2.0f;
-            t = t < a ? t : a;
-            s[i] = copysignf(t, v);
+            float v = s[i], b = band[i];
+            float c = v < b ? v : b;
+            c = c > -b ? c : -b;
+            s[i] = v - c;
         }
     }
     if (p->support_nbr) { /* NeighbourSupport.peak: the frame's supported peak, a gate on its contacts */

@@ -10,7 +10,7 @@ import pytest
 
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.core.levels import BAND_OFFSET, NOISE_KEY, banded, fiber_excess
+from optitac_edge.core.levels import NOISE_KEY, fiber_excess
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
@@ -30,22 +30,6 @@ def test_the_excess_is_each_fibers_excursion_beyond_the_typical_one() -> None:
     # fewer samples, a wider tolerance: 2 / sqrt(2 * 4) = 0.71
     np.testing.assert_allclose(fiber_excess(e, live, 5), np.maximum(e / 1.0 - 1 - 2 / math.sqrt(8), 0) * live,
                                atol=1e-6)
-
-
-def test_a_band_silences_a_fibers_noise_and_keeps_its_press_values() -> None:
-    """A band ``b``: 0 up to ``b``, twice the excess up to ``2 b``, the fiber's own value beyond (subtracting the
-    band from every value shifted every press on a banded fiber, and a 217-fiber array read its widths ~10 %
-    worse); the fiber reaches the on level at ``on (1 + excess)``, as the levels' statistic assumes."""
-    s = np.array([0.0, 0.05, -0.05, 0.1, 0.15, -0.15, 0.2, 0.35, -0.6, 0.7], dtype=np.float32)
-    b = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.0], dtype=np.float32)
-    out = banded(s.copy(), b, np.empty_like(s), np.empty_like(s))
-    np.testing.assert_allclose(out, [0, 0, 0, 0, 0.1, -0.1, 0.2, 0.35, -0.6, 0.7], atol=1e-7)
-    assert out.dtype == np.float32
-    for on, excess in ((0.1, 0.6), (0.05, 0.2), (0.3, 3.0)):  # ContactLevels.update's band for the excess
-        band = np.array([on * (excess + BAND_OFFSET)], dtype=np.float32)
-        reached = banded(np.array([on * (1 + excess)], dtype=np.float32), band, np.empty(1, np.float32),
-                         np.empty(1, np.float32))
-        assert reached[0] == pytest.approx(on, rel=1e-5)
 
 
 def _ring_jitter(sensor: SimulatedSensor, ring: np.ndarray, presses: list[Indenter | None], sigma: float,
@@ -78,12 +62,12 @@ def test_a_noisy_outer_ring_gets_bands_of_its_own_and_raises_no_level(compiled) 
     assert bundle.options.noise_rel < 2 * np.median(noise[inner])  # the typical fiber's, not the ring's
     press = Indenter("circle", 0.0, 0.0, size_mm=10.0, depth_mm=0.6)
     frames = rest[:10] + _ring_jitter(sensor, ring, [None] * 150 + [press] * 10, 0.03, seed=2)
-    for with_bands in (True, False):
-        b = bundle if with_bands else bundle.with_updates(extra_arrays={})
+    for banded in (True, False):
+        b = bundle if banded else bundle.with_updates(extra_arrays={})
         pipe = Pipeline(b, compiled=compiled)
         contacts = [pipe.process(f, k * PERIOD).n_contacts for k, f in enumerate(frames)]
         false = sum(n > 0 for n in contacts[10:160])
-        if with_bands:
+        if banded:
             assert pipe.levels.band is not None and np.count_nonzero(pipe.levels.band[ring]) >= 20
             assert np.count_nonzero(pipe.levels.band[inner]) <= 2
             assert false == 0 and all(n == 1 for n in contacts[160:]), (false, contacts[160:])

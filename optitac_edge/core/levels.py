@@ -20,20 +20,11 @@ Each fiber's rest excursion is modelled in two parts, measured apart:
 
 At every new baseline ``e_i = sqrt((noise_i / light_i)^2 + drift_i^2)``. A
 fiber whose ``e_i`` exceeds the typical fiber's ``e_ref`` (the median over the
-live ones) by more than the estimate's own uncertainty ``tol``, by the
-*excess* ``x_i = e_i / e_ref - 1 - tol > 0``, gets a *band* ``b_i = on * (x_i + 1/2)``:
-before the surface its signal ``s`` becomes (:func:`banded`)
-
-    0 where ``|s| <= b``,  ``2 (|s| - b)`` (its sign) up to ``|s| = 2 b``,  ``s`` beyond:
-
-it reaches the on level where ``s`` reaches ``b + on / 2 = on (1 + x_i)``, so
-no fiber wanders further than ``e_ref (1 + tol)`` at the on level, and that is
-the noise the levels are ``k`` times where no on level was chosen; and a
-press's values from ``2 b`` up are the fiber's own (subtracting the band from
-every value, ``s - clip(s, -b, b)``, moved a banded fiber's values inside every
-contact: a 217-fiber simulated array, whose dimmest fibers are banded from
-their noise alone, read its widths ~10 % worse and its shapes worse that
-way). A fiber that wanders four times as much as the others then reaches
+live ones) by more than the estimate's own uncertainty ``tol`` gets a *band*
+``on * (e_i / e_ref - 1 - tol)``, and its signal is shrunk towards 0 by that
+much (``s - clip(s, -band, band)``) before the surface; so no fiber wanders
+further than ``e_ref (1 + tol)`` at the on level, and that is the noise the
+levels are ``k`` times where no on level was chosen. A fiber that wanders four times as much as the others then reaches
 the on level only as often as they do, and raises no level of every fiber (a
 level over the whole surface from its noisiest part did: on a real 61-fiber
 sensor the contact level came out at 54 % darkening, and 1 of 30 presses was
@@ -60,25 +51,10 @@ FIBER_ARRAYS = (NOISE_KEY, DRIFT_KEY)
 LEVELS_KEY = "levels"
 #: A fiber's band starts this many standard errors of its excursion's estimate above the typical fiber's.
 TOLERANCE_ERRORS = 2.0
-#: A band is ``on * (excess + BAND_OFFSET)``: with :func:`banded`'s doubling above it, the fiber reaches the on
-#: level at ``on * (1 + excess)``.
-BAND_OFFSET = 0.5
 
 #: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
 #: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
 GAIN_TOLERANCE = 0.1
-
-
-def banded(signal: np.ndarray, band: np.ndarray, magnitude: np.ndarray, work: np.ndarray) -> np.ndarray:
-    """Each fiber's signal through its band ``b``, in place (float32 arrays of shape (N,); ``magnitude`` and
-    ``work`` buffers): 0 where ``|s| <= b``, ``2 (|s| - b)`` with the sign of ``s`` where ``b < |s| < 2 b``,
-    ``s`` from ``2 b`` up, i.e. ``sign(s) * min(2 max(|s| - b, 0), |s|)`` (the kernel's float32 steps)."""
-    np.abs(signal, out=magnitude)
-    np.subtract(magnitude, band, out=work)
-    np.maximum(work, 0.0, out=work)
-    np.multiply(work, 2.0, out=work)
-    np.minimum(work, magnitude, out=work)
-    return np.copysign(work, signal, out=signal)
 
 
 def tolerance(samples: int) -> float:
@@ -183,9 +159,10 @@ class ContactLevels:
         self.gain_significant = 0.0
         per_fiber = fibers is not None and fibers.known and options.noise_levels and options.relative
         self._fibers = fibers if per_fiber else None
-        #: Each fiber's band, signal units, shape (N,), float32 (0: none; None: no per-fiber model).
+        #: Each fiber's band, signal units, shape (N,), float32 (None: no per-fiber model); ``-band`` beside it.
         self.band: np.ndarray | None = (np.zeros(fibers.n_fibers, dtype=np.float32)
                                         if per_fiber and fibers is not None else None)
+        self.neg_band: np.ndarray | None = None if self.band is None else np.zeros_like(self.band)
         #: The widest rest excursion of a fiber once banded, ``e_ref (1 + tol)``, at the last baseline, relative
         #: units (NaN: not per fiber): what the levels are ``k`` times where none was chosen.
         self.noise = math.nan
@@ -228,11 +205,12 @@ class ContactLevels:
         self.gain_delta = float(off) / unit
         self.gain_tolerance = GAIN_TOLERANCE * float(trunc) / unit
         self.gain_significant = float(trunc) / unit
-        if self.band is not None:
+        if self.band is not None and self.neg_band is not None:
             if excess is None:
                 self.band.fill(0.0)
             else:
-                np.multiply(np.where(excess > 0.0, excess + BAND_OFFSET, 0.0), self.on, out=self.band)
+                np.multiply(excess, self.on, out=self.band)
+            np.negative(self.band, out=self.neg_band)
 
     def as_tuple(self) -> tuple[float, float, float]:
         """(truncation, off, on) as floats."""
