@@ -102,7 +102,8 @@ def test_a_map_must_beat_the_raw_estimate_by_more_than_the_presses_scatter():
     for seed in range(16):
         rng = np.random.default_rng(seed)
         true = rng.uniform(-12.0, 12.0, (13, 2))
-        chosen, candidates = choose_fill(true + rng.normal(0.0, 3.0, true.shape), true, np.arange(13), 16.0)
+        chosen, candidates = choose_fill(true + rng.normal(0.0, 3.0, true.shape), true, np.arange(13), 16.0,
+                                         ("nearest", "none"))
         assert chosen["fill"] == "none", seed
         by_score.append(min(candidates, key=lambda c: c["score_mm"])["fill"])
     assert set(by_score) != {"none"}  # some draws score a map better by chance: the rule keeps them out

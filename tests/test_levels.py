@@ -10,7 +10,7 @@ import pytest
 
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.core.levels import NOISE_KEY, fiber_excess
+from optitac_edge.core.levels import NOISE_KEY, ContactLevels, fiber_excess
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
@@ -30,6 +30,24 @@ def test_the_excess_is_each_fibers_excursion_beyond_the_typical_one() -> None:
     # fewer samples, a wider tolerance: 2 / sqrt(2 * 4) = 0.71
     np.testing.assert_allclose(fiber_excess(e, live, 5), np.maximum(e / 1.0 - 1 - 2 / math.sqrt(8), 0) * live,
                                atol=1e-6)
+
+
+def test_a_fibers_band_is_its_excess_at_the_on_level() -> None:
+    """Three fibers, one drifting 3 times as much as the others: its band is ``on * x``, ``x = 3 - 1 - tol`` its
+    excess beyond the typical fiber, so that with the band subtracted it reaches the on level at ``on (1 + x)``
+    (the band is subtracted from a press's values too: a drift rides on a press as on a rest frame, and keeping
+    a press's values read the real data set worse, core/levels.py)."""
+    from types import SimpleNamespace
+
+    from optitac_edge.core.options import ContactOptions
+
+    options = ContactOptions(noise_levels=True, relative=True, on_level=0.1)
+    fibers = SimpleNamespace(noise=None, drift=np.array([0.01, 0.01, 0.03]), baseline_frames=10, samples=51,
+                             n_fibers=3, known=True)
+    levels = ContactLevels(options, 10.0, fibers)  # type: ignore[arg-type]
+    levels.update(np.array([100.0, 100.0, 100.0]), np.ones(3, dtype=bool))
+    assert levels.band is not None and levels.band[0] == levels.band[1] == 0
+    assert float(levels.band[2]) == pytest.approx(0.1 * (3 - 1 - 0.2), rel=1e-5)  # tol = 2 / sqrt(100)
 
 
 def _ring_jitter(sensor: SimulatedSensor, ring: np.ndarray, presses: list[Indenter | None], sigma: float,
