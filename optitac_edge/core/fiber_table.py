@@ -222,6 +222,13 @@ class FiberSampler:
         np.add.reduceat(self._wide, self._starts, out=self._sums)
         return self._sums
 
+    def channel_sums(self) -> np.ndarray:
+        """Per-fiber sums of the red, green and blue levels of the last :meth:`gather` of an RGB frame, exact:
+        shape (N, 3), :attr:`sum_dtype` (a new array; the recording writer's, not the frame loop's)."""
+        if self._rgb is None:
+            raise ValueError("channel sums need an RGB fiber table")
+        return np.add.reduceat(self._rgb[0], self._starts, axis=0, dtype=np.int64).astype(self._sums.dtype)
+
     @property
     def sum_dtype(self) -> np.dtype:
         """The dtype of :meth:`sums`: the narrowest unsigned integer that holds every fiber's sum."""

@@ -172,7 +172,6 @@ class FiberSumStore(FrameStore):
         self._sampler: FiberSampler | None = None
         self._sums: NpyRows | None = None
         self._colours: NpyRows | None = None
-        self._channels: np.ndarray | None = None  # an RGB frame's fiber pixels, (P, 3) flat indices
         self._rest: NpyRows | None = None
         if keep_frames:
             self._resume(keep_frames)
@@ -195,7 +194,6 @@ class FiberSumStore(FrameStore):
             if keep_rows and not (self.directory / COLOURS).exists():
                 raise RecordingError(f"{self.directory}: holds no fiber colours to continue after frame "
                                      f"{keep_rows + self.rest_frames} (recorded before colours were kept)")
-            self._channels = table.pixel_index.astype(np.intp)[:, None] * 3 + np.arange(3)
             self._colours = NpyRows(self.directory / COLOURS, (table.n_fibers, 3), self._sampler.sum_dtype, None,
                                     keep_rows=keep_rows)
         self._found = table
@@ -246,11 +244,8 @@ class FiberSumStore(FrameStore):
         assert self._sampler is not None and self._sums is not None
         self._sampler.gather(frame)
         self._sums.write(index - self.rest_frames, self._sampler.sums())
-        if self._colours is not None and self._channels is not None:
-            pixels = frame.reshape(-1).take(self._channels)  # (P, 3) uint8, table order
-            sums = np.add.reduceat(pixels, self._sampler.table.pixel_start[:-1].astype(np.intp), axis=0,
-                                   dtype=np.int64)
-            self._colours.write(index - self.rest_frames, sums.astype(self._sampler.sum_dtype))
+        if self._colours is not None:  # the same gathered pixels, channel by channel
+            self._colours.write(index - self.rest_frames, self._sampler.channel_sums())
 
     def write(self, index: int, frame: np.ndarray) -> None:
         if index != self._written:
