@@ -7,7 +7,7 @@ import pytest
 
 from optitac_edge.bringup.experiments import plan
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.core.reach import axis_reach_mm, depth_rings
+from optitac_edge.core.reach import axis_reach_mm, depth_points, depth_rings
 
 
 def _lines(layout) -> tuple[float, float, int]:
@@ -41,3 +41,19 @@ def test_a_wide_array_is_pressed_on_its_fibers_and_its_depths_reach_as_far() -> 
     assert depth_rings(layout) == pytest.approx([13.5, 24.0])
     radii = sorted({round(float(np.hypot(p.x_mm, p.y_mm)), 6) for p in plan("depths", layout)})
     assert radii == pytest.approx([0.0, 13.5, 24.0])
+
+
+@pytest.mark.parametrize("rings, pitch", [(8, 1.5), (4, 4.0), (18, 1.5)])
+def test_the_rig_and_the_simulator_press_the_same_depth_points(rings, pitch) -> None:
+    """The bring-up's ``depths`` plan and the simulator's ``depths`` scenario press at the same places, the
+    centre and 6 points on each depth ring, each at every depth twice (one function places them for both)."""
+    from optitac_edge.sim.scenarios import schedule
+
+    layout = hex_layout(rings, pitch)
+    points = depth_points(layout)
+    assert len(points) == 1 + 6 * len(depth_rings(layout)) and points[0] == (0.0, 0.0)
+    assert np.hypot(*np.array(points[1:]).T) == pytest.approx(np.repeat(depth_rings(layout), 6))
+    rig = sorted((p.x_mm, p.y_mm, p.depth_mm) for p in plan("depths", layout))
+    presses = schedule("depths", seed=0, layout=layout)
+    sim = sorted((p.x_mm, p.y_mm, p.depth_mm) for k, p in enumerate(presses) if p is not None and presses[k - 1] is None)
+    assert rig == sim and len(rig) == len(points) * 8 * 2

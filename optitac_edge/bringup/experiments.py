@@ -12,7 +12,7 @@
             presses a block at random positions fully on the array, 3 mm deep.
 ``depths``  a 5 mm circle at the centre and 6 points half the radius out (on an array wider than the
             paper's, 6 more as far out as ``unseen`` presses go:
-            :func:`~optitac_edge.core.reach.depth_rings`), at ``DEPTHS_MM``, twice each, in random
+            :func:`~optitac_edge.core.reach.depth_points`), at ``DEPTHS_MM``, twice each, in random
             order (for depth calibration).
 ``slide``   a 5 mm circle pressed 2.5 mm deep, held, then slid in the skin through the centre at each of
             ``SLIDE_SPEEDS_MM_S`` (capped at the rig's feed limit), held again and lifted (contact motion:
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from optitac_edge.core.layout import FiberLayout, pitch_scale, scaled_mm
-from optitac_edge.core.reach import depth_rings, unseen_line
+from optitac_edge.core.reach import depth_points, unseen_line
 
 EXPERIMENTS = ("seen", "unseen", "repeat", "widths", "shapes", "depths", "slide", "vibrate")
 #: ``vibrate``: the frequencies, Hz, each along the rig's x, y and z, and the amplitude, mm.
@@ -179,8 +179,7 @@ def plan(experiment: str, layout: FiberLayout, seed: int = 0) -> list[PlannedPre
         return [PlannedPress(scaled_mm(1.0, k), scaled_mm(-0.5, k), 2.5, size_mm=circle, shake_axis=axis,
                              shake_hz=hz) for hz in VIBRATE_HZ for axis in "xyz"]
     if experiment == "depths":
-        points = [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
-                                 for ring in depth_rings(layout) for a in range(0, 360, 60)]
-        presses = [PlannedPress(x, y, d, size_mm=circle) for x, y in points for d in DEPTHS_MM for _ in range(2)]
+        presses = [PlannedPress(x, y, d, size_mm=circle) for x, y in depth_points(layout) for d in DEPTHS_MM
+                   for _ in range(2)]
         return [presses[i] for i in rng.permutation(len(presses))]
     raise ValueError(f"unknown experiment {experiment!r} (known: {', '.join(EXPERIMENTS)})")

@@ -31,6 +31,13 @@ def depth_rings(layout: FiberLayout) -> list[float]:
     return [half, far] if far - half > DEPTH_EXTRAPOLATION_PITCHES * layout.pitch_mm + 1e-9 else [half]
 
 
+def depth_points(layout: FiberLayout) -> list[tuple[float, float]]:
+    """Where the ``depths`` experiment presses, mm: the centre, then 6 points 60 degrees apart on each of
+    :func:`depth_rings` (the bring-up's plan and the simulator's scenario both press here)."""
+    return [(0.0, 0.0)] + [(ring * math.cos(math.radians(a)), ring * math.sin(math.radians(a)))
+                           for ring in depth_rings(layout) for a in range(0, 360, 60)]
+
+
 def axis_reach_mm(layout: FiberLayout, axis: int) -> float:
     """How far (mm) the array reaches from its centre along its x (``axis`` 0) or y (1) axis, either way: the
     farthest fiber within half a pitch of that axis (a hexagon of rows along x: its radius along x, the

@@ -61,7 +61,7 @@ from scipy.spatial import ConvexHull
 
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.layout import FiberLayout, hex_layout, pitch_scale, scaled_mm
-from optitac_edge.core.reach import depth_rings, unseen_line
+from optitac_edge.core.reach import depth_points, unseen_line
 from optitac_edge.io.recording import SHAPES, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.arrays import optics_for, skin_for
@@ -235,11 +235,8 @@ def _depths(
     rng: np.random.Generator, layout: FiberLayout, skin: SkinModel, n: int
 ) -> list[Indenter]:
     size = _circle(layout)
-    angles = np.radians(np.arange(0.0, 360.0, 60.0))
-    points = [(0.0, 0.0)] + [(float(x), float(y)) for ring in depth_rings(layout)
-                             for x, y in zip(ring * np.cos(angles), ring * np.sin(angles))]
-    presses = [Indenter("circle", float(px), float(py), 0.0, size, d)
-               for px, py in points for d in DEPTHS_MM for _ in range(2)]
+    presses = [Indenter("circle", px, py, 0.0, size, d)
+               for px, py in depth_points(layout) for d in DEPTHS_MM for _ in range(2)]
     return [presses[i] for i in rng.permutation(len(presses))]
 
 
