@@ -14,9 +14,18 @@ doc/markdown/realtime_cmds.md, doc/csv/alarm_codes_en_US.csv):
 
 * a move beyond the travel is a soft limit: ``ALARM:2`` (the position kept);
   an injected hard limit stops at once: ``ALARM:1``. Both are critical events:
-  ``[MSG:Reset to continue]``, then *nothing* is answered -- no ``ok``, no
-  status report (realtime_cmds.md: ``?`` is executed "at any time, except ...
-  when critical alarm (hard/soft limit error) is thrown") -- until Ctrl-X;
+  *nothing* is answered -- no ``ok``, no status report (realtime_cmds.md: ``?``
+  is executed "at any time, except ... when critical alarm (hard/soft limit
+  error) is thrown") -- until Ctrl-X; and a Ctrl-X that comes too early is
+  lost: ``report_alarm_message`` (grbl/report.c) waits 500 ms after the
+  ``ALARM:N`` line (``delay_ms(500)``), then protocol_exec_rt_system()
+  (grbl/protocol.c) prints ``[MSG:Reset to continue]`` and clears any reset
+  that came before (``system_clear_exec_state_flag(EXEC_RESET)``); only a
+  reset after that message is taken (here ``alarm_delay_s``, 0.5 s);
+* the work offset ``WCO:x,y,z`` comes in the first report after a reset and
+  then every 10th report when idle, every 30th when busy
+  (``sys.report_wco_counter``, REPORT_WCO_REFRESH_IDLE_COUNT and _BUSY_COUNT
+  in grbl/config.h, grbl/report.c); positions are machine positions ``MPos``;
 * after the reset GRBL is still in alarm (its banner, then
   ``[MSG:'$H'|'$X' to unlock]``), answers status reports ``<Alarm|...>`` and
   refuses G-code with ``error:9`` until ``$X`` (``[MSG:Caution: Unlocked]``)
@@ -42,8 +51,17 @@ BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 
 class FakeGrbl:
     def __init__(self, start=(100.6, 79.6, 5.0), travel=((0.0, 200.0), (0.0, 200.0), (-10.0, 40.0)),
-                 speed: float = 1.0, locked: bool = False, tick_s: float | None = None) -> None:
+                 speed: float = 1.0, locked: bool = False, tick_s: float | None = None,
+                 alarm_delay_s: float = 0.5, wco=(0.0, 0.0, 0.0)) -> None:
         self.tick_s = tick_s
+        self.alarm_delay_s = alarm_delay_s
+        #: The work offset (G54 and G92): what the reports' ``WCO`` says, machine minus work position.
+        self.wco = tuple(wco)
+        self._wco_counter = 0  # the first report after a reset carries WCO
+        #: After a critical alarm: a reset is taken (the ``Reset to continue`` message was sent).
+        self._reset_armed = True
+        #: Ctrl-X bytes lost because they came before ``Reset to continue``.
+        self.lost_resets = 0
         self._ticks = 0
         self.master, self.slave = pty.openpty()
         tty.setraw(self.slave)
@@ -88,6 +106,11 @@ class FakeGrbl:
             pos = self._position(now)
             if self._garbled:
                 return (self._garbled.pop(0) + "\r\n").encode()
+            wco = ""
+            if self._wco_counter == 0:
+                wco = "|WCO:" + ",".join(f"{v:.3f}" for v in self.wco)
+                self._wco_counter = 30 if self._moving(now) else 10
+            self._wco_counter -= 1
             if self.state == "Alarm":
                 state = "Alarm"
             elif self._forced_state is not None:
@@ -96,7 +119,8 @@ class FakeGrbl:
                 state = "Hold:0" if now - self._held_at > 0.02 else "Hold:1"
             else:
                 state = "Run" if self._moving(now) else "Idle"
-        return f"<{state}|MPos:{pos[0]:.3f},{pos[1]:.3f},{pos[2]:.3f}|FS:0,0>\r\n".encode()
+        m = [p + o for p, o in zip(pos, self.wco)]  # the fake moves in work coordinates
+        return f"<{state}|MPos:{m[0]:.3f},{m[1]:.3f},{m[2]:.3f}|FS:0,0{wco}>\r\n".encode()
 
     # -- the wire -------------------------------------------------------------------------------
 
@@ -125,9 +149,18 @@ class FakeGrbl:
             self._held_at = None
             self.state = "Alarm"
             self.critical = code in (1, 2)
+            self._reset_armed = not self.critical
         self._send(f"ALARM:{code}\r\n".encode())
         if code in (1, 2):
-            self._send(b"[MSG:Reset to continue]\r\n")
+            timer = threading.Timer(self.alarm_delay_s, self._reset_to_continue)
+            timer.daemon = True
+            timer.start()
+
+    def _reset_to_continue(self) -> None:
+        """500 ms after the alarm: the message, and a reset sent before it is forgotten (grbl/protocol.c)."""
+        self._send(b"[MSG:Reset to continue]\r\n")
+        with self._lock:
+            self._reset_armed = True
 
     def _serve(self) -> None:
         line = b""
@@ -142,6 +175,9 @@ class FakeGrbl:
                     self.realtime.append(b)
                     if self.critical and b != b"\x18":
                         continue  # a critical event blocks everything but a reset
+                    if self.critical and not self._reset_armed:
+                        self.lost_resets += 1  # cleared by system_clear_exec_state_flag(EXEC_RESET)
+                        continue
                     if b == b"\x18":
                         line = b""  # serial_reset_read_buffer()
                     self._realtime(b)
@@ -181,6 +217,7 @@ class FakeGrbl:
                 self._t0 = self._t1 = now
                 self._held_at = None
                 self.critical = False
+                self._wco_counter = 0
                 if lost:
                     self.state = "Alarm"
             if lost:

@@ -37,6 +37,9 @@ STOPPED_STATES = {
 }
 #: Garbled or implausible status reports in a row before the rig is taken as lost.
 GARBLED_TRIES = 5
+#: The wait before polling again after a garbled report (s), doubled each time: the 5 reports span 0.3 s, so
+#: a burst of noise on the line (milliseconds) is outlasted (polled back to back, 2 ms of noise stopped a run).
+GARBLED_SPACING_S = 0.02
 #: A reported coordinate farther than this from the origin (mm) is a garbled report, not a position.
 ABSURD_MM = 100_000.0
 
@@ -186,7 +189,9 @@ class Rig(Device, ABC):
             After :data:`GARBLED_TRIES` garbled or implausible reports in a row, or when the rig does not answer.
         """
         last = ""
-        for _ in range(GARBLED_TRIES):
+        for k in range(GARBLED_TRIES):
+            if k:
+                self.sleep(GARBLED_SPACING_S * 2 ** (k - 1))
             try:
                 st = self._status()
             except GarbledReport as exc:

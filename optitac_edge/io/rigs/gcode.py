@@ -10,16 +10,26 @@ Positions are work coordinates (``WPos``): set the work zero where you like.
 
 Alarms, as the firmware has them (grbl/protocol.c, doc/csv/alarm_codes_en_US.csv):
 a hard limit (``ALARM:1``) or a soft limit (``ALARM:2``) is a *critical event*:
-GRBL prints ``[MSG:Reset to continue]`` and answers nothing, status reports
-included, until a soft reset (Ctrl-X); after the reset it is still in alarm and
+GRBL answers nothing, status reports included, until a soft reset (Ctrl-X),
+and forgets a reset sent in the 500 ms after the ``ALARM:N`` line
+(``report_alarm_message``, grbl/report.c, waits 500 ms; then ``[MSG:Reset to
+continue]`` and ``system_clear_exec_state_flag(EXEC_RESET)``, grbl/protocol.c),
+so this backend resets after that message (and again until the banner comes);
+after the reset it is still in alarm and
 refuses G-code (``error:9``) until ``$X`` or ``$H``. After a soft limit the
 position is kept (GRBL holds the feed before it stops), so this backend resets,
 unlocks and retracts; after a hard limit or a reset in motion (``ALARM:3``) it
 is lost, so the tip is not moved and the message says what to do.
+
+Reports are read as noise may have made them: a state word GRBL does not send
+is a garbled report (polled again), and the work offset ``WCO`` (sent every 10
+to 30 reports, grbl/report.c) is adopted only when two reports carry the same
+(one flipped bit in it once put the start point 4 mm deep).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import deque
@@ -40,6 +50,18 @@ ALARMS = {1: "hard limit: a limit switch was hit", 2: "soft limit: a target beyo
 CRITICAL_ALARMS = (1, 2)
 #: Alarms after which the machine's position is lost (alarm_codes_en_US.csv: "re-homing is highly recommended").
 POSITION_LOST = (1, 3)
+#: What GRBL prints once it takes a reset after a critical alarm (grbl/report.c MESSAGE_CRITICAL_EVENT).
+RESET_TO_CONTINUE = "[MSG:Reset to continue]"
+#: How long to wait for it (GRBL: 500 ms after the alarm line), and between resets until the banner comes.
+RESET_WAIT_S = 1.0
+#: Status reports read at most to see the work offset twice (GRBL: every 10th when idle, grbl/config.h).
+OFFSET_REPORTS = 25
+
+log = logging.getLogger(__name__)
+
+
+class _OffsetUnknown(GarbledReport):
+    """A machine position while no two reports have agreed on the work offset yet."""
 
 
 class GcodeRig(Rig):
@@ -66,7 +88,13 @@ class GcodeRig(Rig):
         self.timeout_s = timeout_s
         self._lines: deque[str] = deque()
         self._buffer = b""
-        self._wco = (0.0, 0.0, 0.0)
+        #: The work offset two reports agreed on (None: none yet), and one seen once.
+        self._wco: tuple[float, float, float] | None = None
+        self._wco_seen: tuple[float, float, float] | None = None
+        #: The last report gave work positions (``WPos``): no offset is needed.
+        self._work_positions = False
+        #: GRBL said it takes a reset (:data:`RESET_TO_CONTINUE`) since the last critical alarm.
+        self._reset_taken = True
         #: The last ``ALARM:N`` read and not yet cleared by ``$X`` / ``$H`` (0: none).
         self._alarm_code = 0
         #: A critical alarm was read and no reset sent since: GRBL answers nothing.
@@ -119,7 +147,10 @@ class GcodeRig(Rig):
                 line = raw.decode("ascii", "replace").strip()
                 if line.startswith("ALARM:"):
                     self._alarm_code = _alarm_code(line)
-                    self._silent = self._silent or self._alarm_code in CRITICAL_ALARMS
+                    if self._alarm_code in CRITICAL_ALARMS:
+                        self._silent, self._reset_taken = True, False
+                elif line == RESET_TO_CONTINUE:
+                    self._reset_taken = True
                 if line:
                     self._lines.append(line)
         return self._lines.popleft()
@@ -160,17 +191,50 @@ class GcodeRig(Rig):
                 raise self._alarm_error(_alarm_code(reply))
 
     def _reset(self) -> None:
-        """Ctrl-X and wait for the ``Grbl`` banner (an ``ALARM:3`` before it is noted)."""
-        self._lines.clear()
-        self._write(b"\x18")
-        self._silent = False
+        """Ctrl-X and wait for the ``Grbl`` banner (an ``ALARM:3`` before it is noted), then for the work offset.
+
+        After a critical alarm, first wait for :data:`RESET_TO_CONTINUE` (GRBL forgets a reset before it);
+        without a banner in :data:`RESET_WAIT_S`, reset again, until the timeout.
+        """
         deadline = time.monotonic() + max(self.timeout_s, 3.0)
+        if self._silent:
+            wait = min(time.monotonic() + RESET_WAIT_S, deadline)
+            while not self._reset_taken and self._readline(wait) is not None:
+                pass
         while True:
-            line = self._readline(deadline)
-            if line is None:
+            self._lines.clear()
+            self._write(b"\x18")
+            again = min(time.monotonic() + RESET_WAIT_S, deadline)
+            line = self._readline(again)
+            while line is not None and not line.startswith("Grbl"):
+                line = self._readline(again)
+            if line is not None:
+                break
+            if time.monotonic() >= deadline:
                 raise RigError(f"gcode rig {self.url}: no GRBL answered (no banner after a reset)")
-            if line.startswith("Grbl"):
+        self._silent, self._reset_taken = False, True
+        self._settle_offset()
+
+    def _settle_offset(self) -> None:
+        """Read status reports until two agree on the work offset (a reset may change it: G92 is not kept)."""
+        self._wco = self._wco_seen = None
+        for _ in range(OFFSET_REPORTS):
+            try:
+                self._status()
+            except _OffsetUnknown:  # the offset comes every 10th report
+                continue
+            except GarbledReport:
+                self.garbled_reports += 1
+                continue
+            if self._wco is not None or self._work_positions:
                 return
+        if self._wco_seen is None:  # a GRBL built without the WCO field: machine positions are work positions
+            log.warning("gcode rig %s: no work offset (WCO) in %d status reports; taking it as 0",
+                        self.url, OFFSET_REPORTS)
+            self._wco = (0.0, 0.0, 0.0)
+            return
+        raise RigError(f"gcode rig {self.url}: no two of {OFFSET_REPORTS} status reports agreed on the work "
+                       "offset (WCO); check the cable")
 
     # -- Rig ---------------------------------------------------------------------------------
 
@@ -205,7 +269,9 @@ class GcodeRig(Rig):
         fields = body.split("|")
         raw_state = fields[0]
         name = raw_state.split(":")[0].lower()
-        state = _STATES.get(name, "unknown")
+        if name not in _STATES:  # a word GRBL does not send: noise on the line
+            raise GarbledReport(f"gcode rig {self.url}: status report in a state this program does not know ({raw_state!r})")
+        state = _STATES[name]
         pos: tuple[float, float, float] | None = None
         machine = False
         for f in fields[1:]:
@@ -214,18 +280,28 @@ class GcodeRig(Rig):
                 try:
                     xyz = tuple(float(v) for v in value.split(","))
                 except ValueError:
-                    raise GarbledReport(f"gcode rig {self.url}: garbled status report <{body}>") from None
+                    raise GarbledReport(f"gcode rig {self.url}: garbled status report {'<' + body + '>'!r}") from None
                 if len(xyz) < 3 or not all(math.isfinite(v) and abs(v) < ABSURD_MM for v in xyz):
-                    raise GarbledReport(f"gcode rig {self.url}: garbled status report <{body}>")
+                    raise GarbledReport(f"gcode rig {self.url}: garbled status report {'<' + body + '>'!r}")
                 if key == "WCO":
-                    self._wco = (xyz[0], xyz[1], xyz[2])
+                    self._offset_seen((xyz[0], xyz[1], xyz[2]))
                 else:
                     pos, machine = (xyz[0], xyz[1], xyz[2]), key == "MPos"
         if pos is None:
-            raise GarbledReport(f"gcode rig {self.url}: status report without a position <{body}>")
+            raise GarbledReport(f"gcode rig {self.url}: status report without a position {'<' + body + '>'!r}")
+        self._work_positions = not machine
         if machine:
+            if self._wco is None:
+                raise _OffsetUnknown(f"gcode rig {self.url}: a machine position before the work offset is known")
             pos = (pos[0] - self._wco[0], pos[1] - self._wco[1], pos[2] - self._wco[2])
         return RigStatus(state, pos, raw_state=raw_state)
+
+    def _offset_seen(self, wco: tuple[float, float, float]) -> None:
+        """A report's ``WCO``: adopted when it is the one seen before (else remembered until the next)."""
+        if wco != self._wco:
+            if wco == self._wco_seen:
+                self._wco = wco
+            self._wco_seen = wco
 
     def _stop(self) -> None:
         """Stop with the position kept, and leave the machine ready for a move.
