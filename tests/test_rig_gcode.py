@@ -124,7 +124,7 @@ def test_a_run_of_garbled_reports_is_one_line_not_a_traceback(grbl) -> None:
 
 
 @pytest.mark.parametrize("state, message", [
-    ("Tool", "waiting for a tool change"), ("Door:1", "safety door is open"), ("Sleep", "asleep"),
+    ("Tool", "waiting for a tool change"), ("Door:1", "stopped by its safety door: close it"), ("Sleep", "asleep"),
 ])
 def test_states_that_stop_the_machine_end_a_wait_at_once(grbl, state, message) -> None:
     """grblHAL's Tool, Door and Sleep were waited on for 34 s; now they end the wait with what to do."""
@@ -374,3 +374,34 @@ def test_polls_after_a_garbled_report_are_spaced_to_outlast_a_burst_of_noise() -
     assert rig.now == pytest.approx(0.3)
     with pytest.raises(RigError, match="5 garbled status reports in a row"):
         NoisyLine(burst_s=1.0).status()
+
+
+def test_the_safety_door_stops_the_tip_and_it_is_lifted_once_the_door_is_closed(grbl) -> None:
+    """Door:0 / Door:1 were not taken as stopped: the retract waited 10 s for a stop and left the tip 3 mm deep.
+    Now the retract waits for the door (GRBL: a reset once stopped keeps the position and drops the held move,
+    grbl/motion_control.c mc_reset), and lifts once it is closed."""
+    import threading
+
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        rig.move_to((100.0, 80.0, 8.0))
+        rig.wait_until_at((100.0, 80.0, 8.0), 5.0)
+        grbl.speed = 1.0
+        rig.move_to((100.0, 80.0, -1.0))  # 0.9 s down at 10 mm/s
+        grbl.open_door()
+        threading.Timer(0.5, grbl.close_door).start()
+        rig.retract()
+        assert not grbl.in_door and "ALARM:3" not in "".join(grbl.lines)
+        assert grbl.position() == pytest.approx((100.0, 80.0, 12.0))
+
+
+def test_a_door_left_open_is_one_line_and_nothing_moves(grbl) -> None:
+    with GcodeRig(grbl.port, LIMITS) as rig:
+        rig.door_wait_s = 0.5
+        rig.move_to((100.0, 80.0, 3.0))
+        rig.wait_until_at((100.0, 80.0, 3.0), 5.0)
+        grbl.open_door()
+        moves = len([line for line in grbl.lines if line.startswith("G1")])
+        with pytest.raises(RigError, match=r"safety door is open.*the tip was not lifted: close the door"):
+            rig.retract()
+        assert len([line for line in grbl.lines if line.startswith("G1")]) == moves
+        assert grbl.position() == pytest.approx((100.0, 80.0, 3.0))

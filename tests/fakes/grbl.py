@@ -31,6 +31,15 @@ doc/markdown/realtime_cmds.md, doc/csv/alarm_codes_en_US.csv):
   refuses G-code with ``error:9`` until ``$X`` (``[MSG:Caution: Unlocked]``)
   or ``$H``.
 
+The safety door (grbl/protocol.c protocol_exec_rt_system and
+protocol_exec_rt_suspend, grbl/report.c): opening it holds the feed (``Door:2``
+while the tip decelerates) and prints ``[MSG:Check Door]``; once stopped the
+state is ``Door:1`` while it is open, ``Door:0`` once closed (ready to resume);
+``~`` resumes the held move only when closed; a reset once stopped keeps the
+position (mc_reset: not executing a hold) and flushes the move, and GRBL comes
+back in the door state while the door is still open (protocol_main_loop checks
+it at start), else idle. G-code sent in the door state waits for the resume.
+
 For the backend's robustness: :meth:`garble` replaces the next status reports
 with given lines (noise on a real serial line), :meth:`set_state` reports a
 state by name (grblHAL's ``Tool``, ``Door:1``, ``Sleep``).
@@ -77,6 +86,10 @@ class FakeGrbl:
         self.critical = False
         self._garbled: list[str] = []
         self._forced_state: str | None = None
+        #: The safety door is open; the machine is in its door state (until resumed or reset with it closed).
+        self.door_open = False
+        self.in_door = False
+        self._queued: tuple[tuple[float, float, float], float] | None = None
         self.lines: list[str] = []
         self.realtime: list[bytes] = []
         self._stop = threading.Event()
@@ -113,6 +126,9 @@ class FakeGrbl:
             self._wco_counter -= 1
             if self.state == "Alarm":
                 state = "Alarm"
+            elif self.in_door:
+                stopping = self._held_at is not None and now - self._held_at <= 0.02 and now < self._t1
+                state = "Door:2" if stopping else "Door:1" if self.door_open else "Door:0"
             elif self._forced_state is not None:
                 state = self._forced_state
             elif self._held_at is not None:
@@ -139,6 +155,19 @@ class FakeGrbl:
         """Report this state name (e.g. ``Tool``, ``Door:1``) instead of Idle/Run; None: back to normal."""
         with self._lock:
             self._forced_state = state
+
+    def open_door(self) -> None:
+        """Open the safety door: a feed hold, then the door state."""
+        with self._lock:
+            now = self._clock()
+            if self._moving(now):
+                self._held_at = now
+            self.door_open = self.in_door = True
+        self._send(b"[MSG:Check Door]\r\n")
+
+    def close_door(self) -> None:
+        with self._lock:
+            self.door_open = False
 
     def inject_alarm(self, code: int = 1) -> None:
         """Raise ``ALARM:code`` now: motion stops where it is (a hard limit: the switch halts it at once)."""
@@ -201,10 +230,19 @@ class FakeGrbl:
             self._send(self._status())
         elif b == b"!":
             with self._lock:
-                if self._moving(now):
+                if self._moving(now) and not self.in_door:
                     self._held_at = now
         elif b == b"~":
             with self._lock:
+                if self.in_door:
+                    if self.door_open:
+                        return  # the door blocks a resume
+                    self.in_door = False
+                    if self._queued is not None and self._held_at is None:
+                        target, feed = self._queued
+                        self._queued = None
+                        self._start_move(self._position(now), target, feed, now)
+                        return
                 if self._held_at is not None:
                     pos = self._position(now)
                     self._held_at = None
@@ -218,6 +256,8 @@ class FakeGrbl:
                 self._held_at = None
                 self.critical = False
                 self._wco_counter = 0
+                self._queued = None
+                self.in_door = self.door_open  # protocol_main_loop: a door still open is the door state again
                 if lost:
                     self.state = "Alarm"
             if lost:
@@ -263,7 +303,9 @@ class FakeGrbl:
                 target = tuple(float(words.get(axis, pos[k])) for k, axis in enumerate("XYZ"))
                 feed = float(words.get("F", getattr(self, "_feed", 600.0)))
                 beyond = any(not lo <= v <= hi for v, (lo, hi) in zip(target, self.travel))
-                if not beyond:
+                if not beyond and self.in_door:
+                    self._queued = (target, feed)  # planned; runs on the resume
+                elif not beyond:
                     self._start_move(pos, target, feed, now)
             if beyond:  # limits_soft_check(): the position is kept, then the critical event
                 self.inject_alarm(2)

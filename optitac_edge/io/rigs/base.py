@@ -29,7 +29,7 @@ STATES = ("idle", "moving", "hold", "alarm", "homing", "offline", "door", "sleep
 #: Why each state that stops a collection does, and what the operator does about it.
 STOPPED_STATES = {
     "hold": "in a feed hold (its hold button, or '!')",
-    "door": "its safety door is open: close it",
+    "door": "stopped by its safety door: close it",
     "sleep": "asleep: reset it",
     "tool": "waiting for a tool change: finish it on the machine",
     "check": "in G-code check mode, where nothing moves: turn it off ($C)",

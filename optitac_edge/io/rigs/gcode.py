@@ -21,6 +21,12 @@ position is kept (GRBL holds the feed before it stops), so this backend resets,
 unlocks and retracts; after a hard limit or a reset in motion (``ALARM:3``) it
 is lost, so the tip is not moved and the message says what to do.
 
+The safety door (grbl/protocol.c) holds the feed: ``Door:1`` while open,
+``Door:0`` once closed. A retract then resets (the position is kept once the
+tip has stopped, grbl/motion_control.c ``mc_reset``), waits for the door to
+be closed, resumes with nothing left to run, and lifts; a door left open is one
+line, the tip not moved.
+
 Reports are read as noise may have made them: a state word GRBL does not send
 is a garbled report (polled again), and the work offset ``WCO`` (sent every 10
 to 30 reports, grbl/report.c) is adopted only when two reports carry the same
@@ -80,6 +86,9 @@ class GcodeRig(Rig):
     port : serial-like, optional
         An open port (tests); default ``serial.serial_for_url(url, exclusive=True)``.
     """
+
+    #: How long a retract waits for an open safety door to be closed (s).
+    door_wait_s = 30.0
 
     def __init__(self, url: str, limits: RigLimits, baudrate: int = 115200, home: bool = False,
                  timeout_s: float = 2.0, port: Any = None) -> None:
@@ -306,9 +315,11 @@ class GcodeRig(Rig):
     def _stop(self) -> None:
         """Stop with the position kept, and leave the machine ready for a move.
 
-        Not in alarm: feed hold, wait until stopped, then reset to drop the rest of the move. In a
-        soft-limit alarm (position kept): reset, then unlock (``$X``). After a hard limit or a reset in
-        motion (position lost): reset, and refuse to move (the message says what the operator does).
+        Not in alarm: feed hold, wait until stopped (``Hold:0``, or ``Door:0`` / ``Door:1`` when the safety
+        door stopped it), then reset to drop the rest of the move; a door still open after the reset is
+        waited for (:attr:`door_wait_s`), then the machine resumed with nothing left to run. In a soft-limit
+        alarm (position kept): reset, then unlock (``$X``). After a hard limit or a reset in motion (position
+        lost): reset, and refuse to move (the message says what the operator does).
         """
         if not self._silent:
             self._write(b"!")
@@ -318,13 +329,16 @@ class GcodeRig(Rig):
                     st = self.poll()
                 except RigError:  # silent (an alarm whose line was lost?): the reset below tells
                     break
-                if st.state == "alarm" or st.state == "idle" or st.raw_state.lower() == "hold:0":
+                if st.state in ("alarm", "idle") or st.raw_state.lower() in ("hold:0", "door:0", "door:1"):
                     break
                 if time.monotonic() > deadline:
                     raise RigError(f"gcode rig {self.url}: did not stop within 10 s of a feed hold")
                 time.sleep(0.02)
         self._reset()
-        if self.poll().state == "alarm":
+        st = self.poll()
+        if st.state == "door":
+            self._wait_for_the_door()
+        elif st.state == "alarm":
             code = self._alarm_code
             if code not in (2,):
                 raise self._alarm_error(code)
@@ -332,6 +346,22 @@ class GcodeRig(Rig):
         self._alarm_code = 0
         self.command("G21")
         self.command("G90")
+
+    def _wait_for_the_door(self) -> None:
+        """After a reset in the door state (nothing left to run): wait until the door is closed (``Door:0``),
+        then resume (``~``: GRBL leaves the door state, idle), before anything moves."""
+        waited = 0.0
+        while True:
+            st = self.poll()
+            if st.state != "door":
+                return
+            if st.raw_state.lower() == "door:0":
+                self._write(b"~")
+            elif waited > self.door_wait_s:
+                raise RigError(f"gcode rig {self.url}: the safety door is open ({st.raw_state}); the tip was not "
+                               "lifted: close the door, then run the same command to continue")
+            self.sleep(0.05)
+            waited += 0.05
 
     def _close_internal(self) -> None:
         self._port.close()
