@@ -405,3 +405,28 @@ def test_a_door_left_open_is_one_line_and_nothing_moves(grbl) -> None:
             rig.retract()
         assert len([line for line in grbl.lines if line.startswith("G1")]) == moves
         assert grbl.position() == pytest.approx((100.0, 80.0, 3.0))
+
+
+def test_a_slides_truth_velocity_is_the_rigs_whatever_the_cameras_pace(tmp_path) -> None:
+    """Poses polled at loop time were divided by the camera's frame times: when the loop falls behind the
+    camera (here each frame's poll sees 50 ms of the machine's motion, the frames are 1/60 s apart) the truth
+    velocity came out 3x too high (30-50 % high on a busy machine, 6x on the 2 mm/s slide). Now each pose
+    keeps the time it was read (the rig's clock), and the velocity is the machine's."""
+    out = tmp_path / "slide"
+    settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=5)
+    grbl = FakeGrbl(speed=1.0, tick_s=0.05)
+    try:
+        camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+        with GcodeRig(grbl.port, LIMITS, clock_ns=grbl.now_ns) as rig:
+            Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", out, limit=2)
+    finally:
+        grbl.close()
+    truth = Recording(out).truth
+    assert truth.motion is not None and truth.vx_mm_s is not None and truth.vy_mm_s is not None
+    sliding = truth.motion == "sliding"
+    speeds = np.hypot(truth.vx_mm_s[sliding], truth.vy_mm_s[sliding])
+    assert sliding.sum() >= 10
+    # the 2 mm/s slide and the 20 mm/s one at the rig's 10 mm/s limit, each row within 5 %
+    assert all(abs(v - 2.0) < 0.1 or abs(v - 10.0) < 0.5 for v in speeds), np.round(speeds, 2)
+    assert (np.abs(speeds - 2.0) < 0.1).sum() >= 5 and (np.abs(speeds - 10.0) < 0.5).sum() >= 2

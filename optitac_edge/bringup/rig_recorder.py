@@ -61,7 +61,7 @@ class RigRecorder:
             raise RigError(f"the rig is {STOPPED_STATES[st.state]} ({st.raw_state or st.state}); the collection "
                            "stopped: run the same command to continue")
         t_ns = self.writer.write(self.index, captured.frame, captured.t_ns)
-        self.rows.append(self._row(phase, press, st.xyz_mm))
+        self.rows.append(self._row(phase, press, st.xyz_mm, st.t_ns))
         self.times.append(int(captured.t_ns if t_ns is None else t_ns))
         self.index += 1
         self.pipeline.bundle.fibers.check_frame(captured.frame, self.camera.pixel_format)
@@ -123,8 +123,11 @@ class RigRecorder:
                                "segments": self.writer.segments}, new=new)
         self.rows, self.times = [], []
 
-    def _row(self, phase: str, press: PlannedPress | None, xyz: tuple[float, float, float]) -> dict[str, Any]:
+    def _row(self, phase: str, press: PlannedPress | None, xyz: tuple[float, float, float],
+             t_ns: int | None) -> dict[str, Any]:
         row: dict[str, Any] = {"frame": self.index, "phase": phase, "rig": [round(v, 4) for v in xyz]}
+        if t_ns is not None:
+            row["rig_t_ns"] = t_ns  # when the pose was read: the motion's time (row_motions)
         if self.frame is None:
             return {**row, "_press": press}  # before registration: completed once the rig frame is fitted
         return self._complete(row, press)
@@ -147,11 +150,14 @@ HELD_BELOW_MM_S = 0.5
 
 def row_motions(rows: list[dict[str, Any]], times: list[int]) -> list[tuple[float, float, str]]:
     """Each truth row's motion: the press's velocity in the sensor frame (mm/s) over the frame before it (from
-    the rig's poses; over the frame after it at the start of a run of rows in contact), and ``sliding``
+    the rig's poses and the times they were read, ``rig_t_ns``, or else ``times``, the frames'; over the frame
+    after it at the start of a run of rows in contact), and ``sliding``
     (the ``slide`` phase, faster than :data:`HELD_BELOW_MM_S`), ``vibrating`` (``shake``), ``held`` (``hold``,
     or a slide at rest), ``pressing`` (in contact while approaching or releasing) or '' (no contact)."""
     out: list[tuple[float, float, str]] = []
     n = len(rows)
+    if all(r.get("rig_t_ns") is not None for r in rows):  # a pose's own time: the frame's may be older
+        times = [int(r["rig_t_ns"]) for r in rows]
     for k, row in enumerate(rows):
         if not row.get("contact"):
             out.append((math.nan, math.nan, ""))

@@ -74,7 +74,7 @@ class SimRig(Rig):
 
     def __init__(self, limits: RigLimits, clock: Clock, mount: SimMount = SimMount(),
                  start_xyz_mm: tuple[float, float, float] | None = None) -> None:
-        super().__init__(limits, sleep=clock.sleep)
+        super().__init__(limits, sleep=clock.sleep, clock_ns=clock.monotonic_ns)
         self.clock = clock
         self.mount = mount
         start = start_xyz_mm or (mount.origin_xy_mm[0] + 0.6, mount.origin_xy_mm[1] - 0.4, mount.surface_z_mm + 3.0)

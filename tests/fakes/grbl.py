@@ -222,6 +222,10 @@ class FakeGrbl:
     def _clock(self) -> float:
         return time.monotonic() if self.tick_s is None else self._ticks * self.tick_s
 
+    def now_ns(self) -> int:
+        """The machine's clock (with ``tick_s``: its virtual one), ns: a rig's ``clock_ns`` in tests."""
+        return round(self._clock() * 1e9)
+
     def _realtime(self, b: bytes) -> None:
         if b == b"?" and self.tick_s is not None:
             self._ticks += 1

@@ -13,6 +13,7 @@ agree that the tip is idle at the safe height.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from abc import ABC, abstractmethod
@@ -100,6 +101,9 @@ class RigStatus:
     alarm: str = ""
     #: The backend's own name of the state (e.g. GRBL's ``Door:1``), for messages.
     raw_state: str = ""
+    #: When the report was read, ns of the rig's clock (:attr:`Rig.clock_ns`; None: not stamped): a pose's
+    #: time, not the camera frame's it is recorded with (a loop that falls behind reads old frames).
+    t_ns: int | None = None
 
     @property
     def plausible(self) -> bool:
@@ -121,11 +125,14 @@ class Rig(Device, ABC):
     #: simulator; a GRBL machine or an arm cannot: reversing 0.05 mm at 30 Hz takes 1.8 m/s² per cycle).
     shakes: bool = False
 
-    def __init__(self, limits: RigLimits, sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(self, limits: RigLimits, sleep: Callable[[float], None] = time.sleep,
+                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         Device.__init__(self)
         self.limits = limits
         #: How waits on the rig pass time (the simulator's rig: its virtual clock).
         self.sleep = sleep
+        #: The clock status reports are stamped with (ns; the simulator's rig: its virtual clock).
+        self.clock_ns = clock_ns
         #: Status reports refused as garbled or implausible so far.
         self.garbled_reports = 0
 
@@ -192,13 +199,14 @@ class Rig(Device, ABC):
         for k in range(GARBLED_TRIES):
             if k:
                 self.sleep(GARBLED_SPACING_S * 2 ** (k - 1))
+            asked = self.clock_ns()
             try:
                 st = self._status()
             except GarbledReport as exc:
                 last = str(exc)
             else:
                 if st.plausible:
-                    return st
+                    return dataclasses.replace(st, t_ns=(asked + self.clock_ns()) // 2)
                 last = f"implausible position {st.xyz_mm}"
             self.garbled_reports += 1
         raise RigError(f"{GARBLED_TRIES} garbled status reports in a row (the last: {last}); check the cable")

@@ -39,6 +39,7 @@ import logging
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 from optitac_edge.errors import RigError
@@ -91,8 +92,8 @@ class GcodeRig(Rig):
     door_wait_s = 30.0
 
     def __init__(self, url: str, limits: RigLimits, baudrate: int = 115200, home: bool = False,
-                 timeout_s: float = 2.0, port: Any = None) -> None:
-        super().__init__(limits)
+                 timeout_s: float = 2.0, port: Any = None, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        super().__init__(limits, clock_ns=clock_ns)
         self.url = url
         self.timeout_s = timeout_s
         self._lines: deque[str] = deque()
