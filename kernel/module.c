@@ -225,6 +225,11 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
     p.frame_pixels = v;
     if (plan_int(plan, "frame_bytes", 1, (long long)1 << 42, &v) < 0) return -1;
     self->frame_bytes = (Py_ssize_t)v;
+    if (v < p.frame_pixels * (p.rgb ? 3 : 1)) { /* the kernel reads every pixel (and channel) of a frame */
+        PyErr_Format(PyExc_ValueError, "kernel plan: frame_bytes %lld holds fewer than the %lld bytes of "
+                     "frame_pixels %lld", v, (long long)(p.frame_pixels * (p.rgb ? 3 : 1)), (long long)p.frame_pixels);
+        return -1;
+    }
     DBL(black_level, "black_level");
     DBL(gain_rate_per_ns, "gain_rate_per_ns");
     DBL(tau_ns, "tau_ns");

@@ -496,6 +496,38 @@ def test_a_bad_plan_is_one_clear_error(modelled) -> None:
         _frame_kernel.Kernel("not a dict")
 
 
+_FRAME_BYTES = """
+import sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from test_kernel import synthetic_bundle
+from optitac_edge.core import _frame_kernel
+from optitac_edge.core.pipeline import Pipeline
+
+pipe = Pipeline(synthetic_bundle("gray"), compiled=True)
+plan = dict(pipe.kernel.plan)
+for fmt_bytes, pixels in ((64, plan["frame_pixels"]), (64, 2_000_000_000)):
+    bad = {**plan, "frame_bytes": fmt_bytes, "frame_pixels": pixels}
+    try:
+        k = _frame_kernel.Kernel(bad)
+    except ValueError as exc:
+        assert "frame_bytes" in str(exc), exc
+        continue
+    frame = np.zeros(fmt_bytes, dtype=np.uint8)
+    k.means(frame)  # reads past a 64-byte buffer
+    print("accepted")
+    sys.exit(0)
+print("ok")
+"""
+
+
+def test_a_plans_frame_size_must_hold_every_pixel_it_reads() -> None:
+    """``Kernel(plan)`` trusted ``frame_bytes`` against ``frame_pixels``: a plan of 64 bytes read a whole frame
+    past the buffer (and pixel indices near 2e9 with a frame_pixels to match). Refused in one line."""
+    r = _run_isolated(_FRAME_BYTES, str(Path(__file__).parent))
+    assert r.returncode == 0 and r.stdout.strip() == "ok", (r.returncode, r.stdout[-500:], r.stderr[-2000:])
+
+
 def test_a_frame_of_the_wrong_size_is_refused(modelled) -> None:
     pipe = Pipeline(modelled, compiled=True)
     assert pipe.kernel is not None
