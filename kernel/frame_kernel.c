@@ -535,14 +535,16 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
         }
     }
     for (int32_t i = 0; i < p->n_dead; i++) p->signal[p->dead[i]] = 0.0f;
-    if (p->band) { /* each fiber's band: s - clip(s, -band, band), as the numpy pipeline's two steps */
-        const float *band = p->band;
+    if (p->band) { /* levels.banded: u = (|s| - shift)+, sign(s) max(u - c2 / u, 0) */
+        const float *c2 = p->band + nf, *shift = p->band + 2 * nf;
         float *s = p->signal;
         for (int32_t i = 0; i < nf; i++) {
-            float v = s[i], b = band[i];
-            float c = v < b ? v : b;
-            c = c > -b ? c : -b;
-            s[i] = v - c;
+            float v = s[i], u = fabsf(v) - shift[i];
+            u = u > 0.0f ? u : 0.0f;
+            float d = u > 1e-30f ? u : 1e-30f;
+            float t = u - c2[i] / d;
+            t = t > 0.0f ? t : 0.0f;
+            s[i] = copysignf(t, v);
         }
     }
     if (p->support_nbr) { /* NeighbourSupport.peak: the frame's supported peak, a gate on its contacts */

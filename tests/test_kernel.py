@@ -257,6 +257,29 @@ def test_dead_fibers_filled_and_not(modelled, day) -> None:
     run_both(bundle, day[::3], dataclasses.replace(bundle.options, fill_dead=False))
 
 
+def test_bands_of_noise_and_of_drift_agree(modelled, day) -> None:
+    """Fibers banded by their noise (the garrote), by their drift (the shift) and by both, with an on level
+    chosen and with levels from the noise: the kernel's bands are the numpy pipeline's, frame by frame."""
+    from optitac_edge.core.levels import DRIFT_KEY, LEVELS_KEY, NOISE_KEY
+
+    n = modelled.fibers.n_fibers
+    rng = np.random.default_rng(7)
+    noise = np.full(n, 0.4, dtype=np.float32)
+    drift = np.full(n, 0.004, dtype=np.float32)
+    noise[rng.choice(n, 30, replace=False)] *= rng.uniform(3, 8, 30).astype(np.float32)
+    drift[rng.choice(n, 30, replace=False)] *= rng.uniform(3, 8, 30).astype(np.float32)
+    bundle = modelled.with_updates(extra_arrays={**modelled.extra_arrays, NOISE_KEY: noise, DRIFT_KEY: drift},
+                                   extra_meta={**modelled.extra_meta,
+                                               LEVELS_KEY: {"noise_samples": 100, "drift_samples": 100}})
+    options = dataclasses.replace(bundle.options, noise_levels=True, relative=True)
+    for on_level in (0.0, 0.04):
+        ref, _kern, _seen = run_both(bundle, day[::2], dataclasses.replace(options, on_level=on_level))
+        bands = ref.levels.bands
+        assert bands is not None
+        assert np.count_nonzero(bands[1]) >= 20 and np.count_nonzero(bands[2]) >= 20  # both kinds banded
+        assert np.count_nonzero((bands[1] > 0) & (bands[2] > 0)) >= 1
+
+
 @pytest.fixture()
 def solve_always(monkeypatch) -> None:
     """The kernel finds the gradients by the sparse solve whatever the cost (at 217 fibers the dense product

@@ -10,7 +10,7 @@ import pytest
 
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.core.layout import hex_layout
-from optitac_edge.core.levels import NOISE_KEY, ContactLevels, fiber_excess
+from optitac_edge.core.levels import NOISE_KEY, ContactLevels, banded, fiber_excess
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
@@ -32,22 +32,91 @@ def test_the_excess_is_each_fibers_excursion_beyond_the_typical_one() -> None:
                                atol=1e-6)
 
 
-def test_a_fibers_band_is_its_excess_at_the_on_level() -> None:
-    """Three fibers, one drifting 3 times as much as the others: its band is ``on * x``, ``x = 3 - 1 - tol`` its
-    excess beyond the typical fiber, so that with the band subtracted it reaches the on level at ``on (1 + x)``
-    (the band is subtracted from a press's values too: a drift rides on a press as on a rest frame, and keeping
-    a press's values read the real data set worse, core/levels.py)."""
+def _three_fibers(noise: list[float] | None, drift: list[float] | None, noise_is_drift: bool = False) -> ContactLevels:
+    """Levels over three fibers of light 100 (on level 0.1, relative), 51 samples each (tol = 2 / sqrt(100))."""
     from types import SimpleNamespace
 
     from optitac_edge.core.options import ContactOptions
 
     options = ContactOptions(noise_levels=True, relative=True, on_level=0.1)
-    fibers = SimpleNamespace(noise=None, drift=np.array([0.01, 0.01, 0.03]), baseline_frames=10, samples=51,
-                             n_fibers=3, known=True)
+    fibers = SimpleNamespace(noise=None if noise is None else np.array(noise),
+                             drift=None if drift is None else np.array(drift), baseline_frames=10, samples=51,
+                             n_fibers=3, known=True, noise_is_drift=noise_is_drift)
     levels = ContactLevels(options, 10.0, fibers)  # type: ignore[arg-type]
     levels.update(np.array([100.0, 100.0, 100.0]), np.ones(3, dtype=bool))
+    return levels
+
+
+def _through(levels: ContactLevels, values: list[float]) -> np.ndarray:
+    """The third fiber's signal through its band, for each of ``values`` (the others' at 0)."""
+    assert levels.bands is not None
+    out = []
+    for v in values:
+        s = np.array([0.0, 0.0, v], dtype=np.float32)
+        out.append(banded(s, levels.bands, np.zeros(3, np.float32), np.zeros(3, np.float32))[2])
+    return np.array(out)
+
+
+def test_a_drifting_fibers_band_is_subtracted_from_every_value() -> None:
+    """A fiber drifting 3 times as much as the others: its excess ``x = 3 - 1 - tol`` at the on level, ``on x``,
+    comes off every value, a press's too (a drift rides on a press as on a rest frame: keeping a drifting
+    fiber's press values read the real data set worse, core/levels.py); it reaches the on level at
+    ``on (1 + x)``."""
+    levels = _three_fibers(None, [0.01, 0.01, 0.03])
+    x = 3 - 1 - 0.2
     assert levels.band is not None and levels.band[0] == levels.band[1] == 0
-    assert float(levels.band[2]) == pytest.approx(0.1 * (3 - 1 - 0.2), rel=1e-5)  # tol = 2 / sqrt(100)
+    assert float(levels.band[2]) == pytest.approx(0.1 * x, rel=1e-5)
+    np.testing.assert_allclose(_through(levels, [0.05, 0.1 * (1 + x), 0.5, -0.5]),
+                               [0.0, 0.1, 0.5 - 0.1 * x, -(0.5 - 0.1 * x)], rtol=1e-5, atol=1e-7)
+
+
+def test_a_noisy_fibers_band_silences_its_noise_and_keeps_a_press() -> None:
+    """A fiber 3 times as noisy (frame to frame) as the others reaches the on level at ``on (1 + x)`` too, but a
+    press's values come through (less ``c^2 / s``, which falls as the press deepens): the simulator's dim
+    fibers are noisy, not drifting, and subtracting their band read its widths ~10 % wider."""
+    levels = _three_fibers([1.0, 1.0, 3.0], None)
+    x = 3 - 1 - 0.2
+    on = 0.1
+    assert levels.band is not None and levels.band[2] == pytest.approx(on * math.sqrt(x * (1 + x)), rel=1e-5)
+    low, at_on, deep = _through(levels, [on * math.sqrt(x * (1 + x)) * 0.99, on * (1 + x), 2.0])
+    assert low == 0.0 and at_on == pytest.approx(on, rel=1e-5)
+    assert deep == pytest.approx(2.0 - on * on * x * (1 + x) / 2.0, rel=1e-5)  # 0.025 below the value
+    # the same excursion from drift comes off a press whole: 0.18 below the value
+    drifting = _through(_three_fibers(None, [0.01, 0.01, 0.03]), [2.0])
+    assert drifting[0] == pytest.approx(2.0 - on * x, rel=1e-5)
+
+
+def test_noise_measured_between_snapshots_is_drift() -> None:
+    """Snapshots far apart (a labelled data set): what ``calibrate fibers`` measured as noise is the fibers'
+    drift between them, and is subtracted as a drift is."""
+    noisy = _three_fibers([1.0, 1.0, 3.0], None)
+    snapshots = _three_fibers([1.0, 1.0, 3.0], None, noise_is_drift=True)
+    assert noisy.bands is not None and snapshots.bands is not None
+    assert noisy.bands[2, 2] == 0.0 and noisy.bands[1, 2] > 0.0
+    assert snapshots.bands[1, 2] == 0.0 and snapshots.bands[2, 2] == pytest.approx(0.1 * 1.8, rel=1e-5)
+
+
+def test_rest_frames_far_apart_are_flagged_as_snapshots(bundle_path) -> None:
+    """``calibrate fibers`` counts only differences of rest frames within the gap as noise; with fewer than
+    two of them, every difference is drift, and the bundle says so (``noise_between_snapshots``)."""
+    from optitac_edge.calibration.fibers import measure_rest_noise
+    from optitac_edge.io.bundle_file import load_bundle
+
+    bundle = load_bundle(bundle_path)
+    sensor = SimulatedSensor(layout=bundle.layout, seed=5)
+    frames = np.stack([sensor.frame_from_darkening(sensor.darkening(())) for _ in range(6)])
+    mean = frames.astype(np.float64).mean(axis=0)
+    mean = mean if mean.ndim == 2 else mean.mean(axis=2)
+    close = np.arange(6, dtype=np.int64) * 16_666_667
+    video = measure_rest_noise(frames, bundle.fibers, mean, times_ns=close, gap_ns=500_000_000)
+    apart = measure_rest_noise(frames, bundle.fibers, mean, times_ns=close * 1000, gap_ns=500_000_000)
+    one_gap = measure_rest_noise(frames, bundle.fibers, mean, times_ns=np.array([0, 1, 2, 3, 4, 9]) * 10 ** 9,
+                                 gap_ns=1_500_000_000)
+    assert not video.between_snapshots and video.samples == 5
+    assert apart.between_snapshots and apart.samples == 5
+    assert not one_gap.between_snapshots and one_gap.samples == 4  # the far frame's difference left out
+    with pytest.raises(ValueError, match="5 times for 6 rest frames"):
+        measure_rest_noise(frames, bundle.fibers, mean, times_ns=close[:5], gap_ns=500_000_000)
 
 
 def _ring_jitter(sensor: SimulatedSensor, ring: np.ndarray, presses: list[Indenter | None], sigma: float,
@@ -80,12 +149,12 @@ def test_a_noisy_outer_ring_gets_bands_of_its_own_and_raises_no_level(compiled) 
     assert bundle.options.noise_rel < 2 * np.median(noise[inner])  # the typical fiber's, not the ring's
     press = Indenter("circle", 0.0, 0.0, size_mm=10.0, depth_mm=0.6)
     frames = rest[:10] + _ring_jitter(sensor, ring, [None] * 150 + [press] * 10, 0.03, seed=2)
-    for banded in (True, False):
-        b = bundle if banded else bundle.with_updates(extra_arrays={})
+    for with_bands in (True, False):
+        b = bundle if with_bands else bundle.with_updates(extra_arrays={})
         pipe = Pipeline(b, compiled=compiled)
         contacts = [pipe.process(f, k * PERIOD).n_contacts for k, f in enumerate(frames)]
         false = sum(n > 0 for n in contacts[10:160])
-        if banded:
+        if with_bands:
             assert pipe.levels.band is not None and np.count_nonzero(pipe.levels.band[ring]) >= 20
             assert np.count_nonzero(pipe.levels.band[inner]) <= 2
             assert false == 0 and all(n == 1 for n in contacts[160:]), (false, contacts[160:])

@@ -46,6 +46,7 @@ def calibrate_fibers(
     mirror: bool = False,
     thresholds: ContactThresholds | None = None,
     options: ContactOptions | None = None,
+    times_ns: np.ndarray | None = None,
 ) -> CalibrationBundle:
     """Build a calibration bundle from contact-free frames.
 
@@ -65,6 +66,9 @@ def calibrate_fibers(
         Contact options to store (default: ``ContactOptions()``); their
         measured fields (``noise_rel``, ``noise_gray``, ``black_level``) are
         replaced by what the rest frames show (see :func:`measure_rest_noise`).
+    times_ns : ndarray, shape (F,), int64, optional
+        The rest frames' capture times: only frames within ``options.gap_s`` of each other tell the
+        frame-to-frame noise (default: all consecutive frames do).
 
     Raises
     ------
@@ -85,16 +89,19 @@ def calibrate_fibers(
     matrix, factors = build_interpolation(layout, grid)
     report = _jsonable(result.report)
     log.info("fiber calibration of %dx%d %s frames: %s", w, h, pixel_format, fields(report))
-    noise = measure_rest_noise(rest_frames, result.table, gray.mean(axis=0))
+    options = options or ContactOptions()
+    gap_ns = None if times_ns is None else round(options.gap_s * 1e9)
+    noise = measure_rest_noise(rest_frames, result.table, gray.mean(axis=0), times_ns=times_ns, gap_ns=gap_ns)
     log.info("rest noise: %s", fields(noise.summary()))
-    options = dataclasses.replace(options or ContactOptions(), noise_rel=noise.noise_rel, noise_gray=noise.noise_gray,
+    options = dataclasses.replace(options, noise_rel=noise.noise_rel, noise_gray=noise.noise_gray,
                                   black_level=noise.black_level)
     bundle = CalibrationBundle(
         layout=layout, transform=result.transform, fibers=result.table, grid=grid,
         interpolation=matrix, thresholds=thresholds or ContactThresholds.for_pitch(layout.pitch_mm), options=options,
         fiber_map_report=report, surface_factors=factors,
         extra_arrays={NOISE_KEY: noise.fiber_noise} if noise.samples >= 2 else {},
-        extra_meta={LEVELS_KEY: {"noise_samples": noise.samples}} if noise.samples >= 2 else {},
+        extra_meta={LEVELS_KEY: {"noise_samples": noise.samples, "noise_between_snapshots": noise.between_snapshots}}
+        if noise.samples >= 2 else {},
     )
     if layout.fiducial is not None and np.any(layout.fiducial):
         bundle = _orient_by_fiducials(bundle, rest_frames)
@@ -145,6 +152,8 @@ class RestNoise:
     noise_rel: float
     noise_gray: float
     black_level: float
+    #: The frames were farther apart than the gap: the figure is the fibers' drift between snapshots.
+    between_snapshots: bool = False
 
     def summary(self) -> dict[str, float]:
         """For a line a person reads: the typical noise, the black level and the spread of the fibers' noise."""
@@ -159,6 +168,8 @@ def measure_rest_noise(
     table: Any,
     mean_gray: np.ndarray,
     baseline_frames: int = BASELINE_FRAMES,
+    times_ns: np.ndarray | None = None,
+    gap_ns: int | None = None,
 ) -> RestNoise:
     """Noise of each fiber and of the typical fiber, and the black level, from contact-free frames.
 
@@ -177,6 +188,11 @@ def measure_rest_noise(
     table : FiberTable
     mean_gray : ndarray, shape (H, W)
         Mean gray image of the rest frames (for the black level).
+    times_ns : ndarray, shape (F,), int64, optional
+        The frames' capture times, with ``gap_ns``: only differences of frames at most ``gap_ns`` apart count.
+        Snapshots seconds to minutes apart differ by each fiber's drift as well; counted as noise, the drift
+        was taken for zero-mean noise that a press's values need not lose (:mod:`optitac_edge.core.levels`).
+        Fewer than 2 such differences: nothing measured (``samples`` 0), the whole rest excursion is drift.
     """
     from optitac_edge.core.fiber_table import FiberSampler
 
@@ -184,18 +200,27 @@ def measure_rest_noise(
     background = mean_gray[labels == 0]
     black = float(np.median(background)) if background.size else 0.0
     n = table.n_fibers
+    close = np.ones(max(len(rest_frames) - 1, 0), dtype=bool)
+    if times_ns is not None and gap_ns is not None:
+        t = np.asarray(times_ns, dtype=np.int64)
+        if t.shape != (len(rest_frames),):
+            raise ValueError(f"{t.shape[0] if t.ndim else 0} times for {len(rest_frames)} rest frames")
+        close = np.diff(t) <= gap_ns
+    between = int(close.sum()) < 2
+    if between:  # snapshots: every difference tells drift, not frame-to-frame noise
+        close = np.ones_like(close)
     if len(rest_frames) < 3:
         return RestNoise(np.zeros(n, dtype=np.float32), 0, 0.0, 0.0, black)
     sampler = FiberSampler(table)
     buf = np.zeros(n, dtype=np.float32)
     means = np.stack([sampler.means(np.ascontiguousarray(f), buf).astype(np.float64)
                       for f in rest_frames])
-    sigma = np.std(np.diff(means, axis=0), axis=0, ddof=1) / math.sqrt(2.0)
+    sigma = np.std(np.diff(means, axis=0)[close], axis=0, ddof=1) / math.sqrt(2.0)
     live = ~np.asarray(table.dead, dtype=bool)
     sigma[~live] = 0.0
     level = np.maximum(means.mean(axis=0) - black, 1.0)
     relative = sigma / level
     factor = math.sqrt(1.0 + 1.0 / max(baseline_frames, 1))
     alive = live if live.any() else np.ones(n, dtype=bool)
-    return RestNoise(sigma.astype(np.float32), len(rest_frames) - 1,
-                     factor * float(np.median(relative[alive])), factor * float(np.median(sigma[alive])), black)
+    return RestNoise(sigma.astype(np.float32), int(close.sum()),
+                     factor * float(np.median(relative[alive])), factor * float(np.median(sigma[alive])), black, between)

@@ -159,8 +159,8 @@ class FrameKernel:
             "baseline": baseline.values, "level": baseline.level, "inv_level": baseline.inv_level,
             "rest": self.rest, "contacts": self.contacts,
         }
-        if pipe.levels.band is not None:  # each fiber's band (the levels write it; the kernel reads it)
-            plan["band"] = pipe.levels.band
+        if pipe.levels.bands is not None:  # each fiber's band (the levels write it; the kernel reads it)
+            plan["band"] = pipe.levels.bands.reshape(-1)
         if pipe.support is not None:  # each fiber's neighbours, for its support
             plan["support_nbr"] = pipe.support.table.reshape(-1)
         #: The corrector whose models the kernel applies (None: the kernel gives raw contacts).

@@ -18,25 +18,36 @@ Each fiber's rest excursion is modelled in two parts, measured apart:
   levels``: what every rest frame of the user's own recordings shows beyond
   the noise; minutes apart, a few percent).
 
-At every new baseline ``e_i = sqrt((noise_i / light_i)^2 + drift_i^2)``. A
-fiber whose ``e_i`` exceeds the typical fiber's ``e_ref`` (the median over the
-live ones) by more than the estimate's own uncertainty ``tol`` gets a *band*
-``on * (e_i / e_ref - 1 - tol)``, and its signal is shrunk towards 0 by that
-much (``s - clip(s, -band, band)``) before the surface; so no fiber wanders
-further than ``e_ref (1 + tol)`` at the on level, and that is the noise the
-levels are ``k`` times where no on level was chosen. A fiber that wanders four
-times as much as the others then reaches the on level only as often as they
-do, and raises no level of every fiber (a level over the whole surface from its
-noisiest part did: on a real 61-fiber sensor the contact level came out at 54 %
-darkening, and 1 of 30 presses was found).
+At every new baseline ``e_i = sqrt(n_i^2 + d_i^2)``, ``n_i`` its noise relative
+to its light, ``d_i`` its drift. A fiber whose ``e_i`` exceeds the typical
+fiber's ``e_ref`` (the median over the live ones) by more than the estimate's
+own uncertainty ``tol``, by the *excess* ``x = e_i / e_ref - 1 - tol > 0``, gets
+a band by the source of its excursion (:func:`band_rows`, :func:`banded`):
 
-The band is subtracted from a press's values too. Keeping them instead (0 up
-to the band, steeper beyond, the fiber's own value from about twice the band)
-read the simulator's widths and shapes better -- its banded fibers are dim ones
-whose noise is zero-mean frame to frame -- but the real sensor's worse: on the
-public data set (docs/accuracy.md) 26 of 27 presses found and 2 of 15 rest
-frames false against 27 and 1, force 1.42 or 3.76 N against 1.33 N. There the
-banded fibers are the drifting ones, and a drift rides on the press as well.
+* the drift's share ``w = d^2 / e^2`` of the excess, ``b_d = on x w``, is
+  *subtracted* from every value: a drift is an offset on every frame, press or not;
+* the rest, ``x' = x (1 - w)``, frame-to-frame noise (zero-mean), only
+  *silences*, through a non-negative garrote: with ``u = (|s| - b_d)_+``,
+
+    ``f(s) = sign(s) (u - c^2 / u)_+``,  ``c^2 = on^2 x' (1 + x')``,
+
+  0 up to ``u = c``, twice as steep there, the value itself (less ``c^2 / u``,
+  which falls as the press deepens) beyond.
+
+Either way the fiber reaches the on level where ``s`` reaches ``on (1 + x)``,
+so no fiber wanders further than ``e_ref (1 + tol)`` at the on level, and that
+is the noise the levels are ``k`` times where no on level was chosen. A fiber
+that wanders four times as much as the others then reaches the on level only
+as often as they do, and raises no level of every fiber (a level over the
+whole surface from its noisiest part did: on a real 61-fiber sensor the
+contact level came out at 54 % darkening, and 1 of 30 presses was found).
+
+Why by source: subtracting the whole band from every value moved a noisy
+fiber's values inside every press (the simulator's dimmest fibers are banded
+from their noise alone: a 217-fiber array read its widths ~10 % and its shapes
+worse), and keeping every banded fiber's press values read the real sensor
+worse (its banded fibers drift, and a drift rides on a press: 26 of 27 presses
+and 2 of 15 false against 27 and 1, force 1.42-3.76 N against 1.33 N).
 """
 
 from __future__ import annotations
@@ -63,6 +74,64 @@ TOLERANCE_ERRORS = 2.0
 #: compensate_gain: the LED gain of a frame with contact may differ from the last contact-free
 #: frame's by this many truncation levels (plus ``gain_rate_per_s`` times the time since).
 GAIN_TOLERANCE = 0.1
+
+
+def band_rows(excess: np.ndarray, drift_share: np.ndarray, on: float, out: np.ndarray) -> np.ndarray:
+    """Each fiber's band from its excess and the drift's share of it, as :func:`banded` reads them.
+
+    Parameters
+    ----------
+    excess : ndarray, shape (N,)
+        Each fiber's excess ``x`` beyond the typical fiber (<= 0: none).
+    drift_share : ndarray, shape (N,)
+        The drift's share ``w`` of its excursion's variance, 0..1.
+    on : float
+        The on level, signal units.
+    out : ndarray, shape (3, N), float32
+        Rows: where the fiber starts to count above the shift, ``c``; ``c^2``; the shift ``b_d``
+        (``b_d = on x w``, ``x' = x (1 - w)``, ``c^2 = on^2 x' (1 + x')``); a fiber with no excess: 0, 0, 0.
+
+    Returns
+    -------
+    ndarray
+        ``out``.
+    """
+    x = np.maximum(np.asarray(excess, dtype=np.float64), 0.0)
+    w = np.clip(np.asarray(drift_share, dtype=np.float64), 0.0, 1.0)
+    shift = on * x * w
+    rest = x * (1.0 - w)
+    c2 = (on * on) * rest * (1.0 + rest)  # the garrote u - c^2 / u reaches on at u = on (1 + x')
+    out[0] = np.sqrt(c2)
+    out[1] = c2
+    out[2] = shift
+    return out
+
+
+def banded(signal: np.ndarray, bands: np.ndarray, magnitude: np.ndarray, work: np.ndarray) -> np.ndarray:
+    """Each fiber's signal through its band, in place: ``sign(s) (u - c^2 / u)_+``, ``u = (|s| - b_d)_+``.
+
+    Parameters
+    ----------
+    signal : ndarray, shape (N,), float32
+        Each fiber's signal; overwritten.
+    bands : ndarray, shape (3, N), float32
+        ``c``, ``c^2`` and the shift ``b_d`` per fiber (:func:`band_rows`).
+    magnitude, work : ndarray, shape (N,), float32
+        Buffers.
+
+    Returns
+    -------
+    ndarray
+        ``signal``; the float32 steps are the kernel's, one for one.
+    """
+    np.abs(signal, out=magnitude)
+    np.subtract(magnitude, bands[2], out=magnitude)
+    np.maximum(magnitude, 0.0, out=magnitude)  # u = (|s| - shift)+
+    np.maximum(magnitude, np.float32(1e-30), out=work)
+    np.divide(bands[1], work, out=work)
+    np.subtract(magnitude, work, out=work)  # u - c^2 / u
+    np.maximum(work, 0.0, out=work)
+    return np.copysign(work, signal, out=signal)
 
 
 def tolerance(samples: int) -> float:
@@ -123,6 +192,16 @@ def rest_excursion(noise_gray: np.ndarray | None, drift: np.ndarray | None, ligh
     return np.sqrt(e2)
 
 
+def drift_share(drift: np.ndarray | None, excursion: np.ndarray) -> np.ndarray:
+    """The drift's share of each fiber's rest excursion's variance, ``d^2 / e^2`` (0 where ``e`` is 0 or no
+    drift was measured), shape (N,)."""
+    if drift is None:
+        return np.zeros(excursion.shape)
+    d2 = np.square(np.asarray(drift, dtype=np.float64))
+    e2 = np.square(excursion)
+    return np.divide(d2, e2, out=np.zeros(e2.shape), where=e2 > 0)
+
+
 class FiberModel:
     """A bundle's per-fiber noise (gray levels) and drift (relative), and how many values each is from."""
 
@@ -134,6 +213,8 @@ class FiberModel:
         self.samples = int(meta.get("drift_samples" if self.drift is not None else "noise_samples", 0))
         self.baseline_frames = bundle.baseline_frames
         self.n_fibers = bundle.layout.n_fibers
+        #: The noise was measured between snapshots: it is drift too.
+        self.noise_is_drift = bool(meta.get("noise_between_snapshots", False))
 
     @property
     def known(self) -> bool:
@@ -167,10 +248,12 @@ class ContactLevels:
         self.gain_significant = 0.0
         per_fiber = fibers is not None and fibers.known and options.noise_levels and options.relative
         self._fibers = fibers if per_fiber else None
-        #: Each fiber's band, signal units, shape (N,), float32 (None: no per-fiber model); ``-band`` beside it.
-        self.band: np.ndarray | None = (np.zeros(fibers.n_fibers, dtype=np.float32)
-                                        if per_fiber and fibers is not None else None)
-        self.neg_band: np.ndarray | None = None if self.band is None else np.zeros_like(self.band)
+        #: Each fiber's ``c``, ``c^2`` and shift, shape (3, N), float32, as the kernel reads them
+        #: (:func:`band_rows`; None: no per-fiber model).
+        self.bands: np.ndarray | None = None
+        if per_fiber and fibers is not None:
+            self.bands = band_rows(np.zeros(fibers.n_fibers), np.zeros(fibers.n_fibers), 0.0,
+                                   np.zeros((3, fibers.n_fibers), dtype=np.float32))
         #: The widest rest excursion of a fiber once banded, ``e_ref (1 + tol)``, at the last baseline, relative
         #: units (NaN: not per fiber): what the levels are ``k`` times where none was chosen.
         self.noise = math.nan
@@ -182,7 +265,7 @@ class ContactLevels:
         rest = float(np.median(values)) - o.black_level if values.size else 1.0
         rest = max(rest, 1.0)
         unit = 1.0 if o.relative else rest  # signal units per relative unit
-        excess = None
+        excess = share = None
         sigma_rel = o.noise_rel
         if self._fibers is not None:
             f = self._fibers
@@ -191,6 +274,7 @@ class ContactLevels:
             alive = live if live.any() else np.ones(e.shape, dtype=bool)
             self.noise = sigma_rel = float(np.median(e[alive])) * (1.0 + tolerance(f.samples))
             excess = fiber_excess(e, alive, f.samples)
+            share = np.ones(e.shape) if f.noise_is_drift else drift_share(f.drift, e)
         if o.noise_levels and o.on_level > 0:  # chosen on held-out presses
             on = max(o.on_level, o.floor_on) * unit
             off = max(on * o.k_off / o.k_on, o.floor_off * unit)
@@ -213,12 +297,16 @@ class ContactLevels:
         self.gain_delta = float(off) / unit
         self.gain_tolerance = GAIN_TOLERANCE * float(trunc) / unit
         self.gain_significant = float(trunc) / unit
-        if self.band is not None and self.neg_band is not None:
-            if excess is None:
-                self.band.fill(0.0)
-            else:
-                np.multiply(excess, self.on, out=self.band)
-            np.negative(self.band, out=self.neg_band)
+        if self.bands is not None:
+            zero = np.zeros(self.bands.shape[1])
+            band_rows(zero if excess is None else excess, zero if share is None else share, float(self.on),
+                      self.bands)
+
+    @property
+    def band(self) -> np.ndarray | None:
+        """Where each fiber's signal starts to count, ``b_d + c``, signal units, shape (N,) (0: no band; None:
+        no per-fiber model)."""
+        return None if self.bands is None else self.bands[0] + self.bands[2]
 
     def as_tuple(self) -> tuple[float, float, float]:
         """(truncation, off, on) as floats."""

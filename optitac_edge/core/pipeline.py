@@ -92,7 +92,7 @@ from optitac_edge.core.fiber_table import FiberSampler
 from optitac_edge.core.frame_check import FrameCheck
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.gain import GainCompensation, LedGain
-from optitac_edge.core.levels import ContactLevels, FiberModel
+from optitac_edge.core.levels import ContactLevels, FiberModel, banded
 from optitac_edge.core.motion import ContactMotion
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.segmentation import Segmenter
@@ -210,6 +210,7 @@ class Pipeline:
         self.blobs = BlobMeasurer(grid, self.levels, min_area, o.peak_fraction, o.shape_fraction)
         self._means, self._signal = np.zeros(n_fibers, dtype=np.float32), np.zeros(n_fibers, dtype=np.float32)
         self._clipped = np.zeros(n_fibers, dtype=np.float32)
+        self._band_work = np.zeros(n_fibers, dtype=np.float32)
         #: Neighbour support of each fiber's signal (None: off).
         self.support = NeighbourSupport(neighbour_table(bundle.layout)) if o.support else None
         self._surface = np.zeros(grid.n * grid.n, dtype=np.float32)
@@ -453,11 +454,8 @@ class Pipeline:
                 np.multiply(signal, self.baseline.inv_level, out=signal)
         if self._has_dead:
             signal[self._dead] = 0.0
-        band = self.levels.band
-        if band is not None and self.levels.neg_band is not None:  # each fiber's band: s - clip(s, -band, band)
-            clipped = np.minimum(signal, band, out=self._clipped)
-            np.maximum(clipped, self.levels.neg_band, out=clipped)
-            signal -= clipped
+        if self.levels.bands is not None:  # each fiber's band (core/levels.py)
+            banded(signal, self.levels.bands, self._clipped, self._band_work)
         return signal
 
 

@@ -84,7 +84,8 @@ def _fibers(args: argparse.Namespace) -> int:
                                   rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
     else:
         bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
-                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror,
+                                  times_ns=rec.t_ns[: rec.meta.rest_frames])
     bundle = save_bundle(bundle, output)
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
