@@ -193,11 +193,12 @@ class Collector:
         try:
             rec.write_rows([r for entry in entries for r in entry["rows"]], kept_t)
             if setup:
-                symmetry, touch = self._resume(rec, setup, f"{len(done)} of {len(presses)}")
+                symmetry, touch = self._resume(rec, setup, f"{len(done)} of {len(presses)}", len(done) < len(presses))
             else:
                 symmetry, touch = self._set_up(rec, presses, journal, {"experiment": experiment, "seed": seed})
             self._press_all(rec, presses, len(done), journal)
             self._park()
+            rec.flush()  # any frames since the last press get their rows
         except BaseException as exc:
             unsafe = self._retract_after(exc)
             self.writer.abort("interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {exc}")
@@ -212,7 +213,8 @@ class Collector:
         (self.writer.target / JOURNAL).unlink(missing_ok=True)
         return result
 
-    def _resume(self, rec: RigRecorder, setup: dict[str, Any], after: str) -> tuple[str, dict[str, float]]:
+    def _resume(self, rec: RigRecorder, setup: dict[str, Any], after: str,
+                presses_left: bool) -> tuple[str, dict[str, float]]:
         """Go on from an interrupted collection's setup: its rig frame, orientation and touch-off."""
         saved = setup["rig_frame"]
         rec.frame = RigFrame(origin_xy_mm=(float(saved["origin_xy_mm"][0]), float(saved["origin_xy_mm"][1])),
@@ -223,7 +225,8 @@ class Collector:
         self.prompt(f"continuing {setup['experiment']} after press {after}")
         # a kill or a power cut left the tip where it was, maybe in the skin: straight up first
         self.rig.retract()
-        rec.frames(self.settings.rest_frames, "rest", None)  # a fresh baseline
+        if presses_left:
+            rec.frames(self.settings.rest_frames, "rest", None)  # a fresh baseline
         return setup["bundle_orientation"], setup.get("touch_off", {})
 
     def _set_up(self, rec: RigRecorder, presses: list[PlannedPress], journal: Path,

@@ -114,6 +114,12 @@ class RigRecorder:
                 if row.get("contact") else None
             self.writer.write_truth(row["frame"], press, phase=row["phase"], rig_xyz_mm=xyz, motion=motion)
 
+    def flush(self) -> None:
+        """Write the rows kept since the last :meth:`commit` (the end of a collection: no journal line, as the
+        journal goes with it; interrupted before the end, the journal's last step decides what is kept)."""
+        self.write_rows(self.rows, self.times)
+        self.rows, self.times = [], []
+
     def commit(self, journal: Path, entry: dict[str, Any], new: bool = False) -> None:
         """End a step: its rows written, its frames durable, then its journal line (``entry`` with the step's
         rows, times and the recording's segments) appended and made durable: the resume point."""
