@@ -206,3 +206,77 @@ def test_a_failed_write_of_the_recordings_metadata_leaves_it_incomplete(tmp_path
     with pytest.raises(OutputError, match="No space left"):
         w.close()
     assert not (path / "meta.json").exists() and (path / "incomplete.json").exists()
+
+
+# -- issue 38, item 9: a --fresh replacement killed between its two renames -----------------------------------
+
+
+def _sim_rest(path, frames: int) -> None:
+    from optitac_edge.cli import main
+
+    assert main(["sim", str(path), "--scenario", "rest", "--frames", str(frames)]) == 0
+
+
+def test_a_replacement_killed_between_its_renames_is_named_by_readers_and_finished_by_the_next_run(tmp_path,
+                                                                                                    capsys):
+    """--fresh killed between 'NAME -> NAME.old' and 'NAME.new -> NAME' left both complete and NAME gone:
+    readers said 'not found', and two more --fresh runs deleted both complete copies. Now every reader names
+    the complete one, and the next run puts the new one back before anything else."""
+    from optitac_edge.cli import main
+
+    out = tmp_path / "rest"
+    _sim_rest(tmp_path / "rest.old", 12)  # the recording being replaced
+    _sim_rest(tmp_path / "rest.new", 20)  # the complete new one
+    with pytest.raises(RecordingError, match=r"rest: not found, but .*rest\.new is a complete recording"):
+        Recording(out)
+    capsys.readouterr()
+    assert main(["sim", str(out), "--scenario", "rest", "--frames", "15"]) == 2  # no --fresh: refused...
+    assert "holds a complete recording" in capsys.readouterr().err
+    assert len(Recording(out)) == 20 and len(Recording(tmp_path / "rest.old")) == 12  # ...after the new one is back
+    assert main(["sim", str(out), "--scenario", "rest", "--frames", "15", "--fresh"]) == 0
+    assert len(Recording(out)) == 15 and not (tmp_path / "rest.new").exists() and not (tmp_path / "rest.old").exists()
+
+
+def test_a_stop_signal_during_the_renames_waits_until_the_new_recording_is_in_place(tmp_path, monkeypatch):
+    """A signal between the two renames: held until both are done (the new recording in its place, nothing
+    left beside it), then raised; the line says the recording was replaced (it said 'unchanged')."""
+    import argparse
+    import os
+    import signal
+
+    from optitac_edge.cli.common import recording_left
+    from optitac_edge.io import recording_paths
+    from optitac_edge.io.recording import RecordingMeta
+    from optitac_edge.io.recording_writer import RecordingWriter
+
+    out = tmp_path / "rest"
+    _sim_rest(out, 12)
+
+    class Stopped(Exception):
+        pass
+
+    def stop(signum, frame):
+        raise Stopped
+
+    real_rename = os.rename
+    calls = []
+
+    def rename(a, b):
+        calls.append((a, b))
+        real_rename(a, b)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)  # after the first rename, before the second
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        writer = RecordingWriter(out, 6, (8, 8), RecordingMeta(rest_frames=5, fps=30.0), replace=True)
+        for k in range(6):
+            writer.write(k, np.zeros((8, 8), np.uint8), k * 33_000_000)
+        monkeypatch.setattr(recording_paths.os, "rename", rename)
+        with pytest.raises(Stopped):
+            writer.close()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert len(calls) == 2 and len(Recording(out)) == 6 and not (tmp_path / "rest.new").exists()
+    args = argparse.Namespace(out_dir=str(out), replacing=True)
+    assert recording_left(args) == f"recording {out} replaced by the new one (complete)"

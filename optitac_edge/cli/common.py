@@ -6,9 +6,11 @@ import argparse
 import math
 import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, NoReturn
 
 from optitac_edge.errors import OptiTacError
+from optitac_edge.io.recording_paths import staging_path
 from optitac_edge.text import parse_float, parse_int
 
 EXIT_ERROR = 2
@@ -114,5 +116,7 @@ def recording_left(args: argparse.Namespace) -> str:
     one it was replacing (unchanged)."""
     out = getattr(args, "out_dir", None) or args.output
     if getattr(args, "replacing", False):
+        if not staging_path(Path(out)).exists():  # the signal came as the complete new one took its place
+            return f"recording {out} replaced by the new one (complete)"
         return f"recording {out} unchanged (the new one was not complete)"
     return f"recording {out} is incomplete (not usable; record it again)"

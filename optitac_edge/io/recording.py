@@ -42,6 +42,7 @@ import numpy as np
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, RecordingError
 from optitac_edge.io.frame_store import STORAGES
+from optitac_edge.io.recording_paths import interrupted_swap
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
 #: Optional columns after TRUTH_HEADER: the phase of the press and the rig's pose (rig frame, mm).
@@ -418,6 +419,11 @@ class Recording:
             self._open_mcap()
             return
         if not self.path.is_dir():
+            left = interrupted_swap(self.path)
+            if left is not None:  # a --fresh replacement killed between its two renames
+                raise RecordingError(f"{self.path}: not found, but {left} is a complete recording (a replacement "
+                                     f"was interrupted): the next record, sim or collect to {self.path.name} puts it "
+                                     f"back, or rename it to {self.path.name}")
             raise RecordingError(f"{self.path}: recording directory not found")
         if (self.path / INCOMPLETE_MARKER).exists():
             raise RecordingError(f"{self.path}: {_missing_meta(self.path)}")

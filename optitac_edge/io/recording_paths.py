@@ -9,12 +9,21 @@ complete.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from optitac_edge.errors import OutputError
 from optitac_edge.io.files import fsync_directory
+
+log = logging.getLogger(__name__)
+#: The signals a terminal or systemd stops a command with: held back while a replacement renames.
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def holds_recording(path: Path) -> bool:
@@ -27,8 +36,44 @@ def staging_path(target: Path) -> Path:
     return target.with_name(target.name + ".new")
 
 
+def aside_path(target: Path) -> Path:
+    """Where a replaced recording waits while the new one takes its name: ``TARGET.old``."""
+    return target.with_name(target.name + ".old")
+
+
+def interrupted_swap(target: Path) -> Path | None:
+    """A complete recording a replacement left beside ``target`` when it was killed between its two renames
+    (``target`` gone): the new one (``TARGET.new``) or else the replaced one (``TARGET.old``); None when
+    ``target`` exists or neither is complete."""
+    if target.exists() or target.is_symlink():
+        return None
+    return next((p for p in (staging_path(target), aside_path(target)) if holds_recording(p)), None)
+
+
+def recover_swap(target: Path) -> None:
+    """Finish a replacement killed between its two renames: the complete recording beside ``target`` (the
+    new one first) takes its name. Nothing is deleted.
+
+    Raises
+    ------
+    OutputError
+        The rename fails.
+    """
+    left = interrupted_swap(target)
+    if left is None:
+        return
+    try:
+        os.rename(left, target)
+        fsync_directory(target.parent)
+    except OSError as exc:
+        raise OutputError(f"{target}: missing, and the complete recording {left} cannot take its place: "
+                          f"{exc.strerror or exc}; rename it to {target.name}") from None
+    log.warning("%s: a replacement was interrupted between its two renames; %s took its place", target, left.name)
+
+
 def check_writable_recording(path: str | Path, replace: bool) -> Path:
-    """``path`` as a Path, refused when it holds a complete recording and ``replace`` is not given.
+    """``path`` as a Path, refused when it holds a complete recording and ``replace`` is not given. A
+    replacement killed between its renames is finished first (:func:`recover_swap`).
 
     Raises
     ------
@@ -36,25 +81,48 @@ def check_writable_recording(path: str | Path, replace: bool) -> Path:
         One line naming the recording and ``--fresh``.
     """
     target = Path(path)
+    recover_swap(target)
     if holds_recording(target) and not replace:
         raise OutputError(f"{target}: holds a complete recording; give another output, or --fresh to replace it "
                           "(it is kept until the new one is complete)")
     return target
 
 
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold back SIGINT, SIGTERM and SIGHUP (delivered once the block ends): the main thread only."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
 def swap_in(staging: Path, target: Path) -> None:
     """Put the complete recording ``staging`` in the place of the complete recording ``target``.
 
     ``target`` is renamed aside first, so at every moment one complete recording is at one of the
-    two names, then removed.
+    two names, then removed. Ctrl-C and the stop signals wait until both renames are done; a kill
+    between them is finished by the next writer (:func:`recover_swap`) and named by every reader.
     """
-    aside = target.with_name(target.name + ".old")
+    aside = aside_path(target)
     try:
-        shutil.rmtree(aside, ignore_errors=True)
-        os.rename(target, aside)
-        os.rename(staging, target)
-        fsync_directory(target.parent)
+        _remove(aside)
+        with _signals_held():
+            os.rename(target, aside)
+            os.rename(staging, target)
+            fsync_directory(target.parent)
     except OSError as exc:
         raise OutputError(f"cannot put {staging} in the place of {target}: {exc.strerror or exc} "
                           f"(the new recording is complete in {staging})") from None
-    shutil.rmtree(aside, ignore_errors=True)
+    _remove(aside)

@@ -10,6 +10,7 @@ from typing import Any
 
 from optitac_edge.cli.common import add_board, add_storage, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
+from optitac_edge.io.recording_paths import staging_path
 
 
 def add_parser(sub: Any) -> None:
@@ -82,6 +83,8 @@ def _wait_for_enter(line: str) -> None:
 def left(args: argparse.Namespace) -> str:
     """What an interrupted collection left behind (the tip is retracted first), for its one line."""
     if getattr(args, "replacing", False):
+        if not staging_path(Path(args.output)).exists():  # the signal came as the new one took its place
+            return f"tip retracted; recording {args.output} replaced by the new collection (complete)"
         return (f"tip retracted; recording {args.output} unchanged (the new collection in "
                 f"{args.output}.new is incomplete; --fresh starts it again)")
     return (f"tip retracted; recording {args.output} is incomplete: run the same command again to continue "
