@@ -145,6 +145,22 @@ def test_keep_deletes_only_what_the_service_wrote_and_numbers_after_its_own_file
     assert again.files == [rotated_name(path, int(pub.files[-1].stem.split("-")[1]) + 1)]
 
 
+def test_keep_never_deletes_a_users_file_that_took_a_deleted_files_name(tmp_path):
+    """keep_mb deleted a user's file whose name the service had once written (and deleted): the names stayed
+    in NAME.files after their files were gone. A deleted file's name now leaves the list."""
+    from optitac_edge.io.publishers.mcap import manifest_path
+
+    path = tmp_path / "run.mcap"
+    first = _write(path, range(3000), max_bytes=20_000, keep_bytes=40_000)
+    assert first.deleted
+    listed = manifest_path(path).read_text().split()
+    assert not any(f.name in listed for f in first.deleted)
+    mine = first.deleted[0]
+    mine.write_bytes(b"a user's file under a name the service once used")
+    _write(path, range(3000), max_bytes=20_000, keep_bytes=40_000)
+    assert mine.read_bytes().startswith(b"a user's file")
+
+
 def test_keep_deletes_the_oldest_complete_files_and_never_a_part(tmp_path):
     path = tmp_path / "run.mcap"
     part = tmp_path / "run-0000.mcap.part"

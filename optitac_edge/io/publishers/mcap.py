@@ -40,6 +40,7 @@ from typing import IO, Any
 from mcap.writer import CompressionType, Writer
 
 from optitac_edge.errors import OutputError
+from optitac_edge.io.files import write_file_atomic
 from optitac_edge.io.mcap_file import SYNC_NS, PeriodicSync, complete, open_part
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2.messages import ros2msg_schema
@@ -303,6 +304,19 @@ class McapPublisher(Publisher):
             total -= sizes[f]
             self.deleted.append(f)
             log.info("MCAP: deleted %s (the recording keeps its newest %d MB)", f, self.keep_bytes // 10**6)
+        self._unlist({f.name for f in self.deleted})
+
+    def _unlist(self, names: set[str]) -> None:
+        """Take deleted files' names off the manifest (atomically): a user's file that later takes such a
+        name is not the service's to delete."""
+        manifest = manifest_path(self.path)
+        try:
+            listed = manifest.read_text(encoding="utf-8").split()
+            kept = [n for n in listed if n not in names]
+            if len(kept) != len(listed):
+                write_file_atomic(manifest, "".join(n + "\n" for n in kept))
+        except (OSError, UnicodeDecodeError, OutputError) as exc:
+            log.warning("MCAP: cannot update %s: %s", manifest, exc)
 
     @property
     def where(self) -> str:
