@@ -134,6 +134,50 @@ def test_a_stuck_network_costs_the_frame_loop_nothing_and_every_drop_is_counted(
     assert frames == sorted(frames) and frames[-1] == offered - 1  # the newest kept, the oldest dropped
 
 
+class SlowStorage(StuckPublisher):
+    """Each publish waits until released (an SD card's 0.4 s fsyncs); closing during one is the failure
+    the real MCAP writer met ('write to closed file')."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.in_publish = 0
+        self.closed_during_publish = False
+
+    def publish(self, handle: int, payload: bytes, source_ns: int) -> None:
+        self.in_publish += 1
+        try:
+            super().publish(handle, payload, source_ns)
+        finally:
+            self.in_publish -= 1
+
+    def _close_internal(self) -> None:
+        self.closed_during_publish = self.in_publish > 0
+        super()._close_internal()
+
+
+def test_closing_on_slow_storage_never_closes_the_publisher_under_a_write(store, monkeypatch):
+    """run --mcap on an SD card: close() waited 5 s for the publishing thread, then closed the publisher while
+    the thread still wrote (ValueError: write to closed file, exit 1, no summary). Now what is still queued
+    after the wait is dropped and counted, and the publisher is closed once the write under way ends."""
+    from optitac_edge.service import network
+
+    monkeypatch.setattr(network, "CLOSE_WAIT_S", 0.05)
+    pub = SlowStorage()
+    net = NetworkOutput(pub, [sensor(5)], queue=64)
+    for k in range(20):
+        net.offer_frame(5, frame_(k, contact(1, k, 0), t_ns=k), False)
+    assert pub.waiting.wait(10)  # the first is being written
+    closing = threading.Thread(target=net.close)
+    closing.start()
+    closing.join(0.5)
+    assert closing.is_alive()  # waits for the write under way...
+    pub.release.set()
+    closing.join(10)
+    assert not closing.is_alive() and not pub.closed_during_publish  # ...and closes after it
+    published, dropped = net.counters(5)
+    assert published + dropped == 20 and dropped >= 1  # what was still queued is counted, not lost silently
+
+
 def test_status_reports_the_sensor_and_the_publishers_counters(store):
     pub = VirtualPublisher()
     with NetworkOutput(pub, [sensor(2, "index-1")], signal_hz=10) as net:

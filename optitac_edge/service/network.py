@@ -40,6 +40,11 @@ log = logging.getLogger(__name__)
 
 #: Entries the queue holds before it drops the oldest (about a second at 240 fps with 1 sensor).
 DEFAULT_QUEUE = 256
+#: How long closing waits for the queue to be sent (s); what is still queued then is dropped and counted.
+CLOSE_WAIT_S = 5.0
+#: Then how long it waits for the write under way (slow storage: an SD card's fsync) before leaving the
+#: publisher open rather than closing it under the write (s).
+WRITE_WAIT_S = 30.0
 
 #: Points of a contact's outline on the image.
 _OUTLINE_POINTS = 24
@@ -221,6 +226,9 @@ class NetworkOutput:
         self._queue: deque[_Queued] = deque(maxlen=queue)
         self._wake = threading.Event()
         self._stop = threading.Event()
+        #: Closing gave up on the queue: the thread drops what is left (counted) and ends.
+        self._abandon = threading.Event()
+        self._left_open = False
         self.errors = 0
         self._thread = threading.Thread(target=self._run, name="optitac-publish", daemon=True)
         self._thread.start()
@@ -275,9 +283,19 @@ class NetworkOutput:
             wake.wait(0.5)
             wake.clear()
             while queue:
+                if self._abandon.is_set():
+                    self._drop_queued()
+                    return
                 self._send(queue.popleft())
             if self._stop.is_set() and not queue:
                 return
+
+    def _drop_queued(self) -> None:
+        """Closing gave up waiting: what is queued is dropped, each entry counted for its sensor."""
+        while self._queue:
+            slot, seq, _t, _message = self._queue.popleft()
+            slot.dropped += seq - slot.taken
+            slot.taken = seq
 
     def _send(self, item: _Queued) -> None:
         slot, seq, t_ns, message = item
@@ -344,14 +362,25 @@ class NetworkOutput:
         return slot.published, slot.dropped
 
     def close(self) -> None:
-        """Send what is queued, stop the thread, close the publisher (idempotent)."""
+        """Send what is queued (for up to :data:`CLOSE_WAIT_S`; the rest dropped and counted), stop the thread,
+        close the publisher once no write is under way (idempotent). A write that does not end within
+        :data:`WRITE_WAIT_S` leaves the publisher open (its file stays as written, a ``.part``), never
+        closed under it."""
         if not self._stop.is_set():
             self._stop.set()
             self._wake.set()
-            self._thread.join(timeout=5.0)
+            self._thread.join(timeout=CLOSE_WAIT_S)
             if self._thread.is_alive():
-                log.warning("the publishing thread did not end within 5 s")
-        self.publisher.close()
+                self._abandon.set()
+                log.warning("publishing did not catch up within %g s of the stop: what is still queued is "
+                            "dropped (counted)", CLOSE_WAIT_S)
+                self._thread.join(timeout=WRITE_WAIT_S)
+            if self._thread.is_alive():
+                self._left_open = True
+                log.warning("%s: a write did not end within %g s more; left open rather than closed under it",
+                            self.publisher.where, WRITE_WAIT_S)
+        if not self._left_open:
+            self.publisher.close()
 
     def __enter__(self) -> Self:
         return self
