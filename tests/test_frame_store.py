@@ -192,3 +192,31 @@ def test_garbled_fiber_colours_are_one_line(coloured, tmp_path) -> None:
     (rec / "colours.npy").write_bytes(b"\x93NUMPY garbage")
     with pytest.raises(RecordingError, match="colours.npy: garbled or truncated fiber colours"):
         Recording(rec)
+
+
+def test_fiber_sums_continued_on_a_camera_of_another_frame_size_are_refused(tmp_path) -> None:
+    """A fiber-sum recording continued on another camera mixed the two (sums over the wrong pixels: 30 of 120
+    rest frames false contacts, 2-4 mm off); raw storage refused it, fiber storage must too."""
+    from optitac_edge.io.recording import RecordingMeta
+    from optitac_edge.io.recording_writer import RecordingWriter
+    from optitac_edge.sim.camera import SimCamera
+
+    camera = SimCamera(realtime=False)
+    frames = [camera.read().frame.copy() for _ in range(8)]
+    path = tmp_path / "r"
+    meta = RecordingMeta(rest_frames=5, fps=30.0)
+
+    def find(rest, fmt):
+        return calibrate_fibers(list(rest), fmt).fibers
+
+    with pytest.raises(KeyboardInterrupt), RecordingWriter(path, None, frames[0].shape, meta, storage="fibers",
+                                                            find_fibers=find) as w:
+        for i, f in enumerate(frames):
+            w.write(i, f, i * 33_000_000)
+        w.sync()  # as a collection's step ends: the fiber map found and the sums durable
+        raise KeyboardInterrupt
+    h, w_ = frames[0].shape
+    other = (h, w_ + 16)  # a camera of another width: its pixel groups fall elsewhere
+    with pytest.raises(RecordingError, match=rf"frames of {h}x{w_}.*this camera's are {h}x{w_ + 16}"):
+        RecordingWriter(path, None, other, meta, storage="fibers", find_fibers=find, keep_frames=8,
+                        kept_t_ns=np.arange(8, dtype=np.int64) * 33_000_000)

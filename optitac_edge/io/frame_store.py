@@ -80,6 +80,23 @@ def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
         raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
 
 
+def _rows_shape(path: Path) -> tuple[int, ...] | None:
+    """The shape of one row of the ``.npy`` file at ``path`` (a frame's shape), None when it cannot be read."""
+    try:
+        with path.open("rb") as f:
+            major, _minor = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+            shape, _, _ = read(f)
+    except (OSError, ValueError):
+        return None
+    return tuple(int(v) for v in shape[1:])
+
+
+def _size(shape: tuple[int, ...] | None) -> str:
+    """``480x640`` (``x3`` for RGB) for a line a person reads."""
+    return "unknown size" if shape is None else "x".join(str(v) for v in shape)
+
+
 class FrameStore(ABC):
     """Where a recording writer puts its frames. Errors are :class:`OutputError` naming the file."""
 
@@ -182,6 +199,11 @@ class FiberSumStore(FrameStore):
         if keep < self.rest_frames or not (self.directory / SPOTS).exists():
             raise RecordingError(f"{self.directory}: holds no fiber sums to continue after frame {keep} (collected "
                                  "with --storage raw? continue it with the same storage)")
+        kept_shape = _rows_shape(self.directory / REST_FRAMES)
+        if kept_shape != self.frame_shape:  # the sums would be over another camera's pixels
+            raise RecordingError(f"{self.directory}: holds frames of {_size(kept_shape)}, this camera's are "
+                                 f"{_size(self.frame_shape)}: continue it with the camera it was recorded with, or "
+                                 "start again with --fresh")
         table = read_spots(self.directory / SPOTS, self.frame_shape)
         self._use(table, keep_rows=keep - self.rest_frames)
 
