@@ -92,6 +92,59 @@ def test_garbled_fiber_sums_are_one_line(pair, tmp_path) -> None:
         Recording(rec)
 
 
+def _tampered(pair, tmp_path, edit) -> Recording:
+    """A copy of the fiber-sum recording with ``edit(directory)`` applied, opened."""
+    import shutil
+
+    rec = tmp_path / "r"
+    shutil.rmtree(rec, ignore_errors=True)
+    shutil.copytree(pair / "fibers", rec)
+    edit(rec)
+    return Recording(rec)
+
+
+def _spots(rec, **changes) -> None:
+    with np.load(rec / "spots.npz") as z:
+        arrays = {k: np.array(z[k]) for k in z.files}
+    arrays.update(changes)
+    np.savez(rec / "spots.npz", **arrays)
+
+
+def test_tampered_fiber_sum_recordings_are_refused_in_one_line(pair, tmp_path) -> None:
+    """Each of these replayed without a word (issue 38, item 13): groups that share pixels, rest frames shifted
+    7 px (centroids 3.5 mm off) or black (25 false contacts), meta.json's fibers or frame shape that disagree
+    with the files, float or 64-bit indices cast silently."""
+    with np.load(pair / "fibers" / "spots.npz") as z:
+        index, start = np.array(z["pixel_index"]), np.array(z["pixel_start"])
+    shared = index.copy()
+    shared[start[1]] = index[start[0]]  # fiber 1's first pixel is fiber 0's too
+    cases = {
+        "share pixels": lambda r: _spots(r, pixel_index=shared),
+        "pixel_index must be int32, got float64": lambda r: _spots(r, pixel_index=index.astype(np.float64)),
+        "pixel_index must be int32, got int64": lambda r: _spots(r, pixel_index=index.astype(np.int64)),
+        "do not start at 0": lambda r: _spots(r, pixel_start=start + 1),
+        "the rest frames do not fit the fiber sums": lambda r: np.save(
+            r / "rest.npy", np.roll(np.load(r / "rest.npy"), 7, axis=2)),
+        "do not fit the fiber sums .*black": lambda r: np.save(r / "rest.npy", np.zeros_like(np.load(r / "rest.npy"))),
+    }
+    for message, edit in cases.items():
+        with pytest.raises(RecordingError, match=message):
+            _tampered(pair, tmp_path, edit)
+
+    def meta(r, key, value) -> None:
+        import json
+
+        m = json.loads((r / "meta.json").read_text())
+        m["frame_storage"][key] = value
+        (r / "meta.json").write_text(json.dumps(m))
+
+    with pytest.raises(RecordingError, match=r"meta.json: 200 fibers but spots.npz holds 217"):
+        _tampered(pair, tmp_path, lambda r: meta(r, "fibers", 200))
+    with pytest.raises(RecordingError, match=r"meta.json: frame_shape \[480, 600\] but the rest frames are"):
+        _tampered(pair, tmp_path, lambda r: meta(r, "frame_shape", [480, 600]))
+    assert len(_tampered(pair, tmp_path, lambda r: None)) == 90  # untouched: read as before
+
+
 def test_record_keeps_fiber_sums_by_default_and_raw_on_request(tmp_path, capsys) -> None:
     assert main(["record", "-o", str(tmp_path / "r"), "--frames", "30"]) == 0
     assert Recording(tmp_path / "r").meta.extra["frame_storage"]["storage"] == "fibers"

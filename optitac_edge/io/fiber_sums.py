@@ -42,6 +42,12 @@ from optitac_edge.io.frame_store import COLOURS, REST_FRAMES, SPOTS, SUMS, read_
 
 #: Pixels around a fiber's group, up to this fraction of its radius, follow its light.
 ZONE_FRACTION = 0.5
+#: The rest frames must give the typical fiber (the median) the light of the first sums after them to within
+#: this fraction: rest frames shifted, replaced or black do not fit the sums (a camera's light does not move
+#: by a third between the rest frames and the next).
+REST_FIT = 0.3
+#: Sum rows the rest frames are compared with.
+FIT_ROWS = 5
 #: OpenCV's fixed-point BT.601 RGB -> gray for 8-bit pixels (``cv2.cvtColor(..., COLOR_RGB2GRAY)``,
 #: modules/imgproc/src/color_rgb.simd.hpp: ``RY15 = 9798, GY15 = 19235, BY15 = 3735``, ``gray_shift = 15``,
 #: rounded). :meth:`FiberSumFrames.frame` checks the pixels it makes with OpenCV itself all the same.
@@ -85,6 +91,8 @@ class FiberSumFrames:
     directory : Path
     rest_frames : int
         The recording's rest frames (``meta.json``), kept as they are in ``rest.npy``.
+    stated : dict, optional
+        ``meta.json``'s ``frame_storage`` (its ``frame_shape`` and ``fibers``, checked against the files).
 
     Raises
     ------
@@ -92,7 +100,7 @@ class FiberSumFrames:
         Naming the file that is missing, garbled, or does not fit the others.
     """
 
-    def __init__(self, directory: Path, rest_frames: int) -> None:
+    def __init__(self, directory: Path, rest_frames: int, stated: dict[str, Any] | None = None) -> None:
         rest = _load(directory / REST_FRAMES, "rest frames")
         if rest.dtype != np.uint8 or rest.ndim not in (3, 4) or rest.shape[0] != rest_frames:
             raise RecordingError(f"{directory / REST_FRAMES}: must hold the {rest_frames} rest frames, uint8 "
@@ -106,6 +114,12 @@ class FiberSumFrames:
         self.table = read_spots(directory / SPOTS, frame_shape)
         sums = _load(directory / SUMS, "fiber sums")
         n = self.table.n_fibers
+        stated = stated or {}
+        if "frame_shape" in stated and list(stated["frame_shape"]) != list(frame_shape):
+            raise RecordingError(f"{directory / 'meta.json'}: frame_shape {stated['frame_shape']} but the rest frames "
+                                 f"are {list(frame_shape)}")
+        if "fibers" in stated and stated["fibers"] != n:
+            raise RecordingError(f"{directory / 'meta.json'}: {stated['fibers']} fibers but {SPOTS} holds {n}")
         if sums.dtype not in (np.uint16, np.uint32) or sums.ndim != 2 or sums.shape[1] != n:
             raise RecordingError(f"{directory / SUMS}: must be uint16 or uint32 of shape (frames, {n}), got "
                                  f"{sums.dtype} {sums.shape}")
@@ -120,11 +134,29 @@ class FiberSumFrames:
                                      f"3) beside {SUMS}, got {colours.dtype} {colours.shape}")
             self._colours = colours
         self._rest, self._sums = rest, sums
+        self._check_rest_fits(directory, counts)
         self.rest_frames = rest_frames
         self.shape: tuple[int, ...] = (rest_frames + int(sums.shape[0]), *frame_shape)
         self.dtype = np.dtype(np.uint8)
         self.ndim = len(self.shape)
         self._prepare(frame_shape, counts)
+
+    def _check_rest_fits(self, directory: Path, counts: np.ndarray) -> None:
+        """The rest frames' light of the typical fiber is the first sums' (:data:`REST_FIT`)."""
+        rows = min(FIT_ROWS, int(self._sums.shape[0]))
+        if not rows:
+            return
+        t = self.table
+        gray = [f if f.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in self._rest]
+        level = np.mean(np.stack(gray), axis=0, dtype=np.float64).reshape(-1)
+        at_rest = np.add.reduceat(level[t.pixel_index], t.pixel_start[:-1])
+        after = np.median(np.asarray(self._sums[:rows], dtype=np.float64), axis=0)
+        live = ~np.asarray(t.dead, dtype=bool)
+        off = np.abs(at_rest - after) / np.maximum(after, counts)  # at least a gray level a pixel
+        if np.median(off[live] if live.any() else off) > REST_FIT:
+            raise RecordingError(f"{directory / REST_FRAMES}: the rest frames do not fit the fiber sums after them "
+                                 f"(the typical fiber's light differs by {np.median(off):.0%}: frames shifted, "
+                                 "replaced or black?)")
 
     def _prepare(self, frame_shape: tuple[int, ...], counts: np.ndarray) -> None:
         """The rest level of every pixel, the groups' weights and the zones around them."""

@@ -30,6 +30,7 @@ from __future__ import annotations
 import io
 import logging
 import threading
+import zipfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from pathlib import Path
@@ -59,8 +60,15 @@ PENDING_BYTES = 256 << 20
 FindFibers = Callable[[np.ndarray, str], FiberTable]
 
 
+#: What ``spots.npz`` holds, as the writer writes it: name -> (dtype kind, dtype) (no array is cast on reading).
+_SPOT_ARRAYS = {"pixel_index": np.int32, "pixel_start": np.int64, "centroid_px": np.float64, "dead": np.bool_}
+
+
 def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
     """The fiber pixel groups a recording's sums are over (``spots.npz``), checked.
+
+    Each array must have the type the writer gives it (nothing is cast: a float or 64-bit index is refused),
+    the groups must start at 0, each own a pixel, end at the last index, lie in the frame and share no pixel.
 
     Raises
     ------
@@ -69,14 +77,30 @@ def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
     """
     try:
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: np.array(z[k]) for k in ("pixel_index", "pixel_start", "centroid_px", "dead")}
-        h, w = frame_shape[:2]
-        return FiberTable(height=int(h), width=int(w), pixel_format=infer_pixel_format(frame_shape),
-                          pixel_index=arrays["pixel_index"].astype(np.int32),
-                          pixel_start=arrays["pixel_start"].astype(np.int64),
-                          centroid_px=arrays["centroid_px"].astype(np.float64), dead=arrays["dead"].astype(bool),
+            arrays = {k: np.array(z[k]) for k in _SPOT_ARRAYS}
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
+        raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
+    for name, dtype in _SPOT_ARRAYS.items():
+        if arrays[name].dtype != dtype:
+            raise RecordingError(f"{path}: {name} must be {np.dtype(dtype)}, got {arrays[name].dtype}")
+    index, start = arrays["pixel_index"], arrays["pixel_start"]
+    h, w = (int(v) for v in frame_shape[:2])
+    n = start.size - 1
+    if index.ndim != 1 or start.ndim != 1 or n < 1 or arrays["centroid_px"].shape != (n, 2) \
+            or arrays["dead"].shape != (n,):
+        raise RecordingError(f"{path}: arrays of shapes that do not fit one another")
+    if start[0] != 0 or start[-1] != index.size or np.any(np.diff(start) < 1):
+        raise RecordingError(f"{path}: pixel groups that do not start at 0, own a pixel each and end at the last "
+                             "index")
+    if index.size and (index.min() < 0 or index.max() >= h * w):
+        raise RecordingError(f"{path}: pixel indices outside the {h}x{w} frame")
+    if np.unique(index).size != index.size:
+        raise RecordingError(f"{path}: pixel groups that share pixels (a pixel belongs to one fiber)")
+    try:
+        return FiberTable(height=h, width=w, pixel_format=infer_pixel_format(frame_shape), pixel_index=index,
+                          pixel_start=start, centroid_px=arrays["centroid_px"], dead=arrays["dead"],
                           unmatched_px=np.zeros((0, 2)))
-    except (OSError, ValueError, KeyError, TypeError, FrameMismatchError) as exc:
+    except (ValueError, TypeError, FrameMismatchError) as exc:
         raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
 
 
@@ -249,8 +273,8 @@ class FiberSumStore(FrameStore):
                               f"light ({found}); record the frames as they are with --storage raw") from None
         assert isinstance(found, FiberTable)
         packed = io.BytesIO()
-        np.savez(packed, pixel_index=found.pixel_index, pixel_start=found.pixel_start,
-                 centroid_px=found.centroid_px, dead=found.dead)
+        spots: dict[str, Any] = {k: np.asarray(getattr(found, k), dtype) for k, dtype in _SPOT_ARRAYS.items()}
+        np.savez(packed, **spots)
         with AtomicFile(self.directory / SPOTS, "wb") as f:
             f.write(packed.getvalue())
         self._use(found)

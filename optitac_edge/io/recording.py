@@ -437,7 +437,7 @@ class Recording:
             if isinstance(storage, dict) and storage.get("storage") == "fibers":
                 from optitac_edge.io.fiber_sums import FiberSumFrames
 
-                frames: Any = FiberSumFrames(self.path, self.meta.rest_frames)
+                frames: Any = FiberSumFrames(self.path, self.meta.rest_frames, storage)
             else:
                 frames = np.load(frames_path, mmap_mode="r", allow_pickle=False)
         except FileNotFoundError:
