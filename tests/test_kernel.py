@@ -592,6 +592,16 @@ def test_the_environment_can_ask_for_the_numpy_pipeline(modelled, monkeypatch) -
     assert Pipeline(modelled, compiled=True).kernel is not None  # asked for by the caller
 
 
+def test_the_numpy_switch_is_not_a_config_override(tmp_path, monkeypatch, capsys) -> None:
+    """OPTITAC_EDGE_KERNEL=numpy, documented as the switch to the numpy pipeline, broke every command that loads
+    a board: 'environment OPTITAC_EDGE_KERNEL: no section 'edge''."""
+    from optitac_edge.cli import main
+
+    monkeypatch.setenv(compiled.ENV, "numpy")
+    assert main(["run", "--frames", "5"]) == 0
+    assert "no section" not in capsys.readouterr().err
+
+
 # -- the kernel on aarch64 (qemu-user; .ci/run installs Debian's cross compiler and qemu) ---------------------
 
 

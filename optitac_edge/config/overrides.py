@@ -10,7 +10,10 @@ ENV_PREFIX = "OPTITAC_"
 
 
 #: Variables with the prefix that are not config overrides (tools/install.sh's, the tests' soak length).
-NOT_CONFIG_VARS = frozenset({"OPTITAC_PYTHON", "OPTITAC_SOAK_MINUTES"})
+NOT_CONFIG_VARS = frozenset({"OPTITAC_PYTHON", "OPTITAC_SOAK_MINUTES", "OPTITAC_WHEEL_CACHE"})
+#: The program's own switches (``OPTITAC_EDGE_KERNEL=numpy``: core/compiled.py), not config overrides: no
+#: config section is named ``edge``.
+NOT_CONFIG_PREFIX = "OPTITAC_EDGE_"
 
 
 def _env_key(var: str) -> tuple[str, str] | None:
@@ -21,7 +24,7 @@ def _env_key(var: str) -> tuple[str, str] | None:
     ConfigError
         For a section that does not exist (``OPTITAC_LNK_TRANSPORT`` was ignored without a word).
     """
-    if var in NOT_CONFIG_VARS:
+    if var in NOT_CONFIG_VARS or var.startswith(NOT_CONFIG_PREFIX):
         return None
     rest = var[len(ENV_PREFIX):].lower()
     section, _, key = rest.partition("_")
