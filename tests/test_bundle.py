@@ -13,6 +13,11 @@ from optitac_edge.errors import BundleError, FrameMismatchError
 from optitac_edge.io.bundle_file import BUNDLE_VERSION, FACTOR_MEMBERS, load_bundle, save_bundle
 
 
+def _weights(m: np.ndarray) -> np.ndarray:
+    """Random weights made an interpolation's: each mesh cell's adding up to 1."""
+    return (m / m.sum(axis=1, keepdims=True)).astype(np.float32)
+
+
 def small_bundle(height=40, width=50, pixel_format="gray"):
     layout = hex_layout(rings=2)
     n = layout.n_fibers
@@ -25,7 +30,7 @@ def small_bundle(height=40, width=50, pixel_format="gray"):
     return CalibrationBundle(
         layout=layout, transform=ImageTransform(12.0, 3.0, 25.0, 20.0, mirror=True, k1=0.01, r_ref_mm=3.0),
         fibers=table, grid=grid,
-        interpolation=np.random.default_rng(1).random((100, n), dtype=np.float32),
+        interpolation=_weights(np.random.default_rng(1).random((100, n), dtype=np.float32)),
         thresholds=ContactThresholds(threshold=7.5, min_area_mm2=2.0),
         fiber_map_report={"found": n - 1}, extra_arrays={"error_x": np.ones((3, 3))},
         extra_meta={"model": "x"},
@@ -228,7 +233,7 @@ def test_bundle_checks_factors_against_grid_layout_and_matrix():
     with pytest.raises(ValueError, match="fibers"):
         bundle.with_updates(surface_factors=factors_big)
     with pytest.raises(ValueError, match="reproduce"):  # a new matrix needs new factors
-        bundle.with_updates(interpolation=bundle.interpolation * np.float32(2.0))
+        bundle.with_updates(interpolation=bundle.interpolation * np.float32(0.5))
 
 
 @pytest.mark.parametrize("bad", [{"threshold": -1.0}, {"threshold": float("nan")}, {"min_area_mm2": -0.5},
@@ -279,6 +284,12 @@ def _nan_in(name):
     return edit
 
 
+def _scaled(name, factor):
+    def edit(arrays):
+        arrays[name] = (arrays[name].astype(np.float64) * factor).astype(arrays[name].dtype)
+    return edit
+
+
 def _all_dead(arrays):
     arrays["fiber_dead"] = np.ones_like(arrays["fiber_dead"])
 
@@ -304,6 +315,14 @@ def _all_dead(arrays):
      "'fiber_map_report' must be an object"),
     ("orientation 5", {"meta": lambda m: m["extra"].__setitem__("orientation", 5)}, "'extra.orientation' must be"),
     ("shape model 'x'", {"meta": lambda m: m["extra"].__setitem__("shapes", "x")}, "invalid shape model"),
+    # issue 38, item 16: values inside the checks of the day made every frame a contact, or a surface of 1e38
+    ("black level 1e30", {"meta": lambda m: m["contact_options"].__setitem__("black_level", 1e30)},
+     "black_level must be below 255"),
+    ("noise 1e30", {"meta": lambda m: m["contact_options"].__setitem__("noise_gray", 1e30)},
+     "noise_gray must be at most 255"),
+    ("on level 7", {"meta": lambda m: m["contact_options"].__setitem__("on_level", 7.0)}, "on_level must be at most 1"),
+    ("weights x 1e38", {"arrays": _scaled("interpolation", 1e38), "drop": FACTOR_MEMBERS.values()},
+     "interpolation matrix: a mesh cell's weights"),
 ])
 def test_a_crafted_bundle_with_a_valid_digest_is_refused_in_one_line(tmp_path, bundle_path, capsys, name, edit,
                                                                        message):

@@ -90,6 +90,7 @@ class CalibrationBundle:
             raise ValueError(f"interpolation matrix has shape {self.interpolation.shape}")
         if self.interpolation.dtype.kind != "f" or not np.all(np.isfinite(self.interpolation)):
             raise ValueError("interpolation matrix must be finite floating point")
+        _check_weights(self.interpolation)
         b = self.baseline_frames
         if not isinstance(b, int) or isinstance(b, bool) or not 1 <= b <= MAX_BASELINE_FRAMES:
             raise ValueError(f"baseline_frames must be an integer in 1..{MAX_BASELINE_FRAMES}, got {b!r}")
@@ -110,6 +111,23 @@ class CalibrationBundle:
     def with_updates(self, **changes: Any) -> CalibrationBundle:
         """A copy with some fields replaced (e.g. a new calibration model)."""
         return replace(self, **changes)
+
+
+#: A surface interpolation's weights: each at most this large (Clough-Tocher overshoots to ~1.004 and -0.11)...
+MAX_WEIGHT = 4.0
+#: ... and each mesh cell's adding up to at most 1 in size (Clough-Tocher: 0 outside the array, 1 inside: it
+#: reproduces a constant), to this much.
+WEIGHT_SUM_TOL = 1e-3
+
+
+def _check_weights(matrix: np.ndarray) -> None:
+    """Raise ValueError unless ``matrix`` is an interpolation's: bounded weights, each row adding up to at most
+    1 in size (a surface no larger than the fibers' values)."""
+    sums = np.abs(np.asarray(matrix, dtype=np.float64).sum(axis=1))
+    if float(np.abs(matrix).max(initial=0.0)) > MAX_WEIGHT or np.any(sums > 1.0 + WEIGHT_SUM_TOL):
+        raise ValueError(f"interpolation matrix: a mesh cell's weights must each lie within +-{MAX_WEIGHT:g} and "
+                         f"add up to at most 1 (got weights up to {float(np.abs(matrix).max()):.3g}, sums up to "
+                         f"{float(sums.max()):.3g})")
 
 
 def _check_factors(factors: SurfaceFactors, matrix: np.ndarray) -> None:

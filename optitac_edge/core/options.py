@@ -212,6 +212,14 @@ class ContactOptions:
         for name in ("peak_fraction", "shape_fraction", "split_fraction"):
             if not getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be < 1, got {getattr(self, name)!r}")
+        if not self.black_level < 255.0:  # an 8-bit camera's white: every frame a contact above it
+            raise ValueError(f"black_level must be below 255 (gray levels), got {self.black_level!r}")
+        if not self.noise_gray <= 255.0:
+            raise ValueError(f"noise_gray must be at most 255 (gray levels), got {self.noise_gray!r}")
+        for name in ("noise_rel", "on_level"):  # fractions of a fiber's rest light
+            if not getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be at most 1 (a fraction of the rest light), got "
+                                 f"{getattr(self, name)!r}")
         if self.baseline_tau_s <= 0:
             raise ValueError(f"baseline_tau_s must be > 0, got {self.baseline_tau_s!r}")
         if self.gap_s <= 0:
