@@ -85,3 +85,21 @@ def test_a_flipped_byte_is_refused_not_replayed(where, tmp_path, capsys) -> None
     assert main(["replay", str(path), "--cal", str(tmp_path / "none.npz"), "-o", str(tmp_path / "c.csv")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and ("CRC" in err[0] or "damaged" in err[0] or "readable" in err[0])
+
+
+def test_frame_times_that_go_backwards_are_refused(tmp_path) -> None:
+    """An MCAP recording accepted frame times that go backwards (vibration went negative); a directory's
+    timestamps.npy never did."""
+    import numpy as np
+
+    from optitac_edge.errors import RecordingError
+    from optitac_edge.io.recording import Recording
+    from optitac_edge.io.recording_mcap import McapRecordingWriter
+
+    path = tmp_path / "back.mcap"
+    times = [0, 33_000_000, 66_000_000, 50_000_000, 99_000_000, 132_000_000]
+    with McapRecordingWriter(path, {"rest_frames": 5, "fps": 30.0}) as w:
+        for i, t in enumerate(times):
+            w.write(i, np.full((24, 32), 100, np.uint8), t)
+    with pytest.raises(RecordingError, match="back.mcap: frame times go backwards at frame 3"):
+        Recording(path)

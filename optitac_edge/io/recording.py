@@ -477,6 +477,9 @@ class Recording:
 
         frames, t_ns, raw, truth = read_mcap_recording(self.path)
         self.meta = _checked_meta(raw, self.path)
+        back = np.flatnonzero(np.diff(t_ns) < 0)
+        if back.size:  # as timestamps.npy's (read_timestamps): motion and vibration need times in order
+            raise RecordingError(f"{self.path}: frame times go backwards at frame {int(back[0]) + 1}")
         self.pixel_format = infer_pixel_format(frames.shape[1:])
         self.frames = frames
         if self.meta.rest_frames > len(frames):
