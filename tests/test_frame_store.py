@@ -273,3 +273,43 @@ def test_fiber_sums_continued_on_a_camera_of_another_frame_size_are_refused(tmp_
     with pytest.raises(RecordingError, match=rf"frames of {h}x{w_}.*this camera's are {h}x{w_ + 16}"):
         RecordingWriter(path, None, other, meta, storage="fibers", find_fibers=find, keep_frames=8,
                         kept_t_ns=np.arange(8, dtype=np.int64) * 33_000_000)
+
+
+def test_damaged_or_hostile_recording_files_are_one_line(pair, tmp_path) -> None:
+    """Issue 38, item 18: spots.npz truncated or flipped raised zipfile.BadZipFile; a 1.2 MB spots.npz that
+    inflates to 1.2 GB took 2.4 GB of memory before it was refused; a FIFO in a recording hung replay; sums.npy
+    with 0 rows blamed truth.csv."""
+    import os
+    import zipfile
+
+    def truncate(r) -> None:
+        data = (r / "spots.npz").read_bytes()
+        (r / "spots.npz").write_bytes(data[: len(data) // 2])
+
+    with pytest.raises(RecordingError, match="spots.npz: garbled fiber pixel groups"):
+        _tampered(pair, tmp_path, truncate)
+
+    def bomb(r) -> None:
+        with zipfile.ZipFile(r / "spots.npz", "w", zipfile.ZIP_DEFLATED) as z, \
+                z.open("pixel_index.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array_header_1_0(f, {"descr": "<i4", "fortran_order": False, "shape": (300 << 20,)})
+            zeros = bytes(16 << 20)
+            for _ in range(4):  # only the header matters: it is refused before any data is read
+                f.write(zeros)
+
+    with pytest.raises(RecordingError, match=r"member 'pixel_index' claims 1200 MiB"):
+        _tampered(pair, tmp_path, bomb)
+
+    def fifo(r) -> None:
+        (r / "timestamps.npy").unlink()
+        os.mkfifo(r / "timestamps.npy")
+
+    with pytest.raises(RecordingError, match="timestamps.npy: not a regular file"):
+        _tampered(pair, tmp_path, fifo)
+
+    def no_sums(r) -> None:
+        sums = np.load(r / "sums.npy")
+        np.save(r / "sums.npy", sums[:0])
+
+    with pytest.raises(RecordingError, match=r"sums.npy: 0 frames after the rest frames where timestamps.npy has"):
+        _tampered(pair, tmp_path, no_sums)

@@ -35,6 +35,7 @@ from optitac_edge.core.options import ContactOptions, ContactThresholds
 from optitac_edge.core.surface import SurfaceFactors
 from optitac_edge.errors import BundleError, OutputError
 from optitac_edge.io.files import AtomicFile
+from optitac_edge.io.npz_members import NpzLimits, read_npz_members
 
 BUNDLE_FORMAT = "optitac-edge-calibration"
 BUNDLE_VERSION = 1
@@ -44,6 +45,7 @@ MAX_MEMBER_BYTES = 256 << 20
 MAX_BUNDLE_BYTES = 512 << 20
 #: Most members a bundle may hold (calibration models add a few each).
 MAX_MEMBERS = 256
+_LIMITS = NpzLimits("calibration bundle", MAX_MEMBER_BYTES, MAX_BUNDLE_BYTES, MAX_MEMBERS)
 #: Bundle members holding :class:`SurfaceFactors` (all three or none), by field name.
 FACTOR_MEMBERS = {
     "vertex_operator": "interpolation_vertex_operator",
@@ -154,41 +156,9 @@ def _load_options(path: Path, meta: Mapping[str, Any]) -> ContactOptions:
 
 
 def _read_members(path: Path) -> dict[str, np.ndarray]:
-    """Every member of the ``.npz``, each checked for size before it is read or decompressed.
-
-    A member's ``.npy`` header says how much its data takes; a header over
-    :data:`MAX_MEMBER_BYTES`, members over :data:`MAX_BUNDLE_BYTES` in all, more
-    than :data:`MAX_MEMBERS` members or an object dtype are refused before a
-    byte of data is allocated (the zip directory's sizes can lie; the header
-    is what numpy would allocate).
-    """
-    with zipfile.ZipFile(path) as zf:
-        names = [n for n in zf.namelist() if n.endswith(".npy")]
-        if len(names) > MAX_MEMBERS or len(names) != len(zf.namelist()):
-            raise BundleError(f"{path}: not a calibration bundle ({len(zf.namelist())} members)")
-        total = 0
-        for name in names:
-            with zf.open(name) as f:
-                version = np.lib.format.read_magic(f)
-                if version == (1, 0):
-                    shape, _fortran, dtype = np.lib.format.read_array_header_1_0(f, max_header_size=10_000)
-                elif version == (2, 0):
-                    shape, _fortran, dtype = np.lib.format.read_array_header_2_0(f, max_header_size=10_000)
-                else:
-                    raise BundleError(f"{path}: member {name[:-4]!r} in .npy format {version}, not 1.0 or 2.0")
-            if dtype.hasobject:
-                raise BundleError(f"{path}: member {name[:-4]!r} holds Python objects")
-            nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
-            total += nbytes
-            if nbytes > MAX_MEMBER_BYTES or total > MAX_BUNDLE_BYTES:
-                raise BundleError(f"{path}: member {name[:-4]!r} claims {nbytes / 2**20:.0f} MiB "
-                                  f"(a bundle holds at most {MAX_MEMBER_BYTES >> 20} MiB a member, "
-                                  f"{MAX_BUNDLE_BYTES >> 20} MiB in all)")
-        members = {}
-        for name in names:
-            with zf.open(name) as f:
-                members[name[:-4]] = np.lib.format.read_array(f, allow_pickle=False)
-    return members
+    """Every member of the ``.npz``, each checked for size before it is read or decompressed
+    (:func:`~optitac_edge.io.npz_members.read_npz_members`)."""
+    return read_npz_members(path, _LIMITS, BundleError)
 
 
 def load_bundle(path: str | Path) -> CalibrationBundle:

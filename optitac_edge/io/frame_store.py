@@ -43,6 +43,7 @@ from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, OutputError, RecordingError
 from optitac_edge.io.files import AtomicFile
 from optitac_edge.io.npy_rows import NpyRows
+from optitac_edge.io.npz_members import NpzLimits, read_npz_members
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,11 @@ FindFibers = Callable[[np.ndarray, str], FiberTable]
 _SPOT_ARRAYS = {"pixel_index": np.int32, "pixel_start": np.int64, "centroid_px": np.float64, "dead": np.bool_}
 
 
+#: What ``spots.npz`` may hold (read with its sizes checked first: a 1.2 MB file inflating to 1.2 GB took
+#: 2.4 GB of memory before it was refused); a 4096 x 4096 frame's pixel groups take 64 MiB.
+_SPOT_LIMITS = NpzLimits("recording's fiber pixel groups", 256 << 20, 512 << 20, 16)
+
+
 def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
     """The fiber pixel groups a recording's sums are over (``spots.npz``), checked.
 
@@ -76,8 +82,8 @@ def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
         Naming the file, when it is garbled or does not fit the frames.
     """
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: np.array(z[k]) for k in _SPOT_ARRAYS}
+        members = read_npz_members(path, _SPOT_LIMITS, RecordingError)
+        arrays = {k: members[k] for k in _SPOT_ARRAYS}
     except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
         raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
     for name, dtype in _SPOT_ARRAYS.items():

@@ -179,6 +179,9 @@ FPS_RANGE = (0.1, 10_000.0)
 INCOMPLETE_MARKER = "incomplete.json"
 #: Per-frame capture times, int64 ns.
 TIMESTAMPS = "timestamps.npy"
+#: Every file a recording directory may hold (each must be a regular file where it exists).
+RECORDING_FILES = ("meta.json", "frames.npy", "truth.csv", TIMESTAMPS, "rest.npy", "spots.npz", "sums.npy",
+                   "colours.npy")
 #: The journal of a collection on a rig (``optitac-edge collect``), there until it completes.
 COLLECT_JOURNAL = "collect.jsonl"
 
@@ -201,6 +204,35 @@ def read_timestamps(path: Path, n_frames: int) -> np.ndarray:
     if n_frames > 1 and np.any(np.diff(t) < 0):
         raise RecordingError(f"{path}: timestamps go backwards at frame {int(np.argmax(np.diff(t) < 0)) + 1}")
     return t
+
+
+def _rows_in(path: Path) -> int | None:
+    """Rows of the ``.npy`` at ``path`` by its header (None when it cannot be read: its own check says why)."""
+    try:
+        with path.open("rb") as f:
+            major, _minor = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+            shape, _, _ = read(f)
+    except (OSError, ValueError):
+        return None
+    return int(shape[0]) if len(shape) else None
+
+
+def _check_regular_files(directory: Path) -> None:
+    """Every recording file that exists is a regular file (a FIFO in its place hung the reader)."""
+    for name in RECORDING_FILES:
+        member = directory / name
+        if (member.exists() or member.is_symlink()) and not member.is_file():
+            raise RecordingError(f"{member}: not a regular file")
+
+
+def _check_sum_rows(directory: Path, n_frames: int, rest_frames: int) -> None:
+    """A fiber-sum recording's frames are as many as its timestamps (else sums.npy is the one short)."""
+    stamps = directory / TIMESTAMPS
+    n_stamped = _rows_in(stamps) if stamps.exists() else None
+    if n_stamped is not None and n_stamped != n_frames:
+        raise RecordingError(f"{directory / 'sums.npy'}: {n_frames - rest_frames} frames after the rest frames "
+                             f"where {TIMESTAMPS} has {n_stamped - rest_frames} (truncated?)")
 
 
 def read_meta(path: Path) -> RecordingMeta:
@@ -427,6 +459,7 @@ class Recording:
             raise RecordingError(f"{self.path}: recording directory not found")
         if (self.path / INCOMPLETE_MARKER).exists():
             raise RecordingError(f"{self.path}: {_missing_meta(self.path)}")
+        _check_regular_files(self.path)
         self.meta = read_meta(self.path / "meta.json")
         frames_path = self.path / "frames.npy"
         storage = self.meta.extra.get("frame_storage")
@@ -456,6 +489,8 @@ class Recording:
         self.frames = frames
         if self.meta.rest_frames > len(frames):
             raise RecordingError(f"{self.path}: rest_frames={self.meta.rest_frames} but only {len(frames)} frames")
+        if not isinstance(frames, np.ndarray):  # fiber sums: the frames after the rest
+            _check_sum_rows(self.path, len(frames), self.meta.rest_frames)
         truth_path = self.path / "truth.csv"
         self.truth: Truth | None = None
         #: The rig's pose of every frame, when a rig collected the recording.
