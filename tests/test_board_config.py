@@ -225,6 +225,9 @@ BAD_ENV = [
     ("OPTITAC_LED_ENABLED", "maybe", "led.enabled", "true or false"),
     ("OPTITAC_SENSOR_ID", "-1", "sensor.id", "0..255"),
     ("OPTITAC_LINK_TRANSPORT", "serial", "link.serial_url", "required"),
+    # issue 38, item 20: a period no integer holds was an OverflowError at start
+    ("OPTITAC_NETWORK_PICTURE_HZ", "1e-300", "network.picture_hz", "0 (none) or a rate in 0.001..120"),
+    ("OPTITAC_NETWORK_SIGNAL_HZ", "1e-9", "network.signal_hz", "0 (none) or a rate in 0.001..1000"),
 ]
 
 

@@ -142,3 +142,15 @@ def test_an_edited_journal_is_one_line_not_a_traceback(tmp_path, capsys) -> None
     journal.write_text("\n".join([lines[0], "[1, 2]", *lines[2:]]) + "\n")
     assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "6"]) == 2
     assert "line 2: not a JSON object" in capsys.readouterr().err
+    # issue 38, item 20: a time past int64 and a contact 'yes' were tracebacks; x 5000 mm a 'complete' recording
+    # no reader could open
+    touching = next(k for k, r in enumerate(json.loads(lines[1])["rows"]) if r.get("contact"))
+    for edit, words in ((lambda p: p["t_ns"].__setitem__(-1, 2**63), "frame times that are not integers"),
+                        (lambda p: p["rows"][touching].__setitem__("contact", "yes"), "not true or false"),
+                        (lambda p: p["rows"][touching].__setitem__("x", 5000.0), "each a number of at most 1000")):
+        press = json.loads(lines[1])
+        edit(press)
+        journal.write_text("\n".join([lines[0], json.dumps(press), *lines[2:]]) + "\n")
+        assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "6"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "collect.jsonl: line 2:" in err[0] and words in err[0], err

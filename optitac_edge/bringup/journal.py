@@ -110,8 +110,8 @@ def _check_entry(entry: Any, first: bool, start_frame: int, index: int) -> str:
     if not (isinstance(end, int) and isinstance(rows, list) and isinstance(times, list)
             and end - start_frame == len(rows) == len(times)):
         return "frames, rows and times that do not add up"
-    if not all(_is_int(t) for t in times) or any(b < a for a, b in itertools.pairwise(times)):
-        return "frame times that are not integers in order"
+    if not all(_is_int(t) and 0 <= t < 2**63 for t in times) or any(b < a for a, b in itertools.pairwise(times)):
+        return "frame times that are not integers in order (int64 ns)"
     for k, row in enumerate(rows):
         why = _check_row(row, start_frame + k)
         if why:
@@ -123,13 +123,20 @@ def _check_entry(entry: Any, first: bool, start_frame: int, index: int) -> str:
     return ""
 
 
+#: The largest position, size, depth (mm) or angle (degrees) a journal row may hold: no sensor is a metre wide.
+MAX_TRUTH_MM = 1000.0
+
+
 def _check_row(row: Any, frame: int) -> str:
     if not isinstance(row, dict) or row.get("frame") != frame:
         return f"the row of frame {frame} is missing"
     rig = row.get("rig")
     if row.get("phase") not in PHASES or not (isinstance(rig, list) and len(rig) == 3 and all(map(_is_num, rig))):
         return f"frame {frame}: a phase or rig pose that collect does not write"
+    if row.get("contact", False) not in (True, False):
+        return f"frame {frame}: a contact that is not true or false"
     if row.get("contact") is True and not (row.get("shape") in SHAPES and all(
-            _is_num(row.get(k)) for k in ("x", "y", "angle", "size", "depth"))):
-        return f"frame {frame}: a contact without its shape, position, angle, size or depth"
+            _is_num(row.get(k)) and abs(row[k]) <= MAX_TRUTH_MM for k in ("x", "y", "angle", "size", "depth"))):
+        return (f"frame {frame}: a contact without its shape, position, angle, size or depth (each a number of at "
+                f"most {MAX_TRUTH_MM:g})")
     return ""

@@ -71,6 +71,18 @@ def _num(lo: float, hi: float, *, lo_open: bool = False) -> Checker:
     return check
 
 
+def _rate(slowest: float, hi: float) -> Checker:
+    """A rate: 0 (none) or ``slowest..hi`` per second (1e-300 Hz made a period no integer holds)."""
+    inner = _num(0, hi)
+
+    def check(value: Any, from_text: bool) -> float:
+        v = inner(value, from_text)
+        if 0.0 < v < slowest:
+            raise _Bad(f"must be 0 (none) or a rate in {slowest:g}..{hi:g} per second, got {_show(value)}")
+        return v
+    return check
+
+
 _TRUE = {"1", "true", "yes", "on"}
 
 

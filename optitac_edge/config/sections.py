@@ -21,6 +21,7 @@ from optitac_edge.config.checkers import (
     _num,
     _opt,
     _path,
+    _rate,
     _region,
     _str,
 )
@@ -169,8 +170,8 @@ class NetworkConfig:
 
     namespace: str = _opt(_str(200, pattern=f"(/{ROS_NAME})*"), "",
                           "ROS 2 namespace of the topics, e.g. '/robot1' ('' = none: /optitac/SENSOR/...)")
-    signal_hz: float = _opt(_num(0, 1000), 0.0, "per-fiber signal messages per second and sensor (0: none)")
-    picture_hz: float = _opt(_num(0, 120), 0.0,
+    signal_hz: float = _opt(_rate(0.001, 1000), 0.0, "per-fiber signal messages per second and sensor (0: none)")
+    picture_hz: float = _opt(_rate(0.001, 120), 0.0,
                              "each sensor's camera image, surface and overlay per second (0: none; 10 with foxglove "
                              "when left at 0)")
     queue: int = _opt(_int(8, 1_000_000), 256,
