@@ -19,6 +19,7 @@ as ``run`` does.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Iterator, Mapping
@@ -205,7 +206,7 @@ class Sensor:
 
         if self._closed:
             raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + _seconds(timeout_s, "timeout_s")
         while True:
             captured = self._camera.read(max(deadline - time.monotonic(), 0.0))
             if captured is None:
@@ -226,6 +227,9 @@ class Sensor:
     def readings(self, duration_s: float | None = None, timeout_s: float = 1.0) -> Iterator[Reading]:
         """Every frame's reading, for ``duration_s`` of frame time (None: until the camera or recording ends
         or ``timeout_s`` passes without a frame)."""
+        if duration_s is not None:
+            _seconds(duration_s, "duration_s")
+        _seconds(timeout_s, "timeout_s")
         end: int | None = None
         while True:
             reading = self.read(timeout_s)
@@ -263,6 +267,13 @@ class Sensor:
         self.close()
 
 
+def _seconds(value: object, name: str) -> float:
+    """``value`` as a finite number of seconds >= 0, or one line naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise OptiTacError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
+    return float(value)
+
+
 def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = None,
                 cal: str | os.PathLike[str] | None = None, recording: str | os.PathLike[str] | None = None,
                 settings: Mapping[str, Any] | None = None) -> Sensor:
@@ -293,8 +304,16 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
     """
     from optitac_edge.config import load_board_config
 
-    if recording is not None and not Path(recording).is_dir():
-        raise OptiTacError(f"{recording}: no such recording directory")
+    if not isinstance(board, (str, os.PathLike)) or isinstance(board, bytes):
+        raise OptiTacError(f"board must be a board name or a config file's path, got {board!r}")
+    if settings is not None and not isinstance(settings, Mapping):
+        raise OptiTacError(f"settings must be a mapping of 'section.key' to values, got {type(settings).__name__}")
+    if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, int)):
+        raise OptiTacError(f"sensor must be a sensor's id (an integer), got {sensor!r}")
+    if recording is not None:
+        rec = Path(recording)
+        if not (rec.is_dir() or (rec.suffix == ".mcap" and rec.is_file())):
+            raise OptiTacError(f"{recording}: no such recording (a directory, or an .mcap file)")
     config = load_board_config(board, overrides=dict(settings or {}))
     chosen = config.sensors[0] if sensor is None else next((s for s in config.sensors if s.sensor.id == sensor),
                                                            None)
@@ -331,6 +350,11 @@ def _open(config: Any, chosen: Any, cal_path: Path | None, recording: str | os.P
         camera = stack.enter_context(open_board_camera(config, camera_name))
     if cal_path is not None:
         bundle = check_bundle_region(load_bundle(cal_path), chosen, cal_path)
+        t = bundle.fibers
+        if (t.height, t.width) != tuple(camera.frame_shape[:2]):
+            raise OptiTacError(f"{cal_path}: calibrated on {t.width}x{t.height} frames, the camera gives "
+                               f"{camera.frame_shape[1]}x{camera.frame_shape[0]}: calibrate this sensor again "
+                               "or give its own bundle")
     else:
         found = obtain_bundles(config, camera_name, camera, None, led)
         bundle = next(b.bundle for b in found if b.sensor.sensor.id == chosen.sensor.id)

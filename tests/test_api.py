@@ -115,6 +115,12 @@ def test_a_tare_takes_the_rest_light_again(slide_rec, bundle_path):
     ({"recording": "/nonexistent/rec"}, "no such recording"),
     ({"cal": "/nonexistent/cal.npz"}, "no such calibration bundle"),
     ({"settings": {"camera.fps": -5}}, "camera.fps"),
+    # issue 38, item 19: each was a TypeError, ValueError or AttributeError
+    ({"board": None}, "board must be a board name"),
+    ({"board": 5}, "board must be a board name"),
+    ({"board": b"sim"}, "board must be a board name"),
+    ({"settings": "camera.fps=30"}, "settings must be a mapping"),
+    ({"sensor": "1"}, "sensor must be a sensor's id"),
 ])
 def test_bad_input_is_one_line_naming_it(kwargs, message):
     with pytest.raises(ot.OptiTacError) as err:
@@ -130,3 +136,25 @@ def test_readings_stop_at_their_duration_and_a_reading_is_a_frozen_copy(slide_re
         got[0].frame = 5  # type: ignore[misc]
     with contextlib.redirect_stdout(io.StringIO()):
         print(got[-1])  # printable
+
+
+def test_bad_values_and_other_recordings_through_the_api_are_one_line(slide_rec, bundle_path, tmp_path):
+    """Issue 38, item 19: readings(inf) overflowed, read(timeout_s=None) was a TypeError, a bundle of another
+    frame size a ValueError from core/compiled.py, and an MCAP recording 'no such recording directory'."""
+    from optitac_edge.io.recording import Recording
+    from optitac_edge.io.recording_mcap import recording_to_mcap
+
+    with ot.open_sensor(recording=slide_rec, cal=bundle_path) as sensor:
+        for call, message in ((lambda: list(sensor.readings(float("inf"))), "duration_s must be a finite number"),
+                              (lambda: sensor.read(timeout_s=None), "timeout_s must be a finite number"),
+                              (lambda: sensor.read(timeout_s=-1), "timeout_s must be a finite number")):
+            with pytest.raises(ot.OptiTacError, match=message):
+                call()
+    small = tmp_path / "small"
+    subprocess.run([sys.executable, "-m", "optitac_edge.cli", "sim", str(small), "--scenario", "rest", "--frames", "12",
+                    "--width", "320", "--height", "240"], capture_output=True, check=True)
+    with pytest.raises(ot.OptiTacError, match=r"calibrated on 640x480 frames, the camera gives 320x240"):
+        ot.open_sensor(recording=small, cal=bundle_path)
+    mcap = recording_to_mcap(Recording(slide_rec), tmp_path / "slide.mcap")
+    with ot.open_sensor(recording=mcap, cal=bundle_path) as sensor:
+        assert sensor.read() is not None
