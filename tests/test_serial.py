@@ -272,3 +272,25 @@ def test_loop_url_has_no_descriptor_and_uses_the_writer_thread():
         tr.send_contact(contact(0))
         assert wait_for(lambda: len(got) == 1)
         assert tr.writer.direct_writes == 0 and tr.counters.sent == 1
+
+
+def test_a_tare_in_a_burst_of_pings_is_applied_and_every_command_acked(mcu):
+    """A TARE followed by 40 PINGs in one burst: the 32-command queue dropped the TARE (ACKed OK all the same)
+    and the 8-frame ACK queue its ACK. Every intact command gets exactly one ACK; a state-changing one is never
+    dropped (BUSY when there is no room for it); a PING has no state and gives way."""
+    with SerialTransport(mcu.path) as tr:
+        burst = encode_command(CommandType.TARE, 1, 0)
+        burst += b"".join(encode_command(CommandType.PING, 2 + k, 1 + k) for k in range(40))
+        mcu.write(burst)
+        frames = mcu.read_until(lambda fr: len(fr) >= 41)
+        acks = [decode_ack(f.payload) for f in frames]
+        assert sorted(a.seq_acked for a in acks) == list(range(1, 42))
+        assert all(a.result == ResultCode.OK for a in acks)
+        cmds = tr.poll_commands()
+        assert cmds[0] == Command(CommandType.TARE, 1)
+        # a queue of state-changing commands the loop has not taken: the next one is answered BUSY, not dropped
+        mcu.write(b"".join(encode_command(CommandType.TARE, 100 + k, 50 + k) for k in range(33)))
+        frames = mcu.read_until(lambda fr: len(fr) >= 41 + 33)[41:]  # (the fake keeps every frame read)
+        results = {decode_ack(f.payload).seq_acked: decode_ack(f.payload).result for f in frames}
+        assert results[132] == ResultCode.BUSY and all(results[100 + k] == ResultCode.OK for k in range(32))
+        assert [c.seq for c in tr.poll_commands()] == list(range(100, 132))

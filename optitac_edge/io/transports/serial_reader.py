@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 from optitac_edge.io.protocol import wire
 from optitac_edge.io.protocol.decoder import FrameDecoder
-from optitac_edge.io.protocol.messages import Command, ResultCode
+from optitac_edge.io.protocol.messages import Command, CommandType, ResultCode
 from optitac_edge.io.protocol.wire import Frame
 from optitac_edge.io.transports.base import TransportCounters
 
@@ -42,7 +42,7 @@ class CommandReader:
         self.on_frame = on_frame
         #: valid frames of a type the sensor sends (echo, crossed wires), dropped unanswered
         self.unexpected = 0
-        #: commands dropped from a full command queue (service loop not polling)
+        #: commands answered BUSY: the command queue was full of state-changing commands (loop not polling)
         self.commands_dropped = 0
         self._ack = ack
         self._lock = threading.Lock()
@@ -75,6 +75,23 @@ class CommandReader:
             self._commands.clear()
         return out
 
+    def _queue(self, command: Command) -> bool:
+        """Queue ``command`` for the service loop (holding ``_lock``); False: no room (answer BUSY).
+
+        A state-changing command is never dropped: on a full queue a PING gives way (it has no state: its ACK
+        is its answer), else the new command is refused, never an older one taken out after its ACK.
+        """
+        if len(self._commands) >= self._queue_size:
+            ping = next((k for k, c in enumerate(self._commands) if c.type == CommandType.PING), None)
+            if ping is None:
+                if command.type == CommandType.PING:
+                    return True  # acknowledged: all a PING asks
+                self.commands_dropped += 1
+                return False
+            del self._commands[ping]
+        self._commands.append(command)
+        return True
+
     def _handle_frame(self, frame: Frame) -> None:
         if wire.is_sensor_type(frame.type):
             self.unexpected += 1
@@ -83,11 +100,8 @@ class CommandReader:
         parsed = wire.parse_command(frame.type, frame.seq, frame.payload)
         if isinstance(parsed, Command):
             with self._lock:
-                if len(self._commands) >= self._queue_size:
-                    self._commands.popleft()
-                    self.commands_dropped += 1
-                self._commands.append(parsed)
-            self._ack(frame.seq, ResultCode.OK)
+                queued = self._queue(parsed)
+            self._ack(frame.seq, ResultCode.OK if queued else ResultCode.BUSY)
         else:
             seq, result = parsed
             self.counters.rx_errors += 1

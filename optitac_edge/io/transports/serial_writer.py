@@ -69,6 +69,9 @@ class _Numbering:
         self.resync = False
 
 
+#: ACKs waiting for the line: a burst of commands (the protocol allows any) is answered one ACK each.
+ACK_QUEUE = 256
+
 class FrameWriter:
     """What goes out on one serial port, in ``seq`` order, from the frame loop and the writer thread.
 
@@ -176,9 +179,11 @@ class FrameWriter:
                 self._lock.notify()
 
     def enqueue_ack(self, seq_acked: int, result: int) -> None:
-        """Queue the ACK of an incoming frame (written before any queued frame; oldest dropped when full)."""
+        """Queue the ACK of an incoming frame (written before any queued frame). The ACK queue holds
+        :data:`ACK_QUEUE` (a burst of commands is answered whole, one ACK each); only a line that takes nothing
+        for that long drops the oldest."""
         with self._lock:
-            if len(self._acks) >= self._queue_size:
+            if len(self._acks) >= max(self._queue_size, ACK_QUEUE):
                 self._acks.popleft()
                 self.dropped += 1
                 self.counters.send_errors += 1
