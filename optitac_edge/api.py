@@ -282,7 +282,7 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
     Parameters
     ----------
     board : str or path
-        A packaged board (``sim``: the built-in simulated sensor; ``rpi5-gs``, ...: ``optitac-edge boards``)
+        A packaged board (``sim``: the built-in simulated sensor; ``rpi5-gs``, ...: the files of ``board_configs/``)
         or a board config file (TOML). ``OPTITAC_<SECTION>_<KEY>`` environment variables apply, as for
         ``optitac-edge run``.
     sensor : int, optional

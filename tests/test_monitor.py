@@ -33,7 +33,7 @@ def test_counts_rates_gaps_and_errors_from_the_wire() -> None:
     assert lines[0] == "#1 CONTACT t=5 us contact at +1.50, -2.25 mm, 4.00 x 3.00 mm, +30.0°, strength 12.0, shape none"
     assert lines[3].startswith("#6 STATUS 60.0 fps") and lines[4] == "#7 ACK of #7: OK"
     t = mon.tally
-    assert t.counts == {"CONTACT": 3, "STATUS": 1, "ACK": 1, "RELEASE": 0, "other": 0} and (t.gaps, t.lost) == (1, 2)
+    assert t.counts == {"CONTACT": 3, "STATUS": 1, "ACK": 1, "RELEASE": 0, "MOTION": 0, "other": 0} and (t.gaps, t.lost) == (1, 2)
     assert mon.decoder.counters.crc == 1
     assert "CONTACT    3.0/s" in mon.summary(now_ns=1_000_000_000) and "crc 1" in mon.summary(1)
 
@@ -64,7 +64,7 @@ def test_typed_commands_are_valid_on_the_wire(text, kind) -> None:
         assert cmd.version == 2
 
 
-@pytest.mark.parametrize("text", ["reboot", "stream on 0", "stream maybe", "threshold 7", "threshold x", "protocol 3"])
+@pytest.mark.parametrize("text", ["reboot", "stream on 0", "stream maybe", "threshold 7", "threshold x", "protocol 4"])
 def test_bad_commands_are_one_line(text, capsys) -> None:
     from optitac_edge.cli import main
 
@@ -157,3 +157,13 @@ def test_the_mcu_team_can_switch_the_service_to_protocol_v2_from_the_monitor() -
     contact2 = [line for line in lines if " CONTACT2 " in line]
     assert contact2 and any(" contact 1 of " in line for line in contact2)
     assert mon.decoder.counters.crc == 0 and mon.tally.bad_payloads == 0
+
+
+def test_the_monitor_speaks_protocol_v3_and_decodes_motion() -> None:
+    """monitor refused 'protocol 3' and could not decode MOTION (issue 38, item 27): now each CONTACT2 is
+    followed by its MOTION line (velocity, slide, vibration)."""
+    lines, mon = _monitor_the_service(["protocol 3"], 2.5, every=True)
+    assert lines[0] == "sent SET_PROTOCOL 3" and any("ACK of #1: OK" in line for line in lines)
+    motion = [line for line in lines if " MOTION " in line]
+    assert motion and any("v (" in line or "v unknown" in line for line in motion)
+    assert mon.tally.counts["MOTION"] == len(motion) and mon.tally.bad_payloads == 0

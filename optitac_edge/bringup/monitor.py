@@ -18,7 +18,7 @@ from typing import Any
 
 from optitac_edge.errors import OptiTacError, TransportError
 from optitac_edge.io.protocol.decoder import FrameDecoder
-from optitac_edge.io.protocol.messages import THRESHOLD_LSB, CommandType, ResultCode
+from optitac_edge.io.protocol.messages import THRESHOLD_LSB, CommandType, MotionFlags, ResultCode
 from optitac_edge.io.protocol.wire import (
     THRESHOLD_MAX,
     THRESHOLD_MIN,
@@ -31,11 +31,11 @@ from optitac_edge.io.protocol.wire import (
     decode_status,
     encode_command,
 )
-from optitac_edge.io.protocol.wire_v2 import decode_contact2, decode_release
+from optitac_edge.io.protocol.wire_v2 import decode_contact2, decode_motion, decode_release
 
 #: Commands the monitor sends, as typed: ``ping``, ``tare``, ``stream on [DIVIDER]``, ``stream off``,
-#: ``threshold LEVEL`` (relative units, 0.001..0.5), ``protocol 1|2`` (SET_PROTOCOL).
-COMMAND_HELP = "ping | tare | stream on [DIVIDER] | stream off | threshold LEVEL (0.001..0.5) | protocol 1|2"
+#: ``threshold LEVEL`` (relative units, 0.001..0.5), ``protocol 1|2|3`` (SET_PROTOCOL).
+COMMAND_HELP = "ping | tare | stream on [DIVIDER] | stream off | threshold LEVEL (0.001..0.5) | protocol 1|2|3"
 
 
 def command_frame(text: str, seq: int) -> tuple[bytes, str]:
@@ -67,8 +67,8 @@ def command_frame(text: str, seq: int) -> tuple[bytes, str]:
             raise OptiTacError(f"command {text!r}: the level must be a number in 0.001..0.5")
         return encode_command(CommandType.SET_THRESHOLD, seq, threshold=level), "SET_THRESHOLD"
     if words[:1] == ["protocol"] and len(words) == 2:
-        if words[1] not in ("1", "2"):
-            raise OptiTacError(f"command {text!r}: the protocol version is 1 or 2")
+        if words[1] not in ("1", "2", "3"):
+            raise OptiTacError(f"command {text!r}: the protocol version is 1, 2 or 3")
         return encode_command(CommandType.SET_PROTOCOL, seq, version=int(words[1])), f"SET_PROTOCOL {words[1]}"
     raise OptiTacError(f"unknown command {text!r} (commands: {COMMAND_HELP})")
 
@@ -77,7 +77,7 @@ def command_frame(text: str, seq: int) -> tuple[bytes, str]:
 class LinkTally:
     """Counts of what arrived, rates over the last report period, sequence gaps; pure (no I/O, no clock)."""
 
-    counts: dict[str, int] = field(default_factory=lambda: {"CONTACT": 0, "STATUS": 0, "ACK": 0, "RELEASE": 0,
+    counts: dict[str, int] = field(default_factory=lambda: {"CONTACT": 0, "STATUS": 0, "ACK": 0, "RELEASE": 0, "MOTION": 0,
                                                             "other": 0})
     gaps: int = 0
     lost: int = 0
@@ -164,6 +164,10 @@ class SerialMonitor:
                 t.add("CONTACT", frame.seq, now_ns)
                 t.last_contact = _contact2_text(c2)
                 return f"#{frame.seq} CONTACT2 t={frame.t_us} us frame {c2.frame} {t.last_contact}"
+            if frame.type == MsgType.MOTION:  # protocol v3: after each CONTACT2, its contact's motion
+                mo = decode_motion(frame.payload, frame.t_us)
+                t.add("MOTION", frame.seq, now_ns)
+                return f"#{frame.seq} MOTION frame {mo.frame} {_motion_text(mo)}"
             if frame.type == MsgType.RELEASE:
                 rel = decode_release(frame.payload, frame.t_us)
                 t.add("RELEASE", frame.seq, now_ns)
@@ -188,6 +192,18 @@ class SerialMonitor:
         c = self.decoder.counters
         return (f"{self.tally.report(now_ns)}  errors: crc {c.crc}, cobs {c.cobs}, length {c.length}, "
                 f"version {c.version}, overflow {c.overflow}, payload {self.tally.bad_payloads}")
+
+
+def _motion_text(mo: Any) -> str:
+    """A MOTION message in a line: the contact's velocity and slide, the frame's vibration, as its flags say."""
+    f = MotionFlags(mo.flags)
+    parts = [f"contact {mo.contact_id}" if mo.contact_id else "no contact"]
+    parts.append(f"v ({mo.vx_mm_s:.1f}, {mo.vy_mm_s:.1f}) mm/s" if f & MotionFlags.VELOCITY else "v unknown")
+    if f & MotionFlags.SLIDING:
+        parts.append(f"sliding since frame {mo.slide_frame}" + (" (began)" if f & MotionFlags.SLIDE_BEGAN else ""))
+    if f & MotionFlags.VIBRATION:
+        parts.append(f"vibration {mo.vibration:.1f}" + (" (vibrating)" if f & MotionFlags.VIBRATING else ""))
+    return ", ".join(parts)
 
 
 def open_monitor_port(port: str, baudrate: int) -> Any:
