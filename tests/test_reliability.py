@@ -178,6 +178,27 @@ def test_no_good_frame_for_the_frame_gap_stops_kicking_and_raises(bundle, tmp_pa
     assert msgs[-1] == "STOPPING=1" and "READY=1" not in "".join(msgs)
 
 
+def test_the_viewer_rides_out_a_camera_gap_and_names_the_setting(bundle, caplog):
+    """``view`` exited after 2.3 s without a camera frame on a loaded machine ('exiting so systemd restarts')
+    where nobody restarts it (issue 38, item 23): a viewer at a terminal says the gap, naming the setting, and
+    goes on; ``run`` (under systemd) still exits, its line naming the setting too."""
+    import logging
+
+    config = _config(**{"watchdog.max_frame_gap_s": 0.5})
+    clock = VirtualClock()
+    service = Service(config, bundle, None, NullTransport(), clock=clock, camera_factory=lambda: DeadCamera(clock))
+    service.ride_out_stalls = True
+    with caplog.at_level(logging.WARNING, logger="optitac_edge.service.loop"):
+        stats = service.run(threading.Event(), duration_s=3)
+    assert clock.monotonic_ns() / 1e9 >= 3 and stats.stalls >= 4  # to the end of its duration
+    gaps = [r.getMessage() for r in caplog.records if "no good camera frame" in r.getMessage()]
+    assert len(gaps) == stats.stalls and "watchdog.max_frame_gap_s = 0.5" in gaps[0] and "still waiting" in gaps[0]
+    clock = VirtualClock()
+    with pytest.raises(ServiceStalled, match=r"watchdog.max_frame_gap_s = 0.5.*exiting so systemd restarts"):
+        Service(config, bundle, None, NullTransport(), clock=clock,
+                camera_factory=lambda: DeadCamera(clock)).run(threading.Event(), duration_s=10)
+
+
 class HangingCamera(Camera):
     """Delivers frames, then blocks inside read() (a driver stuck in an ioctl)."""
 

@@ -116,6 +116,9 @@ class Service:
         self.peers: list[Service] = []
         #: This service is one of a lead's peers: it takes commands from its inbox and leaves systemd alone.
         self.is_peer = False
+        #: A gap without a good frame is said and ridden out, not an exit (``view`` at a terminal: nobody
+        #: restarts it; under systemd ``run`` exits so that it is restarted).
+        self.ride_out_stalls = False
         #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
         self.view: Any = None
         #: The network publisher's frame-loop side (``[publish.NAME]``): ``offer_*`` copy and return, never blocking.
@@ -217,8 +220,13 @@ class Service:
                 if end_ns is not None and now_ns >= end_ns:
                     break
                 if now_ns - self._last_good_ns > self._max_gap_ns:
-                    raise ServiceStalled(f"no good camera frame for {(now_ns - self._last_good_ns) / 1e9:.1f} s "
-                                         f"({st.camera_errors} camera faults); exiting so systemd restarts")
+                    gap = (f"no good camera frame for {(now_ns - self._last_good_ns) / 1e9:.1f} s "
+                           f"(watchdog.max_frame_gap_s = {self._max_gap_ns / 1e9:g}; {st.camera_errors} camera faults)")
+                    if not self.ride_out_stalls:
+                        raise ServiceStalled(f"{gap}; exiting so systemd restarts")
+                    st.stalls += 1
+                    log.warning("%s; still waiting for the camera", gap)
+                    self._last_good_ns = now_ns  # said once a gap
                 try:
                     result = self._step(stop, now_ns)
                 except _CameraEnded:

@@ -81,6 +81,8 @@ class BoardSession:
         self.transport: Transport | None = None
         #: The live view, when :meth:`open_view` was called.
         self.view: Any = None
+        #: Gaps without a camera frame are said and ridden out (``view``), not an exit (``run``).
+        self.ride_out_stalls = False
         #: The board's network publisher (``[publish.NAME]``; None when off), and its publishing thread once running.
         self.publisher: Publisher | None = None
         self.network: NetworkOutput | None = None
@@ -207,6 +209,7 @@ class BoardSession:
                               sensors=[(b.sensor.sensor, b.bundle) for b in group],
                               camera_config=config.cameras[name], camera_name=name)
             service.status.calibration_unsaved = any(b.unsaved is not None for b in group)
+            service.ride_out_stalls = self.ride_out_stalls
             self.services.append(service)
         lead, peers = self.services[0], self.services[1:]
         lead.peers = peers

@@ -46,6 +46,7 @@ class ServiceStats:
     baseline_raises: int = 0  # fibers brighter than their baseline (taken over a press): raised to their light
     processing_errors: int = 0  # frames the pipeline failed on (a bug): counted, flagged, baseline re-taken
     protocol_refused: int = 0  # SET_PROTOCOL for a version the link cannot speak: ignored
+    stalls: int = 0  # gaps without a good frame longer than watchdog.max_frame_gap_s ridden out (view)
     reopens: int = 0  # successful camera reopens
     reopen_failures: int = 0
     commands: dict[str, int] = field(default_factory=dict)

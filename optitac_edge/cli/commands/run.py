@@ -240,6 +240,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
     max_frames = args.frames
     link = "no link" if config.link.transport == "none" else config.link.transport
     with BoardSession(config, args.cal) as session, ExitStack() as stack:
+        session.ride_out_stalls = bool(getattr(args, "ride_out_stalls", False))  # view: at a terminal
         # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
         first = config.sensors[0]  # the lead camera's first sensor: the one the status line shows
         label = f"{first.sensor.name}: " if len(config.sensors) > 1 else ""

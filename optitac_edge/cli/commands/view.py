@@ -25,5 +25,7 @@ def run(args: argparse.Namespace) -> int:
     """The service with the live view on ``--bind`` and no link."""
     from optitac_edge.cli.commands import run as run_command
 
-    run_args = argparse.Namespace(**vars(args), serial=None, can=None, frames=None, fps=None, view=args.bind)
+    # a viewer at a terminal rides out a camera gap and says so (run under systemd exits to be restarted)
+    run_args = argparse.Namespace(**vars(args), serial=None, can=None, frames=None, fps=None, view=args.bind,
+                                  ride_out_stalls=True)
     return run_command.run(run_args)
