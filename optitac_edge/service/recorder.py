@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from optitac_edge.config import BoardConfig
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording import MIN_REST_FRAMES, RecordingMeta
@@ -15,13 +17,28 @@ from optitac_edge.service.wiring import open_board_camera
 
 
 class Recorded(NamedTuple):
-    """What :func:`record_board` wrote."""
+    """What :func:`record_board` wrote, and the camera's pace: ``span_s`` from the first frame to the last,
+    ``gaps`` (frame intervals over 1.5 periods of the camera's rate), ``missing`` (frames the gaps would have
+    held) and ``dropped`` (frames the camera itself counted as dropped)."""
 
     frames: int
     width: int
     height: int
     pixel_format: str
     meta: RecordingMeta
+    span_s: float = 0.0
+    gaps: int = 0
+    missing: int = 0
+    dropped: int = 0
+
+
+def frame_gaps(t_ns: np.ndarray, fps: float) -> tuple[int, int]:
+    """(intervals longer than 1.5 frame periods, frames they would have held) of capture times ``t_ns``
+    (shape (N,), ns) at ``fps``."""
+    period = 1e9 / fps
+    dt = np.diff(np.asarray(t_ns, dtype=np.int64)).astype(np.float64)
+    late = dt > 1.5 * period
+    return int(late.sum()), int(np.maximum(np.rint(dt[late] / period) - 1, 0).sum())
 
 
 def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames: int,
@@ -53,10 +70,15 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
         writer: Any = (McapRecordingWriter(path, meta.to_json(), replace=replace) if mcap else
                        RecordingWriter(path, frames, camera.frame_shape, meta, replace=replace, storage=storage,
                                        find_fibers=fiber_finder(config)))
+        times = np.zeros(frames, dtype=np.int64)
         with writer:
             for i in range(frames):
                 captured = camera.read(config.camera.timeout_s)
                 if captured is None:
                     raise OptiTacError(f"the camera ended after {i} frames")
                 writer.write(i, captured.frame, captured.t_ns)
-    return Recorded(frames, camera.width, camera.height, camera.pixel_format, meta)
+                times[i] = captured.t_ns
+        dropped = int(getattr(camera, "frames_dropped", 0))
+    gaps, missing = frame_gaps(times, camera.fps)
+    return Recorded(frames, camera.width, camera.height, camera.pixel_format, meta,
+                    (int(times[-1]) - int(times[0])) / 1e9, gaps, missing, dropped)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,12 @@ def run(args: argparse.Namespace) -> int:
         raise OptiTacError("--storage fibers: an MCAP recording holds raw frames (record into a directory)")
     rec = record_board(one_sensor_config(args), args.output, args.frames, args.rest_frames, mcap=mcap,
                        replace=args.fresh, storage=args.storage or "fibers")
-    print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format}")
+    pace = (f"{rec.span_s:.1f} s at {rec.meta.fps:g} fps; {rec.gaps} gaps ({rec.missing} frames missing), "
+            f"{rec.dropped} dropped by the camera")
+    print(f"wrote {args.output}: {rec.frames} frames of {rec.width}x{rec.height} {rec.pixel_format} over {pace}")
+    if rec.missing or rec.dropped:
+        print(f"warning: {rec.missing + rec.dropped} frames of the camera's {rec.meta.fps:g} fps are not in the "
+              "recording (a busy machine or a slow disk?); its frame times say where", file=sys.stderr)
     return 0
 
 
