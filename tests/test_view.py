@@ -189,6 +189,28 @@ def test_slow_clients_neither_hold_a_connection_for_ever_nor_keep_others_from_an
             s.close()
 
 
+def test_a_body_that_never_comes_holds_no_answer_slot(fed_view) -> None:
+    """16 connections that send a Content-Length and no body held every answer slot (a GET waited 4.2 s): the
+    slot was taken after the headers, the body read while holding it (issue 38, item 22). The body is now read
+    before a slot is taken."""
+    from optitac_edge.service.view import server as view_server
+
+    _, server, _ = fed_view
+    hold = [socket.create_connection(("127.0.0.1", server.port), timeout=10) for _ in range(view_server.MAX_CLIENTS)]
+    try:
+        for s in hold:
+            s.sendall(b"POST /api/tare HTTP/1.1\r\nHost: localhost\r\nX-OptiTac: 1\r\nContent-Length: 100\r\n\r\n")
+        answering = server._server.answering
+        deadline = time.monotonic() + 1.5  # the server has read their headers well before
+        while time.monotonic() < deadline and answering._value == view_server.MAX_CLIENTS:
+            time.sleep(0.05)
+        assert answering._value == view_server.MAX_CLIENTS  # none taken: they wait for their bodies slotless
+        assert _get(f"http://127.0.0.1:{server.port}/api/layout")[0] == 200
+    finally:
+        for s in hold:
+            s.close()
+
+
 def test_a_client_that_goes_away_is_counted_not_a_traceback(fed_view, capfd) -> None:
     _, server, _ = fed_view
     before = getattr(server._server, "client_errors", 0)

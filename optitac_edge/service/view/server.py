@@ -201,13 +201,28 @@ class _Handler(BaseHTTPRequestHandler):
             self._release()
 
     def parse_request(self) -> bool:
-        ok = super().parse_request()  # the headers are in: now the request waits for a slot to be answered
+        ok = super().parse_request()  # the headers are in
         self.connection.settimeout(TIMEOUT_S)  # for the answer's writes (the reads had what was left)
+        ok = ok and self._read_body()  # before a slot: a body that never comes must hold none
         if ok and not self.server.answering.acquire(timeout=TIMEOUT_S):
             self._refuse(HTTPStatus.SERVICE_UNAVAILABLE, "too many requests at once")
             return False
         self._answering = ok
         return ok
+
+    def _read_body(self) -> bool:
+        """Read the request's body (at most :data:`MAX_BODY` bytes, within the request's time); False after a
+        refusal."""
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if not 0 <= length <= MAX_BODY:
+            self._refuse(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, "request body too large")
+            return False
+        if length:
+            self.rfile.read(length)
+        return True
 
     def _release(self) -> None:
         if getattr(self, "_answering", False):
@@ -243,15 +258,6 @@ class _Handler(BaseHTTPRequestHandler):
         if is_loopback(bound) and not is_loopback(host):
             self._refuse(HTTPStatus.FORBIDDEN, "unexpected Host")
             return None
-        try:
-            length = int(self.headers.get("Content-Length") or 0)
-        except ValueError:
-            length = -1
-        if not 0 <= length <= MAX_BODY:
-            self._refuse(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, "request body too large")
-            return None
-        if length:
-            self.rfile.read(length)
         parts = urlsplit(self.path)
         try:
             query = parse_qs(parts.query, strict_parsing=False, max_num_fields=4)
