@@ -331,3 +331,20 @@ def test_a_collection_interrupted_while_parking_continues_into_a_readable_record
     result = _collect("seen", out, "sim://", limit=2)
     rec = Recording(out)  # readable: truth.csv has a row for every frame (the reader checks)
     assert result.resumed_at == 2 and rec.truth is not None and len(rec) == result.frames
+
+
+def test_ctrl_c_while_starting_says_nothing_moved(tmp_path, monkeypatch, capsys) -> None:
+    """Ctrl-C during collect's start-up (the camera or the bundle still opening) said 'tip retracted; recording
+    early is incomplete' when nothing had moved and nothing existed (issue 38, item 22)."""
+    from optitac_edge.service import bundles
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bundles, "obtain_bundle", interrupted)
+    out = tmp_path / "early"
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "2"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == (f"optitac-edge: interrupted: nothing moved and nothing was recorded (interrupted while starting; "
+                   f"{out} unchanged)")
+    assert not out.exists()

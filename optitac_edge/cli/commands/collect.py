@@ -54,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
         bundle, _ = obtain_bundle(config, camera, args.cal)
         collector = Collector(camera, rig, bundle, prompt=lambda line: print(line, flush=True),
                               confirm=_wait_for_enter, storage=args.storage, find_fibers=fiber_finder(config))
+        args.collecting = True  # from here on an interrupt retracts the tip (Collector.run), and says so
         result = collector.run(args.experiment, args.output, seed=args.seed, limit=args.limit, fresh=args.fresh)
     f = result.rig_frame
     print(f"wrote {args.output}: {result.experiment}, {result.presses} presses, {result.frames} frames"
@@ -82,6 +83,8 @@ def _wait_for_enter(line: str) -> None:
 
 def left(args: argparse.Namespace) -> str:
     """What an interrupted collection left behind (the tip is retracted first), for its one line."""
+    if not getattr(args, "collecting", False):  # the rig, camera or bundle were still opening
+        return f"nothing moved and nothing was recorded (interrupted while starting; {args.output} unchanged)"
     if getattr(args, "replacing", False):
         if not staging_path(Path(args.output)).exists():  # the signal came as the new one took its place
             return f"tip retracted; recording {args.output} replaced by the new collection (complete)"
