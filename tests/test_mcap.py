@@ -255,7 +255,12 @@ def test_a_full_disk_is_counted_and_the_stop_stays_clean(tmp_path, caplog):
     assert summary[-1].endswith("messages not written (failed writes)")
     from optitac_edge.io.mcap_file import part_contents
 
-    assert part_contents(tmp_path / "run.mcap.part").messages > 0  # what was written before is readable
+    on_disk = part_contents(tmp_path / "run.mcap.part")
+    assert on_disk.messages > 0  # what was written before is readable
+    # the summary names the messages on disk, not those the writer took before the disk filled (issue 38,
+    # item 22); every message is either on disk or counted lost
+    assert pub.written[0].messages == on_disk.messages and pub.written[0].last_ns == on_disk.last_ns
+    assert sum(f.messages for f in pub.written) + pub.lost == 20_000
 
 
 def test_run_with_a_full_disk_ends_cleanly_naming_the_file(tmp_path, monkeypatch, capsys):

@@ -41,7 +41,7 @@ from mcap.writer import CompressionType, Writer
 
 from optitac_edge.errors import OutputError
 from optitac_edge.io.files import write_file_atomic
-from optitac_edge.io.mcap_file import SYNC_NS, PeriodicSync, complete, open_part
+from optitac_edge.io.mcap_file import SYNC_NS, PeriodicSync, complete, open_part, part_contents
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2.messages import ros2msg_schema
 
@@ -262,6 +262,10 @@ class McapPublisher(Publisher):
             self._stream.close()
         except OSError:
             pass
+        on_disk = part_contents(self._part)  # what the file holds readable: the messages after it are lost
+        f = self._file
+        self.lost += f.messages - on_disk.messages - 1  # (this one is counted above)
+        f.messages, f.first_ns, f.last_ns = on_disk.messages, on_disk.first_ns, on_disk.last_ns
         self._writer = None
         self._failed_at = source_ns
 
