@@ -156,6 +156,9 @@ def test_the_mcu_team_can_switch_the_service_to_protocol_v2_from_the_monitor() -
     assert lines[0] == "sent SET_PROTOCOL 2" and any("ACK of #1: OK" in line for line in lines)
     contact2 = [line for line in lines if " CONTACT2 " in line]
     assert contact2 and any(" contact 1 of " in line for line in contact2)
+    # the simulated board has no depth model: 'depth 0.00 mm, force 0.00 N' read as measured (issue 38, item 28)
+    touching = [line for line in contact2 if "no contact" not in line]
+    assert touching and all("depth not calibrated, force not calibrated" in line for line in touching)
     assert mon.decoder.counters.crc == 0 and mon.tally.bad_payloads == 0
 
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from optitac_edge.errors import OptiTacError, TransportError
 from optitac_edge.io.protocol.decoder import FrameDecoder
-from optitac_edge.io.protocol.messages import THRESHOLD_LSB, CommandType, MotionFlags, ResultCode
+from optitac_edge.io.protocol.messages import THRESHOLD_LSB, CommandType, ContactV2Flags, MotionFlags, ResultCode
 from optitac_edge.io.protocol.wire import (
     THRESHOLD_MAX,
     THRESHOLD_MIN,
@@ -125,9 +125,13 @@ def _contact_text(msg: Any) -> str:
 def _contact2_text(msg: Any) -> str:
     if not msg.n_contacts:
         return f"sensor {msg.sensor_id}: no contact"
-    return (f"sensor {msg.sensor_id} contact {msg.index + 1} of {msg.n_contacts} (id {msg.contact_id}) at "
+    flags = ContactV2Flags(msg.flags)  # depth and force only where calibrated (else sent as 0)
+    depth = f"depth {msg.depth_mm:.2f} mm" if flags & ContactV2Flags.DEPTH else "depth not calibrated"
+    force = f"force {msg.force_n:.2f} N" if flags & ContactV2Flags.FORCE else "force not calibrated"
+    touch = ", touch" if flags & ContactV2Flags.TOUCH else ""
+    return (f"sensor {msg.sensor_id} contact {msg.index + 1} of {msg.n_contacts} (id {msg.contact_id}{touch}) at "
             f"{msg.x_mm:+.2f}, {msg.y_mm:+.2f} mm, {msg.major_mm:.2f} x {msg.minor_mm:.2f} mm, {msg.angle_deg:+.1f}°, "
-            f"strength {msg.strength:.1f}, depth {msg.depth_mm:.2f} mm, force {msg.force_n:.2f} N")
+            f"strength {msg.strength:.1f}, {depth}, {force}")
 
 
 class SerialMonitor:
