@@ -72,6 +72,8 @@ def test_collect_from_the_command_line(tmp_path, capsys) -> None:
     stdout = capsys.readouterr().out
     assert "touch-off" in stdout and f"wrote {out}: seen, 2 presses" in stdout
     assert Recording(out).meta.extra["collect"]["presses"] == 2
+    # minutes without a word before (issue 38, item 28): a line a press where the output is not a terminal
+    assert "press 1 of 2 done; about" in stdout and "press 2 of 2 done; about 0 min left" in stdout
 
 
 def test_the_rig_frame_and_surface_are_found_not_typed_in(tmp_path, capsys) -> None:

@@ -148,6 +148,8 @@ class Collector:
                  prompt: Callable[[str], None] = print, confirm: Callable[[str], None] | None = None,
                  storage: str = "raw", find_fibers: FindFibers | None = None) -> None:
         self.camera, self.rig, self.bundle, self.settings = camera, rig, bundle, settings
+        #: Called after each press is journalled with (presses done, presses in all): a progress bar or a line.
+        self.progress: Callable[[int, int], None] = lambda done, total: None
         self.storage, self.find_fibers = storage, find_fibers
         self.prompt = prompt
         self.confirm = confirm or prompt
@@ -302,8 +304,7 @@ class Collector:
                 rec.frames(s.hold_frames, "hold", p)
             rec.move((tx, ty, hover), "release", p, s.approach_feed_mm_s)
             rec.commit(journal, {"kind": "press", "index": k})
-            if (k + 1) % 25 == 0:
-                log.info("press %d of %d", k + 1, len(presses))
+            self.progress(k + 1, len(presses))
 
     def _change_indenter(self, rec: RigRecorder, p: PlannedPress) -> None:
         if not self.rig.changes_indenters:

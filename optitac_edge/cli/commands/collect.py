@@ -52,8 +52,11 @@ def run(args: argparse.Namespace) -> int:
         stack.enter_context(rig)
         camera = stack.enter_context(camera if camera is not None else open_board_camera(config))
         bundle, _ = obtain_bundle(config, camera, args.cal)
+        progress = PressProgress(args.experiment)
+        stack.callback(progress.close)
         collector = Collector(camera, rig, bundle, prompt=lambda line: print(line, flush=True),
                               confirm=_wait_for_enter, storage=args.storage, find_fibers=fiber_finder(config))
+        collector.progress = progress.update
         args.collecting = True  # from here on an interrupt retracts the tip (Collector.run), and says so
         result = collector.run(args.experiment, args.output, seed=args.seed, limit=args.limit, fresh=args.fresh)
     f = result.rig_frame
@@ -79,6 +82,36 @@ def _wait_for_enter(line: str) -> None:
     print(line, flush=True)
     if sys.stdin.readline() == "":
         raise OptiTacError("standard input closed while waiting for the operator")
+
+
+class PressProgress:
+    """Presses done of all, and the time left at the pace so far: a bar on a terminal (tqdm), else a line a press
+    (a log, journald)."""
+
+    def __init__(self, experiment: str) -> None:
+        self.experiment = experiment
+        self._bar: Any = None
+        self._started: float | None = None
+
+    def update(self, done: int, total: int) -> None:
+        import time
+
+        now = time.monotonic()
+        if self._started is None:
+            self._started, self._first = now, done - 1  # a continued collection starts after its done presses
+        if sys.stdout.isatty():
+            if self._bar is None:
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=total, initial=done - 1, desc=self.experiment, unit="press", leave=False)
+            self._bar.update(1)
+            return
+        pace = (now - self._started) / max(done - self._first, 1)
+        print(f"press {done} of {total} done; about {pace * (total - done) / 60:.0f} min left", flush=True)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
 
 
 def left(args: argparse.Namespace) -> str:

@@ -72,6 +72,7 @@ class _Numbering:
 #: ACKs waiting for the line: a burst of commands (the protocol allows any) is answered one ACK each.
 ACK_QUEUE = 256
 
+
 class FrameWriter:
     """What goes out on one serial port, in ``seq`` order, from the frame loop and the writer thread.
 
