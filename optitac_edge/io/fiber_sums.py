@@ -134,22 +134,19 @@ class FiberSumFrames:
                                      f"3) beside {SUMS}, got {colours.dtype} {colours.shape}")
             self._colours = colours
         self._rest, self._sums = rest, sums
-        self._check_rest_fits(directory, counts)
         self.rest_frames = rest_frames
         self.shape: tuple[int, ...] = (rest_frames + int(sums.shape[0]), *frame_shape)
         self.dtype = np.dtype(np.uint8)
         self.ndim = len(self.shape)
-        self._prepare(frame_shape, counts)
+        self._check_rest_fits(directory, self._prepare(frame_shape, counts), counts)
 
-    def _check_rest_fits(self, directory: Path, counts: np.ndarray) -> None:
-        """The rest frames' light of the typical fiber is the first sums' (:data:`REST_FIT`)."""
+    def _check_rest_fits(self, directory: Path, at_rest: np.ndarray, counts: np.ndarray) -> None:
+        """The rest frames' light of the typical fiber (``at_rest``: each fiber's sum of the rest frames' mean
+        gray) is the first sums' (:data:`REST_FIT`)."""
         rows = min(FIT_ROWS, int(self._sums.shape[0]))
         if not rows:
             return
         t = self.table
-        gray = [f if f.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in self._rest]
-        level = np.mean(np.stack(gray), axis=0, dtype=np.float64).reshape(-1)
-        at_rest = np.add.reduceat(level[t.pixel_index], t.pixel_start[:-1])
         after = np.median(np.asarray(self._sums[:rows], dtype=np.float64), axis=0)
         live = ~np.asarray(t.dead, dtype=bool)
         off = np.abs(at_rest - after) / np.maximum(after, counts)  # at least a gray level a pixel
@@ -158,8 +155,9 @@ class FiberSumFrames:
                                  f"(the typical fiber's light differs by {np.median(off):.0%}: frames shifted, "
                                  "replaced or black?)")
 
-    def _prepare(self, frame_shape: tuple[int, ...], counts: np.ndarray) -> None:
-        """The rest level of every pixel, the groups' weights and the zones around them."""
+    def _prepare(self, frame_shape: tuple[int, ...], counts: np.ndarray) -> np.ndarray:
+        """The rest level of every pixel, the groups' weights and the zones around them; each fiber's sum of the
+        rest level, shape (N,)."""
         from scipy import ndimage
 
         h, w = frame_shape[:2]
@@ -175,7 +173,7 @@ class FiberSumFrames:
         self._starts = t.pixel_start[:-1].astype(np.intp)
         self._ends = t.pixel_start[1:].astype(np.intp) - 1
         weight = flat[self._index]
-        rest_sum = np.add.reduceat(weight, self._starts)
+        rest_sum = at_rest = np.add.reduceat(weight, self._starts)
         dark = rest_sum <= 0  # no light at rest (a dead fiber on black): share equally
         weight[dark[self._fiber]] = 1.0
         rest_sum = np.where(dark, counts.astype(np.float64), rest_sum)
@@ -194,6 +192,7 @@ class FiberSumFrames:
             for frame in self._rest:
                 colour += frame.reshape(-1, 3)
             self._rest_colour = colour / len(self._rest)
+        return at_rest
 
     # -- array-like ------------------------------------------------------------------
 

@@ -42,7 +42,7 @@ from optitac_edge.core.fiber_table import FiberSampler, FiberTable
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, OutputError, RecordingError
 from optitac_edge.io.files import AtomicFile
-from optitac_edge.io.npy_rows import NpyRows
+from optitac_edge.io.npy_rows import NpyRows, npy_shape
 from optitac_edge.io.npz_members import NpzLimits, read_npz_members
 
 log = logging.getLogger(__name__)
@@ -108,18 +108,6 @@ def read_spots(path: Path, frame_shape: tuple[int, ...]) -> FiberTable:
                           unmatched_px=np.zeros((0, 2)))
     except (ValueError, TypeError, FrameMismatchError) as exc:
         raise RecordingError(f"{path}: garbled fiber pixel groups ({exc})") from None
-
-
-def _rows_shape(path: Path) -> tuple[int, ...] | None:
-    """The shape of one row of the ``.npy`` file at ``path`` (a frame's shape), None when it cannot be read."""
-    try:
-        with path.open("rb") as f:
-            major, _minor = np.lib.format.read_magic(f)
-            read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
-            shape, _, _ = read(f)
-    except (OSError, ValueError):
-        return None
-    return tuple(int(v) for v in shape[1:])
 
 
 def _size(shape: tuple[int, ...] | None) -> str:
@@ -229,7 +217,8 @@ class FiberSumStore(FrameStore):
         if keep < self.rest_frames or not (self.directory / SPOTS).exists():
             raise RecordingError(f"{self.directory}: holds no fiber sums to continue after frame {keep} (collected "
                                  "with --storage raw? continue it with the same storage)")
-        kept_shape = _rows_shape(self.directory / REST_FRAMES)
+        stated = npy_shape(self.directory / REST_FRAMES)
+        kept_shape = None if stated is None else stated[1:]
         if kept_shape != self.frame_shape:  # the sums would be over another camera's pixels
             raise RecordingError(f"{self.directory}: holds frames of {_size(kept_shape)}, this camera's are "
                                  f"{_size(self.frame_shape)}: continue it with the camera it was recorded with, or "

@@ -35,6 +35,19 @@ def npy_header(shape: tuple[int, ...], dtype: np.dtype, length: int | None = Non
     return b"\x93NUMPY\x01\x00" + len(body).to_bytes(2, "little") + body
 
 
+def npy_shape(path: Path) -> tuple[int, ...] | None:
+    """The array shape an ``.npy`` file's header states (nothing of its data read); None when the header cannot
+    be read (the file's own reader then says why)."""
+    try:
+        with path.open("rb") as f:
+            major, _minor = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+            shape, _, _ = read(f)
+    except (OSError, ValueError):
+        return None
+    return tuple(int(v) for v in shape)
+
+
 class NpyRows:
     """Rows of one shape and dtype into a ``.npy`` file at ``path``.
 

@@ -41,7 +41,8 @@ import numpy as np
 
 from optitac_edge.core.frames import infer_pixel_format
 from optitac_edge.errors import FrameMismatchError, RecordingError
-from optitac_edge.io.frame_store import STORAGES
+from optitac_edge.io.frame_store import COLOURS, RAW_FRAMES, REST_FRAMES, SPOTS, STORAGES, SUMS
+from optitac_edge.io.npy_rows import npy_shape
 from optitac_edge.io.recording_paths import interrupted_swap
 
 TRUTH_HEADER = ("frame", "contact", "shape", "x_mm", "y_mm", "angle_deg", "size_mm", "depth_mm")
@@ -180,8 +181,7 @@ INCOMPLETE_MARKER = "incomplete.json"
 #: Per-frame capture times, int64 ns.
 TIMESTAMPS = "timestamps.npy"
 #: Every file a recording directory may hold (each must be a regular file where it exists).
-RECORDING_FILES = ("meta.json", "frames.npy", "truth.csv", TIMESTAMPS, "rest.npy", "spots.npz", "sums.npy",
-                   "colours.npy")
+RECORDING_FILES = ("meta.json", RAW_FRAMES, "truth.csv", TIMESTAMPS, REST_FRAMES, SPOTS, SUMS, COLOURS)
 #: The journal of a collection on a rig (``optitac-edge collect``), there until it completes.
 COLLECT_JOURNAL = "collect.jsonl"
 
@@ -206,18 +206,6 @@ def read_timestamps(path: Path, n_frames: int) -> np.ndarray:
     return t
 
 
-def _rows_in(path: Path) -> int | None:
-    """Rows of the ``.npy`` at ``path`` by its header (None when it cannot be read: its own check says why)."""
-    try:
-        with path.open("rb") as f:
-            major, _minor = np.lib.format.read_magic(f)
-            read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
-            shape, _, _ = read(f)
-    except (OSError, ValueError):
-        return None
-    return int(shape[0]) if len(shape) else None
-
-
 def _check_regular_files(directory: Path) -> None:
     """Every recording file that exists is a regular file (a FIFO in its place hung the reader)."""
     for name in RECORDING_FILES:
@@ -229,9 +217,10 @@ def _check_regular_files(directory: Path) -> None:
 def _check_sum_rows(directory: Path, n_frames: int, rest_frames: int) -> None:
     """A fiber-sum recording's frames are as many as its timestamps (else sums.npy is the one short)."""
     stamps = directory / TIMESTAMPS
-    n_stamped = _rows_in(stamps) if stamps.exists() else None
+    stated = npy_shape(stamps) if stamps.exists() else None
+    n_stamped = stated[0] if stated else None
     if n_stamped is not None and n_stamped != n_frames:
-        raise RecordingError(f"{directory / 'sums.npy'}: {n_frames - rest_frames} frames after the rest frames "
+        raise RecordingError(f"{directory / SUMS}: {n_frames - rest_frames} frames after the rest frames "
                              f"where {TIMESTAMPS} has {n_stamped - rest_frames} (truncated?)")
 
 
