@@ -536,7 +536,7 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
     }
     for (int32_t i = 0; i < p->n_dead; i++) p->signal[p->dead[i]] = 0.0f;
     if (p->band) { /* levels.banded: u = (|s| - shift)+, sign(s) max(u - c2 / u, 0) */
-        const float *c2 = p->band + nf, *shift = p->band + 2 * nf;
+        const float *c2 = p->band, *shift = p->band + nf;
         float *s = p->signal;
         for (int32_t i = 0; i < nf; i++) {
             float v = s[i], u = fabsf(v) - shift[i];

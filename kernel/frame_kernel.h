@@ -134,7 +134,7 @@ typedef struct {
     float *baseline;            /* (N,) Baseline.values */
     float *level;               /* (N,) Baseline.level */
     float *inv_level;           /* (N,) Baseline.inv_level */
-    const float *band;          /* (3, N) ContactLevels.bands: c, c^2, shift per fiber (NULL: none) */
+    const float *band;          /* (2, N) ContactLevels.bands: c^2, shift per fiber (NULL: none) */
     const int32_t *support_nbr; /* (N, 6) each fiber's neighbours, -1 for none (NULL: no neighbour support) */
     float *rest;                /* (N,) the rest light of the last frame, for a raise (see ok_follow) */
     double *contacts;           /* (max_contacts, OK_FIELDS) the frame's contacts, strongest first */

@@ -285,7 +285,7 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
     ARR(baseline, float *, "baseline", F32, 4, nf, 1);
     ARR(level, float *, "level", F32, 4, nf, 1);
     ARR(inv_level, float *, "inv_level", F32, 4, nf, 1);
-    OPT(band, const float *, "band", F32, 4, 3 * nf, NULL);
+    OPT(band, const float *, "band", F32, 4, 2 * nf, NULL);
     OPT(support_nbr, const int32_t *, "support_nbr", I32, 4, 6 * nf, NULL);
     for (Py_ssize_t i = 0; p.support_nbr && i < 6 * nf; i++)
         if (p.support_nbr[i] < -1 || p.support_nbr[i] >= nf) {

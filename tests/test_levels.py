@@ -92,8 +92,8 @@ def test_noise_measured_between_snapshots_is_drift() -> None:
     noisy = _three_fibers([1.0, 1.0, 3.0], None)
     snapshots = _three_fibers([1.0, 1.0, 3.0], None, noise_is_drift=True)
     assert noisy.bands is not None and snapshots.bands is not None
-    assert noisy.bands[2, 2] == 0.0 and noisy.bands[1, 2] > 0.0
-    assert snapshots.bands[1, 2] == 0.0 and snapshots.bands[2, 2] == pytest.approx(0.1 * 1.8, rel=1e-5)
+    assert noisy.bands[1, 2] == 0.0 and noisy.bands[0, 2] > 0.0  # rows: c^2, shift
+    assert snapshots.bands[0, 2] == 0.0 and snapshots.bands[1, 2] == pytest.approx(0.1 * 1.8, rel=1e-5)
 
 
 def test_rest_frames_far_apart_are_flagged_as_snapshots(bundle_path) -> None:

@@ -87,9 +87,9 @@ def band_rows(excess: np.ndarray, drift_share: np.ndarray, on: float, out: np.nd
         The drift's share ``w`` of its excursion's variance, 0..1.
     on : float
         The on level, signal units.
-    out : ndarray, shape (3, N), float32
-        Rows: where the fiber starts to count above the shift, ``c``; ``c^2``; the shift ``b_d``
-        (``b_d = on x w``, ``x' = x (1 - w)``, ``c^2 = on^2 x' (1 + x')``); a fiber with no excess: 0, 0, 0.
+    out : ndarray, shape (2, N), float32
+        Rows: ``c^2`` and the shift ``b_d`` (``b_d = on x w``, ``x' = x (1 - w)``, ``c^2 = on^2 x' (1 + x')``);
+        a fiber with no excess: 0, 0.
 
     Returns
     -------
@@ -101,9 +101,8 @@ def band_rows(excess: np.ndarray, drift_share: np.ndarray, on: float, out: np.nd
     shift = on * x * w
     rest = x * (1.0 - w)
     c2 = (on * on) * rest * (1.0 + rest)  # the garrote u - c^2 / u reaches on at u = on (1 + x')
-    out[0] = np.sqrt(c2)
-    out[1] = c2
-    out[2] = shift
+    out[0] = c2
+    out[1] = shift
     return out
 
 
@@ -114,8 +113,8 @@ def banded(signal: np.ndarray, bands: np.ndarray, magnitude: np.ndarray, work: n
     ----------
     signal : ndarray, shape (N,), float32
         Each fiber's signal; overwritten.
-    bands : ndarray, shape (3, N), float32
-        ``c``, ``c^2`` and the shift ``b_d`` per fiber (:func:`band_rows`).
+    bands : ndarray, shape (2, N), float32
+        ``c^2`` and the shift ``b_d`` per fiber (:func:`band_rows`).
     magnitude, work : ndarray, shape (N,), float32
         Buffers.
 
@@ -125,10 +124,10 @@ def banded(signal: np.ndarray, bands: np.ndarray, magnitude: np.ndarray, work: n
         ``signal``; the float32 steps are the kernel's, one for one.
     """
     np.abs(signal, out=magnitude)
-    np.subtract(magnitude, bands[2], out=magnitude)
+    np.subtract(magnitude, bands[1], out=magnitude)
     np.maximum(magnitude, 0.0, out=magnitude)  # u = (|s| - shift)+
     np.maximum(magnitude, np.float32(1e-30), out=work)
-    np.divide(bands[1], work, out=work)
+    np.divide(bands[0], work, out=work)
     np.subtract(magnitude, work, out=work)  # u - c^2 / u
     np.maximum(work, 0.0, out=work)
     return np.copysign(work, signal, out=signal)
@@ -248,12 +247,12 @@ class ContactLevels:
         self.gain_significant = 0.0
         per_fiber = fibers is not None and fibers.known and options.noise_levels and options.relative
         self._fibers = fibers if per_fiber else None
-        #: Each fiber's ``c``, ``c^2`` and shift, shape (3, N), float32, as the kernel reads them
+        #: Each fiber's ``c^2`` and shift, shape (2, N), float32, as the kernel reads them
         #: (:func:`band_rows`; None: no per-fiber model).
         self.bands: np.ndarray | None = None
         if per_fiber and fibers is not None:
             self.bands = band_rows(np.zeros(fibers.n_fibers), np.zeros(fibers.n_fibers), 0.0,
-                                   np.zeros((3, fibers.n_fibers), dtype=np.float32))
+                                   np.zeros((2, fibers.n_fibers), dtype=np.float32))
         #: The widest rest excursion of a fiber once banded, ``e_ref (1 + tol)``, at the last baseline, relative
         #: units (NaN: not per fiber): what the levels are ``k`` times where none was chosen.
         self.noise = math.nan
@@ -306,7 +305,7 @@ class ContactLevels:
     def band(self) -> np.ndarray | None:
         """Where each fiber's signal starts to count, ``b_d + c``, signal units, shape (N,) (0: no band; None:
         no per-fiber model)."""
-        return None if self.bands is None else self.bands[0] + self.bands[2]
+        return None if self.bands is None else np.sqrt(self.bands[0]) + self.bands[1]
 
     def as_tuple(self) -> tuple[float, float, float]:
         """(truncation, off, on) as floats."""
