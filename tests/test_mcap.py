@@ -263,6 +263,27 @@ def test_a_full_disk_is_counted_and_the_stop_stays_clean(tmp_path, caplog):
     assert sum(f.messages for f in pub.written) + pub.lost == 20_000
 
 
+def test_a_write_that_fails_inside_a_chunk_counts_every_message_once(tmp_path):
+    """Messages a microsecond apart (no periodic sync within a file): the disk fills when a chunk is written
+    from inside add_message, before the message is in the file's count. Every message is either in a file's
+    count, which is what the file holds, or counted lost; none twice, none missing."""
+    from optitac_edge.io.mcap_file import open_part, part_contents
+
+    def filling(final):
+        stream, part = open_part(final)
+        return _FillingDisk(stream, 60_000), part
+
+    path = tmp_path / "run.mcap"
+    pub = open_publisher("mcap", path=path, open_file=filling)
+    h = pub.advertise("/optitac/thumb/contacts", msgs.CONTACTS)
+    for k in range(20_000):
+        pub.publish(h, msgs.encode_contacts(sample(k), k * 1000, "f"), k * 1000)
+    pub.close()
+    assert pub.lost > 0 and pub.written[0].failed
+    assert pub.written[0].messages == part_contents(tmp_path / "run.mcap.part").messages
+    assert sum(f.messages for f in pub.written) + pub.lost == 20_000
+
+
 def test_run_with_a_full_disk_ends_cleanly_naming_the_file(tmp_path, monkeypatch, capsys):
     from optitac_edge.cli import main
     from optitac_edge.io import mcap_file

@@ -234,6 +234,7 @@ class McapPublisher(Publisher):
         if self._writer is None and not self._retry(source_ns):
             self.lost += 1
             return
+        counted = False  # this message in its file's count (a failure after that must not count it twice)
         try:
             first = self._file.first_ns
             if first is not None and ((self.max_ns and source_ns - first >= self.max_ns) or
@@ -245,27 +246,30 @@ class McapPublisher(Publisher):
             self._writer.add_message(self._channels[handle], source_ns, payload, source_ns, self._seq[handle])
             f = self._file
             f.messages += 1
+            counted = True
             f.first_ns = source_ns if f.first_ns is None else f.first_ns
             f.last_ns = source_ns
             self._sync.after(self._writer, self._stream, source_ns)
         except (OSError, OutputError) as exc:  # OutputError: a rotation that could not complete or open a file
-            self._fail(exc, source_ns)
+            self._fail(exc, source_ns, 0 if counted else 1)
 
-    def _fail(self, exc: BaseException, source_ns: int) -> None:
-        """A write failed: leave the file as it is, count, warn once per file, try a new file later."""
+    def _fail(self, exc: BaseException, source_ns: int, lost: int = 1) -> None:
+        """A write failed: leave the file as it is, count (``lost``: messages not in the file's count), warn once
+        per file, try a new file later."""
         why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         self._file.failed = f"a failed write ({why})"
-        self.lost += 1
+        self.lost += lost
         log.warning("MCAP: cannot write %s (%s): it keeps what was written before; messages are counted as lost "
                     "and a new file is tried every %d s", self._part, why, RETRY_NS // 10**9)
         try:
             self._stream.close()
         except OSError:
             pass
-        on_disk = part_contents(self._part)  # what the file holds readable: the messages after it are lost
         f = self._file
-        self.lost += f.messages - on_disk.messages - 1  # (this one is counted above)
-        f.messages, f.first_ns, f.last_ns = on_disk.messages, on_disk.first_ns, on_disk.last_ns
+        if not f.complete:  # (a rotation whose next file could not open leaves the complete one as it is)
+            on_disk = part_contents(self._part)  # what the file holds readable: the messages after it are lost
+            self.lost += f.messages - on_disk.messages
+            f.messages, f.first_ns, f.last_ns = on_disk.messages, on_disk.first_ns, on_disk.last_ns
         self._writer = None
         self._failed_at = source_ns
 
