@@ -192,7 +192,8 @@ def measure_rest_noise(
         The frames' capture times, with ``gap_ns``: only differences of frames at most ``gap_ns`` apart count.
         Snapshots seconds to minutes apart differ by each fiber's drift as well; counted as noise, the drift
         was taken for zero-mean noise that a press's values need not lose (:mod:`optitac_edge.core.levels`).
-        Fewer than 2 such differences: nothing measured (``samples`` 0), the whole rest excursion is drift.
+        Fewer than 2 such differences (snapshots): every difference is used, and the result says so
+        (``between_snapshots``): what it measured is drift, which the levels subtract (``noise_between_snapshots``).
     """
     from optitac_edge.core.fiber_table import FiberSampler
 
