@@ -243,6 +243,7 @@ def test_a_stop_signal_during_the_renames_waits_until_the_new_recording_is_in_pl
     import argparse
     import os
     import signal
+    import threading
 
     from optitac_edge.cli.common import recording_left
     from optitac_edge.io import recording_paths
@@ -260,12 +261,17 @@ def test_a_stop_signal_during_the_renames_waits_until_the_new_recording_is_in_pl
 
     real_rename = os.rename
     calls = []
+    # the signal reaches another thread of the process (a camera's, a writer's): masking it in the main thread
+    # did not hold it back, Python ran the handler there at once (seen flaky under xdist before)
+    other = threading.Thread(target=threading.Event().wait, args=(10,), daemon=True)
+    other.start()
 
     def rename(a, b):
         calls.append((a, b))
         real_rename(a, b)
         if len(calls) == 1:
-            os.kill(os.getpid(), signal.SIGTERM)  # after the first rename, before the second
+            signal.pthread_kill(other.ident, signal.SIGTERM)  # after the first rename, before the second
+            other.join(0.2)  # the other thread has taken it by now (it keeps running: nothing is timed)
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
