@@ -168,7 +168,8 @@ def test_calibrate_depth_on_another_day_meets_the_depth_and_force_targets(tmp_pa
     assert main(["sim", str(tmp_path / "d1"), "--scenario", "depths", "--seed", "105", "--day", "1", "-q"]) == 0
     assert main(["sim", str(tmp_path / "d2"), "--scenario", "depths", "--seed", "205", "--day", "2", "-q"]) == 0
     assert main(["calibrate", "depth", str(tmp_path / "d1"), "--cal", str(cal)]) == 0
-    assert "with the depth calibration: presses 112" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "with the depth calibration: presses 112" in out and "response drift prior 5%" in out
     rec = Recording(tmp_path / "d2")
     real = dict(json.loads((tmp_path / "d2" / "meta.json").read_text())["simulator"]["real_depth_mm"])
     starts = sorted(real)
@@ -183,6 +184,12 @@ def test_calibrate_depth_on_another_day_meets_the_depth_and_force_targets(tmp_pa
     assert main(["replay", str(tmp_path / "d2"), "--cal", str(cal), "-o", str(tmp_path / "c.csv"), "-q"]) == 0
     back = read_contacts_csv(tmp_path / "c.csv")
     assert back.depth_mm is not None and np.nanmax(np.abs(back.depth_mm - m.depth_mm)) < 1e-4
+    # issue 37: two days' presses, each with its own baseline, are held out day by day (no prior)
+    both = tmp_path / "both.npz"
+    shutil.copy(bundle_path, both)
+    assert main(["calibrate", "depth", str(tmp_path / "d1"), str(tmp_path / "d2"), "--cal", str(both)]) == 0
+    assert "presses 224" in (out := capsys.readouterr().out) and "heldout by 2 sessions" in out
+    assert load_bundle(both).extra_meta["depth_fit"]["folds_by"] == "session"
 
 
 def test_calibrate_depth_refuses_presses_at_one_depth(tmp_path, bundle_path, capsys):

@@ -15,18 +15,21 @@ number of presses at each.
 Which feature (:data:`~optitac_edge.core.depth_model.DEPTH_FEATURES`) a
 real skin's depth follows is not known in advance, so every candidate is
 fitted on some presses and judged on the others (:func:`select_feature`:
-folds grouped by press, ``GroupKFold``; a press is never split). The
-calibration recording is one day: it cannot show how the skin's response
-changes until the next, so each candidate's held-out predictions are also
-taken with the darkening-proportional features scaled by ``1 ± drift``
-(:data:`RESPONSE_DRIFT`, a prior stated in docs/calibration.md, not a
-figure of our simulator), and the candidate with the smallest
-``sqrt(held-out² + drift²)`` wins.
+folds grouped by press, ``GroupKFold``; a press is never split). One
+calibration session cannot show how the skin's response changes until the
+next, so each candidate's held-out predictions are also taken with the
+darkening-proportional features scaled by ``1 ± drift`` (:data:`RESPONSE_DRIFT`,
+a prior stated in docs/calibration.md, not a figure of our simulator), and
+the candidate with the smallest ``sqrt(held-out² + drift²)`` wins. Presses
+from two sessions or more (days, each with its own baseline, each at 3 depths
+or more) measure that change instead: every fold holds out a whole session,
+so a candidate is judged on a day its fit never saw, and the prior drops
+(:func:`session_folds`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -172,12 +175,16 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Selection:
-    """The chosen input, its fit on every press, and every candidate's held-out figures."""
+    """The chosen input, its fit on every press, and every candidate's held-out figures.
+
+    ``by_session``: the folds held out whole sessions (the response change measured, no prior).
+    """
 
     feature: str
     fit: RadialFit
     candidates: tuple[Candidate, ...]
     folds: int
+    by_session: bool = False
 
     @property
     def chosen(self) -> Candidate:
@@ -195,7 +202,8 @@ class Presses:
     """What a depth or force model is fitted to, per press: arrays of shape (P,) (see :func:`fit_radial_monotone`).
 
     ``rho2``: squared radius over the array's; ``target``: the depth (mm) or force (N); ``level``: the press's
-    depth, for the monotone map's order; ``weight``: its frames; ``groups``: the press each row belongs to.
+    depth, for the monotone map's order; ``weight``: its frames; ``groups``: the press each row belongs to;
+    ``session``: the session (recording) it was pressed in, when known.
     """
 
     rho2: np.ndarray
@@ -203,6 +211,7 @@ class Presses:
     level: np.ndarray
     weight: np.ndarray
     groups: np.ndarray
+    session: np.ndarray | None = None
 
 
 def held_out(feature: np.ndarray, p: Presses, radius_mm: float, exponent: float, drift: float = RESPONSE_DRIFT,
@@ -242,8 +251,27 @@ def held_out(feature: np.ndarray, p: Presses, radius_mm: float, exponent: float,
     return Candidate(name, float(out.rmse), out.spread, float(np.sqrt(np.mean(m ** 2))))
 
 
-def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np.ndarray, radius_mm: float,
-                   level: np.ndarray, weight: np.ndarray, groups: np.ndarray,
+def session_folds(sessions: np.ndarray | None, level: np.ndarray) -> int:
+    """How many folds of whole sessions the presses make: their number of sessions (at most ``MAX_FOLDS``)
+    when there are two or more and each has presses at 3 levels or more (a fit on the others must stand at 3
+    depths), else 0 (folds of presses, with the drift prior).
+
+    Parameters
+    ----------
+    sessions : ndarray, shape (P,), or None
+        The session (recording) of every press.
+    level : ndarray, shape (P,)
+        Every press's commanded depth.
+    """
+    if sessions is None:
+        return 0
+    keys = np.unique(sessions)
+    if keys.size < 2 or any(np.unique(level[sessions == k]).size < 3 for k in keys):
+        return 0
+    return int(min(MAX_FOLDS, keys.size))
+
+
+def select_feature(features: dict[str, np.ndarray], presses: Presses, radius_mm: float,
                    drift: float = RESPONSE_DRIFT) -> Selection:
     """Choose the input of ``target ~ h(feature * (1 + radial * rho2))`` by presses held out of the fit.
 
@@ -251,16 +279,25 @@ def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np
     ----------
     features : dict of str to ndarray, shape (P,)
         Per press: each candidate feature (names of ``GAIN_EXPONENT``), in the order ties are broken.
-    rho2, target, level, weight, groups : ndarray, shape (P,)
-        As for :func:`held_out`.
+    presses : Presses
+        The presses (as for :func:`held_out`); with two sessions or more (:func:`session_folds`) each fold
+        holds out a session and ``drift`` is not used (the sessions measured the change).
+    radius_mm : float
+        The array's radius.
+    drift : float
+        The response change between days the choice guards against, when the presses come from one session.
 
     Raises
     ------
     ValueError
         Fewer than :data:`MIN_SELECTION_PRESSES` presses, or no candidate could be fitted.
     """
-    folds = fold_count(groups, MIN_SELECTION_PRESSES, "choose the model")
-    presses = Presses(rho2, target, level, weight, groups)
+    folds = fold_count(presses.groups, MIN_SELECTION_PRESSES, "choose the model")
+    by_session = session_folds(presses.session, np.asarray(presses.level))
+    if by_session:
+        assert presses.session is not None
+        folds, drift = by_session, 0.0
+        presses = replace(presses, groups=presses.session)
     candidates = []
     for name, value in features.items():
         v = np.asarray(value, dtype=np.float64)
@@ -272,6 +309,6 @@ def select_feature(features: dict[str, np.ndarray], rho2: np.ndarray, target: np
     if not finite:
         raise ValueError("no candidate model could be fitted on held-out presses")
     best = min(finite, key=lambda c: c.expected_rmse)  # first of equals: the simpler candidate
-    fit = fit_radial_monotone(np.asarray(features[best.feature], dtype=np.float64), rho2, target, radius_mm,
-                              level, weight)
-    return Selection(best.feature, fit, tuple(candidates), folds)
+    fit = fit_radial_monotone(np.asarray(features[best.feature], dtype=np.float64), presses.rho2, presses.target,
+                              radius_mm, presses.level, presses.weight)
+    return Selection(best.feature, fit, tuple(candidates), folds, bool(by_session))

@@ -26,7 +26,7 @@ from optitac_edge.calibration.bundle_models import (
 )
 from optitac_edge.calibration.centroid_fit import FILLS, choose_fill, fit_centroid_map
 from optitac_edge.calibration.contact_count import one_contact_evidence
-from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, grouped_means, select_feature
+from optitac_edge.calibration.depth_fit import RESPONSE_DRIFT, Presses, grouped_means, select_feature
 from optitac_edge.calibration.evaluation import detected_rows, press_ids
 from optitac_edge.calibration.levels_fit import (
     HeldOutLevels,
@@ -455,6 +455,8 @@ class DepthPresses:
         Detected frames per press.
     with_force : bool
         Every detected frame has a load cell's force.
+    session : ndarray, shape (P,), int
+        The recording (session) of each press, numbered in the order given.
     """
 
     features: dict[str, np.ndarray]
@@ -463,6 +465,7 @@ class DepthPresses:
     force: np.ndarray
     frames: np.ndarray
     with_force: bool
+    session: np.ndarray
 
 
 def depth_presses(recs: Recordings, bundle: CalibrationBundle, names: tuple[str, ...] = DEPTH_FEATURES
@@ -482,11 +485,12 @@ def depth_presses(recs: Recordings, bundle: CalibrationBundle, names: tuple[str,
     frames = truth.frame[rows]
     rho2 = (m.x_mm[frames] ** 2 + m.y_mm[frames] ** 2) / float(bundle.layout.radius_mm) ** 2
     force = truth.force_n[rows] if truth.force_n is not None else np.full(rows.size, np.nan)
+    session = np.zeros(rows.size) if truth.session is None else truth.session[rows].astype(np.float64)
     values = np.stack([depth_feature(m, f)[frames] for f in names], axis=1)
-    means, counts = grouped_means(np.concatenate([np.stack([rho2, truth.depth_mm[rows], force], axis=1), values],
-                                                 axis=1), press_ids(truth)[rows])
-    return DepthPresses({f: means[:, 3 + k] for k, f in enumerate(names)}, means[:, 0], means[:, 1], means[:, 2],
-                        counts, bool(np.isfinite(force).all()))
+    means, counts = grouped_means(np.concatenate([np.stack([rho2, truth.depth_mm[rows], force, session], axis=1),
+                                                  values], axis=1), press_ids(truth)[rows])
+    return DepthPresses({f: means[:, 4 + k] for k, f in enumerate(names)}, means[:, 0], means[:, 1], means[:, 2],
+                        counts, bool(np.isfinite(force).all()), np.rint(means[:, 3]).astype(np.int64))
 
 
 def calibrate_depth(recs: Recordings, bundle: CalibrationBundle, feature: str | None = None,
@@ -496,18 +500,19 @@ def calibrate_depth(recs: Recordings, bundle: CalibrationBundle, feature: str | 
 
     Each press counts once (the mean of its detected frames, :func:`depth_presses`). The model's input is
     chosen among :data:`~optitac_edge.core.depth_model.DEPTH_FEATURES` by presses held out of the fit
-    (:func:`~optitac_edge.calibration.depth_fit.select_feature`, ``drift``: the response change between days
-    it guards against), separately for depth and force; ``feature`` fixes it instead (the held-out figures
-    are still reported).
+    (:func:`~optitac_edge.calibration.depth_fit.select_feature`), separately for depth and force; ``feature``
+    fixes it instead (the held-out figures are still reported). From several recordings (days, sessions)
+    that each press at 3 depths or more, every fold holds out a whole session, so the choice sees how the
+    skin's response changed between them; from one, ``drift`` is the change between days it guards against.
     """
     p = depth_presses(recs, bundle, DEPTH_FEATURES if feature is None else (feature,))
     counts, level = p.frames, p.level
     radius = float(bundle.layout.radius_mm)
     groups = np.arange(counts.size)  # one row per press: a fold never splits a press
     try:
-        depth = select_feature(p.features, p.rho2, level, radius, level, counts, groups, drift)
-        force_sel = (select_feature(p.features, p.rho2, p.force, radius, level, counts, groups, drift)
-                     if p.with_force else None)
+        depth = select_feature(p.features, Presses(p.rho2, level, level, counts, groups, p.session), radius, drift)
+        force_sel = (select_feature(p.features, Presses(p.rho2, p.force, level, counts, groups, p.session), radius,
+                                    drift) if p.with_force else None)
     except ValueError as exc:
         raise RecordingError(f"{recordings_named(_listed(recs))}: {exc}") from None
     model = DepthForceModel(depth.feature, depth.fit.model, None if force_sel is None else force_sel.fit.model,
@@ -515,12 +520,16 @@ def calibrate_depth(recs: Recordings, bundle: CalibrationBundle, feature: str | 
     chosen = depth.chosen
     summary: dict[str, Any] = {
         "presses": int(counts.size), "frames": int(counts.sum()), "feature": depth.feature,
+        "heldout_by": (f"{depth.folds} sessions" if depth.by_session
+                       else f"{depth.folds} folds of presses, response drift prior {drift:.0%}"),
         "depth_range_mm": [round(float(level.min()), 3), round(float(level.max()), 3)],
         "depth_radial": depth.fit.model.radial, "fitted_depth_rmse_mm": round(depth.fit.rmse, 4),
         "heldout_depth_rmse_mm": round(chosen.heldout_rmse, 4),
         "heldout_depth_spread_mm": round(chosen.heldout_spread, 4),
         "expected_depth_rmse_mm": round(chosen.expected_rmse, 4)}
-    details: dict[str, Any] = {**summary, "folds": depth.folds, "response_drift": drift,
+    details: dict[str, Any] = {**summary, "folds": depth.folds,
+                               "folds_by": "session" if depth.by_session else "press",
+                               "response_drift": None if depth.by_session else drift,
                                "depth_candidates": [c.to_dict() for c in depth.candidates]}
     if force_sel is not None:
         span = float(np.ptp(p.force))
