@@ -64,9 +64,14 @@ def test_the_verdict_on_unseen_presses(calibrated, tmp_path, capsys) -> None:
     assert main(["evaluate", str(unseen.path), "--cal", str(bare)]) == 0  # without --strict: informative only
 
 
-def test_the_report_has_a_verdict_and_no_raw_dicts(calibrated, tmp_path) -> None:
+def test_the_report_has_a_verdict_and_no_raw_dicts(calibrated, tmp_path, capsys) -> None:
     _, _, _, cal = calibrated
     assert main(["report", str(cal), "-o", str(tmp_path / "rep")]) == 0
+    # issue 38: the command ends with the verdict, as the bring-up guide says (and --strict as evaluate's)
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("wrote ") and out[1].startswith("verdict: ") and "[ok] coverage" in "\n".join(out)
+    good = out[1] == "verdict: GOOD ENOUGH (every check passes)"
+    assert main(["report", str(cal), "-o", str(tmp_path / "rep"), "--strict"]) == (0 if good else 1)
     text = (tmp_path / "rep" / "index.md").read_text()
     assert "## Verdict" in text and "[ok] coverage: 100 %" in text
     assert "{" not in text and "}" not in text and "[0." not in text

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import io
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -16,6 +17,9 @@ from optitac_edge.io.bundle_file import load_bundle
 from optitac_edge.io.files import check_output_path, write_file_atomic
 from optitac_edge.io.recording import SHAPES, Recording
 from optitac_edge.text import fields, plain
+
+if TYPE_CHECKING:
+    from optitac_edge.calibration.verdict import Verdict
 
 _COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",
             "triangle": "tab:purple"}
@@ -134,9 +138,17 @@ def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = 
     return measure_recording(rec, bundle, corrected=corrected), rec.truth
 
 
+@dataclass(frozen=True)
+class WrittenReport:
+    """What :func:`write_report` wrote: the index's path, and the verdict in it."""
+
+    index: Path
+    verdict: Verdict
+
+
 def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = None,
-                 repeat: Path | None = None) -> Path:
-    """Write the figures and ``index.md`` into ``out_dir``; returns the index path."""
+                 repeat: Path | None = None) -> WrittenReport:
+    """Write the figures and ``index.md`` into ``out_dir``; returns its path and the verdict written."""
     from optitac_edge.calibration.evaluation import detected_rows
 
     plt = _plt()
@@ -169,7 +181,8 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         figures.append(("Unseen presses", _scatter(
             plt, bundle, corrector, np.stack([m.x_mm[f], m.y_mm[f]], 1),
             np.stack([truth.x_mm[rows], truth.y_mm[rows]], 1), "unseen", out / "unseen_scatter.png")))
-    lines += _verdict_lines(bundle, unseen)
+    verdict, verdict_lines = _verdict_lines(bundle, unseen)
+    lines += verdict_lines
     if repeat is not None:
         figures.append(("Repeatability", _repeatability_figure(plt, bundle, repeat, out / "repeatability.png")))
     if "report/width_measured" in arrays and corrector.width is not None:
@@ -190,11 +203,11 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
         lines += [f"## {title}", "", f"![{title}]({file})", ""]
     index = out / "index.md"
     write_file_atomic(index, "\n".join(lines))
-    return index
+    return WrittenReport(index, verdict)
 
 
-def _verdict_lines(bundle: CalibrationBundle, unseen: Path | None) -> list[str]:
-    """The verdict section: from the unseen presses when given, else from the bundle alone."""
+def _verdict_lines(bundle: CalibrationBundle, unseen: Path | None) -> tuple[Verdict, list[str]]:
+    """The verdict, and its section: from the unseen presses when given, else from the bundle alone."""
     from optitac_edge.calibration.verdict import Verdict, bundle_checks, judge, model_checks
 
     if unseen is not None:
@@ -204,8 +217,8 @@ def _verdict_lines(bundle: CalibrationBundle, unseen: Path | None) -> list[str]:
         verdict = Verdict(tuple(bundle_checks(bundle) + model_checks(bundle)))
         basis = "the bundle alone (give --unseen REC for the centroid and detection checks)"
     head, *checks = verdict.lines()
-    return ["", "## Verdict", "", f"**{head[len('verdict: '):]}**, from {basis}:", "",
-            *(f"* {c.strip()}" for c in checks), ""]
+    return verdict, ["", "## Verdict", "", f"**{head[len('verdict: '):]}**, from {basis}:", "",
+                     *(f"* {c.strip()}" for c in checks), ""]
 
 
 def _repeatability_figure(plt: Any, bundle: CalibrationBundle, repeat: Path, path: Path) -> str:

@@ -14,14 +14,16 @@ def add_parser(sub: Any) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
     p.add_argument("--unseen", type=Path, default=None, metavar="REC", help="recording for the unseen scatter")
     p.add_argument("--repeat", type=Path, default=None, metavar="REC", help="recording for repeatability")
+    p.add_argument("--strict", action="store_true", help="exit 1 when the verdict is not good enough")
 
 
 def run(args: argparse.Namespace) -> int:
     from optitac_edge.calibration.report import write_report
 
-    index = write_report(args.cal, args.output, unseen=args.unseen, repeat=args.repeat)
-    print(f"wrote {index}")
-    return 0
+    written = write_report(args.cal, args.output, unseen=args.unseen, repeat=args.repeat)
+    print(f"wrote {written.index}")
+    print("\n".join(written.verdict.lines()))
+    return 1 if args.strict and not written.verdict.good else 0
 
 
 def left(args: argparse.Namespace) -> str:
