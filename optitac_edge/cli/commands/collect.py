@@ -71,9 +71,10 @@ def run(args: argparse.Namespace) -> int:
 
         model, need, at_least = PRESSES_NEEDED[args.experiment]
         at_least *= len(WIDTHS_MM) if args.experiment == "widths" else 1
-        print(f"the {model} model needs {need} for its held-out error to settle (docs/accuracy.md); "
-              f"{result.presses} presses collected" + (": too few, evaluate's verdict will refuse the model"
-                                                        if result.presses < at_least else ""))
+        why = f"(it needs {need} for its held-out error to settle, docs/accuracy.md)"
+        print(f"{result.presses} presses collected: too few for the {model} model {why}; evaluate's verdict will "
+              "refuse it" if result.presses < at_least else
+              f"{result.presses} presses collected: enough for the {model} model {why}")
     return 0
 
 
