@@ -48,6 +48,17 @@ def test_orient_corrects_a_mirrored_fiber_map_from_two_edge_presses(tmp_path, ca
     fixed = load_bundle(cal)
     assert is_verified(fixed) and not fixed.transform.mirror
     assert np.array_equal(fixed.fibers.pixel_index, right.fibers.pixel_index)
+    # issue 38: the bring-up guide's next command rebuilds the fiber map into the same bundle; the orientation
+    # the presses settled is kept (it was silently lost: the map came back as the default hint read it)
+    capsys.readouterr()
+    assert main(["calibrate", "fibers", str(rec), "-o", str(cal)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith("orientation kept: ")
+    again = load_bundle(cal)
+    assert is_verified(again) and "kept from the bundle" in again.extra_meta["orientation"]["evidence"]
+    assert np.array_equal(again.fibers.pixel_index, right.fibers.pixel_index)
+    # a hint given on the command line is the user's: the bundle is rebuilt as it says, not marked settled
+    assert main(["calibrate", "fibers", str(rec), "-o", str(cal), "--rotation-deg", "240", "--mirror"]) == 0
+    assert "orientation" not in capsys.readouterr().out and not is_verified(load_bundle(cal))
 
 
 def test_orient_refuses_presses_that_do_not_decide(tmp_path) -> None:

@@ -89,9 +89,10 @@ def one_sensor_config(args: argparse.Namespace, **overrides: Any) -> Any:
     return board_config(args, **overrides).for_sensor(getattr(args, "sensor", None))
 
 
-def add_orientation(p: argparse.ArgumentParser) -> None:
-    """``--rotation-deg A`` and ``--mirror``: how the array appears in the image."""
-    p.add_argument("--rotation-deg", type=number(-360, 360), default=0.0, metavar="A",
+def add_orientation(p: argparse.ArgumentParser, default: float | None = 0.0) -> None:
+    """``--rotation-deg A`` and ``--mirror``: how the array appears in the image (``default``: None tells a
+    hint given from none)."""
+    p.add_argument("--rotation-deg", type=number(-360, 360), default=default, metavar="A",
                    help="the array appears rotated counter-clockwise by about A degrees in the image")
     p.add_argument("--mirror", action="store_true", help="the layout's x is negated before the rotation")
 

@@ -21,7 +21,7 @@ def add_parser(sub: Any) -> None:
                    help="the bundle to write (required, unless --sensor: that sensor's bundle)")
     add_board(p, default=None)
     p.add_argument("--layout", type=Path, default=None, metavar="CSV", help="custom layout (fiber,x_mm,y_mm)")
-    add_orientation(p)
+    add_orientation(p, default=None)  # none given: a bundle replaced at -o keeps an orientation settled by presses
 
     for step, text in (("orientation", ("check the fiber map against presses of known position; fix a "
                                         "rotation or mirror of the layout")),
@@ -72,6 +72,9 @@ def _fibers(args: argparse.Namespace) -> int:
     layout_path = args.layout or (config.calibration.layout_path if config is not None else None)
     layout = load_layout_csv(layout_path) if layout_path else None
     region = config.sensor.region if config is not None else ()
+    settled = None if args.rotation_deg is not None or args.mirror else _settled(Path(output), layout)
+    hint = (args.rotation_deg or 0.0, args.mirror) if settled is None else (settled.transform.rotation_deg,
+                                                                             settled.transform.mirror)
     if region:
         from optitac_edge.calibration.region import Region, calibrate_region
 
@@ -81,11 +84,17 @@ def _fibers(args: argparse.Namespace) -> int:
                                f"{config.sensor.id}'s camera {config.sensor.camera!r} delivers "
                                f"{cam.width}x{cam.height}")
         bundle = calibrate_region(rec.rest_frames(), rec.pixel_format, Region(*region), layout=layout,
-                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror)
+                                  rotation_hint_deg=hint[0], mirror=hint[1])
     else:
         bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
-                                  rotation_hint_deg=args.rotation_deg, mirror=args.mirror,
+                                  rotation_hint_deg=hint[0], mirror=hint[1],
                                   times_ns=rec.t_ns[: rec.meta.rest_frames])
+    kept = settled is not None and _same_orientation(settled, bundle)
+    if kept:
+        from optitac_edge.calibration.orientation import ORIENTATION_KEY, mark_verified
+
+        evidence = settled.extra_meta[ORIENTATION_KEY].get("evidence", "presses")
+        bundle = mark_verified(bundle, f"kept from the bundle this one replaced ({evidence})")
     bundle = save_bundle(bundle, output)
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
@@ -96,7 +105,39 @@ def _fibers(args: argparse.Namespace) -> int:
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
           f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs"
           f"{away}; residual {report.get('residual_rms_px', float('nan')):.2f} px")
+    if kept:
+        print(f"orientation kept: {output} had it settled by presses, and the new fiber map is turned as it was")
+    elif settled is not None:
+        print(f"orientation not kept: {output} had it settled by presses, but the new fiber map is turned "
+              f"otherwise; settle it again (orient, or calibrate orientation on presses)")
     return 0
+
+
+def _settled(output: Path, layout: Any) -> Any:
+    """The bundle at ``output`` when its orientation was settled by presses (orient, calibrate orientation,
+    fiducials) for this layout, else None (no file, another layout, not settled, unreadable)."""
+    import numpy as np
+
+    from optitac_edge.calibration.orientation import is_verified
+    from optitac_edge.core.layout import hex_layout
+    from optitac_edge.io.bundle_file import load_bundle
+
+    if not output.is_file():
+        return None
+    try:
+        old = load_bundle(output)
+    except OptiTacError:
+        return None
+    layout = hex_layout() if layout is None else layout
+    same_layout = old.layout.xy_mm.shape == layout.xy_mm.shape and np.allclose(old.layout.xy_mm, layout.xy_mm)
+    return old if same_layout and is_verified(old) else None
+
+
+def _same_orientation(old: Any, new: Any) -> bool:
+    """The new fiber map (of the same layout) is turned as the old one was: the same mirror, rotations within
+    half of the hexagon's smallest symmetric turn (30°)."""
+    turn = (new.transform.rotation_deg - old.transform.rotation_deg + 180.0) % 360.0 - 180.0
+    return new.transform.mirror == old.transform.mirror and abs(turn) < 30.0
 
 
 def _step_bundle(args: argparse.Namespace) -> tuple[Path, Any]:
