@@ -90,7 +90,7 @@ def _fibers(args: argparse.Namespace) -> int:
                                   rotation_hint_deg=hint[0], mirror=hint[1],
                                   times_ns=rec.t_ns[: rec.meta.rest_frames])
     kept = settled is not None and _same_orientation(settled, bundle)
-    if kept:
+    if kept and settled is not None:
         from optitac_edge.calibration.orientation import ORIENTATION_KEY, mark_verified
 
         evidence = settled.extra_meta[ORIENTATION_KEY].get("evidence", "presses")
