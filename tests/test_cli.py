@@ -372,3 +372,36 @@ def test_a_61_fiber_array_is_simulated_mapped_and_oriented_from_its_layout_csv(t
     bundle = load_bundle(cal)
     assert bundle.grid.n == 51 and bundle.thresholds.min_area_mm2 == pytest.approx(16 / 2.25)
     assert max(bundle.extra_meta["centroid_fit"]["heldout_rmse_mm"]) < 0.25 * 4.0  # a quarter pitch
+
+
+def test_the_status_line_shows_every_sensor_of_a_board_and_labels_the_strength() -> None:
+    """Issue 38 item 28: `run` on sim-hand showed one of its three sensors, and an unlabelled 's 9'."""
+    from types import SimpleNamespace
+
+    from optitac_edge.cli.commands.run import StatusLine as _StatusLine
+    from optitac_edge.core.contact import ContactEstimate
+
+    def est(contact: bool, x: float = 0.0) -> ContactEstimate:
+        e = ContactEstimate()
+        e.baseline_ready = True
+        e.contact, e.x_mm, e.y_mm, e.strength, e.major_mm, e.minor_mm = contact, x, -1.0, 9.0, 3.0, 2.0
+        return e
+
+    now = [0]
+    line = _StatusLine(0.1, "no link", clock=lambda: now[0])
+    stats, other_camera = SimpleNamespace(frames=0), SimpleNamespace(frames=0)
+    for k in range(1, 4):
+        now[0], stats.frames = k * 100_000_000, 6 * k
+        line.offer(est(True, 2.5), stats, "index")
+        line.offer(est(False), stats, "middle")
+        line.offer(est(True, -4.0), other_camera, "thumb")  # another camera's loop: shown, not rated
+        text = line._line()
+        if k == 1:
+            assert text is not None and "index: +2.5,-1.0 mm strength 9" in text
+        else:
+            assert text == ("[no link]  60.0 fps  index: +2.5,-1.0 mm strength 9 | middle: - | "
+                            "thumb: -4.0,-1.0 mm strength 9")
+    single = _StatusLine(0.1, "no link", clock=lambda: now[0])
+    single.offer(est(True, 2.5), stats)
+    text = single._line()
+    assert text is not None and "strength 9" in text and " s 9" not in text

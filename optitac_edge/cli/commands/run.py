@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import shutil
 import signal
@@ -55,8 +56,19 @@ def _status_line(est: Any, fps: float | None) -> str:
     if not est.contact:
         return f"{rate}  no contact"
     shape = f" {est.shape}" if est.shape else ""
-    return (f"{rate}  CONTACT {est.x_mm:+.2f},{est.y_mm:+.2f} mm  {est.major_mm:.2f}x{est.minor_mm:.2f} mm  "
-            f"{est.angle_deg:+.0f}°  s {est.strength:.0f}{shape}")
+    depth = f" depth {est.depth_mm:.2f} mm" if math.isfinite(est.depth_mm) else ""
+    # what matters first comes first: the line is cut at the terminal's width
+    return (f"{rate}  CONTACT {est.x_mm:+.2f},{est.y_mm:+.2f} mm {est.major_mm:.1f}x{est.minor_mm:.1f} mm "
+            f"{est.angle_deg:+.0f}°{shape} strength {est.strength:.0f}{depth}")
+
+
+def _brief(name: str, est: Any) -> str:
+    """One sensor of several, in a few words."""
+    if not est.baseline_ready:
+        return f"{name}: baselining"
+    if not est.contact:
+        return f"{name}: -"
+    return f"{name}: {est.x_mm:+.1f},{est.y_mm:+.1f} mm strength {est.strength:.0f}"
 
 
 def _fps_overrides(args: argparse.Namespace) -> dict[str, float]:
@@ -169,34 +181,45 @@ def _link_summary(transport: Any) -> str:
 class StatusLine:
     """The live status line of ``run`` on a terminal, printed by its own thread: the frame loop only
     hands over a copy of the estimate when a line is due, and never waits on the terminal. The rate is
-    over the last interval; the line is cut to the terminal's width so it never wraps."""
+    over the last interval (the first camera's frames); the line is cut to the terminal's width so it never
+    wraps. On a board of several sensors every named sensor offers its estimate and the line shows each
+    briefly, in the order they first offered."""
 
-    def __init__(self, period_s: float, link: str, clock: Callable[[], int] = time.monotonic_ns,
-                 label: str = "") -> None:
+    def __init__(self, period_s: float, link: str, clock: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock = clock
         self._period_ns = int(period_s * 1e9)
         self._link = link
-        self._label = label
-        self._due_ns = 0
+        self._due_ns: dict[str, int] = {}
         self._last: tuple[int, int] | None = None  # (ns, frames) of the previous line
         self._latest: tuple[Any, float | None] | None = None
+        self._named: dict[str, Any] = {}  # several sensors: each one's last copy, by name
+        self._lead_name: str | None = None
         self._stats: Any = None
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._print_loop, name="optitac-status-line", daemon=True)
 
-    def offer(self, est: Any, stats: Any) -> None:
-        """From the frame loop of the first camera that offers (the others' go by): keep a copy of ``est``
-        when a line is due. One camera's counters make the rate (two cameras' made it -89.7 fps)."""
+    def offer(self, est: Any, stats: Any, name: str = "") -> None:
+        """From a frame loop: keep a copy of ``est`` when a line is due. One camera's counters (the first that
+        offers) make the rate (two cameras' made it -89.7 fps); a sensor of another camera is shown only when
+        named."""
         if self._stats is None:
             self._stats = stats
-        elif stats is not self._stats:
+        lead = stats is self._stats
+        if not (lead or name):
             return
         now = self._clock()
-        if now < self._due_ns:
+        if now < self._due_ns.get(name, 0):
             return
-        self._due_ns = now + self._period_ns
+        self._due_ns[name] = now + self._period_ns
+        if name:
+            with self._lock:
+                self._named[name] = est.copy()
+            if self._lead_name is None and lead:
+                self._lead_name = name
+            if name != self._lead_name:  # the line is drawn on the lead camera's first sensor's pace
+                return
         fps = None
         if self._last is not None and now > self._last[0]:
             fps = (stats.frames - self._last[1]) * 1e9 / (now - self._last[0])
@@ -205,15 +228,25 @@ class StatusLine:
             self._latest = (est.copy(), fps)
         self._wake.set()
 
+    def _line(self) -> str | None:
+        """The next line to draw (None: nothing new)."""
+        with self._lock:
+            latest, self._latest = self._latest, None
+            named = list(self._named.items())
+        if latest is None:
+            return None
+        if not named:
+            return f"[{self._link}] {_status_line(*latest)}"
+        rate = "  -.- fps" if latest[1] is None else f"{latest[1]:5.1f} fps"
+        return f"[{self._link}] {rate}  " + " | ".join(_brief(n, e) for n, e in named)
+
     def _print_loop(self) -> None:
         while not self._stop.is_set():
             self._wake.wait(0.5)
             self._wake.clear()
-            with self._lock:
-                latest, self._latest = self._latest, None
-            if latest is not None:
+            line = self._line()
+            if line is not None:
                 width = max(shutil.get_terminal_size((80, 24)).columns - 1, 20)
-                line = f"[{self._link}] {self._label}{_status_line(*latest)}"
                 with LIVE_LINE.lock:  # a log record clears the line first (it is drawn again here)
                     sys.stdout.write("\r\x1b[2K" + line[:width])
                     sys.stdout.flush()
@@ -242,9 +275,8 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
     with BoardSession(config, args.cal) as session, ExitStack() as stack:
         session.ride_out_stalls = bool(getattr(args, "ride_out_stalls", False))  # view: at a terminal
         # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
-        first = config.sensors[0]  # the lead camera's first sensor: the one the status line shows
-        label = f"{first.sensor.name}: " if len(config.sensors) > 1 else ""
-        line = stack.enter_context(StatusLine(0.1, link, label=label)) if sys.stdout.isatty() else None
+        line = stack.enter_context(StatusLine(0.1, link)) if sys.stdout.isatty() else None
+        several = len(config.sensors) > 1
         if session.calibrates:
             say("calibrating fibers from the first rest frames...")
         bundle = session.bundle()
@@ -267,8 +299,15 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
         def on_result(result: Any, stats: Any) -> None:
             if max_frames is not None and stats.frames >= max_frames:
                 stop.set()
-            if line is not None and stats is session.services[0].stats:  # the lead camera's first sensor
+            if line is None:
+                return
+            if not several:
                 line.offer(result.primary, stats)
+                return
+            # every sensor of this camera (its loop's own thread: their results are this frame's)
+            service = next((s for s in session.services if s.stats is stats), None)
+            for channel in () if service is None else service.channels:
+                line.offer(channel.pipeline.result.primary, stats, channel.name)
 
         session.run(stop, duration_s=args.duration, on_result=on_result)
         return session.services
