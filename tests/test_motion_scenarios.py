@@ -94,11 +94,14 @@ def test_bad_motion_truth_is_refused_in_one_line(tmp_path, row: str, why: str) -
 
 @pytest.fixture(scope="module")
 def slide_rec(tmp_path_factory) -> Path:
-    """``sim --scenario slide --day 2 --storage fibers`` (the command's own code, in this process)."""
+    """``sim --scenario slide --day 2`` (the command's own code, in this process)."""
     from optitac_edge.cli import main
 
     out = tmp_path_factory.mktemp("motion") / "slide"
-    assert main(["sim", str(out), "--scenario", "slide", "--day", "2", "--storage", "fibers"]) == 0
+    assert main(["sim", str(out), "--scenario", "slide", "--day", "2"]) == 0
+    # issue 38 item 28: a 240 fps motion scenario keeps each fiber's light by default (raw frames: ~1 GB)
+    assert Recording(out).meta.extra["frame_storage"]["storage"] == "fibers"
+    assert sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) < 50e6
     return out
 
 

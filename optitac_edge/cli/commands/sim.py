@@ -71,7 +71,9 @@ def add_parser(sub: Any) -> None:
                         "default: the paper's 217 fibers at 1.5 mm. Its skin, end faces and presses scale with "
                         "its pitch")
     add_fresh(p)
-    add_storage(p, "raw", "raw (default): every frame as it is; fibers: the rest frames and each fiber's light")
+    add_storage(p, None, "raw: every frame as it is (the default); fibers: the rest frames and each fiber's light "
+                         "(the default of the 240 fps motion scenarios, slide, vibrate and hold: raw frames of a "
+                         "slide alone are about 1 GB)")
     add_orientation(p)
     add_board(p, default=None)  # --board B --sensor ID: the sensor's patch in whole frames of its sim camera
 
@@ -110,9 +112,12 @@ def run(args: argparse.Namespace) -> int:
         shutil.rmtree(out, ignore_errors=True)  # a conversion that did not finish
     if mcap and args.storage == "fibers":
         raise OptiTacError("--storage fibers: an MCAP recording holds raw frames (simulate into a directory)")
+    from optitac_edge.sim.motion_scenarios import MOTION_SCENARIOS
+
+    storage = args.storage or ("fibers" if args.scenario in MOTION_SCENARIOS and not mcap else "raw")
     path = write_scenario(out, args.scenario, seed=args.seed, frames=args.frames, optics=optics,
                           day=args.day, variant=args.variant, warmup=args.warmup, patch=patch,
-                          fresh=args.fresh and not mcap, storage=args.storage, physics=args.physics, layout=layout)
+                          fresh=args.fresh and not mcap, storage=storage, physics=args.physics, layout=layout)
     from optitac_edge.io.recording import read_meta
 
     sim_optics = read_meta(path / "meta.json").extra["simulator"]["optics"]
