@@ -70,10 +70,20 @@ void ok_motion_step(ok_motion *m, ok_track *track, double x, double y, double st
         return;
     }
     const double *ts = track->t, *xs = track->x, *ys = track->y;
-    double st = 0.0, sx = 0.0, sy = 0.0;
-    for (int32_t k = 0; k < n; k++) st += ts[k];
+    double st = 0.0, sx = 0.0, sy = 0.0, t_lo = ts[0], t_hi = ts[0];
+    for (int32_t k = 0; k < n; k++) {
+        st += ts[k];
+        t_lo = ts[k] < t_lo ? ts[k] : t_lo;
+        t_hi = ts[k] > t_hi ? ts[k] : t_hi;
+    }
     for (int32_t k = 0; k < n; k++) sx += xs[k];
     for (int32_t k = 0; k < n; k++) sy += ys[k];
+    if (t_hi - t_lo < m->min_span_fraction * (n - 1) * m->period_s) { /* bunched frame times: no velocity */
+        out->vx = out->vy = NAN;
+        out->sliding = track->sliding;
+        out->slide_frame = track->slide_frame;
+        return;
+    }
     double tm = st / n, xm = sx / n, ym = sy / n;
     double stt = 0.0, stx = 0.0, sty = 0.0, sxx = 0.0, syy = 0.0;
     for (int32_t k = 0; k < n; k++) {

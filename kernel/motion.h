@@ -21,6 +21,7 @@ typedef struct {
 typedef struct {
     int32_t window;
     double slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, steady_ratio;
+    double min_span_fraction, period_s; /* a window spanning less than fraction x (n - 1) periods: no velocity */
     double prior, prior_strength; /* the last full contact's noise and the strength it was measured at */
     ok_track tracks[OK_MOTION_MAX_TRACKS];
 } ok_motion;

@@ -1,7 +1,7 @@
 /* optitac_edge.core._frame_kernel.Motion: the CPython face of motion.c.
  *
- * Motion(window, slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, prior, steady_ratio) keeps every tracked
- * contact's window; update(contacts, n, frame, now_ns) reads each contact's contact_id, touch_frame, x_mm,
+ * Motion(window, slip_sigmas, min_speed, min_shift, hold_fraction, noise_rate, prior, steady_ratio,
+ * min_span_fraction) keeps every tracked contact's window (period_s: the camera's nominal frame period, 0 unknown); update(contacts, n, frame, now_ns) reads each contact's contact_id, touch_frame, x_mm,
  * y_mm and strength and sets its vx_mm_s, vy_mm_s, sliding and slide_frame, as ContactMotion.update does
  * (optitac_edge/core/motion.py, the reference). */
 #define PY_SSIZE_T_CLEAN
@@ -22,13 +22,15 @@ static PyObject *s_id, *s_touch, *s_x, *s_y, *s_strength, *s_vx, *s_vy, *s_slidi
 
 static int Motion_init(MotionObject *self, PyObject *args, PyObject *kwds) {
     static char *kwlist[] = {"window", "slip_sigmas", "min_speed", "min_shift", "hold_fraction", "noise_rate",
-                             "prior", "steady_ratio", NULL};
+                             "prior", "steady_ratio", "min_span_fraction", NULL};
     ok_motion *m = &self->m;
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "iddddddd", kwlist, &m->window, &m->slip_sigmas, &m->min_speed,
-                                     &m->min_shift, &m->hold_fraction, &m->noise_rate, &m->prior, &m->steady_ratio))
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "idddddddd", kwlist, &m->window, &m->slip_sigmas, &m->min_speed,
+                                     &m->min_shift, &m->hold_fraction, &m->noise_rate, &m->prior, &m->steady_ratio,
+                                     &m->min_span_fraction))
         return -1;
+    m->period_s = 0.0;
     if (m->window < 3 || m->window > OK_MOTION_MAX_WINDOW || !(m->prior >= 0) || !(m->noise_rate > 0) ||
-        !(m->steady_ratio >= 1.0)) {
+        !(m->steady_ratio >= 1.0) || !(m->min_span_fraction >= 0.0 && m->min_span_fraction <= 1.0)) {
         PyErr_SetString(PyExc_ValueError, "Motion: constants out of range");
         return -1;
     }
@@ -120,6 +122,35 @@ static PyMethodDef Motion_methods[] = {
     {"reset", (PyCFunction)Motion_reset, METH_NOARGS, "reset(): forget every contact (a tare)."},
     {NULL, NULL, 0, NULL}};
 
+/* a frame period: a finite number >= 0 (0: not known) */
+int ok_set_period(double *field, PyObject *value, const char *who) {
+    if (!value) {
+        PyErr_Format(PyExc_AttributeError, "%s.period_s cannot be deleted", who);
+        return -1;
+    }
+    double v = PyFloat_AsDouble(value);
+    if (v == -1.0 && PyErr_Occurred()) return -1;
+    if (!(v >= 0.0) || !isfinite(v)) {
+        PyErr_Format(PyExc_ValueError, "%s.period_s must be a finite number of seconds >= 0", who);
+        return -1;
+    }
+    *field = v;
+    return 0;
+}
+
+static PyObject *Motion_get_period(MotionObject *self, void *Py_UNUSED(closure)) {
+    return PyFloat_FromDouble(self->m.period_s);
+}
+
+static int Motion_set_period(MotionObject *self, PyObject *value, void *Py_UNUSED(closure)) {
+    return ok_set_period(&self->m.period_s, value, "Motion");
+}
+
+static PyGetSetDef Motion_getset[] = {
+    {"period_s", (getter)Motion_get_period, (setter)Motion_set_period,
+     "the camera's nominal frame period, s (0: not known)", NULL},
+    {NULL, NULL, NULL, NULL, NULL}};
+
 static PyTypeObject MotionType = {
     PyVarObject_HEAD_INIT(NULL, 0)
     .tp_name = "optitac_edge.core._frame_kernel.Motion",
@@ -129,6 +160,7 @@ static PyTypeObject MotionType = {
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Motion_init,
     .tp_methods = Motion_methods,
+    .tp_getset = Motion_getset,
 };
 
 int ok_add_motion_type(PyObject *module) {

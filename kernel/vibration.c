@@ -80,7 +80,10 @@ double ok_vibration_step(ok_vibration *v, float trunc, int64_t dt_ns) {
     for (int32_t i = 0; i < n; i++) x[i] = v->signal[v->live[i]];
     v->began = 0;
     if (!v->designed) {
-        if (dt_ns > 0) design(v, 1e9 / (double)dt_ns);
+        if (v->period_s > 0.0)
+            design(v, 1.0 / v->period_s);
+        else if (dt_ns > 0)
+            design(v, 1e9 / (double)dt_ns);
         return v->level;
     }
     const float b0 = v->b0, b1 = v->b1, b2 = v->b2, a1 = v->a1, a2 = v->a2;

@@ -16,6 +16,7 @@ typedef struct {
     float *x, *z1, *z2;    /* (n,) scratch and the filter's state */
     float *mask;           /* (n,) scratch: 1 where the fiber is above the truncation level */
     double cutoff_hz, rate_fraction, on_sigmas, quiet_tau_s, vibrating_tau_s;
+    double period_s; /* the camera's nominal frame period the filter is designed for (0: the first interval) */
     int32_t window, learn_frames, min_fibers;
     /* state */
     int designed;

@@ -123,6 +123,21 @@ static PyMemberDef Vibration_members[] = {
     {"began", T_BOOL, offsetof(VibrationObject, v.began), READONLY, "vibrating turned on in the last frame"},
     {NULL, 0, 0, 0, NULL}};
 
+int ok_set_period(double *field, PyObject *value, const char *who); /* motion_type.c */
+
+static PyObject *Vibration_get_period(VibrationObject *self, void *Py_UNUSED(closure)) {
+    return PyFloat_FromDouble(self->v.period_s);
+}
+
+static int Vibration_set_period(VibrationObject *self, PyObject *value, void *Py_UNUSED(closure)) {
+    return ok_set_period(&self->v.period_s, value, "Vibration");
+}
+
+static PyGetSetDef Vibration_getset[] = {
+    {"period_s", (getter)Vibration_get_period, (setter)Vibration_set_period,
+     "the camera's nominal frame period the filter is designed for, s (0: the first frame interval)", NULL},
+    {NULL, NULL, NULL, NULL, NULL}};
+
 static PyTypeObject VibrationType = {
     PyVarObject_HEAD_INIT(NULL, 0)
     .tp_name = "optitac_edge.core._frame_kernel.Vibration",
@@ -134,6 +149,7 @@ static PyTypeObject VibrationType = {
     .tp_dealloc = (destructor)Vibration_dealloc,
     .tp_methods = Vibration_methods,
     .tp_members = Vibration_members,
+    .tp_getset = Vibration_getset,
 };
 
 int ok_add_vibration_type(PyObject *module) {

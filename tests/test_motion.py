@@ -268,3 +268,36 @@ def test_the_kernels_motion_is_the_reference() -> None:
             np.testing.assert_allclose((p.vx_mm_s, p.vy_mm_s), (q.vx_mm_s, q.vy_mm_s), rtol=1e-12, atol=1e-9)
             slides += p.slide_frame == frame
     assert slides > 25
+
+
+def test_bunched_frame_times_give_no_velocity_where_the_camera_period_is_known(motion) -> None:
+    """Issue 38 item 14: frame times closer than the camera can take them (queued frames handed over at once)
+    gave -187 904 mm/s on a held contact. With the nominal period known, a window spanning less than half its
+    nominal time has no velocity, and nothing slides on it; with the period unknown the window is fitted as it
+    comes (the old behaviour, kept where nothing says better)."""
+    xy = _held(30, 0.01, seed=4)
+    t_ns = np.arange(30) * PERIOD_NS
+    t_ns[20:] = t_ns[19] + np.arange(1, 11) * 1_000  # ten frames 1 µs apart
+    motion.period_s = PERIOD
+    got = _feed(motion, xy, t_ns=t_ns)
+    assert all(math.isfinite(c.vx_mm_s) for c in got[1:20])  # the camera's own pace: velocities
+    assert all(math.isnan(c.vx_mm_s) and math.isnan(c.vy_mm_s) for c in got[23:])  # the window bunched
+    assert not any(c.sliding for c in got)
+    t_ns[20:] = t_ns[19] + np.arange(1, 11) * PERIOD_NS // 3  # three times faster than declared: still bunched
+    motion.reset()
+    assert math.isnan(_feed(motion, xy, t_ns=t_ns, cid=8)[-1].vx_mm_s)
+    t_ns[20:] = t_ns[19] + np.arange(1, 11) * (PERIOD_NS * 2 // 3)  # 1.5 x the pace: a velocity
+    motion.reset()
+    assert math.isfinite(_feed(motion, xy, t_ns=t_ns, cid=9)[-1].vx_mm_s)
+    unknown = ContactMotion() if isinstance(motion, ContactMotion) else compiled.compiled_motion()
+    t_ns[20:] = t_ns[19] + np.arange(1, 11) * 1_000
+    last = _feed(unknown, xy, t_ns=t_ns, cid=10)[-1]
+    assert math.hypot(last.vx_mm_s, last.vy_mm_s) > 1_000.0  # what it read before: a held contact at > 1 m/s
+
+
+def test_a_frame_period_is_a_finite_number_of_seconds(motion) -> None:
+    for bad in (-1.0, math.inf, math.nan):
+        with pytest.raises(ValueError, match="period_s must be a finite number"):
+            motion.period_s = bad
+    motion.period_s = PERIOD
+    assert motion.period_s == PERIOD

@@ -88,3 +88,29 @@ def test_the_kernel_gives_the_same_motion(runs):
         assert a[:2] == b[:2] and a[4:6] == b[4:6] and a[7:] == b[7:]
         np.testing.assert_allclose(a[2:4], b[2:4], atol=1e-3)
         np.testing.assert_allclose(a[6], b[6], rtol=1e-3)
+
+
+@pytest.mark.parametrize("kernel", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not compiled.kernel_status()[0], reason="the compiled kernel is not built"))])
+def test_frames_handed_over_at_once_give_no_velocity_and_no_vibration(bundle_path, kernel: bool) -> None:
+    """Issue 38 item 14, through the pipeline: a held press whose frames arrive in bursts of 8 a microsecond
+    apart (a driver handing over its queue), on a camera declared at 240 fps: no velocity (it read 10^5 mm/s),
+    nothing slides, nothing vibrates. Frame rates that are not a finite number > 0 are refused."""
+    bundle = load_bundle(bundle_path)
+    rest = bundle.baseline_frames + 20
+    sensor = SimulatedSensor(fps=FPS, seed=12)
+    pipe = Pipeline(bundle, compiled=kernel, fps=FPS)
+    t_ns, speeds, vibrating = 0, [], []
+    for k in range(rest + 240):
+        t_ns += 1_000 if k % 8 else round(8e9 / FPS)  # the burst's first frame keeps the camera's pace
+        r = pipe.process(sensor.frame(() if k < rest else (_press(-2.0),)), t_ns)
+        if k >= rest + 40:
+            speeds.append(math.hypot(r.primary.vx_mm_s, r.primary.vy_mm_s))
+            vibrating.append(r.vibrating or r.primary.sliding)
+    # a window within a burst has no velocity; one that spans a burst's step has the camera's own time in it
+    bunched = [v for v in speeds if math.isnan(v)]
+    assert len(bunched) >= len(speeds) // 2 and max(v for v in speeds if not math.isnan(v)) < 5.0
+    assert not any(vibrating)
+    for bad in (0.0, -60.0, math.inf, math.nan, True):
+        with pytest.raises(ValueError, match="frame rate must be a finite number > 0"):
+            pipe.set_frame_rate(bad)

@@ -160,3 +160,24 @@ def test_dead_fibers_are_left_out(kind: str) -> None:
     frames[:, :10] = np.random.default_rng(11).normal(0, 1.0, (600, 10))  # a dead fiber's garbage
     levels, on, _ = meter.run(frames)
     assert not on.any() and np.median(levels[100:]) == pytest.approx(1.0, abs=0.05)
+
+
+def test_the_filter_is_designed_for_the_cameras_nominal_rate_not_a_bunched_first_interval(kind: str) -> None:
+    """Issue 38 item 14: the filter was designed from the first frame interval; frames handed over 1 µs apart
+    made it a filter for 1 MHz. With the nominal period it is the 240 fps filter whatever the intervals; at
+    rest, frames bunched and spread at random vibrate nothing."""
+    ref, meter = _Meter("numpy"), _Meter(kind)
+    ref.m.period_s = meter.m.period_s = 1.0 / FPS
+    frames = _frames(2400, 9)
+    dts = np.random.default_rng(9).choice([1_000, DT_NS, 3 * DT_NS], size=len(frames))
+    dts[:2] = 1_000  # the first intervals bunched: what the filter was designed from
+    got, ref_levels = [], []
+    for f, dt in zip(frames, dts):
+        ref.signal[:] = meter.signal[:] = f
+        ref_levels.append(ref.m.update(TRUNC, int(dt)))
+        got.append((meter.m.update(TRUNC, int(dt)), meter.m.vibrating))
+    b, a = butter2_highpass(20.0, FPS)
+    assert ref.m._coef == pytest.approx((b[0], b[1], a[1], a[2], b[2]))
+    levels = np.array([g[0] for g in got])
+    assert not any(g[1] for g in got) and np.median(levels[100:]) == pytest.approx(1.0, abs=0.05)
+    np.testing.assert_allclose(levels, ref_levels, rtol=1e-4, equal_nan=True)  # the kernel's is the numpy one

@@ -153,7 +153,7 @@ class Collector:
         self.storage, self.find_fibers = storage, find_fibers
         self.prompt = prompt
         self.confirm = confirm or prompt
-        self.pipeline = Pipeline(bundle)
+        self.pipeline = Pipeline(bundle, fps=camera.fps)
         self.pipeline.set_corrector(None)
         self.writer: RecordingWriter | None = None
         self._mounted = ""

@@ -31,7 +31,7 @@ def orient_live(camera: Camera, bundle: CalibrationBundle, timeout_s: float,
     CameraError
         If the camera ends.
     """
-    pipeline = Pipeline(bundle)
+    pipeline = Pipeline(bundle, fps=camera.fps)
     procedure = EdgePresses(bundle.layout)
     shown = ""
     start_ns: int | None = None

@@ -139,7 +139,7 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     shape_backend, onnx_path
         How the shape model is evaluated (see :class:`~optitac_edge.core.corrections.ContactCorrector`).
     """
-    pipeline = Pipeline(bundle)
+    pipeline = Pipeline(bundle, fps=rec.meta.fps)
     pipeline.set_corrector(ContactCorrector(bundle, shape_backend, onnx_path) if corrected else None)
     n = len(rec)
     cols = {k: np.full(n, np.nan) for k in ("x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg",

@@ -112,7 +112,7 @@ def compiled_motion() -> Any:
     """
     m = motion
     return _require().Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
-                             m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO)
+                             m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO, m.MIN_SPAN_FRACTION)
 
 
 class FrameKernel:

@@ -111,6 +111,24 @@ PRIOR_NOISE_MM = 0.01
 #: Weight of one held frame's window in a contact's centroid noise and in where it rests (running means of
 #: ~20 frames).
 NOISE_RATE = 0.05
+#: A window whose frames span less than this fraction of their nominal time (``(W - 1)`` camera periods) has no
+#: velocity: timestamps bunched closer than the camera can take frames (a driver handing over queued frames at
+#: once, a clock step) would divide a centroid's noise by almost nothing (-187 904 mm/s on a held contact).
+MIN_SPAN_FRACTION = 0.5
+
+
+def checked_period(value: float, who: str) -> float:
+    """``value`` as a frame period, s: a finite number >= 0 (0: not known).
+
+    Raises
+    ------
+    ValueError
+        Otherwise, naming ``who``.
+    """
+    v = float(value)
+    if not (v >= 0.0 and math.isfinite(v)):
+        raise ValueError(f"{who}.period_s must be a finite number of seconds >= 0, got {value!r}")
+    return v
 
 
 class _Track:
@@ -162,6 +180,16 @@ class ContactMotion:
         self._tracks: dict[int, _Track] = {}
         self._prior = PRIOR_NOISE_MM
         self._prior_strength = math.nan
+        self._period_s = 0.0
+
+    @property
+    def period_s(self) -> float:
+        """The camera's nominal frame period, s (0: not known, no window is refused for its span)."""
+        return self._period_s
+
+    @period_s.setter
+    def period_s(self, value: float) -> None:
+        self._period_s = checked_period(value, "ContactMotion")
 
     def reset(self) -> None:
         """Forget every contact (a tare)."""
@@ -177,7 +205,7 @@ class ContactMotion:
             track = tracks.get(c.contact_id)
             if track is None or c.touch_frame == frame:
                 track = tracks[c.contact_id] = _Track(self._prior, self._prior_strength)
-            _step(track, c, frame, t_s)
+            _step(track, c, frame, t_s, self._period_s)
         if len(tracks) > n:
             self._forget(contacts, n)
 
@@ -194,10 +222,11 @@ class ContactMotion:
             self._prior, self._prior_strength = prior, strength
 
 
-def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
+def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float, period_s: float) -> None:
     """Add ``c``'s centroid at ``t_s`` to its track; its velocity and slip state into ``c``.
 
-    One pass over the window gives the slope and the scatter about it (sums of the centred products).
+    One pass over the window gives the slope and the scatter about it (sums of the centred products). A
+    window spanning less than :data:`MIN_SPAN_FRACTION` of ``(n - 1) * period_s`` has no velocity.
     """
     x, y = c.x_mm, c.y_mm
     h = track.head
@@ -214,10 +243,16 @@ def _step(track: _Track, c: ContactEstimate, frame: int, t_s: float) -> None:
     if n < WINDOW:  # the ring is filled from 0 until it is full
         ts, xs, ys = ts[:n], xs[:n], ys[:n]
     st = sx = sy = 0.0  # sums in order (as the kernel's; sum() compensates on Python 3.12)
+    t_lo = t_hi = ts[0]
     for tk, xk, yk in zip(ts, xs, ys):
         st += tk
         sx += xk
         sy += yk
+        t_lo, t_hi = min(t_lo, tk), max(t_hi, tk)
+    if t_hi - t_lo < MIN_SPAN_FRACTION * (n - 1) * period_s:  # bunched frame times: no velocity
+        c.vx_mm_s = c.vy_mm_s = math.nan
+        c.sliding, c.slide_frame = track.sliding, track.slide_frame
+        return
     tm, xm, ym = st / n, sx / n, sy / n
     stt = stx = sty = sxx = syy = 0.0
     for tk, xk, yk in zip(ts, xs, ys):

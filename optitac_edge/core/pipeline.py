@@ -164,6 +164,10 @@ class Pipeline:
         Run the frames in the compiled kernel (:mod:`optitac_edge.core.compiled`):
         None (default) when it is built, True requires it (ImportError if not
         built), False the numpy parts (the reference).
+    fps : float, optional
+        The camera's nominal frame rate, frames/s (:meth:`set_frame_rate`): the vibration filter is designed
+        for it, and a contact's velocity window whose frames span less than half their nominal time gives no
+        velocity. None: not known (the filter takes the first frame interval; no window is refused).
 
     Notes
     -----
@@ -174,7 +178,7 @@ class Pipeline:
     """
 
     def __init__(self, bundle: CalibrationBundle, options: ContactOptions | None = None,
-                 compiled: bool | None = None) -> None:
+                 compiled: bool | None = None, fps: float | None = None) -> None:
         self.bundle = bundle
         self.options = o = bundle.options if options is None else options
         table = bundle.fibers
@@ -240,6 +244,20 @@ class Pipeline:
             self.set_corrector(self.corrector)
         #: Step 8b: every contact's velocity and slip state, and the fibers' vibration.
         self.motion, self.vibration = _motion_parts(self._signal, self._live, self.kernel is not None)
+        if fps is not None:
+            self.set_frame_rate(fps)
+
+    def set_frame_rate(self, fps: float) -> None:
+        """The camera's nominal frame rate, frames/s (the motion's and vibration's period; see the class).
+
+        Raises
+        ------
+        ValueError
+            Unless ``fps`` is a finite number > 0.
+        """
+        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"a frame rate must be a finite number > 0, got {fps!r}")
+        self.motion.period_s = self.vibration.period_s = 1.0 / float(fps)
 
     # -- state -----------------------------------------------------------------
 
@@ -441,6 +459,7 @@ class Pipeline:
         released by this pipeline's first frame, and no id is handed out again at once."""
         self.tracker = previous.tracker
         self.motion = previous.motion
+        self.vibration.period_s = previous.vibration.period_s
         self.result.released = self.tracker.released
 
     def compute_signal(self, means: np.ndarray, now_ns: int) -> np.ndarray:

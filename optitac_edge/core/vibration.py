@@ -6,8 +6,9 @@ contact's centroid moves by a fraction of a millimetre. At 240 fps the camera
 sees up to 120 Hz.
 
 Each live fiber's signal goes through a second-order Butterworth high-pass at
-:data:`CUTOFF_HZ` (designed by the bilinear transform for the frame rate the
-frames arrive at): a held press, a slowly growing or shrinking one and a
+:data:`CUTOFF_HZ` (designed by the bilinear transform for the camera's nominal
+frame rate, :attr:`VibrationMeter.period_s`; where that is not known, for the
+first interval the frames arrive at): a held press, a slowly growing or shrinking one and a
 steady ramp of light give nothing in steady state (the filter's double zero
 at DC). The frame's *vibration* is the mean square of that high-passed signal
 over the fibers under a contact (signal above the truncation level, when at
@@ -30,6 +31,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from optitac_edge.core.motion import checked_period
 
 #: The high-pass's cut-off, Hz, lowered to RATE_FRACTION x the frame rate for slow cameras.
 CUTOFF_HZ = 20.0
@@ -111,7 +114,18 @@ class VibrationMeter:
         self._tmp = np.zeros(n, dtype=np.float32)
         self._mask = np.zeros(n, dtype=bool)
         self._ring = [0.0] * WINDOW
+        self._period_s = 0.0
         self.reset()
+
+    @property
+    def period_s(self) -> float:
+        """The camera's nominal frame period, s, the filter is designed for (0: not known, the first frame
+        interval is taken)."""
+        return self._period_s
+
+    @period_s.setter
+    def period_s(self, value: float) -> None:
+        self._period_s = checked_period(value, "VibrationMeter")
 
     def reset(self) -> None:
         """Start again (a tare, a new baseline): the filter from the next frame's signal, the rest noise
@@ -133,14 +147,16 @@ class VibrationMeter:
         trunc : float
             The truncation level, signal units: fibers above it are under a contact.
         dt_ns : int
-            Time since the previous frame, ns (the filter is designed from the first one > 0).
+            Time since the previous frame, ns (without :attr:`period_s` the filter is designed from the first
+            one > 0).
         """
         x = np.take(self._signal, self._live, out=self._x)
         self.began = False
         if self._coef is None:
-            if dt_ns <= 0:
-                return self.level
-            self._design(x, 1e9 / dt_ns)
+            if self._period_s > 0.0:
+                self._design(x, 1.0 / self._period_s)
+            elif dt_ns > 0:
+                self._design(x, 1e9 / dt_ns)
             return self.level
         b0, b1, a1, a2, b2 = self._coef  # direct form II transposed, every fiber at once
         h, z1, z2, tmp = self._h, self._z1, self._z2, self._tmp

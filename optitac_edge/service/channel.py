@@ -30,13 +30,16 @@ class SensorChannel:
         Its calibration, placed in the camera's whole frame.
     frame_shape : tuple of int
         The camera's frame shape (the frame check's expectation).
+    fps : float, optional
+        The camera's nominal frame rate (the pipeline's motion and vibration period).
     """
 
-    def __init__(self, sensor_id: int, name: str, bundle: CalibrationBundle, frame_shape: tuple[int, ...]) -> None:
+    def __init__(self, sensor_id: int, name: str, bundle: CalibrationBundle, frame_shape: tuple[int, ...],
+                 fps: float | None = None) -> None:
         self.sensor_id = sensor_id
         self.name = name
         self.bundle = bundle
-        self.pipeline = Pipeline(bundle)
+        self.pipeline = Pipeline(bundle, fps=fps)
         #: The one check of a frame before the pipeline takes it.
         self.frame_check = FrameCheck(bundle.fibers, frame_shape)
         #: Some fiber of the bundle is dead (every message's DEGRADED flag).

@@ -108,7 +108,8 @@ class Service:
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
         #: One per sensor the camera reads, in the board's order.
-        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.frame_shape) for sensor, b in sensors]
+        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.frame_shape, camera.fps)
+                         for sensor, b in sensors]
         #: The sensors' pipelines on the board's spare cores (``workers``: how many threads; None: one per
         #: sensor beyond the first, as many as the cores beyond two).
         self.pool = SensorPool(spare_workers(len(self.channels)) if workers is None else workers)

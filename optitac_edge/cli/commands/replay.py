@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
     from optitac_edge.io.recording import Recording
 
     rec = Recording(args.recording)
-    pipeline = Pipeline(load_bundle(args.cal))
+    pipeline = Pipeline(load_bundle(args.cal), fps=rec.meta.fps)
     contacts = 0
     with ContactsCsvWriter(args.output) as out:
         for i, estimate in replay_recording(rec, pipeline):

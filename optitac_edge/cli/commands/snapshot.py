@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     config = one_sensor_config(args)
     with open_board_camera(config) as camera:
         bundle, _ = obtain_bundle(config, camera, args.cal)
-        pipeline = Pipeline(bundle)
+        pipeline = Pipeline(bundle, fps=camera.fps)
         view = LiveView(bundle, camera.pixel_format, rate_hz=1e9)
         stats = SimpleNamespace(**dict.fromkeys(STAT_FIELDS, 0))
         try:
