@@ -2,7 +2,8 @@
 # The compiled per-frame kernel under AddressSanitizer and UndefinedBehaviorSanitizer: the extension built with
 # -fsanitize=address,undefined, loaded in place of the installed one in every Python the kernel tests start
 # (a sitecustomize.py on PYTHONPATH; libasan preloaded, Python itself is not instrumented), then
-# tests/test_kernel.py run: its parity tests, the odd mesh sides, the striped masks, the bad plans.
+# tests/test_kernel.py run: its parity tests, the odd mesh sides, the striped masks, the bad plans; and the
+# motion and vibration steps against their Python references (tests/test_motion.py, tests/test_vibration.py).
 #
 #   tools/kernel_asan.sh [WORKDIR] [PYTEST ARGS...]
 #
@@ -42,5 +43,6 @@ export ASAN_OPTIONS="detect_leaks=0:abort_on_error=1:halt_on_error=1"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1"
 python3 -c 'import optitac_edge.core._frame_kernel as k, sys; assert "optitac_asan" in k.__file__, k.__file__'
 # the aarch64 test builds its own harness; the allocation test counts Python's allocations (ASan's differ)
-python3 -m pytest -q -p no:randomly -n 0 tests/test_kernel.py -k "not aarch64 and not allocates" "$@"
+python3 -m pytest -q -p no:randomly -n 0 tests/test_kernel.py tests/test_motion.py tests/test_vibration.py \
+    -k "not aarch64 and not allocates" "$@"
 echo "kernel_asan: every kernel test passed under AddressSanitizer and UndefinedBehaviorSanitizer"
