@@ -158,6 +158,8 @@ class Status:
         The compiled kernel runs the frames (else the numpy pipeline).
     fps : float
         The camera's configured frame rate.
+    dropped : int
+        Frames the camera lost before they were read (a loop slower than the camera; gaps in its sequence).
     """
 
     sensor_id: int
@@ -169,6 +171,7 @@ class Status:
     calibration_id: str
     compiled: bool
     fps: float
+    dropped: int = 0
 
 
 class Sensor:
@@ -252,7 +255,7 @@ class Sensor:
         """The sensor's counters and state now."""
         return Status(self.sensor_id, self.name, self._frames, self._contacts, self._skipped,
                       bool(self._pipeline.baseline_ready), self._pipeline.bundle.calibration_id,
-                      self._pipeline.kernel is not None, float(self._camera.fps))
+                      self._pipeline.kernel is not None, float(self._camera.fps), int(self._camera.frames_dropped))
 
     def close(self) -> None:
         """Close the camera and the LED ring (idempotent)."""

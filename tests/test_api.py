@@ -48,7 +48,9 @@ def test_the_first_example_prints_every_contact_with_its_velocity_for_two_second
     status = lines[-1]
     assert status.startswith("Status(") and "baseline_ready=True" in status
     frames = int(re.search(r"frames=(\d+)", status).group(1))
-    assert 100 <= frames <= 130  # 2 s of the simulated board's 60 fps
+    dropped = int(re.search(r"dropped=(\d+)", status).group(1))
+    # 2 s of the simulated board's 60 fps: read, or lost by a loop that fell behind (a busy machine; issue 38)
+    assert 100 <= frames + dropped <= 130 and frames >= 20
     assert "Traceback" not in run.stderr
 
 
