@@ -148,9 +148,10 @@ def test_the_replay_camera_starts_at_the_first_read_so_a_slow_start_keeps_the_re
     from optitac_edge.devtools.bench.replay_camera import paced_replay_camera
 
     frames = [np.full((8, 8), i, np.uint8) for i in range(20)]
-    cam = paced_replay_camera(frames, rest=4, fps=200.0, pixel_format="gray", queue_frames=2)
+    # 20 fps: a busy machine may be 100 ms late between two reads before the ring of 2 drops one (issue 38)
+    cam = paced_replay_camera(frames, rest=4, fps=20.0, pixel_format="gray", queue_frames=2)
     try:
-        time.sleep(0.1)  # 20 periods before the loop reads
+        time.sleep(0.3)  # 6 periods, 3 rings' worth, before the loop reads
         got = [cam.read(2.0) for _ in range(4)]
     finally:
         cam.close()
