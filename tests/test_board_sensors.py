@@ -15,7 +15,7 @@ from optitac_edge.calibration.region import Region, calibrate_region
 from optitac_edge.config import load_board_config
 from optitac_edge.errors import BundleError, ConfigError
 from optitac_edge.io.bundle_file import save_bundle
-from optitac_edge.io.protocol.messages import CommandType
+from optitac_edge.io.protocol.messages import CommandType, ContactFlags
 from optitac_edge.io.protocol.wire import MsgType, decode_contact, decode_status, encode_command
 from optitac_edge.io.protocol.wire_v2 import decode_contact2
 from optitac_edge.io.transports.base import NullTransport
@@ -291,12 +291,19 @@ def test_a_board_of_two_cameras_streams_every_sensor_over_one_link_and_the_mcu_c
         mcu.close()
     status = {decode_status(f.payload, f.t_us).sensor_id for f in frames if f.type == MsgType.STATUS}
     assert status == {1, 2, 3}
-    v1 = [decode_contact(f.payload, f.t_us) for f in frames if f.type == MsgType.CONTACT]
-    v2 = [decode_contact2(f.payload, f.t_us) for f in frames if f.type == MsgType.CONTACT2]
-    assert v1  # v1 until the MCU asked (it asks once the first frame arrived, from whichever camera)
-    by_sensor = {sid: [m for m in v2 if m.sensor_id == sid] for sid in (1, 2, 3)}
-    assert all(len(ms) > 40 for ms in by_sensor.values()), {k: len(v) for k, v in by_sensor.items()}
-    touched = {sid: sum(m.n_contacts > 0 for m in ms) for sid, ms in by_sensor.items()}
+    contacts = [(f.type, decode_contact(f.payload, f.t_us) if f.type == MsgType.CONTACT
+                 else decode_contact2(f.payload, f.t_us)) for f in frames if f.type in (MsgType.CONTACT,
+                                                                                          MsgType.CONTACT2)]
+    assert contacts[0][0] == MsgType.CONTACT  # v1 until the MCU asked (once the first frame arrived)
+    by_sensor = {sid: [(t, m) for t, m in contacts if m.sensor_id == sid] for sid in (1, 2, 3)}
+    for sid, ms in by_sensor.items():  # every camera's loop switched to v2, and never went back
+        kinds = [t for t, _ in ms]
+        assert MsgType.CONTACT2 in kinds and MsgType.CONTACT not in kinds[kinds.index(MsgType.CONTACT2):], sid
+    # when the switch came depends on how soon the MCU's thread ran (a busy machine, issue 38 item 25): every
+    # frame of each sensor counted in either version (70 frames a recording, less the baseline's)
+    assert all(len(ms) > 50 for ms in by_sensor.values()), {k: len(v) for k, v in by_sensor.items()}
+    touched = {sid: sum((m.flags & ContactFlags.CONTACT) > 0 if t == MsgType.CONTACT else m.n_contacts > 0
+                        for t, m in ms) for sid, ms in by_sensor.items()}
     assert touched[1] > 10 and touched[3] > 10 and touched[2] == 0  # the index finger was never pressed
 
 
