@@ -70,14 +70,16 @@ def test_bench_sim_all_sections(tmp_path, bundle_path, capfd, monkeypatch) -> No
     assert e2e["received"] <= e2e["sent"] <= e2e["frames"]
     assert e2e["contacts_pressed"] == 2 and e2e["main_thread"]["cpu_us_per_frame"] > 0
     pub = e2e["publish"]  # every frame's Contacts (and status, signal) on Zenoh to a subscriber and in the MCAP
-    assert pub["published"] >= e2e["frames"] and pub["errors"] == 0
+    # published or, on a busy machine whose publishing thread fell behind, counted as dropped (never waited on)
+    assert pub["published"] + pub["dropped"] >= e2e["frames"] and pub["errors"] == 0
     assert pub["published"] + pub["dropped"] >= pub["mcap_messages"] == pub["published"]
     assert 0 < pub["received_by_subscriber"] <= pub["published"]
     pe = res["patches_end_to_end"]  # one service, a sensor per patch: each frame's CONTACTs of both patches
     assert pe["patches"] == 2 and pe["frames"] > 0 and pe["received"] > pe["frames"]
     assert pe["sensor_workers"] == 1  # the second patch's pipeline on a worker thread
     assert pe["received"] <= 2 * pe["sent"] and pe["sent"] <= pe["frames"]
-    assert pe["publish"]["topics"] >= 4 and pe["publish"]["published"] >= 2 * pe["frames"]  # contacts, status x2
+    assert pe["publish"]["topics"] >= 4  # contacts and status of each patch
+    assert pe["publish"]["published"] + pe["publish"]["dropped"] >= 2 * pe["frames"]
     st = res["startup"]
     assert st["start_to_first_packet_s"] is not None and st["start_to_first_packet_s"] > 0
     assert st["heavy_modules_imported"] == []  # the runtime imports neither scipy nor scikit-learn
