@@ -273,7 +273,11 @@ class GcodeRig(Rig):
             if line.startswith("<") and line.endswith(">"):
                 return self._parse_status(line[1:-1])
             if not line.startswith(("[", "Grbl")):  # not a message or a banner: the report, garbled
-                raise GarbledReport(f"gcode rig {self.url}: garbled status report {line!r}")
+                raise self._garbled(line)
+
+    def _garbled(self, report: str) -> GarbledReport:
+        """The error of a status report that is not one GRBL sends (noise on the line), the report escaped."""
+        return GarbledReport(f"gcode rig {self.url}: garbled status report {report!r}")
 
     def _parse_status(self, body: str) -> RigStatus:
         fields = body.split("|")
@@ -290,9 +294,9 @@ class GcodeRig(Rig):
                 try:
                     xyz = tuple(float(v) for v in value.split(","))
                 except ValueError:
-                    raise GarbledReport(f"gcode rig {self.url}: garbled status report {'<' + body + '>'!r}") from None
+                    raise self._garbled(f"<{body}>") from None
                 if len(xyz) < 3 or not all(math.isfinite(v) and abs(v) < ABSURD_MM for v in xyz):
-                    raise GarbledReport(f"gcode rig {self.url}: garbled status report {'<' + body + '>'!r}")
+                    raise self._garbled(f"<{body}>")
                 if key == "WCO":
                     self._offset_seen((xyz[0], xyz[1], xyz[2]))
                 else:
