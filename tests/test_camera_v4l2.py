@@ -267,10 +267,22 @@ def test_argus_pipeline_string():
     assert p.endswith("nvvidconv ! video/x-raw,format=GRAY8 ! appsink drop=1 max-buffers=1 sync=false")
 
 
-def test_real_opencv_reports_gstreamer_support_honestly():
-    from optitac_edge.io.cameras.v4l2 import has_gstreamer
+def test_real_opencv_reports_gstreamer_support_honestly(monkeypatch):
+    """What the build says, and what it does: a build that opens a GStreamer pipeline must say it has
+    GStreamer (issue 39: the test checked only that a bool came back)."""
+    import cv2
 
-    assert isinstance(has_gstreamer(), bool)
+    from optitac_edge.io.cameras import v4l2
+
+    opened = cv2.VideoCapture("videotestsrc num-buffers=1 ! videoconvert ! appsink", cv2.CAP_GSTREAMER)
+    try:
+        assert v4l2.has_gstreamer() or not opened.isOpened()
+    finally:
+        opened.release()
+    for text, has in (("  Video I/O:\n    GStreamer:                   YES (1.20.3)\n", True),
+                      ("  Video I/O:\n    GStreamer:                   NO\n", False), ("  Video I/O:\n", False)):
+        monkeypatch.setattr(v4l2.cv2, "getBuildInformation", lambda text=text: text)
+        assert v4l2.has_gstreamer() is has
 
 
 @pytest.mark.parametrize("t_us", [67355058851, 8410816565, 8675169542, 1, 0, 86_400_123_456_789, 1_700_000_000_123_456])
