@@ -247,6 +247,29 @@ def is_verified(bundle: CalibrationBundle) -> bool:
     return isinstance(record, dict) and record.get("verified") is True
 
 
+#: A fiber map rebuilt from rest frames keeps the orientation presses settled for the one it replaces when it is
+#: turned as that one was: the same mirror, within half the hexagon's smallest symmetric turn, degrees.
+KEEP_TURN_DEG = 30.0
+
+
+def settles(old: CalibrationBundle, layout: FiberLayout) -> bool:
+    """``old``'s orientation was settled by presses (orient, calibrate orientation, fiducials) for ``layout``: a
+    fiber map of ``layout`` rebuilt to replace it may take its rotation and mirror as the hint."""
+    xy = old.layout.xy_mm
+    return is_verified(old) and xy.shape == layout.xy_mm.shape and bool(np.allclose(xy, layout.xy_mm))
+
+
+def keep_orientation(old: CalibrationBundle, new: CalibrationBundle) -> CalibrationBundle | None:
+    """``new`` with ``old``'s settled orientation recorded (the evidence says it was kept) when its fiber map is
+    turned as ``old``'s was (:data:`KEEP_TURN_DEG`); None when it is not (the orientation must be settled again).
+    """
+    turn = (new.transform.rotation_deg - old.transform.rotation_deg + 180.0) % 360.0 - 180.0
+    if new.transform.mirror != old.transform.mirror or not abs(turn) < KEEP_TURN_DEG:
+        return None
+    evidence = old.extra_meta[ORIENTATION_KEY].get("evidence", "presses")
+    return mark_verified(new, f"kept from the bundle this one replaced ({evidence})")
+
+
 #: Fiducials decide a symmetry when the next best scores this many level standard deviations worse.
 FIDUCIAL_MARGIN = 1.0
 

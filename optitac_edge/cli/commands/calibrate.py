@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.cli.common import SEED, Parser, add_board, add_orientation, board_sensor
 from optitac_edge.errors import OptiTacError
 from optitac_edge.text import fields
+
+if TYPE_CHECKING:
+    from optitac_edge.core.bundle import CalibrationBundle
 
 
 def add_parser(sub: Any) -> None:
@@ -60,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _fibers(args: argparse.Namespace) -> int:
     from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.calibration.orientation import keep_orientation, settles
+    from optitac_edge.core.layout import hex_layout
     from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.io.layout_csv import load_layout_csv
     from optitac_edge.io.recording import Recording
@@ -72,7 +77,9 @@ def _fibers(args: argparse.Namespace) -> int:
     layout_path = args.layout or (config.calibration.layout_path if config is not None else None)
     layout = load_layout_csv(layout_path) if layout_path else None
     region = config.sensor.region if config is not None else ()
-    settled = None if args.rotation_deg is not None or args.mirror else _settled(Path(output), layout)
+    # no hint given: a bundle at the output whose orientation presses settled gives it, and keeps it (below)
+    previous = None if args.rotation_deg is not None or args.mirror else _readable_bundle(Path(output))
+    settled = previous if previous is not None and settles(previous, layout or hex_layout()) else None
     hint = (args.rotation_deg or 0.0, args.mirror) if settled is None else (settled.transform.rotation_deg,
                                                                              settled.transform.mirror)
     if region:
@@ -89,13 +96,8 @@ def _fibers(args: argparse.Namespace) -> int:
         bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
                                   rotation_hint_deg=hint[0], mirror=hint[1],
                                   times_ns=rec.t_ns[: rec.meta.rest_frames])
-    kept = settled is not None and _same_orientation(settled, bundle)
-    if kept and settled is not None:
-        from optitac_edge.calibration.orientation import ORIENTATION_KEY, mark_verified
-
-        evidence = settled.extra_meta[ORIENTATION_KEY].get("evidence", "presses")
-        bundle = mark_verified(bundle, f"kept from the bundle this one replaced ({evidence})")
-    bundle = save_bundle(bundle, output)
+    kept = None if settled is None else keep_orientation(settled, bundle)
+    bundle = save_bundle(bundle if kept is None else kept, output)
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
     placed = f" in region {list(region)}" if region else ""
@@ -105,7 +107,7 @@ def _fibers(args: argparse.Namespace) -> int:
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
           f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs"
           f"{away}; residual {report.get('residual_rms_px', float('nan')):.2f} px")
-    if kept:
+    if kept is not None:
         print(f"orientation kept: {output} had it settled by presses, and the new fiber map is turned as it was")
     elif settled is not None:
         print(f"orientation not kept: {output} had it settled by presses, but the new fiber map is turned "
@@ -113,31 +115,16 @@ def _fibers(args: argparse.Namespace) -> int:
     return 0
 
 
-def _settled(output: Path, layout: Any) -> Any:
-    """The bundle at ``output`` when its orientation was settled by presses (orient, calibrate orientation,
-    fiducials) for this layout, else None (no file, another layout, not settled, unreadable)."""
-    import numpy as np
-
-    from optitac_edge.calibration.orientation import is_verified
-    from optitac_edge.core.layout import hex_layout
+def _readable_bundle(path: Path) -> CalibrationBundle | None:
+    """The bundle at ``path``, or None (no file, or not a readable bundle: it is replaced as it is)."""
     from optitac_edge.io.bundle_file import load_bundle
 
-    if not output.is_file():
+    if not path.is_file():
         return None
     try:
-        old = load_bundle(output)
+        return load_bundle(path)
     except OptiTacError:
         return None
-    layout = hex_layout() if layout is None else layout
-    same_layout = old.layout.xy_mm.shape == layout.xy_mm.shape and np.allclose(old.layout.xy_mm, layout.xy_mm)
-    return old if same_layout and is_verified(old) else None
-
-
-def _same_orientation(old: Any, new: Any) -> bool:
-    """The new fiber map (of the same layout) is turned as the old one was: the same mirror, rotations within
-    half of the hexagon's smallest symmetric turn (30°)."""
-    turn = (new.transform.rotation_deg - old.transform.rotation_deg + 180.0) % 360.0 - 180.0
-    return new.transform.mirror == old.transform.mirror and abs(turn) < 30.0
 
 
 def _step_bundle(args: argparse.Namespace) -> tuple[Path, Any]:
