@@ -15,6 +15,12 @@ int ok_add_motion_type(PyObject *module);    /* motion_type.c */
 
 #define MAX_BUFFERS 64
 
+/* The names of a contact's fields (frame_kernel.h's enum), in order: the module's FIELD_NAMES. */
+static const char *const field_names[] = {"strength", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg",
+                                          "area_mm2", "peak", "hu0", "hu1", "hu2", "hu3", "hu4", "hu5", "hu6",
+                                          "q4", "depth_mm", "force_n", "shape", "confidence"};
+_Static_assert(sizeof field_names / sizeof field_names[0] == OK_FIELDS, "a name for every contact field");
+
 typedef struct {
     PyObject_HEAD
     ok_kernel k;
@@ -26,10 +32,39 @@ typedef struct {
 
 /* ---------------------------------------------------------------- the plan */
 
+/* The keys the plan's reading looked up and found (Kernel_init runs with the GIL held: one at a time); a
+ * key of the plan outside them is refused (a misspelt or stale key would otherwise be ignored). */
+#define MAX_PLAN_KEYS 256
+#define MAX_PLAN_KEY 64
+static char plan_read[MAX_PLAN_KEYS][MAX_PLAN_KEY]; /* copies: some names are built on the caller's stack */
+static int n_plan_read;
+
 static PyObject *plan_item(PyObject *plan, const char *name, int optional) {
     PyObject *v = PyDict_GetItemString(plan, name); /* borrowed */
     if (!v && !optional) PyErr_Format(PyExc_KeyError, "kernel plan: missing %s", name);
+    if (v && n_plan_read < MAX_PLAN_KEYS) snprintf(plan_read[n_plan_read++], MAX_PLAN_KEY, "%s", name);
     return v;
+}
+
+/* 0 when every key of the plan was read; else -1 with KeyError naming the first one that was not. */
+static int plan_all_read(PyObject *plan) {
+    PyObject *key, *value;
+    Py_ssize_t pos = 0;
+    while (PyDict_Next(plan, &pos, &key, &value)) {
+        const char *name = PyUnicode_Check(key) ? PyUnicode_AsUTF8(key) : NULL;
+        if (!name) {
+            PyErr_Clear();
+            PyErr_SetString(PyExc_KeyError, "kernel plan: a key that is not a string");
+            return -1;
+        }
+        int known = 0;
+        for (int i = 0; i < n_plan_read && !known; i++) known = strcmp(plan_read[i], name) == 0;
+        if (!known) {
+            PyErr_Format(PyExc_KeyError, "kernel plan: unknown key %s", name);
+            return -1;
+        }
+    }
+    return 0;
 }
 
 /* A C-contiguous array of `plan[name]` of items of `itemsize` bytes whose format is one of `kinds`,
@@ -209,6 +244,7 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
     if (!PyArg_ParseTupleAndKeywords(args, kwds, "O!", kwlist, &PyDict_Type, &plan)) return -1;
     ok_plan p;
     memset(&p, 0, sizeof p);
+    n_plan_read = 0;
     long long v;
     double d;
 #define INT(field, name, lo, hi) do { if (plan_int(plan, name, lo, hi, &v) < 0) return -1; p.field = (int32_t)v; } while (0)
@@ -333,6 +369,7 @@ static int Kernel_init(KernelObject *self, PyObject *args, PyObject *kwds) {
         ARR(check_probe, const int32_t *, "check_probe", I32, 4, (Py_ssize_t)p.check_pixels * p.check_bytes, 0);
     }
     if (plan_models(self, plan, &p) < 0) return -1;
+    if (plan_all_read(plan) < 0) return -1;
     char err[200];
     if (ok_kernel_init(&self->k, &p, err, (int)sizeof err) < 0) {
         PyErr_SetString(PyExc_ValueError, err);
@@ -626,6 +663,18 @@ PyMODINIT_FUNC PyInit__frame_kernel(void) {
         return NULL;
     }
     PyModule_AddIntConstant(m, "FIELDS", OK_FIELDS);
+    PyModule_AddIntConstant(m, "CELL_TERMS", OK_CELL_TERMS);
+    PyObject *names = PyTuple_New(OK_FIELDS);
+    if (!names) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    for (int i = 0; i < OK_FIELDS; i++) PyTuple_SET_ITEM(names, i, PyUnicode_FromString(field_names[i]));
+    if (PyErr_Occurred() || PyModule_AddObject(m, "FIELD_NAMES", names) < 0) {
+        Py_DECREF(names);
+        Py_DECREF(m);
+        return NULL;
+    }
     PyModule_AddIntConstant(m, "MAX_CANDIDATES", OK_MAX_CANDIDATES);
     return m;
 }

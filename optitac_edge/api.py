@@ -181,12 +181,10 @@ class Sensor:
     """
 
     def __init__(self, board: Any, sensor: Any, camera: Any, bundle: Any, stack: ExitStack) -> None:
-        from optitac_edge.core.frame_check import FrameCheck
         from optitac_edge.core.pipeline import Pipeline
 
         self._board, self._sensor, self._camera, self._stack = board, sensor, camera, stack
         self._pipeline = Pipeline(bundle, fps=camera.fps)
-        self._check = FrameCheck(bundle.fibers, camera.frame_shape)
         self._frames = self._contacts = self._skipped = 0
         self._closed = False
         #: The board config's id of this sensor (what the MCU hears).
@@ -205,7 +203,7 @@ class Sensor:
         OptiTacError
             The sensor is closed, or the camera failed (one line naming it).
         """
-        from optitac_edge.core.pipeline import process_checked
+        from optitac_edge.core.frame_engine import Skip
 
         if self._closed:
             raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
@@ -214,11 +212,8 @@ class Sensor:
             captured = self._camera.read(max(deadline - time.monotonic(), 0.0))
             if captured is None:
                 return None
-            if self._check.bad(captured.frame):
-                self._skipped += 1
-                continue
-            result = process_checked(self._pipeline, captured.frame, captured.t_ns, self._check)
-            if isinstance(result, str):
+            result = self._pipeline.process(captured.frame, captured.t_ns)
+            if isinstance(result, Skip):
                 self._skipped += 1
                 if time.monotonic() >= deadline:
                     return None
@@ -255,7 +250,7 @@ class Sensor:
         """The sensor's counters and state now."""
         return Status(self.sensor_id, self.name, self._frames, self._contacts, self._skipped,
                       bool(self._pipeline.baseline_ready), self._pipeline.bundle.calibration_id,
-                      self._pipeline.kernel is not None, float(self._camera.fps), int(self._camera.frames_dropped))
+                      self._pipeline.compiled, float(self._camera.fps), int(self._camera.frames_dropped))
 
     def close(self) -> None:
         """Close the camera and the LED ring (idempotent)."""

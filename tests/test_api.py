@@ -85,7 +85,7 @@ def test_a_recording_replays_through_the_api_as_through_the_pipeline(slide_rec, 
     pipe = Pipeline(load_bundle(bundle_path))
     want = []
     for i in range(len(rec)):
-        r = pipe.process(rec.frames[i], int(rec.t_ns[i]))
+        r = pipe.process_recorded(rec.frames[i], int(rec.t_ns[i]))
         want += [(r.frame, c.contact_id, c.vx_mm_s, c.vy_mm_s) for c in r.touching() if c.sliding]
     assert [s[:2] for s in slides] == [w[:2] for w in want] and len(slides) > 50
     assert [v for s in slides for v in s[2:]] == pytest.approx([v for w in want for v in w[2:]], abs=1e-6)

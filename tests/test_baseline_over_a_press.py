@@ -45,7 +45,7 @@ def _run(pipe: Pipeline, sensor: SimulatedSensor, phases: list[tuple[str, tuple[
         for _ in range(frames):
             if k == tare_at:
                 pipe.reset_baseline()
-            est = pipe.process(sensor.frame(indenters, t_s=k / FPS), k * PERIOD_NS).primary
+            est = pipe.process_recorded(sensor.frame(indenters, t_s=k / FPS), k * PERIOD_NS).primary
             out.setdefault(name, []).append((est.copy(), pipe.result.baseline_raised))
             k += 1
     return out
@@ -123,7 +123,7 @@ def test_a_uniform_brightening_of_the_light_is_no_press_under_the_baseline(senso
         frame = sensor.frame((), t_s=k / FPS)
         if k >= 60:
             frame = np.clip(frame.astype(np.float32) * scale, 0, 255).astype(np.uint8)
-        pipe.process(frame, k * PERIOD_NS)
+        pipe.process_recorded(frame, k * PERIOD_NS)
         raised += pipe.result.baseline_raised
     assert raised == 0
 
@@ -156,7 +156,7 @@ def test_the_service_counts_and_logs_a_raise_once(caplog):
     frames = ([sensor.frame(_press(0.0, 0.0), t_s=k / FPS) for k in range(60)]
               + [sensor.frame((), t_s=(60 + k) / FPS) for k in range(2 * HOLD_FRAMES)])
     pipe = Pipeline(bundle)
-    raises = sum(pipe.process(f, (k + 1) * 4_166_667).baseline_raised for k, f in enumerate(frames))  # ListCamera's clock
+    raises = sum(pipe.process_recorded(f, (k + 1) * 4_166_667).baseline_raised for k, f in enumerate(frames))  # ListCamera's clock
     assert raises >= 1
     service = Service(load_board_config("sim", env={}), bundle, ListCamera(frames), NullTransport())
     with caplog.at_level(logging.WARNING, logger="optitac_edge.service.loop"):

@@ -105,3 +105,42 @@ def test_the_board_config_accepts_the_transport_registrys_names_only():
         assert load_board_config("sim", env={}, overrides={"link.transport": name, **urls}).link.transport == name
     with pytest.raises(ConfigError, match="link.transport: must be one of 'serial', 'can', 'none', got 'null'"):
         load_board_config("sim", env={}, overrides={"link.transport": "null"})
+
+
+def _imports(path: Path, package: str) -> set[str]:
+    """The package's modules ``path`` imports, type-only imports included (``from a import b``: ``a.b`` when
+    that is a module, else ``a``)."""
+    import ast
+
+    modules = {".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+               for p in (ROOT / package).rglob("*.py")}
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names if a.name in modules)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:
+                name = f"{node.module}.{a.name}"
+                if name in modules:
+                    out.add(name)
+                elif node.module in modules:
+                    out.add(node.module)
+    return out
+
+
+def test_no_module_imports_itself_back_not_even_for_types() -> None:
+    """docs/architecture.md: the import graph has no cycle, type-only (``if TYPE_CHECKING``) imports included,
+    package ``__init__`` re-exports left out (the public API's lazy names)."""
+    import graphlib
+
+    graph: dict[str, set[str]] = {}
+    for path in (ROOT / "optitac_edge").rglob("*.py"):
+        if path.name == "__init__.py":
+            continue
+        name = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        graph[name] = {m for m in _imports(path, "optitac_edge") if not (ROOT / Path(*m.split("."))).is_dir()}
+    try:
+        order = list(graphlib.TopologicalSorter(graph).static_order())
+    except graphlib.CycleError as exc:
+        raise AssertionError(f"an import cycle: {' -> '.join(exc.args[1])}") from None
+    assert "optitac_edge.core.pipeline" in order and "optitac_edge.core.compiled" in order

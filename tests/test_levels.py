@@ -152,7 +152,7 @@ def test_a_noisy_outer_ring_gets_bands_of_its_own_and_raises_no_level(compiled) 
     for with_bands in (True, False):
         b = bundle if with_bands else bundle.with_updates(extra_arrays={})
         pipe = Pipeline(b, compiled=compiled)
-        contacts = [pipe.process(f, k * PERIOD).n_contacts for k, f in enumerate(frames)]
+        contacts = [pipe.process_recorded(f, k * PERIOD).n_contacts for k, f in enumerate(frames)]
         false = sum(n > 0 for n in contacts[10:160])
         if with_bands:
             assert pipe.levels.band is not None and np.count_nonzero(pipe.levels.band[ring]) >= 20

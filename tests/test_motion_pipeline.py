@@ -50,7 +50,7 @@ def runs(bundle_path):
         pipe = Pipeline(bundle, compiled=kernel)
         rows = []
         for k, f in enumerate(frames):
-            r = pipe.process(f, round(k * 1e9 / FPS))
+            r = pipe.process_recorded(f, round(k * 1e9 / FPS))
             c = r.primary
             rows.append((r.n_contacts, c.contact_id, c.vx_mm_s, c.vy_mm_s, c.sliding, c.slide_frame,
                          r.vibration, r.vibrating, r.vibration_began))
@@ -103,7 +103,7 @@ def test_frames_handed_over_at_once_give_no_velocity_and_no_vibration(bundle_pat
     t_ns, speeds, vibrating = 0, [], []
     for k in range(rest + 240):
         t_ns += 1_000 if k % 8 else round(8e9 / FPS)  # the burst's first frame keeps the camera's pace
-        r = pipe.process(sensor.frame(() if k < rest else (_press(-2.0),)), t_ns)
+        r = pipe.process_recorded(sensor.frame(() if k < rest else (_press(-2.0),)), t_ns)
         if k >= rest + 40:
             speeds.append(math.hypot(r.primary.vx_mm_s, r.primary.vy_mm_s))
             vibrating.append(r.vibrating or r.primary.sliding)

@@ -57,7 +57,7 @@ def test_each_patch_sees_its_own_presses_and_none_of_the_others(two_patches):
     t = 0
     for f in rest:
         for p in pipes:
-            p.process(f, t)
+            p.process_recorded(f, t)
         t += 4_166_667
     rng = np.random.default_rng(8)
     counts = np.zeros((2, 2), dtype=int)  # [pressed patch, patch reporting] -> frames with a contact
@@ -67,13 +67,13 @@ def test_each_patch_sees_its_own_presses_and_none_of_the_others(two_patches):
         press = Indenter("circle", float(rng.uniform(-5, 5)), float(rng.uniform(-5, 5)), 0.0, 5.0, 3.0)
         frame = cam.frame([(press,) if j == k else () for j in range(2)])
         for j, p in enumerate(pipes):
-            est = p.process(frame, t).primary
+            est = p.process_recorded(frame, t).primary
             counts[k, j] += est.contact
             if j == k and est.contact:
                 errors.append(np.hypot(est.x_mm - press.x_mm, est.y_mm - press.y_mm))
         t += 4_166_667
         for p in pipes:  # a contact-free frame between presses
-            p.process(cam.frame(), t)
+            p.process_recorded(cam.frame(), t)
         t += 4_166_667
     assert counts[0, 0] == 20 and counts[1, 1] == 20  # every press found on its patch
     assert counts[0, 1] == 0 and counts[1, 0] == 0  # no cross-talk

@@ -106,7 +106,7 @@ def run(pipe, frames: list[np.ndarray]) -> list:
     result)."""
     out = []
     for k, f in enumerate(frames):
-        got = pipe.process(f, 1000 * k)
+        got = (pipe.process_recorded if isinstance(pipe, Pipeline) else pipe.process)(f, 1000 * k)
         out.append((got.primary if isinstance(pipe, Pipeline) else got).copy())
     return out
 
@@ -140,7 +140,7 @@ def test_press_centroid(x0: float, y0: float) -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e = pipe.process(render(bundle, pressed_levels(rest, x0, y0)), 7).primary
+    e = pipe.process_recorded(render(bundle, pressed_levels(rest, x0, y0)), 7).primary
     assert e.baseline_ready and e.contact
     assert e.x_mm == pytest.approx(x0, abs=0.15)
     assert e.y_mm == pytest.approx(y0, abs=0.15)
@@ -155,7 +155,7 @@ def test_elongated_press_angle() -> None:
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
     for theta in (30.0, -55.0, 90.0):
-        e = pipe.process(render(bundle, pressed_levels(rest, 1.0, -0.5, 60.0, 3.0, 1.2, theta)), 0).primary
+        e = pipe.process_recorded(render(bundle, pressed_levels(rest, 1.0, -0.5, 60.0, 3.0, 1.2, theta)), 0).primary
         assert e.contact
         assert e.major_mm > 1.5 * e.minor_mm
         diff = (e.angle_deg - theta + 90.0) % 180.0 - 90.0
@@ -167,9 +167,9 @@ def test_estimate_is_reused_and_copy_is_independent() -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e1 = pipe.process(render(bundle, pressed_levels(rest, 2.0, 2.0)), 1).primary
+    e1 = pipe.process_recorded(render(bundle, pressed_levels(rest, 2.0, 2.0)), 1).primary
     kept = e1.copy()
-    e2 = pipe.process(render(bundle, rest), 2).primary
+    e2 = pipe.process_recorded(render(bundle, rest), 2).primary
     assert e2 is e1 and not e2.contact
     assert kept.contact and kept.hu is not e2.hu and np.all(np.isfinite(kept.hu))
     json.dumps(kept.to_dict())
@@ -187,7 +187,7 @@ def test_shape_features_are_log_hu_and_q4_of_the_binarised_contact() -> None:
     q4 = {}
     for name, levels in (("round", pressed_levels(rest, 1.0, -0.5, 60.0, 2.0, 2.0)),
                          ("long", pressed_levels(rest, 1.0, -0.5, 60.0, 3.5, 1.2, 25.0))):
-        e = pipe.process(render(bundle, levels), 1).primary
+        e = pipe.process_recorded(render(bundle, levels), 1).primary
         assert e.contact and e.features.dtype == np.float64
         np.testing.assert_array_equal(e.features[:7], e.hu)
         # the paper's method: the binarised contact is the surface above the threshold
@@ -202,7 +202,7 @@ def test_shape_features_are_log_hu_and_q4_of_the_binarised_contact() -> None:
         np.testing.assert_array_equal(other.features, e.features)
         assert kept.to_dict()["features"][7] == pytest.approx(e.features[7])
     assert q4["round"] < 0.005 and q4["long"] > 0.02
-    e = pipe.process(render(bundle, rest), 2).primary
+    e = pipe.process_recorded(render(bundle, rest), 2).primary
     assert not e.contact and np.all(np.isnan(e.features)) and np.all(np.isfinite(kept.features))
     assert e.to_dict()["features"] == [None] * 8
 
@@ -213,13 +213,13 @@ def test_reset_baseline_tares() -> None:
     pressed = render(bundle, pressed_levels(rest, -1.0, 1.0))
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    assert pipe.process(pressed, 0).primary.contact
+    assert pipe.process_recorded(pressed, 0).primary.contact
     pipe.reset_baseline()
     assert not pipe.baseline_ready
     for _ in range(bundle.baseline_frames):
-        e = pipe.process(pressed, 0).primary
+        e = pipe.process_recorded(pressed, 0).primary
         assert not e.baseline_ready and not e.contact
-    e = pipe.process(pressed, 0).primary
+    e = pipe.process_recorded(pressed, 0).primary
     assert e.baseline_ready and not e.contact  # the press is the new zero
     assert e.frame == bundle.baseline_frames * 2 + 1
 
@@ -231,7 +231,7 @@ def test_dead_fibers_are_ignored() -> None:
     run(pipe, warm(bundle, rest))
     flicker = rest.copy()
     flicker[[108, 109]] = 0.0  # a broken fiber going dark is no contact
-    e = pipe.process(render(bundle, flicker), 0).primary
+    e = pipe.process_recorded(render(bundle, flicker), 0).primary
     assert not e.contact and e.area_mm2 == 0.0
     np.testing.assert_array_equal(pipe.signal[[108, 109]], 0.0)
 
@@ -241,7 +241,7 @@ def test_truncation_keeps_values_above_threshold() -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e = pipe.process(render(bundle, pressed_levels(rest, 1.0, 2.0, 40.0)), 0).primary
+    e = pipe.process_recorded(render(bundle, pressed_levels(rest, 1.0, 2.0, 40.0)), 0).primary
     full = bundle.interpolation.astype(np.float64) @ pipe.signal.astype(np.float64)
     surface = pipe.surface.ravel()
     above = full > 10.0
@@ -257,7 +257,7 @@ def test_min_area_gates_contact() -> None:
     rest = rest_levels()
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
-    e = pipe.process(render(bundle, pressed_levels(rest, 0.0, 0.0, 60.0)), 0).primary
+    e = pipe.process_recorded(render(bundle, pressed_levels(rest, 0.0, 0.0, 60.0)), 0).primary
     assert not e.contact and 0.0 < e.area_mm2 < 500.0 and e.strength > 0.0
     assert math.isnan(e.x_mm) and np.all(np.isnan(e.hu))
 
@@ -282,7 +282,39 @@ def test_frame_mismatch_errors() -> None:
     with pytest.raises(FrameMismatchError):
         ReferencePipeline(bundle).process(good[:-2], 0)
     assert check(good) is None
-    assert Pipeline(bundle).process(good, 0).frame == 0
+    assert Pipeline(bundle).process_recorded(good, 0).frame == 0
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "kernel"])
+def test_process_is_the_one_checked_entry(compiled) -> None:
+    """A camera's frame goes through ``Pipeline.process``: a frame of another shape, type or no array at all
+    is skipped as BAD (a typed skip, not a string or an exception), a dark or saturated one as DARK or
+    SATURATED, before and after the baseline, and a skipped frame changes nothing: the frames after it give
+    what they give without it."""
+    from optitac_edge.core.frame_engine import Skip
+
+    bundle = make_bundle()
+    rest = rest_levels()
+    frames = [render(bundle, rest, seed=k) for k in range(bundle.baseline_frames)]
+    frames += [render(bundle, pressed_levels(rest, 1.0, -0.5, 60.0), seed=50 + k) for k in range(5)]
+    good = frames[0]
+    skipped = {Skip.BAD: [good[:-2], good.astype(np.float32), good.T.copy(), None, "frame", good.tolist()],
+               Skip.DARK: [np.zeros_like(good)], Skip.SATURATED: [np.full_like(good, 255)]}
+    plain = Pipeline(bundle, compiled=compiled)
+    checked = Pipeline(bundle, compiled=compiled)
+    t = 0
+    for k, frame in enumerate(frames):
+        if k in (0, len(frames) - 2):  # the skips, before the baseline and during a press
+            for why, bad in skipped.items():
+                for b in bad:
+                    got = checked.process(b, t)
+                    assert got is why and got == why.value and str(got) == why.value, (k, why, type(b))
+        a, b = plain.process_recorded(frame, t), checked.process(frame, t)
+        assert not isinstance(b, Skip)
+        assert (b.frame, b.n_contacts, b.primary.baseline_ready) == (a.frame, a.n_contacts, a.primary.baseline_ready)
+        assert b.primary.x_mm == a.primary.x_mm or (np.isnan(a.primary.x_mm) and np.isnan(b.primary.x_mm)), k
+        t += 16_666_667
+    assert checked.result.n_contacts == 1
 
 
 def test_pixel_formats_agree() -> None:
@@ -346,7 +378,7 @@ def test_end_to_end_simulated_sensor() -> None:
     bundle = calibration.calibrate_fibers(rest, "gray")
     fast, ref = Pipeline(bundle, ContactOptions.paper()), ReferencePipeline(bundle)
     for f in rest:
-        fast.process(f, 0)
+        fast.process_recorded(f, 0)
         ref.process(f, 0)
     Ind = sim.Indenter
     cases = [Ind("circle", 2.0, -1.0, 0.0, 4.0, 2.0), Ind("ellipse", -4.0, 3.0, 30.0, 7.0, 2.0),
@@ -354,7 +386,7 @@ def test_end_to_end_simulated_sensor() -> None:
              Ind("triangle", -3.0, -5.0, 0.0, 6.0, 2.0)]
     for ind in cases:
         frame = sensor.frame([ind])
-        a, b = fast.process(frame, 0).primary.copy(), ref.process(frame, 0)
+        a, b = fast.process_recorded(frame, 0).primary.copy(), ref.process(frame, 0)
         assert a.contact and b.contact, ind
         assert a.x_mm == pytest.approx(b.x_mm, abs=0.02) and a.y_mm == pytest.approx(b.y_mm, abs=0.02)
         assert a.major_mm == pytest.approx(b.major_mm, rel=0.01)
@@ -363,7 +395,7 @@ def test_end_to_end_simulated_sensor() -> None:
         if ind.shape in ("ellipse", "edge"):
             assert abs((a.angle_deg - ind.angle_deg + 90) % 180 - 90) < 3.0, ind
     for _ in range(3):
-        assert not fast.process(sensor.frame(), 0).primary.contact
+        assert not fast.process_recorded(sensor.frame(), 0).primary.contact
 
 
 @pytest.mark.parametrize("options", [ContactOptions.paper(), ContactOptions()], ids=["paper", "default"])
@@ -381,7 +413,7 @@ def test_shape_features_equal_the_plain_moments_of_the_binarised_contact(options
     pipe = Pipeline(bundle)
     run(pipe, warm(bundle, rest))
     for levels in presses:
-        est = pipe.process(render(bundle, levels, seed=9), 10**9).primary
+        est = pipe.process_recorded(render(bundle, levels, seed=9), 10**9).primary
         assert est.contact
         surface = pipe.surface
         trunc = np.float32(pipe.levels.as_tuple()[0])
@@ -424,7 +456,7 @@ def test_a_frame_makes_no_array_sized_temporary_even_with_four_contacts(bundle_p
     pipe = Pipeline(bundle)
     t = 0
     for f in frames * 2:  # baseline, then every frame once: OpenCV's and numpy's caches warm
-        pipe.process(f, t)
+        pipe.process_recorded(f, t)
         t += 4_166_667
     largest = 0
     tracemalloc.start()
@@ -432,7 +464,7 @@ def test_a_frame_makes_no_array_sized_temporary_even_with_four_contacts(bundle_p
         for f in frames[12:]:
             tracemalloc.reset_peak()
             before = tracemalloc.get_traced_memory()[0]
-            est = pipe.process(f, t).primary
+            est = pipe.process_recorded(f, t).primary
             largest = max(largest, tracemalloc.get_traced_memory()[1] - before)
             t += 4_166_667
     finally:

@@ -27,7 +27,7 @@ def start(options: ContactOptions, dead: tuple[int, ...] = (), rest: np.ndarray 
     bundle = make_bundle(dead=dead, options=options)
     pipe = Pipeline(bundle)
     for k, f in enumerate(warm(bundle, rest)):
-        pipe.process(f, k * PERIOD)
+        pipe.process_recorded(f, k * PERIOD)
     return bundle, pipe
 
 
@@ -55,11 +55,11 @@ def test_hysteresis_marginal_press_neither_starts_nor_flickers() -> None:
     marginal = render(bundle, pressed_levels(REST, 1.0, 0.5, depth=20.0))  # 10 %: between off and on
     rest = render(bundle, REST)
     seq = [marginal, marginal, strong, marginal, marginal, marginal, rest, marginal, rest]
-    got = [pipe.process(f, (10 + k) * PERIOD).primary.contact for k, f in enumerate(seq)]
+    got = [pipe.process_recorded(f, (10 + k) * PERIOD).primary.contact for k, f in enumerate(seq)]
     assert got == [False, False, True, True, True, True, False, False, False]
     # without hysteresis the marginal press after the strong one is not a contact
     bundle, pipe = start(dataclasses.replace(LEVELS, hysteresis=False))
-    got = [pipe.process(f, (10 + k) * PERIOD).primary.contact for k, f in enumerate(seq)]
+    got = [pipe.process_recorded(f, (10 + k) * PERIOD).primary.contact for k, f in enumerate(seq)]
     assert got == [False, False, True, False, False, False, False, False, False]
 
 
@@ -69,7 +69,7 @@ def test_dead_fiber_is_filled_from_its_neighbours() -> None:
     results = {}
     for fill in (False, True):
         bundle, pipe = start(dataclasses.replace(LEVELS, fill_dead=fill, peak_fraction=0.0), dead=(108,))
-        e = pipe.process(render(bundle, levels), 10 * PERIOD).primary.copy()
+        e = pipe.process_recorded(render(bundle, levels), 10 * PERIOD).primary.copy()
         s = pipe.surface
         grid = bundle.grid
         col, row = int(np.argmin(np.abs(grid.x_mm))), int(np.argmin(np.abs(grid.y_mm)))
@@ -88,14 +88,14 @@ def test_dead_fiber_going_dark_is_not_a_contact_with_fill() -> None:
     bundle, pipe = start(LEVELS, dead=(108, 109))
     dark = REST.copy()
     dark[[108, 109]] = 0.0
-    e = pipe.process(render(bundle, dark), 10 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, dark), 10 * PERIOD).primary
     assert not e.contact and e.n_contacts == 0
 
 
 def test_two_presses_are_two_contacts_strongest_first() -> None:
     bundle, pipe = start(LEVELS)
     levels = pressed_levels(pressed_levels(REST, -5.0, 0.0, depth=60.0), 5.0, 2.0, depth=40.0)
-    e = pipe.process(render(bundle, levels), 10 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, levels), 10 * PERIOD).primary
     assert e.contact and e.n_contacts == 2
     assert e is pipe.contacts[0]
     a, b = pipe.contacts[0], pipe.contacts[1]
@@ -107,12 +107,12 @@ def test_two_presses_are_two_contacts_strongest_first() -> None:
     np.testing.assert_array_equal(b.features[:7], b.hu)
     # one contact only: the whole surface is one contact, between the presses
     bundle, pipe = start(dataclasses.replace(LEVELS, max_contacts=1))
-    e = pipe.process(render(bundle, levels), 10 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, levels), 10 * PERIOD).primary
     assert e.n_contacts == 1 and -4.0 < e.x_mm < 4.0
     # released: no contact
     bundle, pipe = start(LEVELS)
-    pipe.process(render(bundle, levels), 10 * PERIOD)
-    assert pipe.process(render(bundle, REST), 11 * PERIOD).primary.n_contacts == 0
+    pipe.process_recorded(render(bundle, levels), 10 * PERIOD)
+    assert pipe.process_recorded(render(bundle, REST), 11 * PERIOD).primary.n_contacts == 0
 
 
 def test_peak_fraction_makes_widths_amplitude_invariant() -> None:
@@ -120,7 +120,7 @@ def test_peak_fraction_makes_widths_amplitude_invariant() -> None:
     for frac in (0.0, 0.5):
         for depth in (40.0, 80.0):
             bundle, pipe = start(dataclasses.replace(LEVELS, peak_fraction=frac))
-            e = pipe.process(render(bundle, pressed_levels(REST, 0.7, -0.3, depth, 2.2, 1.6, 20.0)), 10 * PERIOD).primary
+            e = pipe.process_recorded(render(bundle, pressed_levels(REST, 0.7, -0.3, depth, 2.2, 1.6, 20.0)), 10 * PERIOD).primary
             widths[frac, depth] = (e.major_mm, e.minor_mm)
     np.testing.assert_allclose(widths[0.5, 40.0], widths[0.5, 80.0], rtol=0.02)
     assert abs(widths[0.0, 40.0][0] / widths[0.0, 80.0][0] - 1) > 0.05
@@ -131,7 +131,7 @@ def test_shape_features_come_from_their_own_binarization_level(shape_fraction) -
     from optitac_edge.core.moments import hu_moments, log_hu, q4_moment
 
     bundle, pipe = start(dataclasses.replace(LEVELS, peak_fraction=0.5, shape_fraction=shape_fraction))
-    e = pipe.process(render(bundle, pressed_levels(REST, 0.7, -0.3, 60.0, 2.6, 1.4, 30.0)), 10 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, pressed_levels(REST, 0.7, -0.3, 60.0, 2.6, 1.4, 30.0)), 10 * PERIOD).primary
     assert e.contact
     surface = pipe.surface  # truncated at the noise level only; the moments' own cut is inside
     level = max(float(pipe.levels.as_tuple()[0]), (shape_fraction or 0.5) * float(surface.max()))
@@ -144,7 +144,7 @@ def test_relative_signal_removes_transmission_spread() -> None:
     rest = rest_levels(3)
     bundle, pipe = start(LEVELS, rest=rest)
     levels = rest * (1.0 - 0.3 * np.exp(-0.5 * np.hypot(*(LAYOUT.xy_mm - (2.0, 1.0)).T) ** 2 / 2.0**2))
-    e = pipe.process(render(bundle, levels), 10 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, levels), 10 * PERIOD).primary
     assert e.contact and math.hypot(e.x_mm - 2.0, e.y_mm - 1.0) < 0.15
     np.testing.assert_allclose(pipe.signal.max(), 0.3, atol=0.01)
 
@@ -158,7 +158,7 @@ def test_baseline_tracks_slow_led_drift_but_not_a_held_press() -> None:
         false = 0
         for k in range(n):
             gain = 1.0 - 0.03 * k / n  # the LED dims by 3 % over 20 s
-            false += pipe.process(render(bundle, REST * gain), (5 + k) * PERIOD).primary.contact
+            false += pipe.process_recorded(render(bundle, REST * gain), (5 + k) * PERIOD).primary.contact
         return false
 
     tight = dataclasses.replace(LEVELS, floor_trunc=0.01, floor_off=0.015, floor_on=0.025,
@@ -173,12 +173,12 @@ def test_baseline_tracks_slow_led_drift_but_not_a_held_press() -> None:
     before = pipe.baseline.values.copy()
     strengths = []
     for k in range(300):
-        e = pipe.process(pressed, (5 + k) * PERIOD).primary
+        e = pipe.process_recorded(pressed, (5 + k) * PERIOD).primary
         assert e.contact, k
         strengths.append(e.strength)
     assert strengths[-1] == pytest.approx(strengths[0], rel=1e-6)
     np.testing.assert_array_equal(pipe.baseline.values, before)
-    assert not pipe.process(render(bundle, REST), 305 * PERIOD).primary.contact
+    assert not pipe.process_recorded(render(bundle, REST), 305 * PERIOD).primary.contact
 
 
 def test_paper_options_override_gives_the_paper_pipeline() -> None:
@@ -187,9 +187,9 @@ def test_paper_options_override_gives_the_paper_pipeline() -> None:
     rest = rest_levels(5)
     frames = warm(bundle, rest) + [render(bundle, pressed_levels(rest, 1.5, -2.0, 50.0)), render(bundle, rest)]
     pa = Pipeline(bundle, ContactOptions.paper())
-    a = [pa.process(f, k).primary.copy() for k, f in enumerate(frames)]
+    a = [pa.process_recorded(f, k).primary.copy() for k, f in enumerate(frames)]
     pp = Pipeline(paper)
-    b = [pp.process(f, k).primary.copy() for k, f in enumerate(frames)]
+    b = [pp.process_recorded(f, k).primary.copy() for k, f in enumerate(frames)]
     for x, y in zip(a, b):
         assert x.to_dict() == y.to_dict()
 
@@ -245,10 +245,10 @@ def test_contacts_csv_has_n_contacts_and_q4(tmp_path) -> None:
     out = tmp_path / "c.csv"
     levels = pressed_levels(pressed_levels(REST, -5.0, 0.0, depth=60.0), 5.0, 2.0, depth=40.0)
     with ContactsCsvWriter(out) as w:
-        e = pipe.process(render(bundle, levels), 10 * PERIOD).primary
+        e = pipe.process_recorded(render(bundle, levels), 10 * PERIOD).primary
         q4 = float(e.features[7])
         w.write(0, e, 10 * PERIOD)
-        w.write(1, pipe.process(render(bundle, REST), 11 * PERIOD).primary, 11 * PERIOD)
+        w.write(1, pipe.process_recorded(render(bundle, REST), 11 * PERIOD).primary, 11 * PERIOD)
     rows = [r.split(",") for r in out.read_text().splitlines()]
     assert rows[0] == list(CONTACTS_HEADER)
     col = {name: k for k, name in enumerate(CONTACTS_HEADER)}
@@ -291,7 +291,7 @@ def test_gain_compensation_quick_presses_while_the_led_dims() -> None:
             pressed = k % 3 != 2
             x = -6.0 + 12.0 * (k % 47) / 46.0
             levels = pressed_levels(REST, x, 1.0, depth=40.0) if pressed else REST
-            e = pipe.process(render(bundle, levels * gain), (5 + k) * PERIOD).primary
+            e = pipe.process_recorded(render(bundle, levels * gain), (5 + k) * PERIOD).primary
             false += e.contact and not pressed
             missed += pressed and not e.contact
             if pressed and e.contact and comp:
@@ -304,10 +304,10 @@ def test_gain_compensation_quick_presses_while_the_led_dims() -> None:
 def test_gain_compensation_does_not_eat_a_press_covering_the_whole_array() -> None:
     bundle, ref = start(dataclasses.replace(GAIN, compensate_gain=False))
     press = big_press(REST)
-    expected = ref.process(render(bundle, press), 10 * PERIOD).primary.copy()
+    expected = ref.process_recorded(render(bundle, press), 10 * PERIOD).primary.copy()
     assert expected.contact
     bundle, pipe = start(GAIN)
-    e = pipe.process(render(bundle, press), 10 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, press), 10 * PERIOD).primary
     assert e.contact and pipe.led_gain.gain == pytest.approx(1.0, abs=pipe.levels.as_tuple()[0])
     assert e.strength == pytest.approx(expected.strength, rel=0.03)
     assert e.major_mm == pytest.approx(expected.major_mm, rel=0.02)
@@ -315,19 +315,19 @@ def test_gain_compensation_does_not_eat_a_press_covering_the_whole_array() -> No
     # held for 2 s while the LED dims by 0.4 %: the gain limit grows with the rate, the press stays
     for k in range(120):
         gain = 1.0 - 0.004 * k / 120
-        e = pipe.process(render(bundle, press * gain), (11 + k) * PERIOD).primary
+        e = pipe.process_recorded(render(bundle, press * gain), (11 + k) * PERIOD).primary
         assert e.contact and math.hypot(e.x_mm, e.y_mm) < 0.1
     assert e.major_mm == pytest.approx(expected.major_mm, rel=0.03)
     # released: no contact, and the gain is measured again at once
-    e = pipe.process(render(bundle, REST * 0.996), 200 * PERIOD).primary
+    e = pipe.process_recorded(render(bundle, REST * 0.996), 200 * PERIOD).primary
     assert not e.contact and pipe.led_gain.gain == pytest.approx(0.996, abs=0.001)
 
 
 def test_gain_compensation_measures_the_gain_beside_a_small_press() -> None:
     bundle, pipe = start(GAIN)
-    pipe.process(render(bundle, REST * 0.995), 10 * PERIOD)  # contact-free: gain 0.995
+    pipe.process_recorded(render(bundle, REST * 0.995), 10 * PERIOD)  # contact-free: gain 0.995
     levels = pressed_levels(REST, 2.0, -1.0, depth=60.0) * 0.99
-    e = pipe.process(render(bundle, levels), 70 * PERIOD).primary  # 1 s later: within 0.5 %
+    e = pipe.process_recorded(render(bundle, levels), 70 * PERIOD).primary  # 1 s later: within 0.5 %
     assert e.contact and pipe.led_gain.gain == pytest.approx(0.99, abs=0.0005)
     assert math.hypot(e.x_mm - 2.0, e.y_mm + 1.0) < 0.15
 
@@ -340,9 +340,9 @@ def test_a_gain_step_as_a_whole_array_press_lifts_is_a_light_change_not_a_linger
     o = dataclasses.replace(GAIN, track_baseline=False)
     bundle, pipe = start(o)
     big = big_press(REST)  # a contact over the whole array, then the LED steps down as it lifts
-    assert pipe.process(render(bundle, big), 10 * PERIOD).primary.contact
+    assert pipe.process_recorded(render(bundle, big), 10 * PERIOD).primary.contact
     dim = render(bundle, REST * 0.96)
-    got = [pipe.process(dim, (11 + k) * PERIOD).primary.contact for k in range(int(10 / (PERIOD * 1e-9)))]
+    got = [pipe.process_recorded(dim, (11 + k) * PERIOD).primary.contact for k in range(int(10 / (PERIOD * 1e-9)))]
     assert not any(got)
     assert pipe.led_gain is not None and pipe.led_gain.light_changes == 1 and pipe.led_gain.gain == pytest.approx(0.96, abs=0.002)
 
@@ -359,9 +359,9 @@ def test_a_light_change_is_reported_in_its_frame_only_not_again_while_a_tare_tak
     """Bug: the flag was the gain compensation's last value, read by the loop after every frame, so the
     frames that took the baseline after a tare each reported the light change of the frame before it."""
     bundle, pipe = start(dataclasses.replace(GAIN, compensate_gain=True))
-    pipe.process(render(bundle, REST), 5 * PERIOD)
-    assert pipe.process(render(bundle, REST * 0.8), 6 * PERIOD).light_changed  # the LED dims by 20 %
+    pipe.process_recorded(render(bundle, REST), 5 * PERIOD)
+    assert pipe.process_recorded(render(bundle, REST * 0.8), 6 * PERIOD).light_changed  # the LED dims by 20 %
     pipe.reset_baseline()  # a tare
-    flags = [pipe.process(render(bundle, REST * 0.8), (7 + k) * PERIOD).light_changed
+    flags = [pipe.process_recorded(render(bundle, REST * 0.8), (7 + k) * PERIOD).light_changed
              for k in range(bundle.baseline_frames + 3)]
     assert flags == [False] * len(flags)

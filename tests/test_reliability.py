@@ -281,7 +281,7 @@ def test_led_drifting_10_percent_over_a_run_gives_no_false_contact():
         false = 0
         for k in range(n):
             gain = 1.0 + direction * 0.10 * k / n
-            false += bool(pipe.process(po.render(bundle, po.REST * gain), (5 + k) * po.PERIOD).primary.contact)
+            false += bool(pipe.process_recorded(po.render(bundle, po.REST * gain), (5 + k) * po.PERIOD).primary.contact)
         assert false == 0, (direction, false)
 
 
@@ -360,7 +360,7 @@ def test_fibers_dimmer_than_the_black_level_do_not_crash_the_gain_estimate():
     frame = np.zeros((480, 640), np.uint8)
     for i in range(30):
         frame.reshape(-1)[cal.fibers.pixel_index] = 254 if i < 20 else 9
-        est = pipe.process(frame, i * 16_666_667).primary
+        est = pipe.process_recorded(frame, i * 16_666_667).primary
     assert est.baseline_ready and np.isfinite(pipe.led_gain.gain)
 
 
@@ -386,7 +386,7 @@ def test_a_sudden_led_dimming_is_not_a_contact_and_a_press_during_it_is_found(sc
     for i in range(900):  # 15 s at 60 fps; the light steps at frame 500 (8.3 s)
         pressing = press_from <= i < 700
         frame = sensor.frame((press,) if pressing else ())
-        est = pipe.process(_dimmed(frame, scale) if i >= 500 else frame, i * 16_666_667).primary
+        est = pipe.process_recorded(_dimmed(frame, scale) if i >= 500 else frame, i * 16_666_667).primary
         if not pressing:
             false_contacts += est.contact
         elif i >= press_from + 10:  # past the ramp of the skin

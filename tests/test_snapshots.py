@@ -45,7 +45,7 @@ def test_a_press_after_a_gap_is_a_new_touch_with_no_velocity(bundle, compiled) -
         times = _times(18, 8) if gap else [k * PERIOD for k in range(26)]
         ids, velocities, released = [], [], []
         for frame, t in zip(frames, times):
-            r = pipe.process(frame, t)
+            r = pipe.process_recorded(frame, t)
             ids.append(r.primary.contact_id)
             velocities.append(r.primary.vx_mm_s)
             released.append(r.releases())
@@ -67,15 +67,15 @@ def test_no_hysteresis_across_a_gap(bundle, compiled) -> None:
     frames = [sensor.frame() for _ in range(10)] + [sensor.frame_from_darkening(deep) for _ in range(5)]
     pipe = Pipeline(bundle, compiled=compiled)
     for k, frame in enumerate(frames):
-        pipe.process(frame, k * PERIOD)
+        pipe.process_recorded(frame, k * PERIOD)
     assert pipe.result.n_contacts == 1
     _trunc, off, on = pipe.levels.as_tuple()
     assert off < on
     faint = sensor.frame_from_darkening(deep * (0.5 * (off + on) / float(deep.max())))
     t = 15 * PERIOD
-    pipe.process(faint, t)
+    pipe.process_recorded(faint, t)
     assert pipe.result.n_contacts == 1 and off < float(pipe.surface.max()) < on  # held on by hysteresis
-    assert pipe.process(faint, t + GAP).n_contacts == 0  # a snapshot: the on level again
+    assert pipe.process_recorded(faint, t + GAP).n_contacts == 0  # a snapshot: the on level again
     assert pipe.after_gap
 
 
@@ -86,11 +86,11 @@ def test_the_baseline_takes_no_tracking_step_across_a_gap(bundle, compiled) -> N
     pipe = Pipeline(bundle, compiled=compiled)
     rest = _frames([None] * 12)
     for k, frame in enumerate(rest[:10]):
-        pipe.process(frame, k * PERIOD)
+        pipe.process_recorded(frame, k * PERIOD)
     before = pipe.baseline.values.copy()
     brighter = [np.clip(np.rint(f.astype(np.float32) * 1.01), 0, 255).astype(np.uint8) for f in rest[10:]]
-    pipe.process(brighter[0], 9 * PERIOD + GAP)
+    pipe.process_recorded(brighter[0], 9 * PERIOD + GAP)
     assert pipe.after_gap and pipe.result.n_contacts == 0
     np.testing.assert_array_equal(pipe.baseline.values, before)
-    pipe.process(brighter[1], 10 * PERIOD + GAP)
+    pipe.process_recorded(brighter[1], 10 * PERIOD + GAP)
     assert not pipe.after_gap and not np.array_equal(pipe.baseline.values, before)

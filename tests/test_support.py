@@ -52,6 +52,6 @@ def test_a_fiber_that_darkens_alone_makes_no_contact_with_support(bundle_path, c
     for support in (False, True):
         pipe = Pipeline(bundle.with_updates(options=dataclasses.replace(bundle.options, support=support)),
                         compiled=compiled)
-        n = [pipe.process(f, k * 16_666_667).n_contacts for k, f in enumerate(rest + drifted + press)]
+        n = [pipe.process_recorded(f, k * 16_666_667).n_contacts for k, f in enumerate(rest + drifted + press)]
         assert (sum(n[10:15]) == 0) == support, n
         assert all(c >= 1 for c in n[15:])

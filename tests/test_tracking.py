@@ -110,7 +110,7 @@ def test_the_pipeline_keeps_two_simultaneous_presses_apart_for_100_frames(bundle
     pipe = Pipeline(bundle)
     ids = None
     for i, f in enumerate(frames):
-        est = pipe.process(f, i * 4_166_667).primary
+        est = pipe.process_recorded(f, i * 4_166_667).primary
         if i < rest:
             assert not est.contact and est.contact_id == 0 and pipe.result.releases() == []
             continue
@@ -122,6 +122,6 @@ def test_the_pipeline_keeps_two_simultaneous_presses_apart_for_100_frames(bundle
             assert sorted(i_ for i_, _ in ids.values()) == [1, 2]
             assert all(t == est.frame for _, t in ids.values())  # both touched in this frame
         assert by_side == ids and pipe.result.releases() == []
-    est = pipe.process(frames[0], len(frames) * 4_166_667).primary  # a rest frame: both released
+    est = pipe.process_recorded(frames[0], len(frames) * 4_166_667).primary  # a rest frame: both released
     assert not est.contact and est.contact_id == 0
     assert sorted(pipe.result.releases()) == sorted(ids.values())

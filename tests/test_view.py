@@ -46,7 +46,7 @@ def _served(bundle, frames: list[np.ndarray], period_ns: int):
     stats = Stats()
     t = 0
     for frame in frames:
-        pipeline.process(frame, t)
+        pipeline.process_recorded(frame, t)
         stats.frames += 1
         t += period_ns
     view.observe(frames[-1], t, pipeline, stats)
@@ -243,7 +243,7 @@ def test_the_frame_loop_never_waits_for_the_view(fed_view) -> None:
     view, _, bundle = fed_view
     pipeline = Pipeline(bundle)
     frame = np.zeros((480, 640), np.uint8)
-    pipeline.process(frame, 0)
+    pipeline.process_recorded(frame, 0)
     view._next_ns = 0
     with view._lock:  # the worker swapping buffers at this instant
         before = view.published.seq
@@ -378,7 +378,7 @@ def test_the_guided_orientation_in_the_view_corrects_the_bundle_and_swaps_the_lo
         plan = [None] * 8 + [(8.5, 0.5)] * 60 + [None] * 30 + [(-0.5, 8.8)] * 60 + [None] * 30
         for k, xy in enumerate(plan):
             frame = sensor.frame(() if xy is None else (Indenter("circle", xy[0], xy[1], 0.0, 5.0, 2.5),))
-            pipeline.process(frame, t)
+            pipeline.process_recorded(frame, t)
             stats.frames += 1
             before = view.published.seq if view.published else 0
             view._next_ns = 0
@@ -415,12 +415,12 @@ def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> 
         try:
             for _ in range(12):  # the baseline (the simulator's rest frames)
                 captured = camera.read()
-                pipeline.process(captured.frame, captured.t_ns)
-            assert pipeline.process(camera.read().frame, captured.t_ns + 1).primary.baseline_ready
+                pipeline.process_recorded(captured.frame, captured.t_ns)
+            assert pipeline.process_recorded(camera.read().frame, captured.t_ns + 1).primary.baseline_ready
             view.start_orientation()
             for _ in range(600):
                 captured = camera.read()
-                pipeline.process(captured.frame, captured.t_ns)
+                pipeline.process_recorded(captured.frame, captured.t_ns)
                 stats.frames += 1
                 before = view.published.seq if view.published else 0
                 view._next_ns = 0

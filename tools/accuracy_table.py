@@ -234,10 +234,10 @@ def two_contact_experiment(workdir: Path) -> list[str]:
         pipe = Pipeline(base.with_updates(options=ContactOptions(**measured, max_contacts=n)))
         pipe.set_corrector(None)
         for k, f in enumerate(rest):
-            pipe.process(f, k * 16_666_667)
+            pipe.process_recorded(f, k * 16_666_667)
         two, errors = 0, []
         for k, (f, (a, b)) in enumerate(zip(frames, pairs)):
-            e = pipe.process(f, (10 + k) * 16_666_667).primary
+            e = pipe.process_recorded(f, (10 + k) * 16_666_667).primary
             found = [(c.x_mm, c.y_mm) for c in pipe.contacts[: e.n_contacts]] if e.contact else []
             two += len(found) == 2
             for true in (a, b):

@@ -20,8 +20,8 @@ per-frame count, with start-up, imports and warm-up cancelled exactly:
   Python's allocator, OpenCV's).
 
 The driver does what the service's thread does per frame apart from the
-camera hand-off: the frame check (``FrameCheck.bad``, then
-:func:`~optitac_edge.core.pipeline.process_checked`, whose kernel checks after the fiber means),
+camera hand-off: :meth:`~optitac_edge.core.pipeline.Pipeline.process` (the frame check, whose kernel
+reads the pixels after the fiber means, and the frame),
 the outbox's messages (protocol v1: the CONTACT) and their wire encoding. Needs valgrind on the PATH; docs/performance.md has the
 results and the Pi projection made from them.
 """
@@ -50,11 +50,11 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
     """Run under callgrind: warm up on every frame once, then ``n`` more frames (cycled).
 
     ``backend``: the compiled kernel or the numpy parts; ``what``: the service's work per frame (frame
-    check, pipeline, outbox, encoding) or :meth:`Pipeline.process` alone."""
+    check, pipeline, outbox, encoding) or :meth:`Pipeline.process_recorded` alone."""
     import numpy as np
 
-    from optitac_edge.core.frame_check import FrameCheck
-    from optitac_edge.core.pipeline import Pipeline, process_checked, single_threaded_opencv
+    from optitac_edge.core.frame_engine import Skip
+    from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.protocol.outbox import LinkState, SensorOutbox
     from optitac_edge.io.protocol.wire import MsgType, contact_payload, encode_frame
@@ -62,7 +62,6 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
     bundle = load_bundle(bundle_path)
     frames = list(np.load(frames_path))
     pipe = Pipeline(bundle, compiled=backend == "compiled")
-    check = FrameCheck(bundle.fibers, frames[0].shape)
     outbox = SensorOutbox(0)
     link = LinkState()
     period = 4_166_667
@@ -70,12 +69,10 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
 
     def one(frame: np.ndarray, t_ns: int) -> None:
         if what == "process":
-            pipe.process(frame, t_ns)
+            pipe.process_recorded(frame, t_ns)
             return
-        if check.bad(frame):
-            return
-        result = process_checked(pipe, frame, t_ns, check)
-        if isinstance(result, str):  # dark or saturated: skipped
+        result = pipe.process(frame, t_ns)
+        if isinstance(result, Skip):  # dark or saturated: skipped
             return
         for msg in outbox.update(result, link, True, t_ns):
             encode_frame(MsgType.CONTACT, 0, int(msg.t_us), contact_payload(msg))  # type: ignore[arg-type]

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-#: Columns of a contact (kernel/frame_kernel.h) and their tolerances: absolute for mm and degrees.
-FIELD_NAMES = ("strength", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "area_mm2", "peak",
-               *(f"hu{i}" for i in range(7)), "q4", "depth_mm", "force_n", "shape", "confidence")
+from optitac_edge.core._frame_kernel import FIELD_NAMES  # the columns of a contact (kernel/frame_kernel.h)
+
+#: The columns' tolerances: absolute for mm and degrees.
 ABSOLUTE = {"x_mm": 1e-6, "y_mm": 1e-6, "major_mm": 1e-6, "minor_mm": 1e-6, "angle_deg": 1e-3}
 RELATIVE = 1e-9
 _KINDS = {np.dtype(np.float32): b"f", np.dtype(np.float64): b"d", np.dtype(np.int32): b"i",
@@ -58,8 +58,10 @@ def write_vectors(pipe: Any, frames: list[np.ndarray], times: list[int], path: P
         If the pipeline has no kernel, is not past its baseline, or a frame raised fibers (the harness
         does not do the Python side's raise).
     """
-    fk = pipe.kernel
-    if fk is None or not pipe.baseline_ready:
+    from optitac_edge.core.compiled import CompiledEngine
+
+    fk = pipe.engine
+    if not isinstance(fk, CompiledEngine) or not pipe.baseline_ready:
         raise ValueError("the pipeline must run the kernel and be past its baseline")
     kern, levels = fk.kernel, pipe.levels
     state = {"state_trunc": float(levels.trunc), "state_off": float(levels.off), "state_on": float(levels.on),
@@ -69,10 +71,10 @@ def write_vectors(pipe: Any, frames: list[np.ndarray], times: list[int], path: P
              "frames": np.concatenate([f.reshape(-1) for f in frames]), "times": np.asarray(times, dtype=np.int64)}
     with open(path, "wb") as out:
         out.write(b"OKV1")
-        out.writelines(_entry(name, value) for name, value in {**fk.plan, **state}.items())
+        out.writelines(_entry(name, value) for name, value in {**fk.plan.as_dict(), **state}.items())
     expected = np.empty(len(frames), dtype=object)
     for k, (frame, t) in enumerate(zip(frames, times)):
-        result = pipe.process(frame, t)
+        result = pipe.process_recorded(frame, t)
         if kern.raise_pending:
             raise ValueError(f"frame {k} raised fibers: not a frame for the harness")
         expected[k] = fk.contacts[:result.n_contacts].copy()
@@ -151,7 +153,7 @@ def check(pipe: Any, frames: list[np.ndarray], harnesses: list[str], workdir: Pa
     to print (a disagreement starts with 'MISMATCH')."""
     k = 0
     while not pipe.baseline_ready:
-        pipe.process(frames[k], k * period_ns)
+        pipe.process_recorded(frames[k], k * period_ns)
         k += 1
     rest = frames[k:]
     times = [(k + i) * period_ns for i in range(len(rest))]

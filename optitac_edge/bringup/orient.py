@@ -9,6 +9,7 @@ from collections.abc import Callable
 from optitac_edge.calibration.edge_presses import EdgePresses
 from optitac_edge.calibration.orientation import OrientationFit
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.frame_engine import Skip
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.errors import CameraError, OrientationError
 from optitac_edge.io.cameras.base import Camera
@@ -41,8 +42,12 @@ def orient_live(camera: Camera, bundle: CalibrationBundle, timeout_s: float,
         captured = camera.read(read_timeout_s)
         if captured is None:
             raise CameraError("the camera ended before the orientation was found")
-        bundle.fibers.check_frame(captured.frame, camera.pixel_format)
-        est = pipeline.process(captured.frame, captured.t_ns).primary
+        result = pipeline.process(captured.frame, captured.t_ns)
+        if result is Skip.BAD:  # says which frames the bundle wants
+            bundle.fibers.check_frame(captured.frame, camera.pixel_format)
+        if isinstance(result, Skip):  # dark, saturated: no press to read
+            continue
+        est = result.primary
         if not est.baseline_ready:
             continue
         if start_ns is None:

@@ -64,9 +64,10 @@ class RigRecorder:
         self.rows.append(self._row(phase, press, st.xyz_mm, st.t_ns))
         self.times.append(int(captured.t_ns if t_ns is None else t_ns))
         self.index += 1
+        # a frame of the recording being written: every one processed as its replay will (none skipped), a copy
+        # (the callers keep the estimates of several frames; the pipeline's own is reused)
         self.pipeline.bundle.fibers.check_frame(captured.frame, self.camera.pixel_format)
-        # a copy: the callers keep the estimates of several frames (the pipeline's own is reused)
-        return self.pipeline.process(captured.frame, captured.t_ns).primary.copy(), st
+        return self.pipeline.process_recorded(captured.frame, captured.t_ns).primary.copy(), st
 
     def frames(self, n: int, phase: str, press: PlannedPress | None) -> list[ContactEstimate]:
         """``n`` frames where the tip is."""

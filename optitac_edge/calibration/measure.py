@@ -120,7 +120,7 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
         if i in tares:
             pipeline.reset_baseline(tares[i])
-        yield i, pipeline.process(rec.frames[i], int(t_ns[i])).primary
+        yield i, pipeline.process_recorded(rec.frames[i], int(t_ns[i])).primary
 
 
 def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool = True,

@@ -27,20 +27,23 @@ import math
 import os
 from importlib import import_module
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from optitac_edge.core import motion, vibration
 from optitac_edge.core.baseline import BRIGHT_HOLD_S
 from optitac_edge.core.frame_check import CHECK_REASONS, check_kernel_arrays
+from optitac_edge.core.frame_engine import MotionSteps, Skip, VibrationSteps
 from optitac_edge.core.gain import LedGain
+from optitac_edge.core.kernel_plan import KernelPlan
+from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS
 
 if TYPE_CHECKING:
-    from optitac_edge.core.contact import ContactEstimate
+    from optitac_edge.core import _frame_kernel
     from optitac_edge.core.corrections import ContactCorrector
-    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.core.numpy_engine import NumpyEngine
 
 #: The extension module's name.
 MODULE = "optitac_edge.core._frame_kernel"
@@ -61,12 +64,11 @@ def _load() -> ModuleType | None:
     return _loaded
 
 
-def _require() -> ModuleType:
-    """The extension module, or ImportError saying why it is not here."""
-    mod = _load()
-    if mod is None:
+def _require() -> None:
+    """Nothing when the extension module is here, else ImportError saying why not (then import it by name:
+    its types are in ``_frame_kernel.pyi``)."""
+    if _load() is None:
         raise ImportError(f"the compiled kernel is {_why_not}")
-    return mod
 
 
 def kernel_status() -> tuple[bool, str]:
@@ -84,7 +86,7 @@ def fields() -> int:
     return 20 if mod is None else int(mod.FIELDS)
 
 
-def compiled_vibration(signal: np.ndarray, live: np.ndarray) -> Any:
+def compiled_vibration(signal: np.ndarray, live: np.ndarray) -> _frame_kernel.Vibration:
     """:class:`~optitac_edge.core.vibration.VibrationMeter`'s steps in C, on the same ``signal`` buffer.
 
     The same interface (``update(trunc, dt_ns) -> level``, ``reset()``, ``level``, ``quiet``,
@@ -95,13 +97,16 @@ def compiled_vibration(signal: np.ndarray, live: np.ndarray) -> Any:
     ImportError
         If the kernel is not built (see :func:`kernel_status`).
     """
+    _require()
+    from optitac_edge.core import _frame_kernel
+
     live_idx = np.flatnonzero(np.asarray(live, dtype=bool)).astype(np.int32)
     vib = vibration
-    return _require().Vibration(signal, live_idx, vib.CUTOFF_HZ, vib.RATE_FRACTION, vib.WINDOW, vib.LEARN_FRAMES,
+    return _frame_kernel.Vibration(signal, live_idx, vib.CUTOFF_HZ, vib.RATE_FRACTION, vib.WINDOW, vib.LEARN_FRAMES,
                                 vib.MIN_FIBERS, vib.ON_SIGMAS, vib.QUIET_TAU_S, vib.VIBRATING_TAU_S)
 
 
-def compiled_motion() -> Any:
+def compiled_motion() -> _frame_kernel.Motion:
     """:class:`~optitac_edge.core.motion.ContactMotion`'s steps in C: the same interface (``update(contacts, n,
     frame, now_ns)``, ``reset()``) and constants, the same sums in the same order.
 
@@ -110,18 +115,26 @@ def compiled_motion() -> Any:
     ImportError
         If the kernel is not built (see :func:`kernel_status`).
     """
+    _require()
+    from optitac_edge.core import _frame_kernel
+
     m = motion
-    return _require().Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
+    return _frame_kernel.Motion(m.WINDOW, m.SLIP_SIGMAS, m.MIN_SLIP_SPEED_MM_S, m.MIN_SLIP_SHIFT_MM, m.HOLD_FRACTION,
                              m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO, m.MIN_SPAN_FRACTION)
 
 
-class FrameKernel:
-    """One pipeline's compiled kernel: its plan from the pipeline's parts, and the frame's contacts.
+class CompiledEngine:
+    """Steps 2-10 in the compiled kernel, on the numpy parts' buffers (a
+    :class:`~optitac_edge.core.frame_engine.FrameEngine`).
 
     Parameters
     ----------
-    pipe : Pipeline
-        Built with every numpy part (the kernel shares their buffers and constants).
+    parts : NumpyEngine
+        The pipeline's numpy parts: the kernel's plan comes from their tables and shares their buffers, so the
+        numpy pipeline stays the readable reference and everything reading those buffers (the live view, the
+        bench) sees the same thing.
+    corrector : ContactCorrector or None
+        The bundle's calibration models, for the kernel to apply (None: raw contacts).
 
     Raises
     ------
@@ -129,89 +142,73 @@ class FrameKernel:
         If the kernel is not built (see :func:`kernel_status`).
     """
 
-    def __init__(self, pipe: Pipeline) -> None:
-        mod = _require()
-        o, grid, baseline = pipe.options, pipe.bundle.grid, pipe.baseline
-        #: The contacts of the last frame, strongest first: (MAX_CONTACTS, fields) float64: strength, x, y,
-        #: major, minor, angle, area, peak, 7 log-Hu, q4, depth, force, shape index (-1: none), confidence.
-        self.contacts = np.full((MAX_CONTACTS, int(mod.FIELDS)), math.nan)
-        #: The rest light a raise sets the baseline to (written by the kernel when it finds one).
-        self.rest = np.zeros(pipe.bundle.fibers.n_fibers, dtype=np.float32)
-        live = np.flatnonzero(~np.asarray(pipe.bundle.fibers.dead, dtype=bool)).astype(np.int32)
-        plan: dict[str, Any] = {
-            **pipe.sampler.kernel_arrays(), **pipe.surface_op.kernel_arrays(),
-            **check_kernel_arrays(pipe.bundle.fibers),
-            "n_fibers": pipe.bundle.fibers.n_fibers, "n": grid.n,
-            "dead": np.flatnonzero(pipe.bundle.fibers.dead).astype(np.int32),
-            "live": live if live.size else np.arange(pipe.bundle.fibers.n_fibers, dtype=np.int32),
-            "relative": int(o.relative), "compensate_gain": int(o.compensate_gain),
-            "track_baseline": int(o.track_baseline), "bright_from_common": int(not o.compensate_gain),
-            "black_level": float(np.float32(o.black_level)), "gain_rate_per_ns": float(o.gain_rate_per_s) * 1e-9,
-            "tau_ns": float(o.baseline_tau_s) * 1e9, "holdoff_ns": float(o.holdoff_s) * 1e9,
-            "bright_hold_ns": float(int(BRIGHT_HOLD_S * 1e9)),
-            "x0_mm": float(grid.x0_mm), "y0_mm": float(grid.y0_mm), "step_mm": float(grid.step_mm),
-            "cell_area_mm2": float(grid.cell_area_mm2),
-            "min_area_mm2": float(pipe.bundle.thresholds.min_area_mm2),
-            "min_cells": float(pipe.bundle.thresholds.min_area_mm2) / float(grid.cell_area_mm2),
-            "peak_fraction": float(o.peak_fraction), "shape_fraction": float(o.shape_fraction),
-            "split_fraction": float(o.split_fraction), "max_contacts": int(o.max_contacts),
-            "means": pipe.means, "signal": pipe.signal, "surface": pipe.surface,
-            "baseline": baseline.values, "level": baseline.level, "inv_level": baseline.inv_level,
-            "rest": self.rest, "contacts": self.contacts,
-        }
-        if pipe.levels.bands is not None:  # each fiber's band (the levels write it; the kernel reads it)
-            plan["band"] = pipe.levels.bands.reshape(-1)
-        if pipe.support is not None:  # each fiber's neighbours, for its support
-            plan["support_nbr"] = pipe.support.table.reshape(-1)
+    def __init__(self, parts: NumpyEngine, corrector: ContactCorrector | None) -> None:
+        _require()
+        from optitac_edge.core import _frame_kernel
+
+        names = _frame_kernel.FIELD_NAMES
+        #: Each field's index in a row of :attr:`contacts` (the kernel's FIELD_NAMES).
+        self.field = {name: i for i, name in enumerate(names)}
+        #: The contacts of the last frame, strongest first: (MAX_CONTACTS, len(FIELD_NAMES)) float64.
+        self.contacts = np.full((MAX_CONTACTS, len(names)), math.nan)
+        self._parts = parts
+        self._frame_contacts = parts.contacts
+        bundle_table, o, baseline, grid = parts.bundle.fibers, parts.options, parts.baseline, parts.bundle.grid
+        min_area = float(parts.bundle.thresholds.min_area_mm2)
+        models = None if corrector is None else corrector.kernel_arrays()
         #: The corrector whose models the kernel applies (None: the kernel gives raw contacts).
-        self.corrector = pipe.corrector
-        models = None if pipe.corrector is None else pipe.corrector.kernel_arrays()
-        if models is None:
-            self.corrector = None
-        else:
-            plan.update(models)
-        #: Class names of the kernel's shape model (its OK_SHAPE field indexes them).
-        self.shape_names: list[str] = (list(pipe.corrector.shapes.class_names)
-                                       if self.corrector is not None and pipe.corrector is not None
-                                       and pipe.corrector.shapes is not None else [])
-        #: What the kernel was built from (its arrays are the pipeline's buffers; tools/kernel_aarch64.py
-        #: writes it out for the C harness).
-        self.plan = plan
+        self.built_with = corrector if models is not None else None
+        live = np.flatnonzero(parts.live).astype(np.int32)
+        #: What the kernel was built from (its arrays are the parts' buffers; tools/kernel_aarch64.py writes
+        #: it out for the C harness).
+        self.plan = KernelPlan(
+            n_fibers=bundle_table.n_fibers, n=grid.n, relative=o.relative, compensate_gain=o.compensate_gain,
+            track_baseline=o.track_baseline, bright_from_common=not o.compensate_gain, max_contacts=o.max_contacts,
+            black_level=float(np.float32(o.black_level)), gain_rate_per_ns=float(o.gain_rate_per_s) * 1e-9,
+            tau_ns=float(o.baseline_tau_s) * 1e9, holdoff_ns=float(o.holdoff_s) * 1e9,
+            bright_hold_ns=float(int(BRIGHT_HOLD_S * 1e9)), x0_mm=float(grid.x0_mm), y0_mm=float(grid.y0_mm),
+            step_mm=float(grid.step_mm), cell_area_mm2=float(grid.cell_area_mm2),
+            min_area_mm2=min_area, min_cells=min_area / float(grid.cell_area_mm2),
+            peak_fraction=float(o.peak_fraction), shape_fraction=float(o.shape_fraction),
+            split_fraction=float(o.split_fraction),
+            dead=parts.dead.astype(np.int32), live=live if live.size else np.arange(bundle_table.n_fibers,
+                                                                                   dtype=np.int32),
+            band=None if parts.levels.bands is None else parts.levels.bands.reshape(-1),
+            support_nbr=None if parts.support is None else parts.support.table.reshape(-1),
+            means=parts.means_buf, signal=parts.signal_buf, surface=parts.surface_buf, baseline=baseline.values,
+            level=baseline.level, inv_level=baseline.inv_level,
+            rest=np.zeros(bundle_table.n_fibers, dtype=np.float32), contacts=self.contacts,
+            sampler=parts.sampler.kernel_arrays(), surface_op=parts.surface_op.kernel_arrays(),
+            check=check_kernel_arrays(bundle_table), models=models or {})
+        #: The rest light a raise sets the baseline to (written by the kernel when it finds one).
+        self.rest = self.plan.rest
+        #: Class names of the kernel's shape model (its ``shape`` field indexes them).
+        self.shape_names: list[str] = (list(corrector.shapes.class_names) if self.built_with is not None
+                                       and corrector is not None and corrector.shapes is not None else [])
         #: The extension's kernel object (its members: gain, light_changed, raise_pending, common, ...).
-        self.kernel = mod.Kernel(plan)
-        self.kernel.set_correct(self.corrector is not None)
-        self.frame = self.kernel.frame
-        for c, row in zip(pipe.contacts, self.contacts):  # each contact's shape features where the kernel writes them
-            c.hu, c.features = row[8:15], row[8:16]
+        self.kernel = _frame_kernel.Kernel(self.plan.as_dict())
+        self._frame = self.kernel.frame
+        self._bad = parts.frame_check.bad
+        self._means_ready = False
+        #: The corrector applied here, per contact, after the kernel (one the kernel was not built with).
+        self._python_corrector: ContactCorrector | None = None
+        self.use_corrector(corrector)
+        hu0, q4 = self.field["hu0"], self.field["q4"]
+        for c, row in zip(parts.contacts, self.contacts):  # each contact's shape features where the kernel writes them
+            c.hu, c.features = row[hu0:q4], row[hu0:q4 + 1]
             c.hu.fill(math.nan)
 
-    def run(self, frame: Any, now_ns: int, dt_ns: int, est: ContactEstimate, contacts: list[ContactEstimate],
-            corrector: ContactCorrector | None, means_ready: bool = False) -> int:
-        """Steps 2-10 of one frame (the baseline ready): its contacts into ``contacts`` (their shape features
-        are there already), corrected by ``corrector`` when the kernel does not (None: it did, or raw);
-        without contact ``est`` says so. Returns their number. ``means_ready``: :meth:`check` took this
-        frame's fiber means."""
-        n = self.frame(frame, now_ns, dt_ns, means_ready)
-        if n == 0:
-            est.clear(self.kernel.clear_strength, self.kernel.clear_area)
-            return 0
-        index, t_ns, names = est.frame, est.t_ns, self.shape_names
-        rows = self.contacts[:n].tolist()
-        for i in range(n):
-            c, r = contacts[i], rows[i]
-            c.strength, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.area_mm2, c.peak = r[:8]
-            c.frame, c.t_ns, c.baseline_ready, c.n_contacts, c.contact = index, t_ns, True, n, True
-            c.depth_mm, c.force_n, c.confidence = r[16], r[17], r[19]
-            c.shape = names[int(r[18])] if r[18] >= 0 else ""
-            if corrector is not None:
-                c.shape, c.confidence, c.depth_mm, c.force_n = "", math.nan, math.nan, math.nan
-                corrector.apply(c)
-        return n
+    # -- the FrameEngine protocol ---------------------------------------------
+
+    @property
+    def saturated(self) -> bool:
+        """The last :meth:`check` found a live fiber centre at full scale."""
+        return bool(self.kernel.saturated)
 
     @property
     def light_changed(self) -> bool:
         """The last frame's light changed common-mode (the LED gain taken at once)."""
-        return bool(self.kernel.light_changed)
+        return self._parts.gain_compensation is not None and bool(self.kernel.light_changed)
 
     @property
     def raise_pending(self) -> bool:
@@ -223,34 +220,76 @@ class FrameKernel:
         """The level the last frame's brightness was measured from (signal units)."""
         return float(self.kernel.common)
 
-    def check(self, frame: Any) -> str | None:
+    def check(self, frame: object) -> Skip | None:
         """The fiber means of ``frame``, then :class:`~optitac_edge.core.frame_check.FrameCheck`'s verdict on
-        it from the same pixels (in the caches by then): ``"dark"``, ``"saturated"`` or None (process it,
-        with :attr:`saturated` telling whether a fiber centre was at full scale). Nothing else changes."""
+        it from the same pixels (in the caches by then); the next :meth:`means` or :meth:`run` goes on from
+        those means. Nothing else changes."""
+        if self._bad(frame):
+            return Skip.BAD
         code = self.kernel.check(frame)
-        return CHECK_REASONS[code - 1] if code else None
+        self._means_ready = code == 0
+        return Skip(CHECK_REASONS[code - 1]) if code else None
 
-    @property
-    def saturated(self) -> bool:
-        """The last :meth:`check` found a live fiber centre at full scale."""
-        return bool(self.kernel.saturated)
+    def means(self, frame: np.ndarray) -> None:
+        if not self._means_ready:
+            self.kernel.means(frame)
+        self._means_ready = False
 
-    def means(self, frame: Any, out: Any) -> Any:
-        """Step 2 alone (the baseline's frames): the fiber means into ``out`` (the pipeline's buffer)."""
-        self.kernel.means(frame)
-        return out
+    def run(self, frame: np.ndarray, now_ns: int, dt_ns: int) -> int:
+        ready, self._means_ready = self._means_ready, False
+        n = self._frame(frame, now_ns, dt_ns, ready)
+        contacts = self._frame_contacts
+        est = contacts[0]
+        if n == 0:
+            est.clear(self.kernel.clear_strength, self.kernel.clear_area)
+            return 0
+        index, t_ns, names, corrector, f = est.frame, est.t_ns, self.shape_names, self._python_corrector, self.field
+        strength, depth, force, shape, confidence = f["strength"], f["depth_mm"], f["force_n"], f["shape"], \
+            f["confidence"]
+        rows = self.contacts[:n].tolist()
+        for i in range(n):
+            c, r = contacts[i], rows[i]
+            c.strength, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.area_mm2, c.peak = \
+                r[strength:strength + 8]
+            c.frame, c.t_ns, c.baseline_ready, c.n_contacts, c.contact = index, t_ns, True, n, True
+            c.depth_mm, c.force_n, c.confidence = r[depth], r[force], r[confidence]
+            c.shape = names[int(r[shape])] if r[shape] >= 0 else ""
+            if corrector is not None:
+                c.shape, c.confidence, c.depth_mm, c.force_n = "", math.nan, math.nan, math.nan
+                corrector.apply(c)
+        return n
 
-    def reset_gain(self, now_ns: int) -> None:
-        """The LED gain 1 from ``now_ns`` on (a new baseline)."""
-        self.kernel.reset_gain(now_ns)
+    def set_levels(self, levels: ContactLevels) -> None:
+        self._parts.set_levels(levels)
+        self.kernel.set_levels(levels.trunc, levels.off, levels.on, levels.gain_delta, levels.gain_tolerance,
+                               levels.gain_significant)
 
-    def led_gain(self) -> LedGain:
-        """The LED gain compensation's state after the last frame."""
+    def reset_contact(self) -> None:
+        self._parts.reset_contact()
+        self.kernel.reset_contact()
+
+    def reset_gain(self, now_ns: int | None) -> None:
+        self._parts.reset_gain(now_ns)
+        self.kernel.reset_gain(self.kernel.reference_ns if now_ns is None else now_ns)
+
+    def led_gain(self) -> LedGain | None:
+        """The LED gain compensation's state after the last frame; None without ``compensate_gain``."""
+        if self._parts.gain_compensation is None:
+            return None
         k = self.kernel
         return LedGain(k.gain, k.frame_gain, k.reference, k.reference_ns, k.light_changes)
 
-    def use_corrector(self, corrector: object) -> bool:
-        """Whether the kernel applies ``corrector`` (the one it was built with) or the caller does."""
-        on = corrector is not None and corrector is self.corrector
+    def use_corrector(self, corrector: ContactCorrector | None) -> None:
+        """The kernel applies ``corrector`` when it is the one it was built with; another runs here, per
+        contact (the ONNX shape backend); None: raw contacts."""
+        on = corrector is not None and corrector is self.built_with
         self.kernel.set_correct(on)
-        return on
+        self._python_corrector = None if on else corrector
+
+    @property
+    def corrects(self) -> bool:
+        """The kernel itself applies the calibration models."""
+        return bool(self.kernel.correct)
+
+    def motion_parts(self) -> tuple[MotionSteps, VibrationSteps]:
+        return compiled_motion(), compiled_vibration(self._parts.signal_buf, self._parts.live)

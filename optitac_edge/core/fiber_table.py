@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from optitac_edge.core.colour import mix_pixels, mix_weights
-from optitac_edge.core.frames import PIXEL_FORMATS, frame_geometry
+from optitac_edge.core.frames import PIXEL_FORMATS, frame_geometry, frame_shape
 from optitac_edge.errors import FrameMismatchError
 
 #: Bytes per CPU cache line (x86-64, Cortex-A72/A76), for the gather's probe of a new frame.
@@ -98,6 +98,11 @@ class FiberTable:
         fiber_of_pixel = np.repeat(np.arange(1, self.n_fibers + 1, dtype=np.int32), self.pixel_count)
         labels[self.pixel_index] = fiber_of_pixel
         return labels.reshape(self.height, self.width)
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        """The array shape of the frames the table was built for (its pixel format's)."""
+        return frame_shape(self.height, self.width, self.pixel_format)
 
     def check_frame(self, frame: np.ndarray, pixel_format: str) -> None:
         """Raise :class:`FrameMismatchError` unless ``frame`` is what the table was built for."""

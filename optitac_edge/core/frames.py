@@ -37,6 +37,16 @@ def frame_geometry(shape: tuple[int, ...], pixel_format: str) -> tuple[int, int]
     raise FrameMismatchError(f"array of shape {tuple(shape)} is not a {pixel_format} frame")
 
 
+def frame_shape(height: int, width: int, pixel_format: str) -> tuple[int, ...]:
+    """The array shape of a ``height`` x ``width`` frame in ``pixel_format`` (the inverse of
+    :func:`frame_geometry`)."""
+    if pixel_format == "rgb":
+        return (height, width, 3)
+    if pixel_format == "yuv420":
+        return (height * 3 // 2, width)
+    return (height, width)
+
+
 def infer_pixel_format(shape: tuple[int, ...]) -> str:
     """Pixel format of a recording frame: ``gray`` for (H, W), ``rgb`` for (H, W, 3)."""
     if len(shape) == 2:

@@ -9,9 +9,9 @@ place: no allocation per frame beyond what the pipeline does.
 from __future__ import annotations
 
 from optitac_edge.core.bundle import CalibrationBundle
-from optitac_edge.core.frame_check import FrameCheck
+from optitac_edge.core.frame_engine import Skip
 from optitac_edge.core.frame_result import FrameResult
-from optitac_edge.core.pipeline import Pipeline, process_checked
+from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.io.cameras.base import CapturedFrame
 from optitac_edge.io.protocol.messages import StatusMessage
 from optitac_edge.io.protocol.outbox import SensorOutbox
@@ -28,20 +28,15 @@ class SensorChannel:
         For logs.
     bundle : CalibrationBundle
         Its calibration, placed in the camera's whole frame.
-    frame_shape : tuple of int
-        The camera's frame shape (the frame check's expectation).
     fps : float, optional
         The camera's nominal frame rate (the pipeline's motion and vibration period).
     """
 
-    def __init__(self, sensor_id: int, name: str, bundle: CalibrationBundle, frame_shape: tuple[int, ...],
-                 fps: float | None = None) -> None:
+    def __init__(self, sensor_id: int, name: str, bundle: CalibrationBundle, fps: float | None = None) -> None:
         self.sensor_id = sensor_id
         self.name = name
         self.bundle = bundle
         self.pipeline = Pipeline(bundle, fps=fps)
-        #: The one check of a frame before the pipeline takes it.
-        self.frame_check = FrameCheck(bundle.fibers, frame_shape)
         #: Some fiber of the bundle is dead (every message's DEGRADED flag).
         self.degraded = bool(bundle.fibers.dead.any())
         #: The messages of each frame to the MCU.
@@ -60,12 +55,13 @@ class SensorChannel:
         """The checked frame :meth:`run_pipeline` processes next."""
         self._captured = captured
 
-    def run_pipeline(self) -> FrameResult | str:
-        """The pipeline on the frame :meth:`take` gave (on a worker thread of the loop's pool, or the loop's),
-        checked (:func:`~optitac_edge.core.pipeline.process_checked`): its result, or why the frame was skipped."""
+    def run_pipeline(self) -> FrameResult | Skip:
+        """The pipeline on the frame :meth:`take` gave (on a worker thread of the loop's pool, or the loop's):
+        its result, or why the frame was skipped (:meth:`Pipeline.process
+        <optitac_edge.core.pipeline.Pipeline.process>`)."""
         c = self._captured
         assert c is not None, "take() a frame first"
-        return process_checked(self.pipeline, c.frame, c.t_ns, self.frame_check)
+        return self.pipeline.process(c.frame, c.t_ns)
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread); it goes on

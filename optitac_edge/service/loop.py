@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 from optitac_edge.config import BoardConfig, CameraConfig, SensorConfig
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.frame_engine import Skip
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
 from optitac_edge.errors import OptiTacError
@@ -108,7 +109,7 @@ class Service:
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
         #: One per sensor the camera reads, in the board's order.
-        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.frame_shape, camera.fps)
+        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.fps)
                          for sensor, b in sensors]
         #: The sensors' pipelines on the board's spare cores (``workers``: how many threads; None: one per
         #: sensor beyond the first, as many as the cores beyond two).
@@ -304,31 +305,28 @@ class Service:
         """Check and process one captured frame for every sensor: (the first sensor's result, None when no
         sensor processed the frame; a device fault).
 
-        A frame of the wrong shape or type is refused for every sensor (counted once); then every sensor's
-        pipeline checks it (dark, saturated: :func:`~optitac_edge.core.pipeline.process_checked`) and processes it (side by side
-        on :attr:`pool`'s workers); then, sensor by sensor in the board's order, the skips, the counts, the
-        network and the messages to the MCU.
+        Every sensor's pipeline checks the frame and processes it (side by side on :attr:`pool`'s workers;
+        :meth:`Pipeline.process <optitac_edge.core.pipeline.Pipeline.process>`); a frame of the wrong shape or
+        type (the sensors share the camera's frame: all or none refuse it) is counted once; then, sensor by
+        sensor in the board's order, the skips (dark, saturated), the counts, the network and the messages
+        to the MCU.
         """
         st = self.stats
         first: FrameResult | None = None
         device_fault = False
         send = self.link.due(st.frames + 1)
-        try:
-            bad = self.channels[0].frame_check.bad(captured.frame)  # the sensors share the camera's frame
-        except Exception:  # noqa: BLE001 - anything odd about the frame object: a bad frame
-            bad = True
-        if bad:
-            counts.frame_skipped(self.stats, self.channels[0], "bad")
-            return None, True
         for ch in self.channels:
             ch.take(captured)
         results = self.pool.run([ch.run_pipeline for ch in self.channels])
+        if results[0] is Skip.BAD:  # not a frame of this camera, for every sensor: counted once
+            counts.frame_skipped(self.stats, self.channels[0], Skip.BAD)
+            return None, True
         for ch, result in zip(self.channels, results):
             if isinstance(result, Exception):  # a per-frame failure never ends the service
                 counts.processing_failed(self.stats, ch, result)
                 device_fault = True  # a loop failing on every frame counts towards the frame gap
                 continue
-            if isinstance(result, str):  # dark or saturated for this sensor
+            if isinstance(result, Skip):  # dark or saturated for this sensor
                 counts.frame_skipped(self.stats, ch, result)
                 continue
             assert isinstance(result, FrameResult)

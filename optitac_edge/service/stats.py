@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from optitac_edge.core.frame_engine import Skip
 from optitac_edge.errors import CameraError
 
 if TYPE_CHECKING:
@@ -90,13 +91,13 @@ def camera_failed(st: ServiceStats, exc: Exception) -> None:
         log.warning("camera error %d: %s: %s", st.camera_errors, type(exc).__name__, exc)
 
 
-def frame_skipped(st: ServiceStats, ch: SensorChannel, why: str) -> None:
+def frame_skipped(st: ServiceStats, ch: SensorChannel, why: Skip) -> None:
     """A frame the check refused for this sensor: bad, dark or saturated."""
     st.camera_errors += 1
     ch.fault_since_status = True
-    if why == "bad":
+    if why is Skip.BAD:
         st.bad_frames += 1
-    elif why == "dark":
+    elif why is Skip.DARK:
         st.dark_frames += 1
     else:
         st.saturated_frames += 1

@@ -23,6 +23,7 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from types import SimpleNamespace
 
+    from optitac_edge.core.frame_engine import Skip
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.io.files import AtomicFile
     from optitac_edge.service.bundles import obtain_bundle
@@ -43,8 +44,13 @@ def run(args: argparse.Namespace) -> int:
                 captured = camera.read(config.camera.timeout_s)
                 if captured is None:
                     raise OptiTacError("the camera ended before the picture was taken")
-                bundle.fibers.check_frame(captured.frame, camera.pixel_format)
-                est = pipeline.process(captured.frame, captured.t_ns).primary
+                result = pipeline.process(captured.frame, captured.t_ns)
+                if result is Skip.BAD:  # says which frames the bundle wants
+                    bundle.fibers.check_frame(captured.frame, camera.pixel_format)
+                if isinstance(result, Skip):
+                    stats.camera_errors += 1
+                    continue
+                est = result.primary
                 stats.frames += 1
                 stats.contacts += int(est.contact)
                 taken += int(est.baseline_ready)

@@ -3,7 +3,7 @@
 Sections (all on the same frames, one process unless noted; see docs/performance.md):
 
 ``stages``
-    The real :meth:`Pipeline.process` call timed per frame (``whole_frame``), and
+    The real :meth:`Pipeline.process_recorded` call timed per frame (``whole_frame``), and
     each stage re-run in isolation on that frame's state right after it
     (``gray``: gather of the fiber pixels, luma for RGB; ``fiber_means``: the
     segmented sum; ``baseline``: the signal against the baseline, gain

@@ -57,7 +57,7 @@ def measure_patches(n_patches: int, width: int, height: int, fps: float, n_frame
     pipes, rest, frames = patch_pipelines(n_patches, width, height)
 
     def process(frame: np.ndarray, t_ns: int) -> int:
-        return sum(p.process(frame, t_ns).n_contacts for p in pipes)
+        return sum(p.process_recorded(frame, t_ns).n_contacts for p in pipes)
 
     out: dict[str, Any] = {"patches": n_patches, "frame_size": [width, height],
                            "fibers_per_patch": pipes[0].bundle.layout.n_fibers}

@@ -42,7 +42,7 @@ def _count(result: FrameResult) -> int:
 
 def measure_contacts(bundle: Any, fps: float, n: int, rgb: bool) -> dict[str, Any]:
     """0, 1, 2 and 4 simultaneous contacts, paced at ``fps`` and interleaved; ratios to one contact."""
-    configs = [Paced(f"{k}", Pipeline(bundle).process, contact_frames(k, rgb, fps), REST_FRAMES, _count)
+    configs = [Paced(f"{k}", Pipeline(bundle).process_recorded, contact_frames(k, rgb, fps), REST_FRAMES, _count)
                for k in CONTACT_COUNTS]
     res = run_interleaved(configs, fps, n, warmup_per_config=min(100, n))
     return {"fps": fps, "frames_per_config": n, "per_contacts": res,
@@ -58,7 +58,7 @@ def measure_fibers(workdir: Path, fps: float, n: int, rgb: bool) -> dict[str, An
     configs = []
     for rings in FIBER_RINGS:
         bundle = load_bundle(cached_layout_bundle(workdir, rings, rgb=rgb))
-        configs.append(Paced(str(bundle.fibers.n_fibers), Pipeline(bundle).process,
+        configs.append(Paced(str(bundle.fibers.n_fibers), Pipeline(bundle).process_recorded,
                              contact_frames(1, rgb, fps, bundle.layout), REST_FRAMES, _count))
     res = run_interleaved(configs, fps, n, warmup_per_config=min(100, n))
     names = [c.name for c in configs]
@@ -79,8 +79,8 @@ def measure_reference(bundle: Any, frames: list[np.ndarray], rest: int, n: int) 
     fast = Pipeline(bundle, ContactOptions.paper())
     fast.set_corrector(None)
     configs = [Paced("reference", ReferencePipeline(bundle).process, frames, rest),
-               Paced("fast_paper_mode", fast.process, frames, rest),
-               Paced("fast_all_options", Pipeline(bundle).process, frames, rest)]
+               Paced("fast_paper_mode", fast.process_recorded, frames, rest),
+               Paced("fast_all_options", Pipeline(bundle).process_recorded, frames, rest)]
     res = run_interleaved(configs, 0.0, n, warmup_per_config=min(20, n))
     return {"frames": n, "reference": res["reference"], "fast_paper_mode": res["fast_paper_mode"],
             "fast_all_options": res["fast_all_options"],
@@ -121,12 +121,12 @@ def measure_heap(bundle: Any, fps: float, n: int, rgb: bool) -> dict[str, Any]:
         pipe = Pipeline(bundle)
         t = 0
         for f in frames:  # baseline, then every distinct frame once
-            pipe.process(f, t)
+            pipe.process_recorded(f, t)
             t += period
         cycle = frames[REST_FRAMES:]
         before = libc_heap()
         for i in range(n):
-            pipe.process(cycle[i % len(cycle)], t)
+            pipe.process_recorded(cycle[i % len(cycle)], t)
             t += period
         after = libc_heap()
         assert before is not None and after is not None

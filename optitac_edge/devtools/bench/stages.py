@@ -50,18 +50,18 @@ class StageTimer:
         p = self.pipe
         s = self.samples
         t0 = time.perf_counter_ns()
-        est = p.process(frame, t_ns).primary
+        est = p.process_recorded(frame, t_ns).primary
         s["whole_frame"].append(time.perf_counter_ns() - t0)
         if not est.baseline_ready:
             return est
-        s["gray"].append(timed(p.sampler.gather, frame))
-        s["fiber_means"].append(timed(p.sampler.reduce, p.means))
-        s["baseline"].append(timed(p.compute_signal, p.means, t_ns))
-        s["surface"].append(timed(p.surface_op.compute, p.signal, self._surface))
+        s["gray"].append(timed(p.parts.sampler.gather, frame))
+        s["fiber_means"].append(timed(p.parts.sampler.reduce, p.means))
+        s["baseline"].append(timed(p.parts.compute_signal, p.means, t_ns))
+        s["surface"].append(timed(p.parts.surface_op.compute, p.signal, self._surface))
         s["segment"].append(timed(self._segment))
         if est.contact:
-            box = p.segmenter.box(p.surface)  # the pipeline's truncated surface (not timed)
-            s["moments"].append(timed(p.blobs.ellipse, box.img, box.x, box.y, self._scratch))
+            box = p.parts.segmenter.box(p.surface)  # the pipeline's truncated surface (not timed)
+            s["moments"].append(timed(p.parts.blobs.ellipse, box.img, box.x, box.y, self._scratch))
             s["hu"].append(timed(self._hu, box.img, box.peak))
             if self._shapes is not None:
                 s["shape"].append(timed(self._shapes.classify, est.features))
@@ -73,7 +73,7 @@ class StageTimer:
     def _segment(self) -> None:
         """Truncation, the bounding box and (several contacts allowed) the partition."""
         p = self.pipe
-        seg = p.segmenter
+        seg = p.parts.segmenter
         cells = seg.truncate(self._surface)
         if cells:
             box = seg.box(self._surface)
@@ -81,7 +81,7 @@ class StageTimer:
                 seg.partition(box, cells)
 
     def _hu(self, img: np.ndarray, peak: float) -> None:
-        blobs = self.pipe.blobs
+        blobs = self.pipe.parts.blobs
         blobs.shape_features(img, blobs.levels_of(peak)[1], self._scratch)
 
     def _lookup(self, est: ContactEstimate) -> None:
@@ -102,7 +102,7 @@ def _feed(pipe: Any, frames: list[np.ndarray], rest: int, n: int, t_ns: int, per
     for i in range(n):
         frame = frames[rest + i % k]
         if on_frame is None:
-            pipe.process(frame, t_ns)
+            pipe.process_recorded(frame, t_ns)
         else:
             on_frame(frame, t_ns)
         t_ns += period_ns
@@ -129,7 +129,7 @@ def measure_stages(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
     return {"frames": n, "contact_fraction": round(contacts[0] / max(n, 1), 3),
             "stages": {k: summary(v.values) for k, v in timer.samples.items()},
             "rss_growth_bytes": rss1 - rss0, "rss_bytes": rss1,
-            "surface": type(pipe.surface_op).__name__}
+            "surface": type(pipe.parts.surface_op).__name__}
 
 
 def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps: float) -> dict[str, Any]:
@@ -146,7 +146,7 @@ def measure_memory(bundle: Any, frames: list[np.ndarray], rest: int, n: int, fps
         def one(frame: np.ndarray, t_ns: int) -> None:
             tracemalloc.reset_peak()
             before = tracemalloc.get_traced_memory()[0]
-            pipe.process(frame, t_ns)
+            pipe.process_recorded(frame, t_ns)
             transient[0] = max(transient[0], tracemalloc.get_traced_memory()[1] - before)
 
         before = tracemalloc.get_traced_memory()[0]
