@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fakes.list_camera import ListCamera
+from fakes.packing import decoded
 
 from optitac_edge.calibration.region import Region, calibrate_region
 from optitac_edge.config import load_board_config
@@ -175,12 +176,13 @@ class Recorder(NullTransport):
         #: Every CONTACT message in full, in order.
         self.messages: list[str] = []
 
-    def send_contact(self, message) -> None:
-        self.sent.append(("CONTACT", message.sensor_id, bool(message.flags & 1)))
-        self.messages.append(repr(dataclasses.replace(message, age_us=0)))  # its age: the wall clock's
-
-    def send_status(self, message) -> None:
-        self.sent.append(("STATUS", message.sensor_id, False))
+    def send(self, packet) -> None:
+        message = decoded(packet)  # as the MCU reads it
+        if packet.kind is MsgType.CONTACT:
+            self.sent.append(("CONTACT", message.sensor_id, bool(message.flags & 1)))
+            self.messages.append(repr(dataclasses.replace(message, age_us=0)))  # its age: the wall clock's
+        elif packet.kind is MsgType.STATUS:
+            self.sent.append(("STATUS", message.sensor_id, False))
 
 
 @pytest.mark.parametrize("workers", [0, 1])

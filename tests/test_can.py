@@ -11,6 +11,7 @@ import uuid
 import can
 import cantools
 import pytest
+from fakes.packing import send_message
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -254,8 +255,8 @@ def test_contacts_and_status_over_virtual_bus(link):
                       "MOTION": 0x335}
     msgs = [_contact(x_mm=0.1 * i, angle_deg=-80 + 7.3 * i, age_us=100 * i) for i in range(5)]
     for m in msgs:
-        tx.send_contact(m)
-    tx.send_status(StatusMessage(sensor_id=3, fps_x10=600, calibration_id=0x12345678, state=1))
+        send_message(tx, m)
+    send_message(tx, StatusMessage(sensor_id=3, fps_x10=600, calibration_id=0x12345678, state=1))
     frames = _receive(rx, 11)
     db = _db()
     for i, m in enumerate(msgs):
@@ -282,7 +283,7 @@ def test_counter_rolls_over_and_pairs(link):
     tx, rx = link
     n = 40
     for i in range(n):
-        tx.send_contact(_contact(age_us=i))
+        send_message(tx, _contact(age_us=i))
     frames = _receive(rx, 2 * n)
     counters = []
     for fa, fb in zip(frames[::2], frames[1::2]):
@@ -340,7 +341,7 @@ def test_send_errors_are_counted_and_dropped(link, exc):
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
     flaky.fail = [exc]
-    tx.send_contact(_contact())  # A fails: B is not attempted, both counted
+    send_message(tx, _contact())  # A fails: B is not attempted, both counted
     assert flaky.attempts == 1
     assert tx.counters.send_errors == 2 and tx.counters.sent == 0
     if "buffer" in str(exc) or getattr(exc, "errno", None) == errno.ENOBUFS:
@@ -348,11 +349,11 @@ def test_send_errors_are_counted_and_dropped(link, exc):
     else:
         assert tx.stats.other_errors == 1
     flaky.fail = [exc]
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, StatusMessage(sensor_id=3))
     assert tx.counters.send_errors == 3
     # later sends work; the counters show the gaps
-    tx.send_contact(_contact())
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, _contact())
+    send_message(tx, StatusMessage(sensor_id=3))
     frames = _receive(rx, 3)
     assert [f.arbitration_id for f in frames] == [0x330, 0x331, 0x332]
     assert decode_frame(frames[0].arbitration_id, frames[0].data)[2]["COUNTER"] == 1
@@ -371,7 +372,7 @@ def test_b_failure_counts_one(link):
         flaky.bus.send(msg, timeout)
 
     flaky.send = fail_b
-    tx.send_contact(_contact())
+    send_message(tx, _contact())
     assert tx.counters.sent == 1 and tx.counters.send_errors == 1
     assert [f.arbitration_id for f in _receive(rx, 1)] == [0x330]
 
@@ -394,17 +395,17 @@ def test_interface_down_reopens_in_background(link, exc):
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
     flaky.fail = [exc]
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, StatusMessage(sensor_id=3))
     assert tx.stats.link_down == 1 and flaky.shutdowns == 1
     assert not tx.connected
     # frames offered while down are dropped and counted, without blocking
     t0 = time.perf_counter()
-    tx.send_contact(_contact())
+    send_message(tx, _contact())
     assert time.perf_counter() - t0 < 0.05
     assert tx.counters.send_errors == 3 and tx.stats.dropped_link_down >= 1
     assert _wait(lambda: tx.connected)
     assert tx.counters.reconnects == 1
-    tx.send_contact(_contact())
+    send_message(tx, _contact())
     frames = _receive(rx, 2)
     assert [f.arbitration_id for f in frames] == [0x330, 0x331]
     assert decode_frame(frames[0].arbitration_id, frames[0].data)[2]["COUNTER"] == 1
@@ -419,10 +420,10 @@ def test_persistent_failures_count_as_bus_off():
         tx._bus = flaky
         flaky.fail = [OSError(errno.ENOBUFS, "No buffer space available")] * 10
         for _ in range(10):
-            tx.send_status(StatusMessage())
+            send_message(tx, StatusMessage())
         assert tx.stats.queue_full == 10 and tx.stats.link_down == 1
         assert _wait(lambda: tx.connected) and tx.counters.reconnects == 1
-        tx.send_status(StatusMessage())
+        send_message(tx, StatusMessage())
         assert _receive(rx, 1)[0].arbitration_id == 0x302
     finally:
         tx.close()
@@ -444,12 +445,12 @@ def test_reopen_retries_with_backoff(monkeypatch, link):
     flaky = _FlakyBus(tx._bus)
     tx._bus = flaky
     flaky.fail = [OSError(errno.ENODEV, "No such device")]
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, StatusMessage(sensor_id=3))
     assert _wait(lambda: tx.connected)
     assert tx.stats.open_failures == 3 and tx.counters.reconnects == 1 and len(attempts) == 4
     gaps = [b - a for a, b in itertools.pairwise(attempts)]
     assert gaps[-1] >= gaps[0] * 0.9  # waits grow (capped at 0.05 s here)
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, StatusMessage(sensor_id=3))
     assert _receive(rx, 1)[0].arbitration_id == 0x332
 
 
@@ -461,8 +462,8 @@ def test_close_is_idempotent_and_sends_after_close_are_dropped():
     tx.close()
     tx.close()
     assert flaky.shutdowns == 1 and tx.closed
-    tx.send_contact(_contact())
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, _contact())
+    send_message(tx, StatusMessage(sensor_id=3))
     assert tx.counters.sent == 0 and tx.counters.send_errors == 3
 
 
@@ -472,7 +473,7 @@ def test_close_while_reconnecting_stops_the_thread(link):
     tx._bus = flaky
     tx._backoff = Backoff(10.0, 10.0)  # the thread would wait long
     flaky.fail = [OSError(errno.ENETDOWN, "Network is down")]
-    tx.send_status(StatusMessage(sensor_id=3))
+    send_message(tx, StatusMessage(sensor_id=3))
     thread = tx._reconnector
     assert thread is not None and thread.is_alive()
     t0 = time.perf_counter()
@@ -490,7 +491,7 @@ def test_fill_from_estimate_and_send(link):
         strength, shape, confidence, n_contacts = 15.5, "square", 0.66, 2
 
     msg = ContactMessage(sensor_id=3).fill(Est(), t_ns=1_000_000, now_ns=3_500_000, calibrated=True)
-    tx.send_contact(msg)
+    send_message(tx, msg)
     fa, fb = _receive(rx, 2)
     _, _, a = decode_frame(fa.arbitration_id, fa.data)
     _, _, b = decode_frame(fb.arbitration_id, fb.data, decode_choices=True)
@@ -503,15 +504,17 @@ def test_fill_from_estimate_and_send(link):
 
 def test_one_link_carries_every_sensor_of_a_board_on_its_own_ids_and_counters():
     """A board with several sensors shares one bus: each message goes out on its own sensor's ids with that
-    sensor's counters; a message of a sensor the link does not carry is counted and dropped."""
+    sensor's counters; the link packs no message of a sensor it does not carry (refused when the sensor's
+    packer is asked for: the board's sensors are the link's)."""
     channel = _channel()
     rx = can.Bus(channel=channel, interface="virtual")
     try:
         with CanTransport(channel=channel, interface="virtual", sensor_id=[1, 2]) as tx:
             for i in range(3):
-                tx.send_contact(_contact(sensor_id=1 + i % 2, age_us=i))
-            tx.send_status(StatusMessage(sensor_id=2))
-            tx.send_contact(_contact(sensor_id=5))
+                send_message(tx, _contact(sensor_id=1 + i % 2, age_us=i))
+            send_message(tx, StatusMessage(sensor_id=2))
+            with pytest.raises(TransportError, match="carries sensors 1, 2, not 5"):
+                tx.packer(5)
             frames = _receive(rx, 7)
             got = []
             for f in frames:
@@ -519,8 +522,46 @@ def test_one_link_carries_every_sensor_of_a_board_on_its_own_ids_and_counters():
                 got.append((sensor, name, signals["COUNTER"]))
             assert got == [(1, "CONTACT_A", 0), (1, "CONTACT_B", 0), (2, "CONTACT_A", 0), (2, "CONTACT_B", 0),
                            (1, "CONTACT_A", 1), (1, "CONTACT_B", 1), (2, "STATUS", 0)]
-            assert tx.counters.send_errors == 1 and tx.stats.unknown_sensor == 1 and rx.recv(0.01) is None
+            assert tx.counters.send_errors == 0 and rx.recv(0.01) is None
     finally:
         rx.shutdown()
     with pytest.raises(TransportError, match="distinct"):
         CanTransport(channel=channel, interface="virtual", sensor_id=[1, 1])
+
+
+def test_a_contact2_part_that_fails_ends_its_message_and_each_part_not_sent_counts():
+    """One send for every kind (the packet's frames in turn): when a frame fails, the frames after it are
+    not attempted (a part without the rest is useless) and each is a send error, as CONTACT_B after a
+    failed CONTACT_A always was; the CONTACT2 parts of the next frame go out whole."""
+    from optitac_edge.io.protocol.messages import ContactV2Message
+
+    tx2 = CanTransport(channel=_channel(), interface="virtual", sensor_id=3, protocol=2)
+    try:
+        flaky = _FlakyBus(tx2._bus)
+        tx2._bus = flaky
+        packer = tx2.packer(3)
+        message = ContactV2Message(sensor_id=3, n_contacts=1, contact_id=7, x_mm=1.0)
+        flaky.fail = [OSError(errno.ENOBUFS, "No buffer space available")]
+        tx2.send(packer.contact2(message))
+        assert flaky.attempts == 1 and tx2.counters.send_errors == 3 and tx2.counters.sent == 0
+        tx2.send(packer.contact2(message))
+        assert flaky.attempts == 4 and tx2.counters.sent == 3 and tx2.counters.send_errors == 3
+    finally:
+        tx2.close()
+
+
+def test_every_transport_has_one_send() -> None:
+    """Transports ship packed bytes (python-can's ``BusABC.send``): one send verb, whatever the message kind;
+    packing is the link's packer's (the outbox calls it)."""
+    from importlib import import_module
+
+    from optitac_edge.io.transports import TRANSPORTS
+    from optitac_edge.io.transports.base import Transport
+
+    for name, entry in TRANSPORTS.items():
+        module, cls_name = entry.split(":")
+        cls = getattr(import_module(module), cls_name)
+        assert issubclass(cls, Transport)
+        verbs = sorted(n for n in dir(cls) if n.startswith("send") and callable(getattr(cls, n)))
+        assert verbs == ["send"], (name, verbs)
+        assert callable(cls.packer)

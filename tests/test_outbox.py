@@ -6,15 +6,17 @@ link's state changes as the MCU's commands would change it; hypothesis draws bot
 
 from __future__ import annotations
 
+from fakes.packing import decoded
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.tracking import ContactTracker
-from optitac_edge.io.protocol import wire, wire_v2
-from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Flags, ContactV2Message, ReleaseMessage
+from optitac_edge.io.protocol import wire
+from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Flags
 from optitac_edge.io.protocol.outbox import LinkState, SensorOutbox
+from optitac_edge.io.protocol.wire import MsgType
 
 #: Where contacts press (mm): farther apart than the tracker's gate, so a site keeps its contact's id.
 SITES = ((-6.0, 0.0), (6.0, 0.0), (0.0, 6.0), (0.0, -6.0))
@@ -71,7 +73,7 @@ def _apply(link: LinkState, outbox: SensorOutbox, command: str, divider: int) ->
 def _run(frames: list[tuple[list[int], str, int, float]], alongside: bool) -> list[tuple]:
     """Every frame: (result's contacts as (id, touch), sent?, its messages as decoded bytes, session)."""
     source, outbox = Frames(), SensorOutbox(3, degraded=False)
-    link = LinkState(protocol=2, v2_alongside_v1=alongside)
+    link = LinkState(protocol=2, from_start=frozenset({1, 2}) if alongside else frozenset())
     log, session = [], 0
     for number, (sites, command, divider, jitter) in enumerate([*frames, ([], "flush", 1, 0.0)], start=1):
         _apply(link, outbox, command, divider)
@@ -79,14 +81,14 @@ def _run(frames: list[tuple[list[int], str, int, float]], alongside: bool) -> li
         result = source.next(sites, jitter)
         send = link.due(number)
         out = []
-        for m in outbox.update(result, link, send, result.t_ns + 1000):
-            if isinstance(m, ContactV2Message):
-                out.append(("CONTACT2", wire_v2.decode_contact2(wire_v2.contact2_payload(m), m.t_us)))
-            elif isinstance(m, ContactMessage):
-                out.append(("CONTACT", wire.contact_payload(m)))
+        for packet in outbox.update(result, link, send, result.t_ns + 1000):  # packed for a serial link
+            if packet.kind is MsgType.CONTACT2:
+                out.append(("CONTACT2", decoded(packet)))
+            elif packet.kind is MsgType.CONTACT:
+                out.append(("CONTACT", packet.frames[0][1]))
             else:
-                assert isinstance(m, ReleaseMessage)
-                out.append(("RELEASE", wire_v2.decode_release(wire_v2.release_payload(m))))
+                assert packet.kind is MsgType.RELEASE
+                out.append(("RELEASE", decoded(packet)))
         ids = [(c.contact_id, c.touch_frame) for c in result.touching()]
         log.append((result.frame, ids, send, out, session, link.protocol, result.primary.copy()))
     return log
@@ -155,12 +157,12 @@ def test_a_frame_not_sent_keeps_its_releases_for_the_next_sent_frame():
     """Rate divider 3: a contact told in frame 0 and gone in frame 1 is released with frame 2, once."""
     source, outbox = Frames(), SensorOutbox(0)
     link = LinkState(protocol=2, rate_divider=1)
-    first = outbox.update(source.next([0], 0.0), link, True, 0)
+    first = outbox.messages(source.next([0], 0.0), link, True, 0)
     assert [type(m).__name__ for m in first] == ["ContactV2Message"] and outbox.announcer.touched == [True]
     link.rate_divider = 3
-    assert outbox.update(source.next([], 0.0), link, False, 0) == []
-    out = outbox.update(source.next([], 0.0), link, True, 0)
+    assert outbox.messages(source.next([], 0.0), link, False, 0) == []
+    out = outbox.messages(source.next([], 0.0), link, True, 0)
     assert [(type(m).__name__, getattr(m, "contact_id", None)) for m in out] == [
         ("ReleaseMessage", 1), ("ContactV2Message", 0)]
     assert out[0].frame == 2 and out[0].touch_frame == 0
-    assert [type(m).__name__ for m in outbox.update(source.next([], 0.0), link, True, 0)] == ["ContactV2Message"]
+    assert [type(m).__name__ for m in outbox.messages(source.next([], 0.0), link, True, 0)] == ["ContactV2Message"]

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from fakes.packing import send_message
 
 from optitac_edge.io.protocol import wire
 from optitac_edge.io.protocol.decoder import FrameDecoder
@@ -340,7 +341,7 @@ def test_serial_transport_to_optitac_rx_over_pty(cbin):
                                    strength=rng.uniform(0, 200), shape=ShapeCode.CIRCLE,
                                    confidence=0.5, age_us=1500)
                 msgs.append(m)
-                tr.send_contact(m)
+                send_message(tr, m)
                 time.sleep(0.001)
             out, err = proc.communicate(timeout=20)
         assert proc.returncode == 0, err

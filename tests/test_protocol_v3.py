@@ -78,12 +78,12 @@ def test_only_v3_sends_motion_each_after_its_contact2():
     outbox = SensorOutbox(2)
     for protocol, kinds in ((1, ["ContactMessage"]), (2, ["ContactV2Message"] * 2),
                             (3, ["ContactV2Message", "MotionMessage"] * 2)):
-        out = outbox.update(_result(2), LinkState(protocol=protocol), True, 10)
+        out = outbox.messages(_result(2), LinkState(protocol=protocol), True, 10)
         assert [type(m).__name__ for m in out] == kinds
-    out = outbox.update(_result(2), LinkState(protocol=3), True, 10)
+    out = outbox.messages(_result(2), LinkState(protocol=3), True, 10)
     for c2, motion in zip(out[::2], out[1::2]):
         assert (motion.frame, motion.index, motion.contact_id) == (c2.frame, c2.index, c2.contact_id)
-    out = outbox.update(_result(0), LinkState(protocol=3), True, 10)
+    out = outbox.messages(_result(0), LinkState(protocol=3), True, 10)
     assert [type(m).__name__ for m in out] == ["ContactV2Message", "MotionMessage"] and out[1].contact_id == 0
 
 

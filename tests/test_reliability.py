@@ -12,11 +12,13 @@ import time
 
 import numpy as np
 import pytest
+from fakes.packing import decoded
 
 from optitac_edge.config import load_board_config
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.clock import VirtualClock
+from optitac_edge.io.protocol.wire import MsgType
 from optitac_edge.io.sdnotify import Notifier
 from optitac_edge.io.transports.base import NullTransport
 from optitac_edge.service.bundles import obtain_bundle
@@ -36,14 +38,14 @@ class RecordingTransport(NullTransport):
         self.contacts = 0
         self.saturated_flags = 0
 
-    def send_contact(self, message):
-        super().send_contact(message)
-        self.contacts += 1
-        self.saturated_flags += bool(message.flags & 4)
-
-    def send_status(self, message):
-        super().send_status(message)
-        self.status.append((message.state, message.camera_errors, message.t_us))
+    def send(self, packet):
+        super().send(packet)
+        message = decoded(packet)
+        if packet.kind is MsgType.CONTACT:
+            self.contacts += 1
+            self.saturated_flags += bool(message.flags & 4)
+        elif packet.kind is MsgType.STATUS:
+            self.status.append((message.state, message.camera_errors, message.t_us))
 
 
 def _config(**overrides):
@@ -332,11 +334,11 @@ def test_a_pipeline_failure_is_counted_flagged_and_the_loop_goes_on(bundle):
     real = service.pipeline.process
     calls = [0]
 
-    def flaky(frame, t_ns, saturated=False, **kwargs):
+    def flaky(frame, t_ns):
         calls[0] += 1
         if 100 <= calls[0] < 103:
             raise IndexError("index 217 is out of bounds for axis 0 with size 217")
-        return real(frame, t_ns, saturated, **kwargs)
+        return real(frame, t_ns)
 
     service.pipeline.process = flaky
     stats = service.run(threading.Event(), duration_s=1.0)

@@ -7,6 +7,7 @@ import time
 
 import pytest
 from fakes.mcu import FakeMcu, wait_for
+from fakes.packing import send_message
 
 from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.messages import (
@@ -51,8 +52,8 @@ def test_loopback_contacts_and_status_round_trip():
         for i, m in enumerate(msgs):  # one link carries every sensor of a board: each message its own id
             m.sensor_id = 4 if i % 2 else 9
         for m in msgs:
-            tr.send_contact(m)
-        tr.send_status(StatusMessage(sensor_id=4, t_us=77, fps_x10=600, frames_dropped=2, link_errors=1,
+            send_message(tr, m)
+        send_message(tr, StatusMessage(sensor_id=4, t_us=77, fps_x10=600, frames_dropped=2, link_errors=1,
                                      cpu_temp_c_x10=451, calibration_id=0xABCD, state=3))
         assert wait_for(lambda: len(got) == 41)
         assert tr.counters.sent == 41 and tr.counters.send_errors == 0
@@ -113,7 +114,7 @@ def test_queue_overflow_drops_oldest_and_late_port(tmp_path, mcu):
         assert not tr.connected
         t0 = time.perf_counter()
         for i in range(20):
-            tr.send_contact(contact(i))  # no port: never blocks, never raises
+            send_message(tr, contact(i))  # no port: never blocks, never raises
         per_call = (time.perf_counter() - t0) / 20
         assert per_call < 0.005
         assert tr.writer.dropped == 12 and tr.counters.send_errors == 12 and tr.pending == 8
@@ -127,14 +128,14 @@ def test_queue_overflow_drops_oldest_and_late_port(tmp_path, mcu):
 
 def test_close_is_idempotent_and_fast(mcu):
     tr = SerialTransport(mcu.path)
-    tr.send_contact(contact(0))
+    send_message(tr, contact(0))
     t0 = time.perf_counter()
     tr.close()
     tr.close()
     assert time.perf_counter() - t0 < 0.5 and tr.closed
     assert not tr._io_thread.is_alive() and not tr._writer_thread.is_alive()
-    tr.send_contact(contact(1))  # after close: ignored, no exception
-    tr.send_status(StatusMessage())
+    send_message(tr, contact(1))  # after close: ignored, no exception
+    send_message(tr, StatusMessage())
     with SerialTransport("loop://") as tr2:
         pass
     assert tr2.closed
@@ -147,14 +148,14 @@ def test_port_vanishes_and_comes_back(tmp_path):
     tr = SerialTransport(str(link), timing=SerialTiming(backoff_min=0.02, backoff_max=0.1))
     second = None
     try:
-        tr.send_contact(contact(0))
+        send_message(tr, contact(0))
         assert len(first.read_until(lambda fr: len(fr) >= 1)) == 1
         first.close()  # unplugged
         link.unlink()
         assert wait_for(lambda: not tr.connected, 2.0)
         for i in range(1, 30):  # the frame loop goes on: no exception escapes
-            tr.send_contact(contact(i))
-            tr.send_status(StatusMessage(t_us=i))
+            send_message(tr, contact(i))
+            send_message(tr, StatusMessage(t_us=i))
         assert tr.pending <= 8 and tr.writer.dropped > 0
         time.sleep(0.3)  # several failed reopen attempts
         assert tr.counters.reconnects == 0
@@ -162,7 +163,7 @@ def test_port_vanishes_and_comes_back(tmp_path):
         os.symlink(second.path, link)
         assert wait_for(lambda: tr.connected, 3.0)
         assert tr.counters.reconnects == 1
-        tr.send_contact(contact(99))
+        send_message(tr, contact(99))
         frames = second.read_until(
             lambda fr: any(f.type == MsgType.CONTACT and decode_contact(f.payload).age_us == 1299
                            for f in fr))
@@ -198,7 +199,7 @@ def test_send_cost_and_throughput(mcu):
     with SerialTransport(mcu.path, queue_size=n) as tr:
         t0 = time.perf_counter()
         for i in range(n):
-            tr.send_contact(contact(i % 50))
+            send_message(tr, contact(i % 50))
         per_call_us = (time.perf_counter() - t0) / n * 1e6
         frames = mcu.read_until(lambda fr: len(fr) >= n, timeout=10)
         assert len(frames) == n and tr.writer.dropped == 0
@@ -214,7 +215,7 @@ def test_a_second_process_on_a_port_in_use_is_refused(mcu):
         for require_port in (True, False):
             with pytest.raises(TransportError, match="is in use by another process"):
                 SerialTransport(mcu.path, require_port=require_port)
-        first.send_contact(contact(1))
+        send_message(first, contact(1))
         assert len(mcu.read_until(lambda fr: len(fr) >= 1)) == 1  # the first one still streams
 
 
@@ -228,7 +229,7 @@ def test_the_frame_loop_writes_an_idle_line_itself(mcu):
     """Issue 15: a frame on an idle line is written by the caller (no writer-thread wake-up per frame)."""
     with SerialTransport(mcu.path) as tr:
         for i in range(50):
-            tr.send_contact(contact(i))
+            send_message(tr, contact(i))
             assert len(mcu.read_until(lambda fr, k=i: len(fr) > k)) == i + 1  # the MCU keeps up
         assert tr.writer.direct_writes == 50 and tr.writer.partial_writes == 0 and tr.counters.sent == 50
     assert [decode_contact(f.payload).age_us - 1200 for f in mcu.frames] == list(range(50))
@@ -242,7 +243,7 @@ def test_a_full_line_hands_over_to_the_writer_thread_in_order(mcu):
     n = 2000
     with SerialTransport(mcu.path, queue_size=n) as tr:
         for i in range(n):
-            tr.send_contact(contact(i % 50))
+            send_message(tr, contact(i % 50))
         frames = mcu.read_until(lambda fr: len(fr) >= n, timeout=10)
         assert 0 < tr.writer.direct_writes < n and tr.writer.partial_writes <= 1 and tr.writer.dropped == 0
     assert [f.seq for f in frames] == list(range(n))
@@ -255,11 +256,11 @@ def test_the_rest_of_a_frame_written_in_part_goes_out_before_the_next(mcu):
     with SerialTransport(mcu.path) as tr:
         real = tr.writer._os_write
         tr.writer._os_write = lambda fd, data: real(fd, data[:5])
-        tr.send_contact(contact(0))
+        send_message(tr, contact(0))
         tr.writer._os_write = real
         assert tr.writer.partial_writes == 1
         for i in range(1, 4):
-            tr.send_contact(contact(i))
+            send_message(tr, contact(i))
         frames = mcu.read_until(lambda fr: len(fr) >= 4)
         assert wait_for(lambda: tr.counters.sent == 4)
     assert [decode_contact(f.payload).age_us - 1200 for f in frames] == [0, 1, 2, 3]
@@ -269,7 +270,7 @@ def test_the_rest_of_a_frame_written_in_part_goes_out_before_the_next(mcu):
 def test_loop_url_has_no_descriptor_and_uses_the_writer_thread():
     got = []
     with SerialTransport("loop://", on_frame=got.append) as tr:
-        tr.send_contact(contact(0))
+        send_message(tr, contact(0))
         assert wait_for(lambda: len(got) == 1)
         assert tr.writer.direct_writes == 0 and tr.counters.sent == 1
 

@@ -6,9 +6,11 @@ import importlib
 import inspect
 
 import pytest
+from fakes.packing import decoded
 
 from optitac_edge.config import available_boards, load_board_config
 from optitac_edge.io.cameras import BACKENDS
+from optitac_edge.io.protocol.wire import MsgType
 from optitac_edge.service.wiring import camera_kwargs
 
 
@@ -168,7 +170,7 @@ def test_status_says_the_frame_rate_of_its_last_period_not_the_average_since_the
     config = load_board_config("sim", env={}, overrides={"status.period_s": 1.0})
     transport = open_transport("none")
     sent = []
-    transport.send_status = lambda m: sent.append((m.t_us, m.fps_x10 / 10))  # the message is reused
+    transport.send = lambda p: sent.append((p.t_us, decoded(p).fps_x10 / 10)) if p.kind is MsgType.STATUS else None
     service = Service(config, bundle, Queued(), transport, clock=clock)
     service.run(threading.Event(), duration_s=4.0)
     rates = [fps for _, fps in sent]

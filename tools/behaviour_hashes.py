@@ -76,7 +76,7 @@ def service_lines(cal: Path, demo: Path) -> list[str]:
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.cameras.base import Camera, CapturedFrame
     from optitac_edge.io.clock import VirtualClock
-    from optitac_edge.io.protocol import wire, wire_v2
+    from optitac_edge.io.protocol import wire
     from optitac_edge.io.protocol.messages import Command, CommandType
     from optitac_edge.io.publishers.base import Publisher
     from optitac_edge.io.recording import Recording
@@ -118,19 +118,20 @@ def service_lines(cal: Path, demo: Path) -> list[str]:
 
         def __init__(self, alongside: bool) -> None:
             super().__init__()
-            self.v2_alongside_v1, self.out, self.polls = alongside, [], 0
+            self.from_start = frozenset({1, 2}) if alongside else frozenset()
+            self.out, self.polls = [], 0
 
-        def send_contact(self, m: Any) -> None:
-            self.out.append(b"C" + wire.contact_payload(m) + m.t_us.to_bytes(8, "little"))
-
-        def send_contact_v2(self, m: Any) -> None:
-            self.out.append(b"D" + wire_v2.contact2_payload(m))
-
-        def send_release(self, m: Any) -> None:
-            self.out.append(b"R" + wire_v2.release_payload(m))
-
-        def send_status(self, m: Any) -> None:
-            self.out.append(b"S" + m.state.to_bytes(2, "little") + m.frames_dropped.to_bytes(4, "little"))
+        def send(self, packet: Any) -> None:  # packed by the serial packer, as the wire has them
+            payload, kind = packet.frames[0][1], packet.kind
+            if kind is wire.MsgType.CONTACT:
+                self.out.append(b"C" + payload + packet.t_us.to_bytes(8, "little"))
+            elif kind is wire.MsgType.CONTACT2:
+                self.out.append(b"D" + payload)
+            elif kind is wire.MsgType.RELEASE:
+                self.out.append(b"R" + payload)
+            elif kind is wire.MsgType.STATUS:
+                m = wire.decode_status(payload)
+                self.out.append(b"S" + m.state.to_bytes(2, "little") + m.frames_dropped.to_bytes(4, "little"))
 
         def poll_commands(self) -> list[Command]:
             self.polls += 1

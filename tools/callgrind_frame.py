@@ -57,7 +57,7 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
     from optitac_edge.core.pipeline import Pipeline, single_threaded_opencv
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.protocol.outbox import LinkState, SensorOutbox
-    from optitac_edge.io.protocol.wire import MsgType, contact_payload, encode_frame
+    from optitac_edge.io.protocol.wire import encode_frame
 
     bundle = load_bundle(bundle_path)
     frames = list(np.load(frames_path))
@@ -74,8 +74,8 @@ def driver(bundle_path: str, frames_path: str, rest: int, n: int, backend: str =
         result = pipe.process(frame, t_ns)
         if isinstance(result, Skip):  # dark or saturated: skipped
             return
-        for msg in outbox.update(result, link, True, t_ns):
-            encode_frame(MsgType.CONTACT, 0, int(msg.t_us), contact_payload(msg))  # type: ignore[arg-type]
+        for packet in outbox.update(result, link, True, t_ns):  # packed for a serial link, then framed
+            encode_frame(packet.kind, 0, packet.t_us, packet.frames[0][1])
 
     with single_threaded_opencv():
         for f in frames:

@@ -15,6 +15,7 @@ from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.io.cameras.base import CapturedFrame
 from optitac_edge.io.protocol.messages import StatusMessage
 from optitac_edge.io.protocol.outbox import SensorOutbox
+from optitac_edge.io.protocol.packet import Packer
 
 
 class SensorChannel:
@@ -30,9 +31,12 @@ class SensorChannel:
         Its calibration, placed in the camera's whole frame.
     fps : float, optional
         The camera's nominal frame rate (the pipeline's motion and vibration period).
+    packer : Packer, optional
+        The link's packer of this sensor's messages (``transport.packer(sensor_id)``; default serial).
     """
 
-    def __init__(self, sensor_id: int, name: str, bundle: CalibrationBundle, fps: float | None = None) -> None:
+    def __init__(self, sensor_id: int, name: str, bundle: CalibrationBundle, fps: float | None = None,
+                 packer: Packer | None = None) -> None:
         self.sensor_id = sensor_id
         self.name = name
         self.bundle = bundle
@@ -40,7 +44,7 @@ class SensorChannel:
         #: Some fiber of the bundle is dead (every message's DEGRADED flag).
         self.degraded = bool(bundle.fibers.dead.any())
         #: The messages of each frame to the MCU.
-        self.outbox = SensorOutbox(sensor_id, self.degraded)
+        self.outbox = SensorOutbox(sensor_id, self.degraded, packer)
         self.status = StatusMessage(sensor_id=sensor_id, calibration_id=int(bundle.calibration_id[:8] or "0", 16))
         #: Frames this sensor processed, and those with a contact.
         self.frames = 0

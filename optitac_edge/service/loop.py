@@ -109,7 +109,7 @@ class Service:
         self.transport = transport
         self.notifier = notifier or Notifier(env={})
         #: One per sensor the camera reads, in the board's order.
-        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.fps)
+        self.channels = [SensorChannel(sensor.id, sensor.name, b, camera.fps, transport.packer(sensor.id))
                          for sensor, b in sensors]
         #: The sensors' pipelines on the board's spare cores (``workers``: how many threads; None: one per
         #: sensor beyond the first, as many as the cores beyond two).
@@ -127,7 +127,7 @@ class Service:
         self.network: NetworkOutput | None = None
         #: Protocol, streaming and rate divider, as the MCU's commands set them.
         self.link = LinkState(rate_divider=config.link.rate_divider, delivers=transport.delivers,
-                              v2_alongside_v1=transport.v2_alongside_v1, v3_alongside=transport.motion_alongside)
+                              from_start=transport.from_start)
         self._inbox: deque[Command] = deque()
         #: Every sensor's STATUS (``status.calibration_unsaved``: the bundle could not be saved, bit5).
         self.status = StatusReporter(self.channels, self.stats, self.link, transport, config.status.period_s)
@@ -344,8 +344,8 @@ class Service:
         if self.network is not None:
             self.network.offer_frame(ch.sensor_id, result, ch.degraded, ch.pipeline.signal, captured.frame,
                                      ch.pipeline.surface)
-        for message in ch.outbox.update(result, self.link, send, self.clock.monotonic_ns()):
-            self.transport.send(message)
+        for packet in ch.outbox.update(result, self.link, send, self.clock.monotonic_ns()):
+            self.transport.send(packet)
 
     def _count(self, ch: SensorChannel, result: FrameResult) -> None:
         """The sensor's counters and flags from its frame (and a log line on the first and every 100th event)."""

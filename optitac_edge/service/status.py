@@ -78,7 +78,9 @@ class StatusReporter:
         for k, ch in enumerate(self.channels):
             state = self.state(k, camera_open)
             status = self.message(now_ns, k, camera_open, state)
-            self.transport.send_status(status)
+            packet = ch.outbox.status(status)
+            if packet is not None:
+                self.transport.send(packet)
             if network is not None:
                 network.offer_status(ch.sensor_id, status, state, ch.frames, ch.contacts, self.stats.recent_fps,
                                      self.link.protocol)

@@ -1,11 +1,15 @@
-"""The messages one sensor's frame sends to the MCU: a pure function of the frame and the link.
+"""The messages one sensor's frame sends to the MCU, packed for its link.
 
-As opendbc's ``CarController.update(CC, CS, now_nanos)`` returns the frames to
-send and leaves the sending to its caller, :meth:`SensorOutbox.update` takes a
-:class:`~optitac_edge.core.frame_result.FrameResult`, the :class:`LinkState`
-(protocol version, streaming, rate divider) and ``now_ns`` and returns the
-messages; the frame loop only hands them to the transport. No I/O, no clock,
-no logging: the property tests drive it alone.
+As opendbc's ``CarController.update(CC, CS, now_nanos)`` returns the packed
+frames to send and leaves the sending to its caller, :meth:`SensorOutbox.update`
+takes a :class:`~optitac_edge.core.frame_result.FrameResult`, the
+:class:`LinkState` (protocol version, streaming, rate divider) and ``now_ns``
+and returns the :class:`~optitac_edge.io.protocol.packet.Packet` of each
+message, packed by the link's packer; the frame loop only hands them to the
+transport's one ``send``. :meth:`SensorOutbox.messages` is the same frame's
+messages before packing: a function of the frame, the link and what the MCU
+was told (no I/O, no clock): the property tests drive it alone. The packer may
+keep state of its own (CAN's rolling counters).
 
 Per sent frame, in this order:
 
@@ -19,12 +23,22 @@ Per sent frame, in this order:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.options import MAX_CONTACTS
 from optitac_edge.io.protocol.announce import ContactAnnouncer
-from optitac_edge.io.protocol.messages import ContactMessage, ContactV2Message, MotionMessage, ReleaseMessage
+from optitac_edge.io.protocol.messages import (
+    ContactMessage,
+    ContactV2Message,
+    MotionMessage,
+    ReleaseMessage,
+    StatusMessage,
+)
+from optitac_edge.io.protocol.packet import Packer, Packet
+from optitac_edge.io.protocol.serial_packer import SerialPacker
 
 #: A message of a sensor's frame to the MCU.
 OutMessage = ContactMessage | ContactV2Message | ReleaseMessage | MotionMessage
@@ -38,10 +52,10 @@ class LinkState:
     ----------
     protocol : int
         The version the MCU asked for with SET_PROTOCOL (1 until it does; 3 is v2 with MOTION).
-    v2_alongside_v1 : bool
-        v2's messages go out beside v1's from the start (CAN with ``link.can_protocol = 2``).
-    v3_alongside : bool
-        And v3's MOTION after each CONTACT2 (CAN with ``link.can_protocol = 3``).
+    from_start : frozenset of int
+        The versions whose messages go out whatever the MCU asked (the transport's
+        :attr:`~optitac_edge.io.transports.base.Transport.from_start`: CAN with ``link.can_protocol = 2``
+        sends v2's beside v1's, with 3 also v3's MOTION).
     streaming : bool
         STREAM on (the default) or off.
     rate_divider : int
@@ -51,11 +65,18 @@ class LinkState:
     """
 
     protocol: int = 1
-    v2_alongside_v1: bool = False
-    v3_alongside: bool = False
+    from_start: frozenset[int] = frozenset()
     streaming: bool = True
     rate_divider: int = 1
     delivers: bool = True
+
+    def carries(self, version: int) -> bool:
+        """A sent frame carries protocol ``version``'s messages: the MCU asked for it, it goes out from the
+        start, or it is 2 and 3 does (3 is v2 with MOTION)."""
+        start, protocol = self.from_start, self.protocol
+        if version == 2 and (protocol == 3 or 3 in start):
+            return True
+        return protocol == version or version in start
 
     def due(self, frame_number: int) -> bool:
         """The camera frame that will be the ``frame_number``-th processed (from 1) is sent to the MCU."""
@@ -63,7 +84,7 @@ class LinkState:
 
 
 class SensorOutbox:
-    """One sensor's messages to the MCU, filled in place (no allocation per frame beyond the releases).
+    """One sensor's messages to the MCU, filled in place, and packed for its link.
 
     Parameters
     ----------
@@ -71,9 +92,12 @@ class SensorOutbox:
         0..255, in every message.
     degraded : bool
         The sensor has dead fibers (every message's DEGRADED flag).
+    packer : Packer, optional
+        The link's packer of this sensor's messages (``transport.packer(sensor_id)``; default the serial
+        wire format).
     """
 
-    def __init__(self, sensor_id: int, degraded: bool = False) -> None:
+    def __init__(self, sensor_id: int, degraded: bool = False, packer: Packer | None = None) -> None:
         self.sensor_id = sensor_id
         self.degraded = degraded
         self.contact = ContactMessage(sensor_id=sensor_id)
@@ -83,12 +107,40 @@ class SensorOutbox:
         #: What the MCU was told (protocol v2's touches and releases).
         self.announcer = ContactAnnouncer()
         self._out: list[OutMessage] = []
+        self._packets: list[Packet] = []
+        self.packer: Packer = SerialPacker() if packer is None else packer
+        p = self.packer
+        self._pack: dict[type, Callable[[Any], Packet | None]] = {
+            ContactMessage: p.contact, ContactV2Message: p.contact2, ReleaseMessage: p.release,
+            MotionMessage: p.motion}
 
     def new_session(self) -> None:
         """The MCU switched protocol: every contact is news to it."""
         self.announcer.reset()
 
-    def update(self, result: FrameResult, link: LinkState, send: bool, now_ns: int) -> list[OutMessage]:
+    def update(self, result: FrameResult, link: LinkState, send: bool, now_ns: int) -> list[Packet]:
+        """The packets of one processed frame of this sensor (its :meth:`messages`, packed in order; a
+        message its link does not carry, such as CAN's CONTACT2 without contact, has none).
+
+        Returns
+        -------
+        list of Packet
+            Reused: valid until the next call. Empty when ``send`` is False.
+        """
+        packets = self._packets
+        packets.clear()
+        pack = self._pack
+        for message in self.messages(result, link, send, now_ns):
+            packet = pack[type(message)](message)
+            if packet is not None:
+                packets.append(packet)
+        return packets
+
+    def status(self, message: StatusMessage) -> Packet | None:
+        """The sensor's STATUS, packed for its link."""
+        return self.packer.status(message)
+
+    def messages(self, result: FrameResult, link: LinkState, send: bool, now_ns: int) -> list[OutMessage]:
         """The messages of one processed frame of this sensor.
 
         Parameters
@@ -109,16 +161,15 @@ class SensorOutbox:
         """
         out = self._out
         out.clear()
-        protocol, alongside = link.protocol, link.v2_alongside_v1
-        v3 = protocol == 3 or link.v3_alongside
-        v2 = protocol >= 2 or alongside or v3
+        carries = link.carries
+        v2, v3 = carries(2), carries(3)
         if v2:
             self.announcer.observe(result)
         if not send:
             return out
         est = result.primary
         t_ns, calibrated, saturated, degraded = est.t_ns, result.calibrated, result.saturated, self.degraded
-        if protocol == 1 or alongside:
+        if carries(1):
             out.append(self.contact.fill(est, t_ns, now_ns, calibrated, saturated, degraded))
         if v2:
             announcer = self.announcer

@@ -1,4 +1,4 @@
-"""The transport interface every link to the MCU implements."""
+"""The transport interface every link to the MCU implements: one :meth:`Transport.send` of a packed message."""
 
 from __future__ import annotations
 
@@ -8,14 +8,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from optitac_edge.io.device import Device
-from optitac_edge.io.protocol.messages import (
-    Command,
-    ContactMessage,
-    ContactV2Message,
-    MotionMessage,
-    ReleaseMessage,
-    StatusMessage,
-)
+from optitac_edge.io.protocol.messages import Command
+from optitac_edge.io.protocol.packet import Packer, Packet
+from optitac_edge.io.protocol.serial_packer import SerialPacker
 
 
 @dataclass
@@ -23,27 +18,31 @@ class TransportCounters:
     """What a link counts; bad data is counted, never trusted."""
 
     sent: int = 0
-    send_errors: int = 0  # write failures, bus-off, ENOBUFS, queue overflow drops
+    send_errors: int = 0  # write failures, bus-off, ENOBUFS, queue overflow drops, messages not encodable
     received: int = 0  # valid incoming frames
     rx_errors: int = 0  # bad COBS, CRC, length, version, unknown or out-of-range commands
     reconnects: int = 0
 
+    def send_error(self) -> None:
+        """One more send error (a packer's callback for a message it could not encode)."""
+        self.send_errors += 1
+
 
 class Transport(Device, ABC):
-    """A link to the gripper MCU. Never raises on a send: failures are counted.
+    """A link to the gripper MCU: it ships the packets its own :meth:`packer` made (the outbox packs each
+    sensor's messages where they are made). Never raises on a send: failures are counted.
 
     Use as a context manager; :meth:`close` is idempotent.
     """
 
     #: Messages go somewhere (False for :class:`NullTransport`, ``run`` without a link).
     delivers: bool = True
-    #: The protocol versions the link can speak (the MCU switches with SET_PROTOCOL).
+    #: The protocol versions the MCU may switch the link to (SET_PROTOCOL).
     protocols: tuple[int, ...] = (1,)
-    #: Protocol v2's messages go out on their own ids beside v1's, from the start (CAN with
-    #: ``link.can_protocol = 2``: the MCU cannot ask, and a v1 MCU filters the new ids out).
-    v2_alongside_v1: bool = False
-    #: Protocol v3's MOTION goes out beside v2's from the start (CAN with ``link.can_protocol = 3``).
-    motion_alongside: bool = False
+    #: The versions whose messages go out from the start whatever the MCU asked (CAN with
+    #: ``link.can_protocol = 2``: {1, 2}; 3: {1, 2, 3}; the MCU cannot ask, and a v1 MCU filters the new ids
+    #: out). Empty: only the version the MCU asked for (1 until it asks).
+    from_start: frozenset[int] = frozenset()
 
     def __init__(self) -> None:
         self.counters = TransportCounters()
@@ -55,39 +54,14 @@ class Transport(Device, ABC):
         ``sensor_ids``. The default takes no keys."""
         return cls()
 
-    @abstractmethod
-    def send_contact(self, message: ContactMessage) -> None:
-        """Queue one CONTACT (non-blocking)."""
+    def packer(self, sensor_id: int) -> Packer:
+        """What packs ``sensor_id``'s messages for this link (the serial wire format by default; a message
+        that cannot be encoded is a send error here)."""
+        return SerialPacker(self.counters.send_error)
 
     @abstractmethod
-    def send_status(self, message: StatusMessage) -> None:
-        """Queue one STATUS (non-blocking)."""
-
-    def send_contact_v2(self, message: ContactV2Message) -> None:
-        """Queue one CONTACT2 (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`
-        or :attr:`v2_alongside_v1`."""
-        raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
-
-    def send_release(self, message: ReleaseMessage) -> None:
-        """Queue one RELEASE (protocol v2, non-blocking); only called when 2 is in :attr:`protocols`
-        or :attr:`v2_alongside_v1`."""
-        raise NotImplementedError(f"{type(self).__name__} does not speak protocol v2")
-
-    def send_motion(self, message: MotionMessage) -> None:
-        """Queue one MOTION (protocol v3, non-blocking); only called when 3 is in :attr:`protocols` or
-        :attr:`motion_alongside`."""
-        raise NotImplementedError(f"{type(self).__name__} does not speak protocol v3")
-
-    def send(self, message: ContactMessage | ContactV2Message | ReleaseMessage | MotionMessage) -> None:
-        """Queue one message of a sensor's frame (the outbox's), by its kind (non-blocking)."""
-        if isinstance(message, ContactV2Message):
-            self.send_contact_v2(message)
-        elif isinstance(message, MotionMessage):
-            self.send_motion(message)
-        elif isinstance(message, ContactMessage):
-            self.send_contact(message)
-        else:
-            self.send_release(message)
+    def send(self, packet: Packet) -> None:
+        """Queue one packed message (non-blocking, never raising: failures are counted)."""
 
     def poll_commands(self) -> list[Command]:
         """Commands received since the last call (validated; bad ones already answered and counted)."""
@@ -100,17 +74,5 @@ class NullTransport(Transport):
     delivers = False
     protocols = (1, 2, 3)
 
-    def send_contact(self, message: ContactMessage) -> None:
-        self.counters.sent += 1
-
-    def send_contact_v2(self, message: ContactV2Message) -> None:
-        self.counters.sent += 1
-
-    def send_release(self, message: ReleaseMessage) -> None:
-        self.counters.sent += 1
-
-    def send_motion(self, message: MotionMessage) -> None:
-        self.counters.sent += 1
-
-    def send_status(self, message: StatusMessage) -> None:
+    def send(self, packet: Packet) -> None:
         self.counters.sent += 1

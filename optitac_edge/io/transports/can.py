@@ -3,7 +3,9 @@
 Every processed frame becomes two 8-byte frames, CONTACT_A and CONTACT_B, with
 the same 4-bit rolling counter; STATUS has a counter of its own. Identifiers are
 ``base_id + 0x10 * sensor_id`` (+0 A, +1 B, +2 STATUS); one link carries every
-sensor of a board, each on its own identifiers. See docs/can.md.
+sensor of a board, each on its own identifiers. Each sensor's outbox packs its
+frames (:meth:`CanTransport.packer`, :class:`~optitac_edge.io.protocol.can_packer.CanPacker`);
+the transport sends them. See docs/can.md.
 
 A send never blocks and never raises: ``bus.send(..., timeout=0)``; a full
 transmit queue (ENOBUFS), bus-off or any other CAN/OS error is counted in
@@ -27,14 +29,9 @@ import can
 
 from optitac_edge.errors import TransportError
 from optitac_edge.io.backoff import Backoff
-from optitac_edge.io.protocol.can_codec import BASE_ID, COUNTER_MODULO, CanCodec, message_ids
-from optitac_edge.io.protocol.messages import (
-    ContactMessage,
-    ContactV2Message,
-    MotionMessage,
-    ReleaseMessage,
-    StatusMessage,
-)
+from optitac_edge.io.protocol.can_codec import BASE_ID, CanCodec, message_ids
+from optitac_edge.io.protocol.can_packer import CanPacker
+from optitac_edge.io.protocol.packet import Packet
 from optitac_edge.io.transports.base import Transport
 
 log = logging.getLogger(__name__)
@@ -57,7 +54,6 @@ class CanStats:
     link_down: int = 0  # times the bus was declared down and closed
     dropped_link_down: int = 0  # frames dropped while the bus was closed
     open_failures: int = 0  # failed reopen attempts
-    unknown_sensor: int = 0  # messages of a sensor the link does not carry (dropped)
 
 
 def _errno_of(exc: BaseException) -> int | None:
@@ -68,16 +64,6 @@ def _errno_of(exc: BaseException) -> int | None:
     if code is None and isinstance(exc.__cause__, OSError):
         code = exc.__cause__.errno
     return code if isinstance(code, int) else None
-
-
-@dataclass
-class _Lane:
-    """One sensor on the bus: its identifiers and rolling counters."""
-
-    ids: dict[str, int]
-    contact_counter: int = 0
-    frame_counter: int = 0  # the counter of the last CONTACT pair: v2 frames of that frame carry it
-    status_counter: int = 0
 
 
 class CanTransport(Transport):
@@ -126,12 +112,13 @@ class CanTransport(Transport):
         self.codec = CanCodec(sensor_ids[0], dbc_path, base_id, protocol=protocol)
         #: Protocol 2: CONTACT2 and RELEASE frames on their own ids besides the v1 frames (a v1 MCU
         #: filters them out and never notices); 3: and a MOTION after each contact's CONTACT2 parts.
-        self.v2_alongside_v1 = protocol >= 2
-        self.motion_alongside = protocol == 3
-        #: Each sensor's identifiers and rolling counters.
-        self.lanes = {sid: _Lane(message_ids(sid, self.codec.base_id)) for sid in sensor_ids}
+        self.from_start = frozenset(range(1, protocol + 1)) if protocol >= 2 else frozenset()
+        #: The sensors the link carries.
+        self.sensor_ids = tuple(sensor_ids)
+        #: Each sensor's identifiers.
+        self.sensor_can_ids = {sid: message_ids(sid, self.codec.base_id) for sid in sensor_ids}
         #: The first sensor's identifiers.
-        self.ids = self.lanes[sensor_ids[0]].ids
+        self.ids = self.sensor_can_ids[sensor_ids[0]]
         self.channel, self.interface, self.bitrate = channel, interface, bitrate
         self.stats = CanStats()
         self._bus_kwargs = dict(bus_kwargs or {})
@@ -146,9 +133,9 @@ class CanTransport(Transport):
             self._bus: Any = self._open_bus()
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise TransportError(f"cannot open CAN {interface} channel {channel!r}: {exc}") from exc
-        for sid, lane in self.lanes.items():
+        for sid, ids in self.sensor_can_ids.items():
             log.info("CAN %s/%s open: sensor %d, ids %s", interface, channel, sid,
-                     ", ".join(f"{k}={v:#x}" for k, v in lane.ids.items()))
+                     ", ".join(f"{k}={v:#x}" for k, v in ids.items()))
 
     # -- bus handling -------------------------------------------------------------------------
 
@@ -214,16 +201,6 @@ class CanTransport(Transport):
 
     # -- sending ------------------------------------------------------------------------------
 
-    def _lane(self, sensor_id: int) -> _Lane | None:
-        lane = self.lanes.get(sensor_id)
-        if lane is None:
-            self.counters.send_errors += 1
-            self.stats.unknown_sensor += 1
-            if self.stats.unknown_sensor == 1:
-                log.error("CAN: a message of sensor %d, which this link does not carry (%s): dropped, counting",
-                          sensor_id, ", ".join(map(str, self.lanes)))
-        return lane
-
     def _send(self, arbitration_id: int, payload: bytes) -> bool:
         """Send one frame without blocking; count and drop on any failure."""
         bus = self._bus
@@ -255,60 +232,29 @@ class CanTransport(Transport):
         self._backoff.reset()
         return True
 
-    def send_contact(self, message: ContactMessage) -> None:
-        """Send CONTACT_A then CONTACT_B of the message's sensor with the same rolling counter.
+    def packer(self, sensor_id: int) -> CanPacker:
+        """``sensor_id``'s frames on its identifiers with its rolling counters (the DBC through cantools).
 
-        If CONTACT_A fails, CONTACT_B is not attempted (an unpaired half is useless) and
-        both count as send errors. The counter advances even for dropped frames, so the
-        MCU sees the gap.
+        Raises
+        ------
+        TransportError
+            If the link does not carry ``sensor_id``.
         """
-        with self._send_lock:
-            lane = self._lane(message.sensor_id)
-            if lane is None:
-                return
-            counter = lane.frame_counter = lane.contact_counter
-            lane.contact_counter = (counter + 1) % COUNTER_MODULO
-            payload_a, payload_b = self.codec.contact_payloads(message, counter)
-            if self._send(lane.ids["CONTACT_A"], payload_a):
-                self._send(lane.ids["CONTACT_B"], payload_b)
-            else:
-                self.counters.send_errors += 1  # CONTACT_B, not attempted
+        if sensor_id not in self.sensor_ids:
+            raise TransportError(f"the CAN link carries sensors {', '.join(map(str, self.sensor_ids))}, "
+                                 f"not {sensor_id}")
+        return CanPacker(self.codec, sensor_id)
 
-    def send_contact_v2(self, message: ContactV2Message) -> None:
-        """Protocol v2 (``protocol=2``): the three CONTACT2 parts of one contact, with the counter of the
-        frame's CONTACT pair (sent first); a message without contact sends nothing (the pair says so)."""
-        if message.n_contacts == 0:
-            return
+    def send(self, packet: Packet) -> None:
+        """Send the packet's frames in turn without blocking. A frame after one that failed is not attempted
+        (CONTACT_B without its CONTACT_A, a CONTACT2 part without the others, are useless) and counts as a
+        send error too."""
+        frames = packet.frames
         with self._send_lock:
-            lane = self._lane(message.sensor_id)
-            if lane is None:
-                return
-            for payload in self.codec.contact2_payloads(message, lane.frame_counter):
-                if not self._send(lane.ids["CONTACT2"], payload):
-                    break
-
-    def send_motion(self, message: MotionMessage) -> None:
-        """Protocol v3 (``protocol=3``): one contact's MOTION, with the counter of the frame's CONTACT pair."""
-        with self._send_lock:
-            lane = self._lane(message.sensor_id)
-            if lane is not None:
-                self._send(lane.ids["MOTION"], self.codec.motion_payload(message, lane.frame_counter))
-
-    def send_release(self, message: ReleaseMessage) -> None:
-        """Protocol v2: a RELEASE with the counter of the frame's CONTACT pair."""
-        with self._send_lock:
-            lane = self._lane(message.sensor_id)
-            if lane is not None:
-                self._send(lane.ids["RELEASE"], self.codec.release_payload(message.contact_id, lane.frame_counter))
-
-    def send_status(self, message: StatusMessage) -> None:
-        with self._send_lock:
-            lane = self._lane(message.sensor_id)
-            if lane is None:
-                return
-            counter = lane.status_counter
-            lane.status_counter = (counter + 1) % COUNTER_MODULO
-            self._send(lane.ids["STATUS"], self.codec.status_payload(message, counter))
+            for k, (arbitration_id, data) in enumerate(frames):
+                if not self._send(arbitration_id, data):
+                    self.counters.send_errors += len(frames) - k - 1
+                    return
 
     def _close_internal(self) -> None:
         self._stop.set()

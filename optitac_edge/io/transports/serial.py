@@ -25,16 +25,9 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from optitac_edge.errors import TransportError
-from optitac_edge.io.protocol import wire, wire_v2
-from optitac_edge.io.protocol.messages import (
-    Command,
-    ContactMessage,
-    ContactV2Message,
-    MotionMessage,
-    ReleaseMessage,
-    StatusMessage,
-)
-from optitac_edge.io.protocol.wire import Frame, MsgType
+from optitac_edge.io.protocol.messages import Command
+from optitac_edge.io.protocol.packet import Packet
+from optitac_edge.io.protocol.wire import Frame
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.io.transports.serial_port import PortKeeper, SerialTiming
 from optitac_edge.io.transports.serial_reader import CommandReader
@@ -124,36 +117,10 @@ class SerialTransport(Transport):
 
     # -- Transport API (frame loop side) --------------------------------------------------
 
-    def send_contact(self, message: ContactMessage) -> None:
-        """Queue one CONTACT; never blocks, never raises (drops are counted)."""
-        self._send(MsgType.CONTACT, message, wire.contact_payload)
-
-    def send_contact_v2(self, message: ContactV2Message) -> None:
-        """Queue one CONTACT2 (protocol v2); never blocks, never raises (drops are counted)."""
-        self._send(MsgType.CONTACT2, message, wire_v2.contact2_payload)
-
-    def send_release(self, message: ReleaseMessage) -> None:
-        """Queue one RELEASE (protocol v2); never blocks, never raises."""
-        self._send(MsgType.RELEASE, message, wire_v2.release_payload)
-
-    def send_motion(self, message: MotionMessage) -> None:
-        """Queue one MOTION (protocol v3); never blocks, never raises."""
-        self._send(MsgType.MOTION, message, wire_v2.motion_payload)
-
-    def send_status(self, message: StatusMessage) -> None:
-        """Queue one STATUS; never blocks, never raises."""
-        self._send(MsgType.STATUS, message, wire.status_payload)
-
-    def _send(self, msg_type: MsgType, message: Any, payload_of: Callable[[Any], bytes]) -> None:
-        """Encode ``message`` (with its own sensor id: one link carries every sensor of a board) and queue
-        (or write) it; a message that cannot be encoded is logged and counted, never raised to the frame loop."""
-        if self._closed:
-            return
-        try:
-            self.writer.enqueue(msg_type, int(message.t_us), payload_of(message))
-        except Exception:
-            log.exception("%s not encodable", msg_type.name)
-            self.counters.send_errors += 1
+    def send(self, packet: Packet) -> None:
+        """Queue (or write) one packed message; never blocks, never raises (drops are counted)."""
+        if not self._closed:
+            self.writer.enqueue(packet.kind, packet.t_us, packet.frames[0][1])
 
     def poll_commands(self) -> list[Command]:
         """Validated commands received since the last call, oldest first (already ACKed)."""
