@@ -333,7 +333,7 @@ def _open(config: Any, chosen: Any, cal_path: Path | None, recording: str | os.P
           stack: ExitStack) -> Sensor:
     """The LED ring, the camera (or the recording) and the bundle of ``chosen``, closed with ``stack``."""
     from optitac_edge.io.bundle_file import load_bundle
-    from optitac_edge.service.bundles import check_bundle_region, obtain_bundles
+    from optitac_edge.service.bundles import obtain_bundles
     from optitac_edge.service.wiring import open_board_camera, open_led
 
     led = open_led(config.led)
@@ -347,7 +347,7 @@ def _open(config: Any, chosen: Any, cal_path: Path | None, recording: str | os.P
     else:
         camera = stack.enter_context(open_board_camera(config, camera_name))
     if cal_path is not None:
-        bundle = check_bundle_region(load_bundle(cal_path), chosen, cal_path)
+        bundle = chosen.check_bundle(load_bundle(cal_path), cal_path)
         t = bundle.fibers
         if (t.height, t.width) != tuple(camera.frame_shape[:2]):
             raise OptiTacError(f"{cal_path}: calibrated on {t.width}x{t.height} frames, the camera gives "

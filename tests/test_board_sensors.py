@@ -20,7 +20,6 @@ from optitac_edge.io.protocol.messages import CommandType, ContactFlags
 from optitac_edge.io.protocol.wire import MsgType, decode_contact, decode_status, encode_command
 from optitac_edge.io.protocol.wire_v2 import decode_contact2
 from optitac_edge.io.transports.base import NullTransport
-from optitac_edge.service.bundles import check_bundle_region
 from optitac_edge.service.loop import Service
 from optitac_edge.sim.patches import PatchFrames, PatchPlacement
 from optitac_edge.sim.scenarios import write_scenario
@@ -153,13 +152,13 @@ def test_a_bundle_built_for_another_region_is_refused_naming_the_sensor(tmp_path
     _, _, bundles = fingers
     config = load_board_config(_board(tmp_path), env={})
     thumb, index, palm = config.sensors
-    assert check_bundle_region(bundles[0], thumb, "thumb.npz") is bundles[0]
+    assert thumb.check_bundle(bundles[0], "thumb.npz") is bundles[0]
     with pytest.raises(BundleError, match=r"^index.npz: sensor 2 'index': the bundle was built for region "
                                           r"\[0, 20, 440, 360\], the board puts the sensor in region "
                                           r"\[500, 30, 440, 360\] \(calibrate it with --sensor 2\)"):
-        check_bundle_region(bundles[0], index, "index.npz")
+        index.check_bundle(bundles[0], "index.npz")
     with pytest.raises(BundleError, match="built for region .* puts the sensor in the whole frame"):
-        check_bundle_region(bundles[0], palm, "palm.npz")
+        palm.check_bundle(bundles[0], "palm.npz")
 
 
 # -- one frame loop, every sensor of the camera -----------------------------------------------------
@@ -334,7 +333,7 @@ def test_calibrate_with_sensor_crops_its_region_and_places_the_bundle(tmp_path, 
     from optitac_edge.io.bundle_file import load_bundle
 
     bundle = load_bundle(out)
-    assert check_bundle_region(bundle, board.for_sensor(2).sensors[0], out) is bundle
+    assert board.for_sensor(2).sensors[0].check_bundle(bundle, out) is bundle
     assert (bundle.fibers.width, bundle.fibers.height) == (960, 400)
     # a step on another sensor's bundle is refused; --sensor without --board too
     assert main(["calibrate", "centroid", str(tmp_path / "rest"), "--board", "sim-hand", "--sensor", "1",

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.config.sections import (
     _SECTIONS,
@@ -22,7 +23,11 @@ from optitac_edge.config.sections import (
     StatusConfig,
     WatchdogConfig,
 )
+from optitac_edge.core.region import Region
 from optitac_edge.errors import ConfigError
+
+if TYPE_CHECKING:
+    from optitac_edge.core.bundle import CalibrationBundle
 
 
 @dataclass(frozen=True)
@@ -36,6 +41,18 @@ class BoardSensor:
     def label(self) -> str:
         """How errors and logs name it: ``sensor 2 'palm'``."""
         return f"sensor {self.sensor.id} {self.sensor.name!r}"
+
+    @property
+    def region(self) -> Region | None:
+        """Where the board puts it in its camera's frame (None: the whole frame)."""
+        return Region(*self.sensor.region) if self.sensor.region else None
+
+    def check_bundle(self, bundle: CalibrationBundle, path: Path | str) -> CalibrationBundle:
+        """``bundle`` (read from ``path``), when it was placed where the board puts this sensor
+        (:func:`~optitac_edge.calibration.sensor.check_region`: a :class:`BundleError` otherwise)."""
+        from optitac_edge.calibration.sensor import check_region
+
+        return check_region(bundle, self.region, f"{path}: {self.label}", self.sensor.id)
 
 
 @dataclass(frozen=True)

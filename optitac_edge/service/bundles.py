@@ -21,7 +21,6 @@ import numpy as np
 from optitac_edge.config import BoardConfig, BoardSensor
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.fiber_table import FiberTable
-from optitac_edge.core.region import Region, bundle_region
 from optitac_edge.errors import BundleError, CameraError, ConfigError, OptiTacError, OutputError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.io.cameras.base import Camera
@@ -38,31 +37,6 @@ class SensorBundle:
     sensor: BoardSensor
     bundle: CalibrationBundle
     unsaved: str | None = None
-
-
-def _describe(region: Region | None) -> str:
-    if region is None:
-        return "the whole frame"
-    return f"region [{region.x}, {region.y}, {region.width}, {region.height}]"
-
-
-def check_bundle_region(bundle: CalibrationBundle, sensor: BoardSensor, path: Path | str) -> CalibrationBundle:
-    """``bundle``, when it was placed where the board puts ``sensor``.
-
-    Raises
-    ------
-    BundleError
-        One line naming the file and the sensor: the bundle was built for another region.
-    """
-    want = Region(*sensor.sensor.region) if sensor.sensor.region else None
-    try:
-        got = bundle_region(bundle)
-    except (TypeError, ValueError) as exc:
-        raise BundleError(f"{path}: {sensor.label}: the bundle's region is not valid ({exc})") from None
-    if got != want:
-        raise BundleError(f"{path}: {sensor.label}: the bundle was built for {_describe(got)}, the board puts the "
-                          f"sensor in {_describe(want)} (calibrate it with --sensor {sensor.sensor.id})")
-    return bundle
 
 
 def obtain_bundles(config: BoardConfig, camera_name: str, camera: Camera, cal_path: Path | None = None,
@@ -85,7 +59,7 @@ def obtain_bundles(config: BoardConfig, camera_name: str, camera: Camera, cal_pa
     for sensor in sensors:
         path = cal_path if cal_path is not None else sensor.calibration.bundle_path
         if path is not None and Path(path).exists():
-            out.append(SensorBundle(sensor, check_bundle_region(load_bundle(path), sensor, path)))
+            out.append(SensorBundle(sensor, sensor.check_bundle(load_bundle(path), path)))
             continue
         if path is not None and cal_path is not None:
             raise BundleError(f"{path}: calibration bundle not found")
@@ -94,7 +68,7 @@ def obtain_bundles(config: BoardConfig, camera_name: str, camera: Camera, cal_pa
             raise OptiTacError(f"{who}no calibration bundle at {path} and calibration.if_missing = 'fail'")
         if rest is None:
             rest = read_rest_frames(config, camera, led)
-        bundle = calibrate_sensor(sensor, rest, camera.pixel_format)
+        bundle = _calibrate(sensor, rest, camera.pixel_format)
         out.append(SensorBundle(sensor, *_save(bundle, path, sensor)))
     return out
 
@@ -145,28 +119,26 @@ def read_rest_frames(config: BoardConfig, camera: Camera, led: LedRing | NoLed |
     return frames
 
 
-def calibrate_sensor(sensor: BoardSensor, rest: list[np.ndarray], pixel_format: str) -> CalibrationBundle:
-    """The fiber map of ``sensor`` from its camera's rest frames: of its region's crop, placed in the frame
-    (or of the whole frame when it has no region)."""
-    from optitac_edge.calibration.fibers import calibrate_fibers
-    from optitac_edge.calibration.region import calibrate_region
+def _calibrate(sensor: BoardSensor, rest: list[np.ndarray], pixel_format: str) -> CalibrationBundle:
+    """The fiber map of ``sensor`` from its camera's rest frames, as its board config says
+    (:func:`~optitac_edge.calibration.sensor.calibrate_sensor`)."""
+    from optitac_edge.calibration.sensor import calibrate_sensor
 
     cal = sensor.calibration
     layout = load_layout_csv(cal.layout_path) if cal.layout_path is not None else None
-    if sensor.sensor.region:
-        return calibrate_region(rest, pixel_format, Region(*sensor.sensor.region), layout=layout,
-                                rotation_hint_deg=cal.rotation_deg, mirror=cal.mirror)
-    return calibrate_fibers(rest, pixel_format, layout=layout, rotation_hint_deg=cal.rotation_deg, mirror=cal.mirror)
+    return calibrate_sensor(rest, pixel_format, sensor.region, layout=layout, rotation_hint_deg=cal.rotation_deg,
+                            mirror=cal.mirror)
 
 
 def fiber_finder(config: BoardConfig) -> Callable[[np.ndarray, str], FiberTable]:
     """How a recording of the board's only (or selected) sensor finds its fibers in its rest frames, to keep
-    each fiber's light (``--storage fibers``): as :func:`calibrate_sensor` does, so a bundle calibrated from
-    the recording's rest frames has the very pixel groups the recording kept."""
+    each fiber's light (``--storage fibers``): as :func:`~optitac_edge.calibration.sensor.calibrate_sensor`
+    does, so a bundle calibrated from the recording's rest frames has the very pixel groups the recording
+    kept."""
     sensor = config.for_sensor(config.selected).sensors[0]
 
     def find(rest: np.ndarray, pixel_format: str) -> FiberTable:
-        return calibrate_sensor(sensor, list(rest), pixel_format).fibers
+        return _calibrate(sensor, list(rest), pixel_format).fibers
 
     return find
 
@@ -175,7 +147,7 @@ def calibrate_from_camera(config: BoardConfig, camera: Camera,
                           led: LedRing | NoLed | None = None) -> CalibrationBundle:
     """The fiber map of the board's only sensor from ``calibration.rest_frames`` frames of ``camera``."""
     one = config.for_sensor(config.selected)
-    return calibrate_sensor(one.sensors[0], read_rest_frames(one, camera, led), camera.pixel_format)
+    return _calibrate(one.sensors[0], read_rest_frames(one, camera, led), camera.pixel_format)
 
 
 def adjust_led(config: BoardConfig, camera: Camera, led: LedRing | NoLed) -> float:

@@ -62,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _fibers(args: argparse.Namespace) -> int:
-    from optitac_edge.calibration.fibers import calibrate_fibers
     from optitac_edge.calibration.orientation import keep_orientation, settles
+    from optitac_edge.calibration.sensor import calibrate_sensor
     from optitac_edge.core.layout import hex_layout
     from optitac_edge.io.bundle_file import save_bundle
     from optitac_edge.io.layout_csv import load_layout_csv
@@ -76,31 +76,26 @@ def _fibers(args: argparse.Namespace) -> int:
     rec = Recording(args.recording)
     layout_path = args.layout or (config.calibration.layout_path if config is not None else None)
     layout = load_layout_csv(layout_path) if layout_path else None
-    region = config.sensor.region if config is not None else ()
+    region = config.sensors[0].region if config is not None else None
     # no hint given: a bundle at the output whose orientation presses settled gives it, and keeps it (below)
     previous = None if args.rotation_deg is not None or args.mirror else _readable_bundle(Path(output))
     settled = previous if previous is not None and settles(previous, layout or hex_layout()) else None
     hint = (args.rotation_deg or 0.0, args.mirror) if settled is None else (settled.transform.rotation_deg,
                                                                              settled.transform.mirror)
     if region:
-        from optitac_edge.calibration.region import Region, calibrate_region
-
         cam = config.camera
         if (rec.width, rec.height) != (cam.width, cam.height):
             raise OptiTacError(f"{args.recording}: frames are {rec.width}x{rec.height}, sensor "
                                f"{config.sensor.id}'s camera {config.sensor.camera!r} delivers "
                                f"{cam.width}x{cam.height}")
-        bundle = calibrate_region(rec.rest_frames(), rec.pixel_format, Region(*region), layout=layout,
-                                  rotation_hint_deg=hint[0], mirror=hint[1])
-    else:
-        bundle = calibrate_fibers(rec.rest_frames(), rec.pixel_format, layout=layout,
-                                  rotation_hint_deg=hint[0], mirror=hint[1],
-                                  times_ns=rec.t_ns[: rec.meta.rest_frames])
+    bundle = calibrate_sensor(rec.rest_frames(), rec.pixel_format, region,
+                              layout=layout, rotation_hint_deg=hint[0], mirror=hint[1],
+                              times_ns=rec.t_ns[: rec.meta.rest_frames])
     kept = None if settled is None else keep_orientation(settled, bundle)
     bundle = save_bundle(bundle if kept is None else kept, output)
     report = bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
-    placed = f" in region {list(region)}" if region else ""
+    placed = f" in region {[region.x, region.y, region.width, region.height]}" if region else ""
     stray = int(report.get("n_stray", 0))
     away = f" ({stray} away from the array: stray light, left out)" if stray else ""
     print(f"wrote {output} (id {bundle.calibration_id}){placed}: "
@@ -137,9 +132,7 @@ def _step_bundle(args: argparse.Namespace) -> tuple[Path, Any]:
         raise OptiTacError(f"calibrate {args.step}: give --cal CAL (or --board B --sensor ID: that sensor's bundle)")
     bundle = load_bundle(cal)
     if config is not None:
-        from optitac_edge.service.bundles import check_bundle_region
-
-        check_bundle_region(bundle, config.sensors[0], cal)
+        config.sensors[0].check_bundle(bundle, cal)
     return Path(cal), bundle
 
 
