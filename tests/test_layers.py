@@ -144,3 +144,47 @@ def test_no_module_imports_itself_back_not_even_for_types() -> None:
     except graphlib.CycleError as exc:
         raise AssertionError(f"an import cycle: {' -> '.join(exc.args[1])}") from None
     assert "optitac_edge.core.pipeline" in order and "optitac_edge.core.compiled" in order
+
+
+#: The frame loop's modules: they read the time through the clock they are given (docs/architecture.md).
+CLOCKED = ("optitac_edge/service/loop.py", "optitac_edge/service/channel.py", "optitac_edge/service/camera_keeper.py",
+           "optitac_edge/service/status.py", "optitac_edge/service/commands.py", "optitac_edge/service/stats.py",
+           "optitac_edge/service/pool.py", "optitac_edge/service/session.py")
+
+
+def test_the_loop_and_the_core_read_no_time_but_their_clocks() -> None:
+    """docs/architecture.md, "Time": no module of the frame loop, nor any of ``core/``, calls the ``time``
+    module (a virtual clock runs the service as fast as it computes, the same on every machine)."""
+    import ast
+
+    paths = [ROOT / p for p in CLOCKED] + sorted((ROOT / "optitac_edge" / "core").rglob("*.py"))
+    offenders = []
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import) and any(a.name == "time" for a in node.names):
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno} import time")
+            elif isinstance(node, ast.ImportFrom) and node.module == "time":
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno} from time import ...")
+    assert offenders == []
+
+
+def test_every_registry_entry_is_a_device_of_its_kind() -> None:
+    """docs/architecture.md, "Adding a device": each kind's registry maps a name to a "module:Class" of the
+    kind's base class (imported here: the optional packages are test dependencies)."""
+    from optitac_edge.errors import OptiTacError
+    from optitac_edge.io.cameras import BACKENDS
+    from optitac_edge.io.cameras.base import Camera
+    from optitac_edge.io.device import load_backend
+    from optitac_edge.io.publishers import PUBLISHERS
+    from optitac_edge.io.publishers.base import Publisher
+    from optitac_edge.io.transports import TRANSPORTS
+    from optitac_edge.io.transports.base import Transport
+
+    for registry, base in ((BACKENDS, Camera), (TRANSPORTS, Transport), (PUBLISHERS, Publisher)):
+        for name in registry:
+            try:
+                cls = load_backend(registry, name, base.__name__, OptiTacError)
+            except OptiTacError as exc:  # an optional package not installed here: the message names the extra
+                assert "pip install" in str(exc), (name, exc)
+                continue
+            assert isinstance(cls, type) and issubclass(cls, base), (name, cls)
