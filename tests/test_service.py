@@ -169,6 +169,7 @@ def test_status_says_the_frame_rate_of_its_last_period_not_the_average_since_the
 
     config = load_board_config("sim", env={}, overrides={"status.period_s": 1.0})
     transport = open_transport("none")
+    transport.delivers = True  # packed as the serial link would
     sent = []
     transport.send = lambda p: sent.append((p.t_us, decoded(p).fps_x10 / 10)) if p.kind is MsgType.STATUS else None
     service = Service(config, bundle, Queued(), transport, clock=clock)

@@ -1,9 +1,9 @@
-"""Calibrate one sensor where its board puts it, and check that a bundle was made for that place.
+"""Calibrate one sensor where its board puts it.
 
-Both the command line (``calibrate fibers --sensor ID``, ``calibrate STEP --sensor ID``) and the service
-(a missing bundle calibrated at start, a stored one loaded) go through here, so a sensor is calibrated and
-checked one way: on its region's crop of the camera's frames, placed in the frame (the whole frame when it
-has no region), its bundle refused where its region is not the board's.
+Both the command line (``calibrate fibers [--sensor ID]``) and the service (a missing bundle calibrated at
+start) go through here, so a sensor is calibrated one way: on its region's crop of the camera's frames,
+placed in the frame (the whole frame when it has no region). A bundle is checked against that region by
+:func:`~optitac_edge.core.region.check_region` (at run time too: no calibration code is imported then).
 """
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.layout import FiberLayout
-from optitac_edge.core.region import Region, bundle_region
-from optitac_edge.errors import BundleError
+from optitac_edge.core.region import Region
 
 
 def calibrate_sensor(rest: Sequence[np.ndarray] | np.ndarray, pixel_format: str, region: Region | None, *,
@@ -44,35 +43,3 @@ def calibrate_sensor(rest: Sequence[np.ndarray] | np.ndarray, pixel_format: str,
                                 mirror=mirror, times_ns=times_ns)
     return calibrate_fibers(rest, pixel_format, layout=layout, rotation_hint_deg=rotation_hint_deg, mirror=mirror,
                             times_ns=times_ns)
-
-
-def describe_region(region: Region | None) -> str:
-    """``region [x, y, width, height]``, or ``the whole frame``."""
-    if region is None:
-        return "the whole frame"
-    return f"region [{region.x}, {region.y}, {region.width}, {region.height}]"
-
-
-def check_region(bundle: CalibrationBundle, region: Region | None, where: str, sensor_id: int) -> CalibrationBundle:
-    """``bundle``, when it was placed in ``region`` (None: the whole frame).
-
-    Parameters
-    ----------
-    where : str
-        What the error line starts with (the file and the sensor).
-    sensor_id : int
-        The board's id of the sensor (the error says to calibrate it with ``--sensor ID``).
-
-    Raises
-    ------
-    BundleError
-        One line: the bundle's region is not valid, or not the board's.
-    """
-    try:
-        got = bundle_region(bundle)
-    except (TypeError, ValueError) as exc:
-        raise BundleError(f"{where}: the bundle's region is not valid ({exc})") from None
-    if got != region:
-        raise BundleError(f"{where}: the bundle was built for {describe_region(got)}, the board puts the sensor in "
-                          f"{describe_region(region)} (calibrate it with --sensor {sensor_id})")
-    return bundle

@@ -23,11 +23,11 @@ from optitac_edge.config.sections import (
     StatusConfig,
     WatchdogConfig,
 )
-from optitac_edge.core.region import Region
 from optitac_edge.errors import ConfigError
 
 if TYPE_CHECKING:
     from optitac_edge.core.bundle import CalibrationBundle
+    from optitac_edge.core.region import Region
 
 
 @dataclass(frozen=True)
@@ -45,12 +45,14 @@ class BoardSensor:
     @property
     def region(self) -> Region | None:
         """Where the board puts it in its camera's frame (None: the whole frame)."""
+        from optitac_edge.core.region import Region  # not at import: the config loader needs no numpy
+
         return Region(*self.sensor.region) if self.sensor.region else None
 
     def check_bundle(self, bundle: CalibrationBundle, path: Path | str) -> CalibrationBundle:
         """``bundle`` (read from ``path``), when it was placed where the board puts this sensor
-        (:func:`~optitac_edge.calibration.sensor.check_region`: a :class:`BundleError` otherwise)."""
-        from optitac_edge.calibration.sensor import check_region
+        (:func:`~optitac_edge.core.region.check_region`: a :class:`BundleError` otherwise)."""
+        from optitac_edge.core.region import check_region
 
         return check_region(bundle, self.region, f"{path}: {self.label}", self.sensor.id)
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.errors import BundleError
 
 #: ``CalibrationBundle.extra_meta`` key of the region a bundle was placed in.
 REGION_KEY = "region"
@@ -55,3 +56,35 @@ def bundle_region(bundle: CalibrationBundle) -> Region | None:
     """The region a bundle was placed in (None: it covers its whole frame)."""
     d = bundle.extra_meta.get(REGION_KEY)
     return None if d is None else Region.from_dict(d)
+
+
+def describe_region(region: Region | None) -> str:
+    """``region [x, y, width, height]``, or ``the whole frame``."""
+    if region is None:
+        return "the whole frame"
+    return f"region [{region.x}, {region.y}, {region.width}, {region.height}]"
+
+
+def check_region(bundle: CalibrationBundle, region: Region | None, where: str, sensor_id: int) -> CalibrationBundle:
+    """``bundle``, when it was placed in ``region`` (None: the whole frame).
+
+    Parameters
+    ----------
+    where : str
+        What the error line starts with (the file and the sensor).
+    sensor_id : int
+        The board's id of the sensor (the error says to calibrate it with ``--sensor ID``).
+
+    Raises
+    ------
+    BundleError
+        One line: the bundle's region is not valid, or not the board's.
+    """
+    try:
+        got = bundle_region(bundle)
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{where}: the bundle's region is not valid ({exc})") from None
+    if got != region:
+        raise BundleError(f"{where}: the bundle was built for {describe_region(got)}, the board puts the sensor in "
+                          f"{describe_region(region)} (calibrate it with --sensor {sensor_id})")
+    return bundle

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.options import MAX_CONTACTS
@@ -37,8 +37,9 @@ from optitac_edge.io.protocol.messages import (
     ReleaseMessage,
     StatusMessage,
 )
-from optitac_edge.io.protocol.packet import Packer, Packet
-from optitac_edge.io.protocol.serial_packer import SerialPacker
+
+if TYPE_CHECKING:
+    from optitac_edge.io.protocol.packet import Packer, Packet
 
 #: A message of a sensor's frame to the MCU.
 OutMessage = ContactMessage | ContactV2Message | ReleaseMessage | MotionMessage
@@ -108,7 +109,11 @@ class SensorOutbox:
         self.announcer = ContactAnnouncer()
         self._out: list[OutMessage] = []
         self._packets: list[Packet] = []
-        self.packer: Packer = SerialPacker() if packer is None else packer
+        if packer is None:
+            from optitac_edge.io.protocol.serial_packer import SerialPacker
+
+            packer = SerialPacker()
+        self.packer: Packer = packer
         p = self.packer
         self._pack: dict[type, Callable[[Any], Packet | None]] = {
             ContactMessage: p.contact, ContactV2Message: p.contact2, ReleaseMessage: p.release,

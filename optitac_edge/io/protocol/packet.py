@@ -11,7 +11,7 @@ cantools, :mod:`optitac_edge.io.protocol.can_packer`), and a transport has one
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from optitac_edge.io.protocol.messages import (
     ContactMessage,
@@ -20,7 +20,9 @@ from optitac_edge.io.protocol.messages import (
     ReleaseMessage,
     StatusMessage,
 )
-from optitac_edge.io.protocol.wire import MsgType
+
+if TYPE_CHECKING:  # a run without a link imports no wire format (cobs)
+    from optitac_edge.io.protocol.wire import MsgType
 
 
 @dataclass(frozen=True, slots=True)

@@ -5,12 +5,13 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.io.device import Device
 from optitac_edge.io.protocol.messages import Command
-from optitac_edge.io.protocol.packet import Packer, Packet
-from optitac_edge.io.protocol.serial_packer import SerialPacker
+
+if TYPE_CHECKING:  # the board config reads the registry without the wire format's packages (cobs)
+    from optitac_edge.io.protocol.packet import Packer, Packet
 
 
 @dataclass
@@ -57,6 +58,8 @@ class Transport(Device, ABC):
     def packer(self, sensor_id: int) -> Packer:
         """What packs ``sensor_id``'s messages for this link (the serial wire format by default; a message
         that cannot be encoded is a send error here)."""
+        from optitac_edge.io.protocol.serial_packer import SerialPacker
+
         return SerialPacker(self.counters.send_error)
 
     @abstractmethod
@@ -68,11 +71,25 @@ class Transport(Device, ABC):
         return []
 
 
+class _NothingPacked:
+    """The packer of a link that goes nowhere: no message is encoded (and no wire format imported)."""
+
+    def contact(self, message: object) -> None:
+        return None
+
+    contact2 = release = motion = status = contact
+
+
 class NullTransport(Transport):
-    """Discards everything (``run`` without a link)."""
+    """Discards everything (``run`` without a link): nothing is packed, nothing sent."""
 
     delivers = False
     protocols = (1, 2, 3)
+
+    def packer(self, sensor_id: int) -> Packer:
+        """Nothing packed while the link delivers nothing (a subclass that delivers, such as a test's
+        recorder, gets the serial wire format)."""
+        return super().packer(sensor_id) if self.delivers else _NothingPacked()
 
     def send(self, packet: Packet) -> None:
         self.counters.sent += 1
