@@ -15,6 +15,26 @@ from optitac_edge.io.bundle_file import save_bundle
 from optitac_edge.io.recording import Recording
 from optitac_edge.sim.scenarios import write_scenario
 
+#: ``path::function`` of the tests the quick tier leaves out (tests/slow_tests.txt: measured, see its header).
+SLOW_TESTS = frozenset(line.strip() for line in (Path(__file__).parent / "slow_tests.txt").read_text().splitlines()
+                       if line.strip() and not line.startswith("#"))
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark the tests of tests/slow_tests.txt slow (``pytest -m "not slow"``: the quick tier); a listed name
+    that no collected test has is an error when the whole suite is collected (the list must not rot)."""
+    seen = set()
+    for item in items:
+        name = item.nodeid.split("[")[0].removeprefix("tests/")
+        for listed in (name, name.split("::")[0]):
+            if listed in SLOW_TESTS:
+                item.add_marker(pytest.mark.slow)
+                seen.add(listed)
+    whole = len(items) > 1500 and not config.option.keyword and not config.option.markexpr  # the whole suite
+    missing = SLOW_TESTS - seen
+    if whole and missing:
+        raise pytest.UsageError(f"tests/slow_tests.txt names tests that do not exist: {', '.join(sorted(missing)[:5])}")
+
 
 @pytest.fixture(scope="session")
 def sim_dir(tmp_path_factory) -> Path:
