@@ -295,3 +295,21 @@ def test_a_tare_in_a_burst_of_pings_is_applied_and_every_command_acked(mcu):
         results = {decode_ack(f.payload).seq_acked: decode_ack(f.payload).result for f in frames}
         assert results[132] == ResultCode.BUSY and all(results[100 + k] == ResultCode.OK for k in range(32))
         assert [c.seq for c in tr.poll_commands()] == list(range(100, 132))
+
+
+def test_a_message_that_cannot_be_encoded_is_one_logged_send_error_and_nothing_sent(caplog):
+    """The serial packer never raises into the frame loop: a message whose fields cannot be encoded (here a
+    time that is not a number) is logged, counted as the link's send error, and not sent."""
+    from optitac_edge.io.transports.base import NullTransport
+
+    class Delivering(NullTransport):
+        delivers = True
+
+    tr = Delivering()
+    packer = tr.packer(0)
+    bad = ContactMessage(sensor_id=0)
+    bad.t_us = "soon"  # type: ignore[assignment]
+    with caplog.at_level("ERROR"):
+        assert packer.contact(bad) is None
+    assert tr.counters.send_errors == 1 and "CONTACT not encodable" in caplog.text
+    assert packer.contact(ContactMessage(sensor_id=0, t_us=5)) is not None and tr.counters.send_errors == 1

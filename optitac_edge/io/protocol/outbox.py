@@ -71,14 +71,6 @@ class LinkState:
     rate_divider: int = 1
     delivers: bool = True
 
-    def carries(self, version: int) -> bool:
-        """A sent frame carries protocol ``version``'s messages: the MCU asked for it, it goes out from the
-        start, or it is 2 and 3 does (3 is v2 with MOTION)."""
-        start, protocol = self.from_start, self.protocol
-        if version == 2 and (protocol == 3 or 3 in start):
-            return True
-        return protocol == version or version in start
-
     def due(self, frame_number: int) -> bool:
         """The camera frame that will be the ``frame_number``-th processed (from 1) is sent to the MCU."""
         return self.streaming and frame_number % self.rate_divider == 0 and self.delivers
@@ -166,15 +158,18 @@ class SensorOutbox:
         """
         out = self._out
         out.clear()
-        carries = link.carries
-        v2, v3 = carries(2), carries(3)
+        # the versions a sent frame carries: the one the MCU asked for and those sent from the start (3 is v2
+        # with MOTION)
+        protocol, start = link.protocol, link.from_start
+        v3 = protocol == 3 or 3 in start
+        v2 = v3 or protocol == 2 or 2 in start
         if v2:
             self.announcer.observe(result)
         if not send:
             return out
         est = result.primary
         t_ns, calibrated, saturated, degraded = est.t_ns, result.calibrated, result.saturated, self.degraded
-        if carries(1):
+        if protocol == 1 or 1 in start:
             out.append(self.contact.fill(est, t_ns, now_ns, calibrated, saturated, degraded))
         if v2:
             announcer = self.announcer

@@ -10,8 +10,7 @@ cantools, :mod:`optitac_edge.io.protocol.can_packer`), and a transport has one
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 from optitac_edge.io.protocol.messages import (
     ContactMessage,
@@ -25,8 +24,7 @@ if TYPE_CHECKING:  # a run without a link imports no wire format (cobs)
     from optitac_edge.io.protocol.wire import MsgType
 
 
-@dataclass(frozen=True, slots=True)
-class Packet:
+class Packet(NamedTuple):
     """One message in its link's bytes.
 
     Attributes
