@@ -189,6 +189,11 @@ class CompiledEngine:
         self.kernel = _frame_kernel.Kernel(self.plan.as_dict())
         self._frame = self.kernel.frame
         self._bad = parts.frame_check.bad
+        self._gain = parts.gain_compensation is not None
+        f = self.field
+        #: The fields a contact's estimate takes from its row, by index: the first of the 8 geometric ones,
+        #: depth, force, shape, confidence.
+        self._at = (f["strength"], f["depth_mm"], f["force_n"], f["shape"], f["confidence"])
         self._means_ready = False
         #: The corrector applied here, per contact, after the kernel (one the kernel was not built with).
         self._python_corrector: ContactCorrector | None = None
@@ -208,7 +213,7 @@ class CompiledEngine:
     @property
     def light_changed(self) -> bool:
         """The last frame's light changed common-mode (the LED gain taken at once)."""
-        return self._parts.gain_compensation is not None and bool(self.kernel.light_changed)
+        return self._gain and bool(self.kernel.light_changed)
 
     @property
     def raise_pending(self) -> bool:
@@ -243,9 +248,8 @@ class CompiledEngine:
         if n == 0:
             est.clear(self.kernel.clear_strength, self.kernel.clear_area)
             return 0
-        index, t_ns, names, corrector, f = est.frame, est.t_ns, self.shape_names, self._python_corrector, self.field
-        strength, depth, force, shape, confidence = f["strength"], f["depth_mm"], f["force_n"], f["shape"], \
-            f["confidence"]
+        index, t_ns, names, corrector = est.frame, est.t_ns, self.shape_names, self._python_corrector
+        strength, depth, force, shape, confidence = self._at
         rows = self.contacts[:n].tolist()
         for i in range(n):
             c, r = contacts[i], rows[i]
