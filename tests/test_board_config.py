@@ -373,3 +373,22 @@ def test_an_old_publish_section_is_checked_also_where_it_publishes_nothing(tmp_p
     board.write_text(text)
     with pytest.raises(ConfigError, match=re.escape(message)):
         load_board_config(board, env={})
+
+
+def test_a_board_loads_when_the_working_directory_was_removed(tmp_path) -> None:
+    """A long run whose working directory is deleted under it (a checkout replaced, a temporary directory
+    cleaned) still reads a board config: the file is named as given, not a FileNotFoundError traceback."""
+    import subprocess
+    import sys
+
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    board = tmp_path / "b.toml"
+    board.write_text('[camera]\nbackend = "sim"\n')
+    code = ("import os, sys; os.chdir(sys.argv[1]); os.rmdir(sys.argv[1])\n"
+            "from optitac_edge.config import load_board_config\n"
+            "print(load_board_config(sys.argv[2], env={}).source)")
+    out = subprocess.run([sys.executable, "-c", code, str(gone), str(board)], capture_output=True, text=True,
+                         timeout=60, check=False)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == str(board)

@@ -60,9 +60,21 @@ def resolve_board_config(name_or_path: str | os.PathLike[str]) -> Path:
     raise ConfigError(f"{text}: no such board (known: {', '.join(available_boards()) or 'none'})")
 
 
+def working_dir() -> Path | None:
+    """The working directory, or None when it was removed under the running process."""
+    try:
+        return Path.cwd()
+    except OSError:
+        return None
+
+
 def _display(path: Path) -> str:
-    """``path`` relative to the working directory when it is below it (and that is not ``/``)."""
-    cwd = Path.cwd().resolve()
+    """``path`` relative to the working directory when it is below it (and that is not ``/``); as it is
+    when there is no working directory any more (removed under the running process)."""
+    here = working_dir()
+    if here is None:
+        return str(path)
+    cwd = here.resolve()
     try:
         rel = path.resolve().relative_to(cwd)
     except ValueError:

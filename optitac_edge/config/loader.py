@@ -13,7 +13,7 @@ from typing import Any
 from optitac_edge.config.board import BoardConfig, BoardSensor
 from optitac_edge.config.checkers import CAMERA_NAME, _Bad, _str, _type_name
 from optitac_edge.config.checks import _check_consistency
-from optitac_edge.config.files import _display, _read_toml, resolve_board_config
+from optitac_edge.config.files import _display, _read_toml, resolve_board_config, working_dir
 from optitac_edge.config.layers import _check, _Layers
 from optitac_edge.config.legacy import _apply_old_publish
 from optitac_edge.config.overrides import ENV_PREFIX, _env_key, _split_override
@@ -175,7 +175,9 @@ def load_board_config(
     if state_dir and "calibration.bundle" not in layers.origins:
         layers.values["calibration"]["bundle"] = str(Path(state_dir) / "calibration.npz")
 
-    cwd = Path.cwd()
+    # relative paths of the environment and the command line are the working directory's (when it was removed
+    # under the process, $PWD's: a path there is then missing and said so where it is opened)
+    cwd = working_dir() or Path(os.environ.get("PWD") or "/")
     for var in sorted(env):
         if not var.startswith(ENV_PREFIX):
             continue
