@@ -158,7 +158,6 @@ class CompiledEngine:
         models = None if corrector is None else corrector.kernel_arrays()
         #: The corrector whose models the kernel applies (None: the kernel gives raw contacts).
         self.built_with = corrector if models is not None else None
-        live = np.flatnonzero(parts.live).astype(np.int32)
         #: What the kernel was built from (its arrays are the parts' buffers; tools/kernel_aarch64.py writes
         #: it out for the C harness).
         self.plan = KernelPlan(
@@ -171,8 +170,7 @@ class CompiledEngine:
             min_area_mm2=min_area, min_cells=min_area / float(grid.cell_area_mm2),
             peak_fraction=float(o.peak_fraction), shape_fraction=float(o.shape_fraction),
             split_fraction=float(o.split_fraction),
-            dead=parts.dead.astype(np.int32), live=live if live.size else np.arange(bundle_table.n_fibers,
-                                                                                   dtype=np.int32),
+            dead=parts.dead.astype(np.int32), live=parts.live_idx.astype(np.int32),
             band=None if parts.levels.bands is None else parts.levels.bands.reshape(-1),
             support_nbr=None if parts.support is None else parts.support.table.reshape(-1),
             means=parts.means_buf, signal=parts.signal_buf, surface=parts.surface_buf, baseline=baseline.values,
@@ -183,8 +181,9 @@ class CompiledEngine:
         #: The rest light a raise sets the baseline to (written by the kernel when it finds one).
         self.rest = self.plan.rest
         #: Class names of the kernel's shape model (its ``shape`` field indexes them).
-        self.shape_names: list[str] = (list(corrector.shapes.class_names) if self.built_with is not None
-                                       and corrector is not None and corrector.shapes is not None else [])
+        built = self.built_with
+        self.shape_names: list[str] = (list(built.shapes.class_names) if built is not None
+                                       and built.shapes is not None else [])
         #: The extension's kernel object (its members: gain, light_changed, raise_pending, common, ...).
         self.kernel = _frame_kernel.Kernel(self.plan.as_dict())
         self._frame = self.kernel.frame
@@ -278,7 +277,7 @@ class CompiledEngine:
 
     def led_gain(self) -> LedGain | None:
         """The LED gain compensation's state after the last frame; None without ``compensate_gain``."""
-        if self._parts.gain_compensation is None:
+        if not self._gain:
             return None
         k = self.kernel
         return LedGain(k.gain, k.frame_gain, k.reference, k.reference_ns, k.light_changes)

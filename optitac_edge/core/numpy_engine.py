@@ -55,7 +55,8 @@ class NumpyEngine:
         self.dead = np.flatnonzero(table.dead)
         #: Each fiber is live (not dead), shape (N,), bool.
         self.live = ~np.asarray(table.dead, dtype=bool)
-        live_idx = np.flatnonzero(self.live)
+        #: The live fibers' indices (every fiber's when none is live): what the LED gain is measured from.
+        self.live_idx = np.flatnonzero(self.live) if self.live.any() else np.arange(n_fibers)
         #: The frame check (shape, dtype, dark, saturated).
         self.frame_check = FrameCheck(table, table.frame_shape)
         #: Step 2: the fiber means of a frame.
@@ -63,8 +64,8 @@ class NumpyEngine:
         #: Step 10: a baseline taken over a press, found from fibers brighter than it.
         self.bright_fibers = BrightFibers(n_fibers, from_common=not o.compensate_gain)
         #: Step 4 with ``compensate_gain``: the frame's LED gain divided out (None when off).
-        self.gain_compensation = (GainCompensation(live_idx if live_idx.size else np.arange(n_fibers), n_fibers,
-                                                   o.black_level, o.gain_rate_per_s, o.relative)
+        self.gain_compensation = (GainCompensation(self.live_idx, n_fibers, o.black_level, o.gain_rate_per_s,
+                                                   o.relative)
                                   if o.compensate_gain else None)
         fill = dead_fill_matrix(bundle.layout.xy_mm, table.dead) if o.fill_dead and self.dead.size else None
         factors = bundle.surface_factors
