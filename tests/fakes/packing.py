@@ -7,19 +7,10 @@ import weakref
 from typing import Any
 
 from optitac_edge.io.protocol import wire, wire_v2
-from optitac_edge.io.protocol.messages import (
-    ContactMessage,
-    ContactV2Message,
-    MotionMessage,
-    ReleaseMessage,
-    StatusMessage,
-)
-from optitac_edge.io.protocol.packet import Packer, Packet
+from optitac_edge.io.protocol.packet import PACKS, Packer, Packet
 from optitac_edge.io.protocol.wire import MsgType
 
 _PACKERS: weakref.WeakKeyDictionary[Any, dict[int, Packer]] = weakref.WeakKeyDictionary()
-_KIND = {ContactMessage: "contact", ContactV2Message: "contact2", ReleaseMessage: "release",
-         MotionMessage: "motion", StatusMessage: "status"}
 
 
 def pack(transport: Any, message: Any) -> Packet | None:
@@ -28,7 +19,7 @@ def pack(transport: Any, message: Any) -> Packet | None:
     packer = packers.get(message.sensor_id)
     if packer is None:
         packer = packers[message.sensor_id] = transport.packer(message.sensor_id)
-    return getattr(packer, _KIND[type(message)])(message)
+    return getattr(packer, PACKS[type(message)])(message)
 
 
 def send_message(transport: Any, message: Any) -> None:

@@ -37,6 +37,7 @@ from optitac_edge.io.protocol.messages import (
     ReleaseMessage,
     StatusMessage,
 )
+from optitac_edge.io.protocol.packet import PACKS
 
 if TYPE_CHECKING:
     from optitac_edge.io.protocol.packet import Packer, Packet
@@ -106,10 +107,8 @@ class SensorOutbox:
 
             packer = SerialPacker()
         self.packer: Packer = packer
-        p = self.packer
-        self._pack: dict[type, Callable[[Any], Packet | None]] = {
-            ContactMessage: p.contact, ContactV2Message: p.contact2, ReleaseMessage: p.release,
-            MotionMessage: p.motion}
+        self._pack: dict[type, Callable[[Any], Packet | None]] = {kind: getattr(packer, name)
+                                                                   for kind, name in PACKS.items()}
 
     def new_session(self) -> None:
         """The MCU switched protocol: every contact is news to it."""

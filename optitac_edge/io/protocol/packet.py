@@ -57,3 +57,9 @@ class Packer(Protocol):
     def motion(self, message: MotionMessage) -> Packet | None: ...
 
     def status(self, message: StatusMessage) -> Packet | None: ...
+
+
+#: The :class:`Packer` method that packs each message type (a new kind: its message class, a method of every
+#: packer, and a line here).
+PACKS: dict[type, str] = {ContactMessage: "contact", ContactV2Message: "contact2", ReleaseMessage: "release",
+                          MotionMessage: "motion", StatusMessage: "status"}
