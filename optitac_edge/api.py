@@ -336,7 +336,7 @@ def _open(config: Any, chosen: Any, cal_path: Path | None, recording: str | os.P
     from optitac_edge.service.bundles import obtain_bundles
     from optitac_edge.service.wiring import open_board_camera, open_led
 
-    led = open_led(config.led)
+    led = open_led(config)
     stack.callback(led.close)
     led.set_brightness(config.led.brightness)
     camera_name = chosen.sensor.camera

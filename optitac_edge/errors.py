@@ -77,10 +77,11 @@ EXTRA_OF_MODULE = {
 }
 
 
-def missing_extra(module: str, feature: str) -> MissingExtraError:
-    """The one-line error for ``feature`` when the optional ``module`` is not installed."""
+def missing_extra(module: str, feature: str, extra: str | None = None) -> MissingExtraError:
+    """The one-line error for ``feature`` when the optional ``module`` is not installed (``extra``: the pip
+    extra that installs it, default from :data:`EXTRA_OF_MODULE`)."""
     root = module.split(".")[0]
-    extra = EXTRA_OF_MODULE.get(root)
+    extra = extra or EXTRA_OF_MODULE.get(root)
     if root == "picamera2":
         return MissingExtraError(f"{feature} needs picamera2: on Raspberry Pi OS, sudo apt install python3-picamera2 "
                                  "and a virtual environment with --system-site-packages (tools/install.sh does both)")

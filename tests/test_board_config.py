@@ -288,7 +288,7 @@ def test_command_line_numbers_are_ascii_digits(text, capsys):
 
 
 def test_the_camera_backends_a_config_may_name_are_the_registrys(tmp_path, monkeypatch):
-    """One list of camera names: the registry (io/cameras BACKENDS); a backend added there is valid in a board
+    """One list of camera names: the registry (io/cameras CAMERAS); a backend added there is valid in a board
     config, and the refusal names exactly the registry's names."""
     from optitac_edge.io import cameras
 
@@ -296,8 +296,8 @@ def test_the_camera_backends_a_config_may_name_are_the_registrys(tmp_path, monke
     path.write_text('[camera]\nbackend = "webcam"\n')
     with pytest.raises(ConfigError) as info:
         load_board_config(path, env={})
-    assert "must be one of " + ", ".join(repr(n) for n in sorted(cameras.BACKENDS)) in str(info.value)
-    monkeypatch.setitem(cameras.BACKENDS, "webcam", "my_cameras:Webcam")
+    assert "must be one of " + ", ".join(repr(n) for n in sorted(cameras.CAMERAS)) in str(info.value)
+    monkeypatch.setitem(cameras.CAMERAS, "webcam", "my_cameras:Webcam")
     assert load_board_config(path, env={}).camera.backend == "webcam"
 
 
@@ -305,19 +305,20 @@ def test_the_camera_backends_a_config_may_name_are_the_registrys(tmp_path, monke
 
 
 def test_each_publisher_is_a_section_named_after_its_registry_entry(tmp_path):
-    from optitac_edge.config import PUBLISH_SECTIONS, McapPublish, ZenohPublish
-    from optitac_edge.io.publishers import PUBLISHERS
+    from optitac_edge.io.device import BoardView
+    from optitac_edge.io.publishers.mcap import McapPublish, McapPublisher
+    from optitac_edge.io.publishers.zenoh import ZenohPublish
 
-    assert set(PUBLISH_SECTIONS) == set(PUBLISHERS)
     board = tmp_path / "b.toml"
     board.write_text('[network]\nnamespace = "/robot1"\n[publish.mcap]\npath = "run.mcap"\nmax_mb = 50\n'
                      '[publish.zenoh]\nmode = "client"\nconnect = ["tcp/192.168.1.10:7447"]\n')
     cfg = load_board_config(board, env={})
     assert list(cfg.publish) == ["mcap", "zenoh"] and cfg.network.namespace == "/robot1"
     assert cfg.publish["mcap"] == McapPublish(path=str(tmp_path / "run.mcap"), max_mb=50.0)
-    assert cfg.publish["zenoh"].kwargs() == {**ZenohPublish().kwargs(), "mode": "client",
-                                             "connect": ("tcp/192.168.1.10:7447",)}
-    assert cfg.publish["mcap"].kwargs()["max_bytes"] == 50_000_000
+    assert cfg.publish["zenoh"] == ZenohPublish(mode="client", connect=("tcp/192.168.1.10:7447",))
+    assert cfg.view("publish.mcap") == BoardView(source=str(board), key="publish.mcap", namespace="/robot1")
+    with McapPublisher.from_config(cfg.publish["mcap"], cfg.view("publish.mcap")) as recorder:
+        assert (recorder.max_bytes, recorder.max_ns, recorder.namespace) == (50_000_000, 0, "/robot1")
 
 
 def test_an_old_publish_section_loads_as_the_new_form_with_a_one_line_hint(tmp_path, caplog):

@@ -27,7 +27,7 @@ from fakes.install import install_cv2, install_picamera2
 
 from optitac_edge.core.frames import frame_geometry
 from optitac_edge.errors import CameraError
-from optitac_edge.io.cameras import BACKENDS, open_camera
+from optitac_edge.io.cameras import CAMERAS, open_camera
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import MAX_DEPTH
 from optitac_edge.io.recording import RecordingMeta
@@ -93,7 +93,7 @@ def setup(request, tmp_path, monkeypatch) -> Setup:
 
 
 def test_every_registered_backend_is_covered():
-    assert set(BACKENDS) == {s.split("-")[0] for s in SETUPS}
+    assert set(CAMERAS) == {s.split("-")[0] for s in SETUPS}
 
 
 def test_open_announces_geometry(setup):

@@ -416,13 +416,13 @@ def test_open_failure_after_the_thread_started_tears_down(monkeypatch):
 
 def test_the_service_passes_camera_queue_frames_from_the_board_config(monkeypatch):
     from optitac_edge.config import load_board_config
-    from optitac_edge.service.wiring import camera_kwargs
+    from optitac_edge.service.wiring import open_board_camera
 
     hw = install_picamera2(monkeypatch)
     cfg = load_board_config("rpi5-gs", env={}, overrides={
         "camera.width": 96, "camera.height": 64, "camera.fps": 200, "camera.warmup_frames": 4,
         "camera.timeout_s": 2.0, "camera.queue_frames": 2})
-    with open_camera("picamera2", **camera_kwargs(cfg)) as cam:
+    with open_board_camera(cfg) as cam:
         assert cam._ring.depth == 2 and cam.pixel_format == "yuv420"
         cam.read(timeout_s=PATIENCE_S)
     assert _all_released(hw)

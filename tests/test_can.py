@@ -553,14 +553,11 @@ def test_a_contact2_part_that_fails_ends_its_message_and_each_part_not_sent_coun
 def test_every_transport_has_one_send() -> None:
     """Transports ship packed bytes (python-can's ``BusABC.send``): one send verb, whatever the message kind;
     packing is the link's packer's (the outbox calls it)."""
-    from importlib import import_module
-
     from optitac_edge.io.transports import TRANSPORTS
     from optitac_edge.io.transports.base import Transport
 
-    for name, entry in TRANSPORTS.items():
-        module, cls_name = entry.split(":")
-        cls = getattr(import_module(module), cls_name)
+    for name in TRANSPORTS:
+        cls = TRANSPORTS.load(name)
         assert issubclass(cls, Transport)
         verbs = sorted(n for n in dir(cls) if n.startswith("send") and callable(getattr(cls, n)))
         assert verbs == ["send"], (name, verbs)

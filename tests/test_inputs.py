@@ -15,7 +15,7 @@ from optitac_edge.errors import ConfigError, RecordingError
 from optitac_edge.io.layout_csv import load_layout_csv
 from optitac_edge.io.recording import Recording, RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
-from optitac_edge.service.wiring import camera_kwargs
+from optitac_edge.service.wiring import open_board_camera
 
 
 def _one_line_error(capsys, argv, *needles) -> str:
@@ -120,7 +120,7 @@ def test_camera_options_cannot_bypass_the_checked_keys_or_be_unknown(tmp_path, c
     board = tmp_path / "b.toml"
     board.write_text(f"[camera]\nbackend = 'sim'\n[camera.options]\n{options}\n")
     with pytest.raises(ConfigError, match=re.escape(message)):
-        camera_kwargs(load_board_config(board, env={}))
+        open_board_camera(load_board_config(board, env={}))
     _one_line_error(capsys, ["run", "--board", str(board), "--frames", "3"], str(board), message)
 
 

@@ -77,11 +77,19 @@ def test_the_default_run_needs_no_optional_package(tmp_path) -> None:
     assert [m for m in result["modules"] if m.split(".")[0] in EXTRAS] == []
 
 
-def test_the_board_config_loader_needs_only_the_standard_library() -> None:
-    """tools/install.sh checks a board config with the system Python before it installs anything."""
-    code = ("import sys; from optitac_edge.config import available_boards, load_board_config\n"
+def test_the_board_config_loader_needs_only_the_standard_library(tmp_path: Path) -> None:
+    """tools/install.sh checks a board config with the system Python before it installs anything: every
+    packaged board, and one with every publisher's section (each declared beside its publisher, whose
+    optional library is imported only when it opens)."""
+    board = tmp_path / "all.toml"
+    board.write_text("[publish.zenoh]\nmode = 'client'\n[publish.foxglove]\n[publish.mcap]\npath = 'r.mcap'\n"
+                     "[publish.virtual]\n[led]\nenabled = true\n[link]\ntransport = 'can'\n")
+    code = ("import sys; from optitac_edge.config import available_boards, describe_schema, load_board_config\n"
             "[load_board_config(n, env={}) for n in available_boards()]\n"
-            "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'cv2', 'scipy', 'serial', 'cobs'}))")
+            f"assert len(load_board_config({str(board)!r}, env={{}}).publish) == 4\n"
+            "describe_schema()\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'cv2', 'scipy', 'serial', 'cobs', "
+            "'zenoh', 'foxglove', 'mcap', 'can', 'smbus2'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"
 
@@ -92,7 +100,7 @@ def test_the_simulator_registers_its_own_camera_and_io_names_no_layer_above():
 
     source = Path(cameras.__file__).read_text()
     assert "optitac_edge.sim" not in source
-    assert cameras.BACKENDS["sim"] == "optitac_edge.sim.camera:SimCamera"
+    assert cameras.CAMERAS["sim"].target == "optitac_edge.sim.camera:SimCamera"
 
 
 def test_the_board_config_accepts_the_transport_registrys_names_only():
@@ -172,18 +180,20 @@ def test_every_registry_entry_is_a_device_of_its_kind() -> None:
     """docs/architecture.md, "Adding a device": each kind's registry maps a name to a "module:Class" of the
     kind's base class (imported here: the optional packages are test dependencies)."""
     from optitac_edge.errors import OptiTacError
-    from optitac_edge.io.cameras import BACKENDS
+    from optitac_edge.io.cameras import CAMERAS
     from optitac_edge.io.cameras.base import Camera
-    from optitac_edge.io.device import load_backend
+    from optitac_edge.io.led import LEDS, LedRing
     from optitac_edge.io.publishers import PUBLISHERS
     from optitac_edge.io.publishers.base import Publisher
+    from optitac_edge.io.rigs import RIGS, Rig
     from optitac_edge.io.transports import TRANSPORTS
     from optitac_edge.io.transports.base import Transport
 
-    for registry, base in ((BACKENDS, Camera), (TRANSPORTS, Transport), (PUBLISHERS, Publisher)):
+    kinds = ((CAMERAS, Camera), (TRANSPORTS, Transport), (PUBLISHERS, Publisher), (LEDS, LedRing), (RIGS, Rig))
+    for registry, base in kinds:
         for name in registry:
             try:
-                cls = load_backend(registry, name, base.__name__, OptiTacError)
+                cls = registry.load(name)
             except OptiTacError as exc:  # an optional package not installed here: the message names the extra
                 assert "pip install" in str(exc), (name, exc)
                 continue

@@ -162,10 +162,16 @@ def test_bad_arguments():
         LedRing(FakeBus(), 0x90, [0], 0.5)
 
 
-def test_open_led_from_config():
-    assert isinstance(open_led(LedConfig()), NoLed)
+def test_open_led_from_config(monkeypatch):
+    from dataclasses import replace
+
+    from optitac_edge.config import BoardConfig
+
+    assert isinstance(open_led(BoardConfig()), NoLed)
     bus = FakeBus()
-    with open_led(LedConfig(enabled=True, address=0x44, channels=(5,), brightness=0.25), bus) as ring:
+    monkeypatch.setattr(LedRing, "_open_bus", staticmethod(lambda number: bus if number == 3 else None))
+    board = replace(BoardConfig(), led=LedConfig(enabled=True, i2c_bus=3, address=0x44, channels=(5,), brightness=0.25))
+    with open_led(board) as ring:
         assert isinstance(ring, LedRing) and ring.address == 0x44
         assert bus.calls[-1] == ("block", 0x44, 0x06 + 20, [0, 0, 0, 4])
     with NoLed() as none:

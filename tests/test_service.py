@@ -2,24 +2,23 @@
 
 from __future__ import annotations
 
-import importlib
 import inspect
 
 import pytest
 from fakes.packing import decoded
 
 from optitac_edge.config import available_boards, load_board_config
-from optitac_edge.io.cameras import BACKENDS
+from optitac_edge.io.cameras import CAMERAS
 from optitac_edge.io.protocol.wire import MsgType
-from optitac_edge.service.wiring import camera_kwargs
 
 
 @pytest.mark.parametrize("board", sorted(available_boards()))
 def test_every_packaged_board_gives_arguments_its_camera_backend_accepts(board):
     config = load_board_config(board, env={})
-    module_name, class_name = BACKENDS[config.camera.backend].split(":")
-    cls = getattr(importlib.import_module(module_name), class_name)
-    inspect.signature(cls).bind(**camera_kwargs(config))  # raises TypeError on an unknown argument
+    for name, section in config.cameras.items():
+        cls = CAMERAS.load(section.backend)
+        kwargs = cls.section_kwargs(section, config.view(config.camera_key(name)))
+        inspect.signature(cls).bind(**kwargs, **section.options)  # raises TypeError on an unknown argument
 
 
 def test_cli_and_environment_override_the_file():

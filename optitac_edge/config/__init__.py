@@ -15,8 +15,8 @@ out-of-range value raises :class:`~optitac_edge.errors.ConfigError` with one lin
 naming the source (file path, environment variable or "command line") and the key.
 Nothing here touches hardware, and nothing beyond the standard library is needed to check a board.
 
-The rooms: :mod:`~optitac_edge.config.checkers` (the value checkers),
-:mod:`~optitac_edge.config.sections` (one dataclass per section),
+The rooms: :mod:`~optitac_edge.config.sections` (the board's own sections; a device's section is declared
+beside the device in :mod:`optitac_edge.io`, each field with a checker of :mod:`optitac_edge.fields`),
 :mod:`~optitac_edge.config.board` (the validated :class:`BoardConfig`),
 :mod:`~optitac_edge.config.files` (packaged NAMEs, reading TOML),
 :mod:`~optitac_edge.config.layers` (values with their sources, in precedence order),
@@ -33,27 +33,21 @@ from optitac_edge.config.files import available_boards, packaged_config_dirs, re
 from optitac_edge.config.loader import describe_schema, load_board_config
 from optitac_edge.config.sections import (
     DEFAULT_STATE_DIR,
-    PUBLISH_SECTIONS,
     SENSOR_CALIBRATION_KEYS,
     CalibrationConfig,
     CameraConfig,
-    FoxglovePublish,
     LedConfig,
     LinkConfig,
-    McapPublish,
     NetworkConfig,
     RigConfig,
     SensorConfig,
     StatusConfig,
-    VirtualPublish,
     WatchdogConfig,
-    ZenohPublish,
 )
 
 __all__ = [
-    "DEFAULT_STATE_DIR", "PUBLISH_SECTIONS", "SENSOR_CALIBRATION_KEYS", "BoardConfig", "BoardSensor",
-    "CalibrationConfig", "CameraConfig", "FoxglovePublish", "LedConfig", "LinkConfig", "McapPublish",
-    "NetworkConfig", "RigConfig", "SensorConfig", "StatusConfig", "VirtualPublish", "WatchdogConfig",
-    "ZenohPublish", "available_boards", "describe_schema", "load_board_config", "packaged_config_dirs",
+    "DEFAULT_STATE_DIR", "SENSOR_CALIBRATION_KEYS", "BoardConfig", "BoardSensor", "CalibrationConfig",
+    "CameraConfig", "LedConfig", "LinkConfig", "NetworkConfig", "RigConfig", "SensorConfig", "StatusConfig",
+    "WatchdogConfig", "available_boards", "describe_schema", "load_board_config", "packaged_config_dirs",
     "resolve_board_config",
 ]

@@ -17,13 +17,13 @@ from optitac_edge.config.sections import (
     LedConfig,
     LinkConfig,
     NetworkConfig,
-    PublishSection,
     RigConfig,
     SensorConfig,
     StatusConfig,
     WatchdogConfig,
 )
 from optitac_edge.errors import ConfigError
+from optitac_edge.io.device import BoardView
 
 if TYPE_CHECKING:
     from optitac_edge.core.bundle import CalibrationBundle
@@ -81,7 +81,7 @@ class BoardConfig:
     rig: RigConfig = field(default_factory=RigConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     #: The publishers (``[publish.NAME]``), by registry name, in file order.
-    publish: Mapping[str, PublishSection] = field(default_factory=lambda: MappingProxyType({}))
+    publish: Mapping[str, object] = field(default_factory=lambda: MappingProxyType({}))
     #: "section.key" -> where its value came from (file path, "OPTITAC_..." or "command line").
     origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
     #: The ``[[sensors]]`` of a board with several (empty in the one-sensor form).
@@ -116,6 +116,20 @@ class BoardConfig:
     def regions_of(self, camera: str) -> tuple[tuple[int, ...], ...]:
         """The regions of every sensor of the board on ``camera`` (also when narrowed to one), file order."""
         return tuple(s.sensor.region for s in self.all_sensors if s.sensor.camera == camera)
+
+    def camera_key(self, camera: str) -> str:
+        """Where ``camera``'s section is in the board: ``camera`` (one-camera form) or ``cameras.NAME``."""
+        return f"cameras.{camera}" if self.named_cameras else "camera"
+
+    def view(self, key: str) -> BoardView:
+        """What the device of section ``key`` (``camera``, ``cameras.NAME``, ``link``, ``led``,
+        ``publish.NAME``) sees of this board: the sensors' ids, a camera's sensors' regions, the rest frames,
+        the ROS 2 namespace and where each value came from."""
+        camera = MAIN_CAMERA if key == "camera" else key.partition(".")[2] if key.startswith("cameras.") else ""
+        return BoardView(source=self.source, key=key, sensor_ids=tuple(s.sensor.id for s in self.sensors),
+                         regions=self.regions_of(camera) if camera else (),
+                         rest_frames=self.calibration.rest_frames, namespace=self.network.namespace,
+                         origins=self.origins)
 
     def for_sensor(self, sensor_id: int | None = None) -> BoardConfig:
         """This board narrowed to one sensor: its ``sensor``, ``camera`` and ``calibration`` are that sensor's.

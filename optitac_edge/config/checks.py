@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 from optitac_edge.config.board import BoardConfig, BoardSensor
-from optitac_edge.config.sections import MAIN_CAMERA, McapPublish
+from optitac_edge.config.sections import MAIN_CAMERA
 from optitac_edge.errors import ConfigError
 
 
@@ -31,9 +33,10 @@ def _check_consistency(config: BoardConfig, shown: str) -> None:
             fail(p + "pipeline", "a GStreamer pipeline must end in an appsink")
         if cam.pixel_format == "yuv420" and (cam.width % 2 or cam.height % 2):
             fail(p + "pixel_format", "yuv420 needs an even width and height", p + "width", p + "height")
-    mcap = config.publish.get("mcap")
-    if isinstance(mcap, McapPublish) and not mcap.path:
-        fail("publish.mcap.path", "required: the MCAP file to write")
+    for name, section in config.publish.items():
+        for f in fields(section):  # type: ignore[arg-type]  # every section is a dataclass
+            if f.metadata.get("required") and not getattr(section, f.name):
+                fail(f"publish.{name}.{f.name}", f"required: {f.metadata['doc']}")
     link = config.link
     if link.transport == "serial" and not link.serial_url:
         fail("link.serial_url", "required when link.transport is 'serial'", "link.transport")

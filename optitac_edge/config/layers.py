@@ -10,9 +10,9 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from optitac_edge.config.checkers import Scalar, _Bad, _scalar, _type_name
-from optitac_edge.config.sections import _LISTS, _PATH_KEYS, _SECTIONS, PUBLISH_SECTIONS, CameraConfig, PublishSection
+from optitac_edge.config.sections import _LISTS, _SECTIONS, CameraConfig, publish_section
 from optitac_edge.errors import ConfigError
+from optitac_edge.fields import Invalid, Scalar, path_text, scalar, type_name
 
 
 class _Layers:
@@ -37,8 +37,7 @@ class _Layers:
 
     def publisher(self, source: str, name: str, on: bool = True) -> str:
         """Turn the publisher ``name`` on (with its defaults) or off; its section's target."""
-        if name not in PUBLISH_SECTIONS:
-            raise ConfigError(f"{source}: publish.{name}: no such publisher (known: {', '.join(PUBLISH_SECTIONS)})")
+        publish_section(name, source)  # a publisher of the registry
         target = f"publish.{name}"
         if on:
             self.publishers.setdefault(name, source)
@@ -55,11 +54,11 @@ class _Layers:
             target = self.publisher(source, name)
             if not key:
                 raise ConfigError(f"{source}: publish.{name}: set its keys as publish.{name}.KEY")
-            cls = PUBLISH_SECTIONS[name]
+            cls = publish_section(name, source)
             spec = {f.name: f for f in fields(cls)}
             if key not in spec:
                 raise ConfigError(f"{source}: {target}.{key}: unknown key (known: {', '.join(spec) or 'none'})")
-            self.values[target][key] = _check(spec[key], target, key, value, from_text, base_dir,
+            self.values[target][key] = _check(spec[key], value, from_text, base_dir,
                                               f"{source}: {target}.{key}")
             self.origins[f"{target}.{key}"] = source
             return
@@ -74,8 +73,8 @@ class _Layers:
             if not re.fullmatch(r"[a-z][a-z0-9_]*", name):
                 raise ConfigError(f"{source}: {where}: option names are lower-case identifiers")
             try:
-                self.options[target][name] = _scalar(value, from_text)
-            except _Bad as exc:
+                self.options[target][name] = scalar(value, from_text)
+            except Invalid as exc:
                 raise ConfigError(f"{source}: {where}: {exc}") from None
             self.origins[where] = source
             return
@@ -85,31 +84,30 @@ class _Layers:
             raise ConfigError(f"{source}: {where}: unknown key{hint} (known: {', '.join(spec)})")
         if key == "options":  # a whole table from a file
             if not isinstance(value, dict):
-                raise ConfigError(f"{source}: {where}: must be a table, got {_type_name(value)}")
+                raise ConfigError(f"{source}: {where}: must be a table, got {type_name(value)}")
             for name, item in value.items():
                 self.set(source, section, f"options.{name}", item, from_text=from_text, base_dir=base_dir,
                          target=target)
             return
-        self.values[target][key] = _check(spec[key], section, key, value, from_text, base_dir,
+        self.values[target][key] = _check(spec[key], value, from_text, base_dir,
                                           f"{source}: {where}")
         self.origins[where] = source
 
     def camera(self, target: str) -> CameraConfig:
         return CameraConfig(**{**self.values[target], "options": MappingProxyType(dict(self.options[target]))})
 
-    def publish(self) -> Mapping[str, PublishSection]:
-        return MappingProxyType({name: PUBLISH_SECTIONS[name](**self.values[f"publish.{name}"])
-                                 for name in self.publishers})
+    def publish(self) -> Mapping[str, object]:
+        return MappingProxyType({name: publish_section(name, source)(**self.values[f"publish.{name}"])
+                                 for name, source in self.publishers.items()})
 
 
-def _check(spec: Any, section: str, key: str, value: Any, from_text: bool, base_dir: Path | None,
-           where: str) -> Any:
+def _check(spec: Any, value: Any, from_text: bool, base_dir: Path | None, where: str) -> Any:
     """``value`` checked by ``spec``'s checker (paths resolved against ``base_dir``); errors name ``where``."""
     try:
         converted = spec.metadata["check"](value, from_text)
-    except _Bad as exc:
+    except Invalid as exc:
         raise ConfigError(f"{where}: {exc}") from None
-    if (section, key) in _PATH_KEYS and converted and base_dir is not None:
+    if spec.metadata["check"] is path_text and converted and base_dir is not None:
         expanded = Path(os.path.expanduser(converted))
         converted = str(expanded if expanded.is_absolute() else base_dir / expanded)
     return converted

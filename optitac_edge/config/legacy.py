@@ -7,9 +7,9 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from optitac_edge.config.checkers import _show, _type_name
 from optitac_edge.config.layers import _Layers
 from optitac_edge.errors import ConfigError
+from optitac_edge.fields import show, type_name
 
 log = logging.getLogger(__name__)
 
@@ -24,12 +24,12 @@ def _apply_old_publish(layers: _Layers, old: dict[str, Any], shown: str, base_di
     publish, mcap = old.get("publish", {}), old.get("mcap", {})
     for name, table in old.items():
         if not isinstance(table, dict):
-            raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {_type_name(table)}")
+            raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {type_name(table)}")
     became: list[str] = []
     publish = dict(publish)
     backend = publish.pop("backend", "none")
     if backend not in ("none", "zenoh", "virtual"):
-        raise ConfigError(f"{shown}: publish.backend: must be one of none, zenoh, virtual, got {_show(backend)}")
+        raise ConfigError(f"{shown}: publish.backend: must be one of none, zenoh, virtual, got {show(backend)}")
     foxglove = publish.pop("foxglove", "")
     # every old key is checked as its new one is, also where the old form left it unused (a backend
     # "none" with Zenoh keys, [mcap] keys without a path): that publisher is then turned off again

@@ -11,7 +11,6 @@ from types import MappingProxyType
 from typing import Any
 
 from optitac_edge.config.board import BoardConfig, BoardSensor
-from optitac_edge.config.checkers import CAMERA_NAME, _Bad, _str, _type_name
 from optitac_edge.config.checks import _check_consistency
 from optitac_edge.config.files import _display, _read_toml, resolve_board_config, working_dir
 from optitac_edge.config.layers import _check, _Layers
@@ -21,13 +20,15 @@ from optitac_edge.config.sections import (
     _LISTS,
     _SECTIONS,
     DEFAULT_STATE_DIR,
-    PUBLISH_SECTIONS,
     SENSOR_CALIBRATION_KEYS,
     CalibrationConfig,
     CameraConfig,
     SensorConfig,
+    publish_section,
 )
 from optitac_edge.errors import ConfigError
+from optitac_edge.fields import CAMERA_NAME, Invalid, string, type_name
+from optitac_edge.io.publishers import PUBLISHERS
 
 #: The only schema version there is.
 CONFIG_VERSION = 1
@@ -49,7 +50,7 @@ def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Pat
     for name, value in data.items():
         if name in _SECTIONS:
             if not isinstance(value, dict):
-                raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {_type_name(value)}")
+                raise ConfigError(f"{shown}: {name}: must be a table [{name}], got {type_name(value)}")
             for key, item in value.items():
                 layers.set(shown, name, key, item, from_text=False, base_dir=base_dir)
         elif name == "cameras":
@@ -65,8 +66,8 @@ def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Pat
                 raise ConfigError(f"{shown}: config_version: must be {CONFIG_VERSION}, got {value!r}")
         elif name == "description":
             try:
-                description = _str(400)(value, False)
-            except _Bad as exc:
+                description = string(400)(value, False)
+            except Invalid as exc:
                 raise ConfigError(f"{shown}: description: {exc}") from None
         else:
             kind = "section" if isinstance(value, dict) else "key"
@@ -91,14 +92,14 @@ def _apply_publish(layers: _Layers, value: dict[str, Any], shown: str, base_dir:
 
 def _apply_cameras(layers: _Layers, value: Any, shown: str, base_dir: Path) -> None:
     if not isinstance(value, dict) or not value:
-        raise ConfigError(f"{shown}: cameras: must hold [cameras.NAME] tables, got {_type_name(value)}")
+        raise ConfigError(f"{shown}: cameras: must hold [cameras.NAME] tables, got {type_name(value)}")
     for cam_name, table in value.items():
         if not re.fullmatch(CAMERA_NAME, cam_name):
             raise ConfigError(f"{shown}: cameras.{cam_name}: camera names are a letter then letters, digits, "
                               "_ or - (at most 32)")
         if not isinstance(table, dict):
             raise ConfigError(f"{shown}: cameras.{cam_name}: must be a table [cameras.{cam_name}], "
-                              f"got {_type_name(table)}")
+                              f"got {type_name(table)}")
         target = layers.add_camera(cam_name)
         for key, item in table.items():
             layers.set(shown, "camera", key, item, from_text=False, base_dir=base_dir, target=target)
@@ -118,9 +119,9 @@ def _read_sensors(value: Any, shown: str, base_dir: Path) -> list[_Entry]:
         for key, item in table.items():
             where = f"{shown}: {label}: {key}"
             if key in sensor_spec:
-                entry.sensor[key] = _check(sensor_spec[key], "sensor", key, item, False, base_dir, where)
+                entry.sensor[key] = _check(sensor_spec[key], item, False, base_dir, where)
             elif key in cal_spec:
-                entry.calibration[key] = _check(cal_spec[key], "calibration", key, item, False, base_dir, where)
+                entry.calibration[key] = _check(cal_spec[key], item, False, base_dir, where)
             else:
                 known = ", ".join((*sensor_spec, *cal_spec))
                 raise ConfigError(f"{where}: unknown key (known: {known}; board-wide calibration keys go in "
@@ -255,7 +256,8 @@ def describe_schema() -> str:
             if isinstance(default, Mapping):
                 default = dict(default)
             lines.append(f"  {f.name} = {default!r}  # {f.metadata.get('doc', '')}")
-    for name, cls in PUBLISH_SECTIONS.items():
+    for name in PUBLISHERS:
+        cls = publish_section(name, "the registry")
         lines.append(f"[publish.{name}]  # {(cls.__doc__ or '').split(': ', 1)[-1].strip()}")
         for f in fields(cls):
             lines.append(f"  {f.name} = {f.default!r}  # {f.metadata.get('doc', '')}")

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from optitac_edge.config.sections import _LISTS, _SECTIONS, PUBLISH_SECTIONS
+from optitac_edge.config.sections import _LISTS, _SECTIONS
 from optitac_edge.errors import ConfigError
+from optitac_edge.io.publishers import PUBLISHERS
 
 #: Prefix of the environment variables that override file values.
 ENV_PREFIX = "OPTITAC_"
@@ -30,9 +31,9 @@ def _env_key(var: str) -> tuple[str, str] | None:
     section, _, key = rest.partition("_")
     if section == "publish":
         name, _, key = key.partition("_")
-        if name not in PUBLISH_SECTIONS or not key:
+        if name not in PUBLISHERS or not key:
             raise ConfigError(f"environment {var}: publishers are set as OPTITAC_PUBLISH_<NAME>_<KEY> "
-                              f"(NAME: {', '.join(PUBLISH_SECTIONS)})")
+                              f"(NAME: {', '.join(PUBLISHERS)})")
         return section, f"{name}.{key}"
     if section in _LISTS:
         raise ConfigError(f"environment {var}: cameras and sensors are set in the board file "

@@ -1,12 +1,12 @@
-"""What every device wrapper shares: an idempotent, thread-safe close and a lazy backend registry."""
+"""What every device shares: an idempotent, thread-safe close, and the board it is opened on."""
 
 from __future__ import annotations
 
-import importlib
 import threading
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
-
-from optitac_edge.errors import OptiTacError, missing_extra
 
 
 class Device:
@@ -37,17 +37,29 @@ class Device:
         self.close()
 
 
-def load_backend(registry: dict[str, str], name: str, kind: str, error: type[OptiTacError]) -> Any:
-    """The class registered as ``"module:Class"`` under ``name``, imported on first use (python-can style)."""
-    try:
-        target = registry[name]
-    except KeyError:
-        raise error(f"unknown {kind} {name!r} (known: {', '.join(sorted(registry))})") from None
-    module_name, class_name = target.split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:  # the backend's optional library: say which extra installs it
-        if exc.name is None or exc.name.split(".")[0] == "optitac_edge":
-            raise
-        raise missing_extra(exc.name, f"the {name} {kind}") from None
-    return getattr(module, class_name)
+@dataclass(frozen=True)
+class BoardView:
+    """What a device reads of its board beyond its own section (``from_config(section, board)``).
+
+    The config layer makes one for each device it opens
+    (:meth:`optitac_edge.config.BoardConfig.view`); a test makes its own.
+    """
+
+    #: Where the board came from (a file path, or ``(defaults)``): errors start with it.
+    source: str = "(defaults)"
+    #: Where the device's section is in the board: ``camera``, ``cameras.left``, ``link``, ``publish.mcap``.
+    key: str = ""
+    #: The ids of the sensors the board runs, in file order (the link carries each).
+    sensor_ids: tuple[int, ...] = (0,)
+    #: A camera's: the region (x, y, width, height) of each sensor of the board it reads (``()``: whole frame).
+    regions: tuple[tuple[int, ...], ...] = ()
+    #: Contact-free frames calibrated from at start (``[calibration] rest_frames``).
+    rest_frames: int = 10
+    #: The ROS 2 namespace of every topic (``[network] namespace``).
+    namespace: str = ""
+    #: "section.key" -> where its value came from (file, environment variable, command line).
+    origins: Mapping[str, str] = field(default_factory=lambda: MappingProxyType({}), compare=False)
+
+    def where(self, key: str) -> str:
+        """Who set ``KEY`` of the device's section (the board's source when nobody did): an error's start."""
+        return self.origins.get(f"{self.key}.{key}", self.source)

@@ -10,7 +10,8 @@ oscillator keeps running so other channels, if any, are not disturbed.
 
 The brightness search run at calibration is
 :func:`optitac_edge.calibration.led_brightness.adjust_brightness_for_saturation`;
-the ring a board config describes is opened by :func:`optitac_edge.service.wiring.open_led`.
+the ring a board's ``[led]`` section describes is opened through :data:`LEDS`
+(:func:`optitac_edge.service.wiring.open_led`).
 """
 
 from __future__ import annotations
@@ -19,9 +20,13 @@ import logging
 import threading
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from optitac_edge.errors import OptiTacError, missing_extra
+from optitac_edge.fields import boolean, channel_list, choice, integer, number, setting
+from optitac_edge.io.device import BoardView
+from optitac_edge.io.registry import Registry
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -50,6 +55,27 @@ COUNTS = 4096
 
 class LedError(OptiTacError):
     """The LED driver cannot be opened or does not answer."""
+
+
+def led_driver(value: Any, from_text: bool) -> str:
+    """A name of the LED registry (:data:`LEDS`, the one list of drivers)."""
+    return choice(*LEDS)(value, from_text)
+
+
+@dataclass(frozen=True)
+class LedConfig:
+    enabled: bool = setting(boolean, False, "drive an LED ring through an I2C PWM chip")
+    driver: str = setting(led_driver, "pca9685", "LED driver chip: pca9685")
+    i2c_bus: int = setting(integer(0, 255), 1, "I2C bus number (/dev/i2c-N)")
+    address: int = setting(integer(0x03, 0x77, "a 7-bit I2C address"), 0x40, "I2C address of the chip")
+    channels: tuple[int, ...] = setting(channel_list, (0,), "PWM channels the LEDs are on")
+    brightness: float = setting(number(0, 1), 0.5, "LED brightness, 0..1 (duty cycle)")
+    pwm_frequency_hz: int = setting(integer(24, 1526), 1000, "PWM frequency, Hz")
+    invert: bool = setting(boolean, False, "invert outputs (LEDs wired to V+ without a driver)")
+    open_drain: bool = setting(boolean, False, "open-drain outputs instead of totem pole")
+    adjust_at_calibration: bool = setting(boolean, True, "lower brightness at calibration until no fiber saturates")
+    max_peak: int = setting(integer(1, 255), 230, "highest allowed fiber peak, gray level")
+    peak_percentile: float = setting(number(50, 100), 99.9, "percentile of fiber pixels taken as the peak")
 
 
 class I2CBus(Protocol):
@@ -108,6 +134,12 @@ class LedRing:
     LedError
         If smbus2 is missing or the chip does not answer.
     """
+
+    @classmethod
+    def from_config(cls, section: LedConfig, board: BoardView) -> Self:
+        """The ring a board's ``[led]`` section describes: its bus, address, channels, brightness and outputs."""
+        return cls(section.i2c_bus, section.address, section.channels, section.brightness,
+                   pwm_frequency_hz=section.pwm_frequency_hz, invert=section.invert, open_drain=section.open_drain)
 
     def __init__(self, bus: int | I2CBus, address: int = 0x40, channels: Iterable[int] = (0,),
                  brightness: float = 0.5, *, pwm_frequency_hz: float = 1000.0, invert: bool = False,
@@ -233,4 +265,9 @@ class NoLed:
 # --------------------------------------------------------------------------- brightness vs. saturation
 
 
-__all__ = ["LedError", "LedRing", "NoLed", "channel_registers", "prescale_for", "pwm_period_us"]
+#: LED driver name (``[led] driver``) -> its class (python-can style lazy registry).
+LEDS: Registry[LedRing] = Registry("LED driver", LedError, {"pca9685": "optitac_edge.io.led:LedRing"})
+
+
+__all__ = ["LEDS", "LedConfig", "LedError", "LedRing", "NoLed", "channel_registers", "prescale_for",
+           "pwm_period_us"]

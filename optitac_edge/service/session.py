@@ -112,7 +112,7 @@ class BoardSession:
         log.info("%s", kernel_status()[1])
         try:
             self.notifier = self._stack.enter_context(closing(self._notifier or Notifier()))
-            led = open_led(self.config.led)
+            led = open_led(self.config)
             self._stack.callback(led.close)
             led.set_brightness(self.config.led.brightness)
             self.led = led

@@ -8,7 +8,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -26,6 +26,10 @@ from optitac_edge.sim.patches import PatchFrames
 from optitac_edge.sim.physics import physics as physics_named
 from optitac_edge.sim.sensor import SimulatedSensor
 from optitac_edge.sim.skin import Indenter
+
+if TYPE_CHECKING:
+    from optitac_edge.io.cameras.section import CameraConfig
+    from optitac_edge.io.device import BoardView
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
 
@@ -141,13 +145,13 @@ class SimCamera(Camera):
     """
 
     @classmethod
-    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+    def section_kwargs(cls, section: CameraConfig, board: BoardView) -> dict[str, Any]:
         """``[camera]`` fps, width, height, pixel_format, queue_frames; one fiber patch in each sensor's region."""
-        c = camera
+        c = section
         out: dict[str, Any] = {"fps": c.fps, "width": c.width, "height": c.height, "rgb": c.pixel_format == "rgb",
-                               "rest_frames": max(rest_frames, 10), "queue_frames": c.queue_frames}
-        if any(regions):
-            out["regions"] = regions
+                               "rest_frames": max(board.rest_frames, 10), "queue_frames": c.queue_frames}
+        if any(board.regions):
+            out["regions"] = board.regions
         return out
 
     def __init__(self, fps: float = 60.0, width: int = 640, height: int = 480, rgb: bool = False,  # noqa: PLR0913

@@ -13,13 +13,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, urlsplit
 
 from optitac_edge.errors import RigError
-from optitac_edge.io.clock import Clock
-from optitac_edge.io.rigs.base import Rig, RigLimits, RigStatus
+from optitac_edge.io.clock import Clock, VirtualClock
+from optitac_edge.io.rigs.base import Rig, RigConfig, RigLimits, RigStatus
 from optitac_edge.sim.physics import PHYSICS_NAMES
 from optitac_edge.sim.skin import Indenter
+
+if TYPE_CHECKING:
+    from optitac_edge.io.cameras.section import CameraConfig
+    from optitac_edge.sim.camera import SimCamera
 
 
 @dataclass(frozen=True)
@@ -71,6 +76,25 @@ class SimRig(Rig):
 
     changes_indenters = True
     shakes = True
+
+    #: Where the tip may go when the board sets no ``[rig]`` limits (its sensor sits at 100, 80; surface z 2).
+    default_limits = RigLimits(x_mm=(40.0, 160.0), y_mm=(20.0, 140.0), z_mm=(-6.0, 20.0), feed_mm_s=20.0,
+                               safe_z_mm=12.0)
+
+    @classmethod
+    def from_url(cls, url: str, config: RigConfig) -> SimRig:
+        """``sim://?...`` (:func:`parse_sim_url`) on a virtual clock of its own."""
+        return cls(config.limits(cls.default_limits), VirtualClock(), parse_sim_url(url))
+
+    def own_camera(self, section: CameraConfig) -> SimCamera:
+        """The simulated camera that sees this rig's presses on the rig's clock, as the board's camera
+        ``section`` says (its fps, size, pixel format and ``options.layout``)."""
+        from optitac_edge.sim.camera import SimCamera
+
+        mount = self.mount
+        return SimCamera(fps=section.fps, width=section.width, height=section.height,
+                         rgb=section.pixel_format == "rgb", realtime=False, clock=self.clock, program=self,
+                         physics=mount.physics, day=mount.day, layout=str(section.options.get("layout", "")))
 
     def __init__(self, limits: RigLimits, clock: Clock, mount: SimMount = SimMount(),
                  start_xyz_mm: tuple[float, float, float] | None = None) -> None:

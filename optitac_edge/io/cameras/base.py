@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import inspect
 from abc import ABC, abstractmethod
-from typing import Any, NamedTuple
+from dataclasses import fields
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from optitac_edge.errors import CameraError
-from optitac_edge.io.device import Device
+from optitac_edge.errors import CameraError, ConfigError
+from optitac_edge.io.device import BoardView, Device
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+    from optitac_edge.io.cameras.section import CameraConfig
 
 
 class CapturedFrame(NamedTuple):
@@ -51,10 +58,45 @@ class Camera(Device, ABC):
     reuses_buffer: bool = False
 
     @classmethod
-    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
-        """Constructor arguments from a board's ``[camera]`` section (``camera``: its keys as attributes), the
-        ``regions`` of the sensors it reads and the calibration's ``rest_frames``. The default takes none."""
+    def from_config(cls, section: CameraConfig, board: BoardView) -> Self:
+        """The camera a board's ``[camera]`` (or ``[cameras.NAME]``) describes: the constructor's arguments
+        from the section's typed keys (:meth:`section_kwargs`), then its ``options`` for what the backend
+        takes beyond them.
+
+        Raises
+        ------
+        ConfigError
+            If an option sets what a typed key sets (``camera.options.fps``: use ``camera.fps``, which is
+            validated), or names no parameter of the backend.
+        """
+        typed = cls.section_kwargs(section, board)
+        cls._check_options(section, board, typed)
+        return cls(**typed, **dict(section.options))
+
+    @classmethod
+    def section_kwargs(cls, section: CameraConfig, board: BoardView) -> dict[str, Any]:
+        """Constructor arguments from the section's typed keys (and the regions and rest frames of the
+        ``board``). The default takes none."""
         return {}
+
+    @classmethod
+    def _check_options(cls, section: CameraConfig, board: BoardView, typed: dict[str, Any]) -> None:
+        if not section.options:
+            return
+        shadowed = {f.name for f in fields(section)} | set(typed)
+        params = inspect.signature(cls).parameters
+        takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+        key = board.key or "camera"
+        for option in section.options:
+            where = board.where(f"options.{option}")
+            if option in shadowed:
+                raise ConfigError(f"{where}: {key}.options.{option}: set it with the camera key that does "
+                                  f"({key}.{option if option in {f.name for f in fields(section)} else '...'}), "
+                                  "which is checked")
+            if not takes_any and (option not in params or option in ("clock", "regions")):
+                known = sorted(set(params) - shadowed - {"self", "clock", "regions"})
+                raise ConfigError(f"{where}: {key}.options.{option}: not an option of the {section.backend} "
+                                  f"camera (its options: {', '.join(known) or 'none'})")
 
     def __init__(self) -> None:
         Device.__init__(self)

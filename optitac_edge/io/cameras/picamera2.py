@@ -28,7 +28,7 @@ import concurrent.futures
 import logging
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,10 @@ from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import FrameRing
 from optitac_edge.text import fields
+
+if TYPE_CHECKING:
+    from optitac_edge.io.cameras.section import CameraConfig
+    from optitac_edge.io.device import BoardView
 
 log = logging.getLogger(__name__)
 
@@ -125,10 +129,10 @@ class Picamera2Camera(Camera):
     reuses_buffer = True
 
     @classmethod
-    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+    def section_kwargs(cls, section: CameraConfig, board: BoardView) -> dict[str, Any]:
         """``[camera]`` width, height, fps, index, pixel_format, exposure_us, gain, warmup_frames, timeout_s,
         queue_frames."""
-        c = camera
+        c = section
         return {"width": c.width, "height": c.height, "fps": c.fps, "camera_num": c.index,
                 "pixel_format": c.pixel_format, "exposure_us": c.exposure_us or None, "analogue_gain": c.gain or None,
                 "warmup_frames": c.warmup_frames, "timeout_s": c.timeout_s, "queue_frames": c.queue_frames}

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.recording import Recording
+
+if TYPE_CHECKING:
+    from optitac_edge.io.cameras.section import CameraConfig
+    from optitac_edge.io.device import BoardView
 
 
 class RecordingCamera(Camera):
@@ -29,9 +33,9 @@ class RecordingCamera(Camera):
     """
 
     @classmethod
-    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+    def section_kwargs(cls, section: CameraConfig, board: BoardView) -> dict[str, Any]:
         """``[camera] recording``, played at its own rate."""
-        return {"path": camera.recording, "realtime": True}
+        return {"path": section.recording, "realtime": True}
 
     def __init__(self, path: str | Path, realtime: bool = False, loop: bool = False) -> None:
         super().__init__()

@@ -23,7 +23,7 @@ import re
 import threading
 import time
 from fractions import Fraction
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -31,6 +31,10 @@ import numpy as np
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import FrameRing
+
+if TYPE_CHECKING:
+    from optitac_edge.io.cameras.section import CameraConfig
+    from optitac_edge.io.device import BoardView
 
 log = logging.getLogger(__name__)
 
@@ -144,10 +148,10 @@ class V4L2Camera(Camera):
     reuses_buffer = True
 
     @classmethod
-    def board_kwargs(cls, camera: Any, regions: tuple[tuple[int, ...], ...], rest_frames: int) -> dict[str, Any]:
+    def section_kwargs(cls, section: CameraConfig, board: BoardView) -> dict[str, Any]:
         """``[camera]`` device or pipeline, width, height, fps, gain, queue_frames (exposure in driver units
         goes in ``camera.options.exposure``)."""
-        c = camera
+        c = section
         source = {"pipeline": c.pipeline} if c.pipeline else {"device": c.device}
         return {**source, "width": c.width, "height": c.height, "fps": c.fps, "gain": c.gain or None,
                 "queue_frames": c.queue_frames}

@@ -10,15 +10,22 @@ Raw Messages the contacts. A channel nobody subscribes to costs one check.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import Any
 
-import foxglove
-
 from optitac_edge.errors import PublishError
+from optitac_edge.fields import setting, string
+from optitac_edge.io.device import BoardView
 from optitac_edge.io.publishers.base import Publisher
-from optitac_edge.io.ros2.messages import ros2msg_schema
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FoxglovePublish:
+    """``[publish.foxglove]``: everything live to Foxglove / Lichtblick (a WebSocket server)."""
+
+    bind: str = setting(string(256, pattern=r"\S+:\d{1,5}", empty=False), "127.0.0.1:8765", "serve on HOST:PORT")
 
 
 def parse_bind(bind: str) -> tuple[str, int]:
@@ -38,7 +45,16 @@ def parse_bind(bind: str) -> tuple[str, int]:
 class FoxglovePublisher(Publisher):
     """A Foxglove WebSocket server on ``bind`` (``HOST:PORT``) with a channel per topic."""
 
+    Section = FoxglovePublish
+
+    @classmethod
+    def from_config(cls, section: FoxglovePublish, board: BoardView) -> FoxglovePublisher:
+        """``[publish.foxglove]`` under the board's namespace."""
+        return cls(section.bind, namespace=board.namespace)
+
     def __init__(self, bind: str = "127.0.0.1:8765", namespace: str = "", **_network: object) -> None:
+        import foxglove  # not at import: the board config reads this module's section without it
+
         super().__init__()
         host, port = parse_bind(bind)
         self.namespace = namespace
@@ -56,6 +72,10 @@ class FoxglovePublisher(Publisher):
         return f"ws://{self.host}:{self.port}"
 
     def advertise(self, topic: str, type_name: str) -> int:
+        import foxglove
+
+        from optitac_edge.io.ros2.messages import ros2msg_schema  # numpy: not when a board is read
+
         schema = foxglove.Schema(name=type_name, encoding="ros2msg", data=ros2msg_schema(type_name).encode())
         self._channels.append(foxglove.Channel(topic, schema=schema, message_encoding="cdr", context=self._context))
         return len(self._channels) - 1

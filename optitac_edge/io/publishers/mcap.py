@@ -37,13 +37,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from mcap.writer import CompressionType, Writer
-
 from optitac_edge.errors import OutputError
+from optitac_edge.fields import number, path_text, setting
+from optitac_edge.io.device import BoardView
 from optitac_edge.io.files import write_file_atomic
 from optitac_edge.io.mcap_file import SYNC_NS, PeriodicSync, complete, open_part, part_contents
 from optitac_edge.io.publishers.base import Publisher
-from optitac_edge.io.ros2.messages import ros2msg_schema
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +52,17 @@ LIBRARY = "optitac-edge"
 FLUSH_NS = SYNC_NS
 #: After a failed write, a new file is tried after this long (message time), ns.
 RETRY_NS = 60_000_000_000
+
+
+@dataclass(frozen=True)
+class McapPublish:
+    """``[publish.mcap]``: a recording of what is published, in MCAP files."""
+
+    path: str = setting(path_text, "", "the MCAP file", required=True)
+    max_mb: float = setting(number(0, 1e7), 0.0, "start a new file (NAME-0001.mcap, ...) after this many MB of messages (0: never)")
+    max_minutes: float = setting(number(0, 1e6), 0.0, "start a new file after this many minutes (0: never)")
+    keep_mb: float = setting(number(0, 1e9), 0.0, "delete the recording's oldest complete files once they hold more than "
+                             "this many MB (0: keep all)")
 
 
 def rotated_name(path: Path, index: int) -> Path:
@@ -143,6 +153,14 @@ class McapPublisher(Publisher):
         When the first file cannot be created (a directory that does not exist, no permission).
     """
 
+    Section = McapPublish
+
+    @classmethod
+    def from_config(cls, section: McapPublish, board: BoardView) -> McapPublisher:
+        """``[publish.mcap]`` (sizes in MB, times in minutes) under the board's namespace."""
+        return cls(Path(section.path), max_bytes=int(section.max_mb * 1e6), max_ns=int(section.max_minutes * 60e9),
+                   namespace=board.namespace, keep_bytes=int(section.keep_mb * 1e6))
+
     def __init__(self, path: str | Path, max_bytes: int = 0, max_ns: int = 0, namespace: str = "",
                  keep_bytes: int = 0, flush_ns: int = FLUSH_NS,
                  open_file: Callable[[Path], tuple[IO[bytes], Path]] | None = None, **_network: object) -> None:
@@ -201,6 +219,8 @@ class McapPublisher(Publisher):
         self._final = final
         self._file = McapFile(self._part)
         self.written.append(self._file)
+        from mcap.writer import CompressionType, Writer  # not at import: the board config reads the section
+
         self._writer = Writer(self._stream, compression=CompressionType.ZSTD)
         self._writer.start(profile="ros2", library=LIBRARY)
         self._channels: list[int] = []
@@ -213,6 +233,8 @@ class McapPublisher(Publisher):
     def _channel(self, topic: str, type_name: str) -> int:
         schema = self._schemas.get(type_name)
         if schema is None:
+            from optitac_edge.io.ros2.messages import ros2msg_schema  # numpy: not when a board is read
+
             schema = self._writer.register_schema(type_name, "ros2msg", ros2msg_schema(type_name).encode())
             self._schemas[type_name] = schema
         return int(self._writer.register_channel(topic, "cdr", schema))

@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
 from typing import NamedTuple
 
+from optitac_edge.io.device import BoardView
 from optitac_edge.io.publishers.base import Publisher
+
+
+@dataclass(frozen=True)
+class VirtualPublish:
+    """``[publish.virtual]``: kept in memory (tests)."""
 
 
 class Published(NamedTuple):
@@ -17,6 +24,12 @@ class Published(NamedTuple):
 
 class VirtualPublisher(Publisher):
     """Records every message in :attr:`messages` (thread-safe to read with :meth:`taken`)."""
+
+    Section = VirtualPublish
+
+    @classmethod
+    def from_config(cls, section: VirtualPublish, board: BoardView) -> VirtualPublisher:
+        return cls(namespace=board.namespace)
 
     def __init__(self, namespace: str = "", **_settings: object) -> None:
         super().__init__()

@@ -17,17 +17,17 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
 from optitac_edge.errors import PublishError
+from optitac_edge.fields import ROS_NAME, choice, endpoint_list, integer, path_text, setting, string
 from optitac_edge.io.backoff import Backoff
 from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
+from optitac_edge.io.device import BoardView
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2 import rmw_zenoh
-from optitac_edge.io.ros2.messages import TYPE_HASHES, dds_type_name
 
 log = logging.getLogger(__name__)
 
@@ -38,11 +38,25 @@ RETRY_FIRST_S = 1.0
 RETRY_MAX_S = 30.0
 
 
+@dataclass(frozen=True)
+class ZenohPublish:
+    """``[publish.zenoh]``: every sensor's contacts, status and signal as ROS 2 topics via rmw_zenoh."""
+
+    config: str = setting(path_text, "", "a Zenoh JSON5 config file (endpoints, scouting, TLS); '' = Zenoh's defaults")
+    mode: str = setting(choice("", "peer", "client", "router"), "", "session mode ('' = the config file's, else peer)")
+    connect: tuple[str, ...] = setting(endpoint_list, (), "endpoints to connect to, e.g. ['tcp/192.168.1.10:7447']")
+    listen: tuple[str, ...] = setting(endpoint_list, (), "endpoints to listen on, e.g. ['tcp/0.0.0.0:7447']")
+    domain_id: int = setting(integer(0, 232), 0, "ROS 2 domain id (ROS_DOMAIN_ID)")
+    node: str = setting(string(64, pattern=ROS_NAME, empty=False), "optitac_edge", "ROS 2 node name")
+
+
 def session_config(config: str | Path | None, mode: str, connect: tuple[str, ...],
                    listen: tuple[str, ...]) -> Any:
     """A ``zenoh.Config``: the file ``config`` (JSON5) if given, then ``mode``, ``connect`` and ``listen``
     where set."""
     import json
+
+    import zenoh  # not at import: the board config reads this module's section without it
 
     if config and not Path(config).is_file():
         raise PublishError(f"Zenoh config {config}: no such file")
@@ -140,6 +154,15 @@ class ZenohPublisher(Publisher):
         A configuration file, endpoint or name that cannot be right.
     """
 
+    Section = ZenohPublish
+
+    @classmethod
+    def from_config(cls, section: ZenohPublish, board: BoardView) -> ZenohPublisher:
+        """``[publish.zenoh]`` under the board's namespace."""
+        return cls(config=Path(section.config) if section.config else None, mode=section.mode,
+                   connect=section.connect, listen=section.listen, domain_id=section.domain_id,
+                   namespace=board.namespace, node=section.node)
+
     def __init__(self, config: str | Path | None = None, mode: str = "", connect: tuple[str, ...] = (),
                  listen: tuple[str, ...] = (), domain_id: int = 0, namespace: str = "",
                  node: str = "optitac_edge", clock: Clock = SYSTEM_CLOCK) -> None:
@@ -179,6 +202,8 @@ class ZenohPublisher(Publisher):
         """Open the session and declare the node and every topic advertised so far; False if it cannot yet."""
         self.attempts += 1
         try:
+            import zenoh
+
             session = zenoh.open(self._config)
         except Exception as exc:  # noqa: BLE001 - a router not up, a port in use: tried again later
             self.failure = _one_line(exc)
@@ -199,6 +224,10 @@ class ZenohPublisher(Publisher):
         return rmw_zenoh.Node(self.domain_id, self.zid, 0, self.namespace, self.node)
 
     def _declare(self, topic: str, type_name: str) -> None:
+        import zenoh
+
+        from optitac_edge.io.ros2.messages import TYPE_HASHES, dds_type_name  # numpy: not when a board is read
+
         type_hash, dds_type = TYPE_HASHES[type_name], dds_type_name(type_name)
         eid = len(self._publishers) + 1  # entity ids: 0 is the node's
         key = rmw_zenoh.topic_keyexpr(self.domain_id, topic, dds_type, type_hash)

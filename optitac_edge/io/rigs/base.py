@@ -19,9 +19,17 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar
 
 from optitac_edge.errors import RigError
+from optitac_edge.fields import boolean, integer, number, setting, string
 from optitac_edge.io.device import Device
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+    from optitac_edge.io.cameras.base import Camera
+    from optitac_edge.io.cameras.section import CameraConfig
 
 #: Rig states reported by :meth:`Rig.status`: ``hold`` (a feed hold, stopping or stopped), ``door`` (a safety
 #: door open), ``sleep``, ``tool`` (a tool change waits), ``check`` (G-code check mode: nothing moves) and
@@ -111,6 +119,62 @@ class RigStatus:
         return self.state == "alarm" or all(math.isfinite(v) and abs(v) < ABSURD_MM for v in self.xyz_mm)
 
 
+@dataclass(frozen=True)
+class RigConfig:
+    """The indentation rig of ``optitac-edge collect`` (bench use only; the service never moves it)."""
+
+    url: str = setting(string(256), "", "the rig: gcode://PORT (GRBL), ur://HOST (Universal Robots), sim:// (simulator) "
+                          "or another registered scheme")
+    baudrate: int = setting(integer(1200, 4_000_000), 115200, "gcode: serial baud rate")
+    home: bool = setting(boolean, False, "gcode: home ($H) at start when the machine is locked")
+    x_min: float = setting(number(-1e5, 1e5), 0.0, "lowest x the tip may go to, mm (rig coordinates)")
+    x_max: float = setting(number(-1e5, 1e5), 0.0, "highest x, mm")
+    y_min: float = setting(number(-1e5, 1e5), 0.0, "lowest y, mm")
+    y_max: float = setting(number(-1e5, 1e5), 0.0, "highest y, mm")
+    z_min: float = setting(number(-1e5, 1e5), 0.0, "lowest z (deepest), mm: keep it above what the skin can take")
+    z_max: float = setting(number(-1e5, 1e5), 0.0, "highest z, mm")
+    safe_z: float = setting(number(-1e5, 1e5), 0.0, "z of every retract, mm (0: z_max)")
+    feed_mm_s: float = setting(number(0.1, 500), 10.0, "speed of every move, mm/s")
+
+    @property
+    def limits_set(self) -> bool:
+        return self.x_min < self.x_max and self.y_min < self.y_max and self.z_min < self.z_max
+
+    def limits(self, default: RigLimits | None = None) -> RigLimits:
+        """The travel limits the keys set, ``default`` when they set none (the simulator's).
+
+        Raises
+        ------
+        RigError
+            When none are set and there is no ``default``, or they are inconsistent.
+        """
+        if not self.limits_set:
+            if default is not None:
+                return default
+            raise RigError("set the rig's travel limits (rig.x_min, x_max, y_min, y_max, z_min, z_max) before "
+                           "moving a real rig")
+        try:
+            return RigLimits(x_mm=(self.x_min, self.x_max), y_mm=(self.y_min, self.y_max),
+                             z_mm=(self.z_min, self.z_max), feed_mm_s=self.feed_mm_s,
+                             safe_z_mm=self.safe_z or self.z_max)
+        except ValueError as exc:
+            raise RigError(str(exc)) from None
+
+
+def url_rest(url: str, scheme: str) -> str:
+    """What follows ``SCHEME://`` in a rig URL.
+
+    Raises
+    ------
+    RigError
+        When ``url`` is not written ``SCHEME://...``.
+    """
+    prefix = f"{scheme}://"
+    if not url.startswith(prefix):
+        raise RigError(f"unknown rig URL {url!r} (a {scheme} rig is {prefix}...)")
+    return url[len(prefix):]
+
+
 class Rig(Device, ABC):
     """An indentation rig. Subclasses implement ``_move``, ``_status``, ``_stop`` and ``_close_internal``.
 
@@ -124,6 +188,25 @@ class Rig(Device, ABC):
     #: True when the rig can shake the tip at 30-100 Hz by a fraction of a millimetre (:meth:`shake`: the
     #: simulator; a GRBL machine or an arm cannot: reversing 0.05 mm at 30 Hz takes 1.8 m/s² per cycle).
     shakes: bool = False
+
+    #: Where the tip may go when the board sets no ``[rig]`` limits (None: a real rig, which needs them).
+    default_limits: ClassVar[RigLimits | None] = None
+
+    @classmethod
+    def from_url(cls, url: str, config: RigConfig) -> Self:
+        """The rig ``url`` names (its scheme chose this class), with the board's ``[rig]`` section ``config``.
+
+        Raises
+        ------
+        RigError
+            A URL this rig does not take, limits missing, or a rig that cannot be reached.
+        """
+        raise NotImplementedError(f"{cls.__name__} is not opened from a URL")
+
+    def own_camera(self, section: CameraConfig) -> Camera | None:
+        """The camera that sees the skin this rig presses when the rig brings its own (the simulator's, made
+        as the board's camera ``section`` says); None: the board's camera."""
+        return None
 
     def __init__(self, limits: RigLimits, sleep: Callable[[float], None] = time.sleep,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:

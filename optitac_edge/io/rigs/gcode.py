@@ -43,7 +43,7 @@ from collections.abc import Callable
 from typing import Any
 
 from optitac_edge.errors import RigError
-from optitac_edge.io.rigs.base import ABSURD_MM, GarbledReport, Rig, RigLimits, RigStatus
+from optitac_edge.io.rigs.base import ABSURD_MM, GarbledReport, Rig, RigConfig, RigLimits, RigStatus, url_rest
 
 #: GRBL's and grblHAL's state names -> :data:`~optitac_edge.io.rigs.base.STATES` (anything else: ``unknown``).
 _STATES = {"idle": "idle", "run": "moving", "jog": "moving", "hold": "hold", "alarm": "alarm",
@@ -90,6 +90,11 @@ class GcodeRig(Rig):
 
     #: How long a retract waits for an open safety door to be closed (s).
     door_wait_s = 30.0
+
+    @classmethod
+    def from_url(cls, url: str, config: RigConfig) -> GcodeRig:
+        """``gcode://PORT`` (a device or a pyserial URL), with ``[rig]`` limits, ``baudrate`` and ``home``."""
+        return cls(url_rest(url, "gcode"), config.limits(), baudrate=config.baudrate, home=config.home)
 
     def __init__(self, url: str, limits: RigLimits, baudrate: int = 115200, home: bool = False,
                  timeout_s: float = 2.0, port: Any = None, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from optitac_edge.errors import RigError
-from optitac_edge.io.rigs.base import Rig, RigLimits, RigStatus
+from optitac_edge.io.rigs.base import Rig, RigConfig, RigLimits, RigStatus, url_rest
 
 #: Linear acceleration of every move, m/s^2.
 ACCELERATION = 0.5
@@ -28,6 +28,11 @@ class UrRig(Rig):
     control, receive : optional
         Open ``RTDEControlInterface`` / ``RTDEReceiveInterface`` objects (tests).
     """
+
+    @classmethod
+    def from_url(cls, url: str, config: RigConfig) -> UrRig:
+        """``ur://HOST``, with the ``[rig]`` limits."""
+        return cls(url_rest(url, "ur").strip("/"), config.limits())
 
     def __init__(self, host: str, limits: RigLimits, control: Any = None, receive: Any = None) -> None:
         super().__init__(limits)

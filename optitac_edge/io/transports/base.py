@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-from optitac_edge.io.device import Device
+from optitac_edge.io.device import BoardView, Device
 from optitac_edge.io.protocol.messages import Command
 
 if TYPE_CHECKING:  # the board config reads the registry without the wire format's packages (cobs)
+    from typing_extensions import Self
+
     from optitac_edge.io.protocol.packet import Packer, Packet
+    from optitac_edge.io.transports.link import LinkConfig
 
 
 @dataclass
@@ -50,9 +52,9 @@ class Transport(Device, ABC):
         Device.__init__(self)
 
     @classmethod
-    def from_link(cls, link: Any, sensor_ids: Sequence[int]) -> Transport:
-        """Open it as a board's ``[link]`` section (``link``: its keys as attributes) says, for the board's
-        ``sensor_ids``. The default takes no keys."""
+    def from_config(cls, section: LinkConfig, board: BoardView) -> Self:
+        """Open it as a board's ``[link]`` ``section`` says, for the sensors of the ``board``. The default
+        takes no keys."""
         return cls()
 
     def packer(self, sensor_id: int) -> Packer:

@@ -23,7 +23,7 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -33,6 +33,10 @@ from optitac_edge.io.protocol.can_codec import BASE_ID, CanCodec, message_ids
 from optitac_edge.io.protocol.can_packer import CanPacker
 from optitac_edge.io.protocol.packet import Packet
 from optitac_edge.io.transports.base import Transport
+
+if TYPE_CHECKING:
+    from optitac_edge.io.device import BoardView
+    from optitac_edge.io.transports.link import LinkConfig
 
 log = logging.getLogger(__name__)
 
@@ -140,9 +144,10 @@ class CanTransport(Transport):
     # -- bus handling -------------------------------------------------------------------------
 
     @classmethod
-    def from_link(cls, link: Any, sensor_ids: Sequence[int]) -> CanTransport:
+    def from_config(cls, section: LinkConfig, board: BoardView) -> CanTransport:
         """``[link] can_channel``, ``can_interface``, ``can_protocol``, ``can_bitrate`` (socketcan only)."""
-        return cls(channel=link.can_channel, interface=link.can_interface, sensor_id=list(sensor_ids),
+        link = section
+        return cls(channel=link.can_channel, interface=link.can_interface, sensor_id=list(board.sensor_ids),
                    protocol=link.can_protocol, bitrate=link.can_bitrate if link.can_interface == "socketcan" else None)
 
     def _open_bus(self) -> Any:

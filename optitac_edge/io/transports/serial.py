@@ -21,8 +21,8 @@ import functools
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.messages import Command
@@ -32,6 +32,10 @@ from optitac_edge.io.transports.base import Transport
 from optitac_edge.io.transports.serial_port import PortKeeper, SerialTiming
 from optitac_edge.io.transports.serial_reader import CommandReader
 from optitac_edge.io.transports.serial_writer import FrameWriter
+
+if TYPE_CHECKING:
+    from optitac_edge.io.device import BoardView
+    from optitac_edge.io.transports.link import LinkConfig
 
 try:  # pyserial is needed only when this transport is used (lazy registry)
     import serial
@@ -110,10 +114,10 @@ class SerialTransport(Transport):
         self._writer_thread.start()
 
     @classmethod
-    def from_link(cls, link: Any, sensor_ids: Sequence[int]) -> SerialTransport:
+    def from_config(cls, section: LinkConfig, board: BoardView) -> SerialTransport:
         """``[link] serial_url``, ``baudrate``. A port that is not there yet (MCU unplugged, udev not done) is
         waited for, not fatal: the service streams as soon as it appears."""
-        return cls(link.serial_url, baudrate=link.baudrate, require_port=False)
+        return cls(section.serial_url, baudrate=section.baudrate, require_port=False)
 
     # -- Transport API (frame loop side) --------------------------------------------------
 
