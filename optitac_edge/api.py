@@ -34,8 +34,11 @@ from optitac_edge.errors import ConfigError, OptiTacError
 if TYPE_CHECKING:
     from typing_extensions import Self
 
+    from optitac_edge.config import BoardConfig, BoardSensor
+    from optitac_edge.core.bundle import CalibrationBundle
     from optitac_edge.core.contact import ContactEstimate
     from optitac_edge.core.frame_result import FrameResult
+    from optitac_edge.io.cameras.base import Camera
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,7 +183,8 @@ class Sensor:
     A context manager; :meth:`close` is idempotent. Not thread-safe: read it from one thread.
     """
 
-    def __init__(self, board: Any, sensor: Any, camera: Any, bundle: Any, stack: ExitStack) -> None:
+    def __init__(self, board: BoardConfig, sensor: BoardSensor, camera: Camera, bundle: CalibrationBundle,
+                 stack: ExitStack) -> None:
         from optitac_edge.core.pipeline import Pipeline
 
         self._board, self._sensor, self._camera, self._stack = board, sensor, camera, stack
@@ -329,7 +333,7 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
         raise
 
 
-def _open(config: Any, chosen: Any, cal_path: Path | None, recording: str | os.PathLike[str] | None,
+def _open(config: BoardConfig, chosen: BoardSensor, cal_path: Path | None, recording: str | os.PathLike[str] | None,
           stack: ExitStack) -> Sensor:
     """The LED ring, the camera (or the recording) and the bundle of ``chosen``, closed with ``stack``."""
     from optitac_edge.io.bundle_file import load_bundle

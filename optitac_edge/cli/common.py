@@ -7,11 +7,17 @@ import math
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording_paths import staging_path
 from optitac_edge.text import parse_float, parse_int
+
+if TYPE_CHECKING:
+    from typing import TypeAlias
+
+    #: The table of sub-commands each command module adds its parser to.
+    Subcommands: TypeAlias = argparse._SubParsersAction[argparse.ArgumentParser]
 
 EXIT_ERROR = 2
 #: Exit status of work interrupted by Ctrl-C (128 + SIGINT, as a shell reports it).

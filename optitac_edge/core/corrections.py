@@ -7,13 +7,19 @@ docs/formats.md) and are added by ``optitac-edge calibrate centroid|width|shapes
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.centroid_map import CentroidErrorMap
 from optitac_edge.core.depth_model import DepthForceModel
 from optitac_edge.core.width_model import WidthModel
 from optitac_edge.errors import BundleError
+
+if TYPE_CHECKING:
+    from optitac_edge.core.contact import ContactEstimate
+    from optitac_edge.core.shapes.evaluate import ShapeClassifier
+    from optitac_edge.core.shapes.model import ShapeModel
+    from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
 
 CENTROID_KEY, WIDTH_KEY, SHAPES_KEY, DEPTH_KEY = "centroid", "width", "shapes", "depth"
 
@@ -22,7 +28,7 @@ def _arrays_with_prefix(bundle: CalibrationBundle, prefix: str) -> dict[str, Any
     return {k: v for k, v in bundle.extra_arrays.items() if k.startswith(prefix + "/")}
 
 
-def load_shape_model(bundle: CalibrationBundle) -> Any:
+def load_shape_model(bundle: CalibrationBundle) -> ShapeModel | None:
     """The bundle's shape model, or None."""
     if SHAPES_KEY not in bundle.extra_meta:
         return None
@@ -36,7 +42,7 @@ def load_shape_model(bundle: CalibrationBundle) -> Any:
 
 
 def read_models(bundle: CalibrationBundle) -> tuple[CentroidErrorMap | None, WidthModel | None,
-                                                    DepthForceModel | None, Any]:
+                                                    DepthForceModel | None, ShapeModel | None]:
     """The bundle's centroid map, width model, depth model and shape model (None where absent).
 
     Raises
@@ -72,7 +78,7 @@ class ContactCorrector:
     def __init__(self, bundle: CalibrationBundle, shape_backend: str = "numpy",
                  onnx_path: str | None = None) -> None:
         self.centroid, self.width, self.depth, shape_model = read_models(bundle)
-        self.shapes: Any = None
+        self.shapes: ShapeClassifier | OnnxShapeClassifier | None = None
         if shape_model is not None:
             if shape_backend == "onnx":
                 from optitac_edge.core.shapes.onnx_runtime import OnnxShapeClassifier
@@ -110,7 +116,7 @@ class ContactCorrector:
         """Centroid and width both calibrated."""
         return self.centroid is not None and self.width is not None
 
-    def apply(self, est: Any) -> None:
+    def apply(self, est: ContactEstimate) -> None:
         """Correct one contact (a :class:`~optitac_edge.core.contact.ContactEstimate` with contact)."""
         if self.depth is not None:  # first: it reads the raw widths and position it was fitted on
             self.depth.apply(est)

@@ -29,11 +29,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.core.width_model import AxisMap, rim_rho2
+
+if TYPE_CHECKING:
+    from optitac_edge.core.contact import ContactEstimate
 
 #: The contact features a depth or force model may use, and how each scales when the skin's darkening is
 #: multiplied by a gain ``g`` (the pins' response drifting between days): ``feature * g ** exponent``.
@@ -167,7 +170,7 @@ class DepthForceModel:
             if f not in DEPTH_FEATURES:
                 raise ValueError(f"unknown depth feature {f!r} (known: {', '.join(DEPTH_FEATURES)})")
 
-    def apply(self, est: Any) -> None:
+    def apply(self, est: ContactEstimate) -> None:
         """Set ``est.depth_mm`` and ``est.force_n`` (NaN without a force model) of one raw contact estimate."""
         x, y = est.x_mm, est.y_mm
         est.depth_mm = self.depth(depth_feature(est, self.feature), x, y)

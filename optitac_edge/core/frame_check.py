@@ -79,17 +79,16 @@ class FrameCheck:
         #: The last frame that passed had a live fiber centre at full scale.
         self.saturated = False
 
-    def bad(self, frame: Any) -> bool:
+    def bad(self, frame: object) -> bool:
         """Whether ``frame`` is no frame of this camera: not a uint8 array of :attr:`frame_shape` (the part of
-        the check that reads no pixel; :func:`~optitac_edge.core.pipeline.process_checked`
-        does the rest)."""
+        the check that reads no pixel; calling the check does the rest)."""
         return not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != self.frame_shape
 
     def _count(self, flags: np.ndarray) -> int:
         """Probed pixels flagged (for RGB: any of a pixel's three bytes)."""
         return int(np.count_nonzero(flags.reshape(-1, 3).any(axis=1))) if self._rgb else int(np.count_nonzero(flags))
 
-    def __call__(self, frame: Any) -> str | None:
+    def __call__(self, frame: Any) -> str | None:  # untrusted: any object (bad() says so first)
         """Why ``frame`` must be skipped (``"bad"``, ``"dark"``, ``"saturated"``), or None.
 
         Also sets :attr:`saturated` when some live fiber centre is at full scale.

@@ -24,7 +24,7 @@ import sys
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.config import BoardConfig, CameraConfig, SensorConfig
 from optitac_edge.core.bundle import CalibrationBundle
@@ -48,6 +48,7 @@ from optitac_edge.service.status import StatusReporter
 
 if TYPE_CHECKING:
     from optitac_edge.service.network import NetworkOutput
+    from optitac_edge.service.view.live import LiveView
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,7 @@ class Service:
         #: restarts it; under systemd ``run`` exits so that it is restarted).
         self.ride_out_stalls = False
         #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
-        self.view: Any = None
+        self.view: LiveView | None = None
         #: The network publisher's frame-loop side (``[publish.NAME]``): ``offer_*`` copy and return, never blocking.
         self.network: NetworkOutput | None = None
         #: Protocol, streaming and rate divider, as the MCU's commands set them.

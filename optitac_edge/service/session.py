@@ -16,9 +16,9 @@ from contextlib import ExitStack, closing
 from pathlib import Path
 from threading import Event
 from types import TracebackType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-from optitac_edge.config import BoardConfig
+from optitac_edge.config import BoardConfig, SensorConfig
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.compiled import kernel_status
 from optitac_edge.io.cameras.base import Camera
@@ -40,6 +40,8 @@ from optitac_edge.service.wiring import (
 
 if TYPE_CHECKING:
     from typing_extensions import Self
+
+    from optitac_edge.service.view.live import LiveView
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +82,7 @@ class BoardSession:
         self.cameras: dict[str, Camera] = {}
         self.transport: Transport | None = None
         #: The live view, when :meth:`open_view` was called.
-        self.view: Any = None
+        self.view: LiveView | None = None
         #: Gaps without a camera frame are said and ridden out (``view``), not an exit (``run``).
         self.ride_out_stalls = False
         #: The board's network publisher (``[publish.NAME]``; None when off), and its publishing thread once running.
@@ -239,7 +241,7 @@ class BoardSession:
         return stats
 
 
-def network_sensor(sensor: Any, bundle: CalibrationBundle) -> NetworkSensor:
+def network_sensor(sensor: SensorConfig, bundle: CalibrationBundle) -> NetworkSensor:
     """A sensor as the network sees it: its id, name, fiber centres, dead fibers and calibration."""
     xy = bundle.layout.xy_mm
     region = tuple(sensor.region)

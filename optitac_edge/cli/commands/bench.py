@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import COUNT, FPS, frame_size, number
 from optitac_edge.errors import OptiTacError
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``bench [--frames N] ...``."""
     p = sub.add_parser("bench", help="measure the per-frame loop: stages, reference, memory, end to end, startup")
     p.add_argument("--frames", type=COUNT, default=20000, help="frames timed per stage (default 20000)")

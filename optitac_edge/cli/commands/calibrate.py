@@ -11,10 +11,11 @@ from optitac_edge.errors import OptiTacError
 from optitac_edge.text import fields
 
 if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
     from optitac_edge.core.bundle import CalibrationBundle
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Subcommands) -> None:
     """``calibrate STEP RECORDING``."""
     cal = sub.add_parser("calibrate", help="calibration steps").add_subparsers(
         dest="step", required=True, parser_class=Parser)

@@ -6,14 +6,17 @@ import argparse
 import sys
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.cli.common import add_board, add_storage, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording_paths import staging_path
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``collect EXPERIMENT``."""
     from optitac_edge.bringup.experiments import EXPERIMENTS
 

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Subcommands) -> None:
     """``export-onnx CAL -o OUT``."""
     p = sub.add_parser("export-onnx", help="export the bundle's shape classifier to ONNX")
     p.add_argument("cal", type=Path, metavar="CAL")

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import number
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``layout --rings R --pitch-mm P -o CSV``."""
     p = sub.add_parser("layout", help="write a hexagonal fiber array's layout CSV (a central fiber and rings)",
                        description="Write the layout CSV of a hexagonal array (docs/formats.md): a central fiber "

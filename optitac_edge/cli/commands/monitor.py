@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import number
 from optitac_edge.errors import OptiTacError
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``monitor --serial PORT | --can CHANNEL``."""
     p = sub.add_parser("monitor", help="show what the MCU receives (CONTACT, STATUS, ACK), rates, gaps, errors; "
                                        "send the MCU's commands")

@@ -5,13 +5,16 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.cli.common import add_board, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``orient``."""
     p = sub.add_parser("orient", help="find the layout's orientation from two presses (+x edge, then +y edge) "
                                       "and write it into the bundle")

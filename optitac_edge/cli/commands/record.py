@@ -5,13 +5,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import COUNT, add_board, add_fresh, add_storage, one_sensor_config, recording_left
 from optitac_edge.errors import OptiTacError
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``record -o REC``."""
     p = sub.add_parser("record", help="save frames of a live source as a recording")
     add_board(p)

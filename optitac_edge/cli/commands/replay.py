@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Subcommands) -> None:
     """``replay RECORDING --cal CAL -o CSV``."""
     p = sub.add_parser("replay", help="process every frame of a recording into a contacts CSV")
     p.add_argument("recording", type=Path)

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Subcommands) -> None:
     """``report CAL -o DIR``."""
     p = sub.add_parser("report", help="write calibration figures (PNG) and a summary")
     p.add_argument("cal", type=Path, metavar="CAL")

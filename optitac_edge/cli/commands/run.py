@@ -23,8 +23,17 @@ from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
 if TYPE_CHECKING:
     from typing_extensions import Self
 
+    from optitac_edge.cli.common import Subcommands
+    from optitac_edge.config import BoardConfig
+    from optitac_edge.core.contact import ContactEstimate
+    from optitac_edge.core.frame_result import FrameResult
+    from optitac_edge.io.transports.base import Transport
+    from optitac_edge.service.loop import Service
+    from optitac_edge.service.session import BoardSession
+    from optitac_edge.service.stats import ServiceStats
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``run [--board B] [--serial PORT | --can CHANNEL] ...``."""
     p = sub.add_parser("run", help="capture -> process -> transmit (default: the built-in simulated sensor)")
     add_board(p)
@@ -49,7 +58,7 @@ def add_parser(sub: Any) -> None:
                         "Lichtblick (e.g. 127.0.0.1:8765; needs the foxglove extra)")
 
 
-def _status_line(est: Any, fps: float | None) -> str:
+def _status_line(est: ContactEstimate, fps: float | None) -> str:
     rate = "  -.- fps" if fps is None else f"{fps:5.1f} fps"
     if not est.baseline_ready:
         return f"{rate}  baselining..."
@@ -62,7 +71,7 @@ def _status_line(est: Any, fps: float | None) -> str:
             f"{est.angle_deg:+.0f}°{shape} strength {est.strength:.0f}{depth}")
 
 
-def _brief(name: str, est: Any) -> str:
+def _brief(name: str, est: ContactEstimate) -> str:
     """One sensor of several, in a few words."""
     if not est.baseline_ready:
         return f"{name}: baselining"
@@ -121,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     # run's own lines go to stdout through a queue too: a stdout nobody reads never holds up the service
     console = NonBlockingLogging(logging.INFO, sys.stdout, logger="optitac_edge.console", fmt="%(message)s",
                                  always=True).start()
-    services: list[Any] = []
+    services: list[Service] = []
     try:
         say = logging.getLogger("optitac_edge.console").info
         services = _run_service(args, config, stop, say)
@@ -160,12 +169,12 @@ def run(args: argparse.Namespace) -> int:
     return 0  # SIGTERM / SIGHUP: a requested stop (systemd counts it as success)
 
 
-def _delivered(transport: Any) -> bool:
+def _delivered(transport: Transport) -> bool:
     """The link wrote something to the MCU (not the null link, not a port that never opened)."""
     return bool(transport.delivers and transport.counters.sent)
 
 
-def _link_summary(transport: Any) -> str:
+def _link_summary(transport: Transport) -> str:
     """What went over the link: messages written and those that could not be (from the link's own counters;
     frames handed to a port that was never there are not "sent")."""
     if not transport.delivers:
@@ -191,16 +200,16 @@ class StatusLine:
         self._link = link
         self._due_ns: dict[str, int] = {}
         self._last: tuple[int, int] | None = None  # (ns, frames) of the previous line
-        self._latest: tuple[Any, float | None] | None = None
-        self._named: dict[str, Any] = {}  # several sensors: each one's last copy, by name
+        self._latest: tuple[ContactEstimate, float | None] | None = None
+        self._named: dict[str, ContactEstimate] = {}  # several sensors: each one's last copy, by name
         self._lead_name: str | None = None
-        self._stats: Any = None
+        self._stats: ServiceStats | None = None
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._print_loop, name="optitac-status-line", daemon=True)
 
-    def offer(self, est: Any, stats: Any, name: str = "") -> None:
+    def offer(self, est: ContactEstimate, stats: ServiceStats, name: str = "") -> None:
         """From a frame loop: keep a copy of ``est`` when a line is due. One camera's counters (the first that
         offers) make the rate (two cameras' made it -89.7 fps); a sensor of another camera is shown only when
         named."""
@@ -265,8 +274,8 @@ class StatusLine:
             sys.stdout.write("\n")
 
 
-def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
-                 say: Callable[..., None]) -> list[Any]:
+def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.Event,
+                 say: Callable[..., None]) -> list[Service]:
     """Run the board's session; its services (the lead's first)."""
     from optitac_edge.service.session import BoardSession
 
@@ -296,7 +305,7 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
                         f"{int((~b.fibers.dead).sum())}/{b.layout.n_fibers} fibers")
             say(f"running {len(config.sensors)} sensors on {len(config.cameras)} camera(s) ({via}; Ctrl-C to stop)")
 
-        def on_result(result: Any, stats: Any) -> None:
+        def on_result(result: FrameResult, stats: ServiceStats) -> None:
             if max_frames is not None and stats.frames >= max_frames:
                 stop.set()
             if line is None:
@@ -313,18 +322,19 @@ def _run_service(args: argparse.Namespace, config: Any, stop: threading.Event,
         return session.services
 
 
-def simulated_operator_for_the_view(session: Any) -> None:
+def simulated_operator_for_the_view(session: BoardSession) -> None:
     """On the simulated camera, a simulated operator does what the view's guided orientation asks (the
     simulator's own presses ignore its prompts)."""
     from optitac_edge.sim.camera import SimCamera
     from optitac_edge.sim.operator import PromptFollower
 
-    if isinstance(session.camera, SimCamera) and session.view is not None:
-        operator = PromptFollower(session.camera.sensor.layout.radius_mm)
-        previous = session.camera.program
+    camera = session.camera
+    if isinstance(camera, SimCamera) and session.view is not None:
+        operator = PromptFollower(camera.sensor.layout.radius_mm)
+        previous = camera.program
 
         def follow(prompt: str) -> None:
             operator.follow(prompt)
-            session.camera.press_with(operator if prompt else previous)
+            camera.press_with(operator if prompt else previous)
 
         session.view.on_prompt = follow

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from optitac_edge.cli.common import (
     COUNT,
@@ -19,6 +19,9 @@ from optitac_edge.cli.common import (
     recording_left,
 )
 from optitac_edge.errors import OptiTacError
+
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
 
 class _SimNames:
@@ -46,7 +49,7 @@ class _SimNames:
         return iter(self._names())
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Subcommands) -> None:
     """``sim OUT --scenario NAME``."""
     p = sub.add_parser("sim", help="write a recording from the built-in simulator")
     p.add_argument("out_dir", type=Path)

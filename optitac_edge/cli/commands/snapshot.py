@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import add_board, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``snapshot -o PNG``."""
     p = sub.add_parser("snapshot", help="write the live view's picture of a board's camera to a PNG")
     add_board(p)
@@ -21,13 +24,13 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from types import SimpleNamespace
 
     from optitac_edge.core.frame_engine import Skip
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.io.files import AtomicFile
     from optitac_edge.service.bundles import obtain_bundle
-    from optitac_edge.service.view.live import STAT_FIELDS, LiveView
+    from optitac_edge.service.stats import ServiceStats
+    from optitac_edge.service.view.live import LiveView
     from optitac_edge.service.view.render import encode_png, render_published
     from optitac_edge.service.wiring import open_board_camera
 
@@ -36,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
         bundle, _ = obtain_bundle(config, camera, args.cal)
         pipeline = Pipeline(bundle, fps=camera.fps)
         view = LiveView(bundle, camera.pixel_format, rate_hz=1e9)
-        stats = SimpleNamespace(**dict.fromkeys(STAT_FIELDS, 0))
+        stats = ServiceStats()
         try:
             taken = 0
             last = 0

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import FPS, SEED, number
 from optitac_edge.errors import OptiTacError
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``soak --minutes M``."""
     p = sub.add_parser("soak", help="run the full loop on the simulator with injected faults; report recovery")
     p.add_argument("--minutes", type=number(0, 1e6, lo_open=True), required=True, metavar="M")

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import add_board, number
 
+if TYPE_CHECKING:
+    from optitac_edge.cli.common import Subcommands
 
-def add_parser(sub: Any) -> None:
+
+def add_parser(sub: Subcommands) -> None:
     """``view [--bind HOST:PORT]``."""
     p = sub.add_parser("view", help="serve the live view: camera, fiber map, surface, contacts (any browser)")
     add_board(p)

@@ -22,7 +22,8 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -32,6 +33,13 @@ from optitac_edge.core.frames import to_gray
 from optitac_edge.core.pipeline import MAX_CONTACTS
 from optitac_edge.errors import OptiTacError
 from optitac_edge.service.view.render import DARK_FRACTION, SATURATED_LEVEL
+
+if TYPE_CHECKING:
+    from optitac_edge.calibration.edge_presses import EdgePresses
+    from optitac_edge.calibration.orientation import OrientationFit
+    from optitac_edge.core.image_transform import ImageTransform
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.service.stats import ServiceStats
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +57,7 @@ STAT_FIELDS = ("frames", "contacts", "frames_dropped", "camera_errors", "light_c
 JPEG_QUALITY = 80
 
 
-def contact_arrow(transform: Any, values: dict[str, float], sliding: bool) -> list[list[float]] | None:
+def contact_arrow(transform: ImageTransform, values: dict[str, float], sliding: bool) -> list[list[float]] | None:
     """A moving contact's arrow in image pixels (``transform``: the bundle's): from its centroid to where it
     will be in ARROW_S (at most ARROW_MAX_MM away); None for a contact held still or without a velocity."""
     vx, vy = values["vx_mm_s"], values["vy_mm_s"]
@@ -141,11 +149,11 @@ class LiveView:
         self.published: Published | None = None
         self.actions: deque[tuple[str, Any]] = deque(maxlen=16)
         self.message = ""
-        self.procedure: Any = None  # EdgePresses while the guided orientation runs
+        self.procedure: EdgePresses | None = None  # while the guided orientation runs
         #: Where an oriented bundle is written (None: kept in memory).
-        self.bundle_path: Any = None
+        self.bundle_path: Path | None = None
         #: Called by the frame loop with a new pipeline (the service sets it).
-        self.swap_pipeline: Callable[[Any], None] | None = None
+        self.swap_pipeline: Callable[[Pipeline], None] | None = None
         #: Told every prompt of the guided orientation ("" when it ends), e.g. a simulated operator's.
         self.on_prompt: Callable[[str], None] | None = None
         self._thread = threading.Thread(target=self._work, name="optitac-view", daemon=True)
@@ -153,7 +161,7 @@ class LiveView:
 
     # -- the frame loop's side ----------------------------------------------------------------
 
-    def observe(self, frame: np.ndarray, t_ns: int, pipeline: Any, stats: Any) -> None:
+    def observe(self, frame: np.ndarray, t_ns: int, pipeline: Pipeline, stats: ServiceStats) -> None:
         """Hand over this frame if an update is due; apply one queued action. Never blocks."""
         if self.actions:
             self._apply(pipeline)
@@ -185,7 +193,7 @@ class LiveView:
         self._next_ns = t_ns + self.period_ns
         self._wake.set()
 
-    def _apply(self, pipeline: Any) -> None:
+    def _apply(self, pipeline: Pipeline) -> None:
         kind, value = self.actions.popleft()
         if kind == "tare":
             pipeline.reset_baseline()
@@ -325,13 +333,13 @@ class LiveView:
         if self.on_prompt is not None:
             self.on_prompt(prompt)
 
-    def _oriented(self, fit: Any) -> str:
+    def _oriented(self, fit: OrientationFit | None) -> str:
         """Write the result into the bundle (file, when there is one) and hand the loop the new fiber map."""
         from optitac_edge.calibration.orientation import reorient_bundle
         from optitac_edge.core.pipeline import Pipeline
 
-        if fit.symmetry is None:
-            return f"orientation not decided: {fit.reason}"
+        if fit is None or fit.symmetry is None:
+            return f"orientation not decided: {'no fit' if fit is None else fit.reason}"
         evidence = f"edge presses in the view, RMS {fit.best_rmse_mm:.1f} mm"
         bundle = reorient_bundle(self.bundle, fit.symmetry, evidence)
         where = "kept in memory"
