@@ -137,7 +137,7 @@ class Reading:
         """A copy of a pipeline's frame result."""
         return cls(sensor_id, int(result.frame), int(result.t_ns), tuple(Contact.of(c) for c in result.touching()),
                    tuple(cid for cid, _ in result.releases()), float(result.vibration), bool(result.vibrating),
-                   bool(result.primary.baseline_ready), bool(result.saturated))
+                   bool(result.baseline_ready), bool(result.saturated))
 
 
 @dataclass(frozen=True, slots=True)

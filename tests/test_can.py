@@ -488,9 +488,9 @@ def test_fill_from_estimate_and_send(link):
     class Est:
         contact = True
         x_mm, y_mm, major_mm, minor_mm, angle_deg = 2.345, -1.01, 4.4, 2.2, 33.333
-        strength, shape, confidence, n_contacts = 15.5, "square", 0.66, 2
+        strength, shape, confidence = 15.5, "square", 0.66
 
-    msg = ContactMessage(sensor_id=3).fill(Est(), t_ns=1_000_000, now_ns=3_500_000, calibrated=True)
+    msg = ContactMessage(sensor_id=3).fill(Est(), t_ns=1_000_000, now_ns=3_500_000, calibrated=True, n_contacts=2)
     send_message(tx, msg)
     fa, fb = _receive(rx, 2)
     _, _, a = decode_frame(fa.arbitration_id, fa.data)

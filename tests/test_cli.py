@@ -224,7 +224,7 @@ def test_the_status_line_fits_an_80_column_terminal_shows_the_true_rate_and_the_
     monkeypatch.setattr(shutil, "get_terminal_size", lambda fallback=(80, 24): os.terminal_size((80, 24)))
     now = [0]
     est = ContactEstimate()
-    est.baseline_ready = est.contact = True
+    est.contact = True
     est.x_mm, est.y_mm, est.major_mm, est.minor_mm, est.angle_deg, est.strength = -3.25, 4.5, 6.0, 5.5, 45.0, 123.4
     est.shape = "triangle"
     stats = Stats()
@@ -383,7 +383,6 @@ def test_the_status_line_shows_every_sensor_of_a_board_and_labels_the_strength()
 
     def est(contact: bool, x: float = 0.0) -> ContactEstimate:
         e = ContactEstimate()
-        e.baseline_ready = True
         e.contact, e.x_mm, e.y_mm, e.strength, e.major_mm, e.minor_mm = contact, x, -1.0, 9.0, 3.0, 2.0
         return e
 

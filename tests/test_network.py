@@ -46,7 +46,7 @@ def sensor(sensor_id: int = 1, name: str = "thumb") -> NetworkSensor:
 
 
 def contact(cid: int, frame: int, touch_frame: int, x: float = 1.0) -> SimpleNamespace:
-    return SimpleNamespace(contact_id=cid, frame=frame, touch_frame=touch_frame, x_mm=x, y_mm=-x, major_mm=3.0,
+    return SimpleNamespace(contact_id=cid, touch_frame=touch_frame, x_mm=x, y_mm=-x, major_mm=3.0,
                            minor_mm=2.0, angle_deg=10.0, strength=5.0, depth_mm=math.nan, force_n=0.5,
                            shape="", confidence=math.nan, vx_mm_s=2.5 * cid, vy_mm_s=-1.0, sliding=cid == 2,
                            slide_frame=frame if cid == 2 else -1)
@@ -56,8 +56,7 @@ def frame_(index: int, *contacts: SimpleNamespace, t_ns: int = 0, released: tupl
            calibrated: bool = True) -> FrameResult:
     """A frame's result as the pipeline gives it (the tracker's releases given)."""
     slots = [*contacts, *(contact(0, index, 0) for _ in range(4 - len(contacts)))]
-    slots[0].frame, slots[0].t_ns = index, t_ns
-    result = FrameResult(slots, [*released, *[(0, -1)] * 4])  # type: ignore[arg-type]
+    result = FrameResult(slots, [*released, *[(0, -1)] * 4], frame=index, t_ns=t_ns)  # type: ignore[arg-type]
     result.n_contacts, result.n_released, result.calibrated = len(contacts), len(released), calibrated
     return result
 

@@ -37,16 +37,16 @@ class Frames:
         frame, t_ns = self.frame, self.frame * PERIOD_NS
         self.frame += 1
         for k, c in enumerate(self.contacts):
-            c.frame, c.t_ns, c.baseline_ready = frame, t_ns, True
             if k < len(sites):
                 x, y = SITES[sites[k]]
-                c.contact, c.n_contacts, c.strength = True, len(sites), 10.0 - k
+                c.contact, c.strength = True, 10.0 - k
                 c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg = x + jitter, y - jitter, 3.0, 2.0, 15.0
             elif k == 0:
-                c.contact, c.n_contacts, c.strength = False, 0, 0.25
+                c.contact, c.strength = False, 0.25
                 c.clear_geometry()
         self.tracker.update(self.contacts, len(sites), frame)
         r = self.result
+        r.frame, r.t_ns, r.baseline_ready = frame, t_ns, True
         r.n_contacts, r.n_released, r.calibrated = len(sites), self.tracker.n_released, True
         return r
 
@@ -90,7 +90,8 @@ def _run(frames: list[tuple[list[int], str, int, float]], alongside: bool) -> li
                 assert packet.kind is MsgType.RELEASE
                 out.append(("RELEASE", decoded(packet)))
         ids = [(c.contact_id, c.touch_frame) for c in result.touching()]
-        log.append((result.frame, ids, send, out, session, link.protocol, result.primary.copy()))
+        primary = (result.primary.copy(), result.t_ns, result.n_contacts)
+        log.append((result.frame, ids, send, out, session, link.protocol, primary))
     return log
 
 
@@ -142,10 +143,10 @@ def test_every_touch_comes_before_its_release_and_every_told_contact_is_released
 def test_v1_is_the_primary_contact_whatever_v2_did(frames, alongside):
     """Protocol v1's CONTACT is the frame's primary contact and nothing else: the bytes a v1 MCU received
     before v2 existed."""
-    for _frame, ids, send, out, _session, protocol, primary in _run(frames, alongside):
+    for _frame, ids, send, out, _session, protocol, (primary, t_ns, n) in _run(frames, alongside):
         v1 = [m for kind, m in out if kind == "CONTACT"]
         if send and (protocol == 1 or alongside):
-            expected = ContactMessage(sensor_id=3).fill(primary, primary.t_ns, primary.t_ns + 1000, True)
+            expected = ContactMessage(sensor_id=3).fill(primary, t_ns, t_ns + 1000, True, n_contacts=n)
             assert v1 == [wire.contact_payload(expected)]
             fields = wire.contact_fields(v1[0])
             assert fields[0] == 3 and bool(fields[1] & 1) == bool(ids)

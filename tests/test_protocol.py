@@ -168,11 +168,11 @@ def test_contact_quantisation_edges():
 
 def test_contact_from_pipeline_estimate():
     class Est:
-        contact, n_contacts = True, 2
+        contact = True
         x_mm, y_mm, major_mm, minor_mm, angle_deg = 1.0, -2.0, 3.0, 1.5, 10.0
         strength, shape, confidence = 42.0, "square", 0.9
 
-    m = ContactMessage().fill(Est(), t_ns=5_000_000, now_ns=5_004_000, calibrated=True)
+    m = ContactMessage().fill(Est(), t_ns=5_000_000, now_ns=5_004_000, calibrated=True, n_contacts=2)
     (f,) = FrameDecoder().feed(encode_contact(m, 0))
     flags, x, y, *_rest, shape, _conf, age = contact_fields(f.payload)[1:]
     assert flags == 0x13 and (x, y) == (100, -200) and shape == 3 and age == 4 and f.t_us == 5000

@@ -62,15 +62,14 @@ def test_contact2_saturates_masks_and_fits_the_64_byte_frame():
 
 
 def test_contact2_fill_carries_every_field_and_flags_depth_and_force_only_when_calibrated():
-    est = ContactEstimate(frame=40, contact=True, x_mm=1.0, y_mm=2.0, major_mm=5.0, minor_mm=4.0, angle_deg=10.0,
-                          strength=8.0, shape="circle", confidence=0.9, n_contacts=2, depth_mm=1.5,
+    est = ContactEstimate(contact=True, x_mm=1.0, y_mm=2.0, major_mm=5.0, minor_mm=4.0, angle_deg=10.0,
+                          strength=8.0, shape="circle", confidence=0.9, depth_mm=1.5,
                           force_n=math.nan, contact_id=3, touch_frame=40)
-    m = ContactV2Message(sensor_id=1).fill(est, 1, 5_000_000, 5_400_000, calibrated=True)
+    m = ContactV2Message(sensor_id=1).fill(est, 1, 40, 2, 5_000_000, 5_400_000, calibrated=True)
     assert m.flags == ContactV2Flags.CONTACT | ContactV2Flags.CALIBRATED | ContactV2Flags.TOUCH | ContactV2Flags.DEPTH
     assert (m.frame, m.index, m.n_contacts, m.contact_id, m.depth_mm, m.force_n, m.age_us) == (40, 1, 2, 3, 1.5, 0.0, 400)
-    est.frame = 41
-    assert not ContactV2Message().fill(est, 0, 0, 0, calibrated=False).flags & ContactV2Flags.TOUCH
-    none = ContactV2Message().fill(ContactEstimate(frame=42), 0, 0, 0, calibrated=False)
+    assert not ContactV2Message().fill(est, 0, 41, 2, 0, 0, calibrated=False).flags & ContactV2Flags.TOUCH
+    none = ContactV2Message().fill(ContactEstimate(), 0, 42, 0, 0, 0, calibrated=False)
     assert (none.flags, none.n_contacts, none.contact_id, none.shape) == (0, 0, 0, ShapeCode.NONE)
 
 

@@ -50,26 +50,24 @@ def test_motion_saturates_masks_and_fits_the_64_byte_frame():
 
 
 def test_a_motion_says_what_its_contact_and_frame_know():
-    touch = ContactEstimate(frame=9, contact=True, contact_id=3, touch_frame=9)  # velocity NaN: just touched
-    m = MotionMessage().fill(touch, 0, 9_000_000, math.nan, False, False)
+    touch = ContactEstimate(contact=True, contact_id=3, touch_frame=9)  # velocity NaN: just touched
+    m = MotionMessage().fill(touch, 0, 9, 9_000_000, math.nan, False, False)
     assert m.flags == 0 and (m.vx_mm_s, m.vy_mm_s, m.vibration, m.contact_id, m.t_us) == (0, 0, 0, 3, 9000)
-    slid = ContactEstimate(frame=40, contact=True, contact_id=3, vx_mm_s=12.0, vy_mm_s=-1.0, sliding=True,
-                           slide_frame=40)
-    m.fill(slid, 1, 0, 2.5, True, True)
+    slid = ContactEstimate(contact=True, contact_id=3, vx_mm_s=12.0, vy_mm_s=-1.0, sliding=True, slide_frame=40)
+    m.fill(slid, 1, 40, 0, 2.5, True, True)
     assert m.flags == int(MotionFlags.VELOCITY | MotionFlags.SLIDING | MotionFlags.SLIDE_BEGAN
                           | MotionFlags.VIBRATION | MotionFlags.VIBRATING | MotionFlags.VIBRATION_BEGAN)
     assert (m.index, m.slide_frame, m.vx_mm_s, m.vibration) == (1, 40, 12.0, 2.5)
-    slid.frame = 41
-    assert m.fill(slid, 1, 0, 1.0, False, False).flags == int(MotionFlags.VELOCITY | MotionFlags.SLIDING
+    assert m.fill(slid, 1, 41, 0, 1.0, False, False).flags == int(MotionFlags.VELOCITY | MotionFlags.SLIDING
                                                                | MotionFlags.VIBRATION)
-    none = m.fill(ContactEstimate(frame=42), 0, 0, 1.0, False, False)
+    none = m.fill(ContactEstimate(), 0, 42, 0, 1.0, False, False)
     assert none.flags == int(MotionFlags.VIBRATION) and none.contact_id == 0 and none.slide_frame == 0
 
 
 def _result(n: int) -> FrameResult:
-    contacts = [ContactEstimate(frame=5, contact=k < n, contact_id=k + 1, touch_frame=1, n_contacts=n,
-                                vx_mm_s=float(k), vy_mm_s=0.0) for k in range(4)]
-    result = FrameResult(contacts, [(0, -1)] * 4)
+    contacts = [ContactEstimate(contact=k < n, contact_id=k + 1, touch_frame=1, vx_mm_s=float(k), vy_mm_s=0.0)
+                for k in range(4)]
+    result = FrameResult(contacts, [(0, -1)] * 4, frame=5)
     result.n_contacts, result.vibration = n, 1.1
     return result
 

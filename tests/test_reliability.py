@@ -362,8 +362,8 @@ def test_fibers_dimmer_than_the_black_level_do_not_crash_the_gain_estimate():
     frame = np.zeros((480, 640), np.uint8)
     for i in range(30):
         frame.reshape(-1)[cal.fibers.pixel_index] = 254 if i < 20 else 9
-        est = pipe.process_recorded(frame, i * 16_666_667).primary
-    assert est.baseline_ready and np.isfinite(pipe.led_gain.gain)
+        result = pipe.process_recorded(frame, i * 16_666_667)
+    assert result.baseline_ready and np.isfinite(pipe.led_gain.gain)
 
 
 def _dimmed(frame: np.ndarray, scale: float) -> np.ndarray:

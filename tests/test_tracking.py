@@ -110,17 +110,18 @@ def test_the_pipeline_keeps_two_simultaneous_presses_apart_for_100_frames(bundle
     pipe = Pipeline(bundle)
     ids = None
     for i, f in enumerate(frames):
-        est = pipe.process_recorded(f, i * 4_166_667).primary
+        result = pipe.process_recorded(f, i * 4_166_667)
+        est = result.primary
         if i < rest:
             assert not est.contact and est.contact_id == 0 and pipe.result.releases() == []
             continue
-        assert est.n_contacts == 2
+        assert result.n_contacts == 2
         by_side = {pipe.contacts[k].x_mm > 0: (pipe.contacts[k].contact_id, pipe.contacts[k].touch_frame)
                    for k in range(2)}
         if ids is None:
             ids = by_side
             assert sorted(i_ for i_, _ in ids.values()) == [1, 2]
-            assert all(t == est.frame for _, t in ids.values())  # both touched in this frame
+            assert all(t == result.frame for _, t in ids.values())  # both touched in this frame
         assert by_side == ids and pipe.result.releases() == []
     est = pipe.process_recorded(frames[0], len(frames) * 4_166_667).primary  # a rest frame: both released
     assert not est.contact and est.contact_id == 0

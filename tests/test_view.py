@@ -416,7 +416,7 @@ def test_the_views_guided_orientation_runs_on_the_simulated_camera(tmp_path) -> 
             for _ in range(12):  # the baseline (the simulator's rest frames)
                 captured = camera.read()
                 pipeline.process_recorded(captured.frame, captured.t_ns)
-            assert pipeline.process_recorded(camera.read().frame, captured.t_ns + 1).primary.baseline_ready
+            assert pipeline.process_recorded(camera.read().frame, captured.t_ns + 1).baseline_ready
             view.start_orientation()
             for _ in range(600):
                 captured = camera.read()

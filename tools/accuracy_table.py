@@ -237,8 +237,8 @@ def two_contact_experiment(workdir: Path) -> list[str]:
             pipe.process_recorded(f, k * 16_666_667)
         two, errors = 0, []
         for k, (f, (a, b)) in enumerate(zip(frames, pairs)):
-            e = pipe.process_recorded(f, (10 + k) * 16_666_667).primary
-            found = [(c.x_mm, c.y_mm) for c in pipe.contacts[: e.n_contacts]] if e.contact else []
+            result = pipe.process_recorded(f, (10 + k) * 16_666_667)
+            found = [(c.x_mm, c.y_mm) for c in result.touching()]
             two += len(found) == 2
             for true in (a, b):
                 errors.append(min((np.hypot(x - true[0], y - true[1]) for x, y in found), default=np.nan))

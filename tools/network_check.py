@@ -81,7 +81,7 @@ def expected_csv(presses: Path, bundle: Path, n_frames: int, out: Path) -> list[
             if k and i == 0:
                 shift += int(times[-1]) + period
             t = shift + int(times[i])
-            writer.write(k, pipeline.process_recorded(rec.frames[i], t).primary, t)
+            writer.write(k, pipeline.process_recorded(rec.frames[i], t))
     return list(csv.DictReader(out.open()))
 
 

@@ -48,7 +48,7 @@ def orient_live(camera: Camera, bundle: CalibrationBundle, timeout_s: float,
         if isinstance(result, Skip):  # dark, saturated: no press to read
             continue
         est = result.primary
-        if not est.baseline_ready:
+        if not result.baseline_ready:
             continue
         if start_ns is None:
             start_ns = captured.t_ns

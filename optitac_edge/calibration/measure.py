@@ -94,11 +94,11 @@ class FrameMotion:
 
 
 def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None = None,
-                     desc: str = "replay") -> Iterator[tuple[int, ContactEstimate]]:
+                     desc: str = "replay") -> Iterator[tuple[int, FrameResult]]:
     """Every frame of ``rec`` through ``pipeline`` at its capture time (``rec.t_ns``; ``i / fps`` when not stamped).
 
-    Yields ``(frame index, estimate)``; the estimate is the pipeline's reused
-    object (copy it to keep it). The baseline comes from the leading rest frames, and is taken again at
+    Yields ``(frame index, result)``; the result is the pipeline's reused
+    object (copy what you keep). The baseline comes from the leading rest frames, and is taken again at
     each of the recording's tare points (``rec.tares``).
 
     Parameters
@@ -120,7 +120,7 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
         if i in tares:
             pipeline.reset_baseline(tares[i])
-        yield i, pipeline.process_recorded(rec.frames[i], int(t_ns[i])).primary
+        yield i, pipeline.process_recorded(rec.frames[i], int(t_ns[i]))
 
 
 def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool = True,
@@ -150,8 +150,9 @@ def measure_recording(rec: Recording, bundle: CalibrationBundle, corrected: bool
     features = np.full((n, pipeline.contacts[0].features.size), np.nan)
     shape = np.full(n, "", dtype=object)
     motion = FrameMotion.empty(n)
-    for i, est in replay_recording(rec, pipeline, progress, desc=f"measure {rec.path.name}"):
-        motion.record(i, est, pipeline.result)
+    for i, result in replay_recording(rec, pipeline, progress, desc=f"measure {rec.path.name}"):
+        est = result.primary
+        motion.record(i, est, result)
         if not est.contact:
             continue
         contact[i] = True
@@ -259,9 +260,9 @@ def fiber_signals(recs: Sequence[Recording], bundle: CalibrationBundle, progress
         wanted = {int(f): j for j, f in enumerate(rec.truth.frame)}
         got = np.full((len(rec.truth), bundle.layout.n_fibers), np.nan)
         light = np.ones_like(got)
-        for i, est in replay_recording(rec, pipeline, progress, desc=f"signals {rec.path.name}"):
+        for i, result in replay_recording(rec, pipeline, progress, desc=f"signals {rec.path.name}"):
             j = wanted.get(i)
-            if j is not None and est.baseline_ready:
+            if j is not None and result.baseline_ready:
                 got[j] = pipeline.signal
                 light[j] = pipeline.baseline.level
         rows.append(got)

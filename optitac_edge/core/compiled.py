@@ -247,14 +247,14 @@ class CompiledEngine:
         if n == 0:
             est.clear(self.kernel.clear_strength, self.kernel.clear_area)
             return 0
-        index, t_ns, names, corrector = est.frame, est.t_ns, self.shape_names, self._python_corrector
+        names, corrector = self.shape_names, self._python_corrector
         strength, depth, force, shape, confidence = self._at
         rows = self.contacts[:n].tolist()
         for i in range(n):
             c, r = contacts[i], rows[i]
             c.strength, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.area_mm2, c.peak = \
                 r[strength:strength + 8]
-            c.frame, c.t_ns, c.baseline_ready, c.n_contacts, c.contact = index, t_ns, True, n, True
+            c.contact = True
             c.depth_mm, c.force_n, c.confidence = r[depth], r[force], r[confidence]
             c.shape = names[int(r[shape])] if r[shape] >= 0 else ""
             if corrector is not None:

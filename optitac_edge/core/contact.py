@@ -27,15 +27,11 @@ class ContactEstimate:
     The runtime :class:`~optitac_edge.core.pipeline.Pipeline` reuses one instance
     for every frame (no allocation per frame); call :meth:`copy` to keep one.
 
+    What belongs to the frame rather than to one contact (its index, time, whether the baseline is
+    ready, how many contacts it has) is the frame's :class:`~optitac_edge.core.frame_result.FrameResult`'s.
+
     Attributes
     ----------
-    frame : int
-        Index of the frame among those given to the pipeline, from 0.
-    t_ns : int
-        Timestamp passed with the frame, ns.
-    baseline_ready : bool
-        False while the first ``baseline_frames`` frames are averaged into the
-        baseline (then ``contact`` is False and everything else NaN/0).
     contact : bool
         Area above the threshold >= ``ContactThresholds.min_area_mm2``.
     x_mm, y_mm : float
@@ -66,10 +62,6 @@ class ContactEstimate:
         Classified contact shape; '' until a classifier exists.
     confidence : float
         Classifier confidence; NaN until a classifier exists.
-    n_contacts : int
-        Number of simultaneous contacts in the frame (0 without contact); the
-        same in every contact of the frame. The pipeline's primary estimate is
-        the strongest (largest ``strength``).
     depth_mm : float
         Indentation depth, mm, from the bundle's depth model
         (:class:`~optitac_edge.core.depth_model.DepthForceModel`); NaN when not calibrated.
@@ -80,7 +72,7 @@ class ContactEstimate:
         1 … 255, the same for one contact from the frame it touched in to its
         release (:class:`~optitac_edge.core.tracking.ContactTracker`); 0 without contact.
     touch_frame : int
-        The frame (``frame``) this contact touched in; ``touch_frame == frame``
+        The frame (the result's ``frame``) this contact touched in; ``touch_frame == frame``
         in the frame of the touch. -1 without contact.
     vx_mm_s, vy_mm_s : float
         The contact's velocity in the sensor frame, mm/s: the least-squares slope of its last
@@ -89,12 +81,9 @@ class ContactEstimate:
     sliding : bool
         The contact slides (gross motion above its own noise level) rather than being held.
     slide_frame : int
-        The frame (``frame``) its current slide was found in; -1 while it is held and without contact.
+        The frame (the result's ``frame``) its current slide was found in; -1 while it is held and without contact.
     """
 
-    frame: int = -1
-    t_ns: int = 0
-    baseline_ready: bool = False
     contact: bool = False
     x_mm: float = math.nan
     y_mm: float = math.nan
@@ -108,7 +97,6 @@ class ContactEstimate:
     features: np.ndarray = field(default_factory=_nan_features)
     shape: str = ""
     confidence: float = math.nan
-    n_contacts: int = 0
     depth_mm: float = math.nan
     force_n: float = math.nan
     contact_id: int = 0
@@ -124,7 +112,6 @@ class ContactEstimate:
         self.contact = False
         self.strength = strength
         self.area_mm2 = area_mm2
-        self.n_contacts = 0
         self.contact_id, self.touch_frame = 0, -1
         self.vx_mm_s = self.vy_mm_s = math.nan
         self.sliding, self.slide_frame = False, -1
@@ -143,25 +130,22 @@ class ContactEstimate:
     def copy(self) -> ContactEstimate:
         """An independent copy (``hu`` and ``features`` copied)."""
         return ContactEstimate(
-            frame=self.frame, t_ns=self.t_ns, baseline_ready=self.baseline_ready,
             contact=self.contact, x_mm=self.x_mm, y_mm=self.y_mm, major_mm=self.major_mm,
             minor_mm=self.minor_mm, angle_deg=self.angle_deg, strength=self.strength,
             area_mm2=self.area_mm2, peak=self.peak, hu=self.hu.copy(), features=self.features.copy(),
-            shape=self.shape, confidence=self.confidence, n_contacts=self.n_contacts,
-            depth_mm=self.depth_mm, force_n=self.force_n,
+            shape=self.shape, confidence=self.confidence, depth_mm=self.depth_mm, force_n=self.force_n,
             contact_id=self.contact_id, touch_frame=self.touch_frame,
             vx_mm_s=self.vx_mm_s, vy_mm_s=self.vy_mm_s, sliding=self.sliding, slide_frame=self.slide_frame,
         )
 
     def assign(self, other: ContactEstimate) -> None:
         """Copy every field of ``other`` into this estimate, in place (arrays copied)."""
-        self.frame, self.t_ns, self.baseline_ready = other.frame, other.t_ns, other.baseline_ready
         self.contact, self.x_mm, self.y_mm = other.contact, other.x_mm, other.y_mm
         self.major_mm, self.minor_mm, self.angle_deg = other.major_mm, other.minor_mm, other.angle_deg
         self.strength, self.area_mm2, self.peak = other.strength, other.area_mm2, other.peak
         np.copyto(self.hu, other.hu)
         np.copyto(self.features, other.features)
-        self.shape, self.confidence, self.n_contacts = other.shape, other.confidence, other.n_contacts
+        self.shape, self.confidence = other.shape, other.confidence
         self.depth_mm, self.force_n = other.depth_mm, other.force_n
         self.contact_id, self.touch_frame = other.contact_id, other.touch_frame
         self.vx_mm_s, self.vy_mm_s = other.vx_mm_s, other.vy_mm_s
@@ -173,15 +157,14 @@ class ContactEstimate:
             return None if math.isnan(v) else float(v)
 
         return {
-            "frame": int(self.frame), "t_ns": int(self.t_ns),
-            "baseline_ready": bool(self.baseline_ready), "contact": bool(self.contact),
+            "contact": bool(self.contact),
             "x_mm": f(self.x_mm), "y_mm": f(self.y_mm),
             "major_mm": f(self.major_mm), "minor_mm": f(self.minor_mm),
             "angle_deg": f(self.angle_deg), "strength": f(self.strength),
             "area_mm2": f(self.area_mm2), "peak": f(self.peak), "hu": [f(v) for v in self.hu],
             "features": [f(v) for v in self.features],
             "shape": self.shape, "confidence": f(self.confidence),
-            "n_contacts": int(self.n_contacts), "depth_mm": f(self.depth_mm), "force_n": f(self.force_n),
+            "depth_mm": f(self.depth_mm), "force_n": f(self.force_n),
             "contact_id": int(self.contact_id),
             "touch_frame": int(self.touch_frame),
             "vx_mm_s": f(self.vx_mm_s), "vy_mm_s": f(self.vy_mm_s),

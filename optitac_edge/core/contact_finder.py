@@ -49,9 +49,8 @@ class ContactFinder:
              corrector: ContactCorrector | None, gated: bool = False) -> int:
         """Truncate ``surface`` (shape (n*n,), float32, in place), find and measure its contacts.
 
-        The contacts go to ``contacts[:n]``, strongest first, each stamped with ``est``'s frame and
-        time and corrected by ``corrector`` (None: raw); with none, ``est`` says so (with the
-        frame's strength and area above the level when there was some). ``gated``: the frame can have
+        The contacts go to ``contacts[:n]``, strongest first, each corrected by ``corrector`` (None: raw);
+        with none, ``est`` says so (with the frame's strength and area above the level when there was some). ``gated``: the frame can have
         no contact (neighbour support, :mod:`optitac_edge.core.support`). Returns ``n``.
         """
         seg, blobs = self.segmenter, self.blobs
@@ -79,11 +78,9 @@ class ContactFinder:
         # strongest first, ties in candidate order (a stable sort; Python's: no numpy buffer)
         ranked = sorted(range(n_cand), key=lambda i: -cands[i].strength) if n_cand > 1 else range(1)
         n = min(n_cand, self._max_contacts)
-        frame, t_ns = est.frame, est.t_ns
         for i in range(n):
             c = self.contacts[i]
             c.assign(cands[ranked[i]])
-            c.frame, c.t_ns, c.baseline_ready, c.n_contacts = frame, t_ns, True, n
             if corrector is not None:
                 corrector.apply(c)
         return n

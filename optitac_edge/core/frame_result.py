@@ -25,8 +25,14 @@ class FrameResult:
     ----------
     primary : ContactEstimate
         The frame's estimate: its strongest contact, or, without contact, the
-        frame's number, time, baseline state and the strength and area below the
-        contact level. The same object as ``contacts[0]``.
+        strength and area below the contact level. The same object as ``contacts[0]``.
+    frame : int
+        The frame's index among those its pipeline processed, from 0.
+    t_ns : int
+        The frame's timestamp, ns (given with the frame).
+    baseline_ready : bool
+        False while the first ``baseline_frames`` frames are averaged into the
+        baseline (then there is no contact and the primary estimate is NaN/0).
     contacts : list of ContactEstimate
         Every contact of the frame, strongest first; valid ``[:n_contacts]``.
         Each has its stable ``contact_id`` and ``touch_frame`` (``touch_frame ==
@@ -59,6 +65,9 @@ class FrameResult:
     contacts: list[ContactEstimate]
     released: list[tuple[int, int]]
     primary: ContactEstimate = field(init=False)
+    frame: int = -1
+    t_ns: int = 0
+    baseline_ready: bool = False
     n_contacts: int = 0
     n_released: int = 0
     light_changed: bool = False
@@ -72,16 +81,6 @@ class FrameResult:
 
     def __post_init__(self) -> None:
         self.primary = self.contacts[0]
-
-    @property
-    def frame(self) -> int:
-        """The frame's index among those its pipeline processed, from 0."""
-        return self.primary.frame
-
-    @property
-    def t_ns(self) -> int:
-        """The frame's timestamp, ns."""
-        return self.primary.t_ns
 
     def touching(self) -> Iterator[ContactEstimate]:
         """The frame's contacts, strongest first."""

@@ -304,7 +304,7 @@ class Pipeline:
         result, est, engine, baseline = self.result, self._estimate, self.engine, self.baseline
         result.saturated = saturated
         result.light_changed = result.baseline_raised = False
-        est.frame, est.t_ns = self._frame, now_ns
+        result.frame, result.t_ns = self._frame, now_ns
         self._frame += 1
         dt_ns = 0 if self._last_ns is None else now_ns - self._last_ns
         self.after_gap = dt_ns > self._gap_ns
@@ -317,11 +317,11 @@ class Pipeline:
             if baseline.add(self.means):
                 self._levels_changed()
                 engine.reset_gain(now_ns)
-            est.baseline_ready = False
+            result.baseline_ready = False
             est.clear()
             self._track(0, now_ns, None)
             return result
-        est.baseline_ready = True
+        result.baseline_ready = True
         n = engine.run(frame, now_ns, dt_ns)
         result.light_changed = engine.light_changed
         self._track(n, now_ns, dt_ns)

@@ -15,6 +15,7 @@ from scipy.interpolate import griddata
 
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
+from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.frames import to_gray
 
 
@@ -45,8 +46,8 @@ class ReferencePipeline:
         self.baseline_values = []
         self.baseline = None
 
-    def process(self, frame: np.ndarray, now_ns: int) -> ContactEstimate:
-        """Contact estimate of one frame (a new object each call).
+    def process(self, frame: np.ndarray, now_ns: int) -> FrameResult:
+        """The result of one frame (a new object each call): one contact at most, the paper's.
 
         Parameters
         ----------
@@ -57,11 +58,12 @@ class ReferencePipeline:
 
         Returns
         -------
-        ContactEstimate
+        FrameResult
         """
         b = self.bundle
         b.fibers.check_frame(frame, b.fibers.pixel_format)
-        est = ContactEstimate(frame=self.frame_count, t_ns=now_ns)
+        est = ContactEstimate()
+        result = FrameResult([est], [], frame=self.frame_count, t_ns=now_ns)
         self.frame_count += 1
 
         gray = to_gray(frame, b.fibers.pixel_format)
@@ -71,8 +73,8 @@ class ReferencePipeline:
             self.baseline_values.append(values)
             if len(self.baseline_values) >= max(b.baseline_frames, 1):
                 self.baseline = np.mean(self.baseline_values, axis=0)
-            return est
-        est.baseline_ready = True
+            return result
+        result.baseline_ready = True
 
         delta = values - self.baseline
         delta[b.fibers.dead] = 0.0
@@ -88,7 +90,8 @@ class ReferencePipeline:
         est.strength = float(m00)
         est.contact = bool(np.sum(I > 0) > 0 and area >= b.thresholds.min_area_mm2 and m00 > 0)
         if not est.contact:
-            return est
+            return result
+        result.n_contacts = 1
 
         m10 = np.sum(X * I) * dA
         m01 = np.sum(Y * I) * dA
@@ -107,7 +110,7 @@ class ReferencePipeline:
         est.minor_mm = float(fwhm * np.sqrt(max(lam2, 0.0)))
         est.angle_deg = float(theta)
         est.hu[:] = _log_hu(_hu_literal((I > 0).astype(np.float64), X, Y, dA))
-        return est
+        return result
 
 
 def _hu_literal(B: np.ndarray, X: np.ndarray, Y: np.ndarray, dA: float) -> np.ndarray:

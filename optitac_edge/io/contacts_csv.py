@@ -5,12 +5,14 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.io.files import AtomicFile
 
 if TYPE_CHECKING:
     from typing_extensions import Self
+
+    from optitac_edge.core.frame_result import FrameResult
 
 CONTACTS_HEADER = (
     "frame", "contact", "x_mm", "y_mm", "major_mm", "minor_mm", "angle_deg", "strength",
@@ -40,11 +42,11 @@ class ContactsCsvWriter:
         self._csv = csv.writer(self._out)
         self._csv.writerow(CONTACTS_HEADER)
 
-    def write(self, frame: int, est: Any, t_ns: int, vibration: float = math.nan, vibrating: bool = False) -> None:
-        """Append the row of frame ``frame`` (captured at ``t_ns``, ns) from a
-        :class:`~optitac_edge.core.contact.ContactEstimate` and the frame's ``vibration`` (the
-        :class:`~optitac_edge.core.frame_result.FrameResult`'s, NaN: not known)."""
-        shaking = [_num(vibration, 3), int(bool(vibrating))]
+    def write(self, frame: int, result: FrameResult) -> None:
+        """Append the row of frame ``frame`` from its :class:`~optitac_edge.core.frame_result.FrameResult`:
+        the primary contact, the frame's contact count, capture time (ns) and vibration (NaN: not known)."""
+        est, t_ns = result.primary, result.t_ns
+        shaking = [_num(result.vibration, 3), int(bool(result.vibrating))]
         if not est.contact:
             self._csv.writerow([frame, 0, *([""] * 16), 0, "", int(t_ns), "", "", 0, "", "", 0, -1, *shaking])
             return
@@ -52,7 +54,7 @@ class ContactsCsvWriter:
             frame, 1, _num(est.x_mm, 4), _num(est.y_mm, 4), _num(est.major_mm, 4), _num(est.minor_mm, 4),
             _num(est.angle_deg, 3), _num(est.strength, 3), est.shape or "", _num(est.confidence, 4),
             _num(est.area_mm2, 3), *(_num(float(h), 6) for h in est.hu),
-            est.n_contacts, _num(float(est.features[7]), 8), int(t_ns),
+            result.n_contacts, _num(float(est.features[7]), 8), int(t_ns),
             _num(est.depth_mm, 4), _num(est.force_n, 4), int(est.contact_id),
             _num(est.vx_mm_s, 3), _num(est.vy_mm_s, 3), int(bool(est.sliding)), int(est.slide_frame), *shaking,
         ])

@@ -123,9 +123,9 @@ def check_topic_names(sensors: Sequence[NetworkSensor]) -> None:
                                f"{other.name!r}'s ({s.topic_name}): rename one of them")
 
 
-def contact_values(c: ContactEstimate) -> msgs.ContactValues:
-    """A contact as Contact.msg carries it."""
-    return msgs.ContactValues(c.contact_id, c.touch_frame == c.frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
+def contact_values(c: ContactEstimate, frame: int) -> msgs.ContactValues:
+    """A contact of ``frame`` as Contact.msg carries it."""
+    return msgs.ContactValues(c.contact_id, c.touch_frame == frame, c.touch_frame, c.x_mm, c.y_mm, c.major_mm,
                               c.minor_mm, c.angle_deg, c.strength, c.depth_mm, c.force_n, c.shape or "",
                               c.confidence, c.vx_mm_s, c.vy_mm_s, c.sliding, c.slide_frame)
 
@@ -240,10 +240,10 @@ class NetworkOutput:
         """Every contact of a sensor's frame and its releases, and the signal and the picture (the camera
         ``frame``, the ``surface``) when due. Never blocks."""
         slot = self._slots[sensor_id]
-        est, t_ns = result.primary, result.t_ns
-        contacts = [contact_values(c) for c in result.touching()]
+        index, t_ns = result.frame, result.t_ns
+        contacts = [contact_values(c, index) for c in result.touching()]
         released = sorted(cid for cid, _ in result.releases())
-        sample = msgs.ContactsSample(sensor_id, est.frame, t_ns, result.calibrated, result.saturated, degraded,
+        sample = msgs.ContactsSample(sensor_id, index, t_ns, result.calibrated, result.saturated, degraded,
                                      contacts, released, result.vibration, result.vibrating)
         queue = self._queue
         slot.offered += 1
@@ -252,7 +252,7 @@ class NetworkOutput:
             slot.next_signal_ns = t_ns + self._signal_period_ns
             slot.offered += 1
             s = slot.sensor
-            queue.append(_Queued(slot, slot.offered, t_ns, msgs.SignalSample(sensor_id, est.frame, s.x_mm, s.y_mm,
+            queue.append(_Queued(slot, slot.offered, t_ns, msgs.SignalSample(sensor_id, index, s.x_mm, s.y_mm,
                                                                              signal.copy(), s.dead)))
         if self._picture_period_ns and frame is not None and t_ns >= slot.next_picture_ns:
             slot.next_picture_ns = t_ns + self._picture_period_ns

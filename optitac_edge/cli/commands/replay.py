@@ -29,9 +29,9 @@ def run(args: argparse.Namespace) -> int:
     pipeline = Pipeline(load_bundle(args.cal), fps=rec.meta.fps)
     contacts = 0
     with ContactsCsvWriter(args.output) as out:
-        for i, estimate in replay_recording(rec, pipeline):
-            contacts += int(estimate.contact)
-            out.write(i, estimate, int(rec.t_ns[i]), pipeline.result.vibration, pipeline.result.vibrating)
+        for i, result in replay_recording(rec, pipeline):
+            contacts += int(result.primary.contact)
+            out.write(i, result)
     print(f"wrote {args.output}: {len(rec)} frames, {contacts} with contact")
     return 0
 

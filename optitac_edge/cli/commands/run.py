@@ -58,9 +58,10 @@ def add_parser(sub: Subcommands) -> None:
                         "Lichtblick (e.g. 127.0.0.1:8765; needs the foxglove extra)")
 
 
-def _status_line(est: ContactEstimate, fps: float | None) -> str:
+def _status_line(est: ContactEstimate | None, fps: float | None) -> str:
+    """The line of one sensor (``est`` None: its baseline is not ready)."""
     rate = "  -.- fps" if fps is None else f"{fps:5.1f} fps"
-    if not est.baseline_ready:
+    if est is None:
         return f"{rate}  baselining..."
     if not est.contact:
         return f"{rate}  no contact"
@@ -71,9 +72,9 @@ def _status_line(est: ContactEstimate, fps: float | None) -> str:
             f"{est.angle_deg:+.0f}°{shape} strength {est.strength:.0f}{depth}")
 
 
-def _brief(name: str, est: ContactEstimate) -> str:
-    """One sensor of several, in a few words."""
-    if not est.baseline_ready:
+def _brief(name: str, est: ContactEstimate | None) -> str:
+    """One sensor of several, in a few words (``est`` None: its baseline is not ready)."""
+    if est is None:
         return f"{name}: baselining"
     if not est.contact:
         return f"{name}: -"
@@ -200,8 +201,8 @@ class StatusLine:
         self._link = link
         self._due_ns: dict[str, int] = {}
         self._last: tuple[int, int] | None = None  # (ns, frames) of the previous line
-        self._latest: tuple[ContactEstimate, float | None] | None = None
-        self._named: dict[str, ContactEstimate] = {}  # several sensors: each one's last copy, by name
+        self._latest: tuple[ContactEstimate | None, float | None] | None = None
+        self._named: dict[str, ContactEstimate | None] = {}  # several sensors: each one's last copy, by name
         self._lead_name: str | None = None
         self._stats: ServiceStats | None = None
         self._lock = threading.Lock()
@@ -209,8 +210,9 @@ class StatusLine:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._print_loop, name="optitac-status-line", daemon=True)
 
-    def offer(self, est: ContactEstimate, stats: ServiceStats, name: str = "") -> None:
-        """From a frame loop: keep a copy of ``est`` when a line is due. One camera's counters (the first that
+    def offer(self, est: ContactEstimate | None, stats: ServiceStats, name: str = "") -> None:
+        """From a frame loop: keep a copy of ``est`` (a frame's primary estimate; None while the baseline is
+        not ready) when a line is due. One camera's counters (the first that
         offers) make the rate (two cameras' made it -89.7 fps); a sensor of another camera is shown only when
         named."""
         if self._stats is None:
@@ -224,7 +226,7 @@ class StatusLine:
         self._due_ns[name] = now + self._period_ns
         if name:
             with self._lock:
-                self._named[name] = est.copy()
+                self._named[name] = None if est is None else est.copy()
             if self._lead_name is None and lead:
                 self._lead_name = name
             if name != self._lead_name:  # the line is drawn on the lead camera's first sensor's pace
@@ -234,7 +236,7 @@ class StatusLine:
             fps = (stats.frames - self._last[1]) * 1e9 / (now - self._last[0])
         self._last = (now, stats.frames)
         with self._lock:
-            self._latest = (est.copy(), fps)
+            self._latest = (None if est is None else est.copy(), fps)
         self._wake.set()
 
     def _line(self) -> str | None:
@@ -311,12 +313,13 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
             if line is None:
                 return
             if not several:
-                line.offer(result.primary, stats)
+                line.offer(result.primary if result.baseline_ready else None, stats)
                 return
             # every sensor of this camera (its loop's own thread: their results are this frame's)
             service = next((s for s in session.services if s.stats is stats), None)
             for channel in () if service is None else service.channels:
-                line.offer(channel.pipeline.result.primary, stats, channel.name)
+                r = channel.pipeline.result
+                line.offer(r.primary if r.baseline_ready else None, stats, channel.name)
 
         session.run(stop, duration_s=args.duration, on_result=on_result)
         return session.services

@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
                 est = result.primary
                 stats.frames += 1
                 stats.contacts += int(est.contact)
-                taken += int(est.baseline_ready)
+                taken += int(result.baseline_ready)
                 if taken >= args.frames - 1:  # the last two: the view's rate is between them
                     view.observe(captured.frame, captured.t_ns, pipeline, stats)
                     published = view.wait_published(last, timeout_s=10.0)

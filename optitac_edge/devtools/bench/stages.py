@@ -50,9 +50,10 @@ class StageTimer:
         p = self.pipe
         s = self.samples
         t0 = time.perf_counter_ns()
-        est = p.process_recorded(frame, t_ns).primary
+        result = p.process_recorded(frame, t_ns)
+        est = result.primary
         s["whole_frame"].append(time.perf_counter_ns() - t0)
-        if not est.baseline_ready:
+        if not result.baseline_ready:
             return est
         s["gray"].append(timed(p.parts.sampler.gather, frame))
         s["fiber_means"].append(timed(p.parts.sampler.reduce, p.means))

@@ -10,7 +10,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from optitac_edge.core.contact import ContactEstimate
 
 #: STATUS ``state`` bits (docs/protocol.md).
 STATE_STREAMING = 0x01
@@ -116,7 +119,7 @@ def _frame_flags(contact: bool, calibrated: bool, saturated: bool, degraded: boo
             | (_DEGRADED if degraded else 0))
 
 
-def _contact_values(est: Any) -> tuple[float, ...]:
+def _contact_values(est: ContactEstimate) -> tuple[float, ...]:
     """x, y, major, minor, angle, strength and confidence of a contact estimate, NaN as 0."""
     isfinite = math.isfinite
     return tuple(v if isfinite(v) else 0.0 for v in (
@@ -189,12 +192,12 @@ class ContactMessage:
     confidence: float = 0.0
     age_us: int = 0
 
-    def fill(self, est: Any, t_ns: int, now_ns: int, calibrated: bool, saturated: bool = False,
-             degraded: bool = False) -> ContactMessage:
-        """Update in place from a :class:`~optitac_edge.core.contact.ContactEstimate`; returns self."""
+    def fill(self, est: ContactEstimate, t_ns: int, now_ns: int, calibrated: bool, saturated: bool = False,
+             degraded: bool = False, n_contacts: int = 1) -> ContactMessage:
+        """Update in place from a frame's primary :class:`~optitac_edge.core.contact.ContactEstimate` (the frame
+        has ``n_contacts``: MORE when it has others); returns self."""
         contact = bool(est.contact)
-        flags = _frame_flags(contact, calibrated, saturated, degraded) \
-            | (_MORE if contact and getattr(est, "n_contacts", 1) > 1 else 0)
+        flags = _frame_flags(contact, calibrated, saturated, degraded) | (_MORE if contact and n_contacts > 1 else 0)
         self.flags = _FLAGS[flags]
         self.t_us = t_ns // 1000
         (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
@@ -247,9 +250,10 @@ class ContactV2Message:
     confidence: float = 0.0
     age_us: int = 0
 
-    def fill(self, est: Any, index: int, t_ns: int, now_ns: int, calibrated: bool, saturated: bool = False,
-             degraded: bool = False, touch: bool | None = None) -> ContactV2Message:
-        """Update in place from contact ``index`` of a frame (a
+    def fill(self, est: ContactEstimate, index: int, frame: int, n_contacts: int, t_ns: int, now_ns: int,  # noqa: PLR0913
+             calibrated: bool, saturated: bool = False, degraded: bool = False,
+             touch: bool | None = None) -> ContactV2Message:
+        """Update in place from contact ``index`` of ``n_contacts`` of frame ``frame`` (a
         :class:`~optitac_edge.core.contact.ContactEstimate`; the primary one when there is no contact).
 
         ``touch``: the TOUCH flag (new to the receiver); None: the contact touched in this frame.
@@ -258,12 +262,12 @@ class ContactV2Message:
         isfinite = math.isfinite
         flags = _frame_flags(contact, calibrated, saturated, degraded)
         self.t_us = t_ns // 1000
-        self.frame = int(est.frame)
+        self.frame = int(frame)
         self.index = index
         if contact:
-            self.n_contacts = int(est.n_contacts)
+            self.n_contacts = int(n_contacts)
             self.contact_id = int(est.contact_id)
-            if (est.touch_frame == est.frame) if touch is None else touch:
+            if (est.touch_frame == frame) if touch is None else touch:
                 flags |= _TOUCH
             (self.x_mm, self.y_mm, self.major_mm, self.minor_mm, self.angle_deg, self.strength,
              self.confidence) = _contact_values(est)
@@ -312,14 +316,15 @@ class MotionMessage:
     slide_frame: int = 0
     vibration: float = 0.0
 
-    def fill(self, est: Any, index: int, t_ns: int, vibration: float, vibrating: bool,
+    def fill(self, est: ContactEstimate, index: int, frame: int, t_ns: int, vibration: float, vibrating: bool,
              vibration_began: bool) -> MotionMessage:
-        """Update in place from contact ``index`` of a frame (a :class:`~optitac_edge.core.contact.ContactEstimate`,
-        the primary one when there is no contact) and the frame's vibration."""
+        """Update in place from contact ``index`` of frame ``frame`` (a
+        :class:`~optitac_edge.core.contact.ContactEstimate`, the primary one when there is no contact) and the
+        frame's vibration."""
         isfinite = math.isfinite
         flags = 0
         self.t_us = t_ns // 1000
-        self.frame = int(est.frame)
+        self.frame = int(frame)
         self.index = index
         vx, vy = float(est.vx_mm_s), float(est.vy_mm_s)
         if est.contact and isfinite(vx) and isfinite(vy):
@@ -329,7 +334,7 @@ class MotionMessage:
             self.vx_mm_s = self.vy_mm_s = 0.0
         self.contact_id = int(est.contact_id) if est.contact else 0
         if est.contact and est.sliding:
-            flags |= _SLIDING | (_SLIDE_BEGAN if est.slide_frame == est.frame else 0)
+            flags |= _SLIDING | (_SLIDE_BEGAN if est.slide_frame == frame else 0)
             self.slide_frame = int(est.slide_frame)
         else:
             self.slide_frame = 0

@@ -166,24 +166,23 @@ class SensorOutbox:
             self.announcer.observe(result)
         if not send:
             return out
-        est = result.primary
-        t_ns, calibrated, saturated, degraded = est.t_ns, result.calibrated, result.saturated, self.degraded
+        est, frame, n = result.primary, result.frame, result.n_contacts
+        t_ns, calibrated, saturated, degraded = result.t_ns, result.calibrated, result.saturated, self.degraded
         if protocol == 1 or 1 in start:
-            out.append(self.contact.fill(est, t_ns, now_ns, calibrated, saturated, degraded))
+            out.append(self.contact.fill(est, t_ns, now_ns, calibrated, saturated, degraded, n))
         if v2:
             announcer = self.announcer
             t_us = t_ns // 1000
             for k, (cid, touch) in enumerate(announcer.announce(result)):
                 r = self.releases[k]
-                r.contact_id, r.touch_frame, r.frame, r.t_us = cid, touch, est.frame, t_us
+                r.contact_id, r.touch_frame, r.frame, r.t_us = cid, touch, frame, t_us
                 out.append(r)
-            n = result.n_contacts
             touched = announcer.touched
             for k in range(max(n, 1)):
                 c = result.contacts[k] if n else est
-                out.append(self.contacts_v2[k].fill(c, k, t_ns, now_ns, calibrated, saturated, degraded,
+                out.append(self.contacts_v2[k].fill(c, k, frame, n, t_ns, now_ns, calibrated, saturated, degraded,
                                                     touch=touched[k] if n else None))
                 if v3:
-                    out.append(self.motions[k].fill(c, k, t_ns, result.vibration, result.vibrating,
+                    out.append(self.motions[k].fill(c, k, frame, t_ns, result.vibration, result.vibrating,
                                                     result.vibration_began))
         return out
