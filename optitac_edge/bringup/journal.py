@@ -84,7 +84,7 @@ def _is_num(v: object) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def _check_entry(entry: Any, first: bool, start_frame: int, index: int) -> str:
+def _check_entry(entry: object, first: bool, start_frame: int, index: int) -> str:
     """Why ``entry`` is not the journal line ``collect`` writes there ('' when it is)."""
     if not isinstance(entry, dict):
         return "not a JSON object"
@@ -127,7 +127,7 @@ def _check_entry(entry: Any, first: bool, start_frame: int, index: int) -> str:
 MAX_TRUTH_MM = 1000.0
 
 
-def _check_row(row: Any, frame: int) -> str:
+def _check_row(row: object, frame: int) -> str:
     if not isinstance(row, dict) or row.get("frame") != frame:
         return f"the row of frame {frame} is missing"
     rig = row.get("rig")

@@ -18,7 +18,16 @@ from typing import Any
 
 from optitac_edge.errors import OptiTacError, TransportError
 from optitac_edge.io.protocol.decoder import FrameDecoder
-from optitac_edge.io.protocol.messages import THRESHOLD_LSB, CommandType, ContactV2Flags, MotionFlags, ResultCode
+from optitac_edge.io.protocol.messages import (
+    THRESHOLD_LSB,
+    CommandType,
+    ContactMessage,
+    ContactV2Flags,
+    ContactV2Message,
+    MotionFlags,
+    MotionMessage,
+    ResultCode,
+)
 from optitac_edge.io.protocol.wire import (
     THRESHOLD_MAX,
     THRESHOLD_MIN,
@@ -115,14 +124,14 @@ class LinkTally:
         return line
 
 
-def _contact_text(msg: Any) -> str:
+def _contact_text(msg: ContactMessage) -> str:
     if not msg.flags & 1:
         return "no contact"
     return (f"contact at {msg.x_mm:+.2f}, {msg.y_mm:+.2f} mm, {msg.major_mm:.2f} x {msg.minor_mm:.2f} mm, "
             f"{msg.angle_deg:+.1f}°, strength {msg.strength:.1f}, shape {msg.shape.name.lower()}")
 
 
-def _contact2_text(msg: Any) -> str:
+def _contact2_text(msg: ContactV2Message) -> str:
     if not msg.n_contacts:
         return f"sensor {msg.sensor_id}: no contact"
     flags = ContactV2Flags(msg.flags)  # depth and force only where calibrated (else sent as 0)
@@ -198,7 +207,7 @@ class SerialMonitor:
                 f"version {c.version}, overflow {c.overflow}, payload {self.tally.bad_payloads}")
 
 
-def _motion_text(mo: Any) -> str:
+def _motion_text(mo: MotionMessage) -> str:
     """A MOTION message in a line: the contact's velocity and slide, the frame's vibration, as its flags say."""
     f = MotionFlags(mo.flags)
     parts = [f"contact {mo.contact_id}" if mo.contact_id else "no contact"]

@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import add_board, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 
 if TYPE_CHECKING:
     from optitac_edge.cli.common import Subcommands
+    from optitac_edge.core.bundle import CalibrationBundle
+    from optitac_edge.io.cameras.base import Camera
 
 
 def add_parser(sub: Subcommands) -> None:
@@ -53,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _simulated_operator(camera: Any, bundle: Any) -> Callable[[str], None]:
+def _simulated_operator(camera: Camera, bundle: CalibrationBundle) -> Callable[[str], None]:
     """Show each prompt; on the simulated camera a simulated operator also does what it asks (its own
     presses ignore prompts)."""
     from optitac_edge.sim.camera import SimCamera

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import (
     COUNT,
@@ -22,6 +22,9 @@ from optitac_edge.errors import OptiTacError
 
 if TYPE_CHECKING:
     from optitac_edge.cli.common import Subcommands
+    from optitac_edge.config import BoardConfig
+    from optitac_edge.sim.optics import CameraOptics
+    from optitac_edge.sim.patches import PatchPlacement
 
 
 class _SimNames:
@@ -139,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _simboard_sensor(args: argparse.Namespace, config: Any, dark: tuple[int, ...]) -> tuple[Any, Any]:
+def _simboard_sensor(args: argparse.Namespace, config: BoardConfig,
+                     dark: tuple[int, ...]) -> tuple[CameraOptics, PatchPlacement | None]:
     """``sim --board B --sensor ID``: the optics of the sensor as its simulated camera shows it, and its patch
     (None when it fills the frame). The camera sets size, pixel format and orientation: flags that would
     make another sensor are refused."""

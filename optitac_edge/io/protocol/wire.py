@@ -15,7 +15,7 @@ import binascii
 import struct
 from enum import IntEnum
 from math import floor as _floor
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 from cobs import cobs
 
@@ -25,6 +25,7 @@ from optitac_edge.io.protocol.messages import (
     CommandType,
     ContactFlags,
     ContactMessage,
+    ContactV2Message,
     ResultCode,
     ShapeCode,
     StatusMessage,
@@ -164,7 +165,7 @@ def clamp_int(value: float, lo: int, hi: int) -> int:
     return int(v)
 
 
-def geometry_ints(msg: Any) -> tuple[int, int, int, int, int, int]:
+def geometry_ints(msg: ContactMessage | ContactV2Message) -> tuple[int, int, int, int, int, int]:
     """x, y, major, minor (0.01 mm), angle (0.01°, folded into ±90°) and strength (0.01) of a contact
     message as wire integers (quantised and saturated), in that order (CONTACT and CONTACT2 alike)."""
     return (quantise(msg.x_mm, MM_LSB, -32768, 32767), quantise(msg.y_mm, MM_LSB, -32768, 32767),
