@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from optitac_edge.core.bundle import BASELINE_FRAMES, CalibrationBundle
-from optitac_edge.core.fiber_table import FiberSampler
+from optitac_edge.core.fiber_table import FiberSampler, FiberTable
 from optitac_edge.core.frames import frame_geometry, to_gray
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
@@ -165,7 +165,7 @@ class RestNoise:
 
 def measure_rest_noise(
     rest_frames: Sequence[np.ndarray] | np.ndarray,
-    table: Any,
+    table: FiberTable,
     mean_gray: np.ndarray,
     baseline_frames: int = BASELINE_FRAMES,
     times_ns: np.ndarray | None = None,

@@ -16,6 +16,8 @@ from optitac_edge.text import parse_float, parse_int
 if TYPE_CHECKING:
     from typing import TypeAlias
 
+    from optitac_edge.config import BoardConfig
+
     #: The table of sub-commands each command module adds its parser to.
     Subcommands: TypeAlias = argparse._SubParsersAction[argparse.ArgumentParser]
 
@@ -80,7 +82,7 @@ def add_storage(p: argparse.ArgumentParser, default: str | None, text: str) -> N
     p.add_argument("--storage", choices=("fibers", "raw"), default=default, help=f"how the frames are kept: {text}")
 
 
-def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
+def board_config(args: argparse.Namespace, **overrides: Any) -> BoardConfig:
     """The board config of ``--board`` (with ``overrides``), narrowed to ``--sensor`` when given."""
     from optitac_edge.config import load_board_config
 
@@ -90,7 +92,7 @@ def board_config(args: argparse.Namespace, **overrides: Any) -> Any:
     return config if sensor is None else config.for_sensor(sensor)
 
 
-def one_sensor_config(args: argparse.Namespace, **overrides: Any) -> Any:
+def one_sensor_config(args: argparse.Namespace, **overrides: Any) -> BoardConfig:
     """:func:`board_config` of a command that serves one sensor: a board with several needs ``--sensor``."""
     return board_config(args, **overrides).for_sensor(getattr(args, "sensor", None))
 
@@ -109,7 +111,7 @@ def add_fresh(p: argparse.ArgumentParser) -> None:
                    help="replace a complete recording at the output (it is kept until the new one is complete)")
 
 
-def board_sensor(args: argparse.Namespace) -> Any:
+def board_sensor(args: argparse.Namespace) -> BoardConfig | None:
     """The board config narrowed to ``--sensor`` for an offline command (None without ``--board``)."""
     if args.board is None:
         if args.sensor is not None:

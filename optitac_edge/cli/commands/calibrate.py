@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import SEED, Parser, add_board, add_orientation, board_sensor
 from optitac_edge.errors import OptiTacError
@@ -83,7 +83,7 @@ def _fibers(args: argparse.Namespace) -> int:
     settled = previous if previous is not None and settles(previous, layout or hex_layout()) else None
     hint = (args.rotation_deg or 0.0, args.mirror) if settled is None else (settled.transform.rotation_deg,
                                                                              settled.transform.mirror)
-    if region:
+    if region and config is not None:  # a region comes from the board
         cam = config.camera
         if (rec.width, rec.height) != (cam.width, cam.height):
             raise OptiTacError(f"{args.recording}: frames are {rec.width}x{rec.height}, sensor "
@@ -123,7 +123,7 @@ def _readable_bundle(path: Path) -> CalibrationBundle | None:
         return None
 
 
-def _step_bundle(args: argparse.Namespace) -> tuple[Path, Any]:
+def _step_bundle(args: argparse.Namespace) -> tuple[Path, CalibrationBundle]:
     """The bundle a calibration step updates: ``--cal``, or ``--sensor``'s (checked against its region)."""
     from optitac_edge.io.bundle_file import load_bundle
 

@@ -147,7 +147,7 @@ class LiveView:
         #: Updates skipped because the worker was swapping buffers (the loop never waits).
         self.skipped = 0
         self.published: Published | None = None
-        self.actions: deque[tuple[str, Any]] = deque(maxlen=16)
+        self.actions: deque[tuple[str, Pipeline | None]] = deque(maxlen=16)  # ("tare", None), ("swap", new)
         self.message = ""
         self.procedure: EdgePresses | None = None  # while the guided orientation runs
         #: Where an oriented bundle is written (None: kept in memory).
@@ -198,7 +198,7 @@ class LiveView:
         if kind == "tare":
             pipeline.reset_baseline()
             self.message = "tare: the baseline is taken again"
-        elif kind == "swap" and self.swap_pipeline is not None:
+        elif kind == "swap" and self.swap_pipeline is not None and value is not None:
             self.swap_pipeline(value)
 
     # -- the worker -----------------------------------------------------------------------------
