@@ -202,9 +202,13 @@ def test_a_body_that_never_comes_holds_no_answer_slot(fed_view) -> None:
             s.sendall(b"POST /api/tare HTTP/1.1\r\nHost: localhost\r\nX-OptiTac: 1\r\nContent-Length: 100\r\n\r\n")
         answering = server._server.answering
         deadline = time.monotonic() + 1.5  # the server has read their headers well before
-        while time.monotonic() < deadline and answering._value == view_server.MAX_CLIENTS:
+        fewest = view_server.MAX_CLIENTS
+        while time.monotonic() < deadline:
+            fewest = min(fewest, answering._value)
             time.sleep(0.05)
-        assert answering._value == view_server.MAX_CLIENTS  # none taken: they wait for their bodies slotless
+        # none held by them: they wait for their bodies slotless (before the fix all 16 were, 0 free); a slot
+        # another request of this module's server takes for a moment (one was seen once in CI) is not theirs
+        assert fewest > view_server.MAX_CLIENTS // 2, fewest
         assert _get(f"http://127.0.0.1:{server.port}/api/layout")[0] == 200
     finally:
         for s in hold:
