@@ -132,6 +132,13 @@ class Registry(MutableMapping[str, Backend], Generic[D]):
         with self.importing(name):
             return cls.from_config(section, board)
 
+    def make(self, name: str, **kwargs: Any) -> D:
+        """The device ``name`` made with its constructor's ``kwargs`` (no board config: tests, dev tools);
+        failures reported as by :meth:`open`."""
+        cls = self.load(name)
+        with self.importing(name):
+            return cls(**kwargs)
+
     @contextmanager
     def importing(self, name: str) -> Iterator[None]:
         """Inside: an optional library that backend ``name`` imports only when it opens, found missing, is

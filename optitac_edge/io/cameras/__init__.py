@@ -37,8 +37,7 @@ def open_camera(name: str, **kwargs: Any) -> Camera:
     CameraError
         If no backend has that name or the backend cannot be opened.
     """
-    camera: Camera = CAMERAS.load(name)(**kwargs)
-    return camera
+    return CAMERAS.make(name, **kwargs)
 
 
 def __getattr__(name: str) -> Any:

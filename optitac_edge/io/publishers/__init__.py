@@ -24,8 +24,7 @@ PUBLISHERS: Registry[Publisher] = Registry("publisher", PublishError, {
 def open_publisher(name: str, **kwargs: Any) -> Publisher:
     """Open the publisher called ``name`` (``zenoh``, ``mcap``, ``foxglove`` or ``virtual``) with its
     constructor's ``kwargs``."""
-    with PUBLISHERS.importing(name):
-        return PUBLISHERS.load(name)(**kwargs)
+    return PUBLISHERS.make(name, **kwargs)
 
 
 __all__ = ["PUBLISHERS", "NetworkConfig", "Publisher", "open_publisher"]

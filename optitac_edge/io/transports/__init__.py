@@ -23,7 +23,7 @@ TRANSPORTS: Registry[Transport] = Registry("transport", TransportError, {
 
 def open_transport(name: str, **kwargs: Any) -> Transport:
     """Open the transport called ``name`` (``serial``, ``can`` or ``none``) with its constructor's ``kwargs``."""
-    return TRANSPORTS.load(name)(**kwargs)
+    return TRANSPORTS.make(name, **kwargs)
 
 
 __all__ = ["TRANSPORTS", "LinkConfig", "Transport", "TransportCounters", "open_transport"]
