@@ -50,8 +50,9 @@ class ContactFinder:
         """Truncate ``surface`` (shape (n*n,), float32, in place), find and measure its contacts.
 
         The contacts go to ``contacts[:n]``, strongest first, each corrected by ``corrector`` (None: raw);
-        with none, ``est`` says so (with the frame's strength and area above the level when there was some). ``gated``: the frame can have
-        no contact (neighbour support, :mod:`optitac_edge.core.support`). Returns ``n``.
+        with none, ``est`` says so (with the frame's strength and area above the level when there was some).
+        ``gated``: the frame can have no contact (neighbour support, :mod:`optitac_edge.core.support`).
+        Returns ``n``.
         """
         seg, blobs = self.segmenter, self.blobs
         cells = seg.truncate(surface)

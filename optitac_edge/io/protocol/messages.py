@@ -250,8 +250,8 @@ class ContactV2Message:
     confidence: float = 0.0
     age_us: int = 0
 
-    def fill(self, est: ContactEstimate, index: int, frame: int, n_contacts: int, t_ns: int, now_ns: int,  # noqa: PLR0913
-             calibrated: bool, saturated: bool = False, degraded: bool = False,
+    def fill(self, est: ContactEstimate, index: int, frame: int, n_contacts: int,  # noqa: PLR0913
+             t_ns: int, now_ns: int, calibrated: bool, saturated: bool = False, degraded: bool = False,
              touch: bool | None = None) -> ContactV2Message:
         """Update in place from contact ``index`` of ``n_contacts`` of frame ``frame`` (a
         :class:`~optitac_edge.core.contact.ContactEstimate`; the primary one when there is no contact).
