@@ -233,6 +233,16 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
     return bundle
 
 
+def readable_bundle(path: str | Path) -> CalibrationBundle | None:
+    """The bundle at ``path``, or None: no file there, or not a readable bundle (what a new one may replace)."""
+    if not Path(path).is_file():
+        return None
+    try:
+        return load_bundle(path)
+    except BundleError:
+        return None
+
+
 #: Members of the bundle's ``extra`` that, when present, are objects (the steps' summaries, the orientation
 #: record, the region a sensor's bundle was placed in).
 _OBJECT_EXTRAS = ("centroid_fit", "width_fit", "shapes_fit", "depth_fit", "orientation", "region")

@@ -12,7 +12,6 @@ from optitac_edge.text import fields
 
 if TYPE_CHECKING:
     from optitac_edge.cli.common import Subcommands
-    from optitac_edge.core.bundle import CalibrationBundle
 
 
 def add_parser(sub: Subcommands) -> None:
@@ -63,38 +62,20 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _fibers(args: argparse.Namespace) -> int:
-    from optitac_edge.calibration.orientation import keep_orientation, settles
-    from optitac_edge.calibration.sensor import calibrate_sensor
-    from optitac_edge.core.layout import hex_layout
-    from optitac_edge.io.bundle_file import save_bundle
-    from optitac_edge.io.layout_csv import load_layout_csv
-    from optitac_edge.io.recording import Recording
+    from optitac_edge.calibration.jobs import FiberMapJob, map_fibers
 
     config = board_sensor(args)
     output = args.output or (config.calibration.bundle_path if config is not None else None)
     if output is None:
         raise OptiTacError("calibrate fibers: give -o CAL (or --board B --sensor ID: that sensor's bundle)")
-    rec = Recording(args.recording)
-    layout_path = args.layout or (config.calibration.layout_path if config is not None else None)
-    layout = load_layout_csv(layout_path) if layout_path else None
-    region = config.sensors[0].region if config is not None else None
-    # no hint given: a bundle at the output whose orientation presses settled gives it, and keeps it (below)
-    previous = None if args.rotation_deg is not None or args.mirror else _readable_bundle(Path(output))
-    settled = previous if previous is not None and settles(previous, layout or hex_layout()) else None
-    hint = (args.rotation_deg or 0.0, args.mirror) if settled is None else (settled.transform.rotation_deg,
-                                                                             settled.transform.mirror)
-    if region and config is not None:  # a region comes from the board
-        cam = config.camera
-        if (rec.width, rec.height) != (cam.width, cam.height):
-            raise OptiTacError(f"{args.recording}: frames are {rec.width}x{rec.height}, sensor "
-                               f"{config.sensor.id}'s camera {config.sensor.camera!r} delivers "
-                               f"{cam.width}x{cam.height}")
-    bundle = calibrate_sensor(rec.rest_frames(), rec.pixel_format, region,
-                              layout=layout, rotation_hint_deg=hint[0], mirror=hint[1],
-                              times_ns=rec.t_ns[: rec.meta.rest_frames])
-    kept = None if settled is None else keep_orientation(settled, bundle)
-    bundle = save_bundle(bundle if kept is None else kept, output)
-    report = bundle.fiber_map_report
+    region = camera = None
+    if config is not None:  # a region comes from the board, for the frames of its camera
+        region, cam = config.sensors[0].region, config.camera
+        camera = (f"sensor {config.sensor.id}'s camera {config.sensor.camera!r}", cam.width, cam.height)
+    layout = args.layout or (config.calibration.layout_path if config is not None else None)
+    done = map_fibers(FiberMapJob(args.recording, Path(output), region, camera, layout and Path(layout),
+                                  args.rotation_deg, args.mirror))
+    bundle, report = done.bundle, done.bundle.fiber_map_report
     dead = [int(i) for i in bundle.layout.ids[bundle.fibers.dead]]
     placed = f" in region {[region.x, region.y, region.width, region.height]}" if region else ""
     stray = int(report.get("n_stray", 0))
@@ -103,73 +84,39 @@ def _fibers(args: argparse.Namespace) -> int:
           f"{bundle.layout.n_fibers - len(dead)}/{bundle.layout.n_fibers} fibers found; "
           f"dead fibers {', '.join(map(str, dead)) or 'none'}; {len(bundle.fibers.unmatched_px)} unmatched blobs"
           f"{away}; residual {report.get('residual_rms_px', float('nan')):.2f} px")
-    if kept is not None:
+    if done.kept:
         print(f"orientation kept: {output} had it settled by presses, and the new fiber map is turned as it was")
-    elif settled is not None:
+    elif done.lost:
         print(f"orientation not kept: {output} had it settled by presses, but the new fiber map is turned "
               f"otherwise; settle it again (orient, or calibrate orientation on presses)")
     return 0
 
 
-def _readable_bundle(path: Path) -> CalibrationBundle | None:
-    """The bundle at ``path``, or None (no file, or not a readable bundle: it is replaced as it is)."""
-    from optitac_edge.io.bundle_file import load_bundle
-
-    if not path.is_file():
-        return None
-    try:
-        return load_bundle(path)
-    except OptiTacError:
-        return None
-
-
-def _step_bundle(args: argparse.Namespace) -> tuple[Path, CalibrationBundle]:
-    """The bundle a calibration step updates: ``--cal``, or ``--sensor``'s (checked against its region)."""
-    from optitac_edge.io.bundle_file import load_bundle
+def _model(args: argparse.Namespace) -> int:
+    from optitac_edge.calibration.jobs import StepJob, run_step
 
     config = board_sensor(args)
     cal = args.cal or (config.calibration.bundle_path if config is not None else None)
     if cal is None:
         raise OptiTacError(f"calibrate {args.step}: give --cal CAL (or --board B --sensor ID: that sensor's bundle)")
-    bundle = load_bundle(cal)
-    if config is not None:
-        config.sensors[0].check_bundle(bundle, cal)
-    return Path(cal), bundle
-
-
-def _model(args: argparse.Namespace) -> int:
-    from optitac_edge.calibration import steps as calibrate_steps
-    from optitac_edge.io.bundle_file import save_bundle
-    from optitac_edge.io.recording import Recording
-
-    rec = [Recording(path) for path in args.recording]
-    args.cal, bundle = _step_bundle(args)
-    if args.step == "orientation":
-        bundle, fit = calibrate_steps.calibrate_orientation(rec, bundle)
-        assert fit.symmetry is not None
-        bundle = save_bundle(bundle, args.cal)
-        other, other_rmse = fit.runner_up
-        evidence = (f"{fit.presses} presses, RMS {fit.best_rmse_mm:.2f} mm; "
-                    f"next best '{other}' {other_rmse:.2f} mm")
-        if fit.symmetry.is_identity:
-            print(f"orientation of {args.cal} confirmed ({evidence})")
-        else:
-            print(f"corrected {args.cal} (id {bundle.calibration_id}): its fiber map was {fit.symmetry.label} "
-                  f"({evidence}); centroid, width and shape models were removed: calibrate them again")
+    args.cal = Path(cal)  # (for the line of an interrupted run)
+    job = StepJob(args.step, tuple(args.recording), args.cal, None if config is None else config.sensors[0].check_bundle,
+                  seed=getattr(args, "seed", 0), width_model=getattr(args, "model", "auto"),
+                  fill=getattr(args, "fill", "auto"), contacts=getattr(args, "contacts", "auto"))
+    done = run_step(job)
+    bundle, fit = done.bundle, done.fit
+    if fit is None:
+        print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: "
+              f"{fields(done.summary)}")
         return 0
-    if args.step == "levels":
-        bundle, summary = calibrate_steps.calibrate_levels(rec, bundle)
-    elif args.step == "shapes":
-        bundle, summary = calibrate_steps.calibrate_shapes(rec, bundle, seed=args.seed)
-    elif args.step == "depth":
-        bundle, summary = calibrate_steps.calibrate_depth(rec, bundle)
-    elif args.step == "centroid":
-        bundle, summary = calibrate_steps.calibrate_centroid(rec, bundle, fill=args.fill,
-                                                               bundle_path=str(args.cal), contacts=args.contacts)
+    assert fit.symmetry is not None
+    other, other_rmse = fit.runner_up
+    evidence = f"{fit.presses} presses, RMS {fit.best_rmse_mm:.2f} mm; next best '{other}' {other_rmse:.2f} mm"
+    if fit.symmetry.is_identity:
+        print(f"orientation of {args.cal} confirmed ({evidence})")
     else:
-        bundle, summary = calibrate_steps.calibrate_width(rec, bundle, kind=args.model)
-    bundle = save_bundle(bundle, args.cal)
-    print(f"updated {args.cal} (id {bundle.calibration_id}) with the {args.step} calibration: {fields(summary)}")
+        print(f"corrected {args.cal} (id {bundle.calibration_id}): its fiber map was {fit.symmetry.label} "
+              f"({evidence}); centroid, width and shape models were removed: calibrate them again")
     return 0
 
 
