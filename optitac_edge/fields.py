@@ -6,9 +6,8 @@ from __future__ import annotations
 import math
 import re
 import sys
-from collections.abc import Callable
 from dataclasses import field
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -28,20 +27,26 @@ class Invalid(Exception):
 # A checker takes (value, from_text) and returns the converted value or raises Invalid.
 # ``from_text`` is True for environment variables and string command-line overrides.
 
-Checker = Callable[[Any, bool], Any]
+T_co = TypeVar("T_co", covariant=True)
 
 
-def show(value: Any) -> str:
+class Checker(Protocol[T_co]):
+    """``check(value, from_text)``: the value converted, or :class:`Invalid`."""
+
+    def __call__(self, value: object, from_text: bool, /) -> T_co: ...
+
+
+def show(value: object) -> str:
     return repr(value) if isinstance(value, str) else f"{value!r} ({type_name(value)})"
 
 
-def type_name(value: Any) -> str:
+def type_name(value: object) -> str:
     return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array",
             dict: "table"}.get(type(value), type(value).__name__)
 
 
-def integer(lo: int, hi: int, what: str = "an integer") -> Checker:
-    def check(value: Any, from_text: bool) -> int:
+def integer(lo: int, hi: int, what: str = "an integer") -> Checker[int]:
+    def check(value: object, from_text: bool) -> int:
         if from_text and isinstance(value, str):
             try:
                 value = parse_int(value)
@@ -53,29 +58,27 @@ def integer(lo: int, hi: int, what: str = "an integer") -> Checker:
     return check
 
 
-def number(lo: float, hi: float, *, lo_open: bool = False) -> Checker:
+def number(lo: float, hi: float, *, lo_open: bool = False) -> Checker[float]:
     rng = f"{lo:g} < x <= {hi:g}" if lo_open else f"{lo:g}..{hi:g}"
 
-    def check(value: Any, from_text: bool) -> float:
+    def check(value: object, from_text: bool) -> float:
         if from_text and isinstance(value, str):
             try:
                 value = parse_float(value)
             except ValueError:
                 raise Invalid(f"must be a number in {rng} (ASCII digits), got {value!r}") from None
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-        if ok:
-            ok = (lo < value if lo_open else lo <= value) and value <= hi
-        if not ok:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                or not ((lo < value if lo_open else lo <= value) and value <= hi):
             raise Invalid(f"must be a number in {rng}, got {show(value)}")
         return float(value)
     return check
 
 
-def rate(slowest: float, hi: float) -> Checker:
+def rate(slowest: float, hi: float) -> Checker[float]:
     """A rate: 0 (none) or ``slowest..hi`` per second (1e-300 Hz made a period no integer holds)."""
     inner = number(0, hi)
 
-    def check(value: Any, from_text: bool) -> float:
+    def check(value: object, from_text: bool) -> float:
         v = inner(value, from_text)
         if 0.0 < v < slowest:
             raise Invalid(f"must be 0 (none) or a rate in {slowest:g}..{hi:g} per second, got {show(value)}")
@@ -89,7 +92,7 @@ _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 
 
-def boolean(value: Any, from_text: bool) -> bool:
+def boolean(value: object, from_text: bool) -> bool:
     if from_text and isinstance(value, str):
         text = value.strip().lower()
         if text in _TRUE:
@@ -102,8 +105,8 @@ def boolean(value: Any, from_text: bool) -> bool:
     return value
 
 
-def string(max_len: int = 1024, *, pattern: str | None = None, empty: bool = True) -> Checker:
-    def check(value: Any, from_text: bool) -> str:
+def string(max_len: int = 1024, *, pattern: str | None = None, empty: bool = True) -> Checker[str]:
+    def check(value: object, from_text: bool) -> str:
         if not isinstance(value, str):
             raise Invalid(f"must be a string, got {show(value)}")
         if not empty and not value:
@@ -118,20 +121,20 @@ def string(max_len: int = 1024, *, pattern: str | None = None, empty: bool = Tru
     return check
 
 
-def choice(*choices: str) -> Checker:
-    def check(value: Any, from_text: bool) -> str:
+def choice(*choices: str) -> Checker[str]:
+    def check(value: object, from_text: bool) -> str:
         if not isinstance(value, str) or value not in choices:
             raise Invalid(f"must be one of {', '.join(repr(c) for c in choices)}, got {show(value)}")
         return value
     return check
 
 
-def path_text(value: Any, from_text: bool) -> str:
+def path_text(value: object, from_text: bool) -> str:
     # Kept as text here; resolved against the file's directory by the loader. "" means "none".
     return string(4096)(value, from_text)
 
 
-def int_list(value: Any, from_text: bool, what: str) -> Any:
+def int_list(value: object, from_text: bool, what: str) -> object:
     """Text ``'0,1,2'`` (environment, command line) as a list of integers, a tuple as a list; else ``value``."""
     if from_text and isinstance(value, str):
         try:
@@ -141,7 +144,7 @@ def int_list(value: Any, from_text: bool, what: str) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
-def channel_list(value: Any, from_text: bool) -> tuple[int, ...]:
+def channel_list(value: object, from_text: bool) -> tuple[int, ...]:
     value = int_list(value, from_text, "a list of channel numbers 0..15 (e.g. '0,1,2')")
     if isinstance(value, (bool, int)):
         value = [value]
@@ -159,7 +162,7 @@ def channel_list(value: Any, from_text: bool) -> tuple[int, ...]:
 CAMERA_NAME = r"[A-Za-z][A-Za-z0-9_-]{0,31}"
 
 
-def region_box(value: Any, from_text: bool) -> tuple[int, ...]:
+def region_box(value: object, from_text: bool) -> tuple[int, ...]:
     value = int_list(value, from_text, "x, y, width, height in px (e.g. '0,20,440,360')")
     if not isinstance(value, list) or len(value) not in (0, 4):
         raise Invalid(f"must be [x, y, width, height] in px, or [] for the whole frame, got {show(value)}")
@@ -170,13 +173,13 @@ def region_box(value: Any, from_text: bool) -> tuple[int, ...]:
     return tuple(value)
 
 
-def scalar(value: Any, from_text: bool) -> Scalar:
+def scalar(value: object, from_text: bool) -> Scalar:
     if from_text and isinstance(value, str):
         try:  # a TOML literal (number, boolean, quoted string), else the text itself
             text = value
             value = tomllib.loads(f"v = {value}")["v"]
         except tomllib.TOMLDecodeError:
-            return value
+            return text
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             try:  # TOML takes 30_0 as 300: a number from the environment is written plainly
                 value = parse_int(text) if isinstance(value, int) else parse_float(text)
@@ -189,13 +192,13 @@ def scalar(value: Any, from_text: bool) -> Scalar:
     return value
 
 
-def setting(check: Checker, default: Any, doc: str, *, required: bool = False) -> Any:
+def setting(check: Checker[object], default: object, doc: str, *, required: bool = False) -> Any:
     """A section's field: its checker, its default and a one-line doc. ``required``: the default (empty)
     is refused once the board is read (the publisher's file, say)."""
     return field(default=default, metadata={"check": check, "doc": doc, "required": required})
 
 
-def endpoint_list(value: Any, from_text: bool) -> tuple[str, ...]:
+def endpoint_list(value: object, from_text: bool) -> tuple[str, ...]:
     if from_text and isinstance(value, str):
         value = [part.strip() for part in value.split(",") if part.strip()]
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):

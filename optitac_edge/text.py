@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from typing import Any
 
 
-def plain(value: Any) -> str:
+def plain(value: object) -> str:
     """One value: floats with 4 significant digits, sequences joined by '/', mappings as :func:`fields`."""
     if isinstance(value, bool) or value is None:
         return str(value).lower()

@@ -19,7 +19,11 @@ from optitac_edge.io.recording import SHAPES, Recording
 from optitac_edge.text import fields, plain
 
 if TYPE_CHECKING:
+    from optitac_edge.calibration.measure import Measurements
     from optitac_edge.calibration.verdict import Verdict
+    from optitac_edge.core.centroid_map import CentroidErrorMap
+    from optitac_edge.core.width_model import WidthModel
+    from optitac_edge.io.recording import Truth
 
 _COLOURS = {"edge": "tab:red", "circle": "tab:blue", "square": "tab:green", "ellipse": "tab:orange",
             "triangle": "tab:purple"}
@@ -60,7 +64,7 @@ def _fibers(ax: Any, bundle: CalibrationBundle) -> None:
     ax.set_ylabel("y (mm)")
 
 
-def array_colour_limit(data: np.ndarray, cm: Any, radius_mm: float) -> float:
+def array_colour_limit(data: np.ndarray, cm: CentroidErrorMap, radius_mm: float) -> float:
     """The largest |error| of an error map within ``radius_mm`` of the array's centre (1.0 if none):
     the colour scale of the map, so the extrapolated rim cannot wash out the array."""
     xs = cm.x0_mm + cm.step_mm * np.arange(cm.n)
@@ -70,7 +74,7 @@ def array_colour_limit(data: np.ndarray, cm: Any, radius_mm: float) -> float:
     return float(np.abs(data[inside]).max(initial=0.0)) or 1.0
 
 
-def _near_presses(cm: Any, presses: np.ndarray | None, reach_mm: float) -> np.ndarray | None:
+def _near_presses(cm: CentroidErrorMap, presses: np.ndarray | None, reach_mm: float) -> np.ndarray | None:
     """The error map's cells within ``reach_mm`` of a calibration press, shape (n, n) (None: no presses kept)."""
     if presses is None or presses.size == 0:
         return None
@@ -129,7 +133,7 @@ def _scatter(plt: Any, bundle: CalibrationBundle, corrector: ContactCorrector, m
     return path.name
 
 
-def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = False) -> tuple[Any, Any]:
+def _measure_truth(rec_path: Path, bundle: CalibrationBundle, corrected: bool = False) -> tuple[Measurements, Truth]:
     from optitac_edge.calibration.measure import measure_recording
 
     rec = Recording(rec_path)
@@ -241,7 +245,7 @@ def _repeatability_figure(plt: Any, bundle: CalibrationBundle, repeat: Path, pat
     return path.name
 
 
-def _width_figure(plt: Any, arrays: Mapping[str, np.ndarray], w: Any, path: Path) -> str:
+def _width_figure(plt: Any, arrays: Mapping[str, np.ndarray], w: WidthModel, path: Path) -> str:
     """The width model of each axis over the calibration presses' measured and true widths."""
     measured, true = arrays["report/width_measured"], arrays["report/width_true"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)

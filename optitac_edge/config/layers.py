@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import fields
+from dataclasses import Field, fields
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -47,7 +47,7 @@ class _Layers:
             self.values.pop(target, None)
         return target
 
-    def set(self, source: str, section: str, key: str, value: Any, *, from_text: bool,
+    def set(self, source: str, section: str, key: str, value: object, *, from_text: bool,
             base_dir: Path | None, target: str | None = None) -> None:
         if section == "publish":
             name, _, key = key.partition(".")
@@ -101,7 +101,7 @@ class _Layers:
                                  for name, source in self.publishers.items()})
 
 
-def _check(spec: Any, value: Any, from_text: bool, base_dir: Path | None, where: str) -> Any:
+def _check(spec: Field[Any], value: object, from_text: bool, base_dir: Path | None, where: str) -> object:
     """``value`` checked by ``spec``'s checker (paths resolved against ``base_dir``); errors name ``where``."""
     try:
         converted = spec.metadata["check"](value, from_text)

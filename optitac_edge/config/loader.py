@@ -78,7 +78,7 @@ def _apply_file(layers: _Layers, data: dict[str, Any], shown: str, base_dir: Pat
     return description, entries
 
 
-def _new_publish(value: Any) -> bool:
+def _new_publish(value: object) -> bool:
     """``[publish.NAME]`` tables (not the old form's ``[publish]`` keys)."""
     return isinstance(value, dict) and bool(value) and all(isinstance(v, dict) for v in value.values())
 
@@ -90,7 +90,7 @@ def _apply_publish(layers: _Layers, value: dict[str, Any], shown: str, base_dir:
             layers.set(shown, "publish", f"{name}.{key}", item, from_text=False, base_dir=base_dir)
 
 
-def _apply_cameras(layers: _Layers, value: Any, shown: str, base_dir: Path) -> None:
+def _apply_cameras(layers: _Layers, value: object, shown: str, base_dir: Path) -> None:
     if not isinstance(value, dict) or not value:
         raise ConfigError(f"{shown}: cameras: must hold [cameras.NAME] tables, got {type_name(value)}")
     for cam_name, table in value.items():
@@ -105,7 +105,7 @@ def _apply_cameras(layers: _Layers, value: Any, shown: str, base_dir: Path) -> N
             layers.set(shown, "camera", key, item, from_text=False, base_dir=base_dir, target=target)
 
 
-def _read_sensors(value: Any, shown: str, base_dir: Path) -> list[_Entry]:
+def _read_sensors(value: object, shown: str, base_dir: Path) -> list[_Entry]:
     if not isinstance(value, list) or not value or not all(isinstance(v, dict) for v in value):
         raise ConfigError(f"{shown}: sensors: must be [[sensors]] tables (one per sensor)")
     sensor_spec = {f.name: f for f in fields(SensorConfig)}

@@ -57,7 +57,7 @@ class LedError(OptiTacError):
     """The LED driver cannot be opened or does not answer."""
 
 
-def led_driver(value: Any, from_text: bool) -> str:
+def led_driver(value: object, from_text: bool) -> str:
     """A name of the LED registry (:data:`LEDS`, the one list of drivers)."""
     return choice(*LEDS)(value, from_text)
 

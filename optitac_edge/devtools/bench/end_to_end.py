@@ -10,15 +10,26 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.devtools.bench.link import latencies, open_pty, start_reader
 from optitac_edge.devtools.bench.replay_camera import drop_causes, paced_replay_camera, steal_jiffies
 from optitac_edge.devtools.bench.samples import summary
+
+if TYPE_CHECKING:
+    from optitac_edge.config import SensorConfig
+    from optitac_edge.core.bundle import CalibrationBundle
+    from optitac_edge.core.frame_result import FrameResult
+    from optitac_edge.devtools.bench.network import BenchNetwork
+    from optitac_edge.io.cameras.base import Camera
+    from optitac_edge.service.loop import Service, ServiceStats
+    from optitac_edge.service.view.live import LiveView
+    from optitac_edge.service.view.server import ViewServer
 
 
 @dataclass(frozen=True)
@@ -44,8 +55,8 @@ class EndToEnd:
     rest: int = 10
     queue_frames: int | None = None
     view: str | None = None
-    on_view: Any = None
-    bundles: list[Any] | None = None
+    on_view: Callable[[str], object] | None = None
+    bundles: list[CalibrationBundle] | None = None
     publish: bool = False
     workers: int | None = None
 
@@ -125,7 +136,7 @@ def _end_to_end(out: Path, run: EndToEnd) -> dict[str, Any]:
             **({"publish": outputs.net_stats} if run.publish else {})}
 
 
-def _camera(run: EndToEnd, pixel_format: str, queue_frames: int) -> Any:
+def _camera(run: EndToEnd, pixel_format: str, queue_frames: int) -> Camera:
     """The run's camera: its frames replayed at its rate, or the live simulated camera."""
     if run.frames is not None:
         return paced_replay_camera(run.frames, run.rest, run.fps, pixel_format, queue_frames)
@@ -138,13 +149,13 @@ class _Outputs:
     """The run's network publisher and live view (either may be off), and what they counted once closed."""
 
     def __init__(self) -> None:
-        self.net: Any = None
-        self.live: Any = None
-        self.server: Any = None
+        self.net: BenchNetwork | None = None
+        self.live: LiveView | None = None
+        self.server: ViewServer | None = None
         self.net_stats: dict[str, Any] = {}
         self.view_stats: dict[str, Any] = {}
 
-    def attach(self, service: Any, run: EndToEnd, named: list[tuple[Any, Any]]) -> None:
+    def attach(self, service: Service, run: EndToEnd, named: list[tuple[SensorConfig, CalibrationBundle]]) -> None:
         if run.publish:
             from optitac_edge.devtools.bench.network import BenchNetwork
             from optitac_edge.service.session import network_sensor
@@ -191,7 +202,7 @@ class MainThreadCpu:
         r = resource.getrusage(resource.RUSAGE_THREAD)
         return r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, frames
 
-    def on_result(self, _est: Any, stats: Any) -> None:
+    def on_result(self, _result: FrameResult, stats: ServiceStats) -> None:
         if self._start is None and stats.frames >= self.warm:
             self._start = self._sample(stats.frames)
 

@@ -9,14 +9,19 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.devtools.bench.paced import Paced, ratio, run_interleaved
+
+if TYPE_CHECKING:
+    from optitac_edge.core.bundle import CalibrationBundle
+    from optitac_edge.core.layout import FiberLayout
 
 #: Simultaneous contacts the bench presses.
 CONTACT_COUNTS = (0, 1, 2, 4)
@@ -28,7 +33,7 @@ DISTINCT_FRAMES = 240
 REST_FRAMES = 12
 
 
-def contact_frames(n_contacts: int, rgb: bool, fps: float, layout: Any = None) -> list[np.ndarray]:
+def contact_frames(n_contacts: int, rgb: bool, fps: float, layout: FiberLayout | None = None) -> list[np.ndarray]:
     """Rest frames, then :data:`DISTINCT_FRAMES` frames with ``n_contacts`` indenters pressed throughout."""
     from optitac_edge.sim.multi_press import multi_press_frames
 
@@ -40,7 +45,7 @@ def _count(result: FrameResult) -> int:
     return result.n_contacts
 
 
-def measure_contacts(bundle: Any, fps: float, n: int, rgb: bool) -> dict[str, Any]:
+def measure_contacts(bundle: CalibrationBundle, fps: float, n: int, rgb: bool) -> dict[str, Any]:
     """0, 1, 2 and 4 simultaneous contacts, paced at ``fps`` and interleaved; ratios to one contact."""
     configs = [Paced(f"{k}", Pipeline(bundle).process_recorded, contact_frames(k, rgb, fps), REST_FRAMES, _count)
                for k in CONTACT_COUNTS]
@@ -66,7 +71,7 @@ def measure_fibers(workdir: Path, fps: float, n: int, rgb: bool) -> dict[str, An
             "ratio_largest_to_smallest": ratio(res[names[-1]], res[names[0]])}
 
 
-def measure_reference(bundle: Any, frames: list[np.ndarray], rest: int, n: int) -> dict[str, Any]:
+def measure_reference(bundle: CalibrationBundle, frames: list[np.ndarray], rest: int, n: int) -> dict[str, Any]:
     """The paper's method done literally against the fast pipeline in paper mode, interleaved frame by frame.
 
     Unpaced: the reference takes longer than a camera period, and its working set
@@ -110,7 +115,7 @@ def libc_heap() -> dict[str, int] | None:
     return {"in_use": int(m.uordblks + m.hblkhd), "arena": int(m.arena + m.hblkhd)}
 
 
-def measure_heap(bundle: Any, fps: float, n: int, rgb: bool) -> dict[str, Any]:
+def measure_heap(bundle: CalibrationBundle, fps: float, n: int, rgb: bool) -> dict[str, Any]:
     """glibc heap growth over ``n`` steady-state frames per contact count (after one pass over its frames)."""
     period = int(1e9 / fps)
     out: dict[str, Any] = {"frames_per_config": n}
@@ -136,7 +141,7 @@ def measure_heap(bundle: Any, fps: float, n: int, rgb: bool) -> dict[str, Any]:
 
 
 def measure_service_cpu(cal: Path, fps: float, seconds: float, rounds: int, rgb: bool,
-                        log: Any = None) -> dict[str, Any]:
+                        log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The service's main-thread CPU per frame with 0, 1, 2 and 4 contacts; ``rounds`` passes, interleaved.
 
     Each pass runs the production loop (:func:`measure_end_to_end`) ``seconds`` long per

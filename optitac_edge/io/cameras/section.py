@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any
 
 from optitac_edge.fields import Scalar, choice, integer, number, path_text, setting, string
 
@@ -13,7 +12,7 @@ from optitac_edge.fields import Scalar, choice, integer, number, path_text, sett
 MAX_QUEUE_FRAMES = 16
 
 
-def camera_backend(value: Any, from_text: bool) -> str:
+def camera_backend(value: object, from_text: bool) -> str:
     """A name of the camera registry (:data:`optitac_edge.io.cameras.CAMERAS`, the one list of them)."""
     from optitac_edge.io.cameras import CAMERAS
 

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from optitac_edge.fields import choice, integer, setting, string
 
 
-def transport_name(value: Any, from_text: bool) -> str:
+def transport_name(value: object, from_text: bool) -> str:
     """A name of the transport registry (:data:`optitac_edge.io.transports.TRANSPORTS`, the one list)."""
     from optitac_edge.io.transports import TRANSPORTS
 
