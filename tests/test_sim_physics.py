@@ -108,3 +108,19 @@ def test_every_physics_name_is_documented():
     import optitac_edge.sim.physics as module
 
     assert all(f"``{name}``" in (module.__doc__ or "") for name in PHYSICS_NAMES)
+
+
+@pytest.mark.parametrize("name", PHYSICS_NAMES)
+def test_the_windowed_skin_field_equals_the_whole_grids_bit_for_bit(name):
+    """fiber_darkening computes each indenter on the window of the grid it reaches: every physics, every shape,
+    indenters near and beyond the rim, several at once, give the whole grid's values exactly."""
+    from optitac_edge.sim.skin import fiber_darkening_whole_grid
+
+    skin = physics(name).skin
+    rng = np.random.default_rng(7)
+    shapes = ("circle", "square", "edge", "ellipse", "triangle")
+    for _ in range(40):
+        press = [Indenter(shapes[rng.integers(5)], float(rng.uniform(-17, 17)), float(rng.uniform(-17, 17)),
+                          float(rng.uniform(0, 180)), float(rng.uniform(1, 10)), float(rng.uniform(0.05, 3)))
+                 for _ in range(rng.integers(1, 4))]
+        assert np.array_equal(fiber_darkening(XY, press, skin), fiber_darkening_whole_grid(XY, press, skin))

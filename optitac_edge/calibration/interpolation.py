@@ -11,6 +11,7 @@ runtime (:mod:`optitac_edge.core.surface`, numpy only) evaluates per frame.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -31,13 +32,14 @@ FACTOR_TOL = 1e-6
 _BROAD_TOL = float(np.sqrt(np.finfo(np.float64).eps))
 
 
-def _clough_tocher(layout: FiberLayout, grid: SurfaceGrid) -> tuple[Any, Any, np.ndarray]:
-    """scipy's Delaunay triangulation and interpolant of unit data, and ``A`` in float64."""
+def _clough_tocher(xy_mm: np.ndarray, grid: SurfaceGrid) -> tuple[Any, Any, np.ndarray]:
+    """scipy's Delaunay triangulation and interpolant of unit data at the fiber centres ``xy_mm`` (N, 2), and
+    ``A`` in float64."""
     from scipy.interpolate import CloughTocher2DInterpolator
     from scipy.spatial import Delaunay
 
-    n_fibers = layout.n_fibers
-    tri = Delaunay(np.asarray(layout.xy_mm, dtype=np.float64))
+    n_fibers = xy_mm.shape[0]
+    tri = Delaunay(np.asarray(xy_mm, dtype=np.float64))
     interp = CloughTocher2DInterpolator(
         tri, np.eye(n_fibers), fill_value=0.0, tol=GRADIENT_TOL, maxiter=GRADIENT_MAXITER
     )
@@ -64,11 +66,15 @@ def build_interpolation_matrix(layout: FiberLayout, grid: SurfaceGrid) -> np.nda
         estimate (~1e-6 relative). Rows of mesh points outside the convex hull
         of the fiber centres are zero.
     """
-    return np.ascontiguousarray(_clough_tocher(layout, grid)[2], dtype=np.float32)
+    return np.ascontiguousarray(_clough_tocher(np.asarray(layout.xy_mm, dtype=np.float64), grid)[2],
+                                dtype=np.float32)
 
 
 def build_interpolation(layout: FiberLayout, grid: SurfaceGrid) -> tuple[np.ndarray, SurfaceFactors]:
     """The interpolation matrix and its exact factorisation.
+
+    It depends on the layout and the mesh alone, so the last two are kept: a board's sensors of one layout,
+    or a fiber map rebuilt in the same process, reuse it (each caller gets its own copy of the arrays).
 
     ``W`` comes from the gradients scipy's interpolant estimated for unit data
     (its ``grad`` attribute, read only); the 9 weights of each mesh cell are
@@ -96,8 +102,18 @@ def build_interpolation(layout: FiberLayout, grid: SurfaceGrid) -> tuple[np.ndar
         mesh point inside the hull lies in no triangle, or the factors do not
         reproduce the matrix.
     """
-    tri, interp, a64 = _clough_tocher(layout, grid)
-    n_fibers = layout.n_fibers
+    matrix, factors = _interpolation(np.asarray(layout.xy_mm, dtype=np.float64).tobytes(), grid)
+    return matrix.copy(), SurfaceFactors(vertex_operator=factors.vertex_operator.copy(),
+                                         cell_columns=factors.cell_columns.copy(),
+                                         cell_weights=factors.cell_weights.copy())
+
+
+@functools.lru_cache(maxsize=2)  # ~3 MB each for the paper's array, ~45 MB for 1027 fibers
+def _interpolation(xy_bytes: bytes, grid: SurfaceGrid) -> tuple[np.ndarray, SurfaceFactors]:
+    """:func:`build_interpolation` of the fiber centres ``xy_bytes`` (float64, (N, 2))."""
+    layout_xy = np.frombuffer(xy_bytes, dtype=np.float64).reshape(-1, 2)
+    tri, interp, a64 = _clough_tocher(layout_xy, grid)
+    n_fibers = layout_xy.shape[0]
     grad = getattr(interp, "grad", None)
     if not isinstance(grad, np.ndarray) or grad.shape != (n_fibers, n_fibers, 2):
         raise RuntimeError(

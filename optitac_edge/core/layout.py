@@ -6,6 +6,7 @@ Sensor frame: origin at the central fiber, +x along the rows of fibers, +y up
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,9 +78,9 @@ class FiberLayout:
     def n_fibers(self) -> int:
         return int(self.xy_mm.shape[0])
 
-    @property
+    @functools.cached_property
     def pitch_mm(self) -> float:
-        """Median nearest-neighbour distance between fibers, mm."""
+        """Median nearest-neighbour distance between fibers, mm (computed once: a layout is not changed)."""
         d = np.linalg.norm(self.xy_mm[:, None, :] - self.xy_mm[None, :, :], axis=-1)
         np.fill_diagonal(d, np.inf)
         return float(np.median(d.min(axis=1)))

@@ -9,6 +9,7 @@ bank of noise drawn once and sliced at a random offset per frame.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import replace
 
@@ -105,7 +106,9 @@ class FrameRenderer:
         h, w = optics.height, optics.width
         channels = 3 if optics.rgb else 1
         self.frame_shape: tuple[int, ...] = (h, w, 3) if optics.rgb else (h, w)
-        self._pix, self._fid, self._weight = self._face_pixels()
+        self._pix, self._fid, self._weight = _face_pixels(
+            layout.xy_mm.astype(np.float64).tobytes(), optics.blur_sigma_px, optics.fiber_diameter_mm,
+            optics.face_falloff, optics.width, optics.height, self.projection)
         sensor_rng = np.random.default_rng([sensor_seed, 1])
         rows = optics.background_gray + optics.row_noise_sigma * sensor_rng.standard_normal(h)
         base = np.repeat(rows.astype(np.float32), w * channels).reshape(h * w, channels)
@@ -114,6 +117,9 @@ class FrameRenderer:
         self._buf = base.copy()  # (H*W, C), fiber pixels rewritten every frame
         self._base_pix = base[self._pix]
         self._tint = np.asarray(optics.rgb_gains if optics.rgb else (1.0,), dtype=np.float32)
+        # the face pixels are ordered by fiber: fiber k's are _pix[_starts[k]:_starts[k + 1]]
+        self._starts = np.searchsorted(self._fid, np.arange(layout.n_fibers + 1)).astype(np.intp)
+        self._last_gain: np.ndarray | None = None  # the fibers' light in _buf (None: unknown)
         n = h * w * channels
         noise_rng = np.random.default_rng([noise_seed, 2])
         bank_size = n + max(n // 2, 65536)
@@ -125,27 +131,6 @@ class FrameRenderer:
             self.projection.scale,
             self._pix.size,
         )
-
-    def _face_pixels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Flat pixel index, fiber index and weight (peak 1) of every lit pixel."""
-        o, proj = self.optics, self.projection
-        sigma = max(o.blur_sigma_px, 0.3)
-        r_px = o.fiber_diameter_mm / 2.0 * proj.scale
-        reach = r_px + 4.0 * sigma + 2.0
-        lo = np.floor(self.fiber_centres_px.min(axis=0) - reach).astype(int)
-        hi = np.ceil(self.fiber_centres_px.max(axis=0) + reach).astype(int)
-        c0, r0 = np.maximum(lo, 0)
-        c1, r1 = np.minimum(hi, (o.width - 1, o.height - 1))
-        rows, cols = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
-        rows, cols = rows.ravel(), cols.ravel()
-        xy = proj.to_layout(np.stack([cols, rows], axis=1).astype(np.float64))
-        dist_mm, fid = cKDTree(self.layout.xy_mm).query(xy)
-        d = dist_mm * proj.scale
-        dome = 1.0 - o.face_falloff * np.minimum(d / r_px, 1.0) ** 2
-        weight = dome * 0.5 * erfc((d - r_px) / (np.sqrt(2.0) * sigma))
-        keep = weight > _MIN_WEIGHT
-        pix = rows[keep] * o.width + cols[keep]
-        return pix.astype(np.intp), fid[keep].astype(np.intp), weight[keep].astype(np.float32)
 
     def render(self, fiber_gain: np.ndarray, rng: np.random.Generator, fiber_rgb: np.ndarray | None = None
                ) -> np.ndarray:
@@ -169,16 +154,63 @@ class FrameRenderer:
         gain = np.asarray(fiber_gain, dtype=np.float32).reshape(-1)
         if gain.shape[0] != self.layout.n_fibers:
             raise ValueError(f"fiber_gain must have shape ({self.layout.n_fibers},)")
-        level = (gain * self._peak32)[self._fid] * self._weight
         if fiber_rgb is not None and self.optics.rgb:
+            level = (gain * self._peak32)[self._fid] * self._weight
             tint = (np.asarray(fiber_rgb, dtype=np.float32) * self._tint)[self._fid]
             self._buf[self._pix] = self._base_pix + level[:, None] * tint
+            self._last_gain = None
         else:
-            self._buf[self._pix] = self._base_pix + level[:, None] * self._tint
+            self._write_fibers(gain)
         n = self._buf.size
         k = int(rng.integers(0, self._noise.size - n + 1))
         noise = self._noise[k : k + n].reshape(self.frame_shape)
         return cv2.add(self._buf.reshape(self.frame_shape), noise, dtype=cv2.CV_8U)
+
+    def _write_fibers(self, gain: np.ndarray) -> None:
+        """Every face pixel of ``_buf`` for the fibers' light ``gain`` (float32): only those of the fibers whose
+        light changed since the last frame when they are few (the others' pixels hold these very values)."""
+        changed = None if self._last_gain is None else np.flatnonzero(gain != self._last_gain)
+        if changed is None or 4 * changed.size > gain.size:
+            level = (gain * self._peak32)[self._fid] * self._weight
+            self._buf[self._pix] = self._base_pix + level[:, None] * self._tint
+        elif changed.size:
+            first, counts = self._starts[changed], self._starts[changed + 1] - self._starts[changed]
+            at = np.repeat(first - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+            level = (gain * self._peak32)[self._fid[at]] * self._weight[at]
+            self._buf[self._pix[at]] = self._base_pix[at] + level[:, None] * self._tint
+        self._last_gain = gain.copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _face_pixels(xy_bytes: bytes, blur_sigma_px: float, fiber_diameter_mm: float, face_falloff: float, width: int,
+                 height: int, proj: Projection) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat pixel index, fiber index and weight (peak 1) of every lit pixel (read-only arrays).
+
+    The same for every renderer of one layout, lens and blur (a scenario makes several: kept, not rebuilt).
+    """
+    xy_mm = np.frombuffer(xy_bytes, dtype=np.float64).reshape(-1, 2)
+    centres = proj.to_image(xy_mm)
+    sigma = max(blur_sigma_px, 0.3)
+    r_px = fiber_diameter_mm / 2.0 * proj.scale
+    reach = r_px + 4.0 * sigma + 2.0
+    lo = np.floor(centres.min(axis=0) - reach).astype(int)
+    hi = np.ceil(centres.max(axis=0) + reach).astype(int)
+    c0, r0 = np.maximum(lo, 0)
+    c1, r1 = np.minimum(hi, (width - 1, height - 1))
+    rows, cols = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
+    rows, cols = rows.ravel(), cols.ravel()
+    xy = proj.to_layout(np.stack([cols, rows], axis=1).astype(np.float64))
+    dist_mm, fid = cKDTree(xy_mm).query(xy)
+    d = dist_mm * proj.scale
+    dome = 1.0 - face_falloff * np.minimum(d / r_px, 1.0) ** 2
+    weight = dome * 0.5 * erfc((d - r_px) / (np.sqrt(2.0) * sigma))
+    keep = weight > _MIN_WEIGHT
+    order = np.argsort(fid[keep], kind="stable")  # by fiber (a pixel shows one fiber: the order is free)
+    out = (rows[keep] * width + cols[keep]).astype(np.intp)[order], fid[keep].astype(np.intp)[order], \
+        weight[keep].astype(np.float32)[order]
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def _stray_light(optics: CameraOptics) -> np.ndarray:

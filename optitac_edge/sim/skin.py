@@ -38,6 +38,7 @@ depth and force calibration (``calibrate depth``) are evaluated against it.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -223,6 +224,10 @@ def fiber_darkening(
 ) -> np.ndarray:
     """Fraction of light each fiber loses under ``indenters``.
 
+    Each indenter's skin field is computed on the window of the skin's grid it can reach (its outline, the
+    two blurs' reach and the gradient's): outside it every value is exactly 0, so the result equals the
+    whole grid's (:func:`fiber_darkening_whole_grid`, the tests' oracle) bit for bit.
+
     Parameters
     ----------
     layout_xy_mm : ndarray, shape (N, 2), float
@@ -238,33 +243,100 @@ def fiber_darkening(
         Darkening in [0, ``skin.max_darkening``]; 0 = untouched.
     """
     xy = np.asarray(layout_xy_mm, dtype=np.float64)
-    keep = np.ones(len(xy))
     active = [ind for ind in indenters if ind.depth_mm > 0]
     if not active:
         return np.zeros(len(xy))
+    g = _skin_grid(xy.tobytes(), skin)
+    keep = np.ones(len(xy))
+    h, size = skin.grid_step_mm, g.axis.size
+    for ind in active:
+        spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
+        # the reach beyond the outline, grid steps: the blurs' kernels (scipy: int(4 sigma + 0.5) each), the
+        # gradient's neighbour and the interpolation's, and one step for the outline's soft edge
+        reach = _kernel_radius(spread / h) + 4
+        if skin.tilt_spread_mm > 0:
+            reach += _kernel_radius(skin.tilt_spread_mm / h)
+        row, col = float((g.axis[-1] - ind.y_mm) / h), float((ind.x_mm - g.axis[0]) / h)
+        extent = bounding_radius(ind, skin) / h
+        if not (math.isfinite(row) and math.isfinite(col) and math.isfinite(extent)):
+            keep *= 1.0 - _darkening(ind, skin, g.gx, g.gy, g.clamp, g.coords, spread)  # as the whole grid does
+            continue
+        half = math.ceil(extent) + 2 + reach
+        r0, r1 = max(round(row) - half, 0), min(round(row) + half + 1, size)
+        c0, c1 = max(round(col) - half, 0), min(round(col) + half + 1, size)
+        if r0 >= r1 or c0 >= c1:
+            continue  # wholly off the skin's grid: no fiber is reached
+        window = (slice(r0, r1), slice(c0, c1))
+        coords = g.coords - np.array([[r0], [c0]], dtype=np.float64)
+        keep *= 1.0 - _darkening(ind, skin, g.gx[window], g.gy[window], g.clamp[window], coords, spread)
+    return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+
+
+def fiber_darkening_whole_grid(
+    layout_xy_mm: np.ndarray, indenters: Sequence[Indenter], skin: SkinModel = DEFAULT_SKIN
+) -> np.ndarray:
+    """:func:`fiber_darkening` on the whole skin grid for every indenter (slower; the tests' oracle)."""
+    xy = np.asarray(layout_xy_mm, dtype=np.float64)
+    active = [ind for ind in indenters if ind.depth_mm > 0]
+    if not active:
+        return np.zeros(len(xy))
+    g = _skin_grid(xy.tobytes(), skin)
+    keep = np.ones(len(xy))
+    for ind in active:
+        spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
+        keep *= 1.0 - _darkening(ind, skin, g.gx, g.gy, g.clamp, g.coords, spread)
+    return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+
+
+def _kernel_radius(sigma: float) -> int:
+    """The radius of scipy's Gaussian kernel for ``sigma`` (``gaussian_filter``'s default ``truncate=4.0``)."""
+    return int(4.0 * float(sigma) + 0.5)
+
+
+@dataclass(frozen=True, eq=False)
+class _SkinGrid:
+    """The skin's grid over a layout: its axis, points (``gx``, ``gy``, row 0 = largest y), the clamp's
+    weight and the fibers' fractional grid indices (row, col), shape (2, N)."""
+
+    axis: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+    clamp: np.ndarray
+    coords: np.ndarray
+
+
+@functools.lru_cache(maxsize=8)
+def _skin_grid(xy_bytes: bytes, skin: SkinModel) -> _SkinGrid:
+    """:class:`_SkinGrid` of the fiber positions ``xy_bytes`` (float64, (N, 2)); the same every frame."""
+    xy = np.frombuffer(xy_bytes, dtype=np.float64).reshape(-1, 2)
     clamp_r = clamp_radius_mm(xy, skin)
     h = skin.grid_step_mm
     half = clamp_r + h
     axis = np.arange(-half, half + h / 2, h)
     gx, gy = np.meshgrid(axis, axis[::-1])  # row 0 = largest y
     clamp = np.tanh(np.maximum(clamp_r - np.hypot(gx, gy), 0.0) / skin.rim_width_mm)
-    # Fractional grid indices (row, col) of the fibers.
     coords = np.stack([(axis[-1] - xy[:, 1]) / h, (xy[:, 0] - axis[0]) / h])
-    for ind in active:
-        foot = np.clip(0.5 - signed_distance(ind, gx, gy, skin) / h, 0.0, 1.0)
-        if skin.dome > 0:
-            q2 = (gx - ind.x_mm) ** 2 + (gy - ind.y_mm) ** 2
-            foot = foot * np.maximum(1.0 - q2 / (2.0 * dome_radius_mm(ind, skin) * ind.depth_mm), 0.0)
-        spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
-        w = ind.depth_mm * clamp * gaussian_filter(foot, spread / h, mode="constant")
-        tilted = gaussian_filter(w, skin.tilt_spread_mm / h, mode="constant") if skin.tilt_spread_mm > 0 else w
-        gr, gc = np.gradient(tilted, h)
-        slope = np.hypot(gr, gc)
-        wf = map_coordinates(w, coords, order=1, mode="constant")
-        sf = map_coordinates(slope, coords, order=1, mode="constant")
-        d = skin.max_darkening * pin_response(skin.compression_gain * wf + skin.tilt_gain * sf, skin)
-        keep *= 1.0 - d
-    return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+    grid = _SkinGrid(axis, gx, gy, clamp, coords)
+    for a in (axis, gx, gy, clamp, coords):
+        a.flags.writeable = False
+    return grid
+
+
+def _darkening(ind: Indenter, skin: SkinModel, gx: np.ndarray, gy: np.ndarray, clamp: np.ndarray,
+               coords: np.ndarray, spread: float) -> np.ndarray:
+    """One indenter's darkening of every fiber (fibers at ``coords``, fractional indices into ``gx``'s grid)."""
+    h = skin.grid_step_mm
+    foot = np.clip(0.5 - signed_distance(ind, gx, gy, skin) / h, 0.0, 1.0)
+    if skin.dome > 0:
+        q2 = (gx - ind.x_mm) ** 2 + (gy - ind.y_mm) ** 2
+        foot = foot * np.maximum(1.0 - q2 / (2.0 * dome_radius_mm(ind, skin) * ind.depth_mm), 0.0)
+    w = ind.depth_mm * clamp * gaussian_filter(foot, spread / h, mode="constant")
+    tilted = gaussian_filter(w, skin.tilt_spread_mm / h, mode="constant") if skin.tilt_spread_mm > 0 else w
+    gr, gc = np.gradient(tilted, h)
+    slope = np.hypot(gr, gc)
+    wf = map_coordinates(w, coords, order=1, mode="constant")
+    sf = map_coordinates(slope, coords, order=1, mode="constant")
+    return skin.max_darkening * pin_response(skin.compression_gain * wf + skin.tilt_gain * sf, skin)
 
 
 def pin_response(s: np.ndarray, skin: SkinModel = DEFAULT_SKIN) -> np.ndarray:
