@@ -69,3 +69,22 @@ def test_constant_and_linear_reproduced_inside_hull(matrix: np.ndarray) -> None:
 def test_zero_outside_hull(matrix: np.ndarray) -> None:
     assert not np.any(matrix[~INSIDE])
     assert np.all(np.abs(matrix[INSIDE]).sum(axis=1) > 0)
+
+
+def test_a_kept_surface_operator_is_handed_out_as_a_copy():
+    """build_interpolation keeps the last operator (it depends on the layout and mesh alone): a caller that
+    changes what it got does not change what the next caller gets, and another layout gets its own."""
+    from optitac_edge.calibration.interpolation import build_interpolation
+
+    layout = hex_layout(3)
+    grid = SurfaceGrid.for_layout(layout)
+    matrix, factors = build_interpolation(layout, grid)
+    kept = matrix.copy(), factors.vertex_operator.copy(), factors.cell_weights.copy()
+    matrix[:] = 7.0
+    factors.vertex_operator[:] = 7.0
+    factors.cell_weights[:] = 7.0
+    again, factors_again = build_interpolation(layout, grid)
+    assert np.array_equal(again, kept[0]) and np.array_equal(factors_again.vertex_operator, kept[1])
+    assert np.array_equal(factors_again.cell_weights, kept[2])
+    other = hex_layout(3, pitch_mm=2.0)
+    assert not np.array_equal(build_interpolation(other, SurfaceGrid.for_layout(other))[0], kept[0])

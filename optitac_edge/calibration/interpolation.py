@@ -73,7 +73,7 @@ def build_interpolation_matrix(layout: FiberLayout, grid: SurfaceGrid) -> np.nda
 def build_interpolation(layout: FiberLayout, grid: SurfaceGrid) -> tuple[np.ndarray, SurfaceFactors]:
     """The interpolation matrix and its exact factorisation.
 
-    It depends on the layout and the mesh alone, so the last two are kept: a board's sensors of one layout,
+    It depends on the layout and the mesh alone, so the last one is kept: a board's sensors of one layout,
     or a fiber map rebuilt in the same process, reuse it (each caller gets its own copy of the arrays).
 
     ``W`` comes from the gradients scipy's interpolant estimated for unit data
@@ -108,7 +108,7 @@ def build_interpolation(layout: FiberLayout, grid: SurfaceGrid) -> tuple[np.ndar
                                          cell_weights=factors.cell_weights.copy())
 
 
-@functools.lru_cache(maxsize=2)  # ~3 MB each for the paper's array, ~45 MB for 1027 fibers
+@functools.lru_cache(maxsize=1)  # ~9 MB for the paper's array (100 x 100 mesh), ~41 MB for 1027 fibers
 def _interpolation(xy_bytes: bytes, grid: SurfaceGrid) -> tuple[np.ndarray, SurfaceFactors]:
     """:func:`build_interpolation` of the fiber centres ``xy_bytes`` (float64, (N, 2))."""
     layout_xy = np.frombuffer(xy_bytes, dtype=np.float64).reshape(-1, 2)
