@@ -344,6 +344,7 @@ def _open(config: BoardConfig, chosen: BoardSensor, cal_path: Path | None, recor
     stack.callback(led.close)
     led.set_brightness(config.led.brightness)
     camera_name = chosen.sensor.camera
+    camera: Camera
     if recording is not None:  # as fast as it is read, each frame at its recorded time
         from optitac_edge.io.cameras.recording import RecordingCamera
 

@@ -6,13 +6,16 @@ import argparse
 import sys
 from contextlib import ExitStack
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from optitac_edge.cli.common import add_board, add_storage, number, one_sensor_config
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.recording_paths import staging_path
 
 if TYPE_CHECKING:
+    from tqdm import tqdm
+    from typing_extensions import Never
+
     from optitac_edge.cli.common import Subcommands
 
 
@@ -94,7 +97,7 @@ class PressProgress:
 
     def __init__(self, experiment: str) -> None:
         self.experiment = experiment
-        self._bar: Any = None
+        self._bar: tqdm[Never] | None = None  # a bar counted by hand, over no iterable
         self._started: float | None = None
 
     def update(self, done: int, total: int) -> None:

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
+
+if TYPE_CHECKING:
+    from optitac_edge.service.view.live import Published
 
 # BGR
 GREEN, RED, YELLOW, MAGENTA, WHITE, ORANGE = (80, 200, 80), (60, 60, 235), (0, 220, 240), (220, 60, 220), \
@@ -242,7 +245,7 @@ def encode_png(picture: np.ndarray) -> bytes:
     return bytes(data.tobytes())
 
 
-def render_published(p: Any, bundle: CalibrationBundle) -> np.ndarray:
+def render_published(p: Published, bundle: CalibrationBundle) -> np.ndarray:
     """The picture of one view update (:class:`~optitac_edge.service.view.live.Published`), with its figures."""
     import json
 
