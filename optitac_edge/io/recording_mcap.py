@@ -24,8 +24,6 @@ from optitac_edge.io.ros2.messages import IMAGE, encode_image, ros2msg_schema
 if TYPE_CHECKING:
     from typing_extensions import Self
 
-    from optitac_edge.io.recording import Recording
-
 IMAGE_TOPIC = "/optitac/camera/image"
 META_NAME = "optitac.recording"
 TRUTH_NAME = "truth.csv"
@@ -159,7 +157,8 @@ def read_mcap_recording(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, A
     return np.stack(frames), np.asarray(stamps, dtype=np.int64), meta, truth
 
 
-def recording_to_mcap(rec: Recording, path: str | Path, replace: bool = False) -> Path:
+def recording_to_mcap(rec: Any,  # a Recording (io/recording.py needs this module: no type here)
+                       path: str | Path, replace: bool = False) -> Path:
     """Write a :class:`~optitac_edge.io.recording.Recording` (frames, times, meta, truth) as one MCAP file."""
     truth = rec.path / TRUTH_NAME if rec.path.is_dir() else None
     data = truth.read_bytes() if truth is not None and truth.exists() else None

@@ -21,7 +21,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,7 +31,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frames import to_gray
 from optitac_edge.core.pipeline import MAX_CONTACTS
 from optitac_edge.errors import OptiTacError
-from optitac_edge.service.view.render import DARK_FRACTION, SATURATED_LEVEL
+from optitac_edge.service.view.render import DARK_FRACTION, SATURATED_LEVEL, Published
 
 if TYPE_CHECKING:
     from optitac_edge.calibration.edge_presses import EdgePresses
@@ -79,19 +78,6 @@ def lower_priority(niceness: int = 10) -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
     except (AttributeError, OSError):
         pass
-
-
-@dataclass
-class Published:
-    """One update as the server hands it out (immutable once published)."""
-
-    seq: int
-    state: bytes  # JSON
-    jpeg: bytes
-    surface: np.ndarray  # (n, n) float32, for the snapshot picture
-    gray: np.ndarray
-    contacts: list[dict[str, Any]]
-    levels: np.ndarray
 
 
 class _Buffers:

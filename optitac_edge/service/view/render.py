@@ -10,15 +10,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
 from optitac_edge.core.bundle import CalibrationBundle
-
-if TYPE_CHECKING:
-    from optitac_edge.service.view.live import Published
 
 # BGR
 GREEN, RED, YELLOW, MAGENTA, WHITE, ORANGE = (80, 200, 80), (60, 60, 235), (0, 220, 240), (220, 60, 220), \
@@ -245,8 +243,21 @@ def encode_png(picture: np.ndarray) -> bytes:
     return bytes(data.tobytes())
 
 
+@dataclass
+class Published:
+    """One update of the live view as the server hands it out (immutable once published)."""
+
+    seq: int
+    state: bytes  # JSON
+    jpeg: bytes
+    surface: np.ndarray  # (n, n) float32, for the snapshot picture
+    gray: np.ndarray
+    contacts: list[dict[str, Any]]
+    levels: np.ndarray
+
+
 def render_published(p: Published, bundle: CalibrationBundle) -> np.ndarray:
-    """The picture of one view update (:class:`~optitac_edge.service.view.live.Published`), with its figures."""
+    """The picture of one view update (:class:`Published`), with its figures."""
     import json
 
     s = json.loads(p.state)
