@@ -242,40 +242,19 @@ def fiber_darkening(
     ndarray, shape (N,), float64
         Darkening in [0, ``skin.max_darkening``]; 0 = untouched.
     """
-    xy = np.asarray(layout_xy_mm, dtype=np.float64)
-    active = [ind for ind in indenters if ind.depth_mm > 0]
-    if not active:
-        return np.zeros(len(xy))
-    g = _skin_grid(xy.tobytes(), skin)
-    keep = np.ones(len(xy))
-    h, size = skin.grid_step_mm, g.axis.size
-    for ind in active:
-        spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
-        # the reach beyond the outline, grid steps: the blurs' kernels (scipy: int(4 sigma + 0.5) each), the
-        # gradient's neighbour and the interpolation's, and one step for the outline's soft edge
-        reach = _kernel_radius(spread / h) + 4
-        if skin.tilt_spread_mm > 0:
-            reach += _kernel_radius(skin.tilt_spread_mm / h)
-        row, col = float((g.axis[-1] - ind.y_mm) / h), float((ind.x_mm - g.axis[0]) / h)
-        extent = bounding_radius(ind, skin) / h
-        if not (math.isfinite(row) and math.isfinite(col) and math.isfinite(extent)):
-            keep *= 1.0 - _darkening(ind, skin, g.gx, g.gy, g.clamp, g.coords, spread)  # as the whole grid does
-            continue
-        half = math.ceil(extent) + 2 + reach
-        r0, r1 = max(round(row) - half, 0), min(round(row) + half + 1, size)
-        c0, c1 = max(round(col) - half, 0), min(round(col) + half + 1, size)
-        if r0 >= r1 or c0 >= c1:
-            continue  # wholly off the skin's grid: no fiber is reached
-        window = (slice(r0, r1), slice(c0, c1))
-        coords = g.coords - np.array([[r0], [c0]], dtype=np.float64)
-        keep *= 1.0 - _darkening(ind, skin, g.gx[window], g.gy[window], g.clamp[window], coords, spread)
-    return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+    return _combined(layout_xy_mm, indenters, skin, windowed=True)
 
 
 def fiber_darkening_whole_grid(
     layout_xy_mm: np.ndarray, indenters: Sequence[Indenter], skin: SkinModel = DEFAULT_SKIN
 ) -> np.ndarray:
     """:func:`fiber_darkening` on the whole skin grid for every indenter (slower; the tests' oracle)."""
+    return _combined(layout_xy_mm, indenters, skin, windowed=False)
+
+
+def _combined(layout_xy_mm: np.ndarray, indenters: Sequence[Indenter], skin: SkinModel, windowed: bool
+              ) -> np.ndarray:
+    """:func:`fiber_darkening`, each indenter on its window of the grid (``windowed``) or on the whole grid."""
     xy = np.asarray(layout_xy_mm, dtype=np.float64)
     active = [ind for ind in indenters if ind.depth_mm > 0]
     if not active:
@@ -283,9 +262,41 @@ def fiber_darkening_whole_grid(
     g = _skin_grid(xy.tobytes(), skin)
     keep = np.ones(len(xy))
     for ind in active:
-        spread = skin.spread_mm + skin.spread_per_depth * ind.depth_mm
-        keep *= 1.0 - _darkening(ind, skin, g.gx, g.gy, g.clamp, g.coords, spread)
+        window = _window(ind, skin, g) if windowed else _WHOLE
+        if window is None:
+            continue  # wholly off the skin's grid: no fiber is reached
+        rows, cols = window
+        coords = g.coords - np.array([[rows.start], [cols.start]], dtype=np.float64)
+        keep *= 1.0 - _darkening(ind, skin, g.gx[window], g.gy[window], g.clamp[window], coords)
     return np.clip(1.0 - keep, 0.0, skin.max_darkening)
+
+
+#: The whole grid, as a window.
+_WHOLE = (slice(0, None), slice(0, None))
+
+
+def _spread_mm(ind: Indenter, skin: SkinModel) -> float:
+    """The first blur's sigma under ``ind``, mm (it widens with the depth)."""
+    return skin.spread_mm + skin.spread_per_depth * ind.depth_mm
+
+
+def _window(ind: Indenter, skin: SkinModel, g: _SkinGrid) -> tuple[slice, slice] | None:
+    """The rows and columns of the grid ``ind`` can change (None: none of them; the whole grid where its
+    position is not finite, as the whole grid's computation does)."""
+    h, size = skin.grid_step_mm, g.axis.size
+    # the reach beyond the outline, grid steps: the blurs' kernels (scipy: int(4 sigma + 0.5) each), the
+    # gradient's neighbour and the interpolation's, and one step for the outline's soft edge
+    reach = _kernel_radius(_spread_mm(ind, skin) / h) + 4
+    if skin.tilt_spread_mm > 0:
+        reach += _kernel_radius(skin.tilt_spread_mm / h)
+    row, col = float((g.axis[-1] - ind.y_mm) / h), float((ind.x_mm - g.axis[0]) / h)
+    extent = bounding_radius(ind, skin) / h
+    if not (math.isfinite(row) and math.isfinite(col) and math.isfinite(extent)):
+        return _WHOLE
+    half = math.ceil(extent) + 2 + reach
+    r0, r1 = max(round(row) - half, 0), min(round(row) + half + 1, size)
+    c0, c1 = max(round(col) - half, 0), min(round(col) + half + 1, size)
+    return (slice(r0, r1), slice(c0, c1)) if r0 < r1 and c0 < c1 else None
 
 
 def _kernel_radius(sigma: float) -> int:
@@ -323,14 +334,14 @@ def _skin_grid(xy_bytes: bytes, skin: SkinModel) -> _SkinGrid:
 
 
 def _darkening(ind: Indenter, skin: SkinModel, gx: np.ndarray, gy: np.ndarray, clamp: np.ndarray,
-               coords: np.ndarray, spread: float) -> np.ndarray:
+               coords: np.ndarray) -> np.ndarray:
     """One indenter's darkening of every fiber (fibers at ``coords``, fractional indices into ``gx``'s grid)."""
     h = skin.grid_step_mm
     foot = np.clip(0.5 - signed_distance(ind, gx, gy, skin) / h, 0.0, 1.0)
     if skin.dome > 0:
         q2 = (gx - ind.x_mm) ** 2 + (gy - ind.y_mm) ** 2
         foot = foot * np.maximum(1.0 - q2 / (2.0 * dome_radius_mm(ind, skin) * ind.depth_mm), 0.0)
-    w = ind.depth_mm * clamp * gaussian_filter(foot, spread / h, mode="constant")
+    w = ind.depth_mm * clamp * gaussian_filter(foot, _spread_mm(ind, skin) / h, mode="constant")
     tilted = gaussian_filter(w, skin.tilt_spread_mm / h, mode="constant") if skin.tilt_spread_mm > 0 else w
     gr, gc = np.gradient(tilted, h)
     slope = np.hypot(gr, gc)
