@@ -6,8 +6,9 @@ import os
 
 # Before numpy is imported, here and in every pytest-xdist worker (they inherit this environment): one BLAS
 # thread a process. The suite runs one worker a core, and OpenBLAS's own threads a worker then only fight the
-# other worker for the cores (measured on 2 cores: five calibration-heavy files 100-120 s with OpenBLAS's
-# default, 82-89 s with one thread). The tests' subprocesses inherit it too. A user's process is not affected.
+# other worker for the cores (measured on 2 cores: five calibration-heavy files 100-122 s with OpenBLAS's
+# default, 78-90 s with one thread, three pairs). The tests' subprocesses inherit it too. A user's process is
+# not affected.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
