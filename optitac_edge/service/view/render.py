@@ -243,7 +243,7 @@ def encode_png(picture: np.ndarray) -> bytes:
     return bytes(data.tobytes())
 
 
-@dataclass
+@dataclass(frozen=True)
 class Published:
     """One update of the live view as the server hands it out (immutable once published)."""
 
