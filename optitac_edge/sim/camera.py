@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from optitac_edge.core.layout import hex_layout
+from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.core.region import Region
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
@@ -21,6 +21,7 @@ from optitac_edge.io.clock import Clock
 from optitac_edge.io.layout_csv import load_layout_csv
 from optitac_edge.sim.arrays import optics_for, skin_for
 from optitac_edge.sim.drift import SessionDrift
+from optitac_edge.sim.motion_scenarios import LIVE_MOTION_SCENARIOS, MotionProgram
 from optitac_edge.sim.optics import CameraOptics
 from optitac_edge.sim.patches import PatchFrames
 from optitac_edge.sim.physics import physics as physics_named
@@ -94,6 +95,17 @@ class PressProgram:
         return replace(p.indenter, depth_mm=p.indenter.depth_mm * frac) if frac > 0.05 else None
 
 
+def _live_program(scenario: str, fps: float, rest_frames: int, seed: int, layout: FiberLayout) -> PressSource:
+    """What presses a live simulated camera: ``presses`` (random, :class:`PressProgram`) or a motion scenario
+    played over and over (``slide``, ``vibrate``: :class:`~optitac_edge.sim.motion_scenarios.MotionProgram`)."""
+    if scenario == "presses":
+        return PressProgram(fps, rest_frames, seed, layout.radius_mm)
+    if scenario in LIVE_MOTION_SCENARIOS:
+        return MotionProgram(scenario, fps, rest_frames, layout)
+    raise CameraError(f"simulated camera: unknown scenario {scenario!r} (presses, "
+                      f"{', '.join(LIVE_MOTION_SCENARIOS)})")
+
+
 class SimCamera(Camera):
     """The built-in simulated sensor (the default camera).
 
@@ -142,6 +154,11 @@ class SimCamera(Camera):
         A layout CSV (docs/formats.md): the simulated array (default '': the paper's 217 fibers at 1.5 mm);
         its skin and end faces scale with its pitch (:mod:`~optitac_edge.sim.arrays`). A board sets it in
         ``[camera.options] layout``.
+    scenario : str
+        What presses the skin when ``program`` is not given: ``presses`` (default: random presses), or a motion
+        scenario played over and over, ``slide`` (a held press slid at 2 to 100 mm/s, then 30 mm out and back)
+        or ``vibrate`` (:mod:`~optitac_edge.sim.motion_scenarios`), to try slip and vibration live. A board sets
+        it in ``[camera.options] scenario`` (``OPTITAC_CAMERA_OPTIONS_SCENARIO=slide``).
     """
 
     @classmethod
@@ -159,7 +176,7 @@ class SimCamera(Camera):
                  realtime: bool = True, queue_frames: int = 4, clock: Clock | None = None,
                  program: PressSource | None = None,
                  regions: Sequence[tuple[int, int, int, int]] | None = None, physics: str = "default",
-                 day: int = 0, layout: str = "") -> None:
+                 day: int = 0, layout: str = "", scenario: str = "presses") -> None:
         super().__init__()
         if realtime and clock is not None:
             raise ValueError("a simulated camera paced on a clock is not realtime (realtime=False)")
@@ -177,8 +194,8 @@ class SimCamera(Camera):
         self.pixel_format = "rgb" if rgb else "gray"
         self.height, self.width, self.fps = height, width, float(fps)
         self.rest_frames = rest_frames
-        self._program: PressSource = program or PressProgram(self.fps, rest_frames, seed,
-                                                             self.sensor.layout.radius_mm)
+        self._program: PressSource = program or _live_program(scenario, self.fps, rest_frames, seed,
+                                                              self.sensor.layout)
         self.patches: PatchFrames | None = None
         self._patch_programs: list[PressSource] = []
         if regions:

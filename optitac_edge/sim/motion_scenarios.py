@@ -183,3 +183,47 @@ def real_indenter(frame: MotionFrame, factors: dict[int, float]) -> Indenter | N
     if frame.indenter is None:
         return None
     return replace(frame.indenter, depth_mm=frame.indenter.depth_mm * factors.get(frame.press, 1.0))
+
+
+#: The motion scenarios the live simulated camera plays (``[camera.options] scenario``); ``hold`` is a recording's.
+LIVE_MOTION_SCENARIOS: tuple[str, ...] = ("slide", "vibrate")
+
+
+class MotionProgram:
+    """A motion scenario pressing a live simulated camera, over and over (a camera's ``PressSource``).
+
+    After the camera's ``rest_frames``, frame ``k`` shows the scenario at time ``(k - rest_frames) / fps``
+    (its frame at :data:`MOTION_FPS` nearest that time), so the presses slide at their speeds whatever the
+    camera's rate; at the end it starts again.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`LIVE_MOTION_SCENARIOS`.
+    fps : float
+        The camera's frame rate, frames/s.
+    rest_frames : int
+        Contact-free frames first (the baseline).
+    layout : FiberLayout, optional
+        The array (its radius bounds the slides); default the paper's.
+
+    Raises
+    ------
+    ValueError
+        An unknown scenario, or a rate that is not positive.
+    """
+
+    def __init__(self, name: str, fps: float, rest_frames: int, layout: FiberLayout | None = None) -> None:
+        if name not in LIVE_MOTION_SCENARIOS:
+            raise ValueError(f"unknown live scenario {name!r}; expected one of {', '.join(LIVE_MOTION_SCENARIOS)}")
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps!r}")
+        self._plan = motion_schedule(name, layout=layout)
+        self._fps, self._rest = float(fps), int(rest_frames)
+
+    def at(self, frame: int) -> Indenter | None:
+        """The indenter at camera frame ``frame``, or None."""
+        if frame < self._rest:
+            return None
+        k = round((frame - self._rest) * MOTION_FPS / self._fps)
+        return self._plan[k % len(self._plan)].indenter
