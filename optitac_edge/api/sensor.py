@@ -1,21 +1,4 @@
-"""The public Python API: open a sensor, read its contacts frame by frame, tare it, close it.
-
-Everything a script or a ROS 2 node needs, and the names the project promises to keep (``optitac_edge``
-exports them; docs/api.md has examples). The modules below it are internal and may change.
-
-    import optitac_edge as ot
-
-    with ot.open_sensor("sim") as sensor:           # the built-in simulated sensor
-        for reading in sensor.readings(duration_s=2.0):
-            for c in reading.contacts:
-                print(c.id, c.x_mm, c.y_mm, c.vx_mm_s, c.vy_mm_s, c.sliding)
-
-A :class:`Sensor` reads its camera in the calling thread: each :meth:`Sensor.read` takes the next frame and
-returns what it gave (a :class:`Reading`). It does not open the link to the MCU nor publish anything (that
-is ``optitac-edge run``). The first frames of every session are the baseline (``baseline_ready`` False,
-no contacts); a sensor without a calibration bundle calibrates its fiber map from its first rest frames,
-as ``run`` does.
-"""
+"""An open sensor (:class:`Sensor`) and how to open one (:func:`open_sensor`)."""
 
 from __future__ import annotations
 
@@ -24,11 +7,12 @@ import os
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import ExitStack
-from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+from optitac_edge.api.background import BackgroundReader
+from optitac_edge.api.readings import Reading, Status
 from optitac_edge.errors import ConfigError, OptiTacError
 
 if TYPE_CHECKING:
@@ -36,151 +20,20 @@ if TYPE_CHECKING:
 
     from optitac_edge.config import BoardConfig, BoardSensor
     from optitac_edge.core.bundle import CalibrationBundle
-    from optitac_edge.core.contact import ContactEstimate
-    from optitac_edge.core.frame_result import FrameResult
     from optitac_edge.io.cameras.base import Camera
-
-
-@dataclass(frozen=True, slots=True)
-class Contact:
-    """One contact of one frame (a copy: it stays as it is).
-
-    Attributes
-    ----------
-    id : int
-        1…255, the same from the contact's touch to its release.
-    touch_frame : int
-        The frame it touched in (``touch_frame == Reading.frame``: a new contact).
-    x_mm, y_mm : float
-        Centroid in the sensor frame, mm.
-    major_mm, minor_mm, angle_deg : float
-        FWHM widths along the principal axes, mm, and the major axis from +x, degrees (−90, 90].
-    strength : float
-        Darkening × area (the paper's m00).
-    depth_mm, force_n : float
-        Indentation depth (mm) and normal force (N); NaN without a depth / force calibration.
-    shape : str
-        The shape class (``""`` without a shape calibration).
-    confidence : float
-        The shape's posterior probability, 0…1 (NaN without a shape calibration).
-    vx_mm_s, vy_mm_s : float
-        Velocity, mm/s, from the last 5 centroids (NaN in the frame it touched in).
-    sliding : bool
-        It slides (gross motion above its own noise) rather than being held.
-    slide_frame : int
-        The frame its slide was found in; −1 while held.
-    """
-
-    id: int
-    touch_frame: int
-    x_mm: float
-    y_mm: float
-    major_mm: float
-    minor_mm: float
-    angle_deg: float
-    strength: float
-    depth_mm: float
-    force_n: float
-    shape: str
-    confidence: float
-    vx_mm_s: float
-    vy_mm_s: float
-    sliding: bool
-    slide_frame: int
-
-    @classmethod
-    def of(cls, c: ContactEstimate) -> Contact:
-        """A copy of a pipeline's contact."""
-        return cls(int(c.contact_id), int(c.touch_frame), float(c.x_mm), float(c.y_mm), float(c.major_mm),
-                   float(c.minor_mm), float(c.angle_deg), float(c.strength), float(c.depth_mm), float(c.force_n),
-                   c.shape or "", float(c.confidence), float(c.vx_mm_s), float(c.vy_mm_s), bool(c.sliding),
-                   int(c.slide_frame))
-
-
-@dataclass(frozen=True, slots=True)
-class Reading:
-    """What one camera frame gave one sensor (a copy).
-
-    Attributes
-    ----------
-    sensor_id : int
-    frame : int
-        The sensor's frame counter, from 0.
-    t_ns : int
-        The frame's capture time, CLOCK_MONOTONIC ns (a recording's own times when replaying one).
-    contacts : tuple of Contact
-        Every contact, strongest first (0…4).
-    released : tuple of int
-        Ids of the contacts gone since the previous frame.
-    vibration : float
-        The fibers' energy above 20 Hz in units of their noise (about 1 at rest); NaN while it is learned.
-    vibrating : bool
-        The vibration is above its quiet level.
-    baseline_ready : bool
-        False during the first frames of a session (and after a tare), while the rest light is taken.
-    saturated : bool
-        Some fiber was at full scale.
-    """
-
-    sensor_id: int
-    frame: int
-    t_ns: int
-    contacts: tuple[Contact, ...]
-    released: tuple[int, ...]
-    vibration: float
-    vibrating: bool
-    baseline_ready: bool
-    saturated: bool
-
-    @classmethod
-    def of(cls, sensor_id: int, result: FrameResult) -> Reading:
-        """A copy of a pipeline's frame result."""
-        return cls(sensor_id, int(result.frame), int(result.t_ns), tuple(Contact.of(c) for c in result.touching()),
-                   tuple(cid for cid, _ in result.releases()), float(result.vibration), bool(result.vibrating),
-                   bool(result.baseline_ready), bool(result.saturated))
-
-
-@dataclass(frozen=True, slots=True)
-class Status:
-    """How a sensor is doing.
-
-    Attributes
-    ----------
-    sensor_id : int
-    name : str
-    frames : int
-        Frames processed.
-    contact_frames : int
-        Frames with a contact.
-    skipped : int
-        Frames not processed: dark, saturated or not of the camera's shape (counted, never trusted).
-    baseline_ready : bool
-    calibration_id : str
-        The bundle's id.
-    compiled : bool
-        The compiled kernel runs the frames (else the numpy pipeline).
-    fps : float
-        The camera's configured frame rate.
-    dropped : int
-        Frames the camera lost before they were read (a loop slower than the camera; gaps in its sequence).
-    """
-
-    sensor_id: int
-    name: str
-    frames: int
-    contact_frames: int
-    skipped: int
-    baseline_ready: bool
-    calibration_id: str
-    compiled: bool
-    fps: float
-    dropped: int = 0
 
 
 class Sensor:
     """One sensor of a board, open: its camera (and LED ring) and its pipeline. Use :func:`open_sensor`.
 
-    A context manager; :meth:`close` is idempotent. Not thread-safe: read it from one thread.
+    Two ways to read it. In the calling thread, frame by frame: :meth:`read`, :meth:`readings` or a ``for``
+    loop (each call waits for the next frame). Or in the background, for a control loop slower than the
+    camera: :meth:`start` reads every frame in a thread of the sensor's own, and :meth:`latest` returns the
+    newest reading without waiting; the ones it never returned are counted (``status().unread``).
+
+    A context manager; :meth:`close` is idempotent and ends the background thread. Use one sensor from one
+    thread: its methods are not to be called from two threads at once (the background thread is the sensor's
+    own and is safe).
     """
 
     def __init__(self, board: BoardConfig, sensor: BoardSensor, camera: Camera, bundle: CalibrationBundle,
@@ -191,10 +44,22 @@ class Sensor:
         self._pipeline = Pipeline(bundle, fps=camera.fps)
         self._frames = self._contacts = self._skipped = 0
         self._closed = False
+        self._reader: BackgroundReader | None = None
+        self._unread_before = 0  # of readers stopped before
         #: The board config's id of this sensor (what the MCU hears).
         self.sensor_id: int = int(sensor.sensor.id)
         #: Its name in the board config.
         self.name: str = str(sensor.sensor.name)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
+
+    def _check_foreground(self, what: str) -> None:
+        self._check_open()
+        if self._reader is not None:
+            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is read in the background (start()): "
+                               f"{what} would take its frames; use latest(), or stop() first")
 
     def read(self, timeout_s: float = 1.0) -> Reading | None:
         """The next frame's reading; None when no frame came within ``timeout_s`` or a recording ended.
@@ -205,26 +70,29 @@ class Sensor:
         Raises
         ------
         OptiTacError
-            The sensor is closed, or the camera failed (one line naming it).
+            The sensor is closed or read in the background, or the camera failed (one line naming it).
         """
+        self._check_foreground("read()")
+        return self._step(_seconds(timeout_s, "timeout_s"))[0]
+
+    def _step(self, timeout_s: float) -> tuple[Reading | None, bool]:
+        """(The next frame's reading within ``timeout_s``, or None; True when the source ended.)"""
         from optitac_edge.core.frame_engine import Skip
 
-        if self._closed:
-            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
-        deadline = time.monotonic() + _seconds(timeout_s, "timeout_s")
+        deadline = time.monotonic() + timeout_s
         while True:
             captured = self._camera.read(max(deadline - time.monotonic(), 0.0))
             if captured is None:
-                return None
+                return None, True
             result = self._pipeline.process(captured.frame, captured.t_ns)
             if isinstance(result, Skip):
                 self._skipped += 1
                 if time.monotonic() >= deadline:
-                    return None
+                    return None, False
                 continue
             self._frames += 1
             self._contacts += result.n_contacts > 0
-            return Reading.of(self.sensor_id, result)
+            return Reading.of(self.sensor_id, result), False
 
     def readings(self, duration_s: float | None = None, timeout_s: float = 1.0) -> Iterator[Reading]:
         """Every frame's reading, for ``duration_s`` of frame time (None: until the camera or recording ends
@@ -246,20 +114,94 @@ class Sensor:
     def __iter__(self) -> Iterator[Reading]:
         return self.readings()
 
-    def tare(self) -> None:
-        """Take the rest light again from the next frames (nothing may touch the skin meanwhile)."""
+    def start(self) -> None:
+        """Read every frame in a background thread from now on (idempotent); take the newest with
+        :meth:`latest`. The thread waits for a frame at most the camera's ``timeout_s`` (board config) and
+        ends when the camera fails (the next :meth:`latest` raises it) or a recording ends."""
+        self._check_open()
+        if self._reader is not None and self._reader.running:
+            return
+        self.stop()
+        self._reader = BackgroundReader(self._step, self._pipeline.reset_baseline,
+                                        float(self._board.camera.timeout_s), f"optitac-sensor-{self.sensor_id}")
+
+    def latest(self, timeout_s: float = 0.0) -> Reading | None:
+        """The newest reading not returned before, at once (default), or waiting up to ``timeout_s`` for one;
+        None when there is none (no new frame yet, or the recording ended).
+
+        A reading is returned at most once; the ones a newer reading replaced before this was called are
+        counted in ``status().unread``, never lost silently.
+
+        Raises
+        ------
+        OptiTacError
+            The sensor is closed or not started (:meth:`start`), or its camera failed in the background.
+        """
+        self._check_open()
+        wait = _seconds(timeout_s, "timeout_s")
+        if self._reader is None:
+            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: latest() reads what start() reads in the "
+                               "background: call start() first (or read() in this thread)")
+        return self._reader.take(wait)
+
+    def stop(self) -> None:
+        """End the background reading of :meth:`start` and wait for its thread (idempotent); :meth:`read`
+        works again. The counters stay."""
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            try:
+                reader.stop()
+            finally:
+                self._unread_before += reader.unread
+
+    def tare(self, wait_s: float | None = None) -> bool:
+        """Take the rest light again from the next frames (nothing may touch the skin meanwhile).
+
+        Parameters
+        ----------
+        wait_s : float, optional
+            Wait up to this long, s, until the baseline is ready again (read in the background when started,
+            else frames are read here and their readings counted as unread). None (default): return at once.
+
+        Returns
+        -------
+        bool
+            The baseline is ready (False at once without ``wait_s``; False when ``wait_s`` passed first).
+        """
+        self._check_open()
+        wait = None if wait_s is None else _seconds(wait_s, "wait_s")
+        if self._reader is not None:
+            return self._reader.tare(wait)
         self._pipeline.reset_baseline()
+        if wait is None:
+            return False
+        deadline = time.monotonic() + wait
+        while (left := deadline - time.monotonic()) > 0:
+            reading, ended = self._step(left)
+            if ended:
+                return False
+            if reading is not None:
+                self._unread_before += 1  # read here, never returned: counted as unread
+                if reading.baseline_ready:
+                    return True
+        return False
 
     def status(self) -> Status:
         """The sensor's counters and state now."""
+        unread = self._unread_before + (self._reader.unread if self._reader is not None else 0)
         return Status(self.sensor_id, self.name, self._frames, self._contacts, self._skipped,
                       bool(self._pipeline.baseline_ready), self._pipeline.bundle.calibration_id,
-                      self._pipeline.compiled, float(self._camera.fps), int(self._camera.frames_dropped))
+                      self._pipeline.compiled, float(self._camera.fps), int(self._camera.frames_dropped), unread)
 
     def close(self) -> None:
-        """Close the camera and the LED ring (idempotent)."""
+        """End the background reading, close the camera and the LED ring (idempotent)."""
+        if self._closed:
+            return
         self._closed = True
-        self._stack.close()
+        try:
+            self.stop()
+        finally:
+            self._stack.close()
 
     def __enter__(self) -> Self:
         return self

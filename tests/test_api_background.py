@@ -1,0 +1,182 @@
+"""The API for a control loop (issue 40): a sensor read in the background, the newest reading taken without
+waiting and the others counted, a tare that waits for the baseline, unknown values that read as such, and the
+simulated board's live sliding scenario."""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+import optitac_edge as ot
+from optitac_edge.api.background import BackgroundReader
+
+
+def _reading(frame: int, ready: bool = True) -> ot.Reading:
+    return ot.Reading(0, frame, frame * 1000, (), (), math.nan, False, ready, False)
+
+
+class _Script:
+    """A step the test feeds: each reading put is made once; ``None`` put: the step waits until released."""
+
+    def __init__(self) -> None:
+        self.items: queue.Queue[object] = queue.Queue()
+        self.release = threading.Event()
+        self.tares = 0
+
+    def step(self, timeout_s: float) -> tuple[ot.Reading | None, bool]:
+        try:
+            item = self.items.get(timeout=timeout_s)
+        except queue.Empty:
+            return None, False
+        if item == "end":
+            return None, True
+        if isinstance(item, Exception):
+            raise item
+        assert isinstance(item, ot.Reading)
+        return item, False
+
+    def tare(self) -> None:
+        self.tares += 1
+
+
+def _until(condition, what: str) -> None:
+    """Wait until ``condition()`` (the reader's thread gets there; no figure depends on how fast)."""
+    deadline = time.monotonic() + 30.0
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.001)
+
+
+def test_latest_is_the_newest_reading_once_and_the_replaced_ones_are_counted():
+    script = _Script()
+    reader = BackgroundReader(script.step, script.tare, 0.05, "test-reader")
+    try:
+        assert reader.take(0.0) is None  # nothing read yet: at once, not waiting
+        for k in range(3):
+            script.items.put(_reading(k))
+        _until(lambda: reader.made == 3, "three readings made")
+        assert reader.take(0.0).frame == 2  # the newest
+        assert (reader.returned, reader.unread) == (1, 2)
+        assert reader.take(0.0) is None  # returned once only
+        script.items.put(_reading(3))
+        assert reader.take(5.0).frame == 3  # waits for the next one
+        script.items.put(_reading(4))
+        _until(lambda: reader.made == 5, "a fifth reading")
+    finally:
+        reader.stop()
+    # the newest, never returned, is counted when the reader stops: every reading returned or counted
+    assert (reader.made, reader.returned, reader.unread) == (5, 2, 3)
+    assert not reader.running
+
+
+def test_a_camera_failure_in_the_background_is_raised_once_by_the_next_take():
+    script = _Script()
+    reader = BackgroundReader(script.step, script.tare, 0.05, "test-reader")
+    script.items.put(_reading(0))
+    script.items.put(ot.OptiTacError("camera 'sim': no frame within 1.000 s"))
+    _until(lambda: not reader.running, "the thread ended")
+    assert reader.take(0.0).frame == 0  # the reading made before the failure first
+    with pytest.raises(ot.OptiTacError, match="no frame within"):
+        reader.take(0.0)
+    assert reader.take(0.0) is None
+    reader.stop()
+    reader.stop()  # idempotent
+
+
+def test_a_tare_in_the_background_is_made_by_the_reader_and_waits_for_a_ready_baseline():
+    script = _Script()
+    reader = BackgroundReader(script.step, script.tare, 0.05, "test-reader")
+    try:
+        assert reader.tare(None) is False  # asked, not waited for
+        _until(lambda: script.tares == 1, "the reader's thread tared")
+        script.items.put(_reading(0, ready=False))
+        assert reader.tare(0.0) is False  # no ready reading since
+        _until(lambda: script.tares == 2, "the second tare")
+        done: list[bool] = []
+        waiter = threading.Thread(target=lambda: done.append(reader.tare(30.0)))
+        waiter.start()
+        _until(lambda: script.tares == 3, "the third tare")
+        script.items.put(_reading(1, ready=False))
+        script.items.put(_reading(2, ready=True))
+        waiter.join(30.0)
+        assert done == [True]
+    finally:
+        reader.stop()
+
+
+def test_a_recording_read_in_the_background_loses_nothing_silently(slide_rec: Path, bundle_path: Path):
+    before = set(threading.enumerate())
+    with ot.open_sensor(recording=slide_rec, cal=bundle_path) as sensor:
+        with pytest.raises(ot.OptiTacError, match="call start"):
+            sensor.latest()
+        sensor.start()
+        sensor.start()  # idempotent
+        with pytest.raises(ot.OptiTacError, match=r"read in the background \(start\(\)\): read\(\)"):
+            sensor.read()
+        taken = []
+        while (reading := sensor.latest(timeout_s=5.0)) is not None:
+            taken.append(reading.frame)
+            time.sleep(0.002)  # a loop slower than the replay: most readings are replaced before taken
+        sensor.stop()
+        status = sensor.status()
+        assert sensor.read() is None  # read() again after stop(): the recording has ended
+    assert status.frames == 1200 and status.skipped == 0
+    assert status.unread == status.frames - len(taken) and status.unread > 0
+    assert taken == sorted(set(taken)) and taken[-1] <= 1199
+    assert {t for t in set(threading.enumerate()) - before if t.is_alive()} == set()  # no thread left behind
+    with pytest.raises(ot.OptiTacError, match="closed"):
+        sensor.start()
+
+
+@pytest.fixture(scope="module")
+def slide_rec(tmp_path_factory) -> Path:
+    from optitac_edge.cli import main
+
+    out = tmp_path_factory.mktemp("api-bg") / "slide"
+    assert main(["sim", str(out), "--scenario", "slide", "--frames", "1200", "--storage", "fibers"]) == 0
+    return out
+
+
+def _fast_sim(**options: object) -> ot.Sensor:
+    """The simulated board, its frames as fast as rendered (not at 240 fps in real time)."""
+    return ot.open_sensor("sim", settings={"camera.fps": 240, "camera.options.realtime": False,
+                                           **{f"camera.options.{k}": v for k, v in options.items()}})
+
+
+def test_a_tare_waits_until_the_baseline_is_ready_in_either_mode():
+    with _fast_sim() as sensor:
+        assert sensor.tare(wait_s=60.0) is True
+        waited = sensor.status()
+        assert waited.baseline_ready and waited.unread == waited.frames  # read while waiting, counted
+        assert sensor.tare() is False and not sensor.status().baseline_ready
+        sensor.start()
+        assert sensor.tare(wait_s=60.0) is True
+        after = sensor.latest(timeout_s=10.0)
+        assert after is not None and after.baseline_ready
+
+
+def test_the_simulated_board_slides_live_and_refuses_an_unknown_scenario():
+    """At the camera's pace (the slides' speeds are in mm/s of frame time): 5 s hold the slides at 2 and 5 mm/s."""
+    with ot.open_sensor("sim", settings={"camera.fps": 240, "camera.options.scenario": "slide"}) as sensor:
+        readings = list(sensor.readings(duration_s=5.0))
+    sliding = [c for r in readings for c in r.contacts if c.sliding]
+    assert len(sliding) > 100 and all(c.has_velocity for c in sliding)
+    assert 1.0 < max(math.hypot(c.vx_mm_s, c.vy_mm_s) for c in sliding) < 20.0
+    with pytest.raises(ot.OptiTacError, match=r"^simulated camera: unknown scenario 'spin' \(presses, slide, "):
+        _fast_sim(scenario="spin")
+
+
+def test_unknown_values_read_as_unknown():
+    nan = math.nan
+    blind = ot.Contact(1, 0, 0.5, 0.5, 3.0, 2.0, 0.0, 10.0, nan, nan, "", nan, nan, nan, False, -1)
+    assert not (blind.has_depth or blind.has_force or blind.has_shape or blind.has_velocity)
+    known = ot.Contact(1, 0, 0.5, 0.5, 3.0, 2.0, 0.0, 10.0, 1.2, 0.8, "circle", 0.9, 0.0, nan, False, -1)
+    assert known.has_depth and known.has_force and known.has_shape and not known.has_velocity
+    reading = ot.Reading(0, 5, 0, (known,), (), nan, False, True, False)
+    assert reading.touching and not reading.has_vibration
+    assert not ot.Reading(0, 6, 0, (), (), 1.0, False, True, False).touching
