@@ -145,3 +145,9 @@ def fuzz_tool() -> ModuleType:
 def aarch64_tool() -> ModuleType:
     """``tools/kernel_aarch64.py`` (the compiled kernel replayed on another architecture)."""
     return load_tool("kernel_aarch64")
+
+
+@pytest.fixture(scope="session")
+def roundtrip_tool() -> ModuleType:
+    """``tools/lerobot_roundtrip.py`` (a LeRobot dataset compared with the contacts CSVs)."""
+    return load_tool("lerobot_roundtrip")

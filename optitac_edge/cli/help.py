@@ -79,6 +79,13 @@ COMMANDS: dict[str, tuple[str, list[str]]] = {
     "replay": (
         "Process every frame of a recording into a contacts CSV, as the service would.",
         ["optitac-edge replay out/unseen --cal out/cal.npz -o out/contacts.csv"]),
+    "export-lerobot": (
+        ("Write recordings as a LeRobot dataset with LeRobot's own writer, one episode each: every frame's "
+         "contacts, vibration and per-fiber signals as named features, the capture time, the recording's truth "
+         "where it has one, and with --video the tactile surface as a 224x224 video. Needs the lerobot extra "
+         "(torch; docs/lerobot.md)."),
+        ["optitac-edge export-lerobot out/seen out/slide --cal out/cal.npz -o out/dataset",
+         "optitac-edge export-lerobot rec/day1 rec/day2 --cal cal.npz -o data/grasp --repo-id lab/grasp --video"]),
     "run": (
         ("The service: capture, process, send each frame's contacts to the MCU (serial or CAN) and, if asked, "
         "to the robot's network (Zenoh / ROS 2), an MCAP file and a live view. Without a board it runs the "

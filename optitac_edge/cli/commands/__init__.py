@@ -16,7 +16,7 @@ COMMANDS: dict[str, str] = {
     "sim": "sim", "calibrate": "calibrate", "evaluate": "evaluate", "export-onnx": "export_onnx",
     "report": "report", "replay": "replay", "run": "run", "record": "record", "soak": "soak", "bench": "bench",
     "orient": "orient", "collect": "collect", "monitor": "monitor", "view": "view", "snapshot": "snapshot",
-    "layout": "layout",
+    "layout": "layout", "export-lerobot": "export_lerobot",
 }
 
 
