@@ -13,6 +13,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import importlib.util
+import sys
 import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
@@ -131,6 +132,7 @@ def load_tool(name: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod  # as an import does (a dataclass of the tool looks its module up there)
     spec.loader.exec_module(mod)
     return mod
 

@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import optitac_edge as ot
@@ -180,3 +181,26 @@ def test_unknown_values_read_as_unknown():
     reading = ot.Reading(0, 5, 0, (known,), (), nan, False, True, False)
     assert reading.touching and not reading.has_vibration
     assert not ot.Reading(0, 6, 0, (), (), 1.0, False, True, False).touching
+
+
+def test_a_sensor_opened_with_arrays_gives_each_readings_fibers_and_surface(slide_rec: Path, bundle_path: Path):
+    from optitac_edge.calibration.measure import replay_recording
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.io.bundle_file import load_bundle
+    from optitac_edge.io.recording import Recording
+
+    bundle = load_bundle(bundle_path)
+    rec = Recording(slide_rec)
+    pipe = Pipeline(bundle, fps=rec.meta.fps)
+    want = [(pipe.signal.copy(), pipe.surface / pipe.levels.trunc) for _ in replay_recording(rec, pipe)]
+    with ot.open_sensor(recording=slide_rec, cal=bundle_path, arrays=True) as sensor:
+        got = list(sensor.readings())
+    assert len(got) == len(want) == 1200
+    for reading, (fibers, surface) in zip(got, want):
+        np.testing.assert_array_equal(reading.fibers, fibers)
+        np.testing.assert_array_equal(reading.surface, surface)
+    assert max(float(r.surface.max()) for r in got) > 1.0  # presses above the contact threshold
+    assert got[0].fibers is not got[1].fibers and got[0] == got[0]  # arrays of their own; readings still compare
+    with ot.open_sensor(recording=slide_rec, cal=bundle_path) as sensor:
+        plain = sensor.read()
+    assert plain.fibers is None and plain.surface is None

@@ -8,10 +8,12 @@ says whether it is known (``contact.has_depth`` rather than ``contact.depth_mm =
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from optitac_edge.core.contact import ContactEstimate
     from optitac_edge.core.frame_result import FrameResult
 
@@ -115,6 +117,14 @@ class Reading:
         False during the first frames of a session (and after a tare), while the rest light is taken.
     saturated : bool
         Some fiber was at full scale.
+    fibers : ndarray, shape (N,), float32, optional
+        Each fiber's signal, layout order: its darkening from its rest light (a fraction of it with the default
+        ``relative`` option, else gray levels; 0 for a dead fiber). Only from a sensor opened with ``arrays=True``
+        (else None).
+    surface : ndarray, shape (n, n), float32, optional
+        The tactile surface: the pipeline's inverted surface in units of the level it is truncated at (its
+        contact level, from the fibers' noise), 0 where below it. Only from a sensor opened with ``arrays=True``
+        (else None).
     """
 
     sensor_id: int
@@ -126,6 +136,8 @@ class Reading:
     vibrating: bool
     baseline_ready: bool
     saturated: bool
+    fibers: np.ndarray | None = field(default=None, compare=False, repr=False)
+    surface: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def has_vibration(self) -> bool:
@@ -138,11 +150,12 @@ class Reading:
         return bool(self.contacts)
 
     @classmethod
-    def of(cls, sensor_id: int, result: FrameResult) -> Reading:
-        """A copy of a pipeline's frame result."""
+    def of(cls, sensor_id: int, result: FrameResult, fibers: np.ndarray | None = None,
+           surface: np.ndarray | None = None) -> Reading:
+        """A copy of a pipeline's frame result (``fibers`` and ``surface``: arrays of its own, kept as given)."""
         return cls(sensor_id, int(result.frame), int(result.t_ns), tuple(Contact.of(c) for c in result.touching()),
                    tuple(cid for cid, _ in result.releases()), float(result.vibration), bool(result.vibrating),
-                   bool(result.baseline_ready), bool(result.saturated))
+                   bool(result.baseline_ready), bool(result.saturated), fibers, surface)
 
 
 @dataclass(frozen=True, slots=True)

@@ -37,11 +37,12 @@ class Sensor:
     """
 
     def __init__(self, board: BoardConfig, sensor: BoardSensor, camera: Camera, bundle: CalibrationBundle,
-                 stack: ExitStack) -> None:
+                 stack: ExitStack, arrays: bool = False) -> None:
         from optitac_edge.core.pipeline import Pipeline
 
         self._board, self._sensor, self._camera, self._stack = board, sensor, camera, stack
         self._pipeline = Pipeline(bundle, fps=camera.fps)
+        self._arrays = arrays
         self._frames = self._contacts = self._skipped = 0
         self._closed = False
         self._reader: BackgroundReader | None = None
@@ -77,6 +78,8 @@ class Sensor:
 
     def _step(self, timeout_s: float) -> tuple[Reading | None, bool]:
         """(The next frame's reading within ``timeout_s``, or None; True when the source ended.)"""
+        import numpy as np
+
         from optitac_edge.core.frame_engine import Skip
 
         deadline = time.monotonic() + timeout_s
@@ -92,7 +95,11 @@ class Sensor:
                 continue
             self._frames += 1
             self._contacts += result.n_contacts > 0
-            return Reading.of(self.sensor_id, result), False
+            if not self._arrays:
+                return Reading.of(self.sensor_id, result), False
+            pipe = self._pipeline
+            level = np.float32(pipe.levels.trunc or 1.0)  # the surface's unit: the level it is truncated at
+            return Reading.of(self.sensor_id, result, pipe.signal.copy(), pipe.surface / level), False
 
     def readings(self, duration_s: float | None = None, timeout_s: float = 1.0) -> Iterator[Reading]:
         """Every frame's reading, for ``duration_s`` of frame time (None: until the camera or recording ends
@@ -220,7 +227,7 @@ def _seconds(value: object, name: str) -> float:
 
 def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = None,
                 cal: str | os.PathLike[str] | None = None, recording: str | os.PathLike[str] | None = None,
-                settings: Mapping[str, Any] | None = None) -> Sensor:
+                settings: Mapping[str, Any] | None = None, arrays: bool = False) -> Sensor:
     """Open one sensor of a board.
 
     Parameters
@@ -240,6 +247,8 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
         it was opened).
     settings : mapping, optional
         Board config overrides, ``{"section.key": value}`` (e.g. ``{"camera.fps": 120}``).
+    arrays : bool
+        Fill each reading's ``fibers`` and ``surface`` (copies, ~20 KB a frame: off by default).
 
     Raises
     ------
@@ -269,14 +278,14 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
         raise OptiTacError(f"{cal_path}: no such calibration bundle")
     stack = ExitStack()
     try:
-        return _open(config, chosen, cal_path, recording, stack)
+        return _open(config, chosen, cal_path, recording, stack, bool(arrays))
     except BaseException:
         stack.close()
         raise
 
 
 def _open(config: BoardConfig, chosen: BoardSensor, cal_path: Path | None, recording: str | os.PathLike[str] | None,
-          stack: ExitStack) -> Sensor:
+          stack: ExitStack, arrays: bool) -> Sensor:
     """The LED ring, the camera (or the recording) and the bundle of ``chosen``, closed with ``stack``."""
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.service.bundles import obtain_bundles
@@ -303,4 +312,4 @@ def _open(config: BoardConfig, chosen: BoardSensor, cal_path: Path | None, recor
     else:
         found = obtain_bundles(config, camera_name, camera, None, led)
         bundle = next(b.bundle for b in found if b.sensor.sensor.id == chosen.sensor.id)
-    return Sensor(config, chosen, camera, bundle, stack)
+    return Sensor(config, chosen, camera, bundle, stack, arrays)

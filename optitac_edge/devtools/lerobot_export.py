@@ -33,8 +33,6 @@ log = logging.getLogger(__name__)
 
 #: The extra that brings LeRobot's writer, named in the line a missing one gives.
 EXTRA = "pip install 'optitac-edge[lerobot]' (it brings torch: best in an environment of its own, docs/lerobot.md)"
-#: The surface shown white in the tactile video, in units of the bundle's contact level.
-VIDEO_FULL_SCALE = 4.0
 
 
 @dataclass(frozen=True)
@@ -122,7 +120,6 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
     shapes = None if all(t is None for t in truths) else \
         lf.shape_names([str(s) for t in truths if t is not None for s in t.shape])
     features = lf.tactile_features(bundle.layout.ids, video=job.video, truth_shapes=shapes)
-    full_scale = VIDEO_FULL_SCALE * float(bundle.thresholds.threshold)
     partial = job.output.with_name(f".{job.output.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)  # our own leftover of an interrupted export, never a dataset
     frames = 0
@@ -137,7 +134,8 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
                 if shapes is not None:
                     row.update(_truth_row(rec, i, shapes))
                 if job.video:
-                    row[lf.IMAGE] = lf.surface_image(pipeline.surface, full_scale)
+                    level = np.float32(pipeline.levels.trunc or 1.0)  # as the API's Reading.surface
+                    row[lf.IMAGE] = lf.surface_image(pipeline.surface / level)
                 dataset.add_frame(row)
             dataset.save_episode()
             frames += len(rec)
