@@ -56,12 +56,35 @@ def test_the_features_are_named_and_a_frame_fills_every_slot_strongest_first(rec
         assert values[lf.T_NS][0] == result.t_ns == rec.t_ns[i]
         assert np.array_equal(values[lf.FIBERS], pipeline.signal) and values[lf.FIBERS] is not pipeline.signal
         seen_contact |= n >= 1
-        truth = lf.truth_values(rec.truth, i, ["none", "circle"])
+        truth = lf.truth_values(rec.truth, lf.truth_rows(rec.truth)[i], ["none", "circle"])
         assert truth[lf.TRUTH][0] == float(rec.truth.contact[i])
         assert truth[lf.TRUTH_SHAPE][0] == (1 if rec.truth.contact[i] else 0)
     assert seen_contact
     image = lf.surface_image(pipeline.surface + 100.0, 50.0)
     assert image.shape == (224, 224, 3) and image.dtype == np.uint8 and (image == 255).all()
+
+
+def test_a_rigs_truth_fills_the_frames_it_has_rows_for_and_leaves_the_moves_unknown(tmp_path):
+    """A rig's recording has truth rows for its holds only (the export once indexed the rows by frame number and
+    ended in an IndexError on a full collect seen)."""
+    from optitac_edge.io.recording import Recording
+
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(tmp_path / "seen"), "--limit", "2"]) == 0
+    rec = Recording(tmp_path / "seen")
+    assert len(rec.truth) < len(rec)  # rows for some frames only
+    rows = lf.truth_rows(rec.truth)
+    names = lf.shape_names([str(s) for s in rec.truth.shape])
+    held = [i for i in range(len(rec)) if i in rows and rec.truth.contact[rows[i]]]
+    assert held
+    for i in range(len(rec)):
+        got = lf.truth_values(rec.truth, rows.get(i), names)
+        if i not in rows:
+            assert np.isnan(got[lf.TRUTH]).all() and got[lf.TRUTH_SHAPE][0] == 0
+        else:
+            k = rows[i]
+            assert got[lf.TRUTH][0] == float(rec.truth.contact[k])
+            assert got[lf.TRUTH][1] == rec.truth.x_mm[k] or not rec.truth.contact[k]
+            assert names[got[lf.TRUTH_SHAPE][0]] == (str(rec.truth.shape[k]) or "none")
 
 
 def test_the_export_refuses_in_one_line(recorded, tmp_path, capsys):

@@ -129,10 +129,11 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
         show = sys.stderr.isatty() if progress is None else progress
         for path, rec in zip(job.recordings, recs):
             pipeline = Pipeline(bundle, fps=rec.meta.fps)
+            rows = {} if rec.truth is None else lf.truth_rows(rec.truth)
             for i, result in replay_recording(rec, pipeline, progress=show, desc=path.name):
                 row: dict[str, object] = {**lf.frame_values(result, pipeline.signal), "task": job.task}
                 if shapes is not None:
-                    row.update(_truth_row(rec, i, shapes))
+                    row.update(lf.truth_values(rec.truth, rows.get(i), shapes))
                 if job.video:
                     level = np.float32(pipeline.levels.trunc or 1.0)  # as the API's Reading.surface
                     row[lf.IMAGE] = lf.surface_image(pipeline.surface / level)
@@ -148,8 +149,3 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
     size = sum(f.stat().st_size for f in job.output.rglob("*") if f.is_file())
     return ExportReport(len(recs), frames, size, time.monotonic() - t0)
 
-
-def _truth_row(rec: Recording, i: int, shapes: list[str]) -> dict[str, np.ndarray]:
-    if rec.truth is None:  # another recording has truth, this one not: unknown here
-        return {lf.TRUTH: np.full(len(lf.TRUTH_FIELDS), np.nan), lf.TRUTH_SHAPE: np.array([0], dtype=np.int64)}
-    return lf.truth_values(rec.truth, i, shapes)

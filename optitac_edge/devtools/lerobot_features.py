@@ -11,7 +11,8 @@ plugin fill the same features from a frame's result. Every value is named in the
                                   ``timestamp`` is the frame's index over the rate)
 ``observation.tactile.fibers``    float32 (N,): each fibre's inverted signal (``Pipeline.signal``), layout order
 ``observation.images.tactile``    video 224 × 224 × 3 (optional): the tactile surface, :func:`surface_image`
-``truth.contact``                 float64 (9,): the recording's truth (:data:`TRUTH_FIELDS`, NaN where it has none)
+``truth.contact``                 float64 (9,): the recording's truth (:data:`TRUTH_FIELDS`; all NaN in a frame
+                                  without a truth row, e.g. a rig's moves, or a recording without truth)
 ``truth.shape``                   int64 (1,): index into the feature's names (``none`` first)
 """
 
@@ -106,8 +107,17 @@ def frame_values(result: FrameResult, signal: np.ndarray) -> dict[str, np.ndarra
             FIBERS: np.array(signal, dtype=np.float32)}
 
 
-def truth_values(truth: Truth, i: int, names: Sequence[str]) -> dict[str, np.ndarray]:
-    """Row ``i`` of a recording's truth as ``truth.contact`` and ``truth.shape`` (an index into ``names``)."""
+def truth_rows(truth: Truth) -> dict[int, int]:
+    """Frame number -> its row of ``truth`` (a rig's recording has rows for some frames only: its holds)."""
+    return {int(f): k for k, f in enumerate(truth.frame)}
+
+
+def truth_values(truth: Truth | None, i: int | None, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """Row ``i`` of a recording's truth as ``truth.contact`` and ``truth.shape`` (an index into ``names``);
+    ``i`` or ``truth`` None: a frame without a truth row (every value NaN, the shape ``none``)."""
+    if truth is None or i is None:
+        return {TRUTH: np.full(len(TRUTH_FIELDS), np.nan), TRUTH_SHAPE: np.array([0], dtype=np.int64)}
+
     def col(a: np.ndarray | None) -> float:
         return math.nan if a is None else float(a[i])
 
