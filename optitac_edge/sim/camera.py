@@ -33,6 +33,8 @@ if TYPE_CHECKING:
     from optitac_edge.io.device import BoardView
 
 _SHAPES = ("edge", "circle", "square", "ellipse", "triangle")
+#: A realtime simulated camera renders this much ahead of the frames' times at least, s.
+RENDER_AHEAD_S = 0.1
 
 
 class PressSource(Protocol):
@@ -206,9 +208,10 @@ class SimCamera(Camera):
                 for k, s in enumerate(self.patches.sensors[1:], start=1)]
         self._realtime = realtime
         self._seq = 0
-        # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting)
+        # realtime: frames rendered ahead by a thread (at most ``_ahead`` waiting): 0.1 s of frames at least, so a
+        # render that takes long (a new press's skin field: up to 29 ms measured at 240 fps) is not a dropped frame
         self._queue_frames = queue_frames
-        self._ahead = max(3, queue_frames + 1)
+        self._ahead = max(3, queue_frames + 1, math.ceil(RENDER_AHEAD_S * fps))
         self._ready: deque[tuple[int, np.ndarray, Indenter | None]] = deque()
         self._cond = threading.Condition()
         self._stop_render = threading.Event()
