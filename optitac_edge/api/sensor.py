@@ -78,8 +78,6 @@ class Sensor:
 
     def _step(self, timeout_s: float) -> tuple[Reading | None, bool]:
         """(The next frame's reading within ``timeout_s``, or None; True when the source ended.)"""
-        import numpy as np
-
         from optitac_edge.core.frame_engine import Skip
 
         deadline = time.monotonic() + timeout_s
@@ -98,8 +96,7 @@ class Sensor:
             if not self._arrays:
                 return Reading.of(self.sensor_id, result), False
             pipe = self._pipeline
-            level = np.float32(pipe.levels.trunc or 1.0)  # the surface's unit: the level it is truncated at
-            return Reading.of(self.sensor_id, result, pipe.signal.copy(), pipe.surface / level), False
+            return Reading.of(self.sensor_id, result, pipe.signal.copy(), pipe.surface_levels()), False
 
     def readings(self, duration_s: float | None = None, timeout_s: float = 1.0) -> Iterator[Reading]:
         """Every frame's reading, for ``duration_s`` of frame time (None: until the camera or recording ends

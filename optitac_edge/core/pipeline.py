@@ -216,6 +216,11 @@ class Pipeline:
         """
         return self.parts.surface_buf.reshape(self._n, self._n)
 
+    def surface_levels(self) -> np.ndarray:
+        """The last surface in units of the level it is truncated at, shape (n, n), float32 (a new array): the
+        public API's ``Reading.surface`` and the tactile image of ``export-lerobot --video``."""
+        return self.surface / np.float32(self.levels.trunc or 1.0)
+
     @property
     def signal(self) -> np.ndarray:
         """The last inverted per-fiber signal, shape (N,), float32.

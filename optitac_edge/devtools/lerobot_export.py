@@ -21,8 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from optitac_edge.devtools import lerobot_features as lf
 from optitac_edge.errors import OptiTacError, OutputError
 
@@ -127,7 +125,7 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
         dataset = writer.create(job.repo_id, fps, features, root=partial, robot_type="optitac",
                                 use_videos=job.video)
         show = sys.stderr.isatty() if progress is None else progress
-        for path, rec in zip(job.recordings, recs):
+        for episode, (path, rec) in enumerate(zip(job.recordings, recs)):
             pipeline = Pipeline(bundle, fps=rec.meta.fps)
             rows = {} if rec.truth is None else lf.truth_rows(rec.truth)
             for i, result in replay_recording(rec, pipeline, progress=show, desc=path.name):
@@ -135,12 +133,11 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
                 if shapes is not None:
                     row.update(lf.truth_values(rec.truth, rows.get(i), shapes))
                 if job.video:
-                    level = np.float32(pipeline.levels.trunc or 1.0)  # as the API's Reading.surface
-                    row[lf.IMAGE] = lf.surface_image(pipeline.surface / level)
+                    row[lf.IMAGE] = lf.surface_image(pipeline.surface_levels())
                 dataset.add_frame(row)
             dataset.save_episode()
             frames += len(rec)
-            log.info("episode %d: %s, %d frames", len(recs) and recs.index(rec), path, len(rec))
+            log.info("episode %d: %s, %d frames", episode, path, len(rec))
         dataset.finalize()
         partial.rename(job.output)
     except BaseException:

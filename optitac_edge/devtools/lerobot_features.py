@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import cv2
 import numpy as np
@@ -87,6 +87,29 @@ def shape_names(shapes: Sequence[str]) -> list[str]:
     return ["none", *sorted(set(shapes) - {"", "none"})]
 
 
+class ContactFields(Protocol):
+    """What a contact slot is made of: a pipeline's ``ContactEstimate`` or the public API's ``Contact``."""
+
+    x_mm: float
+    y_mm: float
+    major_mm: float
+    minor_mm: float
+    angle_deg: float
+    depth_mm: float
+    force_n: float
+    vx_mm_s: float
+    vy_mm_s: float
+    sliding: bool
+
+
+def contact_slot(c: ContactFields, contact_id: int) -> tuple[float, ...]:
+    """One present contact's values in :data:`CONTACT_FIELDS` order (its id given: the two kinds name it
+    ``contact_id`` and ``id``)."""
+    return (1.0, float(c.x_mm), float(c.y_mm), float(c.major_mm), float(c.minor_mm), float(c.angle_deg),
+            float(c.depth_mm), float(c.force_n), float(c.vx_mm_s), float(c.vy_mm_s), float(bool(c.sliding)),
+            float(contact_id))
+
+
 def frame_values(result: FrameResult, signal: np.ndarray) -> dict[str, np.ndarray]:
     """The tactile features of one frame: ``observation.tactile.*`` (new arrays).
 
@@ -99,8 +122,7 @@ def frame_values(result: FrameResult, signal: np.ndarray) -> dict[str, np.ndarra
     """
     contacts = np.zeros((MAX_CONTACTS, len(CONTACT_FIELDS)), dtype=np.float64)
     for k, c in enumerate(result.touching()):
-        contacts[k] = (1.0, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.depth_mm, c.force_n, c.vx_mm_s,
-                       c.vy_mm_s, float(bool(c.sliding)), float(c.contact_id))
+        contacts[k] = contact_slot(c, c.contact_id)
     state = np.array([result.n_contacts, result.vibration, bool(result.vibrating), bool(result.baseline_ready),
                       bool(result.saturated)], dtype=np.float64)
     return {CONTACTS: contacts.reshape(-1), STATE: state, T_NS: np.array([result.t_ns], dtype=np.int64),

@@ -29,7 +29,7 @@ from lerobot_camera_optitac import OptiTacCamera
 import optitac_edge as ot
 from lerobot_robot_optitac.config_optitac import OptiTacConfig
 from optitac_edge.core.options import MAX_CONTACTS
-from optitac_edge.devtools.lerobot_features import CONTACT_FIELDS, IMAGE_SIDE, STATE_FIELDS
+from optitac_edge.devtools.lerobot_features import CONTACT_FIELDS, IMAGE_SIDE, STATE_FIELDS, contact_slot
 
 PREFIX = "optitac"
 
@@ -39,10 +39,8 @@ def reading_values(reading: ot.Reading, fiber_ids: list[int] | None) -> dict[str
     out: dict[str, float] = {}
     for k in range(MAX_CONTACTS):
         c = reading.contacts[k] if k < len(reading.contacts) else None
-        values = (0.0,) * len(CONTACT_FIELDS) if c is None else (
-            1.0, c.x_mm, c.y_mm, c.major_mm, c.minor_mm, c.angle_deg, c.depth_mm, c.force_n, c.vx_mm_s, c.vy_mm_s,
-            float(c.sliding), float(c.id))
-        out.update({f"{PREFIX}.contact{k}.{f}": float(v) for f, v in zip(CONTACT_FIELDS, values)})
+        values = (0.0,) * len(CONTACT_FIELDS) if c is None else contact_slot(c, c.id)
+        out.update({f"{PREFIX}.contact{k}.{f}": v for f, v in zip(CONTACT_FIELDS, values)})
     state = (len(reading.contacts), reading.vibration, reading.vibrating, reading.baseline_ready, reading.saturated)
     out.update({f"{PREFIX}.{f}": float(v) for f, v in zip(STATE_FIELDS, state)})
     out[f"{PREFIX}.frame"] = float(reading.frame)
