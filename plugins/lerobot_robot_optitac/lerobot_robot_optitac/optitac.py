@@ -63,7 +63,6 @@ class OptiTac(Robot):
         self.arm: Robot | None = None if config.arm is None else make_robot_from_config(config.arm)
         self.tactile = OptiTacCamera(config.tactile)
         self.cameras = make_cameras_from_configs(config.cameras)
-        self._fiber_ids: list[int] | None = None
 
     @cached_property
     def _fiber_names(self) -> list[int] | None:
@@ -106,7 +105,6 @@ class OptiTac(Robot):
         for cam in self.cameras.values():
             cam.connect()
         self.tactile.connect()
-        self._fiber_ids = self._fiber_names
 
     @property
     def is_calibrated(self) -> bool:
@@ -129,7 +127,7 @@ class OptiTac(Robot):
         image = self.tactile.async_read(timeout_ms=1000)
         reading = self.tactile.last_reading
         assert reading is not None
-        out.update(reading_values(reading, self._fiber_ids))
+        out.update(reading_values(reading, self._fiber_names))
         if self.config.image:
             out[PREFIX] = image
         for key, cam in self.cameras.items():
