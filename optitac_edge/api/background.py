@@ -60,8 +60,7 @@ class BackgroundReader:
     def _run(self) -> None:
         try:
             while not self._stopping.is_set():
-                with self._cond:
-                    asked = self._tares_asked
+                asked = self._tares_asked  # an int read once a frame: no lock taken for it (one fewer a frame)
                 if asked != self._tares_done:
                     self._tare()
                     with self._cond:
