@@ -43,6 +43,7 @@ from optitac_edge.service.camera_keeper import CameraKeeper
 from optitac_edge.service.channel import SensorChannel
 from optitac_edge.service.commands import Outcome, apply_command
 from optitac_edge.service.pool import SensorPool, spare_workers
+from optitac_edge.service.stage_times import StageTimes
 from optitac_edge.service.stats import ServiceStats
 from optitac_edge.service.status import StatusReporter
 
@@ -124,6 +125,8 @@ class Service:
         self.ride_out_stalls = False
         #: The live view (``run --view``): ``observe(frame, t_ns, pipeline, stats)`` after each frame, never blocking.
         self.view: LiveView | None = None
+        #: The loop's CPU by stage, per frame (``run --stage-times``); None: not kept.
+        self.stage_times: StageTimes | None = None
         #: The network publisher's frame-loop side (``[publish.NAME]``): ``offer_*`` copy and return, never blocking.
         self.network: NetworkOutput | None = None
         #: Protocol, streaming and rate divider, as the MCU's commands set them.
@@ -316,9 +319,12 @@ class Service:
         first: FrameResult | None = None
         device_fault = False
         send = self.link.due(st.frames + 1)
+        times = self.stage_times
+        t0 = 0 if times is None else times.clock()
         for ch in self.channels:
             ch.take(captured)
         results = self.pool.run([ch.run_pipeline for ch in self.channels])
+        t1 = 0 if times is None else times.clock()
         if results[0] is Skip.BAD:  # not a frame of this camera, for every sensor: counted once
             counts.frame_skipped(self.stats, self.channels[0], Skip.BAD)
             return None, True
@@ -337,6 +343,8 @@ class Service:
         if first is not None:
             st.frames += 1
             st.sent += int(send)
+            if times is not None:
+                times.add(t1 - t0, times.clock() - t1)
         return first, device_fault
 
     def _deliver(self, ch: SensorChannel, result: FrameResult, captured: CapturedFrame, send: bool) -> None:

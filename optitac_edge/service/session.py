@@ -30,6 +30,7 @@ from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.bundles import SensorBundle, obtain_bundles
 from optitac_edge.service.loop import OnResult, Service, ServiceStats
 from optitac_edge.service.network import NetworkOutput, NetworkSensor
+from optitac_edge.service.stage_times import StageTimes
 from optitac_edge.service.wiring import (
     log_config_warnings,
     open_board_camera,
@@ -85,6 +86,8 @@ class BoardSession:
         self.view: LiveView | None = None
         #: Gaps without a camera frame are said and ridden out (``view``), not an exit (``run``).
         self.ride_out_stalls = False
+        #: Keep each loop's CPU by stage (``run --stage-times``; :attr:`Service.stage_times`).
+        self.stage_times = False
         #: The board's network publisher (``[publish.NAME]``; None when off), and its publishing thread once running.
         self.publisher: Publisher | None = None
         self.network: NetworkOutput | None = None
@@ -212,6 +215,8 @@ class BoardSession:
                               camera_config=config.cameras[name], camera_name=name)
             service.status.calibration_unsaved = any(b.unsaved is not None for b in group)
             service.ride_out_stalls = self.ride_out_stalls
+            if self.stage_times:
+                service.stage_times = StageTimes()
             self.services.append(service)
         lead, peers = self.services[0], self.services[1:]
         lead.peers = peers

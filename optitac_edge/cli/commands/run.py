@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import os
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from optitac_edge.cli.common import COUNT, EXIT_INTERRUPTED, FPS, add_board, board_config, number
 from optitac_edge.errors import OptiTacError
+from optitac_edge.io.files import AtomicFile
 from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
 
 if TYPE_CHECKING:
@@ -53,6 +55,9 @@ def add_parser(sub: Subcommands) -> None:
     p.add_argument("--mcap", default=None, metavar="FILE",
                    help="also write every sensor's contacts and status to this MCAP file (rotation: [publish.mcap] "
                         "max_mb, max_minutes)")
+    p.add_argument("--stage-times", type=Path, default=None, metavar="FILE",
+                   help="at exit, write the frame loop's CPU per frame by stage (pipeline, send path) to this "
+                        "JSON file (docs/performance.md)")
     p.add_argument("--foxglove", default=None, metavar="HOST:PORT",
                    help="serve contacts, status, each sensor's image, surface and overlay live to Foxglove or "
                         "Lichtblick (e.g. 127.0.0.1:8765; needs the foxglove extra)")
@@ -285,6 +290,8 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
     link = "no link" if config.link.transport == "none" else config.link.transport
     with BoardSession(config, args.cal) as session, ExitStack() as stack:
         session.ride_out_stalls = bool(getattr(args, "ride_out_stalls", False))  # view: at a terminal
+        stage_times: Path | None = getattr(args, "stage_times", None)
+        session.stage_times = stage_times is not None
         # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
         line = stack.enter_context(StatusLine(0.1, link)) if sys.stdout.isatty() else None
         several = len(config.sensors) > 1
@@ -321,8 +328,29 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
                 r = channel.pipeline.result
                 line.offer(r.primary if r.baseline_ready else None, stats, channel.name)
 
-        session.run(stop, duration_s=args.duration, on_result=on_result)
+        try:
+            session.run(stop, duration_s=args.duration, on_result=on_result)
+        finally:
+            if stage_times is not None:
+                _write_stage_times(stage_times, session.services)
         return session.services
+
+
+def _write_stage_times(path: Path, services: list[Service]) -> None:
+    """Every camera loop's stage times (``--stage-times``), the lead's first; the frames of the first second
+    (at most half of them) left out: the camera's warm-up and the first packets."""
+    out = []
+    for service in services:
+        times = service.stage_times
+        if times is None:
+            continue
+        st = service.stats
+        out.append({"camera": service.camera_name, "sensors": len(service.channels),
+                    "fps": service.camera_config.fps, "frames_processed": st.frames,
+                    "frames_dropped": st.frames_dropped, "kernel": "compiled" if service.pipeline.compiled else "numpy",
+                    **times.summary(skip=min(int(service.camera_config.fps), times.frames // 2))})
+    with AtomicFile(path) as f:
+        f.write(json.dumps(out, indent=1) + "\n")
 
 
 def simulated_operator_for_the_view(session: BoardSession) -> None:

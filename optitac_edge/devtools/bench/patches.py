@@ -13,12 +13,15 @@ patches' pipelines, back to back and paced at the camera's rate
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.devtools.bench.paced import Paced, run_interleaved
+
+if TYPE_CHECKING:
+    from optitac_edge.calibration.region import Region
 
 #: Distinct frames the patches' presses cycle through.
 PATCH_FRAMES = 120
@@ -26,18 +29,25 @@ PATCH_FRAMES = 120
 GAP_PX = 8
 
 
-def patch_pipelines(n_patches: int, width: int, height: int, seed: int = 1
-                    ) -> tuple[list[Pipeline], list[np.ndarray], list[np.ndarray]]:
-    """``n_patches`` placed pipelines on one ``width`` x ``height`` camera, its rest frames and press frames."""
-    from optitac_edge.calibration.fibers import calibrate_fibers
-    from optitac_edge.calibration.region import Region, place_bundle
-    from optitac_edge.sim.patches import PatchFrames, crop
-    from optitac_edge.sim.skin import Indenter
+def patch_regions(n_patches: int, width: int, height: int) -> list[Region]:
+    """The patches' regions: a grid of ``n_patches`` on a ``width`` x ``height`` frame, :data:`GAP_PX` apart."""
+    from optitac_edge.calibration.region import Region
 
     cols = math.ceil(math.sqrt(n_patches))
     rows = math.ceil(n_patches / cols)
     w, h = width // cols, height // rows
-    regions = [Region((k % cols) * w, (k // cols) * h, w - GAP_PX, h - GAP_PX) for k in range(n_patches)]
+    return [Region((k % cols) * w, (k // cols) * h, w - GAP_PX, h - GAP_PX) for k in range(n_patches)]
+
+
+def patch_pipelines(n_patches: int, width: int, height: int, seed: int = 1
+                    ) -> tuple[list[Pipeline], list[np.ndarray], list[np.ndarray]]:
+    """``n_patches`` placed pipelines on one ``width`` x ``height`` camera, its rest frames and press frames."""
+    from optitac_edge.calibration.fibers import calibrate_fibers
+    from optitac_edge.calibration.region import place_bundle
+    from optitac_edge.sim.patches import PatchFrames, crop
+    from optitac_edge.sim.skin import Indenter
+
+    regions = patch_regions(n_patches, width, height)
     cam = PatchFrames(regions, width, height, seed=seed)
     rest = [cam.frame() for _ in range(10)]
     stacked = np.stack(rest)
