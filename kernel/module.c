@@ -28,6 +28,7 @@ typedef struct {
     Py_ssize_t frame_bytes;
     Py_buffer bufs[MAX_BUFFERS];
     int n_bufs;
+    int busy; /* a frame runs without the GIL: set and read with it held, so one thread at a time */
 } KernelObject;
 
 /* ---------------------------------------------------------------- the plan */
@@ -386,10 +387,17 @@ static void Kernel_dealloc(KernelObject *self) {
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
+/* Every method: an initialised kernel that no other thread is running (a frame runs with the GIL released;
+ * a second thread's frame, or a change of its levels meanwhile, would race on the kernel's buffers). */
+#define KERNEL_BUSY "the compiled kernel is processing a frame in another thread: use one Pipeline per thread"
 #define REQUIRE_INIT(self)                                                     \
     do {                                                                       \
         if (!(self)->initialised) {                                            \
             PyErr_SetString(PyExc_RuntimeError, "Kernel is not initialised"); \
+            return NULL;                                                       \
+        }                                                                      \
+        if ((self)->busy) {                                                    \
+            PyErr_SetString(PyExc_RuntimeError, KERNEL_BUSY);                  \
             return NULL;                                                       \
         }                                                                      \
     } while (0)
@@ -426,9 +434,11 @@ static PyObject *Kernel_frame(KernelObject *self, PyObject *const *args, Py_ssiz
     Py_buffer b;
     if (frame_buffer(self, args[0], &b) < 0) return NULL;
     int32_t n;
+    self->busy = 1;
     Py_BEGIN_ALLOW_THREADS
     n = ok_frame(&self->k, (const uint8_t *)b.buf, now_ns, dt_ns, means_ready);
     Py_END_ALLOW_THREADS
+    self->busy = 0;
     PyBuffer_Release(&b);
     return PyLong_FromLong(n);
 }
@@ -437,9 +447,11 @@ static PyObject *Kernel_means(KernelObject *self, PyObject *frame) {
     REQUIRE_INIT(self);
     Py_buffer b;
     if (frame_buffer(self, frame, &b) < 0) return NULL;
+    self->busy = 1;
     Py_BEGIN_ALLOW_THREADS
     ok_means(&self->k, (const uint8_t *)b.buf);
     Py_END_ALLOW_THREADS
+    self->busy = 0;
     PyBuffer_Release(&b);
     Py_RETURN_NONE;
 }
@@ -453,10 +465,12 @@ static PyObject *Kernel_check(KernelObject *self, PyObject *frame) {
     Py_buffer b;
     if (frame_buffer(self, frame, &b) < 0) return NULL;
     int32_t code;
+    self->busy = 1;
     Py_BEGIN_ALLOW_THREADS
     ok_means(&self->k, (const uint8_t *)b.buf);
     code = ok_check(&self->k, (const uint8_t *)b.buf);
     Py_END_ALLOW_THREADS
+    self->busy = 0;
     PyBuffer_Release(&b);
     return PyLong_FromLong(code);
 }

@@ -17,6 +17,7 @@ typedef struct {
     int has_signal;
     int32_t *live;
     float *state;
+    int busy; /* a step runs without the GIL: set and read with it held, so one thread at a time */
 } VibrationObject;
 
 static void Vibration_dealloc(VibrationObject *self) {
@@ -97,14 +98,24 @@ static PyObject *Vibration_step(VibrationObject *self, PyObject *const *args, Py
     if (trunc == -1.0 && PyErr_Occurred()) return NULL;
     long long dt_ns = PyLong_AsLongLong(args[1]);
     if (dt_ns == -1 && PyErr_Occurred()) return NULL;
+    if (self->busy) {
+        PyErr_SetString(PyExc_RuntimeError, "Vibration is stepping in another thread: use one Pipeline per thread");
+        return NULL;
+    }
     double level;
+    self->busy = 1;
     Py_BEGIN_ALLOW_THREADS
     level = ok_vibration_step(&self->v, (float)trunc, dt_ns);
     Py_END_ALLOW_THREADS
+    self->busy = 0;
     return PyFloat_FromDouble(level);
 }
 
 static PyObject *Vibration_reset(VibrationObject *self, PyObject *Py_UNUSED(ignored)) {
+    if (self->busy) {
+        PyErr_SetString(PyExc_RuntimeError, "Vibration is stepping in another thread: use one Pipeline per thread");
+        return NULL;
+    }
     if (self->live) ok_vibration_reset(&self->v);
     Py_RETURN_NONE;
 }

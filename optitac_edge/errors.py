@@ -65,6 +65,12 @@ class OutputError(OptiTacError):
     that is not a regular file."""
 
 
+class PipelineBusy(OptiTacError, RuntimeError):
+    """A :class:`~optitac_edge.core.pipeline.Pipeline` was asked to process a frame while another thread's
+    frame was still in it: a pipeline keeps one sensor's state from frame to frame, so it serves one thread
+    (one pipeline per thread, or a lock around it)."""
+
+
 class MissingExtraError(OptiTacError):
     """A feature needs an optional package that is not installed (the message says which extra)."""
 

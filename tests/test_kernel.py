@@ -291,8 +291,8 @@ def test_bands_of_noise_and_of_drift_agree(modelled, day) -> None:
 
 @pytest.fixture()
 def solve_always(monkeypatch) -> None:
-    """The kernel finds the gradients by the sparse solve whatever the cost (at 217 fibers the dense product
-    is the cheaper, and a 1027-fiber bundle takes a minute to calibrate)."""
+    """The kernel finds the gradients by the sparse solve whatever the cost and size (217 fibers take it
+    already, by the operator's bytes; a 1027-fiber bundle takes a minute to calibrate)."""
     monkeypatch.setattr(gradient_solve, "SOLVE_WEIGHT", 0)
 
 
@@ -309,9 +309,15 @@ def test_the_gradient_solve_agrees(modelled, day, solve_always) -> None:
     run_both(bundle, day[:160:2])
 
 
-def test_the_gradient_solve_is_chosen_where_it_is_cheaper(modelled) -> None:
-    """217 fibers: the dense product (94 k multiply-adds against the solve's ~35 k at 4 times the cost each)."""
+def test_the_gradient_solve_is_chosen_where_the_dense_operator_is_large(modelled, monkeypatch) -> None:
+    """217 fibers: the solve (the dense operator's 368 KB are more than DENSE_BYTES_MAX, though its 94 k
+    multiply-adds are fewer than the solve's ~35 k at 4 times the cost each); with a budget that holds the
+    operator, the dense product."""
     gs = Pipeline(modelled, compiled=False).parts.surface_op.gradient_solve  # type: ignore[union-attr]
+    solve = gs()
+    assert solve is not None and gradient_solve.dense_bytes(217) == 376_712
+    assert "gs_fibers" in _engine(Pipeline(modelled, compiled=True)).plan.as_dict()
+    monkeypatch.setattr(gradient_solve, "DENSE_BYTES_MAX", 400_000)
     assert gs() is None
     assert "gs_fibers" not in _engine(Pipeline(modelled, compiled=True)).plan.as_dict()
 

@@ -344,20 +344,34 @@ def _reproduces(gs: GradientSolve, grad_op: np.ndarray, fill_values: np.ndarray 
 #: A multiply-add of the solve costs about this many of the dense product's (scattered short rows and
 #: divisions against one long vector stream; callgrind, 217 and 1027 fibers).
 SOLVE_WEIGHT = 4
+#: Largest dense gradient operator (2N x N float32) the kernel keeps, bytes: beyond it the solve's far
+#: fewer bytes win at a camera's pace whatever the instructions. A frame at 240 fps finds the operator
+#: evicted (the frame's own pixels, the other sensors' tables): at 217 fibers the 368 KB product made
+#: the pipeline 211 us a paced frame against 61 us with the solve's ~40 KB, 60 against 39 us back to back
+#: (this machine, interleaved), for 13 % more instructions. A Pi 4's L2 (1 MB for four cores) holds six
+#: 217-fibre sensors' tables only without it.
+DENSE_BYTES_MAX = 64 * 1024
+
+
+def dense_bytes(n_fibers: int) -> int:
+    """Bytes of the dense gradient operator of ``n_fibers`` fibres (2N x N float32)."""
+    return 2 * n_fibers * n_fibers * 4
 
 
 def solve_pays(gs: GradientSolve) -> bool:
-    """Whether the solve is the cheaper: :data:`SOLVE_WEIGHT` times its :meth:`~GradientSolve.cost`
-    under the dense product's ``2 N^2`` multiply-adds (1027 fibers: yes, 1.3 M against 2.1 M; 217: no,
-    140 k against 94 k)."""
-    return SOLVE_WEIGHT * gs.cost() < 2 * gs.n_fibers ** 2
+    """Whether the kernel takes the solve: the dense operator is over :data:`DENSE_BYTES_MAX` (217 fibers:
+    368 KB), or :data:`SOLVE_WEIGHT` times its :meth:`~GradientSolve.cost` is under the dense product's
+    ``2 N^2`` multiply-adds (1027 fibers: 1.3 M against 2.1 M; 61: no)."""
+    n = gs.n_fibers
+    return dense_bytes(n) > DENSE_BYTES_MAX or SOLVE_WEIGHT * gs.cost() < 2 * n ** 2
 
 
 def cheaper_gradient_solve(xy: np.ndarray, triangles: np.ndarray, grad_op: np.ndarray,
                            fill_values: np.ndarray | None = None) -> GradientSolve | None:
     """:func:`gradient_solve` where it pays (:func:`solve_pays`), else None; gives up before factoring
-    when the envelope alone shows it will not (at 217 fibers it is not built at all)."""
+    when the envelope alone shows it will not (a small array's dense operator is kept)."""
     n = int(np.asarray(grad_op).shape[1])
-    max_cost = 2 * n * n // SOLVE_WEIGHT if SOLVE_WEIGHT else None
+    small = dense_bytes(n) <= DENSE_BYTES_MAX
+    max_cost = 2 * n * n // SOLVE_WEIGHT if SOLVE_WEIGHT and small else None
     gs = gradient_solve(xy, triangles, grad_op, fill_values, max_cost=max_cost)
     return gs if gs is not None and solve_pays(gs) else None

@@ -76,6 +76,7 @@ numpy and OpenCV only; see docs/performance.md.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -94,6 +95,7 @@ from optitac_edge.core.levels import ContactLevels, FiberModel
 from optitac_edge.core.numpy_engine import NumpyEngine
 from optitac_edge.core.options import MAX_CONTACTS, ContactOptions
 from optitac_edge.core.tracking import GATE_PITCH, ContactTracker
+from optitac_edge.errors import PipelineBusy
 
 
 @contextmanager
@@ -112,6 +114,10 @@ def single_threaded_opencv() -> Iterator[None]:
         yield
     finally:
         cv2.setNumThreads(previous)
+
+
+_BUSY = ("this Pipeline is processing a frame in another thread: a pipeline serves one thread "
+         "(one pipeline per thread, or a lock around it)")
 
 
 class Pipeline:
@@ -172,6 +178,8 @@ class Pipeline:
         self.tracker = ContactTracker(GATE_PITCH * bundle.layout.pitch_mm, max_contacts=MAX_CONTACTS)
         #: What the last frame gave (the object :meth:`process` returns, updated in place).
         self.result = FrameResult(self.contacts, self.tracker.released)
+        #: Held while a frame is processed: a second thread's frame meanwhile is refused (PipelineBusy).
+        self._in_use = threading.Lock()
         self.set_corrector(self.corrector)
         #: Step 8b: every contact's velocity and slip state, and the fibers' vibration.
         self.motion, self.vibration = self.engine.motion_parts()
@@ -291,19 +299,40 @@ class Pipeline:
             The pipeline's reused result, updated in place: the contacts with their ids, the releases and the
             frame's flags (``saturated``: a live fiber centre at full scale); or why the frame was skipped
             (not a frame of this camera, dark, saturated), when nothing changes.
+
+        Raises
+        ------
+        PipelineBusy
+            Another thread's frame is in this pipeline (it serves one thread; nothing changes).
         """
-        engine = self.engine
-        why = engine.check(frame)
-        if why is not None:
-            return why
-        assert isinstance(frame, np.ndarray)  # the check refuses anything else
-        return self._step(frame, now_ns, engine.saturated)
+        if not self._in_use.acquire(blocking=False):
+            raise PipelineBusy(_BUSY)
+        try:
+            engine = self.engine
+            why = engine.check(frame)
+            if why is not None:
+                return why
+            assert isinstance(frame, np.ndarray)  # the check refuses anything else
+            return self._step(frame, now_ns, engine.saturated)
+        finally:
+            self._in_use.release()
 
     def process_recorded(self, frame: np.ndarray, now_ns: int) -> FrameResult:
         """Everything one frame of a recording gives: as :meth:`process`, with no frame skipped (a recording's
         frames are checked once, :meth:`FiberTable.check_frame
-        <optitac_edge.core.fiber_table.FiberTable.check_frame>`, and each frame has its row)."""
-        return self._step(frame, now_ns, False)
+        <optitac_edge.core.fiber_table.FiberTable.check_frame>`, and each frame has its row).
+
+        Raises
+        ------
+        PipelineBusy
+            Another thread's frame is in this pipeline.
+        """
+        if not self._in_use.acquire(blocking=False):
+            raise PipelineBusy(_BUSY)
+        try:
+            return self._step(frame, now_ns, False)
+        finally:
+            self._in_use.release()
 
     def _step(self, frame: np.ndarray, now_ns: int, saturated: bool) -> FrameResult:
         result, est, engine, baseline = self.result, self._estimate, self.engine, self.baseline
