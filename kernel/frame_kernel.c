@@ -20,6 +20,8 @@ int ok_avx2; /* set by ok_kernel_init */
 
 /* ---------------------------------------------------------------- set-up */
 
+static int init_rgb_chunks(ok_kernel *k);
+
 static void *zalloc(size_t n, size_t size) { return calloc(n ? n : 1, size); }
 
 /* The gray fiber pixels as 8-byte reads: each run of consecutive pixels in chunks of at most 8, each
@@ -54,6 +56,33 @@ static int init_chunks(ok_kernel *k) {
             }
         }
         if ((c - k->fiber_chunk[f]) & 1) c++; /* the pad: offset 0, mask 0 (zeroed) */
+    }
+    k->fiber_chunk[nf] = c;
+    return 0;
+}
+
+/* RGB: each run in chunks of up to four pixels, each read as 16 bytes from its first pixel (the pixels'
+ * 12 bytes and 4 beyond); a chunk whose 16 bytes would pass the frame's end is read pixel by pixel. */
+static int init_rgb_chunks(ok_kernel *k) {
+    const ok_plan *p = &k->p;
+    int32_t nf = p->n_fibers, n = 0;
+    for (int32_t r = 0; r < k->fiber_run[nf]; r++) n += (k->run_len[r] + 3) / 4;
+    k->chunk_offset = zalloc((size_t)n, sizeof(int32_t));
+    k->chunk_pixels = zalloc((size_t)n, sizeof(int8_t));
+    k->fiber_chunk = zalloc((size_t)nf + 1, sizeof(int32_t));
+    if (!k->chunk_offset || !k->chunk_pixels || !k->fiber_chunk) return -1;
+    int64_t bytes = 3 * p->frame_pixels;
+    int32_t c = 0;
+    for (int32_t f = 0; f < nf; f++) {
+        k->fiber_chunk[f] = c;
+        for (int32_t r = k->fiber_run[f]; r < k->fiber_run[f + 1]; r++) {
+            for (int32_t a = 0; a < k->run_len[r]; a += 4, c++) {
+                int64_t first = 3 * ((int64_t)k->run_start[r] + a);
+                int32_t m = k->run_len[r] - a < 4 ? k->run_len[r] - a : 4;
+                k->chunk_offset[c] = (int32_t)first;
+                k->chunk_pixels[c] = (int8_t)(first + 16 <= bytes ? m : -m);
+            }
+        }
     }
     k->fiber_chunk[nf] = c;
     return 0;
@@ -187,7 +216,7 @@ int ok_kernel_init(ok_kernel *k, const ok_plan *plan, char *err, int err_len) {
         }
     }
     k->fiber_run[nf] = runs;
-    if (!p->rgb && p->frame_pixels >= 8 && init_chunks(k) < 0) {
+    if (!p->rgb ? p->frame_pixels >= 8 && init_chunks(k) < 0 : init_rgb_chunks(k) < 0) {
         ok_kernel_free(k);
         snprintf(err, err_len, "kernel: out of memory");
         return -1;
@@ -226,7 +255,7 @@ void ok_kernel_free(ok_kernel *k) {
                      (void **)&k->part_label, (void **)&k->seed_img, (void **)&k->nearest, (void **)&k->dist,
                      (void **)&k->parent, (void **)&k->counts, (void **)&k->seed_counts, (void **)&k->order,
                      (void **)&k->rect, (void **)&k->powers, (void **)&k->shape_y, (void **)&k->shape_ll, (void **)&k->run_start, (void **)&k->run_len, (void **)&k->chunk_offset, (void **)&k->chunk_mask,
-                     (void **)&k->fiber_chunk,
+                     (void **)&k->fiber_chunk, (void **)&k->chunk_pixels,
                      (void **)&k->fiber_run};
     for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {
         free(*bufs[i]);
@@ -446,6 +475,46 @@ static void gray_means_bytes(ok_kernel *k, const uint8_t *frame) {
     }
 }
 
+/* RGB: each fiber's chunks four pixels at a time: the 16 bytes from the chunk's first pixel shuffled so that
+ * 32-bit lane i holds pixel i's r, g, b (and a byte that is masked off), the gray of each lane as rgb_gray
+ * computes it, the lanes past the chunk's pixels zeroed; the sum is exact (integers), so it is rgb_gray's
+ * sum to the bit. */
+#if defined(__GNUC__) && !defined(__clang__)
+typedef uint8_t v16u8 __attribute__((vector_size(16)));
+typedef uint32_t v4u32 __attribute__((vector_size(16)));
+CLONES_AVX2
+static void rgb_means(ok_kernel *k, const uint8_t *frame, const uint32_t *w) {
+    const ok_plan *p = &k->p;
+    const int32_t *off = k->chunk_offset, *fc = k->fiber_chunk;
+    const int8_t *pixels = k->chunk_pixels;
+    const v16u8 pick = {0, 1, 2, 3, 3, 4, 5, 6, 6, 7, 8, 9, 9, 10, 11, 12};
+    const v4u32 lanes[5] = {{0, 0, 0, 0}, {~0u, 0, 0, 0}, {~0u, ~0u, 0, 0}, {~0u, ~0u, ~0u, 0}, {~0u, ~0u, ~0u, ~0u}};
+    const v4u32 w0 = {w[0], w[0], w[0], w[0]}, w1 = {w[1], w[1], w[1], w[1]}, w2 = {w[2], w[2], w[2], w[2]};
+    const v4u32 byte = {0xFF, 0xFF, 0xFF, 0xFF}, half = {16384u, 16384u, 16384u, 16384u};
+    for (int32_t f = 0; f < p->n_fibers; f++) {
+        v4u32 acc = {0, 0, 0, 0};
+        uint32_t sum = 0;
+        for (int32_t c = fc[f], end = fc[f + 1]; c < end; c++) {
+            const uint8_t *q = frame + off[c];
+            int32_t m = pixels[c];
+            if (m > 0) {
+                v16u8 x;
+                memcpy(&x, q, sizeof x);
+                x = __builtin_shuffle(x, pick);
+                v4u32 u;
+                memcpy(&u, &x, sizeof u);
+                v4u32 g = ((u & byte) * w0 + ((u >> 8) & byte) * w1 + ((u >> 16) & byte) * w2 + half) >> 15;
+                acc += g & lanes[m];
+            } else {
+                for (int32_t i = 0; i < -m; i++) sum += rgb_gray(q + 3 * i, w);
+            }
+        }
+        sum += (acc[0] + acc[1]) + (acc[2] + acc[3]);
+        p->means[f] = (float)sum * p->inv_count[f];
+    }
+}
+#endif
+
 void ok_means(ok_kernel *k, const uint8_t *frame) {
     const ok_plan *p = &k->p;
     if (!p->rgb) {
@@ -453,11 +522,14 @@ void ok_means(ok_kernel *k, const uint8_t *frame) {
         else gray_means_bytes(k, frame);
         return;
     }
-    const int32_t *start = k->run_start, *len = k->run_len, *fr = k->fiber_run;
     /* BT.601 (OpenCV's COLOR_RGB2GRAY to the bit) unless the plan gives another colour mix */
     uint32_t w[3] = {9798u, 19235u, 3735u};
     if (p->rgb_weights)
         for (int c = 0; c < 3; c++) w[c] = (uint32_t)p->rgb_weights[c];
+#if defined(__GNUC__) && !defined(__clang__)
+    rgb_means(k, frame, w);
+#else
+    const int32_t *start = k->run_start, *len = k->run_len, *fr = k->fiber_run;
     for (int32_t f = 0; f < p->n_fibers; f++) {
         uint32_t sum = 0;
         for (int32_t r = fr[f]; r < fr[f + 1]; r++) {
@@ -466,6 +538,7 @@ void ok_means(ok_kernel *k, const uint8_t *frame) {
         }
         p->means[f] = (float)sum * p->inv_count[f];
     }
+#endif
 }
 
 /* ---------------------------------------------------------------- step 4: signal (Pipeline.compute_signal) */

@@ -174,6 +174,9 @@ typedef struct {
     uint64_t *chunk_mask;  /* (chunks,) */
     int32_t *fiber_chunk;  /* (N + 1,) each fiber's chunks, padded to an even number */
     int32_t chunks_fit;    /* every fiber has at most 128 chunks (no 16-bit lane can overflow) */
+    /* rgb: the runs as 16-byte reads of up to four pixels (chunk_offset: the first pixel's byte), each
+     * chunk's pixels (1..4; -1..-4: so near the frame's end that they are read one by one) */
+    int8_t *chunk_pixels;  /* (chunks,) */
     int32_t *fiber_run; /* (N + 1,) fiber f owns runs fiber_run[f] .. fiber_run[f + 1] - 1 */
     /* scratch */
     float *w;          /* (3N,) */

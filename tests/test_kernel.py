@@ -763,3 +763,25 @@ def test_an_odd_mesh_side_with_a_striped_surface_agrees() -> None:
     the kernel segfaulted (exit 139) where the numpy pipeline returned."""
     r = _run_isolated(_ODD_SIDE, str(Path(__file__).parent))
     assert r.returncode == 0 and r.stdout.strip() == "ok", (r.returncode, r.stdout[-500:], r.stderr[-2000:])
+
+
+def test_rgb_means_read_by_the_four_pixel_chunks_are_the_samplers_to_the_bit() -> None:
+    """The kernel sums an RGB fiber's grays four pixels a time from 16-byte reads; a fiber whose reads would
+    pass the frame's end (here: the last 13 pixels of the frame) is read pixel by pixel. Every fiber's mean
+    equals the numpy sampler's, with luma and with another colour mix, on random colours."""
+    bundle = synthetic_bundle("rgb")
+    t = bundle.fibers
+    index = t.pixel_index.copy()
+    count = int(t.pixel_start[1])
+    index[:count] = np.arange(t.width * t.height - count, t.width * t.height)  # fiber 0: the frame's last pixels
+    table = dataclasses.replace(t, pixel_index=index)
+    rng = np.random.default_rng(4)
+    for mix in ("luma", "green"):
+        b = bundle.with_updates(fibers=table, options=dataclasses.replace(bundle.options, colour_mix=mix))
+        kern, ref = Pipeline(b, compiled=True), Pipeline(b, compiled=False)
+        assert kern.compiled
+        for _ in range(5):
+            frame = rng.integers(0, 256, (t.height, t.width, 3), dtype=np.uint8)
+            want = ref.parts.sampler.means(frame, np.zeros(t.n_fibers, np.float32))
+            kern.engine.means(frame)
+            assert np.array_equal(kern.means, want), mix
