@@ -91,3 +91,20 @@ def test_a_thread_names_itself_for_the_operating_system():
     t.start()
     t.join()
     assert seen == ["optitac-a-long-"]  # the kernel keeps 15 bytes
+
+
+def test_run_times_its_start_up_at_debug_level(tmp_path, caplog) -> None:
+    """``run -v``: each phase of the start-up in the log, in order, each at or after the one before."""
+    import logging
+
+    from optitac_edge.io.startup import STARTUP
+
+    STARTUP.marks.clear()
+    with caplog.at_level(logging.DEBUG, logger="optitac_edge.startup"):
+        assert main(["run", "--fps", "1000", "--frames", "5"]) == 0
+    phases = [m[0] for m in STARTUP.marks]
+    assert phases == ["imports", "board config", "cameras opened", "link opened", "bundles",
+                      "pipelines and kernel plans", "first frame of camera main"]
+    ages = [m[1] for m in STARTUP.marks]
+    assert ages == sorted(ages) and ages[0] > 0
+    assert sum("start-up: bundles done" in r.getMessage() for r in caplog.records) == 1

@@ -176,6 +176,37 @@ def run_once(prep: dict[str, Any], backend: str, warmup_s: float, seconds: float
             "kernel": stages["kernel"]}
 
 
+def startup_once(prep: dict[str, Any]) -> dict[str, Any]:
+    """Process start to the first byte on the link (``optitac-edge run`` on the configuration's board, its
+    bundle stored), and the run's own start-up marks (``-v``: imports, config, camera, link, bundles, kernel
+    plans, first frame; ms after the process started)."""
+    master, slave = pty.openpty()
+    port = os.ttyname(slave)
+    cmd = [sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(prep["board"]), "--serial", port,
+           "--duration", "1.5", "-v"]
+    t0 = time.monotonic_ns()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    first_ns = None
+    try:
+        os.read(master, 1)  # blocks until the first packet's first byte
+        first_ns = time.monotonic_ns()
+        stop, got = threading.Event(), [0]
+        threading.Thread(target=_drain, args=(master, stop, got), daemon=True).start()
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(slave)
+        os.close(master)
+    marks = {}
+    for line in err.splitlines():
+        if "start-up: " in line and " done " in line:
+            phase = line.split("start-up: ", 1)[1].split(" done ", 1)[0]
+            marks[phase] = int(line.split(" done ", 1)[1].split(" ms", 1)[0])
+    return {"start_to_first_packet_s": round((first_ns - t0) / 1e9, 3), "exit_code": proc.returncode,
+            "marks_ms": marks}
+
+
 def warm_pipeline(prep: dict[str, Any], backend: str, n: int = 2000) -> dict[str, float]:
     """The configuration's pipelines on its frames back to back (every sensor's, one camera frame): µs."""
     from optitac_edge.core.pipeline import Pipeline
@@ -217,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--configs", default="gray0,gray1,rgb1,hand6")
     ap.add_argument("--backends", default="compiled,numpy")
     ap.add_argument("--reference-frames", type=int, default=300, help="0: skip the reference's ratio")
+    ap.add_argument("--startups", type=int, default=7, help="start-to-first-packet runs (0: skip)")
     ap.add_argument("--json", type=Path, default=Path("pace.json"))
     args = ap.parse_args(argv)
     configs = args.configs.split(",")
@@ -244,6 +276,14 @@ def main(argv: list[str] | None = None) -> int:
             ratio = reference_ratio(args.workdir, args.reference_frames)
             out["reference_ratio"].append(ratio)
             print(f"round {r + 1}: reference ÷ pipeline in paper mode ×{ratio}", flush=True)
+    if args.startups:
+        prep = preps[configs[0]]
+        runs = [startup_once(prep) for _ in range(args.startups)]
+        times = sorted(r["start_to_first_packet_s"] for r in runs)
+        out["startup"] = {"config": configs[0], "runs": runs, "median_s": times[len(times) // 2]}
+        print(f"start to first packet ({configs[0]}, {args.startups} runs): median {times[len(times) // 2]} s, "
+              f"{times[0]}-{times[-1]} s; phases of the median run: "
+              f"{next(r for r in runs if r['start_to_first_packet_s'] == times[len(times) // 2])['marks_ms']}")
     args.json.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {args.json}")
     return 0

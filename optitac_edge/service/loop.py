@@ -37,6 +37,7 @@ from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.protocol.messages import Command
 from optitac_edge.io.protocol.outbox import LinkState
 from optitac_edge.io.sdnotify import Notifier
+from optitac_edge.io.startup import STARTUP
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service import stats as counts
 from optitac_edge.service.camera_keeper import CameraKeeper
@@ -280,6 +281,7 @@ class Service:
         """READY once, the watchdog kick, the MCU's commands, the caller's hook, STATUS when due."""
         if result is not None and not self.ready:
             self.ready = True
+            STARTUP.mark(f"first frame of camera {self.camera_name}")
         if not self.is_peer:
             self._tell_systemd()
             for command in self.transport.poll_commands():

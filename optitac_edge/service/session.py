@@ -26,6 +26,7 @@ from optitac_edge.io.clock import SYSTEM_CLOCK, Clock
 from optitac_edge.io.led import LedRing, NoLed
 from optitac_edge.io.publishers import Publisher
 from optitac_edge.io.sdnotify import Notifier
+from optitac_edge.io.startup import STARTUP
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.service.bundles import SensorBundle, obtain_bundles
 from optitac_edge.service.loop import OnResult, Service, ServiceStats
@@ -123,7 +124,9 @@ class BoardSession:
             self.led = led
             for name in self._camera_names():
                 self.cameras[name] = self._stack.enter_context(open_board_camera(self.config, name))
+            STARTUP.mark("cameras opened")
             self.transport = self._stack.enter_context(open_board_transport(self.config))
+            STARTUP.mark("link opened")
             self.publisher = open_board_publisher(self.config)
             if self.publisher is not None:
                 self._stack.callback(self.publisher.close)
@@ -218,6 +221,7 @@ class BoardSession:
             if self.stage_times:
                 service.stage_times = StageTimes()
             self.services.append(service)
+        STARTUP.mark("pipelines and kernel plans")
         lead, peers = self.services[0], self.services[1:]
         lead.peers = peers
         for peer in peers:

@@ -21,6 +21,7 @@ from optitac_edge.cli.common import COUNT, EXIT_INTERRUPTED, FPS, add_board, boa
 from optitac_edge.errors import OptiTacError
 from optitac_edge.io.files import AtomicFile
 from optitac_edge.io.logs import LIVE_LINE, NonBlockingLogging
+from optitac_edge.io.startup import STARTUP
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -117,6 +118,7 @@ def _publish_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    STARTUP.mark("imports")
     if args.duration is not None and not args.duration > 0:
         raise OptiTacError("--duration must be positive")
     link = {}
@@ -125,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.can is not None:
         link = {"link.transport": "can", "link.can_channel": args.can}
     config = board_config(args, **link, **_fps_overrides(args), **_publish_overrides(args))
+    STARTUP.mark("board config")
     stop = threading.Event()
     received: list[int] = []
 
@@ -298,6 +301,7 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
         if session.calibrates:
             say("calibrating fibers from the first rest frames...")
         bundle = session.bundle()
+        STARTUP.mark("bundles")
         if getattr(args, "view", None):
             url = session.open_view(args.view)
             say(f"view: {url}")
