@@ -781,6 +781,57 @@ static void matvec(const float *op, int32_t rows, int32_t cols, const float *v, 
         if (row_ > y1) y1 = row_;                                       \
     } while (0)
 
+/* A triangle's bound on |its surface|: the six gradient terms' |w| by their weights (gw: the triangle's
+ * gradient weights), then the largest |vertex value| by the value weight, summed in that order. */
+static inline float triangle_bound(const int32_t *cols, const float *gw, const float *aw, int32_t nv, float value_w) {
+    float bound = 0.0f;
+    if (nv == 3) { /* the usual factors: six gradient terms, a constant count the compiler writes out */
+        for (int q = 0; q < 6; q++) bound += aw[cols[3 + q]] * gw[q];
+    } else {
+        for (int q = nv; q < OK_CELL_TERMS; q++) bound += aw[cols[q]] * gw[q - nv];
+    }
+    if (nv) {
+        float a = aw[cols[0]], b = aw[cols[1]], c = aw[cols[2]];
+        float vb = a > b ? a : b;
+        vb = vb > c ? vb : c;
+        bound += vb * value_w;
+    }
+    return bound;
+}
+
+#if OK_AVX2
+#include <immintrin.h>
+/* triangle_bound of the usual factors (three value terms) for eight triangles at a time, into bound[t]: each
+ * lane the same multiplies and adds in the same order (so the same bits); the indices and weights gathered
+ * at the triangles' stride. Returns how many triangles it did (a multiple of 8). */
+__attribute__((target("avx2"))) static int32_t bounds8(const int32_t *tri_cols, const float *grad_w_t,
+                                                      const float *aw, const float *value_w, int32_t T,
+                                                      float *bound) {
+    const __m256i stride = _mm256_setr_epi32(0, OK_CELL_TERMS, 2 * OK_CELL_TERMS, 3 * OK_CELL_TERMS,
+                                             4 * OK_CELL_TERMS, 5 * OK_CELL_TERMS, 6 * OK_CELL_TERMS,
+                                             7 * OK_CELL_TERMS);
+    int32_t t = 0;
+    for (; t + 8 <= T; t += 8) {
+        const int32_t *cols = tri_cols + (int64_t)t * OK_CELL_TERMS;
+        const float *gw = grad_w_t + (int64_t)t * OK_CELL_TERMS;
+        __m256 b = _mm256_setzero_ps();
+        for (int q = 0; q < 6; q++) {
+            __m256i idx = _mm256_i32gather_epi32(cols + 3 + q, stride, 4);
+            __m256 a = _mm256_i32gather_ps(aw, idx, 4);
+            __m256 g = _mm256_i32gather_ps(gw + q, stride, 4);
+            b = _mm256_add_ps(b, _mm256_mul_ps(a, g));
+        }
+        __m256 va = _mm256_i32gather_ps(aw, _mm256_i32gather_epi32(cols, stride, 4), 4);
+        __m256 vb = _mm256_i32gather_ps(aw, _mm256_i32gather_epi32(cols + 1, stride, 4), 4);
+        __m256 vc = _mm256_i32gather_ps(aw, _mm256_i32gather_epi32(cols + 2, stride, 4), 4);
+        __m256 top = _mm256_max_ps(_mm256_max_ps(va, vb), vc); /* max_ps(x, y): x > y ? x : y, as the scalar */
+        b = _mm256_add_ps(b, _mm256_mul_ps(top, _mm256_loadu_ps(value_w + t)));
+        _mm256_storeu_ps(bound + t, b);
+    }
+    return t;
+}
+#endif
+
 static int32_t triangle_surface(ok_kernel *k) {
     const ok_plan *p = &k->p;
     int32_t nf = p->n_fibers, n = p->n, T = p->n_tri, P = p->width, nv = p->n_value_terms;
@@ -807,23 +858,21 @@ static int32_t triangle_surface(ok_kernel *k) {
     int32_t x0 = n, y0 = n, x1 = -1, y1 = -1; /* the kept triangles' boxes, shrunk to the cells after */
     float peak = 0.0f;
     for (int32_t i = 0; i < 3 * nf; i++) k->absw[i] = fabsf(w[i]);
+    int32_t t_done = 0; /* triangles whose bound is in k->bound already (eight at a time with AVX2) */
+#if OK_AVX2
+    if (ok_avx2 && nv == 3) t_done = bounds8(p->tri_cols, k->grad_w_t, k->absw, p->value_w, T, k->bound);
+#endif
     const float *aw = k->absw;
     for (int32_t t = 0; t < T; t++) {
-        const int32_t *cols = p->tri_cols + (int64_t)t * OK_CELL_TERMS;
-        float bound = 0.0f;
-        const float *gw = k->grad_w_t + (int64_t)t * OK_CELL_TERMS; /* this triangle's gradient weights */
-        if (nv == 3) { /* the usual factors: six gradient terms, a constant count the compiler writes out */
-            for (int q = 0; q < 6; q++) bound += aw[cols[3 + q]] * gw[q];
+        float bound;
+        if (t < t_done) {
+            bound = k->bound[t];
         } else {
-            for (int q = nv; q < OK_CELL_TERMS; q++) bound += aw[cols[q]] * gw[q - nv];
-        }
-        if (nv) {
-            float a = aw[cols[0]], b = aw[cols[1]], c = aw[cols[2]];
-            float vb = a > b ? a : b;
-            vb = vb > c ? vb : c;
-            bound += vb * p->value_w[t];
+            bound = triangle_bound(p->tri_cols + (int64_t)t * OK_CELL_TERMS, k->grad_w_t + (int64_t)t * OK_CELL_TERMS,
+                                   aw, nv, nv ? p->value_w[t] : 0.0f);
         }
         if (!(bound > level)) continue;
+        const int32_t *cols = p->tri_cols + (int64_t)t * OK_CELL_TERMS;
         k->selected[n_sel++] = t;
         k->tri_stamp[t] = stamp;
         float terms[OK_CELL_TERMS];

@@ -105,9 +105,50 @@ __attribute__((target("avx2"))) static void gs_solves8(const ok_plan *p, float *
  * K = C C^T (optitac_edge/core/gradient_solve.py, whose solve_gradients computes the same in the same
  * order). y: the unknowns in the factor's order (fiber gs_fibers[r]'s d/dx at 2 r, d/dy at 2 r + 1), with
  * OK_GS_PAD zeros either side for the padded rows and columns. */
+#if OK_AVX2
+#include <immintrin.h>
+/* The right side of eight fibers at a time (gs_fibers[r .. r + 7]) where none has more than six neighbours:
+ * each lane the scalar loop's multiplies and adds in its order for its own neighbours (the same bits), the
+ * lanes of a fiber with fewer left as they are (masked gathers: nothing past a fiber's neighbours is read).
+ * Returns the first fiber (rank) it did not do; y as ok_gradient_solve's. */
+__attribute__((target("avx2"))) static int32_t right_side8(const ok_plan *p, const float *v, float *restrict y,
+                                                          int32_t r) {
+    const __m256i seven = _mm256_set1_epi32(7);
+    int32_t nf = p->n_fibers;
+    for (; r + 8 <= nf; r += 8) {
+        __m256i fib = _mm256_loadu_si256((const __m256i *)(p->gs_fibers + r));
+        __m256i e0 = _mm256_i32gather_epi32(p->gs_nbr_ptr, fib, 4);
+        __m256i ne = _mm256_sub_epi32(_mm256_i32gather_epi32(p->gs_nbr_ptr + 1, fib, 4), e0);
+        if (_mm256_movemask_epi8(_mm256_cmpgt_epi32(seven, ne)) != -1) break; /* a fiber of 7 or more */
+        __m256 vi = _mm256_i32gather_ps(v, fib, 4), sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps();
+        __m256i c0 = _mm256_add_epi32(e0, e0); /* the coefficients of edge e0: 2 e0, 2 e0 + 1 */
+        for (int e = 0; e < 6; e++) {
+            __m256i in = _mm256_cmpgt_epi32(ne, _mm256_set1_epi32(e)); /* the lanes with an edge e */
+            __m256 inf = _mm256_castsi256_ps(in);
+            __m256i nb = _mm256_mask_i32gather_epi32(_mm256_setzero_si256(), p->gs_nbr + e, e0, in, 4);
+            __m256 d = _mm256_sub_ps(_mm256_mask_i32gather_ps(vi, v, nb, inf, 4), vi);
+            __m256 cx = _mm256_mask_i32gather_ps(_mm256_setzero_ps(), p->gs_coef + 2 * e, c0, inf, 4);
+            __m256 cy = _mm256_mask_i32gather_ps(_mm256_setzero_ps(), p->gs_coef + 2 * e + 1, c0, inf, 4);
+            sx = _mm256_blendv_ps(sx, _mm256_add_ps(sx, _mm256_mul_ps(cx, d)), inf);
+            sy = _mm256_blendv_ps(sy, _mm256_add_ps(sy, _mm256_mul_ps(cy, d)), inf);
+        }
+        __m256 lo = _mm256_unpacklo_ps(sx, sy), hi = _mm256_unpackhi_ps(sx, sy); /* x0 y0 x1 y1 | x4 y4 x5 y5 */
+        _mm256_storeu_ps(y + 2 * r, _mm256_permute2f128_ps(lo, hi, 0x20));
+        _mm256_storeu_ps(y + 2 * r + 8, _mm256_permute2f128_ps(lo, hi, 0x31));
+    }
+    return r;
+}
+#endif
+
 void ok_gradient_solve(const ok_plan *p, const float *v, float *restrict y, float *restrict g) {
     int32_t nf = p->n_fibers, m = 2 * nf;
     for (int32_t r = 0; r < nf; r++) { /* the right side */
+#if OK_AVX2
+        if (ok_avx2 && (r & 7) == 0) { /* eight inner fibers at a time where they are */
+            r = right_side8(p, v, y, r);
+            if (r >= nf) break;
+        }
+#endif
         int32_t i = p->gs_fibers[r], e0 = p->gs_nbr_ptr[i], ne = p->gs_nbr_ptr[i + 1] - e0;
         const int32_t *nb = p->gs_nbr + e0;
         const float *c = p->gs_coef + 2 * (int64_t)e0;
