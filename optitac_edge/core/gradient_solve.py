@@ -344,12 +344,11 @@ def _reproduces(gs: GradientSolve, grad_op: np.ndarray, fill_values: np.ndarray 
 #: A multiply-add of the solve costs about this many of the dense product's (scattered short rows and
 #: divisions against one long vector stream; callgrind, 217 and 1027 fibers).
 SOLVE_WEIGHT = 4
-#: Largest dense gradient operator (2N x N float32) the kernel keeps, bytes: beyond it the solve's far
-#: fewer bytes win at a camera's pace whatever the instructions. A frame at 240 fps finds the operator
-#: evicted (the frame's own pixels, the other sensors' tables): at 217 fibers the 368 KB product made
-#: the pipeline 211 us a paced frame against 61 us with the solve's ~40 KB, 60 against 39 us back to back
-#: (this machine, interleaved), for 13 % more instructions. A Pi 4's L2 (1 MB for four cores) holds six
-#: 217-fibre sensors' tables only without it.
+#: Largest dense gradient operator (2N x N float32) the kernel keeps, bytes: beyond it the solve's fewer bytes
+#: win at a camera's pace whatever the instructions. A frame at 240 fps finds the operator evicted (the
+#: frame's own pixels, other sensors' tables): at 217 fibers the 368 KB product made the pipeline 211 us a
+#: paced frame against 61 us with the solve's 146 KB (its factor twice, by rows and by columns, and the
+#: neighbours), 60 against 39 us back to back (this machine, interleaved).
 DENSE_BYTES_MAX = 64 * 1024
 
 
