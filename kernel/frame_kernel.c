@@ -698,7 +698,6 @@ static void matvec4(const float *op, int32_t rows, int32_t cols, const float *v,
 
 #if OK_AVX2
 /* The same with the eight lanes in one AVX2 register (x86-64 machines that have it, chosen at init). */
-#define SUM8(v) ((((v)[0] + (v)[1]) + ((v)[2] + (v)[3])) + (((v)[4] + (v)[5]) + ((v)[6] + (v)[7])))
 __attribute__((target("avx2"))) static void matvec8(const float *op, int32_t rows, int32_t cols, const float *v,
                                                     float *out) {
     int32_t c8 = cols & ~7, r = 0;

@@ -112,9 +112,6 @@ typedef struct {
     /* rows and columns are padded with zeros to multiples of OK_GS_PAD entries, reaching up to OK_GS_PAD
      * positions before 0 and after m - 1 */
     const float *gs_diag;       /* (m,) C[p, p] */
-    const int32_t *gs_row_first; /* (m,) first column of row p */
-    const int64_t *gs_row_ptr;  /* (m + 1,) gs_row_env[row_ptr[p]:row_ptr[p + 1]] = C[p, row_first[p]:p] */
-    const float *gs_row_env;
     const int32_t *gs_col_last; /* (m,) one past the last row of column p */
     const int64_t *gs_col_ptr;  /* (m + 1,) gs_col_env[col_ptr[p]:col_ptr[p + 1]] = C[p + 1:col_last[p], p] */
     const float *gs_col_env;

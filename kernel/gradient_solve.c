@@ -10,12 +10,12 @@
 /* The gradient solve's indices and envelopes in range (the plan's arrays were sized by the caller). */
 int ok_check_gradient_solve(const ok_plan *p, char *err, int err_len) {
     int32_t nf = p->n_fibers, m = 2 * nf;
-    if (!p->tri_cols || !p->gs_diag || !p->gs_row_first || !p->gs_row_ptr || !p->gs_row_env || !p->gs_col_last
+    if (!p->tri_cols || !p->gs_diag || !p->gs_col_last
         || !p->gs_col_ptr || !p->gs_col_env || !p->gs_nbr_ptr || !p->gs_nbr || !p->gs_coef) {
         snprintf(err, err_len, "kernel plan: an incomplete gradient solve");
         return -1;
     }
-    if (p->gs_row_ptr[0] != 0 || p->gs_col_ptr[0] != 0 || p->gs_nbr_ptr[0] != 0) {
+    if (p->gs_col_ptr[0] != 0 || p->gs_nbr_ptr[0] != 0) {
         snprintf(err, err_len, "kernel plan: gradient solve offsets must start at 0");
         return -1;
     }
@@ -23,8 +23,6 @@ int ok_check_gradient_solve(const ok_plan *p, char *err, int err_len) {
         if (p->gs_fibers[r] < 0 || p->gs_fibers[r] >= nf) { snprintf(err, err_len, "kernel plan: gradient solve fiber out of range"); return -1; }
     for (int32_t q = 0; q < m; q++) {
         if (!(p->gs_diag[q] != 0.0f)
-            || p->gs_row_first[q] < -OK_GS_PAD || p->gs_row_first[q] > q || (q - p->gs_row_first[q]) % OK_GS_PAD
-            || p->gs_row_ptr[q + 1] - p->gs_row_ptr[q] != q - p->gs_row_first[q]
             || p->gs_col_last[q] <= q || p->gs_col_last[q] > m + OK_GS_PAD || (p->gs_col_last[q] - q - 1) % OK_GS_PAD
             || p->gs_col_ptr[q + 1] - p->gs_col_ptr[q] != p->gs_col_last[q] - q - 1) {
             snprintf(err, err_len, "kernel plan: gradient solve row %d out of range", q);
@@ -54,22 +52,41 @@ static inline __attribute__((always_inline)) void axpy8_neg(float *restrict y, f
 #endif
 }
 
-/* The two triangular solves C z = y, C^T x = z in place on y, the rows and columns as axpys. */
-#define GS_SOLVES(AXPY)                                                                                       \
+/* sum a[i] * x[i] for n a multiple of 8: lane l (of eight) sums the elements i = l mod 8 in order, the lanes
+ * added in SUM8's tree: the same bits at every vector width. */
+static inline __attribute__((always_inline)) float dot8(const float *restrict a, const float *restrict x, int64_t n) {
+#if defined(__GNUC__) || defined(__clang__)
+    v4f lo = {0.0f, 0.0f, 0.0f, 0.0f}, hi = {0.0f, 0.0f, 0.0f, 0.0f};
+    for (int64_t i = 0; i < n; i += 8) {
+        lo += load4(a + i) * load4(x + i);
+        hi += load4(a + i + 4) * load4(x + i + 4);
+    }
+    return ((lo[0] + lo[1]) + (lo[2] + lo[3])) + ((hi[0] + hi[1]) + (hi[2] + hi[3]));
+#else
+    float l[8] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    for (int64_t i = 0; i < n; i += 8)
+        for (int j = 0; j < 8; j++) l[j] += a[i + j] * x[i + j];
+    return ((l[0] + l[1]) + (l[2] + l[3])) + ((l[4] + l[5]) + (l[6] + l[7]));
+#endif
+}
+
+/* The two triangular solves C z = y (column by column, axpys down each column) and C^T x = z (each x[q]
+ * from the same column as a dot product with the x already found), in place on y: the factor is read by
+ * columns only, so a frame reads it once (the second pass finds it in the caches). */
+#define GS_SOLVES(AXPY, DOT)                                                                                  \
     do {                                                                                                      \
         for (int32_t q = 0; q < m; q++) { /* C z = y, column by column */                                    \
             float yq = y[q] / p->gs_diag[q];                                                                  \
             y[q] = yq;                                                                                        \
             AXPY(y + q + 1, yq, p->gs_col_env + p->gs_col_ptr[q], p->gs_col_last[q] - q - 1);                 \
         }                                                                                                     \
-        for (int32_t q = m - 1; q >= 0; q--) { /* C^T x = z, row by row */                                   \
-            float yq = y[q] / p->gs_diag[q];                                                                  \
-            y[q] = yq;                                                                                        \
-            AXPY(y + p->gs_row_first[q], yq, p->gs_row_env + p->gs_row_ptr[q], q - p->gs_row_first[q]);       \
+        for (int32_t q = m - 1; q >= 0; q--) { /* C^T x = z: x[q] = (z[q] - C[q+1:, q] . x[q+1:]) / C[q, q] */ \
+            float s = DOT(p->gs_col_env + p->gs_col_ptr[q], y + q + 1, p->gs_col_last[q] - q - 1);           \
+            y[q] = (y[q] - s) / p->gs_diag[q];                                                                \
         }                                                                                                     \
     } while (0)
 
-static void gs_solves4(const ok_plan *p, float *restrict y, int32_t m) { GS_SOLVES(axpy8_neg); }
+static void gs_solves4(const ok_plan *p, float *restrict y, int32_t m) { GS_SOLVES(axpy8_neg, dot8); }
 
 #if OK_AVX2
 __attribute__((target("avx2"), always_inline)) static inline void axpy8_neg_avx2(float *restrict y, float s,
@@ -96,8 +113,20 @@ __attribute__((target("avx2"), always_inline)) static inline void axpy8_neg_avx2
     }
 }
 
+__attribute__((target("avx2"), always_inline)) static inline float dot8_avx2(const float *restrict a,
+                                                                            const float *restrict x, int64_t n) {
+    v8f acc = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    for (int64_t i = 0; i < n; i += 8) {
+        v8f av, xv;
+        LOAD8(av, a + i);
+        LOAD8(xv, x + i);
+        acc += av * xv;
+    }
+    return SUM8(acc);
+}
+
 __attribute__((target("avx2"))) static void gs_solves8(const ok_plan *p, float *restrict y, int32_t m) {
-    GS_SOLVES(axpy8_neg_avx2);
+    GS_SOLVES(axpy8_neg_avx2, dot8_avx2);
 }
 #endif
 

@@ -161,9 +161,6 @@ int main(int argc, char **argv) {
         if (find("gs_fibers")) {
             p.gs_fibers = arr("gs_fibers");
             p.gs_diag = arr("gs_diag");
-            p.gs_row_first = arr("gs_row_first");
-            p.gs_row_ptr = arr("gs_row_ptr");
-            p.gs_row_env = arr("gs_row_env");
             p.gs_col_last = arr("gs_col_last");
             p.gs_col_ptr = arr("gs_col_ptr");
             p.gs_col_env = arr("gs_col_env");

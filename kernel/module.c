@@ -216,19 +216,16 @@ static int plan_models(KernelObject *self, PyObject *plan, ok_plan *p) {
  * array sized here, the offsets' ends against the envelopes; the rest is checked by ok_kernel_init. */
 static int plan_gradient_solve(KernelObject *self, PyObject *plan, ok_plan *p) {
     if (!PyDict_GetItemString(plan, "gs_fibers")) return 0;
-    Py_ssize_t nf = p->n_fibers, m = 2 * nf, n_row = 0, n_col = 0, n_nbr = 0;
+    Py_ssize_t nf = p->n_fibers, m = 2 * nf, n_col = 0, n_nbr = 0;
     if (!(p->gs_fibers = plan_array(self, plan, "gs_fibers", I32, 4, nf, 0, 0, NULL))) return -1;
     if (!(p->gs_diag = plan_array(self, plan, "gs_diag", F32, 4, m, 0, 0, NULL))) return -1;
-    if (!(p->gs_row_first = plan_array(self, plan, "gs_row_first", I32, 4, m, 0, 0, NULL))) return -1;
-    if (!(p->gs_row_ptr = plan_array(self, plan, "gs_row_ptr", I64, 8, m + 1, 0, 0, NULL))) return -1;
-    if (!(p->gs_row_env = plan_array(self, plan, "gs_row_env", F32, 4, 0, 0, 0, &n_row))) return -1;
     if (!(p->gs_col_last = plan_array(self, plan, "gs_col_last", I32, 4, m, 0, 0, NULL))) return -1;
     if (!(p->gs_col_ptr = plan_array(self, plan, "gs_col_ptr", I64, 8, m + 1, 0, 0, NULL))) return -1;
     if (!(p->gs_col_env = plan_array(self, plan, "gs_col_env", F32, 4, 0, 0, 0, &n_col))) return -1;
     if (!(p->gs_nbr_ptr = plan_array(self, plan, "gs_nbr_ptr", I32, 4, nf + 1, 0, 0, NULL))) return -1;
     if (!(p->gs_nbr = plan_array(self, plan, "gs_nbr", I32, 4, 0, 0, 0, &n_nbr))) return -1;
     if (!(p->gs_coef = plan_array(self, plan, "gs_coef", F32, 4, 2 * n_nbr, 0, 0, NULL))) return -1;
-    if (p->gs_row_ptr[m] != n_row || p->gs_col_ptr[m] != n_col || p->gs_nbr_ptr[nf] != n_nbr) {
+    if (p->gs_col_ptr[m] != n_col || p->gs_nbr_ptr[nf] != n_nbr) {
         PyErr_SetString(PyExc_ValueError, "kernel plan: the gradient solve's offsets do not end at its arrays' sizes");
         return -1;
     }

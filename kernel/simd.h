@@ -33,4 +33,7 @@ typedef float v8f __attribute__((vector_size(32)));
 #endif
 #endif
 
+/* The eight lanes of v added in one fixed tree (the same bits from one 8-lane vector or two 4-lane ones). */
+#define SUM8(v) ((((v)[0] + (v)[1]) + ((v)[2] + (v)[3])) + (((v)[4] + (v)[5]) + ((v)[6] + (v)[7])))
+
 #endif

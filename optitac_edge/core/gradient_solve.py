@@ -61,14 +61,10 @@ class GradientSolve:
         The fiber of each pair of positions.
     diag : ndarray, shape (2N,), float32
         ``C[p, p]``.
-    row_first : ndarray, shape (2N,), int32
-        First column of row ``p``'s envelope (``<= p``; down to ``-PAD``: the envelopes are padded
-        with zeros to multiples of :data:`PAD` entries).
-    row_ptr : ndarray, shape (2N + 1,), int64
-        ``row_env[row_ptr[p]:row_ptr[p + 1]]`` is ``C[p, row_first[p]:p]``.
-    row_env : ndarray, float32
     col_last : ndarray, shape (2N,), int32
-        One past the last row of column ``p``'s envelope (``> p``; up to ``2N + PAD``).
+        One past the last row of column ``p``'s envelope (``> p``; up to ``2N + PAD``: the envelope is
+        padded with zeros to multiples of :data:`PAD` entries). Both triangular solves read the factor
+        by its columns (the second as dot products), so a frame reads it once.
     col_ptr : ndarray, shape (2N + 1,), int64
         ``col_env[col_ptr[p]:col_ptr[p + 1]]`` is ``C[p + 1:col_last[p], p]``.
     col_env : ndarray, float32
@@ -82,9 +78,6 @@ class GradientSolve:
 
     fibers: np.ndarray
     diag: np.ndarray
-    row_first: np.ndarray
-    row_ptr: np.ndarray
-    row_env: np.ndarray
     col_last: np.ndarray
     col_ptr: np.ndarray
     col_env: np.ndarray
@@ -99,12 +92,11 @@ class GradientSolve:
 
     def cost(self) -> int:
         """Multiply-adds of one solve (both triangular solves, the rows' loops and the right side)."""
-        return int(self.row_env.size + self.col_env.size + ROW_COST * self.diag.size + 2 * self.nbr.size)
+        return int(2 * self.col_env.size + ROW_COST * self.diag.size + 2 * self.nbr.size)
 
     def kernel_arrays(self) -> dict[str, np.ndarray]:
         """What the compiled kernel reads (:mod:`optitac_edge.core.compiled`)."""
-        return {"gs_fibers": self.fibers, "gs_diag": self.diag, "gs_row_first": self.row_first,
-                "gs_row_ptr": self.row_ptr, "gs_row_env": self.row_env, "gs_col_last": self.col_last,
+        return {"gs_fibers": self.fibers, "gs_diag": self.diag, "gs_col_last": self.col_last,
                 "gs_col_ptr": self.col_ptr, "gs_col_env": self.col_env, "gs_nbr_ptr": self.nbr_ptr,
                 "gs_nbr": self.nbr, "gs_coef": self.coef}
 
@@ -226,41 +218,40 @@ def solve_gradients(gs: GradientSolve, values: np.ndarray) -> np.ndarray:
     src = np.repeat(np.arange(n), np.diff(gs.nbr_ptr))
     rhs = np.zeros((n, 2), dtype=np.float32)
     d = v[gs.nbr] - v[src]
-    for a in range(2):
-        np.add.at(rhs[:, a], src, gs.coef[:, a] * d)
+    for axis in range(2):
+        np.add.at(rhs[:, axis], src, gs.coef[:, axis] * d)
     m = 2 * n
     y = np.zeros(m + 2 * PAD, dtype=np.float32)  # position p at y[PAD + p]
     y[PAD:PAD + m] = rhs[gs.fibers].ravel()
     for p in range(PAD, PAD + m):  # C y = rhs, column by column
         y[p] /= gs.diag[p - PAD]
         y[p + 1:PAD + gs.col_last[p - PAD]] -= y[p] * gs.col_env[gs.col_ptr[p - PAD]:gs.col_ptr[p - PAD + 1]]
-    for p in range(PAD + m - 1, PAD - 1, -1):  # C^T x = y, row by row
-        y[p] /= gs.diag[p - PAD]
-        y[PAD + gs.row_first[p - PAD]:p] -= y[p] * gs.row_env[gs.row_ptr[p - PAD]:gs.row_ptr[p - PAD + 1]]
+    for p in range(PAD + m - 1, PAD - 1, -1):  # C^T x = y: each x from its column, a dot product with the x found
+        env = gs.col_env[gs.col_ptr[p - PAD]:gs.col_ptr[p - PAD + 1]].reshape(-1, 8)
+        lanes = np.zeros(8, dtype=np.float32)
+        for col, known in zip(env, y[p + 1:PAD + gs.col_last[p - PAD]].reshape(-1, 8)):  # lane l: elements l mod 8
+            lanes += col * known
+        s = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]))
+        y[p] = (y[p] - s) / gs.diag[p - PAD]
     g = np.empty((2, n), dtype=np.float32)
     g[:, gs.fibers] = y[PAD:PAD + m].reshape(n, 2).T
     return g.ravel()
 
 
 def _envelope(c: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Row and column envelopes of the lower triangular ``c`` (float32 arrays and their offsets), each
-    padded with zeros to a multiple of :data:`PAD` entries (rows reach back before 0, columns past the end)."""
+    """The column envelope of the lower triangular ``c`` (one past each column's last row, the offsets, the
+    float32 entries), each column padded with zeros to a multiple of :data:`PAD` entries (past the end)."""
     m = c.shape[0]
     nz = c != 0.0
     np.fill_diagonal(nz, True)
-    first = np.argmax(nz, axis=1)  # the first nonzero of each row (the diagonal at worst)
     last = m - np.argmax(nz[::-1], axis=0)  # one past the last nonzero of each column
     pos = np.arange(m)
-    first = (pos - -(-(pos - first) // PAD) * PAD).astype(np.int32)
     last = (pos + 1 + -(-(last - pos - 1) // PAD) * PAD).astype(np.int32)
     c = np.pad(c, PAD)
-    row_ptr = np.zeros(m + 1, dtype=np.int64)
-    np.cumsum(np.arange(m) - first, out=row_ptr[1:])
     col_ptr = np.zeros(m + 1, dtype=np.int64)
     np.cumsum(last - np.arange(m) - 1, out=col_ptr[1:])
-    row_env = np.concatenate([c[PAD + p, PAD + first[p]:PAD + p] for p in range(m)] + [np.zeros(0)])
     col_env = np.concatenate([c[PAD + p + 1:PAD + last[p], PAD + p] for p in range(m)] + [np.zeros(0)])
-    return first, row_ptr, row_env.astype(np.float32), last, col_ptr, col_env.astype(np.float32)
+    return last, col_ptr, col_env.astype(np.float32)
 
 
 def gradient_solve(xy: np.ndarray, triangles: np.ndarray, grad_op: np.ndarray,
@@ -306,9 +297,9 @@ def gradient_solve(xy: np.ndarray, triangles: np.ndarray, grad_op: np.ndarray,
         c = np.linalg.cholesky(k)
     except np.linalg.LinAlgError:
         return None
-    first, row_ptr, row_env, last, col_ptr, col_env = _envelope(c)
-    gs = GradientSolve(fibers=fibers.astype(np.int32), diag=np.diag(c).astype(np.float32), row_first=first,
-                       row_ptr=row_ptr, row_env=row_env, col_last=last, col_ptr=col_ptr, col_env=col_env,
+    last, col_ptr, col_env = _envelope(c)
+    gs = GradientSolve(fibers=fibers.astype(np.int32), diag=np.diag(c).astype(np.float32), col_last=last,
+                       col_ptr=col_ptr, col_env=col_env,
                        nbr_ptr=nbr_ptr, nbr=nbr, coef=coef.astype(np.float32))
     return gs if _reproduces(gs, grad_op, fill_values) else None
 
