@@ -338,8 +338,8 @@ SOLVE_WEIGHT = 4
 #: Largest dense gradient operator (2N x N float32) the kernel keeps, bytes: beyond it the solve's fewer bytes
 #: win at a camera's pace whatever the instructions. A frame at 240 fps finds the operator evicted (the
 #: frame's own pixels, other sensors' tables): at 217 fibers the 368 KB product made the pipeline 211 us a
-#: paced frame against 61 us with the solve's 146 KB (its factor twice, by rows and by columns, and the
-#: neighbours), 60 against 39 us back to back (this machine, interleaved).
+#: paced frame against 61 us with the solve's 146 KB (then its factor twice, by rows and by columns; 84 KB
+#: since the factor is stored once), 60 against 39 us back to back (this machine, interleaved).
 DENSE_BYTES_MAX = 64 * 1024
 
 
