@@ -15,7 +15,7 @@ from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.recording import RecordingCamera
 from optitac_edge.io.recording import RecordingMeta
 from optitac_edge.io.recording_writer import RecordingWriter
-from optitac_edge.io.threads import name_this_thread
+from optitac_edge.io.threads import NamedThread, name_this_thread
 from optitac_edge.service.stage_times import StageTimes
 
 
@@ -108,3 +108,16 @@ def test_run_times_its_start_up_at_debug_level(tmp_path, caplog) -> None:
     ages = [m[1] for m in STARTUP.marks]
     assert ages == sorted(ages) and ages[0] > 0
     assert sum("start-up: bundles done" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_the_services_threads_carry_their_names_to_the_operating_system():
+    """A NamedThread (every thread the service starts) shows its Python name in /proc, as ``top -H`` does."""
+    seen: list[str] = []
+
+    def work() -> None:
+        seen.append(Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip())
+
+    t = NamedThread(target=work, name="optitac-serial-tx", daemon=True)
+    t.start()
+    t.join()
+    assert seen == ["optitac-serial-"]

@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 from optitac_edge.api.readings import Reading
 from optitac_edge.errors import OptiTacError
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class BackgroundReader:
         self._tares_asked = self._tares_done = 0
         self._tare_ready = False  # a reading after the last tare done had its baseline ready
         self._stopping = threading.Event()
-        self._thread = threading.Thread(target=named_target(name, self._run), name=name, daemon=True)
+        self._thread = NamedThread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     @property

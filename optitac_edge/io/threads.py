@@ -5,7 +5,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import sys
-from collections.abc import Callable
+import threading
 from functools import cache
 
 #: ``prctl`` option that names the calling thread (linux/prctl.h).
@@ -38,11 +38,10 @@ def name_this_thread(name: str) -> bool:
     return prctl(PR_SET_NAME, name.encode()[:MAX_NAME_BYTES], 0, 0, 0) == 0
 
 
-def named_target(name: str, target: Callable[..., object]) -> Callable[..., object]:
-    """``target`` run in a thread that first names itself ``name`` (:func:`name_this_thread`)."""
+class NamedThread(threading.Thread):
+    """A :class:`threading.Thread` that gives itself its ``name`` in the operating system before it runs
+    (:func:`name_this_thread`): every thread the service starts is one."""
 
-    def run(*args: object, **kwargs: object) -> object:
-        name_this_thread(name)
-        return target(*args, **kwargs)
-
-    return run
+    def run(self) -> None:
+        name_this_thread(self.name)
+        super().run()

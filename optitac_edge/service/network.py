@@ -32,7 +32,7 @@ from optitac_edge.io.protocol.messages import TEMP_UNKNOWN, SensorState, StatusM
 from optitac_edge.io.publishers.base import Publisher
 from optitac_edge.io.ros2 import messages as msgs
 from optitac_edge.io.ros2.rmw_zenoh import check_ros_name
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -231,7 +231,7 @@ class NetworkOutput:
         self._abandon = threading.Event()
         self._left_open = False
         self.errors = 0
-        self._thread = threading.Thread(target=named_target("optitac-publish", self._run), name="optitac-publish", daemon=True)
+        self._thread = NamedThread(target=self._run, name="optitac-publish", daemon=True)
         self._thread.start()
 
     # -- the frame loop's side: copy and return ----------------------------------

@@ -16,7 +16,7 @@ import os
 import threading
 from collections.abc import Callable, Sequence
 
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 
 #: Cores kept free of sensor work: the camera's and the link's threads, the loop's own.
 RESERVED_CORES = 2
@@ -40,7 +40,7 @@ class _Worker:
         self.go = threading.Event()
         self.done = threading.Event()
         self.stopping = False
-        self.thread = threading.Thread(target=named_target(name, self._run), name=name, daemon=True)
+        self.thread = NamedThread(target=self._run, name=name, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:

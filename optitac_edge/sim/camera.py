@@ -19,7 +19,7 @@ from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
 from optitac_edge.io.clock import Clock
 from optitac_edge.io.layout_csv import load_layout_csv
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 from optitac_edge.sim.arrays import optics_for, skin_for
 from optitac_edge.sim.drift import SessionDrift
 from optitac_edge.sim.motion_scenarios import LIVE_MOTION_SCENARIOS, MotionProgram
@@ -279,8 +279,7 @@ class SimCamera(Camera):
         after a second behind (e.g. suspended) the clock resynchronises.
         """
         if self._render_thread is None:
-            self._render_thread = threading.Thread(target=named_target("optitac-sim-render", self._render_loop), name="optitac-sim-render",
-                                                   daemon=True)
+            self._render_thread = NamedThread(target=self._render_loop, name="optitac-sim-render", daemon=True)
             self._render_thread.start()
         period = 1e9 / self.fps
         deadline = time.monotonic() + max(timeout_s, 0.0)

@@ -12,7 +12,7 @@ import numpy as np
 
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 
 
 def dropped_in_stall(now_ns: int, due_ns: int, dropped_published_ns: int, period_ns: float) -> bool:
@@ -56,7 +56,7 @@ class PacedReplayCamera(Camera):
         self.stalls: list[tuple[int, int]] = []
         self._cond = threading.Condition()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=named_target("bench-capture", self._capture), name="bench-capture", daemon=True)
+        self._thread = NamedThread(target=self._capture, name="bench-capture", daemon=True)
 
     def _capture(self) -> None:
         frames, rest = self._frames, self._rest

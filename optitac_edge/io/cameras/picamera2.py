@@ -35,7 +35,7 @@ import numpy as np
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import FrameRing
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 from optitac_edge.text import fields
 
 if TYPE_CHECKING:
@@ -189,7 +189,7 @@ class Picamera2Camera(Camera):
             if lock:
                 self._lock_controls(exposure_us, analogue_gain, colour_gains, warmup_frames,
                                     settle_frames, timeout_s)
-            self._thread = threading.Thread(target=named_target("picamera2-grab", self._grab_loop), name="picamera2-grab", daemon=True)
+            self._thread = NamedThread(target=self._grab_loop, name="picamera2-grab", daemon=True)
             self._thread.start()
             # the first frame proves the grab thread runs (with lock=False nothing captured yet)
             if not self._ring.wait_first(self._timeout_s):

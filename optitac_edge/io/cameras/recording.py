@@ -12,7 +12,7 @@ from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import check_queue_frames
 from optitac_edge.io.recording import Recording
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 
 if TYPE_CHECKING:
     from optitac_edge.io.cameras.section import CameraConfig
@@ -80,8 +80,7 @@ class RecordingCamera(Camera):
         self.overwritten = 0
         self._stop = threading.Event()
         if live:
-            self._thread = threading.Thread(target=named_target("optitac-replay", self._capture_loop),
-                                            name="optitac-replay", daemon=True)
+            self._thread = NamedThread(target=self._capture_loop, name="optitac-replay", daemon=True)
             self._thread.start()
 
     def _read_internal(self, timeout_s: float) -> CapturedFrame | None:

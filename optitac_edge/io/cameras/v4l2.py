@@ -31,7 +31,7 @@ import numpy as np
 from optitac_edge.errors import CameraError
 from optitac_edge.io.cameras.base import Camera, CapturedFrame
 from optitac_edge.io.cameras.frame_ring import FrameRing
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 
 if TYPE_CHECKING:
     from optitac_edge.io.cameras.section import CameraConfig
@@ -201,7 +201,7 @@ class V4L2Camera(Camera):
         self._raw = np.empty((self.height, self.width, 2), np.uint8) if fourcc == "YUYV" and pipeline is None \
             else None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=named_target("v4l2-grab", self._grab_loop), name="v4l2-grab", daemon=True)
+        self._thread = NamedThread(target=self._grab_loop, name="v4l2-grab", daemon=True)
         self._thread.start()
         try:  # the first frame proves the device streams in the promised format
             if not self._ring.wait_first(open_timeout_s):

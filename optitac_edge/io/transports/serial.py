@@ -28,7 +28,7 @@ from optitac_edge.errors import TransportError
 from optitac_edge.io.protocol.messages import Command
 from optitac_edge.io.protocol.packet import Packet
 from optitac_edge.io.protocol.wire import Frame
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 from optitac_edge.io.transports.base import Transport
 from optitac_edge.io.transports.serial_port import PortKeeper, SerialTiming
 from optitac_edge.io.transports.serial_reader import CommandReader
@@ -109,8 +109,8 @@ class SerialTransport(Transport):
         self._keeper = PortKeeper(url, open_port, self.writer, self.reader.reset, self.reader.feed,
                                   self.counters, timing, self._stop)
         self._keeper.open_first(require_port)
-        self._io_thread = threading.Thread(target=named_target("optitac-serial-io", self._keeper.run), name="optitac-serial-io", daemon=True)
-        self._writer_thread = threading.Thread(target=named_target("optitac-serial-tx", self.writer.run), name="optitac-serial-tx", daemon=True)
+        self._io_thread = NamedThread(target=self._keeper.run, name="optitac-serial-io", daemon=True)
+        self._writer_thread = NamedThread(target=self.writer.run, name="optitac-serial-tx", daemon=True)
         self._io_thread.start()
         self._writer_thread.start()
 

@@ -31,7 +31,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.frames import to_gray
 from optitac_edge.core.pipeline import MAX_CONTACTS
 from optitac_edge.errors import OptiTacError
-from optitac_edge.io.threads import named_target
+from optitac_edge.io.threads import NamedThread
 from optitac_edge.service.view.render import DARK_FRACTION, SATURATED_LEVEL, Published
 
 if TYPE_CHECKING:
@@ -143,7 +143,7 @@ class LiveView:
         self.swap_pipeline: Callable[[Pipeline], None] | None = None
         #: Told every prompt of the guided orientation ("" when it ends), e.g. a simulated operator's.
         self.on_prompt: Callable[[str], None] | None = None
-        self._thread = threading.Thread(target=named_target("optitac-view", self._work), name="optitac-view", daemon=True)
+        self._thread = NamedThread(target=self._work, name="optitac-view", daemon=True)
         self._thread.start()
 
     # -- the frame loop's side ----------------------------------------------------------------
