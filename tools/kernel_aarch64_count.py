@@ -79,8 +79,7 @@ def _configs(workdir: Path) -> list[tuple[str, Any, list[Any]]]:
 
 
 def _run(harness: str, bundle: Any, frames: list[Any], n: int, workdir: Path, name: str) -> int:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from kernel_aarch64 import write_vectors
+    from kernel_aarch64 import write_vectors  # tools/, the script's own directory
 
     from optitac_edge.core.pipeline import Pipeline
 

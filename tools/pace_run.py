@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pty
 import subprocess
 import sys
 import tempfile
@@ -42,6 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from optitac_edge.devtools.bench.link import open_pty
 
 FPS = 240.0
 CONFIGS = ("gray0", "gray1", "rgb1", "hand6")
@@ -134,14 +135,13 @@ def _drain(fd: int, stop: threading.Event, got: list[int]) -> None:
 
 def run_once(prep: dict[str, Any], backend: str, warmup_s: float, seconds: float) -> dict[str, Any]:
     """One ``optitac-edge run`` on the configuration's board: its threads' CPU over the window, its stages."""
-    master, slave = pty.openpty()
-    port = os.ttyname(slave)
+    master, slave, port = open_pty()
     stop, got = threading.Event(), [0]
     drainer = threading.Thread(target=_drain, args=(master, stop, got), daemon=True)
     drainer.start()
-    env = dict(os.environ, OPTITAC_EDGE_KERNEL="numpy" if backend == "numpy" else "")
-    if backend != "numpy":
-        env.pop("OPTITAC_EDGE_KERNEL")
+    env = {k: v for k, v in os.environ.items() if k != "OPTITAC_EDGE_KERNEL"}
+    if backend == "numpy":
+        env["OPTITAC_EDGE_KERNEL"] = "numpy"
     with tempfile.TemporaryDirectory(prefix="optitac-pace-") as tmp:
         stages_path = Path(tmp) / "stages.json"
         cmd = [sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(prep["board"]), "--serial", port,
@@ -180,8 +180,7 @@ def startup_once(prep: dict[str, Any]) -> dict[str, Any]:
     """Process start to the first byte on the link (``optitac-edge run`` on the configuration's board, its
     bundle stored), and the run's own start-up marks (``-v``: imports, config, camera, link, bundles, kernel
     plans, first frame; ms after the process started)."""
-    master, slave = pty.openpty()
-    port = os.ttyname(slave)
+    master, slave, port = open_pty()
     cmd = [sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(prep["board"]), "--serial", port,
            "--duration", "1.5", "-v"]
     t0 = time.monotonic_ns()

@@ -10,10 +10,8 @@ frame in a buffer allocated once; nothing is logged per frame. docs/performance.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,7 +56,3 @@ class StageTimes:
             out[name] = ({"median_us": round(float(np.median(col)), 2), "mean_us": round(float(col.mean()), 2),
                           "p99_us": round(float(np.percentile(col, 99)), 2)} if len(col) else None)
         return out
-
-    def write(self, path: Path, skip: int = 0, **extra: Any) -> None:
-        """:meth:`summary` (and ``extra``) as JSON."""
-        path.write_text(json.dumps({**self.summary(skip), **extra}, indent=1) + "\n")
