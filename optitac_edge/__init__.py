@@ -1,7 +1,7 @@
 """optitac-edge: OptiTac optical-fiber tactile sensor processing for robot grippers.
 
 The public Python API (docs/api.md) is what this package exports: :func:`open_sensor`, :class:`Sensor`,
-:class:`Reading`, :class:`Contact`, :class:`Status` and :class:`OptiTacError`. They are imported when first
+:func:`open_sensor_process`, :class:`SensorProcess`, :class:`Reading`, :class:`Contact`, :class:`Status` and :class:`OptiTacError`. They are imported when first
 used, so ``import optitac_edge`` stays light; nothing in the package touches hardware at import time.
 """
 
@@ -12,10 +12,11 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 #: The names the project promises to keep (tests/test_api.py lists them).
-__all__ = ["Contact", "OptiTacError", "Reading", "Sensor", "Status", "__version__", "open_sensor"]
+__all__ = ["Contact", "OptiTacError", "Reading", "Sensor", "SensorProcess", "Status", "__version__", "open_sensor",
+           "open_sensor_process"]
 
 if TYPE_CHECKING:
-    from optitac_edge.api import Contact, Reading, Sensor, Status, open_sensor
+    from optitac_edge.api import Contact, Reading, Sensor, SensorProcess, Status, open_sensor, open_sensor_process
     from optitac_edge.errors import OptiTacError
 
 

@@ -16,7 +16,8 @@ import pytest
 import optitac_edge as ot
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "api.md"
-PROMISED = ["Contact", "OptiTacError", "Reading", "Sensor", "Status", "__version__", "open_sensor"]
+PROMISED = ["Contact", "OptiTacError", "Reading", "Sensor", "SensorProcess", "Status", "__version__", "open_sensor",
+            "open_sensor_process"]
 
 
 def _examples() -> list[str]:

@@ -184,3 +184,50 @@ def test_a_recording_as_lerobot_records_counts_every_frame_of_both_sources(regis
     assert abs(counts["sensor_read"] - counts["sensor_in_dataset"] - counts["sensor_unread"]) <= 1
     assert counts["sensor_read"] + counts["sensor_dropped"] >= 0.8 * 3 * 240
     assert counts["threads_left"] == 0
+    assert counts["process"] is not None and not counts["process_left"]  # the sensor's own process, ended
+
+
+class _LaggingSensor:
+    """A sensor whose reader is still behind its camera when started: the first readings (baseline ready) were
+    captured a second ago, then it catches up (each reading stamped as it is returned)."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def start(self) -> None:
+        pass
+
+    def status(self):
+        import optitac_edge as ot
+
+        return ot.Status(0, "sim", 0, 0, 0, True, "", True, 240.0)
+
+    def latest(self, timeout_s: float = 0.0):
+        import time
+
+        import optitac_edge as ot
+
+        self.calls += 1
+        age_ns = 1_000_000_000 if self.calls <= 5 else 0
+        return ot.Reading(0, self.calls, time.monotonic_ns() - age_ns, (), (), math.nan, False, True, False,
+                          surface=np.zeros((8, 8), np.float32))
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("process", [True, False])
+def test_connect_returns_once_the_sensor_has_caught_up_with_its_camera(registered, monkeypatch, process):
+    """The frames a camera made while its sensor opened are behind the reader when connect() returns only once a
+    reading is fresh (before: at the first ready baseline, and the catching up was counted as drops while
+    LeRobot recorded)."""
+    import optitac_edge as ot
+
+    fake = _LaggingSensor()
+    monkeypatch.setattr(ot, "open_sensor_process" if process else "open_sensor", lambda *a, **k: fake)
+    from lerobot.cameras.utils import make_cameras_from_configs
+
+    tactile = make_cameras_from_configs({"tactile": _sim(process=process)})["tactile"]
+    tactile.connect()
+    assert fake.calls == 6 and tactile.last_reading.frame == 6
+    tactile.disconnect()

@@ -21,6 +21,7 @@ source was lost uncounted or a thread is left.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import threading
 import time
@@ -108,7 +109,19 @@ def _scene_camera_classes() -> tuple[type, type]:
     return SceneSimConfig, SceneSim
 
 
-def run(seconds: float, workdir: Path, sensor_fps: float = 240.0, fps: int = 30) -> dict[str, Any]:
+def _alive(pid: int | None) -> bool:
+    """A process ``pid`` still exists (None: there was none)."""
+    if pid is None:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def run(seconds: float, workdir: Path, sensor_fps: float = 240.0, fps: int = 30,
+        process: bool = True) -> dict[str, Any]:
     """Record ``seconds`` at ``fps``; the counts (see the module's description)."""
     from lerobot.cameras.utils import make_cameras_from_configs  # noqa: F401 - the camera registry, first
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -122,7 +135,7 @@ def run(seconds: float, workdir: Path, sensor_fps: float = 240.0, fps: int = 30)
     before = set(threading.enumerate())
     config_class = RobotConfig.get_choice_class("optitac")
     camera_config = type(config_class().tactile)
-    config = config_class(tactile=camera_config(fps=fps, sensor_fps=sensor_fps),
+    config = config_class(tactile=camera_config(fps=fps, sensor_fps=sensor_fps, process=process),
                           cameras={"scene": scene_config(fps=fps)})
     robot = make_robot_from_config(config)
     robot.connect()
@@ -147,6 +160,7 @@ def run(seconds: float, workdir: Path, sensor_fps: float = 240.0, fps: int = 30)
         time.sleep(max(t_next - time.perf_counter(), 0.0))
     end = robot.status()
     scene_end = scene.delivered
+    child = getattr(robot.tactile.sensor, "pid", None)  # the sensor's process (process=True)
     robot.disconnect()
     # the plugins' threads (the sensor's reader and its simulated camera's renderer) and the scene camera's; not
     # LeRobot's image writers (stopped with the dataset) nor tqdm's monitor
@@ -162,7 +176,7 @@ def run(seconds: float, workdir: Path, sensor_fps: float = 240.0, fps: int = 30)
         "sensor_read": end.frames - start.frames, "sensor_dropped": end.dropped - start.dropped,
         "sensor_in_dataset": len(set(sensor_frames)), "sensor_unread": end.unread - start.unread,
         "sensor_frame_span": sensor_frames[-1] - sensor_frames[0] + 1, "threads_left": len(left),
-        "threads": ", ".join(sorted(left)),
+        "threads": ", ".join(sorted(left)), "process": child, "process_left": _alive(child),
     }
 
 
@@ -172,17 +186,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sensor-fps", type=float, default=240.0)
     p.add_argument("--fps", type=int, default=30)
     p.add_argument("--workdir", type=Path, required=True, help="where the dataset is written (new)")
+    p.add_argument("--in-process", action="store_true",
+                   help="the sensor in LeRobot's process (the camera plugin's process=False)")
     args = p.parse_args(argv)
     args.workdir.mkdir(parents=True)
-    c = run(args.seconds, args.workdir, args.sensor_fps, args.fps)
+    c = run(args.seconds, args.workdir, args.sensor_fps, args.fps, process=not args.in_process)
     print(f"dataset: {c['dataset_frames']} frames at {args.fps} fps ({c['ticks']} ticks)")
     print(f"scene camera: {c['scene_delivered']} frames delivered, {c['scene_recorded']} recorded, "
           f"{c['scene_missed']} missed")
     print(f"optitac: {c['sensor_read']} frames read at {args.sensor_fps:g} fps, {c['sensor_dropped']} dropped by its "
           f"camera; {c['sensor_in_dataset']} in the dataset (the newest at each tick), {c['sensor_unread']} counted "
           f"unread")
+    where = "LeRobot's process" if c["process"] is None else f"process {c['process']}"
+    print(f"the sensor read in {where}; left after disconnect: {'yes' if c['process_left'] else 'no'}")
     print(f"threads left after disconnect: {c['threads_left']} {c['threads']}".rstrip())
-    lost = c["scene_missed"] or c["sensor_dropped"] or c["dataset_frames"] != c["ticks"] or c["threads_left"]
+    lost = c["scene_missed"] or c["sensor_dropped"] or c["dataset_frames"] != c["ticks"] or c["threads_left"] or c["process_left"]
     return 1 if lost else 0
 
 

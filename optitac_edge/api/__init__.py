@@ -19,5 +19,6 @@ as ``run`` does.
 
 from optitac_edge.api.readings import Contact, Reading, Status
 from optitac_edge.api.sensor import Sensor, open_sensor
+from optitac_edge.api.sensor_process import SensorProcess, open_sensor_process
 
-__all__ = ["Contact", "Reading", "Sensor", "Status", "open_sensor"]
+__all__ = ["Contact", "Reading", "Sensor", "SensorProcess", "Status", "open_sensor", "open_sensor_process"]

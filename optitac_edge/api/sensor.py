@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
@@ -51,6 +51,8 @@ class Sensor:
         self.sensor_id: int = int(sensor.sensor.id)
         #: Its name in the board config.
         self.name: str = str(sensor.sensor.name)
+        #: The longest wait for one frame, s (the camera's ``timeout_s`` in the board config).
+        self.camera_timeout_s: float = float(board.camera.timeout_s)
 
     def _check_open(self) -> None:
         if self._closed:
@@ -101,19 +103,7 @@ class Sensor:
     def readings(self, duration_s: float | None = None, timeout_s: float = 1.0) -> Iterator[Reading]:
         """Every frame's reading, for ``duration_s`` of frame time (None: until the camera or recording ends
         or ``timeout_s`` passes without a frame)."""
-        if duration_s is not None:
-            _seconds(duration_s, "duration_s")
-        _seconds(timeout_s, "timeout_s")
-        end: int | None = None
-        while True:
-            reading = self.read(timeout_s)
-            if reading is None:
-                return
-            if duration_s is not None:
-                end = reading.t_ns + round(duration_s * 1e9) if end is None else end
-                if reading.t_ns >= end:
-                    return
-            yield reading
+        return iter_readings(self.read, duration_s, timeout_s)
 
     def __iter__(self) -> Iterator[Reading]:
         return self.readings()
@@ -127,7 +117,7 @@ class Sensor:
             return
         self.stop()
         self._reader = BackgroundReader(self._step, self._pipeline.reset_baseline,
-                                        float(self._board.camera.timeout_s), f"optitac-sensor-{self.sensor_id}")
+                                        self.camera_timeout_s, f"optitac-sensor-{self.sensor_id}")
 
     def latest(self, timeout_s: float = 0.0) -> Reading | None:
         """The newest reading not returned before, at once (default), or waiting up to ``timeout_s`` for one;
@@ -213,6 +203,29 @@ class Sensor:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+def iter_readings(read: Callable[[float], Reading | None], duration_s: float | None,
+                  timeout_s: float) -> Iterator[Reading]:
+    """The readings ``read(timeout_s)`` returns, for ``duration_s`` of frame time (None: until it returns None)."""
+    if duration_s is not None:
+        _seconds(duration_s, "duration_s")
+    _seconds(timeout_s, "timeout_s")
+    return _readings(read, duration_s, timeout_s)
+
+
+def _readings(read: Callable[[float], Reading | None], duration_s: float | None,
+              timeout_s: float) -> Iterator[Reading]:
+    end: int | None = None
+    while True:
+        reading = read(timeout_s)
+        if reading is None:
+            return
+        if duration_s is not None:
+            end = reading.t_ns + round(duration_s * 1e9) if end is None else end
+            if reading.t_ns >= end:
+                return
+        yield reading
 
 
 def _seconds(value: object, name: str) -> float:

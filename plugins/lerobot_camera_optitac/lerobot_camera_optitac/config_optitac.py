@@ -34,6 +34,9 @@ class OptiTacCameraConfig(CameraConfig):
     queue_frames : int
         Frames the sensor's camera keeps for its reader (``camera.queue_frames``, 1-16; default 16, the most: a
         recording's reader may fall 16 frames behind, 67 ms at 240 fps, before a frame is dropped, and counted).
+    process : bool
+        Read the sensor in a process of its own (default; ``open_sensor_process``), so that LeRobot's own threads
+        cannot delay its frames; False: in LeRobot's process (``open_sensor``).
     warmup_s : float
         ``connect()`` waits up to this long for the sensor's baseline (its first frames, nothing touching).
     """
@@ -47,6 +50,7 @@ class OptiTacCameraConfig(CameraConfig):
     sensor_fps: float | None = None
     scenario: str | None = None
     queue_frames: int = 16
+    process: bool = True
     warmup_s: float = 10.0
 
     def __post_init__(self) -> None:

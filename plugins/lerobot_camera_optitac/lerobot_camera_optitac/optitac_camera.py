@@ -1,7 +1,9 @@
 """An OptiTac sensor as a LeRobot camera: the tactile surface as a 224 x 224 RGB image.
 
-The sensor is opened through optitac-edge's public API (``open_sensor``) and read in its own background thread
-(``Sensor.start``) at the sensor's rate; LeRobot takes the newest reading at its own rate. Every sensor frame is
+The sensor is opened through optitac-edge's public API, in a process of its own by default
+(``open_sensor_process``: LeRobot's threads, encoding video and writing the dataset, cannot hold its frames back;
+``process=False``: ``open_sensor``, in LeRobot's process), and read in its own background thread
+(``start``) at the sensor's rate; LeRobot takes the newest reading at its own rate. Every sensor frame is
 either taken or counted (``status().unread``); frames the sensor's camera lost are counted too
 (``status().dropped``), and :attr:`OptiTacCamera.taken` counts the images LeRobot got.
 """
@@ -19,6 +21,10 @@ import optitac_edge as ot
 from lerobot_camera_optitac.config_optitac import OptiTacCameraConfig
 from optitac_edge.devtools.lerobot_features import surface_image
 
+#: ``connect()`` returns once a reading is at most this many frame periods old (the camera's queue holds up to
+#: 16: a reader within 4 of the newest frame has caught up and has the queue's slack ahead of it).
+CAUGHT_UP_FRAMES = 4
+
 
 class OptiTacCamera(Camera):
     """LeRobot's camera contract over one OptiTac sensor (``connect``, ``read``, ``async_read``,
@@ -27,7 +33,7 @@ class OptiTacCamera(Camera):
     def __init__(self, config: OptiTacCameraConfig) -> None:
         super().__init__(config)
         self.config = config
-        self.sensor: ot.Sensor | None = None
+        self.sensor: ot.Sensor | ot.SensorProcess | None = None
         self._last: tuple[np.ndarray, int] | None = None  # the newest image and its capture time (ns)
         #: The reading of the image returned last (the robot plugin reads its numbers from it).
         self.last_reading: ot.Reading | None = None
@@ -49,33 +55,39 @@ class OptiTacCamera(Camera):
         return [{"type": "optitac", "id": name, "name": f"optitac-edge board {name}"} for name in available_boards()]
 
     def connect(self, warmup: bool = True) -> None:
-        """Open the sensor and read it in the background; with ``warmup``, wait for its baseline.
+        """Open the sensor and read it in the background; with ``warmup``, wait until its baseline is ready and
+        its reader has caught up with the camera (a reading at most :data:`CAUGHT_UP_FRAMES` frame periods old:
+        the frames the camera made while the sensor was opening are behind it, dropped and counted, before
+        LeRobot's first frame).
 
         Raises
         ------
         DeviceAlreadyConnectedError
         ConnectionError
-            The sensor cannot be opened, or its baseline is not ready within ``warmup_s`` (one line).
+            The sensor cannot be opened, or is not ready and caught up within ``warmup_s`` (one line).
         """
         if self.sensor is not None:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
         c = self.config
         try:
-            sensor = ot.open_sensor(c.board, sensor=c.sensor, cal=c.cal, settings=c.settings(), arrays=True)
+            opener = ot.open_sensor_process if c.process else ot.open_sensor
+            sensor = opener(c.board, sensor=c.sensor, cal=c.cal, settings=c.settings(), arrays=True)
         except ot.OptiTacError as exc:
             raise ConnectionError(f"{self}: {exc}") from None
         sensor.start()
         self.sensor = sensor
         if warmup:
+            caught_up_ns = CAUGHT_UP_FRAMES * 1e9 / sensor.status().fps
             deadline = time.monotonic() + c.warmup_s
             while (reading := sensor.latest(timeout_s=max(deadline - time.monotonic(), 0.0))) is not None:
                 self._keep(reading)
-                if reading.baseline_ready:
+                if reading.baseline_ready and time.monotonic_ns() - reading.t_ns <= caught_up_ns:
                     return
             self.disconnect()
-            raise ConnectionError(f"{self}: no ready baseline within {c.warmup_s:g} s")
+            raise ConnectionError(f"{self}: no ready baseline within {c.warmup_s:g} s, or the sensor did not "
+                                  "keep up with its camera")
 
-    def _sensor(self) -> ot.Sensor:
+    def _sensor(self) -> ot.Sensor | ot.SensorProcess:
         if self.sensor is None:
             raise DeviceNotConnectedError(f"{self} is not connected. Run `.connect()` first.")
         return self.sensor

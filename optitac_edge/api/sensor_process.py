@@ -1,0 +1,257 @@
+"""A sensor read in a process of its own (:func:`open_sensor_process`), so that the threads of the program that
+reads it (a LeRobot recorder encoding video, a policy) cannot hold the sensor's frames back.
+
+The child is ``python -c CHILD FD``: it opens the sensor with :func:`open_sensor` (the
+same pipeline, nothing copied) and answers each call of the parent's :class:`SensorProcess` over a socket pair
+(:class:`multiprocessing.connection.Connection` framing: one call, one answer). The parent keeps no thread: a
+reading crosses the socket only when it is asked for. The child ends when it is told to, and by itself when its
+end of the socket reads end-of-file (the parent closed it, or died).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator, Mapping
+from multiprocessing.connection import Connection
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, cast
+
+from optitac_edge.api.readings import Reading, Status
+from optitac_edge.api.sensor import Sensor, iter_readings, open_sensor
+from optitac_edge.errors import OptiTacError
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
+
+log = logging.getLogger(__name__)
+
+#: The calls the child answers: :class:`Sensor` methods, each with positional arguments only.
+CALLS = frozenset({"read", "start", "latest", "stop", "tare", "status"})
+#: The child's program: :func:`main` of this module on the socket's descriptor (not ``-m``: this module is
+#: imported already by the package, and ``runpy`` would run a second copy of it).
+CHILD = "import sys; from optitac_edge.api.sensor_process import main; sys.exit(main(sys.argv[1:]))"
+#: How much longer than the call's own wait the parent waits for an answer before it ends the child, s.
+ANSWER_MARGIN_S = 10.0
+#: The longest the parent waits for the child to open its sensor (import, camera, a fiber map from rest), s.
+OPEN_TIMEOUT_S = 120.0
+
+
+class SensorProcess:
+    """One sensor of a board, open in a child process. Use :func:`open_sensor_process`.
+
+    The methods of :class:`Sensor` (:meth:`read`, :meth:`readings`, :meth:`start`, :meth:`latest`,
+    :meth:`stop`, :meth:`tare`, :meth:`status`, :meth:`close`), with the same arguments, results and errors;
+    each is one call to the child and its answer (a reading with ``arrays`` is ~41 KB: a call takes ~0.1 ms).
+    Read in the background (:meth:`start`), the child's thread reads every frame at the camera's rate whatever
+    this process does; :meth:`latest` fetches the newest. Use it from one thread.
+    """
+
+    def __init__(self, process: subprocess.Popen[bytes], conn: Connection, sensor_id: int, name: str,
+                 camera_timeout_s: float) -> None:
+        self._process, self._conn = process, conn
+        self._closed = False
+        self._camera_timeout_s = camera_timeout_s
+        #: The board config's id of this sensor (what the MCU hears).
+        self.sensor_id = sensor_id
+        #: Its name in the board config.
+        self.name = name
+
+    @property
+    def pid(self) -> int:
+        """The child's process id."""
+        return self._process.pid
+
+    def _call(self, method: str, *args: object, wait_s: float = 0.0) -> object:
+        """``method(*args)`` in the child; its result, or its error raised here."""
+        if self._closed:
+            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
+        limit = wait_s + self._camera_timeout_s + ANSWER_MARGIN_S
+        try:
+            self._conn.send((method, args))
+            if not self._conn.poll(limit):
+                raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process did not answer {method}() "
+                                   f"within {limit:.1f} s; it was ended")
+            kind, value = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            self._end()
+            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process ended "
+                               f"(exit status {self._process.poll()}): {type(exc).__name__}") from None
+        except OptiTacError:
+            self._end()
+            raise
+        if kind == "error":
+            raise value
+        return value
+
+    def read(self, timeout_s: float = 1.0) -> Reading | None:
+        """:meth:`Sensor.read` in the child."""
+        return cast("Reading | None", self._call("read", timeout_s, wait_s=_wait(timeout_s)))
+
+    def readings(self, duration_s: float | None = None, timeout_s: float = 1.0) -> Iterator[Reading]:
+        """:meth:`Sensor.readings`: every frame's reading, for ``duration_s`` of frame time."""
+        return iter_readings(self.read, duration_s, timeout_s)
+
+    def __iter__(self) -> Iterator[Reading]:
+        return self.readings()
+
+    def start(self) -> None:
+        """:meth:`Sensor.start`: the child reads every frame in a thread of its own."""
+        self._call("start")
+
+    def latest(self, timeout_s: float = 0.0) -> Reading | None:
+        """:meth:`Sensor.latest`: the newest reading not returned before."""
+        return cast("Reading | None", self._call("latest", timeout_s, wait_s=_wait(timeout_s)))
+
+    def stop(self) -> None:
+        """:meth:`Sensor.stop` in the child."""
+        self._call("stop")
+
+    def tare(self, wait_s: float | None = None) -> bool:
+        """:meth:`Sensor.tare` in the child."""
+        return bool(self._call("tare", wait_s, wait_s=_wait(wait_s or 0.0)))
+
+    def status(self) -> Status:
+        """:meth:`Sensor.status` of the child's sensor."""
+        return cast("Status", self._call("status"))
+
+    def close(self) -> None:
+        """Close the sensor and end the child, waiting for it (idempotent)."""
+        if self._closed:
+            return
+        try:
+            self._conn.send(("close", ()))
+            if self._conn.poll(self._camera_timeout_s + ANSWER_MARGIN_S):
+                self._conn.recv()
+        except (EOFError, OSError):
+            pass
+        self._end()
+
+    def _end(self) -> None:
+        """Close the socket and wait for the child (ended at once if it does not end by itself)."""
+        self._closed = True
+        self._conn.close()
+        try:
+            self._process.wait(ANSWER_MARGIN_S)
+        except subprocess.TimeoutExpired:
+            log.warning("sensor %d process %d did not end: killed", self.sensor_id, self._process.pid)
+            self._process.kill()
+            self._process.wait()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def _wait(seconds: object) -> float:
+    """How long a call may wait by its own argument (the child checks the argument itself)."""
+    return float(seconds) if isinstance(seconds, (int, float)) and not isinstance(seconds, bool) \
+        and 0 <= seconds < 1e6 else 0.0
+
+
+def open_sensor_process(board: str | os.PathLike[str] = "sim", *, sensor: int | None = None,
+                        cal: str | os.PathLike[str] | None = None, recording: str | os.PathLike[str] | None = None,
+                        settings: Mapping[str, Any] | None = None, arrays: bool = False) -> SensorProcess:
+    """Open one sensor of a board in a process of its own: :func:`open_sensor`'s arguments, a
+    :class:`SensorProcess` with :class:`Sensor`'s methods.
+
+    Raises
+    ------
+    OptiTacError
+        What :func:`open_sensor` raises, from the child; or the child could not start or did not open the
+        sensor within 120 s.
+    """
+    options = {"sensor": sensor, "cal": None if cal is None else os.fspath(cal),
+               "recording": None if recording is None else os.fspath(recording),
+               "settings": None if settings is None else dict(settings), "arrays": bool(arrays)}
+    board_arg = board if isinstance(board, str) else os.fspath(board) if isinstance(board, os.PathLike) else board
+    mine, theirs = socket.socketpair()
+    try:
+        process = subprocess.Popen([sys.executable, "-c", CHILD, str(theirs.fileno())], pass_fds=(theirs.fileno(),),
+                                   stdin=subprocess.DEVNULL)
+    except OSError as exc:
+        mine.close()
+        raise OptiTacError(f"the sensor process could not start: {exc}") from None
+    finally:
+        theirs.close()
+    conn = Connection(mine.detach())
+    try:
+        conn.send((board_arg, options))
+        if not conn.poll(OPEN_TIMEOUT_S):
+            raise OptiTacError(f"the sensor process did not open board {board} within {OPEN_TIMEOUT_S:.0f} s")
+        kind, value = conn.recv()
+    except (EOFError, OSError):
+        conn.close()
+        process.wait()
+        raise OptiTacError(f"the sensor process ended while opening board {board} "
+                           f"(exit status {process.returncode})") from None
+    except BaseException:
+        conn.close()
+        process.kill()
+        process.wait()
+        raise
+    if kind == "error":
+        conn.close()
+        process.wait()
+        raise value
+    sensor_id, name, camera_timeout_s = value
+    return SensorProcess(process, conn, sensor_id, name, camera_timeout_s)
+
+
+def serve(conn: Connection) -> None:
+    """The child: open the sensor the first message names, then answer calls until ``close`` or end-of-file."""
+    try:
+        board, options = conn.recv()
+        opened: Sensor = open_sensor(board, **options)
+    except EOFError:
+        return
+    except Exception as exc:  # noqa: BLE001  (handed to the parent, which raises it)
+        conn.send(("error", _portable(exc)))
+        return
+    with opened:
+        conn.send(("ok", (opened.sensor_id, opened.name, opened.camera_timeout_s)))
+        while True:
+            try:
+                method, args = conn.recv()
+            except (EOFError, OSError):
+                return  # the parent closed its end, or died
+            if method == "close":
+                opened.close()
+                conn.send(("ok", None))
+                return
+            if method not in CALLS:
+                conn.send(("error", OptiTacError(f"the sensor process has no call {method!r}")))
+                continue
+            try:
+                answer = ("ok", getattr(opened, method)(*args))
+            except Exception as exc:  # noqa: BLE001  (handed to the parent, which raises it)
+                answer = ("error", _portable(exc))
+            conn.send(answer)
+
+
+def _portable(exc: Exception) -> OptiTacError:
+    """``exc`` as the parent will raise it: an OptiTacError as it is, anything else as one line."""
+    if isinstance(exc, OptiTacError):
+        return exc
+    log.debug("sensor process: unexpected error", exc_info=exc)
+    return OptiTacError(f"the sensor process failed: {type(exc).__name__}: {exc}")
+
+
+def main(argv: list[str]) -> int:
+    """The child's program (:data:`CHILD`): serve the socket inherited as descriptor ``argv[0]``."""
+    if len(argv) != 1 or not argv[0].isdigit():
+        sys.stderr.write("the sensor process takes one argument, its socket's descriptor "
+                         "(it is started by open_sensor_process)\n")
+        return 2
+    conn = Connection(int(argv[0]))
+    try:
+        serve(conn)
+    finally:
+        conn.close()
+    return 0
