@@ -649,9 +649,7 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
 /* Every matrix-vector product sums column c of a row into lane c mod 8, in column order, then adds the
  * lanes as ((0+1)+(2+3))+((4+5)+(6+7)), and the columns past a multiple of 8 last: the same float32
  * sums on every machine, whatever its vector width. */
-static inline float lanes8(v4f lo, v4f hi) {
-    return ((lo[0] + lo[1]) + (lo[2] + lo[3])) + ((hi[0] + hi[1]) + (hi[2] + hi[3]));
-}
+static inline float lanes8(v4f lo, v4f hi) { return sum8_lanes(lo, hi); }
 
 /* out[r] = sum_c op[r, c] * v[c]: four rows at a time, eight columns per step as two 4-lane halves
  * (SSE2 on x86-64, NEON on aarch64: both in their baseline). */

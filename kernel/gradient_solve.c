@@ -61,7 +61,7 @@ static inline __attribute__((always_inline)) float dot8(const float *restrict a,
         lo += load4(a + i) * load4(x + i);
         hi += load4(a + i + 4) * load4(x + i + 4);
     }
-    return ((lo[0] + lo[1]) + (lo[2] + lo[3])) + ((hi[0] + hi[1]) + (hi[2] + hi[3]));
+    return sum8_lanes(lo, hi);
 #else
     float l[8] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
     for (int64_t i = 0; i < n; i += 8)

@@ -33,8 +33,14 @@ _TRACE = re.compile(r"^Trace \d+: 0x[0-9a-f]+ \[[0-9a-f]+/([0-9a-f]+)/")
 
 def count_instructions(log: Path) -> int:
     """Instructions executed, from a qemu ``-d in_asm,exec,nochain`` log."""
+    return sum(count_by_block(log).values())
+
+
+def count_by_block(log: Path) -> dict[int, int]:
+    """Instructions executed in each translated block (by its first address), from a qemu
+    ``-d in_asm,exec,nochain`` log."""
     size: dict[int, int] = {}
-    total = 0
+    total: dict[int, int] = {}
     block_pc: int | None = None
     block_len = 0
     with log.open() as f:
@@ -55,8 +61,25 @@ def count_instructions(log: Path) -> int:
                 if block_pc is not None:  # the block just translated is complete
                     size[block_pc] = block_len
                     block_pc, block_len = None, 0
-                total += size.get(int(t.group(1), 16), 0)
+                pc = int(t.group(1), 16)
+                total[pc] = total.get(pc, 0) + size.get(pc, 0)
     return total
+
+
+def by_function(blocks: dict[int, int], harness: str) -> dict[str, int]:
+    """``blocks`` summed by the function each block starts in (the harness's symbols, ``nm -n``)."""
+    import bisect
+
+    nm = subprocess.run(["aarch64-linux-gnu-nm", "-n", harness], check=True, capture_output=True, text=True).stdout
+    symbols = [(int(a, 16), name) for a, kind, name in (line.split()[:3] for line in nm.splitlines()
+                                                        if len(line.split()) >= 3) if kind in "tTwW"]
+    starts = [a for a, _ in symbols]
+    out: dict[str, int] = {}
+    for pc, n in blocks.items():
+        i = bisect.bisect_right(starts, pc) - 1
+        name = symbols[i][1] if i >= 0 else "?"
+        out[name] = out.get(name, 0) + n
+    return out
 
 
 def _configs(workdir: Path) -> list[tuple[str, Any, list[Any]]]:
@@ -78,7 +101,7 @@ def _configs(workdir: Path) -> list[tuple[str, Any, list[Any]]]:
     return out
 
 
-def _run(harness: str, bundle: Any, frames: list[Any], n: int, workdir: Path, name: str) -> int:
+def _run(harness: str, bundle: Any, frames: list[Any], n: int, workdir: Path, name: str) -> dict[int, int]:
     from kernel_aarch64 import write_vectors  # tools/, the script's own directory
 
     from optitac_edge.core.pipeline import Pipeline
@@ -96,7 +119,7 @@ def _run(harness: str, bundle: Any, frames: list[Any], n: int, workdir: Path, na
     subprocess.run(["qemu-aarch64", "-d", "in_asm,exec,nochain", "-D", str(log), harness, str(vectors), str(out)],
                    check=True)
     try:
-        return count_instructions(log)
+        return count_by_block(log)
     finally:
         log.unlink()
 
@@ -107,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "optitac-bench")
     ap.add_argument("--frames", type=int, default=8, help="F: frames of the difference")
     ap.add_argument("--only", default=None, help="comma-separated configuration names")
+    ap.add_argument("--by-function", type=int, default=0, metavar="N",
+                    help="also the N functions with the most instructions per frame")
     args = ap.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     wanted = None if args.only is None else set(args.only.split(","))
@@ -115,7 +140,13 @@ def main(argv: list[str] | None = None) -> int:
             continue
         a = _run(args.harness, bundle, frames, args.frames, args.workdir, name)
         b = _run(args.harness, bundle, frames, 2 * args.frames, args.workdir, name)
-        print(f"{name}: {(b - a) / args.frames:,.0f} aarch64 instructions per frame (kernel alone)", flush=True)
+        per_frame = (sum(b.values()) - sum(a.values())) / args.frames
+        print(f"{name}: {per_frame:,.0f} aarch64 instructions per frame (kernel alone)", flush=True)
+        if args.by_function:
+            fa, fb = by_function(a, args.harness), by_function(b, args.harness)
+            rows = sorted(((fb.get(f, 0) - fa.get(f, 0)) / args.frames, f) for f in set(fa) | set(fb))
+            for n, f in reversed(rows[-args.by_function:]):
+                print(f"    {f}: {n:,.0f}", flush=True)
     return 0
 
 
