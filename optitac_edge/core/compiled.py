@@ -39,6 +39,7 @@ from optitac_edge.core.gain import LedGain
 from optitac_edge.core.kernel_plan import KernelPlan
 from optitac_edge.core.levels import ContactLevels
 from optitac_edge.core.options import MAX_CONTACTS
+from optitac_edge.core.shared_tables import shared_tables
 
 if TYPE_CHECKING:
     from optitac_edge.core import _frame_kernel
@@ -176,7 +177,7 @@ class CompiledEngine:
             means=parts.means_buf, signal=parts.signal_buf, surface=parts.surface_buf, baseline=baseline.values,
             level=baseline.level, inv_level=baseline.inv_level,
             rest=np.zeros(bundle_table.n_fibers, dtype=np.float32), contacts=self.contacts,
-            sampler=parts.sampler.kernel_arrays(), surface_op=parts.surface_op.kernel_arrays(),
+            sampler=parts.sampler.kernel_arrays(), surface_op=shared_tables(parts.surface_op.kernel_arrays()),
             check=check_kernel_arrays(bundle_table), models=models or {})
         #: The rest light a raise sets the baseline to (written by the kernel when it finds one).
         self.rest = self.plan.rest
