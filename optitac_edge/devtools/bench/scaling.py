@@ -89,12 +89,8 @@ def measure_reference(bundle: CalibrationBundle, frames: list[np.ndarray], rest:
     res = run_interleaved(configs, 0.0, n, warmup_per_config=min(20, n))
     return {"frames": n, "reference": res["reference"], "fast_paper_mode": res["fast_paper_mode"],
             "fast_all_options": res["fast_all_options"],
-            "ratio_reference_to_fast_paper_mode": _inverse(ratio(res["fast_paper_mode"], res["reference"])),
-            "ratio_reference_to_fast_all_options": _inverse(ratio(res["fast_all_options"], res["reference"]))}
-
-
-def _inverse(r: float | None) -> float | None:
-    return None if not r else round(1.0 / r, 1)
+            "ratio_reference_to_fast_paper_mode": ratio(res["reference"], res["fast_paper_mode"]),
+            "ratio_reference_to_fast_all_options": ratio(res["reference"], res["fast_all_options"])}
 
 
 class _Mallinfo2(ctypes.Structure):
