@@ -121,3 +121,15 @@ def test_bad_arguments_to_a_call_are_the_sensors_own_one_line_errors(slide_rec: 
 def test_the_childs_program_refuses_a_missing_descriptor():
     assert sensor_process.main([]) == 2
     assert sensor_process.main(["x"]) == 2
+
+
+def test_a_ctrl_c_to_the_process_group_leaves_the_child_to_its_parent(slide_rec: Path, bundle_path: Path, capfd):
+    """Ctrl-C at a terminal signals every process of the group: the child printed a KeyboardInterrupt traceback
+    and died; now the parent decides (its own KeyboardInterrupt closes the sensor, or its exit ends the child)."""
+    with ot.open_sensor_process(recording=slide_rec, cal=bundle_path) as sensor:
+        assert sensor.read() is not None
+        os.kill(sensor.pid, signal.SIGINT)
+        assert sensor.read() is not None  # still answering
+        pid = sensor.pid
+    assert _gone(pid)
+    assert "Traceback" not in capfd.readouterr().err

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -249,6 +250,9 @@ def main(argv: list[str]) -> int:
         sys.stderr.write("the sensor process takes one argument, its socket's descriptor "
                          "(it is started by open_sensor_process)\n")
         return 2
+    # Ctrl-C at a terminal reaches the whole process group: the parent decides, and the child ends when the
+    # parent closes it or its end of the socket closes (no traceback of an interrupted wait here)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     conn = Connection(int(argv[0]))
     try:
         serve(conn)
