@@ -123,7 +123,8 @@ def test_a_tare_takes_the_rest_light_again(slide_rec, bundle_path):
         assert after is not None and not after.baseline_ready and after.contacts == ()
 
 
-@pytest.mark.parametrize(("kwargs", "message"), [
+#: Bad arguments of open_sensor and the words of their one-line error (open_sensor_process: the same).
+BAD_INPUT = [
     ({"board": "no-such-board"}, "no-such-board"),
     ({"sensor": 77}, "no sensor with id 77"),
     ({"recording": "/nonexistent/rec"}, "no such recording"),
@@ -135,7 +136,10 @@ def test_a_tare_takes_the_rest_light_again(slide_rec, bundle_path):
     ({"board": b"sim"}, "board must be a board name"),
     ({"settings": "camera.fps=30"}, "settings must be a mapping"),
     ({"sensor": "1"}, "sensor must be a sensor's id"),
-])
+]
+
+
+@pytest.mark.parametrize(("kwargs", "message"), BAD_INPUT)
 def test_bad_input_is_one_line_naming_it(kwargs, message):
     with pytest.raises(ot.OptiTacError) as err:
         ot.open_sensor(**kwargs)

@@ -11,6 +11,7 @@ from dataclasses import astuple
 from pathlib import Path
 
 import pytest
+from test_api import BAD_INPUT
 
 import optitac_edge as ot
 from optitac_edge.api import sensor_process
@@ -77,11 +78,8 @@ def test_the_background_reader_runs_in_the_child_and_counts_what_it_replaced(sli
     assert taken == sorted(set(taken))
 
 
-@pytest.mark.parametrize(("kwargs", "message"), [
-    ({"board": "no-such-board"}, "no-such-board"),
-    ({"sensor": 77}, "no sensor with id 77"),
-    ({"recording": "/nonexistent/rec"}, "no such recording"),
-])
+@pytest.mark.parametrize(("kwargs", "message"), [*BAD_INPUT, ({"settings": {"camera.fps": lambda: 1}},
+                                                                 "cannot be sent to the sensor's process")])
 def test_what_open_sensor_refuses_is_refused_in_one_line_and_the_child_ends(kwargs, message):
     with pytest.raises(ot.OptiTacError, match=message) as caught:
         ot.open_sensor_process(**kwargs)

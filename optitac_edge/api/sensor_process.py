@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import pickle
 import signal
 import socket
 import subprocess
@@ -150,6 +151,11 @@ class SensorProcess:
         self.close()
 
 
+def _portable_path(value: object) -> object:
+    """A path-like value as its string (what the child opens); anything else as it is."""
+    return os.fspath(value) if isinstance(value, os.PathLike) else value
+
+
 def _wait(seconds: object) -> float:
     """How long a call may wait by its own argument (the child checks the argument itself)."""
     return float(seconds) if isinstance(seconds, (int, float)) and not isinstance(seconds, bool) \
@@ -168,10 +174,14 @@ def open_sensor_process(board: str | os.PathLike[str] = "sim", *, sensor: int | 
         What :func:`open_sensor` raises, from the child; or the child could not start or did not open the
         sensor within 120 s.
     """
-    options = {"sensor": sensor, "cal": None if cal is None else os.fspath(cal),
-               "recording": None if recording is None else os.fspath(recording),
-               "settings": None if settings is None else dict(settings), "arrays": bool(arrays)}
-    board_arg = board if isinstance(board, str) else os.fspath(board) if isinstance(board, os.PathLike) else board
+    # as given (paths as strings): the child's open_sensor checks them, and its error is raised here
+    options = {"sensor": sensor, "cal": _portable_path(cal), "recording": _portable_path(recording),
+               "settings": dict(settings) if isinstance(settings, Mapping) else settings, "arrays": arrays}
+    try:
+        message = pickle.dumps((_portable_path(board), options))
+    except Exception as exc:  # noqa: BLE001  (a value pickle cannot send: one line)
+        raise OptiTacError(f"open_sensor_process: its arguments cannot be sent to the sensor's process: "
+                           f"{type(exc).__name__}: {exc}") from None
     mine, theirs = socket.socketpair()
     try:
         process = subprocess.Popen([sys.executable, "-c", CHILD, str(theirs.fileno())], pass_fds=(theirs.fileno(),),
@@ -183,7 +193,7 @@ def open_sensor_process(board: str | os.PathLike[str] = "sim", *, sensor: int | 
         theirs.close()
     conn = Connection(mine.detach())
     try:
-        conn.send((board_arg, options))
+        conn.send_bytes(message)
         if not conn.poll(OPEN_TIMEOUT_S):
             raise OptiTacError(f"the sensor process did not open board {board} within {OPEN_TIMEOUT_S:.0f} s")
         kind, value = conn.recv()
