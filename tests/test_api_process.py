@@ -113,6 +113,8 @@ def test_bad_arguments_to_a_call_are_the_sensors_own_one_line_errors(slide_rec: 
             sensor.tare(float("nan"))
         with pytest.raises(ot.OptiTacError, match="has no call 'close_camera'"):
             sensor._call("close_camera")
+        with pytest.raises(ot.OptiTacError, match=r"read\(\): its arguments cannot be sent"):
+            sensor.read(lambda: 1.0)  # type: ignore[arg-type]
         assert sensor.read() is not None  # still answering
 
 

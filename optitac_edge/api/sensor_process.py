@@ -73,7 +73,12 @@ class SensorProcess:
             raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
         limit = wait_s + self._camera_timeout_s + ANSWER_MARGIN_S
         try:
-            self._conn.send((method, args))
+            message = pickle.dumps((method, args))
+        except Exception as exc:  # noqa: BLE001  (an argument pickle cannot send: one line, nothing sent)
+            raise OptiTacError(f"{method}(): its arguments cannot be sent to the sensor's process: "
+                               f"{type(exc).__name__}: {exc}") from None
+        try:
+            self._conn.send_bytes(message)
             if not self._conn.poll(limit):
                 raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process did not answer {method}() "
                                    f"within {limit:.1f} s; it was ended")
