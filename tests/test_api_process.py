@@ -15,6 +15,7 @@ from test_api import BAD_INPUT
 
 import optitac_edge as ot
 from optitac_edge.api import sensor_process
+from optitac_edge.errors import CameraError
 
 
 @pytest.fixture(scope="module")
@@ -133,3 +134,64 @@ def test_a_ctrl_c_to_the_process_group_leaves_the_child_to_its_parent(slide_rec:
         pid = sensor.pid
     assert _gone(pid)
     assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_reading_crosses_as_data_exactly_and_nothing_is_pickled():
+    """The messages are JSON and raw array bytes (tests/test_reliability_files.py: the package never unpickles);
+    every float crosses to the bit, NaN included."""
+    import math
+    from multiprocessing import Pipe
+    from pathlib import Path as P
+
+    import numpy as np
+
+    from optitac_edge.api import sensor_messages as messages
+
+    contact = ot.Contact(3, 7, 0.1 + 0.2, -1e-300, 2.5, 1.25, 89.99999999999999, 1 / 3, math.nan, math.nan, "sphere",
+                         math.nan, -4.828011272464382, 5e-324, True, 9)
+    reading = ot.Reading(2, 12, 2**62, (contact,), (4, 5), math.nan, True, True, False,
+                         fibers=np.linspace(0, 1, 217, dtype=np.float32),
+                         surface=np.arange(100 * 100, dtype=np.float32).reshape(100, 100) / 7)
+    status = ot.Status(2, "thumb", 10, 4, 1, True, "abc", True, 240.0, 3, 7)
+    a, b = Pipe()
+    for value in (reading, status, None, True, (2, "thumb", 1.5)):
+        messages.send_answer(a, value)
+        got = messages.recv_answer(b)
+        assert repr(got) == repr(value)
+    messages.send_answer(a, reading)
+    back = messages.recv_answer(b)
+    assert isinstance(back, ot.Reading) and back.fibers.dtype == np.float32 and back.surface.shape == (100, 100)
+    assert (back.fibers == reading.fibers).all() and (back.surface == reading.surface).all()
+    assert back.surface.flags.writeable  # a copy, as the sensor's own readings
+    messages.send_answer(a, CameraError("camera main: no frame within 1 s"))
+    with pytest.raises(CameraError, match="no frame within 1 s"):
+        messages.recv_answer(b)
+    messages.send_answer(a, ValueError("boom"))
+    with pytest.raises(ot.OptiTacError, match="the sensor process failed: ValueError: boom"):
+        messages.recv_answer(b)
+    for path in ("sensor_process.py", "sensor_messages.py"):
+        text = (P(sensor_process.__file__).parent / path).read_text()
+        assert ".recv()" not in text and ".send(" not in text  # multiprocessing's pickling pair
+
+
+@pytest.mark.parametrize(("header", "blobs", "message"), [
+    (b"\xff", [], "not JSON"),
+    (b"[1, 2]", [], "not a JSON object"),
+    (b'{"kind": "telnet"}', [], "no known kind"),
+    (b'{"kind": "status", "fields": {"frames": 1}}', [], "malformed status"),
+    (b'{"kind": "reading", "fields": {}, "contacts": [], "released": [], "arrays": {"fibers": ["|O", [2]]}}', [b"xx"],
+     "malformed reading"),
+    (b'{"kind": "reading", "fields": {}, "contacts": [], "released": [], "arrays": {"fibers": ["<f4", [3]]}}',
+     [b"12345678"], "8 bytes for an array"),
+])
+def test_a_malformed_answer_is_one_line(header, blobs, message):
+    from multiprocessing import Pipe
+
+    from optitac_edge.api import sensor_messages as messages
+
+    a, b = Pipe()
+    a.send_bytes(header)
+    for blob in blobs:
+        a.send_bytes(blob)
+    with pytest.raises(messages.MalformedMessage, match=message):
+        messages.recv_answer(b)

@@ -205,6 +205,16 @@ class Sensor:
         self.close()
 
 
+def check_open_arguments(board: object, sensor: object, settings: object) -> None:
+    """The types :func:`open_sensor` takes, or one line naming the argument."""
+    if not isinstance(board, (str, os.PathLike)) or isinstance(board, bytes):
+        raise OptiTacError(f"board must be a board name or a config file's path, got {board!r}")
+    if settings is not None and not isinstance(settings, Mapping):
+        raise OptiTacError(f"settings must be a mapping of 'section.key' to values, got {type(settings).__name__}")
+    if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, int)):
+        raise OptiTacError(f"sensor must be a sensor's id (an integer), got {sensor!r}")
+
+
 def iter_readings(read: Callable[[float], Reading | None], duration_s: float | None,
                   timeout_s: float) -> Iterator[Reading]:
     """The readings ``read(timeout_s)`` returns, for ``duration_s`` of frame time (None: until it returns None)."""
@@ -267,12 +277,7 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
     """
     from optitac_edge.config import load_board_config
 
-    if not isinstance(board, (str, os.PathLike)) or isinstance(board, bytes):
-        raise OptiTacError(f"board must be a board name or a config file's path, got {board!r}")
-    if settings is not None and not isinstance(settings, Mapping):
-        raise OptiTacError(f"settings must be a mapping of 'section.key' to values, got {type(settings).__name__}")
-    if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, int)):
-        raise OptiTacError(f"sensor must be a sensor's id (an integer), got {sensor!r}")
+    check_open_arguments(board, sensor, settings)
     if recording is not None:
         rec = Path(recording)
         if not (rec.is_dir() or (rec.suffix == ".mcap" and rec.is_file())):

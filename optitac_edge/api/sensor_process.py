@@ -3,7 +3,8 @@ reads it (a LeRobot recorder encoding video, a policy) cannot hold the sensor's 
 
 The child is ``python -c CHILD FD``: it opens the sensor with :func:`open_sensor` (the
 same pipeline, nothing copied) and answers each call of the parent's :class:`SensorProcess` over a socket pair
-(:class:`multiprocessing.connection.Connection` framing: one call, one answer). The parent keeps no thread: a
+(:class:`multiprocessing.connection.Connection` framing, :mod:`~optitac_edge.api.sensor_messages`' data: one
+call, one answer; nothing pickled). The parent keeps no thread: a
 reading crosses the socket only when it is asked for. The child ends when it is told to, and by itself when its
 end of the socket reads end-of-file (the parent closed it, or died).
 """
@@ -12,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 import signal
 import socket
 import subprocess
@@ -22,8 +22,9 @@ from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, cast
 
+from optitac_edge.api import sensor_messages as messages
 from optitac_edge.api.readings import Reading, Status
-from optitac_edge.api.sensor import Sensor, iter_readings, open_sensor
+from optitac_edge.api.sensor import Sensor, check_open_arguments, iter_readings, open_sensor
 from optitac_edge.errors import OptiTacError
 
 if TYPE_CHECKING:
@@ -72,27 +73,22 @@ class SensorProcess:
         if self._closed:
             raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
         limit = wait_s + self._camera_timeout_s + ANSWER_MARGIN_S
-        try:
-            message = pickle.dumps((method, args))
-        except Exception as exc:  # noqa: BLE001  (an argument pickle cannot send: one line, nothing sent)
-            raise OptiTacError(f"{method}(): its arguments cannot be sent to the sensor's process: "
-                               f"{type(exc).__name__}: {exc}") from None
+        message = messages.encode({"call": method, "args": list(args)}, f"{method}()")  # nothing sent if not
         try:
             self._conn.send_bytes(message)
-            if not self._conn.poll(limit):
-                raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process did not answer {method}() "
-                                   f"within {limit:.1f} s; it was ended")
-            kind, value = self._conn.recv()
+            answered = self._conn.poll(limit)
+            if answered:
+                return messages.recv_answer(self._conn)  # the child's error is raised as it is
         except (EOFError, OSError) as exc:
             self._end()
             raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process ended "
                                f"(exit status {self._process.poll()}): {type(exc).__name__}") from None
-        except OptiTacError:
+        except messages.MalformedMessage:
             self._end()
             raise
-        if kind == "error":
-            raise value
-        return value
+        self._end()
+        raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process did not answer {method}() within "
+                           f"{limit:.1f} s; it was ended")
 
     def read(self, timeout_s: float = 1.0) -> Reading | None:
         """:meth:`Sensor.read` in the child."""
@@ -130,9 +126,9 @@ class SensorProcess:
         if self._closed:
             return
         try:
-            self._conn.send(("close", ()))
+            self._conn.send_bytes(messages.encode({"call": "close", "args": []}, "close()"))
             if self._conn.poll(self._camera_timeout_s + ANSWER_MARGIN_S):
-                self._conn.recv()
+                self._conn.recv_bytes()
         except (EOFError, OSError):
             pass
         self._end()
@@ -179,14 +175,10 @@ def open_sensor_process(board: str | os.PathLike[str] = "sim", *, sensor: int | 
         What :func:`open_sensor` raises, from the child; or the child could not start or did not open the
         sensor within 120 s.
     """
-    # as given (paths as strings): the child's open_sensor checks them, and its error is raised here
+    check_open_arguments(board, sensor, settings)
     options = {"sensor": sensor, "cal": _portable_path(cal), "recording": _portable_path(recording),
-               "settings": dict(settings) if isinstance(settings, Mapping) else settings, "arrays": arrays}
-    try:
-        message = pickle.dumps((_portable_path(board), options))
-    except Exception as exc:  # noqa: BLE001  (a value pickle cannot send: one line)
-        raise OptiTacError(f"open_sensor_process: its arguments cannot be sent to the sensor's process: "
-                           f"{type(exc).__name__}: {exc}") from None
+               "settings": None if settings is None else dict(settings), "arrays": bool(arrays)}
+    message = messages.encode({"open": os.fspath(board), "options": options}, "open_sensor_process")
     mine, theirs = socket.socketpair()
     try:
         process = subprocess.Popen([sys.executable, "-c", CHILD, str(theirs.fileno())], pass_fds=(theirs.fileno(),),
@@ -201,62 +193,70 @@ def open_sensor_process(board: str | os.PathLike[str] = "sim", *, sensor: int | 
         conn.send_bytes(message)
         if not conn.poll(OPEN_TIMEOUT_S):
             raise OptiTacError(f"the sensor process did not open board {board} within {OPEN_TIMEOUT_S:.0f} s")
-        kind, value = conn.recv()
+        opened = messages.recv_answer(conn)
     except (EOFError, OSError):
         conn.close()
         process.wait()
         raise OptiTacError(f"the sensor process ended while opening board {board} "
                            f"(exit status {process.returncode})") from None
+    except OptiTacError:  # the child's open_sensor refused (it ends by itself), or no answer
+        conn.close()
+        _reap(process)
+        raise
     except BaseException:
         conn.close()
         process.kill()
         process.wait()
         raise
-    if kind == "error":
-        conn.close()
-        process.wait()
-        raise value
-    sensor_id, name, camera_timeout_s = value
+    sensor_id, name, camera_timeout_s = cast("tuple[int, str, float]", opened)
     return SensorProcess(process, conn, sensor_id, name, camera_timeout_s)
+
+
+def _reap(process: subprocess.Popen[bytes]) -> None:
+    """Wait for a child that ends by itself (ended at once if it does not)."""
+    try:
+        process.wait(ANSWER_MARGIN_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
 
 
 def serve(conn: Connection) -> None:
     """The child: open the sensor the first message names, then answer calls until ``close`` or end-of-file."""
     try:
-        board, options = conn.recv()
-        opened: Sensor = open_sensor(board, **options)
-    except EOFError:
+        first = messages.decode(conn.recv_bytes())
+        if not isinstance(first.get("options"), dict):
+            raise messages.MalformedMessage("sensor process: the first message is not an open")
+        opened: Sensor = open_sensor(first.get("open"), **first["options"])  # type: ignore[arg-type]  # checked there
+    except (EOFError, OSError):
         return
     except Exception as exc:  # noqa: BLE001  (handed to the parent, which raises it)
-        conn.send(("error", _portable(exc)))
+        messages.send_answer(conn, exc)
         return
     with opened:
-        conn.send(("ok", (opened.sensor_id, opened.name, opened.camera_timeout_s)))
+        messages.send_answer(conn, (opened.sensor_id, opened.name, opened.camera_timeout_s))
         while True:
             try:
-                method, args = conn.recv()
+                call = messages.decode(conn.recv_bytes())
             except (EOFError, OSError):
                 return  # the parent closed its end, or died
+            except messages.MalformedMessage as exc:
+                messages.send_answer(conn, exc)
+                continue
+            method, args = call.get("call"), call.get("args")
             if method == "close":
                 opened.close()
-                conn.send(("ok", None))
+                messages.send_answer(conn, None)
                 return
-            if method not in CALLS:
-                conn.send(("error", OptiTacError(f"the sensor process has no call {method!r}")))
+            if method not in CALLS or not isinstance(args, list):
+                messages.send_answer(conn, OptiTacError(f"the sensor process has no call {method!r}"))
                 continue
             try:
-                answer = ("ok", getattr(opened, method)(*args))
-            except Exception as exc:  # noqa: BLE001  (handed to the parent, which raises it)
-                answer = ("error", _portable(exc))
-            conn.send(answer)
-
-
-def _portable(exc: Exception) -> OptiTacError:
-    """``exc`` as the parent will raise it: an OptiTacError as it is, anything else as one line."""
-    if isinstance(exc, OptiTacError):
-        return exc
-    log.debug("sensor process: unexpected error", exc_info=exc)
-    return OptiTacError(f"the sensor process failed: {type(exc).__name__}: {exc}")
+                answer: object = getattr(opened, method)(*args)
+            except Exception as exc:
+                log.debug("sensor process: %s failed", method, exc_info=exc)
+                answer = exc
+            messages.send_answer(conn, answer)
 
 
 def main(argv: list[str]) -> int:
