@@ -647,9 +647,8 @@ static void compute_signal(ok_kernel *k, int64_t now_ns) {
 #if defined(__GNUC__) || defined(__clang__)
 
 /* Every matrix-vector product sums column c of a row into lane c mod 8, in column order, then adds the
- * lanes as ((0+1)+(2+3))+((4+5)+(6+7)), and the columns past a multiple of 8 last: the same float32
- * sums on every machine, whatever its vector width. */
-static inline float lanes8(v4f lo, v4f hi) { return sum8_lanes(lo, hi); }
+ * lanes as ((0+1)+(2+3))+((4+5)+(6+7)) (sum8_lanes, simd.h), and the columns past a multiple of 8 last:
+ * the same float32 sums on every machine, whatever its vector width. */
 
 /* out[r] = sum_c op[r, c] * v[c]: four rows at a time, eight columns per step as two 4-lane halves
  * (SSE2 on x86-64, NEON on aarch64: both in their baseline). */
@@ -669,7 +668,8 @@ static void matvec4(const float *op, int32_t rows, int32_t cols, const float *v,
             d0 += load4(d + j) * x0;
             d1 += load4(d + j + 4) * x1;
         }
-        float ta = lanes8(a0, a1), tb = lanes8(b0, b1), tc = lanes8(c0, c1), td = lanes8(d0, d1);
+        float ta = sum8_lanes(a0, a1), tb = sum8_lanes(b0, b1);
+        float tc = sum8_lanes(c0, c1), td = sum8_lanes(d0, d1);
         for (int32_t j = c8; j < cols; j++) {
             ta += a[j] * v[j];
             tb += b[j] * v[j];
@@ -688,7 +688,7 @@ static void matvec4(const float *op, int32_t rows, int32_t cols, const float *v,
             a0 += load4(a + j) * load4(v + j);
             a1 += load4(a + j + 4) * load4(v + j + 4);
         }
-        float ta = lanes8(a0, a1);
+        float ta = sum8_lanes(a0, a1);
         for (int32_t j = c8; j < cols; j++) ta += a[j] * v[j];
         out[r] = ta;
     }

@@ -31,11 +31,6 @@ _BLOCK = re.compile(r"^0x([0-9a-f]+):\s")
 _TRACE = re.compile(r"^Trace \d+: 0x[0-9a-f]+ \[[0-9a-f]+/([0-9a-f]+)/")
 
 
-def count_instructions(log: Path) -> int:
-    """Instructions executed, from a qemu ``-d in_asm,exec,nochain`` log."""
-    return sum(count_by_block(log).values())
-
-
 def count_by_block(log: Path) -> dict[int, int]:
     """Instructions executed in each translated block (by its first address), from a qemu
     ``-d in_asm,exec,nochain`` log."""
