@@ -7,7 +7,8 @@ own rate (``Sensor.latest``), never waiting for a frame. At the end it prints, o
 - how many ticks got the newest reading: one at least as new as every frame processed before the tick asked
   (``status().frames`` just before ``latest()``), and how many ticks got none (no new frame since the last);
 - the count check: frames processed == readings taken + ``status().unread`` (nothing lost silently), and the
-  frames the camera itself lost (``status().dropped``: the reader fell behind the camera);
+  frames the camera itself lost (``status().dropped``: the reader fell behind the camera), while the loop ran
+  and before it (while the sensor opened: its bundle and kernel plan are made with the camera streaming);
 - the threads the sensor left behind after ``close()`` (none expected).
 
     python examples/control_loop.py                        # 60 s at 20 Hz, the simulated sensor at 240 fps
@@ -44,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with ot.open_sensor(args.board, cal=args.cal, settings=settings) as sensor:
             sensor.tare(wait_s=10.0)  # the rest light before the loop starts (nothing touches the skin)
+            dropped_before = sensor.status().dropped  # while the sensor opened: no one read its camera
             sensor.start()
             period, next_tick = 1.0 / args.hz, time.monotonic()
             end = next_tick + args.seconds
@@ -69,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"newest reading: {newest} of {taken} readings taken; {none} ticks with no new frame; "
           f"{sliding} with a sliding contact")
     print(f"frames processed {status.frames} = taken {taken} + unread {status.unread}: "
-          f"{'yes' if status.frames == taken + status.unread else 'NO'}; camera dropped {status.dropped}, "
+          f"{'yes' if status.frames == taken + status.unread else 'NO'}; camera dropped "
+          f"{status.dropped - dropped_before} while the loop ran ({dropped_before} while the sensor opened), "
           f"skipped {status.skipped}")
     print(f"threads left after close(): {len(left)}{' (' + ', '.join(left) + ')' if left else ''}")
     return 0 if newest == taken and status.frames == taken + status.unread and not left else 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import queue
+import re
 import threading
 import time
 from pathlib import Path
@@ -204,3 +205,20 @@ def test_a_sensor_opened_with_arrays_gives_each_readings_fibers_and_surface(slid
     with ot.open_sensor(recording=slide_rec, cal=bundle_path) as sensor:
         plain = sensor.read()
     assert plain.fibers is None and plain.surface is None
+
+
+def test_the_control_loop_example_takes_the_newest_reading_every_tick_and_leaves_no_thread():
+    """examples/control_loop.py, briefly: exit 0 means every tick's reading was the newest, the counts add up and
+    no thread was left; the drops it prints while the loop ran and before it are the sensor's own counter."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "control_loop.py"
+    done = subprocess.run([sys.executable, str(script), "--seconds", "2", "--hz", "20", "--fps", "60"],
+                          check=False, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0] == "loop: 41 ticks at 20 Hz over 2 s, camera at 60 fps"
+    assert re.fullmatch(r"frames processed (\d+) = taken (\d+) \+ unread (\d+): yes; camera dropped \d+ while the "
+                        r"loop ran \(\d+ while the sensor opened\), skipped 0", lines[2])
+    assert lines[3] == "threads left after close(): 0"

@@ -311,6 +311,20 @@ def test_realtime_sim_with_a_one_frame_queue_drops_the_frames_it_could_not_hold(
     assert dropped >= 2 and seqs[0] == 2 + dropped
 
 
+def test_realtime_sim_streams_from_its_first_read_so_a_late_first_read_drops_nothing() -> None:
+    """Opening a sensor (bundle, kernel plan) takes a while after its camera opens: the simulated camera's
+    frames were due from the moment it opened, so the first read found ~50 frames at 240 fps overdue and
+    counted them dropped (and its renderer, started by that read, dropped more catching up). It streams from
+    its first read, as its renderer starts there."""
+    from optitac_edge.sim.camera import SimCamera
+
+    fps = 50.0
+    with SimCamera(fps=fps, width=160, height=120, realtime=True, queue_frames=2, seed=2) as cam:
+        time.sleep(10 / fps)  # ten periods, five times its queue
+        seqs = [cam.read(2.0).seq for _ in range(3)]
+        assert seqs == [1, 2, 3] and cam.frames_dropped == 0
+
+
 def test_sim_refuses_a_queue_out_of_range() -> None:
     from optitac_edge.errors import CameraError
     from optitac_edge.sim.camera import SimCamera

@@ -257,13 +257,16 @@ class SimCamera(Camera):
     # -- realtime: a render thread works ahead, frames are delivered at their time -----------
 
     def _render_loop(self) -> None:
-        seq = 0
+        seq, period = 0, 1e9 / self.fps
         while not self._stop_render.is_set():
             with self._cond:
                 while len(self._ready) >= self._ahead and not self._stop_render.is_set():
                     self._cond.wait(0.1)
                 if self._stop_render.is_set():
                     return
+                # a frame the reader would skip as overrun is not rendered (the sequence gap counts it)
+                overdue = (time.monotonic_ns() - self._t0_ns) / period - self._queue_frames
+                seq = max(seq, math.floor(overdue) + 1)
             frame, press = self._render(seq)
             with self._cond:
                 self._ready.append((seq, frame, press))
@@ -273,12 +276,15 @@ class SimCamera(Camera):
     def _read_paced(self, timeout_s: float) -> CapturedFrame:
         """The next frame at its time, like a camera: rendered ahead by a thread.
 
+        The stream starts at the first read (its renderer starts there, so the
+        time a sensor takes to open after its camera is not frames lost).
         Frame ``k`` is due at ``t0 + k / fps`` and stamped with that time. A
         frame is skipped once ``queue_frames`` newer ones are due, as a camera's
         ring drops its oldest frame (the gap in ``seq`` counts it as dropped);
         after a second behind (e.g. suspended) the clock resynchronises.
         """
-        if self._render_thread is None:
+        if self._render_thread is None:  # the stream starts here: frame k is due k periods after this read
+            self._t0_ns = time.monotonic_ns()
             self._render_thread = NamedThread(target=self._render_loop, name="optitac-sim-render", daemon=True)
             self._render_thread.start()
         period = 1e9 / self.fps
