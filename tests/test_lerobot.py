@@ -160,3 +160,20 @@ def test_the_roundtrip_check_finds_a_changed_value(recorded, roundtrip_tool, tmp
     changed = tmp_path / "changed.csv"
     changed.write_text("\n".join([*lines[:row], ",".join(cells), *lines[row + 1:]]) + "\n")
     assert roundtrip_tool.compare(out, [changed])[2] == 1
+
+
+def test_the_checking_tools_refuse_a_workdir_that_exists_in_one_line(roundtrip_tool, tmp_path, capsys):
+    """The checks write a new dataset: an existing directory (perhaps the last run's) is one line, not a
+    traceback, and is left as it was."""
+    from conftest import load_tool
+
+    kept = tmp_path / "kept.txt"
+    kept.write_text("the last run")
+    for argv in ([str(tmp_path), "--cal", "cal.npz", "--workdir", str(tmp_path)], ["--workdir", str(tmp_path)]):
+        tool = roundtrip_tool if "--cal" in argv else load_tool("lerobot_record_check")
+        with pytest.raises(SystemExit) as exited:
+            tool.main(argv)
+        assert exited.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert err.endswith(f"error: --workdir {tmp_path}: exists (give a new directory)")
+    assert kept.read_text() == "the last run"

@@ -189,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--in-process", action="store_true",
                    help="the sensor in LeRobot's process (the camera plugin's process=False)")
     args = p.parse_args(argv)
+    if args.workdir.exists():
+        p.error(f"--workdir {args.workdir}: exists (give a new directory)")
     args.workdir.mkdir(parents=True)
     c = run(args.seconds, args.workdir, args.sensor_fps, args.fps, process=not args.in_process)
     print(f"dataset: {c['dataset_frames']} frames at {args.fps} fps ({c['ticks']} ticks)")

@@ -77,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workdir", type=Path, required=True, help="where the dataset and the CSVs are written (new)")
     p.add_argument("--video", action="store_true")
     args = p.parse_args(argv)
+    if args.workdir.exists():
+        p.error(f"--workdir {args.workdir}: exists (give a new directory)")
     args.workdir.mkdir(parents=True)
     csvs = []
     for k, rec in enumerate(args.recording):
