@@ -47,12 +47,9 @@ def main(argv: list[str] | None = None) -> int:
             sensor.tare(wait_s=10.0)  # the rest light before the loop starts (nothing touches the skin)
             dropped_before = sensor.status().dropped  # while the sensor opened: no one read its camera
             sensor.start()
-            period, next_tick = 1.0 / args.hz, time.monotonic()
-            end = next_tick + args.seconds
-            while next_tick < end:
-                time.sleep(max(next_tick - time.monotonic(), 0.0))
-                next_tick += period
-                ticks += 1
+            period, start = 1.0 / args.hz, time.monotonic()
+            for ticks in range(1, round(args.seconds * args.hz) + 1):  # tick k at start + k / hz
+                time.sleep(max(start + (ticks - 1) * period - time.monotonic(), 0.0))
                 processed = sensor.status().frames
                 reading = sensor.latest()
                 if reading is None:

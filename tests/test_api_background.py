@@ -218,7 +218,7 @@ def test_the_control_loop_example_takes_the_newest_reading_every_tick_and_leaves
                           check=False, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
     lines = done.stdout.splitlines()
-    assert lines[0] == "loop: 41 ticks at 20 Hz over 2 s, camera at 60 fps"
+    assert lines[0] == "loop: 40 ticks at 20 Hz over 2 s, camera at 60 fps"  # however late the ticks come
     assert re.fullmatch(r"frames processed (\d+) = taken (\d+) \+ unread (\d+): yes; camera dropped \d+ while the "
                         r"loop ran \(\d+ while the sensor opened\), skipped 0", lines[2])
     assert lines[3] == "threads left after close(): 0"
