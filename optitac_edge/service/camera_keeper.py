@@ -27,6 +27,10 @@ REOPEN_BACKOFF_S = 0.05
 REOPEN_BACKOFF_MAX_S = 1.0
 #: Longest wait of the loop while it has no camera or the camera failed, s (it kicks the watchdog between).
 IDLE_WAIT_S = 0.05
+#: The loop has caught up with its camera at the first read that waited this part of a frame period for its
+#: frame (no backlog left), or this long after its first read, s: frames lost before are counted apart.
+CAUGHT_UP_WAIT_PERIODS = 0.25
+CAUGHT_UP_AFTER_S = 1.0
 
 
 class CameraKeeper:
@@ -62,6 +66,10 @@ class CameraKeeper:
         self.pixel_format = camera.pixel_format
         self._backoff = Backoff(REOPEN_BACKOFF_S, min(REOPEN_BACKOFF_MAX_S, max_gap_s / 4))
         self._reopen_at_ns = 0
+        #: The loop has read its camera's backlog (see CAUGHT_UP_WAIT_PERIODS); the gaps before are counted in
+        #: ``stats.frames_dropped_before_loop``: the camera streamed while the bundles were made.
+        self.caught_up = False
+        self._first_read_ns: int | None = None
 
     def read(self, stop: threading.Event, timeout_s: float) -> tuple[CapturedFrame | None, int, bool]:
         """(The next frame, or None at the end of a finite source; frames the camera dropped before it; whether
@@ -69,12 +77,27 @@ class CameraKeeper:
         camera = self.camera
         assert camera is not None
         dropped = camera.frames_dropped  # the camera counts its sequence gaps
+        asked_ns = self.clock.monotonic_ns()
         try:
             captured = camera.read(timeout_s)
         except Exception as exc:  # noqa: BLE001 - one bad read never ends the service
             self._failed(stop, exc)
             return None, 0, False
-        return captured, camera.frames_dropped - dropped, True
+        dropped = camera.frames_dropped - dropped
+        if not self.caught_up:
+            self._catch_up(camera, asked_ns, dropped)
+            return captured, 0, True
+        return captured, dropped, True
+
+    def _catch_up(self, camera: Camera, asked_ns: int, dropped: int) -> None:
+        """Count a gap before the loop caught up apart; caught up once a read waited for its frame."""
+        self.stats.frames_dropped_before_loop += dropped
+        now_ns = self.clock.monotonic_ns()
+        if self._first_read_ns is None:
+            self._first_read_ns = asked_ns
+        waited_periods = (now_ns - asked_ns) * camera.fps / 1e9
+        self.caught_up = (waited_periods >= CAUGHT_UP_WAIT_PERIODS
+                          or now_ns - self._first_read_ns >= CAUGHT_UP_AFTER_S * 1e9)
 
     def _failed(self, stop: threading.Event, exc: Exception) -> None:
         """Count a failed read; close the camera for a reopen (or, without a factory, wait a little)."""

@@ -247,10 +247,10 @@ class Service:
             if not self.is_peer:
                 self.notifier.stopping()
             self.close()
-        log.info("camera %s stopped after %d frames (%d contacts, %d dropped, %d camera faults, %d reopens, "
-                 "%d processing errors, %d light changes, %d baseline raises)", self.camera_name, st.frames,
-                 st.contacts, st.frames_dropped, st.camera_errors, st.reopens, st.processing_errors,
-                 st.light_changes, st.baseline_raises)
+        log.info("camera %s stopped after %d frames (%d contacts, %d dropped and %d before the loop caught up, "
+                 "%d camera faults, %d reopens, %d processing errors, %d light changes, %d baseline raises)",
+                 self.camera_name, st.frames, st.contacts, st.frames_dropped, st.frames_dropped_before_loop,
+                 st.camera_errors, st.reopens, st.processing_errors, st.light_changes, st.baseline_raises)
         return st
 
     def _step(self, stop: threading.Event, now_ns: int) -> FrameResult | None:

@@ -36,6 +36,8 @@ class ServiceStats:
     contacts: int = 0
     sent: int = 0
     frames_dropped: int = 0
+    #: Frames the camera lost before the loop caught up with it (it streamed while the bundles were made).
+    frames_dropped_before_loop: int = 0
     camera_errors: int = 0
     read_errors: int = 0  # CameraError from read(): timeouts, device gone, driver errors
     unexpected_errors: int = 0  # any other exception from the camera (a backend bug): counted like read_errors

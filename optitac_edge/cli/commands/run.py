@@ -149,9 +149,11 @@ def run(args: argparse.Namespace) -> int:
             commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
             # with several sensors on a camera, the contacts are each sensor's (below): a camera's frame is one
             contacts = f", {stats.contacts} with contact" if len(service.channels) == 1 else ""
-            say("%sprocessed %d frames%s, dropped %d, camera errors %d, processing errors %d, commands %s",
-                f"camera {service.camera_name}: " if several else "", stats.frames, contacts,
-                stats.frames_dropped, stats.camera_errors, stats.processing_errors, commands)
+            before = stats.frames_dropped_before_loop
+            say("%sprocessed %d frames%s, dropped %d%s, camera errors %d, processing errors %d, commands %s",
+                f"camera {service.camera_name}: " if several else "", stats.frames, contacts, stats.frames_dropped,
+                f" (and {before} before it caught up with the camera, which streamed while the bundles were made)" if before else "",
+                stats.camera_errors, stats.processing_errors, commands)
             if len(config.sensors) > 1:
                 for ch in service.channels:
                     say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
