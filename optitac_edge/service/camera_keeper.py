@@ -68,7 +68,7 @@ class CameraKeeper:
         self._reopen_at_ns = 0
         #: The loop has read its camera's backlog (see CAUGHT_UP_WAIT_PERIODS); the gaps before are counted in
         #: ``stats.frames_dropped_before_loop``: the camera streamed while the bundles were made.
-        self.caught_up = False
+        self._caught_up = False
         self._first_read_ns: int | None = None
 
     def read(self, stop: threading.Event, timeout_s: float) -> tuple[CapturedFrame | None, int, bool]:
@@ -84,7 +84,7 @@ class CameraKeeper:
             self._failed(stop, exc)
             return None, 0, False
         dropped = camera.frames_dropped - dropped
-        if not self.caught_up:
+        if not self._caught_up:
             self._catch_up(camera, asked_ns, dropped)
             return captured, 0, True
         return captured, dropped, True
@@ -96,7 +96,7 @@ class CameraKeeper:
         if self._first_read_ns is None:
             self._first_read_ns = asked_ns
         waited_periods = (now_ns - asked_ns) * camera.fps / 1e9
-        self.caught_up = (waited_periods >= CAUGHT_UP_WAIT_PERIODS
+        self._caught_up = (waited_periods >= CAUGHT_UP_WAIT_PERIODS
                           or now_ns - self._first_read_ns >= CAUGHT_UP_AFTER_S * 1e9)
 
     def _failed(self, stop: threading.Event, exc: Exception) -> None:
