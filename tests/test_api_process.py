@@ -177,11 +177,14 @@ def test_a_reading_crosses_as_data_exactly_and_nothing_is_pickled():
 @pytest.mark.parametrize(("header", "blobs", "message"), [
     (b"\xff", [], "not JSON"),
     (b"[1, 2]", [], "not a JSON object"),
-    (b'{"kind": "telnet"}', [], "no known kind"),
-    (b'{"kind": "status", "fields": {"frames": 1}}', [], "malformed status"),
-    (b'{"kind": "reading", "fields": {}, "contacts": [], "released": [], "arrays": {"fibers": ["|O", [2]]}}', [b"xx"],
+    (b'{"kind": "telnet", "id": 0}', [], "no known kind"),
+    (b'{"kind": "none"}', [], "an answer numbered None"),
+    (b'{"kind": "none", "id": -1}', [], "an answer numbered -1"),
+    (b'[' * 100000 + b']' * 100000, [], "nested too deeply"),
+    (b'{"kind": "status", "id": 0, "fields": {"frames": 1}}', [], "malformed status"),
+    (b'{"kind": "reading", "id": 0, "fields": {}, "contacts": [], "released": [], "arrays": {"fibers": ["|O", [2]]}}', [b"xx"],
      "malformed reading"),
-    (b'{"kind": "reading", "fields": {}, "contacts": [], "released": [], "arrays": {"fibers": ["<f4", [3]]}}',
+    (b'{"kind": "reading", "id": 0, "fields": {}, "contacts": [], "released": [], "arrays": {"fibers": ["<f4", [3]]}}',
      [b"12345678"], "8 bytes for an array"),
 ])
 def test_a_malformed_answer_is_one_line(header, blobs, message):

@@ -41,7 +41,7 @@ class Sensor:
         from optitac_edge.core.pipeline import Pipeline
 
         self._board, self._sensor, self._camera, self._stack = board, sensor, camera, stack
-        self._pipeline = Pipeline(bundle, fps=camera.fps)
+        self._pipeline = Pipeline(bundle, fps=camera.fps, source=f"{sensor.label}'s camera frames")
         self._arrays = arrays
         self._frames = self._contacts = self._skipped = 0
         self._closed = False

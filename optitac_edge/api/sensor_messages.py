@@ -2,10 +2,12 @@
 header, then the raw bytes of each array it names (``Connection.send_bytes``; nothing is pickled, so neither side
 runs code the other sent).
 
-A call is ``{"call": NAME, "args": [...]}`` (the first message: ``{"open": BOARD, "options": {...}}``); an answer
-is ``{"kind": ...}``: ``none``, ``value`` (a bool or number), ``opened``, ``status``, ``reading`` (its arrays follow,
+A call is ``{"call": NAME, "args": [...], "id": N}`` (the first message: ``{"open": BOARD, "options": {...}}``); an
+answer is ``{"kind": ..., "id": N}``, N the call's number (0: the open's): ``none``, ``value`` (a bool or number), ``opened``, ``status``, ``reading`` (its arrays follow,
 each ``[dtype, shape]`` in the header) or ``error`` (an :mod:`optitac_edge.errors` class name and its line).
-Floats cross exactly (JSON writes a float's shortest round-trip form; NaN as ``NaN``).
+Floats cross exactly (JSON writes a float's shortest round-trip form; NaN as ``NaN``). A message is at most
+:data:`MAX_MESSAGE_BYTES` long and nested at most as deep as Python's parser allows: anything else is a
+:class:`MalformedMessage` (one line), never a ``MemoryError`` or ``RecursionError``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from optitac_edge.errors import OptiTacError
 
 #: The dtypes an array of an answer may have (a reading's fibers and surface).
 ARRAY_DTYPES = frozenset({"<f4", "<f8"})
+#: The longest message either side reads, bytes (a reading's arrays: a 100 x 100 float32 surface is 40 kB).
+MAX_MESSAGE_BYTES = 64 << 20
 _READING_SCALARS = [f.name for f in fields(Reading) if f.name not in ("contacts", "released", "fibers", "surface")]
 
 
@@ -35,8 +39,19 @@ def encode(message: object, what: str) -> bytes:
     """``message`` (JSON data) as bytes; one line naming ``what`` when it holds a value JSON cannot carry."""
     try:
         return json.dumps(message, allow_nan=True).encode()
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, RecursionError) as exc:
         raise OptiTacError(f"{what}: its arguments cannot be sent to the sensor's process: {exc}") from None
+
+
+def receive(conn: Connection) -> bytes:
+    """One message's bytes; :class:`MalformedMessage` for one longer than :data:`MAX_MESSAGE_BYTES` (the stream
+    cannot be trusted after it: the caller ends the connection). ``EOFError`` when the other side closed."""
+    try:
+        return conn.recv_bytes(MAX_MESSAGE_BYTES)
+    except OSError as exc:
+        if "bad message length" in str(exc):
+            raise MalformedMessage(f"sensor process: a message longer than {MAX_MESSAGE_BYTES} bytes") from None
+        raise
 
 
 def decode(data: bytes) -> dict[str, Any]:
@@ -45,13 +60,23 @@ def decode(data: bytes) -> dict[str, Any]:
         message = json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise MalformedMessage(f"sensor process: a message that is not JSON: {exc}") from None
+    except RecursionError:
+        raise MalformedMessage("sensor process: a message nested too deeply") from None
     if not isinstance(message, dict):
         raise MalformedMessage("sensor process: a message that is not a JSON object")
     return message
 
 
-def send_answer(conn: Connection, value: object) -> None:
-    """Send one call's result (None, a bool or number, a :class:`Status`, a :class:`Reading`, the opened
+def call_id(message: dict[str, Any]) -> int:
+    """A call's number (``id``: a whole number >= 0; 0 for a call without one)."""
+    value = message.get("id", 0)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise MalformedMessage(f"sensor process: a call numbered {value!r}")
+    return value
+
+
+def send_answer(conn: Connection, value: object, number: int = 0) -> None:
+    """Send call ``number``'s result (None, a bool or number, a :class:`Status`, a :class:`Reading`, the opened
     sensor's ``(id, name, camera timeout)``) or its error."""
     arrays: list[np.ndarray] = []
     header: dict[str, Any]
@@ -79,6 +104,7 @@ def send_answer(conn: Connection, value: object) -> None:
         header = {"kind": "value", "value": value}
     else:
         raise TypeError(f"sensor process: no message for a {type(value).__name__}")
+    header["id"] = number
     conn.send_bytes(json.dumps(header, allow_nan=True).encode())
     for a in arrays:
         conn.send_bytes(a.tobytes())
@@ -92,8 +118,30 @@ def recv_answer(conn: Connection) -> object:
     MalformedMessage
         An answer that is not one of :func:`send_answer`'s.
     """
-    header = decode(conn.recv_bytes())
+    value = recv_reply(conn)[1]
+    if isinstance(value, OptiTacError):
+        raise value
+    return value
+
+
+def recv_reply(conn: Connection) -> tuple[int, object]:
+    """One answer of :func:`send_answer`, whole (a reading's arrays too): the number of the call it answers and
+    its value, or its error (an :mod:`optitac_edge.errors` instance, not raised).
+
+    Raises
+    ------
+    MalformedMessage
+        An answer that is not one of :func:`send_answer`'s.
+    """
+    header = decode(receive(conn))
     kind = header.get("kind")
+    number = header.get("id")
+    if not isinstance(number, int) or isinstance(number, bool) or number < 0:
+        raise MalformedMessage(f"sensor process: an answer numbered {number!r}")
+    return number, _value(conn, header, kind)
+
+
+def _value(conn: Connection, header: dict[str, Any], kind: object) -> object:
     try:
         if kind == "none":
             return None
@@ -107,9 +155,9 @@ def recv_answer(conn: Connection) -> object:
         if kind == "error":
             cls = getattr(errors, str(header["type"]), None)
             cls = cls if isinstance(cls, type) and issubclass(cls, OptiTacError) else OptiTacError
-            raise cls(str(header["message"]))
+            return cls(str(header["message"]))
         if kind == "reading":
-            arrays = {name: _array(conn.recv_bytes(), spec) for name, spec in header["arrays"].items()}
+            arrays = {name: _array(receive(conn), spec) for name, spec in header["arrays"].items()}
             return Reading(**header["fields"], contacts=tuple(Contact(**c) for c in header["contacts"]),
                            released=tuple(int(i) for i in header["released"]),
                            fibers=arrays.get("fibers"), surface=arrays.get("surface"))

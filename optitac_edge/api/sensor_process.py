@@ -13,10 +13,13 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Iterator, Mapping
 from multiprocessing.connection import Connection
 from types import TracebackType
@@ -26,6 +29,7 @@ from optitac_edge.api import sensor_messages as messages
 from optitac_edge.api.readings import Reading, Status
 from optitac_edge.api.sensor import Sensor, check_open_arguments, iter_readings, open_sensor
 from optitac_edge.errors import OptiTacError
+from optitac_edge.io.threads import NamedThread
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -51,13 +55,24 @@ class SensorProcess:
     each is one call to the child and its answer (a reading with ``arrays`` is ~41 KB: ~0.6 ms a
     :meth:`latest` here).
     Read in the background (:meth:`start`), the child's thread reads every frame at the camera's rate whatever
-    this process does; :meth:`latest` fetches the newest. Use it from one thread.
+    this process does; :meth:`latest` fetches the newest.
+
+    Every call is numbered and takes only the answer with its number: the answer of a call interrupted while
+    it waited (Ctrl-C caught by the program) is dropped when it comes; a call interrupted while its message or
+    its answer was half across ends the child (the stream cannot be trusted), and the next call says so.
+    Calls from several threads take turns (one lock).
     """
 
     def __init__(self, process: subprocess.Popen[bytes], conn: Connection, sensor_id: int, name: str,
                  camera_timeout_s: float) -> None:
         self._process, self._conn = process, conn
         self._closed = False
+        #: Held for a whole call and its answer: a second thread's call waits its turn.
+        self._lock = threading.Lock()
+        #: The number of the last call sent (the open was 0).
+        self._number = 0
+        #: Why the connection was ended under a call (an interrupted message), for the next call's line.
+        self._ended_why = ""
         self._camera_timeout_s = camera_timeout_s
         #: The board config's id of this sensor (what the MCU hears).
         self.sensor_id = sensor_id
@@ -71,21 +86,44 @@ class SensorProcess:
 
     def _call(self, method: str, *args: object, wait_s: float = 0.0) -> object:
         """``method(*args)`` in the child; its result, or its error raised here."""
+        with self._lock:
+            return self._locked_call(method, args, wait_s)
+
+    def _locked_call(self, method: str, args: tuple[object, ...], wait_s: float) -> object:
         if self._closed:
-            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed")
+            raise OptiTacError(f"sensor {self.sensor_id} {self.name!r} is closed{self._ended_why}")
         limit = wait_s + self._camera_timeout_s + ANSWER_MARGIN_S
-        message = messages.encode({"call": method, "args": list(args)}, f"{method}()")  # nothing sent if not
+        number = self._number + 1
+        message = messages.encode({"call": method, "args": list(args), "id": number}, f"{method}()")  # not sent
+        self._number = number
+        phase = "sending"
         try:
             self._conn.send_bytes(message)
-            answered = self._conn.poll(limit)
-            if answered:
-                return messages.recv_answer(self._conn)  # the child's error is raised as it is
+            phase = "waiting"
+            deadline = time.monotonic() + limit
+            while self._conn.poll(max(deadline - time.monotonic(), 0.0)):
+                phase = "receiving"
+                answered, value = messages.recv_reply(self._conn)
+                phase = "waiting"
+                if answered == number:
+                    if isinstance(value, OptiTacError):
+                        raise value
+                    return value
+                if not 0 < answered < number:
+                    raise messages.MalformedMessage(f"sensor process: an answer to call {answered}, "
+                                                    f"the last call was {number}")
+                # an answer to an earlier call that was interrupted while it waited: not this call's
         except (EOFError, OSError) as exc:
             self._end()
             raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process ended "
                                f"(exit status {self._process.poll()}): {type(exc).__name__}") from None
         except messages.MalformedMessage:
             self._end()
+            raise
+        except BaseException:  # KeyboardInterrupt, SystemExit, a signal handler's exception
+            if phase != "waiting":  # half a message across: the stream cannot be trusted
+                self._ended_why = f" (ended when {method}() was interrupted while {phase} a message)"
+                self._end()
             raise
         self._end()
         raise OptiTacError(f"sensor {self.sensor_id} {self.name!r}: its process did not answer {method}() within "
@@ -124,15 +162,15 @@ class SensorProcess:
 
     def close(self) -> None:
         """Close the sensor and end the child, waiting for it (idempotent)."""
-        if self._closed:
-            return
-        try:
-            self._conn.send_bytes(messages.encode({"call": "close", "args": []}, "close()"))
-            if self._conn.poll(self._camera_timeout_s + ANSWER_MARGIN_S):
-                self._conn.recv_bytes()
-        except (EOFError, OSError):
-            pass
-        self._end()
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                self._locked_call("close", (), 0.0)
+            except OptiTacError:  # the child ended already, or did not answer: ended all the same
+                pass
+            finally:
+                self._end()
 
     def _end(self) -> None:
         """Close the socket and wait for the child (:func:`_reap`)."""
@@ -221,39 +259,91 @@ def _reap(process: subprocess.Popen[bytes]) -> None:
 def serve(conn: Connection) -> None:
     """The child: open the sensor the first message names, then answer calls until ``close`` or end-of-file."""
     try:
-        first = messages.decode(conn.recv_bytes())
+        first = messages.decode(messages.receive(conn))
         if not isinstance(first.get("options"), dict):
             raise messages.MalformedMessage("sensor process: the first message is not an open")
-        opened: Sensor = open_sensor(first.get("open"), **first["options"])  # type: ignore[arg-type]  # checked there
+        with ParentWatch(conn):  # a parent that dies meanwhile ends this process at once
+            opened: Sensor = open_sensor(first.get("open"), **first["options"])  # type: ignore[arg-type]
     except (EOFError, OSError):
         return
     except Exception as exc:  # noqa: BLE001  (handed to the parent, which raises it)
-        messages.send_answer(conn, exc)
+        _answer(conn, exc, 0)
         return
     with opened:
-        messages.send_answer(conn, (opened.sensor_id, opened.name, opened.camera_timeout_s))
-        while True:
-            try:
-                call = messages.decode(conn.recv_bytes())
-            except (EOFError, OSError):
-                return  # the parent closed its end, or died
-            except messages.MalformedMessage as exc:
-                messages.send_answer(conn, exc)
-                continue
-            method, args = call.get("call"), call.get("args")
-            if method == "close":
-                opened.close()
-                messages.send_answer(conn, None)
-                return
-            if method not in CALLS or not isinstance(args, list):
-                messages.send_answer(conn, OptiTacError(f"the sensor process has no call {method!r}"))
-                continue
-            try:
-                answer: object = getattr(opened, method)(*args)
-            except Exception as exc:
-                log.debug("sensor process: %s failed", method, exc_info=exc)
-                answer = exc
-            messages.send_answer(conn, answer)
+        if not _answer(conn, (opened.sensor_id, opened.name, opened.camera_timeout_s), 0):
+            return
+        while _serve_call(conn, opened):
+            pass
+
+
+def _answer(conn: Connection, value: object, number: int) -> bool:
+    """Send an answer; False when the parent is gone (it closed its end, or died: nothing to say to it)."""
+    try:
+        messages.send_answer(conn, value, number)
+    except OSError:
+        return False
+    return True
+
+
+def _serve_call(conn: Connection, opened: Sensor) -> bool:
+    """Answer one call; False when the child is done (``close``, or the parent is gone)."""
+    try:
+        call = messages.decode(messages.receive(conn))
+        number = messages.call_id(call)
+    except (EOFError, OSError):
+        return False  # the parent closed its end, or died
+    except messages.MalformedMessage as exc:  # the stream cannot be trusted: said, then ended
+        _answer(conn, exc, 0)
+        return False
+    method, args = call.get("call"), call.get("args")
+    if method == "close":
+        opened.close()
+        _answer(conn, None, number)
+        return False
+    if method not in CALLS or not isinstance(args, list):
+        return _answer(conn, OptiTacError(f"the sensor process has no call {method!r}"), number)
+    try:
+        answer: object = getattr(opened, method)(*args)
+    except Exception as exc:
+        log.debug("sensor process: %s failed", method, exc_info=exc)
+        answer = exc
+    return _answer(conn, answer, number)
+
+
+class ParentWatch:
+    """While the child opens its sensor (seconds: imports, a camera, a fiber map), a thread watches the socket:
+    end-of-file there (the parent closed it, or died) ends the child at once. A call arriving ends the watch;
+    the call stays in the socket for the child to read."""
+
+    def __init__(self, conn: Connection, poll_s: float = 0.1) -> None:
+        self._conn, self._poll_s = conn, poll_s
+        self._done = threading.Event()
+        self._thread = NamedThread(target=self._watch, name="optitac-parent", daemon=True)
+
+    def __enter__(self) -> Self:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        self._thread.join()
+
+    def _watch(self) -> None:
+        peer = socket.socket(fileno=os.dup(self._conn.fileno()))
+        try:
+            while not self._done.is_set():
+                readable, _, _ = select.select([peer], [], [], self._poll_s)
+                if not readable:
+                    continue
+                try:
+                    data = peer.recv(1, socket.MSG_PEEK)
+                except OSError:
+                    data = b""
+                if not data:  # end-of-file: nobody will read what this process opens
+                    os._exit(0)
+                return  # a call: the parent is there
+        finally:
+            peer.close()
 
 
 def main(argv: list[str]) -> int:

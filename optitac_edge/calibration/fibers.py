@@ -13,6 +13,7 @@ import numpy as np
 
 from optitac_edge.core.bundle import BASELINE_FRAMES, CalibrationBundle
 from optitac_edge.core.fiber_table import FiberSampler, FiberTable
+from optitac_edge.core.fingerprint import FINGERPRINT_KEY, fingerprint_meta
 from optitac_edge.core.frames import frame_geometry, to_gray
 from optitac_edge.core.grid import SurfaceGrid
 from optitac_edge.core.layout import FiberLayout, hex_layout
@@ -105,7 +106,15 @@ def calibrate_fibers(
     )
     if layout.fiducial is not None and np.any(layout.fiducial):
         bundle = _orient_by_fiducials(bundle, rest_frames)
-    return bundle
+    return with_fingerprint(bundle, rest_frames)
+
+
+def with_fingerprint(bundle: CalibrationBundle, rest_frames: Sequence[np.ndarray] | np.ndarray) -> CalibrationBundle:
+    """``bundle`` with its sensor's fingerprint from ``rest_frames`` (:func:`~optitac_edge.core.fingerprint.
+    fingerprint_meta`): what every consumer checks frames against."""
+    meta = dict(bundle.extra_meta)
+    meta[FINGERPRINT_KEY] = fingerprint_meta(bundle, rest_frames)
+    return bundle.with_updates(extra_meta=meta)
 
 
 def _orient_by_fiducials(bundle: CalibrationBundle, rest_frames: Sequence[np.ndarray] | np.ndarray

@@ -134,9 +134,10 @@ def run_step(job: StepJob) -> StepOutcome:
     """Run :class:`StepJob`: read the bundle and the recordings, fit the step's model, save the bundle."""
     from optitac_edge.calibration import steps
     from optitac_edge.io.bundle_file import load_bundle, save_bundle
-    from optitac_edge.io.recording import Recording
+    from optitac_edge.io.recording import Recording, refuse_repeated
 
     recs = [Recording(path) for path in job.recordings]
+    refuse_repeated(recs)
     bundle = load_bundle(job.bundle)
     if job.check is not None:
         job.check(bundle, job.bundle)

@@ -12,9 +12,10 @@ import numpy as np
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.corrections import ContactCorrector
+from optitac_edge.core.fingerprint import describe_bundle
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
-from optitac_edge.errors import RecordingError
+from optitac_edge.errors import FrameMismatchError, RecordingError
 from optitac_edge.io.recording import Recording, Truth
 
 
@@ -109,11 +110,17 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     Raises
     ------
     FrameMismatchError
-        If the recording's frames are not what the pipeline's bundle was built for.
+        If the recording's frames are not what the pipeline's bundle was built for: their size or pixel
+        format, or (:class:`~optitac_edge.core.fingerprint.SensorMismatchError`, at the end of the first
+        baseline) another sensor's.
     """
     from tqdm import tqdm
 
-    pipeline.bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
+    try:
+        pipeline.bundle.fibers.check_frame(rec.frames[0], rec.pixel_format)
+    except FrameMismatchError as exc:
+        raise FrameMismatchError(f"{rec.path}: {exc} ({describe_bundle(pipeline.bundle)})") from None
+    pipeline.name_source(f"{rec.path}'s frames")
     t_ns = rec.t_ns
     tares = {t.frame: t.frames for t in rec.tares}
     show = sys.stderr.isatty() if progress is None else progress

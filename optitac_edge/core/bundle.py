@@ -55,6 +55,8 @@ class CalibrationBundle:
         Later calibration models (numeric arrays only).
     extra_meta : dict
         JSON-able parameters of later calibration models.
+    source : str
+        The file the bundle was read from, "" when made in memory (not stored in the file).
     surface_factors : SurfaceFactors or None
         Exact factorisation of ``interpolation`` (fast runtime surface, see
         :class:`~optitac_edge.core.surface.TriangleSurface`); None for bundles written
@@ -81,6 +83,8 @@ class CalibrationBundle:
     created_utc: str = ""
     calibration_id: str = ""
     surface_factors: SurfaceFactors | None = None
+    #: The file it was read from ("" for a bundle made in memory), for the lines that name it.
+    source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         n = self.layout.n_fibers

@@ -31,6 +31,8 @@ class Skip(str, Enum):
     DARK = "dark"
     #: Most fiber centres are at full scale.
     SATURATED = "saturated"
+    #: The frames are not of the bundle's sensor (:mod:`~optitac_edge.core.fingerprint`): nothing is processed.
+    MISMATCH = "mismatch"
 
     def __str__(self) -> str:
         return self.value

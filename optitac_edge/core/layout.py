@@ -22,14 +22,76 @@ MIN_SPACING_MM = 0.01
 PAPER_PITCH_MM = 1.5
 
 
-def _closest_pair_mm(xy: np.ndarray) -> float:
-    """The smallest distance between two of the points, mm (in blocks: no N x N matrix at once)."""
-    best = np.inf
-    for k in range(0, xy.shape[0], 256):
-        d = np.hypot(xy[k:k + 256, None, 0] - xy[None, :, 0], xy[k:k + 256, None, 1] - xy[None, :, 1])
-        d[np.arange(d.shape[0]), np.arange(k, k + d.shape[0])] = np.inf
-        best = min(best, float(d.min()))
-    return best
+#: The cell offsets that, with a cell's own, reach every pair of points in neighbouring cells once.
+_HALF_NEIGHBOURHOOD = ((0, 0), (1, -1), (1, 0), (1, 1), (0, 1))
+
+
+def pairs_within(xy: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair of points at most ``limit`` apart, each once, and their distances.
+
+    Points are binned into square cells of side ``limit``; only points of a cell and its neighbours are
+    compared, so time and memory grow with the number of points and pairs, never as N x N.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2), float64
+    limit : float
+        > 0, in ``xy``'s units.
+
+    Returns
+    -------
+    pairs : ndarray, shape (P, 2), intp
+        ``(i, j)`` with ``i != j``.
+    distance : ndarray, shape (P,), float64
+    """
+    n = xy.shape[0]
+    empty = (np.zeros((0, 2), dtype=np.intp), np.zeros(0))
+    if n < 2 or not limit > 0:
+        return empty
+    origin = xy.min(axis=0)
+    cell = np.floor((xy - origin) / limit).astype(np.int64)
+    width = int(cell[:, 1].max()) + 3
+    key = (cell[:, 0] + 1) * width + (cell[:, 1] + 1)  # +1: the offsets' cells never go below 0
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    found_i, found_j = [], []
+    for dx, dy in _HALF_NEIGHBOURHOOD:
+        target = key + dx * width + dy
+        lo = np.searchsorted(sorted_key, target, side="left")
+        hi = np.searchsorted(sorted_key, target, side="right")
+        count = hi - lo
+        total = int(count.sum())
+        if total == 0:
+            continue
+        i = np.repeat(np.arange(n), count)
+        first = np.repeat(lo - np.r_[0, np.cumsum(count)[:-1]], count)
+        j = order[np.arange(total) + first]
+        keep = i < j if (dx, dy) == (0, 0) else np.ones(total, dtype=bool)
+        found_i.append(i[keep])
+        found_j.append(j[keep])
+    if not found_i:
+        return empty
+    i, j = np.concatenate(found_i), np.concatenate(found_j)
+    d = np.hypot(*(xy[i] - xy[j]).T)
+    close = d <= limit
+    return np.stack([i[close], j[close]], axis=1).astype(np.intp), d[close]
+
+
+def nearest_distances(xy: np.ndarray) -> np.ndarray:
+    """Each point's distance to its nearest other point, shape (N,) (inf for a single point)."""
+    n = xy.shape[0]
+    nearest = np.full(n, np.inf)
+    if n < 2:
+        return nearest
+    span = float(np.ptp(xy, axis=0).max())
+    limit = max(span / np.sqrt(n), MIN_SPACING_MM) * 1.5  # about a pitch and a half on an even array
+    while True:
+        pairs, d = pairs_within(xy, limit)
+        np.minimum.at(nearest, pairs[:, 0], d)
+        np.minimum.at(nearest, pairs[:, 1], d)
+        if np.all(np.isfinite(nearest)) or limit > 2.0 * span:
+            return nearest
+        limit *= 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,8 +128,9 @@ class FiberLayout:
             raise ValueError("fiber ids must be unique")
         if np.unique(self.xy_mm, axis=0).shape[0] != self.xy_mm.shape[0]:
             raise ValueError("two fibers at the same position")
-        nearest = _closest_pair_mm(self.xy_mm)
-        if nearest < MIN_SPACING_MM:
+        close, spacing = pairs_within(self.xy_mm, MIN_SPACING_MM)
+        if close.shape[0]:
+            nearest = float(spacing.min())
             raise ValueError(f"two fibers {nearest:.3g} mm apart: fibers are at least {MIN_SPACING_MM:g} mm apart "
                              "(mm, not m?)")
         if self.fiducial is not None and (self.fiducial.shape != self.ids.shape
@@ -81,9 +144,7 @@ class FiberLayout:
     @functools.cached_property
     def pitch_mm(self) -> float:
         """Median nearest-neighbour distance between fibers, mm (computed once: a layout is not changed)."""
-        d = np.linalg.norm(self.xy_mm[:, None, :] - self.xy_mm[None, :, :], axis=-1)
-        np.fill_diagonal(d, np.inf)
-        return float(np.median(d.min(axis=1)))
+        return float(np.median(nearest_distances(self.xy_mm)))
 
     @property
     def radius_mm(self) -> float:
@@ -95,10 +156,17 @@ class FiberLayout:
 
         The default distance is 1.2 pitches, i.e. the six hexagonal neighbours.
         """
+        pairs = self.neighbour_pairs(max_distance_mm)
+        both = np.concatenate([pairs, pairs[:, ::-1]])
+        both = both[np.lexsort((both[:, 1], both[:, 0]))]
+        starts = np.searchsorted(both[:, 0], np.arange(self.n_fibers + 1))
+        return [both[starts[k]:starts[k + 1], 1] for k in range(self.n_fibers)]
+
+    def neighbour_pairs(self, max_distance_mm: float | None = None) -> np.ndarray:
+        """Each pair of neighbouring fibers once (within ``max_distance_mm``; default 1.2 pitches, the six
+        hexagonal neighbours), shape (P, 2), intp."""
         limit = 1.2 * self.pitch_mm if max_distance_mm is None else max_distance_mm
-        d = np.linalg.norm(self.xy_mm[:, None, :] - self.xy_mm[None, :, :], axis=-1)
-        np.fill_diagonal(d, np.inf)
-        return [np.flatnonzero(row <= limit) for row in d]
+        return pairs_within(self.xy_mm, limit)[0]
 
 
 def hex_layout(rings: int = 8, pitch_mm: float = 1.5) -> FiberLayout:

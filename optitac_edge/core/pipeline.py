@@ -88,6 +88,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.compiled import CompiledEngine, kernel_status
 from optitac_edge.core.contact import ContactEstimate
 from optitac_edge.core.corrections import ContactCorrector
+from optitac_edge.core.fingerprint import SensorCheck, SensorFit, SensorMismatchError
 from optitac_edge.core.frame_engine import FrameEngine, Skip
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.gain import LedGain
@@ -149,8 +150,14 @@ class Pipeline:
     """
 
     def __init__(self, bundle: CalibrationBundle, options: ContactOptions | None = None,
-                 compiled: bool | None = None, fps: float | None = None) -> None:
+                 compiled: bool | None = None, fps: float | None = None, source: str = "the frames") -> None:
         self.bundle = bundle
+        #: The first baseline's frames checked against the bundle's sensor (None once they fitted).
+        self._sensor_check: SensorCheck | None = SensorCheck(bundle, source)
+        #: Why the frames are not of the bundle's sensor (every later frame raises it), or None.
+        self.mismatch: SensorMismatchError | None = None
+        #: How the first baseline's frames fitted the bundle's fiber map (None before).
+        self.sensor_fit: SensorFit | None = None
         self.options = o = bundle.options if options is None else options
         #: Step 3 and 9: the rest light, averaged then tracked.
         self.baseline = Baseline(bundle.fibers.n_fibers, bundle.baseline_frames, o.black_level, o.baseline_tau_s,
@@ -308,6 +315,8 @@ class Pipeline:
         if not self._in_use.acquire(blocking=False):
             raise PipelineBusy(_BUSY)
         try:
+            if self.mismatch is not None:
+                raise self.mismatch
             engine = self.engine
             why = engine.check(frame)
             if why is not None:
@@ -330,6 +339,8 @@ class Pipeline:
         if not self._in_use.acquire(blocking=False):
             raise PipelineBusy(_BUSY)
         try:
+            if self.mismatch is not None:
+                raise self.mismatch
             return self._step(frame, now_ns, False)
         finally:
             self._in_use.release()
@@ -348,7 +359,12 @@ class Pipeline:
         self._last_ns = now_ns
         if not baseline.ready:
             engine.means(frame)
+            check = self._sensor_check
+            if check is not None:
+                check.add(frame)
             if baseline.add(self.means):
+                if check is not None:
+                    self._confirm_sensor(check)
                 self._levels_changed()
                 engine.reset_gain(now_ns)
             result.baseline_ready = False
@@ -362,6 +378,24 @@ class Pipeline:
         if engine.raise_pending:
             self._raise(engine.rest, engine.common)
         return result
+
+    def name_source(self, source: str) -> None:
+        """What the frames come from (a recording's path, a camera), for the line that refuses them when they
+        are not of the bundle's sensor."""
+        if self._sensor_check is not None:
+            self._sensor_check.source = source
+
+    def _confirm_sensor(self, check: SensorCheck) -> None:
+        """The first baseline is complete: its frames must be of the bundle's sensor
+        (:mod:`~optitac_edge.core.fingerprint`); else the baseline is dropped and this and every later frame
+        raise :class:`~optitac_edge.core.fingerprint.SensorMismatchError`."""
+        self._sensor_check = None
+        try:
+            self.sensor_fit = check.finish()
+        except SensorMismatchError as exc:
+            self.baseline.reset()
+            self.mismatch = exc
+            raise
 
     def _track(self, n: int, now_ns: int, dt_ns: int | None) -> None:
         """Steps 8 and 8b: ids, touches and releases of the frame's ``n`` contacts into the result; then

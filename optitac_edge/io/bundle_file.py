@@ -143,7 +143,7 @@ def save_bundle(bundle: CalibrationBundle, path: str | Path) -> CalibrationBundl
             np.savez(f.file, **members)  # type: ignore[arg-type]  # numpy's stub: the first keyword is allow_pickle
         except OSError as exc:
             raise OutputError(f"{path}: {exc.strerror or exc}") from None
-    return replace(bundle, calibration_id=digest[:16])
+    return replace(bundle, calibration_id=digest[:16], source=str(path))
 
 
 def _load_options(path: Path, meta: Mapping[str, Any]) -> ContactOptions:
@@ -223,6 +223,7 @@ def load_bundle(path: str | Path) -> CalibrationBundle:
             created_utc=meta["created_utc"],
             calibration_id=stored[:16],
             surface_factors=factors,
+            source=str(path),
         )
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise BundleError(f"{path}: inconsistent calibration bundle ({type(exc).__name__}: {exc})") from None

@@ -543,3 +543,35 @@ class Recording:
     def frame(self, index: int) -> np.ndarray:
         """Frame ``index`` as a C-contiguous array in memory."""
         return np.ascontiguousarray(self.frames[index])
+
+
+#: Frames a recording's content digest reads (evenly spaced, the first and last among them).
+DIGEST_FRAMES = 16
+
+
+def content_digest(rec: Recording) -> str:
+    """16 hex digits that tell one recording's frames from another's: SHA-256 over the frame count, shape,
+    capture times and :data:`DIGEST_FRAMES` evenly spaced frames. A copy of a recording (another directory,
+    or its MCAP) has the same; two sessions of a sensor never do (each frame has its own noise)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    n = len(rec)
+    h.update(repr((n, tuple(rec.frames.shape[1:]))).encode())
+    h.update(np.ascontiguousarray(rec.t_ns, dtype="<i8").tobytes())
+    for i in sorted({round(k * (n - 1) / (DIGEST_FRAMES - 1)) for k in range(DIGEST_FRAMES)}):
+        h.update(np.ascontiguousarray(rec.frames[i]).tobytes())
+    return h.hexdigest()[:16]
+
+
+def refuse_repeated(recs: list[Recording]) -> None:
+    """Raise :class:`RecordingError` when two of ``recs`` are one recording: the same path, or the same frames
+    (a copy): as two sessions it would be its own held-out data."""
+    seen: dict[str, Recording] = {}
+    for rec in recs:
+        digest = content_digest(rec)
+        first = seen.setdefault(digest, rec)
+        if first is not rec:
+            same = "given twice" if first.path.resolve() == rec.path.resolve() else f"the same frames as {first.path}"
+            raise RecordingError(f"{rec.path}: {same}: one recording cannot be two sessions (its own held-out "
+                                 "data); give each recording once")

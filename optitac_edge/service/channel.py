@@ -8,7 +8,10 @@ place: no allocation per frame beyond what the pipeline does.
 
 from __future__ import annotations
 
+import logging
+
 from optitac_edge.core.bundle import CalibrationBundle
+from optitac_edge.core.fingerprint import SensorMismatchError
 from optitac_edge.core.frame_engine import Skip
 from optitac_edge.core.frame_result import FrameResult
 from optitac_edge.core.pipeline import Pipeline
@@ -16,6 +19,8 @@ from optitac_edge.io.cameras.base import CapturedFrame
 from optitac_edge.io.protocol.messages import StatusMessage
 from optitac_edge.io.protocol.outbox import SensorOutbox
 from optitac_edge.io.protocol.packet import Packer
+
+log = logging.getLogger(__name__)
 
 
 class SensorChannel:
@@ -40,7 +45,9 @@ class SensorChannel:
         self.sensor_id = sensor_id
         self.name = name
         self.bundle = bundle
-        self.pipeline = Pipeline(bundle, fps=fps)
+        self.pipeline = Pipeline(bundle, fps=fps, source=f"{name}'s camera frames")
+        #: Why the camera's frames are not of this sensor's bundle (then no frame is processed), or None.
+        self.mismatch: str | None = None
         #: Some fiber of the bundle is dead (every message's DEGRADED flag).
         self.degraded = bool(bundle.fibers.dead.any())
         #: The messages of each frame to the MCU.
@@ -65,10 +72,19 @@ class SensorChannel:
         <optitac_edge.core.pipeline.Pipeline.process>`)."""
         c = self._captured
         assert c is not None, "take() a frame first"
-        return self.pipeline.process(c.frame, c.t_ns)
+        if self.mismatch is not None:
+            return Skip.MISMATCH
+        try:
+            return self.pipeline.process(c.frame, c.t_ns)
+        except SensorMismatchError as exc:
+            self.mismatch = str(exc)
+            log.error("sensor %d: %s; no contacts are sent (STATUS: baseline not ready, camera fault)",
+                      self.sensor_id, exc)
+            return Skip.MISMATCH
 
     def replace_pipeline(self, pipeline: Pipeline) -> None:
         """Use ``pipeline`` from the next frame (a re-oriented bundle, built off the frame thread); it goes on
         with this one's contact ids, so the contacts of the old one are released."""
         pipeline.adopt_tracking(self.pipeline)
         self.pipeline = pipeline
+        self.mismatch = None

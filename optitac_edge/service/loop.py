@@ -248,9 +248,11 @@ class Service:
                 self.notifier.stopping()
             self.close()
         log.info("camera %s stopped after %d frames (%d contacts, %d dropped and %d before the loop caught up, "
-                 "%d camera faults, %d reopens, %d processing errors, %d light changes, %d baseline raises)",
+                 "%d camera faults, %d reopens, %d processing errors, %d light changes, %d baseline raises, "
+                 "%d not processed: not of the bundle's sensor)",
                  self.camera_name, st.frames, st.contacts, st.frames_dropped, st.frames_dropped_before_loop,
-                 st.camera_errors, st.reopens, st.processing_errors, st.light_changes, st.baseline_raises)
+                 st.camera_errors, st.reopens, st.processing_errors, st.light_changes, st.baseline_raises,
+                 st.mismatched_frames)
         return st
 
     def _step(self, stop: threading.Event, now_ns: int) -> FrameResult | None:

@@ -44,6 +44,7 @@ class ServiceStats:
     bad_frames: int = 0  # wrong shape or dtype
     dark_frames: int = 0
     saturated_frames: int = 0  # skipped: most fibers at full scale
+    mismatched_frames: int = 0  # skipped: not of the bundle's sensor (core/fingerprint.py)
     saturated_sent: int = 0  # processed frames with some fiber at full scale (SATURATED flag)
     light_changes: int = 0  # common-mode changes of the light (LED dimming), not reported as contacts
     baseline_raises: int = 0  # fibers brighter than their baseline (taken over a press): raised to their light
@@ -94,9 +95,13 @@ def camera_failed(st: ServiceStats, exc: Exception) -> None:
 
 
 def frame_skipped(st: ServiceStats, ch: SensorChannel, why: Skip) -> None:
-    """A frame the check refused for this sensor: bad, dark or saturated."""
-    st.camera_errors += 1
+    """A frame the check refused for this sensor: bad, dark or saturated; or not of its bundle's sensor
+    (counted apart: the camera is working, the channel said why once)."""
     ch.fault_since_status = True
+    if why is Skip.MISMATCH:
+        st.mismatched_frames += 1
+        return
+    st.camera_errors += 1
     if why is Skip.BAD:
         st.bad_frames += 1
     elif why is Skip.DARK:

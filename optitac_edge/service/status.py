@@ -50,7 +50,8 @@ class StatusReporter:
         """The flags of sensor ``index`` for its STATUS (those since its last STATUS)."""
         ch = self.channels[index]
         return SensorState(streaming=self.link.streaming, baseline_ready=ch.pipeline.baseline_ready,
-                           degraded=ch.degraded, camera_fault=ch.fault_since_status or not camera_open,
+                           degraded=ch.degraded, camera_fault=(ch.fault_since_status or not camera_open
+                                         or ch.mismatch is not None),
                            light_change=ch.light_since_status, calibration_unsaved=self.calibration_unsaved,
                            protocol_v2=self.link.protocol >= 2, protocol_v3=self.link.protocol == 3)
 

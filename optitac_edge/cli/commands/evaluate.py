@@ -27,9 +27,10 @@ def run(args: argparse.Namespace) -> int:
     from optitac_edge.calibration.measure import measure_sessions, recordings_named
     from optitac_edge.errors import RecordingError
     from optitac_edge.io.bundle_file import load_bundle
-    from optitac_edge.io.recording import Recording
+    from optitac_edge.io.recording import Recording, refuse_repeated
 
     recs = [Recording(path) for path in args.recording]
+    refuse_repeated(recs)
     for rec in recs:
         if rec.truth is None:
             raise RecordingError(f"{rec.path}: evaluation needs truth.csv")
