@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import time as time_module
 
 import numpy as np
 import pytest
@@ -430,3 +431,169 @@ def test_a_slides_truth_velocity_is_the_rigs_whatever_the_cameras_pace(tmp_path)
     # the 2 mm/s slide and the 20 mm/s one at the rig's 10 mm/s limit, each row within 5 %
     assert all(abs(v - 2.0) < 0.1 or abs(v - 10.0) < 0.5 for v in speeds), np.round(speeds, 2)
     assert (np.abs(speeds - 2.0) < 0.1).sum() >= 5 and (np.abs(speeds - 10.0) < 0.5).sum() >= 2
+
+
+# -- issue 52 §3: the settings that change reports, a long hold (against GRBL 1.1h's source, tests/fakes/grbl.py)
+
+
+@pytest.mark.parametrize(("inches", "mpos"), [(True, True), (True, False), (False, False)])
+def test_reports_in_inches_or_work_positions_are_read_as_millimetres(inches, mpos) -> None:
+    """``$13=1``: every position read 25.4x too small before (the tip at (100.6, 79.6, 5.0) said (3.96, 3.13,
+    0.20)); ``$10`` without MPos: work positions."""
+    machine = FakeGrbl(speed=20.0, report_inches=inches, report_mpos=mpos, wco=(10.0, -5.0, 2.0))
+    try:
+        with GcodeRig(machine.port, LIMITS) as rig:
+            assert rig.report_unit_mm == (25.4 if inches else 1.0) and rig.settings[10] == str(int(mpos))
+            assert rig.status().xyz_mm == pytest.approx((100.6, 79.6, 5.0), abs=2e-3)
+            rig.move_to((101.0, 80.0, 4.0))
+            rig.wait_until_at((101.0, 80.0, 4.0), timeout_s=30.0)
+            rig.retract()
+            assert machine.position()[2] == pytest.approx(LIMITS.safe_z_mm)
+            # inches: 4 decimals (2.5 um), WPos and WCO each rounded
+            assert rig.status().xyz_mm == pytest.approx((101.0, 80.0, LIMITS.safe_z_mm), abs=6e-3)
+    finally:
+        machine.close()
+
+
+def test_a_controller_whose_settings_do_not_say_its_units_is_refused_in_one_line(grbl, monkeypatch) -> None:
+    real = grbl._line
+
+    def no_units(text):
+        if text == "$$":
+            grbl._send(b"$0=10\r\nok\r\n")
+            return
+        real(text)
+
+    monkeypatch.setattr(grbl, "_line", no_units)
+    with pytest.raises(RigError, match=r"do not say whether it reports millimetres or inches \(\$13 = None\)"):
+        GcodeRig(grbl.port, LIMITS)
+
+
+def test_a_hold_that_settles_in_15_s_is_waited_for_then_reset_and_lifted() -> None:
+    """Before: the CLI gave up after 10 s without a reset; the rest of the move stayed queued (a cycle start
+    would resume it into the skin). On the fake's virtual clock (tick_s): 15 s of deceleration in ~0.4 s."""
+    machine = FakeGrbl(speed=1.0, tick_s=0.05, hold_s=15.0)
+    try:
+        with GcodeRig(machine.port, LIMITS, clock_ns=machine.now_ns) as rig:
+            rig.move_to((100.6, 79.6, -2.0), 0.2)  # slow: 35 s to go, stopped mid-way
+            for _ in range(3):
+                rig.status()
+            rig.retract()
+            assert machine.state == "Idle"  # reset only once stopped: no ALARM:3
+            assert grbl_z(machine) == pytest.approx(LIMITS.safe_z_mm)
+            assert rig.status().xyz_mm[2] == pytest.approx(LIMITS.safe_z_mm)
+            before = machine.position()
+            machine._realtime(b"~")  # the machine's cycle-start button: nothing is left to resume
+            assert machine.position() == before
+    finally:
+        machine.close()
+
+
+def test_a_hold_that_never_completes_is_reset_all_the_same(monkeypatch) -> None:
+    """A deceleration longer than HOLD_MAX_S of the machine's time: reset all the same (GRBL then loses the
+    position, ALARM:3, grbl/motion_control.c mc_reset), said in one line with what to do; nothing is left
+    queued for a cycle start."""
+    from optitac_edge.io.rigs import gcode
+
+    monkeypatch.setattr(gcode, "HOLD_MAX_S", 3.0)
+    machine = FakeGrbl(speed=1.0, tick_s=0.05, hold_s=1000.0)
+    try:
+        with GcodeRig(machine.port, LIMITS, clock_ns=machine.now_ns) as rig:
+            rig.move_to((100.6, 79.6, -2.0), 0.2)
+            rig.status()
+            with pytest.raises(RigError, match=r"ALARM:3 \(reset while in motion\); the machine's position is lost"):
+                rig.retract()
+            assert b"\x18" in machine.realtime
+            before = machine.position()
+            machine._realtime(b"~")
+            assert machine.position() == before  # the rest of the move was dropped by the reset
+    finally:
+        machine.close()
+
+
+def grbl_z(machine: FakeGrbl) -> float:
+    return machine.position()[2]
+
+
+class _FailsAt:
+    """A camera whose frame ``n`` raises a rig error (an ALARM:2 mid-slide, a lost cable...)."""
+
+    def __init__(self, camera: SimCamera, n: int) -> None:
+        self.camera, self.n, self.frames = camera, n, 0
+
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+
+    def read(self, timeout_s=1.0):
+        self.frames += 1
+        if self.frames == self.n:
+            raise RigError("the first error")
+        return self.camera.read(timeout_s)
+
+
+@pytest.mark.parametrize("signals", [1, 2])
+def test_a_signal_during_the_retract_after_an_error(grbl, tmp_path, monkeypatch, signals) -> None:
+    """Before: SIGTERM during the retract after an error cut it short, and the only line was 'interrupted by
+    SIGTERM: tip retracted' with the tip unmoved and the first error lost. Now the first signal is held until
+    the retract is done; a second stops it, and the line says so with where the machine says the tip is."""
+    import os
+    import signal as signals_module
+
+    from optitac_edge.cli import _interrupt_on_signals
+
+    settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
+    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+    real_stop = GcodeRig._stop
+
+    def signalled_stop(self):
+        for _ in range(signals):
+            os.kill(os.getpid(), signals_module.SIGTERM)
+            time_module.sleep(0.01)  # each handled before the next
+        real_stop(self)
+
+    monkeypatch.setattr(GcodeRig, "_stop", signalled_stop)
+    lines: list[str] = []
+    restore = _interrupt_on_signals()
+    try:
+        with GcodeRig(grbl.port, LIMITS) as rig, pytest.raises(RigError) as caught:
+            Collector(_FailsAt(camera, 60), rig, bundle, settings, prompt=lines.append).run("seen", tmp_path / "r",
+                                                                                            limit=3)
+    finally:
+        for signum, previous in restore.items():
+            signals_module.signal(signum, previous)
+    text = str(caught.value)
+    assert text.startswith("the first error")
+    if signals == 1:
+        assert text == "the first error" and grbl.position()[2] == pytest.approx(LIMITS.safe_z_mm)
+        assert lines[-1] == f"retracted the tip to z = {LIMITS.safe_z_mm:g} mm"
+    else:
+        assert "; the tip was NOT retracted: a second signal stopped the retract; the machine last reported it at" \
+            in text and "jog it up clear of the skin" in text
+        assert not lines[-1].startswith("retracted")
+
+
+def test_a_fresh_start_with_the_tip_in_the_skin_lifts_it_before_any_rest_frame(tmp_path) -> None:
+    """Before: a fresh start took the tip's position as rest, 0.5 mm in the skin, and the board calibrated its
+    baseline from those pressed frames."""
+    machine = FakeGrbl(speed=20.0, start=(100.6, 79.6, MOUNT.surface_z_mm - 0.5))
+    try:
+        camera = SimCamera(realtime=False, program=GrblSkin(machine, MOUNT))
+        bundle = calibrate_fibers([SimCamera(realtime=False).read().frame.copy() for _ in range(8)], "gray")
+        depths: list[float] = []
+
+        class Watched:
+            def __getattr__(self, name):
+                return getattr(camera, name)
+
+            def read(self, timeout_s=1.0):
+                depths.append(MOUNT.surface_z_mm - machine.position()[2])
+                return camera.read(timeout_s)
+
+        settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
+        with GcodeRig(machine.port, LIMITS) as rig:
+            Collector(Watched(), rig, bundle, settings, prompt=lambda line: None).run("seen", tmp_path / "r", limit=1)
+        assert depths[:settings.initial_rest_frames] == [MOUNT.surface_z_mm - LIMITS.safe_z_mm] * 8  # at safe z
+        assert next(line for line in machine.lines if line.startswith("G1")) == "G1 Z12.000 F600.0"
+    finally:
+        machine.close()

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -47,6 +48,7 @@ from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.layout import FiberLayout
 from optitac_edge.core.pipeline import Pipeline
 from optitac_edge.errors import RigError
+from optitac_edge.io import interrupts
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.frame_store import FindFibers
 from optitac_edge.io.recording import RecordingMeta
@@ -236,7 +238,12 @@ class Collector:
         """Rest, touch-off and registration at the start point; journalled as the setup."""
         s = self.settings
         x0, y0, z0 = self._start = rec.at = rec.start_pose()
-        self.prompt(f"rest at the start point ({x0:.2f}, {y0:.2f}, {z0:.2f}); nothing may touch the skin")
+        safe = self.rig.limits.safe_z_mm
+        if z0 < safe:  # the tip may be in the skin (left there by a kill or a power cut): up first, confirmed
+            self.rig.lift(safe)
+            rec.at = (x0, y0, safe)
+        self.prompt(f"rest over the start point ({x0:.2f}, {y0:.2f}, {z0:.2f}) with the tip at z = "
+                    f"{max(z0, safe):g} mm; nothing may touch the skin")
         rec.frames(s.initial_rest_frames, "rest", None)
         # registration presses with the experiment's first circle (an edge's centroid along it is ill-defined)
         first = next((p for p in presses if p.shape == "circle"), presses[0])
@@ -316,17 +323,39 @@ class Collector:
         self._mounted = p.indenter
 
     def _retract_after(self, exc: BaseException) -> str | None:
-        """Retract the tip after ``exc``; None, or why the tip was not retracted (for the one line)."""
-        try:
-            self.rig.retract()
-        except Exception as err:  # noqa: BLE001 - the original error is what the user must see first
-            log.debug("could not retract the tip after %s: %s", type(exc).__name__, err)
-            return f"the tip was NOT retracted: {err}"
+        """Retract the tip after ``exc``; None, or why the tip was not retracted and where the machine last said
+        it was (for the one line, after ``exc``'s). A retract once begun finishes: the first signal meanwhile
+        is held (:func:`~optitac_edge.io.interrupts.deferred`), a second stops it. "Retracted" is said only
+        on the machine's own reports (two in a row at the safe height, :meth:`Rig.lift`)."""
+        with interrupts.deferred() as held:
+            try:
+                self.rig.retract()
+            except BaseException as err:  # noqa: BLE001 - the original error is what the user must see first
+                log.debug("could not retract the tip after %s: %s", type(exc).__name__, err)
+                why = ("a second signal stopped the retract" if isinstance(err, KeyboardInterrupt)
+                       else str(err))
+                where = self._where()
+                return f"the tip was NOT retracted: {why}" + (f"; {where}" if where else "")
+        if held:
+            log.info("%s came during the retract: held until it was done", signal.Signals(held[0]).name)
         try:
             self.prompt(f"retracted the tip to z = {self.rig.limits.safe_z_mm:g} mm")
         except OSError as err:  # a terminal gone with the SSH session that sent SIGHUP
             log.debug("could not say the tip was retracted: %s", err)
         return None
+
+    def _where(self) -> str:
+        """Where the machine's own report puts the tip, and what to do, for a line that says it is not safe
+        ("" when the machine gives no position: its error says what to do)."""
+        try:
+            st = self.rig.status()
+        except Exception:  # noqa: BLE001 - the line is about the tip, whatever the rig says
+            return ""
+        if not all(math.isfinite(v) for v in st.xyz_mm):
+            return ""
+        x, y, z = st.xyz_mm
+        return (f"the machine last reported it at ({x:.2f}, {y:.2f}, {z:.2f}) mm, {st.raw_state or st.state}: "
+                f"jog it up clear of the skin (safe z = {self.rig.limits.safe_z_mm:g} mm) before anything else")
 
     def _park(self) -> None:
         """The tip to the safe height over the start point, where the next collection starts."""

@@ -22,6 +22,7 @@ from optitac_edge.cli.commands import COMMANDS, command, left
 from optitac_edge.cli.common import EXIT_ERROR, EXIT_INTERRUPTED, Parser
 from optitac_edge.cli.help import describe
 from optitac_edge.errors import EXTRA_OF_MODULE, Interrupted, OptiTacError, missing_extra
+from optitac_edge.io import interrupts
 from optitac_edge.io.logs import NonBlockingLogging
 
 log = logging.getLogger("optitac_edge")
@@ -116,13 +117,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _interrupt_on_signals() -> dict[int, Any]:
     """SIGINT, SIGTERM and SIGHUP raise :class:`Interrupted` (a KeyboardInterrupt) in the main thread, once:
     every command then cleans up as on Ctrl-C (``collect`` retracts the tip). A second signal during that
-    cleanup is ignored, so it cannot cut a retract short. A signal ignored at start (``nohup``, a background
+    cleanup is ignored, so it cannot cut a retract short; the first signal during a retract after an error is
+    held until the retract is done (:mod:`optitac_edge.io.interrupts`), a second one stops it. A signal ignored at start (``nohup``, a background
     job's SIGINT) stays ignored. Returns the handlers to restore."""
     if threading.current_thread() is not threading.main_thread():
         return {}
     fired: list[int] = []
 
     def interrupt(signum: int, frame: object) -> None:
+        if interrupts.hold(signum):  # a retract under way: it finishes (a second signal stops it)
+            return
         if fired:
             return
         fired.append(signum)

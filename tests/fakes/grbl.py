@@ -40,6 +40,15 @@ position (mc_reset: not executing a hold) and flushes the move, and GRBL comes
 back in the door state while the door is still open (protocol_main_loop checks
 it at start), else idle. G-code sent in the door state waits for the resume.
 
+Settings (``$$``, grbl/report.c ``report_grbl_settings``: one ``$N=V`` line each, then ``ok``): ``$10``
+(status report mask; bit 0 set: ``MPos``, clear: ``WPos`` = machine position minus the work offset,
+grbl/report.c ``report_realtime_status``) and ``$13`` (1: every reported coordinate in inches, 4 decimals,
+grbl/print.c ``printFloat_CoordValue``; the offset too). A feed hold decelerates for ``hold_s`` (GRBL plans
+the deceleration, grbl/stepper.c): the position still changes, the state is ``Hold:1``, and a reset meanwhile
+loses the position (grbl/motion_control.c ``mc_reset``: ``STEP_CONTROL_EXECUTE_HOLD`` -> ``ALARM:3``); once
+stopped (``Hold:0``) a reset keeps it and drops the rest of the move, which a cycle start (``~``) would
+otherwise resume (grbl/protocol.c).
+
 For the backend's robustness: :meth:`garble` replaces the next status reports
 with given lines (noise on a real serial line), :meth:`set_state` reports a
 state by name (grblHAL's ``Tool``, ``Door:1``, ``Sleep``).
@@ -61,8 +70,11 @@ BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 class FakeGrbl:
     def __init__(self, start=(100.6, 79.6, 5.0), travel=((0.0, 200.0), (0.0, 200.0), (-10.0, 40.0)),
                  speed: float = 1.0, locked: bool = False, tick_s: float | None = None,
-                 alarm_delay_s: float = 0.5, wco=(0.0, 0.0, 0.0)) -> None:
+                 alarm_delay_s: float = 0.5, wco=(0.0, 0.0, 0.0), report_inches: bool = False,
+                 report_mpos: bool = True, hold_s: float = 0.0) -> None:
         self.tick_s = tick_s
+        #: ``$13`` and ``$10``'s bit 0, and how long a feed hold decelerates (s).
+        self.report_inches, self.report_mpos, self.hold_s = report_inches, report_mpos, hold_s
         self.alarm_delay_s = alarm_delay_s
         #: The work offset (G54 and G92): what the reports' ``WCO`` says, machine minus work position.
         self.wco = tuple(wco)
@@ -104,7 +116,7 @@ class FakeGrbl:
 
     def _position(self, now: float) -> tuple[float, float, float]:
         if self._held_at is not None:
-            now = min(now, self._held_at)
+            now = min(now, self._held_at + self.hold_s)
         if now >= self._t1 or self._t1 == self._t0:
             return self._to
         f = (now - self._t0) / (self._t1 - self._t0)
@@ -112,6 +124,11 @@ class FakeGrbl:
 
     def _moving(self, now: float) -> bool:
         return self._held_at is None and now < self._t1
+
+    def _decelerating(self, now: float) -> bool:
+        """A feed hold not yet complete (GRBL's STEP_CONTROL_EXECUTE_HOLD)."""
+        return (self._held_at is not None and now - self._held_at < max(self.hold_s, 0.02)
+                and self._held_at < self._t1)
 
     def _status(self) -> bytes:
         now = self._clock()
@@ -132,11 +149,15 @@ class FakeGrbl:
             elif self._forced_state is not None:
                 state = self._forced_state
             elif self._held_at is not None:
-                state = "Hold:0" if now - self._held_at > 0.02 else "Hold:1"
+                state = "Hold:1" if self._decelerating(now) else "Hold:0"
             else:
                 state = "Run" if self._moving(now) else "Idle"
-        m = [p + o for p, o in zip(pos, self.wco)]  # the fake moves in work coordinates
-        return f"<{state}|MPos:{m[0]:.3f},{m[1]:.3f},{m[2]:.3f}|FS:0,0{wco}>\r\n".encode()
+        k, digits = (1 / 25.4, 4) if self.report_inches else (1.0, 3)
+        if wco:
+            wco = "|WCO:" + ",".join(f"{v * k:.{digits}f}" for v in self.wco)
+        m = [(p + o if self.report_mpos else p) * k for p, o in zip(pos, self.wco)]  # moves in work coordinates
+        kind = "MPos" if self.report_mpos else "WPos"
+        return f"<{state}|{kind}:{m[0]:.{digits}f},{m[1]:.{digits}f},{m[2]:.{digits}f}|FS:0,0{wco}>\r\n".encode()
 
     # -- the wire -------------------------------------------------------------------------------
 
@@ -253,7 +274,7 @@ class FakeGrbl:
                     self._start_move(pos, self._to, 1.0, now)
         elif b == b"\x18":
             with self._lock:
-                lost = self._moving(now)
+                lost = self._moving(now) or self._decelerating(now)
                 pos = self._position(now)
                 self._from = self._to = pos
                 self._t0 = self._t1 = now
@@ -284,6 +305,11 @@ class FakeGrbl:
             with self._lock:
                 self.state = "Idle"
             self._send(b"ok\r\n")
+            return
+        if upper == "$$":
+            mask = 1 if self.report_mpos else 0
+            listing = f"$0=10\r\n$1=25\r\n$10={mask}\r\n$11=0.010\r\n$12=0.002\r\n$13={int(self.report_inches)}\r\n"
+            self._send(listing.encode() + b"ok\r\n")
             return
         if upper == "$X":
             with self._lock:

@@ -63,6 +63,14 @@ RESET_TO_CONTINUE = "[MSG:Reset to continue]"
 RESET_WAIT_S = 1.0
 #: Status reports read at most to see the work offset twice (GRBL: every 10th when idle, grbl/config.h).
 OFFSET_REPORTS = 25
+#: Millimetres in an inch: with ``$13=1`` GRBL reports every coordinate in inches (grbl/print.c
+#: ``printFloat_CoordValue``: ``n*INCH_PER_MM``, 4 decimals), MPos, WPos and WCO alike; ``G21`` changes how
+#: commands are read, not reports.
+MM_PER_INCH = 25.4
+#: A feed hold's deceleration is waited for while the reported position still changes, up to this long (s);
+#: it is taken as stopped once the position stood still for :data:`HOLD_STILL_S`.
+HOLD_MAX_S = 120.0
+HOLD_STILL_S = 10.0
 
 log = logging.getLogger(__name__)
 
@@ -114,6 +122,10 @@ class GcodeRig(Rig):
         self._alarm_code = 0
         #: A critical alarm was read and no reset sent since: GRBL answers nothing.
         self._silent = False
+        #: Millimetres per reported unit (``$13``: 1, or 25.4 when GRBL reports inches).
+        self.report_unit_mm = 1.0
+        #: GRBL's settings as ``$$`` listed them at connect (``{10: "1", 13: "0", ...}``).
+        self.settings: dict[int, str] = {}
         if port is None:
             import serial
 
@@ -125,6 +137,7 @@ class GcodeRig(Rig):
         self._port = port
         try:
             self._reset()
+            self._read_settings()
             st = self.poll()
             if st.state == "alarm":
                 if not home:
@@ -181,8 +194,26 @@ class GcodeRig(Rig):
             todo = "reset the machine and home it ($H)"
         return RigError(f"gcode rig {self.url}: ALARM:{code} ({what}); {todo}")
 
-    def command(self, line: str, timeout_s: float | None = None) -> None:
-        """Send one line and wait for ``ok``.
+    def _read_settings(self) -> None:
+        """``$$``: the settings that change what reports mean (grbl/report.c ``report_grbl_settings``, one
+        ``$N=V`` line each). ``$13=1``: coordinates in inches, converted here; ``$10``: MPos (bit 0 set) or
+        WPos, both read. A listing without ``$13`` (not GRBL 1.1's) is refused: its units are unknown."""
+        lines: list[str] = []
+        self.command("$$", collect=lines)
+        for line in lines:
+            key, eq, value = line.partition("=")
+            if eq and key.startswith("$") and key[1:].isdigit():
+                self.settings[int(key[1:])] = value.strip()
+        inches = self.settings.get(13)
+        if inches not in ("0", "1"):
+            raise RigError(f"gcode rig {self.url}: its settings ($$) do not say whether it reports millimetres or "
+                           f"inches ($13 = {inches!r}); is it GRBL 1.1?")
+        self.report_unit_mm = MM_PER_INCH if inches == "1" else 1.0
+        if inches == "1":
+            log.info("gcode rig %s reports inches ($13=1): its positions are converted to mm", self.url)
+
+    def command(self, line: str, timeout_s: float | None = None, collect: list[str] | None = None) -> None:
+        """Send one line and wait for ``ok`` (the lines before it into ``collect``, when given).
 
         Raises
         ------
@@ -204,6 +235,8 @@ class GcodeRig(Rig):
                 raise RigError(f"gcode rig {self.url}: {line!r} refused ({reply})")
             if reply.startswith("ALARM:"):
                 raise self._alarm_error(_alarm_code(reply))
+            if collect is not None:
+                collect.append(reply)
 
     def _reset(self) -> None:
         """Ctrl-X and wait for the ``Grbl`` banner (an ``ALARM:3`` before it is noted), then for the work offset.
@@ -313,6 +346,10 @@ class GcodeRig(Rig):
             if self._wco is None:
                 raise _OffsetUnknown(f"gcode rig {self.url}: a machine position before the work offset is known")
             pos = (pos[0] - self._wco[0], pos[1] - self._wco[1], pos[2] - self._wco[2])
+        k = self.report_unit_mm  # positions and offsets are kept as reported, converted here
+        pos = (pos[0] * k, pos[1] * k, pos[2] * k)
+        if not all(abs(v) < ABSURD_MM for v in pos):
+            raise self._garbled(f"<{body}>")
         return RigStatus(state, pos, raw_state=raw_state)
 
     def _offset_seen(self, wco: tuple[float, float, float]) -> None:
@@ -332,19 +369,8 @@ class GcodeRig(Rig):
         lost): reset, and refuse to move (the message says what the operator does).
         """
         if not self._silent:
-            self._write(b"!")
-            deadline = time.monotonic() + 10.0
-            while True:
-                try:
-                    st = self.poll()
-                except RigError:  # silent (an alarm whose line was lost?): the reset below tells
-                    break
-                if st.state in ("alarm", "idle") or st.raw_state.lower() in ("hold:0", "door:0", "door:1"):
-                    break
-                if time.monotonic() > deadline:
-                    raise RigError(f"gcode rig {self.url}: did not stop within 10 s of a feed hold")
-                time.sleep(0.02)
-        self._reset()
+            self._hold()
+        self._reset()  # always: the rest of the move is dropped (a cycle start would resume it)
         st = self.poll()
         if st.state == "door":
             self._wait_for_the_door()
@@ -356,6 +382,30 @@ class GcodeRig(Rig):
         self._alarm_code = 0
         self.command("G21")
         self.command("G90")
+
+    def _hold(self) -> None:
+        """Feed hold, and wait until the machine says it stopped (``Hold:0``; ``Door:0`` / ``Door:1``; idle; an
+        alarm). A long deceleration is waited for while the reported position still changes
+        (:data:`HOLD_STILL_S` without a change, at most :data:`HOLD_MAX_S`); then the caller resets all the
+        same (a reset during the deceleration loses the position: ``ALARM:3``, said by the reset's caller)."""
+        self._write(b"!")
+        start = last_change = self.clock_ns() / 1e9  # the machine's time (a fake's virtual one in tests)
+        last: tuple[float, float, float] | None = None
+        while True:
+            try:
+                st = self.poll()
+            except RigError:  # silent (an alarm whose line was lost?): the reset tells
+                return
+            if st.state in ("alarm", "idle") or st.raw_state.lower() in ("hold:0", "door:0", "door:1"):
+                return
+            now = self.clock_ns() / 1e9
+            if last is None or math.dist(st.xyz_mm, last) > 1e-3:
+                last, last_change = st.xyz_mm, now
+            if now - last_change > HOLD_STILL_S or now - start > HOLD_MAX_S:
+                log.warning("gcode rig %s: no stop reported %.0f s after a feed hold (%s at %s); resetting",
+                            self.url, now - start, st.raw_state, st.xyz_mm)
+                return
+            time.sleep(0.02)
 
     def _wait_for_the_door(self) -> None:
         """After a reset in the door state (nothing left to run): wait until the door is closed (``Door:0``),
