@@ -178,6 +178,8 @@ def write_report(cal: str | Path, out_dir: str | Path, unseen: Path | None = Non
             plt, bundle, corrector, arrays["report/centroid_measured"], arrays["report/centroid_true"],
             "seen", out / "seen_scatter.png")))
         lines += _fit_lines("Centroid calibration", bundle.extra_meta.get("centroid_fit") or {}, "fill")
+        lines.append("The centroid figures above are the calibration presses', each held out in turn: what a press "
+                     "the map was not fitted to may expect. 'evaluate REC' measures presses of another recording.")
     if unseen is not None:
         m, truth = _measure_truth(unseen, bundle)
         rows = np.flatnonzero(detected_rows(m, truth))

@@ -68,15 +68,27 @@ PRESSES_NEEDED = {"depths": ("depth", f"{MIN_DEPTH_PRESSES} presses", MIN_DEPTH_
 
 @dataclass(frozen=True)
 class Check:
-    """One check of a verdict: its name, pass or fail, and what was seen against what is required."""
+    """One check of a verdict: its name, pass or fail, what was seen against what is required, and how many
+    samples it saw (``n``; None: a check of the bundle itself). A check on zero samples is *not measured*:
+    never ok, and said so (``[not measured]``), whatever ``ok`` was given."""
 
     name: str
     ok: bool
     seen: str
     fix: str = ""
+    n: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.n == 0 and self.ok:
+            object.__setattr__(self, "ok", False)
+
+    @property
+    def measured(self) -> bool:
+        return self.n is None or self.n > 0
 
     def line(self) -> str:
-        return f"  [{'ok' if self.ok else 'FAIL'}] {self.name}: {self.seen}" + ("" if self.ok else f" -> {self.fix}")
+        mark = "ok" if self.ok else "FAIL" if self.measured else "not measured"
+        return f"  [{mark}] {self.name}: {self.seen}" + ("" if self.ok else f" -> {self.fix}")
 
 
 @dataclass(frozen=True)
@@ -88,9 +100,11 @@ class Verdict:
         return all(c.ok for c in self.checks)
 
     def lines(self) -> list[str]:
-        failed = [c.name for c in self.checks if not c.ok]
-        head = ("verdict: GOOD ENOUGH (every check passes)" if not failed
-                else f"verdict: NOT GOOD ENOUGH ({', '.join(failed)})")
+        failed = [c.name for c in self.checks if not c.ok and c.measured]
+        unmeasured = [c.name for c in self.checks if not c.measured]
+        parts = [*failed, *(f"{name} not measured" for name in unmeasured)]
+        head = ("verdict: GOOD ENOUGH (every check passes)" if not parts
+                else f"verdict: NOT GOOD ENOUGH ({', '.join(parts)})")
         return [head, *(c.line() for c in self.checks)]
 
 
@@ -119,7 +133,8 @@ def bundle_checks(bundle: CalibrationBundle) -> list[Check]:
                     "check focus and the LED in the view, then calibrate fibers again")]
     record = bundle.extra_meta.get("orientation", {})
     checks.append(Check("orientation", is_verified(bundle),
-                        f"checked ({record.get('evidence', '')})" if is_verified(bundle) else "never checked",
+                        f"checked when it was set ({record.get('evidence', '')}: the raw centroid's error, before "
+                        "any centroid calibration)" if is_verified(bundle) else "never checked",
                         "run 'calibrate orientation REC' on presses with truth, or 'optitac-edge orient'"))
     cov = coverage(bundle)
     checks.append(Check("coverage", cov is not None and cov >= MIN_COVERAGE,
@@ -150,18 +165,24 @@ def judge(bundle: CalibrationBundle, m: Measurements, truth: Truth) -> Verdict:
     c = centroid_accuracy(m, truth)
     worst = max(c.rmse_x, c.rmse_y) if c.n else math.nan
     limit = MAX_CENTROID_RMSE_PITCH * bundle.layout.pitch_mm
-    checks.append(Check("centroid", c.n > 0 and worst <= limit,
-                        f"RMSE x {c.rmse_x:.3f}, y {c.rmse_y:.3f} mm over {c.n} frames "
-                        f"(limit {limit:.3g} mm = {MAX_CENTROID_RMSE_PITCH:.2f} pitch)" if c.n
-                        else "no detected presses",
-                        "calibrate the centroid on presses that cover the array, then evaluate on others"))
+    checks.append(Check("centroid", worst <= limit,
+                        f"RMSE x {c.rmse_x:.3f}, y {c.rmse_y:.3f} mm over {c.n} frames of presses this bundle was not "
+                        f"calibrated on (limit {limit:.3g} mm = {MAX_CENTROID_RMSE_PITCH:.2f} pitch)" if c.n
+                        else "0 detected contact frames to measure it on",
+                        "calibrate the centroid on presses that cover the array, then evaluate on others", n=c.n))
     d = detection(m, truth)
     rate = d.rate if d.contact_frames else math.nan
-    checks.append(Check("detection", d.contact_frames > 0 and rate >= MIN_DETECTION and d.false_contacts == 0,
-                        f"{d.detected}/{d.contact_frames} contact frames, {d.false_contacts} false contacts on "
-                        f"{d.rest_frames} rest frames (limits {100 * MIN_DETECTION:g} %, 0); "
-                        f"{levels_line(bundle).removeprefix('levels: ')}",
-                        "check the LED and the rest frames; take the baseline again (tare)"))
+    checks.append(Check("detection", rate >= MIN_DETECTION,
+                        f"{d.detected}/{d.contact_frames} contact frames (limit {100 * MIN_DETECTION:g} %); "
+                        f"{levels_line(bundle).removeprefix('levels: ')}" if d.contact_frames
+                        else "0 contact frames in the recording",
+                        "check the LED and the rest frames; take the baseline again (tare)"
+                        if d.contact_frames else "evaluate on a recording with presses", n=d.contact_frames))
+    checks.append(Check("false contacts", d.false_contacts == 0,
+                        f"{d.false_contacts} on {d.rest_frames} rest frames (limit 0)" if d.rest_frames
+                        else "0 rest frames after the baseline in the recording",
+                        "raise the contact level (calibrate levels on more rest frames), or tare" if d.rest_frames
+                        else "evaluate on a recording with contact-free frames between its presses", n=d.rest_frames))
     checks += model_checks(bundle, m, truth)
     return Verdict(tuple(checks))
 
