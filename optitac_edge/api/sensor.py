@@ -205,12 +205,21 @@ class Sensor:
         self.close()
 
 
-def check_open_arguments(board: object, sensor: object, settings: object) -> None:
+def check_open_arguments(board: object, sensor: object, settings: object, cal: object = None,
+                         recording: object = None) -> None:
     """The types :func:`open_sensor` takes, or one line naming the argument."""
     if not isinstance(board, (str, os.PathLike)) or isinstance(board, bytes):
         raise OptiTacError(f"board must be a board name or a config file's path, got {board!r}")
+    for name, value in (("cal", cal), ("recording", recording)):
+        if value is not None and (not isinstance(value, (str, os.PathLike)) or isinstance(value, bytes)):
+            raise OptiTacError(f"{name} must be a path (str or os.PathLike), got {type(value).__name__} {value!r:.40}")
     if settings is not None and not isinstance(settings, Mapping):
         raise OptiTacError(f"settings must be a mapping of 'section.key' to values, got {type(settings).__name__}")
+    if settings is not None:
+        for key in settings:
+            if not isinstance(key, str):
+                raise OptiTacError(f"settings: a key must be 'section.key' (a str), got {type(key).__name__} "
+                                   f"{key!r:.40}")
     if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, int)):
         raise OptiTacError(f"sensor must be a sensor's id (an integer), got {sensor!r}")
 
@@ -238,10 +247,15 @@ def _readings(read: Callable[[float], Reading | None], duration_s: float | None,
         yield reading
 
 
+#: The longest duration or wait a call takes, s (about 31 years: ``duration_s=None`` reads until the end).
+MAX_SECONDS = 1e9
+
+
 def _seconds(value: object, name: str) -> float:
-    """``value`` as a finite number of seconds >= 0, or one line naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise OptiTacError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
+    """``value`` as a finite number of seconds in 0..:data:`MAX_SECONDS`, or one line naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or not 0 <= value <= MAX_SECONDS:
+        raise OptiTacError(f"{name} must be a number of seconds in 0..{MAX_SECONDS:g}, got {value!r}")
     return float(value)
 
 
@@ -277,7 +291,7 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
     """
     from optitac_edge.config import load_board_config
 
-    check_open_arguments(board, sensor, settings)
+    check_open_arguments(board, sensor, settings, cal, recording)
     if recording is not None:
         rec = Path(recording)
         if not (rec.is_dir() or (rec.suffix == ".mcap" and rec.is_file())):

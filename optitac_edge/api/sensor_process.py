@@ -209,7 +209,7 @@ def open_sensor_process(board: str | os.PathLike[str] = "sim", *, sensor: int | 
         What :func:`open_sensor` raises, from the child; or the child could not start or did not open the
         sensor within 120 s.
     """
-    check_open_arguments(board, sensor, settings)
+    check_open_arguments(board, sensor, settings, cal, recording)
     options = {"sensor": sensor, "cal": _portable_path(cal), "recording": _portable_path(recording),
                "settings": None if settings is None else dict(settings), "arrays": bool(arrays)}
     message = messages.encode({"open": os.fspath(board), "options": options}, "open_sensor_process")

@@ -110,19 +110,22 @@ def _check_entry(entry: object, first: bool, start_frame: int, index: int) -> st
     if not (isinstance(end, int) and isinstance(rows, list) and isinstance(times, list)
             and end - start_frame == len(rows) == len(times)):
         return "frames, rows and times that do not add up"
-    if not all(_is_int(t) and 0 <= t < 2**63 for t in times) or any(b < a for a, b in itertools.pairwise(times)):
-        return "frame times that are not integers in order (int64 ns)"
+    if not all(_is_int(t) and 0 <= t < MAX_T_NS for t in times) or any(b < a for a, b in itertools.pairwise(times)):
+        return "frame times that are not integers in order (0..2^62 ns)"
     for k, row in enumerate(rows):
         why = _check_row(row, start_frame + k)
         if why:
             return why
     segments = entry.get("segments", [])
     if not (isinstance(segments, list) and all(
-            isinstance(g, dict) and _is_int(g.get("first_frame")) and _is_int(g.get("offset_ns")) for g in segments)):
+            isinstance(g, dict) and _is_int(g.get("first_frame")) and _is_int(g.get("offset_ns"))
+            and abs(g["offset_ns"]) < MAX_T_NS for g in segments)):
         return "segments that are not frame numbers and shifts"
     return ""
 
 
+#: Frame times and clock shifts a journal may hold, ns (146 years: a shift added to a time stays in int64).
+MAX_T_NS = 2**62
 #: The largest position, size, depth (mm) or angle (degrees) a journal row may hold: no sensor is a metre wide.
 MAX_TRUTH_MM = 1000.0
 

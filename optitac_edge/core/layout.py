@@ -133,6 +133,10 @@ class FiberLayout:
             nearest = float(spacing.min())
             raise ValueError(f"two fibers {nearest:.3g} mm apart: fibers are at least {MIN_SPACING_MM:g} mm apart "
                              "(mm, not m?)")
+        centred = self.xy_mm - self.xy_mm.mean(axis=0)
+        spread = np.linalg.svd(centred, compute_uv=False)
+        if not spread[1] > 1e-9 * max(float(spread[0]), MIN_SPACING_MM):
+            raise ValueError("the fibers lie on one line: a layout is a 2-D array (its surface needs triangles)")
         if self.fiducial is not None and (self.fiducial.shape != self.ids.shape
                                           or not np.all(np.isin(self.fiducial, (-1, 0, 1)))):
             raise ValueError("fiducial must have shape (N,) and values -1 (dark), 0 or +1 (bright)")

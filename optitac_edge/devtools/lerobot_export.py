@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from optitac_edge.devtools import lerobot_features as lf
 from optitac_edge.errors import OptiTacError, OutputError
+from optitac_edge.io.files import sole_writer
 
 if TYPE_CHECKING:
     from optitac_edge.io.recording import Recording
@@ -98,17 +100,23 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
     ------
     OptiTacError
         LeRobot's writer missing, recordings of several rates or sensors, frames not of the bundle, an existing
-        output: one line naming it.
+        output, another export writing it: one line naming it.
     """
+    if not job.output.parent.is_dir():
+        raise OutputError(f"{job.output.parent}: no such directory")
+    with sole_writer(job.output):  # one export per destination: a second is refused in one line
+        if job.output.exists() or job.output.is_symlink():
+            raise OutputError(f"{job.output}: exists; a dataset is written to a new directory, never over one")
+        return _export(job, progress)
+
+
+def _export(job: ExportJob, progress: bool | None) -> ExportReport:
+    """:func:`export_lerobot`'s work, its destination locked."""
     from optitac_edge.calibration.measure import replay_recording
     from optitac_edge.core.pipeline import Pipeline
     from optitac_edge.io.bundle_file import load_bundle
     from optitac_edge.io.recording import Recording
 
-    if job.output.exists() or job.output.is_symlink():
-        raise OutputError(f"{job.output}: exists; a dataset is written to a new directory, never over one")
-    if not job.output.parent.is_dir():
-        raise OutputError(f"{job.output.parent}: no such directory")
     writer = _load_writer()
     t0 = time.monotonic()
     bundle = load_bundle(job.bundle)
@@ -118,8 +126,9 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
     shapes = None if all(t is None for t in truths) else \
         lf.shape_names([str(s) for t in truths if t is not None for s in t.shape])
     features = lf.tactile_features(bundle.layout.ids, video=job.video, truth_shapes=shapes)
-    partial = job.output.with_name(f".{job.output.name}.partial")
-    shutil.rmtree(partial, ignore_errors=True)  # our own leftover of an interrupted export, never a dataset
+    # a directory of this export's own (never a name a user's folder may have), the dataset written inside it
+    work = Path(tempfile.mkdtemp(prefix=f".{job.output.name}.", suffix=".partial", dir=job.output.parent))
+    partial = work / "dataset"
     frames = 0
     try:
         dataset = writer.create(job.repo_id, fps, features, root=partial, robot_type="optitac",
@@ -140,9 +149,8 @@ def export_lerobot(job: ExportJob, progress: bool | None = None) -> ExportReport
             log.info("episode %d: %s, %d frames", episode, path, len(rec))
         dataset.finalize()
         partial.rename(job.output)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise
+    finally:
+        shutil.rmtree(work, ignore_errors=True)  # what this export made, and nothing else
     size = sum(f.stat().st_size for f in job.output.rglob("*") if f.is_file())
     return ExportReport(len(recs), frames, size, time.monotonic() - t0)
 

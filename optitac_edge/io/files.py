@@ -16,8 +16,10 @@ reports, bench results, exported models) goes through :class:`AtomicFile`:
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import IO, TYPE_CHECKING, Any
@@ -178,3 +180,27 @@ def write_file_atomic(path: str | Path, data: str | bytes) -> None:
     """Write ``data`` to ``path`` as one :class:`AtomicFile` (text for str, binary for bytes)."""
     with AtomicFile(path, "wb" if isinstance(data, bytes) else "w") as f:
         f.write(data)
+
+
+@contextlib.contextmanager
+def sole_writer(target: Path) -> Iterator[None]:
+    """While the block runs, this process is the only one of this program writing ``target``: an advisory lock
+    (``flock``) on ``.NAME.lock`` beside it, released when the block ends or the process dies. Another writer
+    meanwhile is refused in one line (:class:`OutputError`). The lock file is left in place (removing it could
+    race a writer that just opened it); it holds nothing."""
+    import fcntl
+
+    lock = target.with_name(f".{target.name}.lock")
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise OutputError(f"{target}: cannot take its lock {lock.name} ({exc.strerror or exc})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise OutputError(f"{target}: another optitac-edge is writing it now (its lock {lock.name} is held); "
+                              "one writer per destination") from None
+        yield
+    finally:
+        os.close(fd)

@@ -111,10 +111,11 @@ def read_tares(raw: object, n_frames: int, where: Path) -> tuple[Tare, ...]:
         item = entry if isinstance(entry, dict) else {"frame": entry}
         frame, frames = item.get("frame"), item.get("frames")
         if (set(item) - {"frame", "frames"} or not _whole(frame) or not 1 <= frame < n_frames
-                or (frames is not None and not (_whole(frames) and frames >= 1))
+                or (frames is not None and not (_whole(frames) and 1 <= frames <= n_frames - frame))
                 or (out and frame <= out[-1].frame)):
             raise RecordingError(f"{where}: tares[{k}] = {json.dumps(entry)[:80]}: a tare is a frame 1..{n_frames - 1} "
-                                 "after the one before it, or {\"frame\": F, \"frames\": K} with K >= 1")
+                                 "after the one before it, or {\"frame\": F, \"frames\": K} with K >= 1 frames "
+                                 "the recording has from F on")
         out.append(Tare(frame, frames))
     return tuple(out)
 

@@ -268,6 +268,9 @@ class RecordingWriter:
             self._shift_ns = 0 if last is None or t_ns > last else last + self._period_ns - int(t_ns)
             self.segments.append({"first_frame": index, "offset_ns": self._shift_ns})
         stamped = int(t_ns) + self._shift_ns
+        if not 0 <= stamped < 2**63:
+            raise OutputError(f"{self.target}: frame {index}'s time {t_ns} ns (shifted by {self._shift_ns} ns) is "
+                              "not a time this recording can hold (0..2^63 ns)")
         self._t_ns[index] = stamped
         self._stamped[index] = True
         return stamped

@@ -1,0 +1,188 @@
+"""Issue 52 §5: the rest of the sweep, each with a test that failed before it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import optitac_edge as ot
+from optitac_edge.cli import main
+from optitac_edge.core.layout import FiberLayout, hex_layout
+from optitac_edge.errors import OptiTacError, OutputError, RecordingError
+from optitac_edge.io.recording import Recording
+
+
+def _one_line(capsys, argv, *needles):
+    code = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert err.startswith("optitac-edge: error:") and "\n" not in err and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, err
+    return err
+
+
+@pytest.mark.parametrize("frames", [10**18, 2**64, 10**6])
+def test_a_tare_past_the_recordings_end_is_refused(unseen_rec, tmp_path, frames):
+    """Before: accepted, and it silenced every later contact (127 -> 60 contact frames)."""
+    rec = tmp_path / "rec"
+    shutil.copytree(unseen_rec, rec)
+    meta = json.loads((rec / "meta.json").read_text())
+    meta["tares"] = [{"frame": 20, "frames": frames}]
+    (rec / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(RecordingError, match=r"tares\[0\].*K >= 1 frames the recording has from F on"):
+        Recording(rec)
+    meta["tares"] = [{"frame": 20, "frames": len(Recording(unseen_rec)) - 20}]  # to the very end: fine
+    (rec / "meta.json").write_text(json.dumps(meta))
+    assert Recording(rec).tares[0].frames == len(Recording(unseen_rec)) - 20
+
+
+def test_a_collinear_layout_is_refused_by_the_parser(tmp_path, capsys):
+    """Before: it passed the parser, then ``sim --layout`` died with QhullError."""
+    csv = tmp_path / "line.csv"
+    csv.write_text("fiber,x_mm,y_mm\n" + "".join(f"{i},{1.5 * i},0\n" for i in range(10)))
+    _one_line(capsys, ["sim", str(tmp_path / "out"), "--layout", str(csv), "--scenario", "rest"],
+              "the fibers lie on one line")
+    with pytest.raises(ValueError, match="one line"):  # a tilted line too
+        FiberLayout(ids=np.arange(9), xy_mm=np.c_[np.arange(9) * 1.0, np.arange(9) * 2.0])
+
+
+def test_a_20000_fiber_layout_takes_memory_in_proportion_to_its_fibers():
+    """Before: N x N distance matrices (6 GB for 20 000 fibers), then an allocation error."""
+    tracemalloc.start()
+    try:
+        layout = hex_layout(rings=81, pitch_mm=0.5)
+        pitch, pairs = layout.pitch_mm, layout.neighbour_pairs()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert layout.n_fibers == 19927 and pitch == pytest.approx(0.5) and len(pairs) == 59292
+    assert peak < 200 * layout.n_fibers * 8  # ~32 MB; N x N float64 would be 3.2 GB
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(7, 400), seed=st.integers(0, 2**32 - 1))
+def test_neighbours_are_the_brute_force_ones(n, seed):
+    rng = np.random.default_rng(seed)
+    xy = np.unique(np.round(rng.uniform(-30, 30, (n, 2)), 3), axis=0)
+    if len(xy) < 7:
+        return
+    try:
+        layout = FiberLayout(ids=np.arange(len(xy)), xy_mm=xy)
+    except ValueError:
+        return  # too close or on a line: refused as the parser would
+    d = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1))
+    np.fill_diagonal(d, np.inf)
+    assert layout.pitch_mm == pytest.approx(float(np.median(d.min(axis=1))))
+    limit = 1.2 * layout.pitch_mm
+    for i, got in enumerate(layout.neighbours()):
+        np.testing.assert_array_equal(got, np.flatnonzero(d[i] <= limit))
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"cal": 3}, "cal must be a path (str or os.PathLike), got int 3"),
+    ({"recording": 7}, "recording must be a path (str or os.PathLike), got int 7"),
+    ({"settings": {1: 2}}, "settings: a key must be 'section.key' (a str), got int 1"),
+])
+def test_open_sensor_arguments_of_the_wrong_type_are_one_line(kwargs, message):
+    """Before: TypeError and AttributeError tracebacks."""
+    for opener in (ot.open_sensor, ot.open_sensor_process):
+        with pytest.raises(OptiTacError) as info:
+            opener("sim", **kwargs)
+        assert str(info.value) == message
+
+
+def test_readings_for_1e308_seconds_is_one_line():
+    """Before: OverflowError."""
+    with ot.open_sensor("sim") as sensor, pytest.raises(OptiTacError, match=r"duration_s must be a number of "
+                                                                          r"seconds in 0\.\.1e\+09, got 1e\+308"):
+        next(sensor.readings(duration_s=1e308))
+
+
+def test_a_journal_time_near_2_63_is_refused():
+    from optitac_edge.bringup.journal import MAX_T_NS, _check_entry
+
+    rows = [{"frame": k, "phase": "rest", "rig": [0.0, 0.0, 5.0]} for k in range(2)]
+    entry = {"kind": "press", "index": 0, "end_frame": 2, "rows": rows, "t_ns": [0, 2**63 - 1]}
+    assert "frame times" in _check_entry(entry, False, 0, 0)
+    entry["t_ns"] = [0, MAX_T_NS - 1]
+    assert "frame times" not in _check_entry(entry, False, 0, 0)
+
+
+def test_a_recording_writer_refuses_a_time_it_cannot_hold(tmp_path):
+    from optitac_edge.io.recording import RecordingMeta
+    from optitac_edge.io.recording_writer import RecordingWriter
+
+    writer = RecordingWriter(tmp_path / "rec", None, (4, 4), RecordingMeta(rest_frames=1, fps=10.0))
+    with pytest.raises(OutputError, match="not a time this recording can hold"):
+        writer.write(0, np.zeros((4, 4), np.uint8), 2**63 + 5)
+    writer.abort("test")
+
+
+class _FakeDataset:
+    """LeRobot's writer as export-lerobot uses it (create, add_frame, save_episode, finalize), writing files."""
+
+    started = threading.Event()
+    release = threading.Event()
+
+    @classmethod
+    def create(cls, repo_id, fps, features, root, robot_type, use_videos):
+        root = Path(root)
+        root.mkdir(parents=True, exist_ok=False)  # as LeRobot's: the root must not exist
+        return cls(root)
+
+    def __init__(self, root):
+        self.root, self.rows = root, 0
+
+    def add_frame(self, row):
+        self.rows += 1
+        if self.rows == 5:
+            type(self).started.set()
+            type(self).release.wait(10)
+
+    def save_episode(self):
+        (self.root / "episode.txt").write_text(str(self.rows))
+
+    def finalize(self):
+        pass
+
+
+def test_export_lerobot_keeps_a_users_partial_folder_and_takes_one_writer(unseen_rec, bundle_path, tmp_path,
+                                                                         monkeypatch):
+    """Before: it deleted a user's own ``.NAME.partial`` folder, and two exports to one destination ran into each
+    other."""
+    from optitac_edge.devtools import lerobot_export as ex
+
+    monkeypatch.setattr(ex, "_load_writer", lambda: _FakeDataset)
+    mine = tmp_path / ".ds.partial"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's")
+    job = ex.ExportJob(recordings=(unseen_rec,), bundle=bundle_path, output=tmp_path / "ds")
+    _FakeDataset.started.clear()
+    _FakeDataset.release.clear()
+    errors: list[BaseException] = []
+
+    def first():
+        try:
+            ex.export_lerobot(job, progress=False)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    t = threading.Thread(target=first)
+    t.start()
+    assert _FakeDataset.started.wait(30)
+    with pytest.raises(OutputError, match="another optitac-edge is writing it now"):
+        ex.export_lerobot(job, progress=False)  # the second writer, while the first writes
+    _FakeDataset.release.set()
+    t.join(60)
+    assert not errors and (tmp_path / "ds" / "episode.txt").exists()
+    assert (mine / "notes.txt").read_text() == "the user's"  # not ours: kept
+    assert [p for p in tmp_path.glob(".ds.*partial")] == [mine]  # ours: gone
