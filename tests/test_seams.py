@@ -186,3 +186,23 @@ def test_export_lerobot_keeps_a_users_partial_folder_and_takes_one_writer(unseen
     assert not errors and (tmp_path / "ds" / "episode.txt").exists()
     assert (mine / "notes.txt").read_text() == "the user's"  # not ours: kept
     assert [p for p in tmp_path.glob(".ds.*partial")] == [mine]  # ours: gone
+
+
+def test_no_array_the_kernel_points_into_can_be_resized_under_it(bundle_path, rest_rec):
+    """Before: a plan's ``means`` resized (``refcheck=False``) after the kernel took it gave heap-use-after-free
+    in gray_means (kernel/frame_kernel.c, under AddressSanitizer). Now every such array has a weak reference,
+    and numpy refuses to resize it."""
+    from optitac_edge.core.compiled import CompiledEngine, _arrays_of
+    from optitac_edge.core.pipeline import Pipeline
+    from optitac_edge.io.bundle_file import load_bundle
+
+    pipe = Pipeline(load_bundle(bundle_path), compiled=True)
+    assert isinstance(pipe.engine, CompiledEngine)
+    held = _arrays_of(pipe.engine.plan.as_dict())
+    assert any(a is pipe.engine.plan.means for a in held) and len(held) > 10
+    for a in held:
+        with pytest.raises(ValueError, match="cannot resize"):
+            a.resize(a.size * 1000 + 1000, refcheck=False)
+    rec = Recording(rest_rec)
+    for i in range(8):
+        pipe.process_recorded(rec.frame(i), i * 10**7)  # the kernel's buffers are still where it points

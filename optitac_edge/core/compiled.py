@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+import weakref
 from importlib import import_module
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -124,6 +125,17 @@ def compiled_motion() -> _frame_kernel.Motion:
                              m.NOISE_RATE, m.PRIOR_NOISE_MM, m.STEADY_RATIO, m.MIN_SPAN_FRACTION)
 
 
+def _arrays_of(value: object) -> list[np.ndarray]:
+    """Every ndarray in a plan's dict (nested dicts and lists included)."""
+    if isinstance(value, np.ndarray):
+        return [value]
+    if isinstance(value, dict):
+        return [a for v in value.values() for a in _arrays_of(v)]
+    if isinstance(value, (list, tuple)):
+        return [a for v in value for a in _arrays_of(v)]
+    return []
+
+
 class CompiledEngine:
     """Steps 2-10 in the compiled kernel, on the numpy parts' buffers (a
     :class:`~optitac_edge.core.frame_engine.FrameEngine`).
@@ -186,7 +198,11 @@ class CompiledEngine:
         self.shape_names: list[str] = (list(built.shapes.class_names) if built is not None
                                        and built.shapes is not None else [])
         #: The extension's kernel object (its members: gain, light_changed, raise_pending, common, ...).
-        self.kernel = _frame_kernel.Kernel(self.plan.as_dict())
+        arrays = self.plan.as_dict()
+        self.kernel = _frame_kernel.Kernel(arrays)
+        #: A weak reference to every array the kernel holds a pointer into: numpy refuses to resize an array
+        #: that has one, even with ``refcheck=False`` (which would free the memory under the kernel's pointers).
+        self._pins = [weakref.ref(a) for a in _arrays_of(arrays)]
         self._frame = self.kernel.frame
         self._bad = parts.frame_check.bad
         self._gain = parts.gain_compensation is not None
