@@ -237,5 +237,5 @@ def test_mcu_commands_parse_or_are_refused_with_a_result_code(msg_type, seq, pay
     if isinstance(got, Command):
         assert got.seq == seq and 1 <= got.rate_divider and got.version in (0, 1, 2, 3)
     else:
-        kind, code = got
+        _kind, code = got
         assert isinstance(code, ResultCode) and code != ResultCode.OK
