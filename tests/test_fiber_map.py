@@ -149,7 +149,7 @@ def test_too_few_fibers_refused() -> None:
     s = Synth(rotation_deg=5.0)
     frames = render(s, n_frames=2)
     frames[:, :, : frames.shape[2] // 2] = 12  # left half of the array hidden
-    with pytest.raises(FiberMapError, match=r"found \d+ of 217 fibers"):
+    with pytest.raises(FiberMapError, match=r"found \d+ of the layout's 217 fibers in the rest frames \(\d+ bright spots"):
         build_fiber_map(frames, LAYOUT, rotation_hint_deg=0.0)
 
 

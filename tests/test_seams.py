@@ -206,3 +206,32 @@ def test_no_array_the_kernel_points_into_can_be_resized_under_it(bundle_path, re
     rec = Recording(rest_rec)
     for i in range(8):
         pipe.process_recorded(rec.frame(i), i * 10**7)  # the kernel's buffers are still where it points
+
+
+def test_a_recording_keeps_its_layout_and_calibrate_fibers_uses_it(tmp_path, capsys):
+    """Issue 52 §6: ``calibrate fibers`` on a 61-fiber recording said ``found 61 of 217 fibers in the rest frames
+    (is the LED on?)``. Now the recording keeps the layout it was made with, and a map that finds another count
+    says what it found and what to try."""
+    from optitac_edge.io.layout_csv import save_layout_csv
+
+    layout = hex_layout(rings=4, pitch_mm=4.0)
+    csv = tmp_path / "hex61.csv"
+    save_layout_csv(layout, csv)
+    assert main(["sim", str(tmp_path / "r61"), "--scenario", "rest", "--layout", str(csv)]) == 0
+    rec = Recording(tmp_path / "r61")
+    assert rec.layout is not None and np.array_equal(rec.layout.ids, layout.ids)
+    from optitac_edge.io.layout_csv import load_layout_csv
+
+    assert np.array_equal(rec.layout.xy_mm, load_layout_csv(csv).xy_mm)  # exactly the CSV's
+    assert main(["calibrate", "fibers", str(tmp_path / "r61"), "-o", str(tmp_path / "cal.npz")]) == 0
+    assert "61/61 fibers found" in capsys.readouterr().out
+    meta = json.loads((tmp_path / "r61" / "meta.json").read_text())
+    del meta["layout"]  # a recording made before layouts were kept
+    (tmp_path / "r61" / "meta.json").write_text(json.dumps(meta))
+    _one_line(capsys, ["calibrate", "fibers", str(tmp_path / "r61"), "-o", str(tmp_path / "cal2.npz")],
+              "found 61 of the layout's 217 fibers", "61 bright spots centred at", "px apart",
+              "needs its own layout (--layout CSV")
+    meta["layout"] = {"fiber": [1, 2], "x_mm": [0.0], "y_mm": [0.0, 1.0]}
+    (tmp_path / "r61" / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(RecordingError, match="'layout' must be"):
+        Recording(tmp_path / "r61")

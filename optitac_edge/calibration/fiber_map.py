@@ -238,7 +238,13 @@ def _check_trust(
 ) -> None:
     n = layout.n_fibers
     if a.n_found < limits.min_found_fraction * n:
-        raise FiberMapError(f"found {a.n_found} of {n} fibers in the rest frames (is the LED on?)")
+        spots = a.blobs.centroid_px
+        where = (f" centred at ({spots[:, 0].mean():.0f}, {spots[:, 1].mean():.0f}) px, {a.reg.pitch_px:.1f} px apart"
+                 if len(spots) else "")
+        raise FiberMapError(
+            f"found {a.n_found} of the layout's {n} fibers in the rest frames ({a.blobs.count} bright spots{where}): "
+            f"a sensor of {a.blobs.count} fibers needs its own layout (--layout CSV, or a recording made with it); "
+            "else check the LED, focus and exposure in the live view")
     t = a.reg.transform
     if a.reg.pitch_px < limits.min_pitch_px:
         raise FiberMapError(f"fiber pitch of {a.reg.pitch_px:.1f} px is too small to resolve")

@@ -74,7 +74,9 @@ def map_fibers(job: FiberMapJob) -> FiberMapOutcome:
     if job.region is not None and job.camera is not None and (rec.width, rec.height) != job.camera[1:]:
         who, width, height = job.camera
         raise OptiTacError(f"{job.recording}: frames are {rec.width}x{rec.height}, {who} delivers {width}x{height}")
-    layout = load_layout_csv(job.layout) if job.layout is not None else None
+    # the layout given, else the one the recording was made with (a sensor of a board's region: the board's)
+    layout = (load_layout_csv(job.layout) if job.layout is not None
+              else rec.layout if job.region is None else None)
     hinted = job.rotation_deg is not None or job.mirror
     previous = None if hinted else readable_bundle(job.output)
     settled = previous if previous is not None and settles(previous, layout or hex_layout()) else None

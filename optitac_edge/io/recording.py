@@ -40,6 +40,7 @@ from typing import Any, TypeGuard
 import numpy as np
 
 from optitac_edge.core.frames import infer_pixel_format
+from optitac_edge.core.layout import FiberLayout
 from optitac_edge.errors import FrameMismatchError, RecordingError
 from optitac_edge.io.frame_store import COLOURS, RAW_FRAMES, REST_FRAMES, SPOTS, STORAGES, SUMS
 from optitac_edge.io.npy_rows import npy_shape
@@ -82,6 +83,35 @@ class Tare:
 
     frame: int
     frames: int | None = None
+
+
+#: The key of ``meta.json`` holding the layout of the sensor a recording was made from.
+LAYOUT_KEY = "layout"
+
+
+def layout_meta(layout: FiberLayout) -> dict[str, list[float] | list[int]]:
+    """A layout as a recording's meta keeps it: ``{"fiber": [...], "x_mm": [...], "y_mm": [...]}`` (exact:
+    JSON writes each float's shortest round-trip form)."""
+    return {"fiber": [int(i) for i in layout.ids], "x_mm": [float(v) for v in layout.xy_mm[:, 0]],
+            "y_mm": [float(v) for v in layout.xy_mm[:, 1]]}
+
+
+def read_layout_meta(raw: object, where: Path) -> FiberLayout | None:
+    """A recording's ``layout`` (:func:`layout_meta`), checked as a layout CSV is; None when it has none."""
+    if raw is None:
+        return None
+    ok = (isinstance(raw, dict) and set(raw) == {"fiber", "x_mm", "y_mm"}
+          and all(isinstance(raw[k], list) and len(raw[k]) == len(raw["fiber"]) for k in ("x_mm", "y_mm"))
+          and all(_whole(i) and 0 <= i < 2**31 for i in raw["fiber"])
+          and all(isinstance(v, (int, float)) and not isinstance(v, bool) for k in ("x_mm", "y_mm") for v in raw[k]))
+    if not ok or not isinstance(raw, dict):
+        raise RecordingError(f"{where}: 'layout' must be {{\"fiber\": [ids], \"x_mm\": [...], \"y_mm\": [...]}} "
+                             "of one length (whole fiber numbers, numbers in mm)")
+    try:
+        return FiberLayout(ids=np.array(raw["fiber"], dtype=np.int64),
+                           xy_mm=np.c_[np.array(raw["x_mm"], dtype=np.float64), np.array(raw["y_mm"], dtype=np.float64)])
+    except ValueError as exc:
+        raise RecordingError(f"{where}: 'layout': {exc}") from None
 
 
 #: Most tare points a recording may list.
@@ -489,6 +519,8 @@ class Recording:
             self.truth, self.rig_poses = read_truth_file(truth_path, len(frames))
         #: The tare points (``meta.json``'s ``tares``), in order.
         self.tares = read_tares(self.meta.extra.get("tares"), len(frames), self.path / "meta.json")
+        #: The layout of the sensor it was recorded from (``meta.json``'s ``layout``), or None (not kept).
+        self.layout = read_layout_meta(self.meta.extra.get(LAYOUT_KEY), self.path / "meta.json")
         stamps = self.path / TIMESTAMPS
         #: True when ``t_ns`` holds the capture times, False when they are nominal (``i / fps``).
         self.timestamped = stamps.exists()
@@ -512,6 +544,7 @@ class Recording:
         self.truth = None
         self.rig_poses = None
         self.tares = read_tares(self.meta.extra.get("tares"), len(frames), self.path)
+        self.layout = read_layout_meta(self.meta.extra.get(LAYOUT_KEY), self.path)
         if truth is not None:
             self.truth, self.rig_poses = read_truth_file(Path(f"{self.path}#truth.csv"), len(frames), text=truth)
         self.timestamped = True

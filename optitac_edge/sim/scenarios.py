@@ -62,7 +62,7 @@ from scipy.spatial import ConvexHull
 from optitac_edge.core.fiber_table import FiberTable
 from optitac_edge.core.layout import FiberLayout, hex_layout, pitch_scale, scaled_mm
 from optitac_edge.core.reach import depth_points, unseen_line
-from optitac_edge.io.recording import SHAPES, RecordingMeta
+from optitac_edge.io.recording import LAYOUT_KEY, SHAPES, RecordingMeta, layout_meta
 from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.sim.arrays import optics_for, skin_for
 from optitac_edge.sim.drift import SessionDrift, sensor_variant, variant_sensor_seed
@@ -439,7 +439,7 @@ def write_scenario(  # noqa: PLR0913
                                 variant=variant, physics=physics, optics=optics.to_dict(), skin=skin.to_dict(),
                                 drift=drift.to_dict())
     frame_shape = sensor.frame_shape if patch is None else patch.frames.frame_shape
-    extra: dict[str, object] = {"simulator": simulator}
+    extra: dict[str, object] = {"simulator": simulator, LAYOUT_KEY: layout_meta(sensor.layout)}
     if tares:
         extra["tares"] = tares
     meta = RecordingMeta(rest_frames=MOTION_REST_FRAMES if moving else LEAD_FRAMES if shots else REST_FRAMES,
