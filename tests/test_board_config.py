@@ -125,7 +125,7 @@ BAD_FILES = [
     ('[camera]\nbackend = "webcam"\n', "camera.backend", "must be one of"),
     ('[camera]\npixel_format = "bgr"\n', "camera.pixel_format", "'gray', 'rgb', 'yuv420'"),
     ("[camera]\nexposure_us = -1\n", "camera.exposure_us", "0..10000000"),
-    ("[camera]\ntimeout_s = 0\n", "camera.timeout_s", "0 < x <= 60"),
+    ("[camera]\ntimeout_s = 0\n", "camera.timeout_s", "must be a number in 0.001..60, got 0"),
     ("[camera]\nframerate = 30\n", "camera.framerate", "unknown key"),
     ("[camera]\nFPS = 30\n", "camera.FPS", "did you mean fps"),
     ("[camera.options]\nnested = { a = 1 }\n", "camera.options.nested", "must be a scalar"),

@@ -235,3 +235,18 @@ def test_a_recording_keeps_its_layout_and_calibrate_fibers_uses_it(tmp_path, cap
     (tmp_path / "r61" / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(RecordingError, match="'layout' must be"):
         Recording(tmp_path / "r61")
+
+
+def test_messages_name_what_the_user_gave(capsys):
+    """Issue 52 §5: a bad settings= key said 'command line: camera.fsp'; camera.timeout_s = 5e-324 was accepted,
+    then 'no frame within 0.000 s'."""
+    with pytest.raises(OptiTacError, match=r"^settings: camera\.fsp: unknown key"):
+        ot.open_sensor("sim", settings={"camera.fsp": 3})
+    from optitac_edge.config import load_board_config
+    from optitac_edge.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"camera\.timeout_s: must be a number in 0\.001\.\.60, got 5e-324"):
+        load_board_config("sim", env={"OPTITAC_CAMERA_TIMEOUT_S": "5e-324"})
+    with pytest.raises(SystemExit):
+        main(["monitor", "--help"])
+    assert "protocol 1|2|3" in " ".join(capsys.readouterr().out.split())  # argparse wraps the help

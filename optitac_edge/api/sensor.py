@@ -296,7 +296,7 @@ def open_sensor(board: str | os.PathLike[str] = "sim", *, sensor: int | None = N
         rec = Path(recording)
         if not (rec.is_dir() or (rec.suffix == ".mcap" and rec.is_file())):
             raise OptiTacError(f"{recording}: no such recording (a directory, or an .mcap file)")
-    config = load_board_config(board, overrides=dict(settings or {}))
+    config = load_board_config(board, overrides=dict(settings or {}), overrides_from="settings")
     chosen = config.sensors[0] if sensor is None else next((s for s in config.sensors if s.sensor.id == sensor),
                                                            None)
     if chosen is None:

@@ -8,12 +8,15 @@ from optitac_edge.config.board import BoardConfig, BoardSensor
 from optitac_edge.config.sections import MAIN_CAMERA
 from optitac_edge.errors import ConfigError
 
+#: Where overrides come from: the command line's ``--set``-like options, or the API's ``settings=``.
+COMMAND_LINE, API_SETTINGS = "command line", "settings"
+
 
 def _check_consistency(config: BoardConfig, shown: str) -> None:
     """Rules between keys; the error names the source of the offending key."""
 
     def rank(source: str) -> int:
-        return 2 if source == "command line" else 1 if source.startswith("environment ") else 0
+        return 2 if source in (COMMAND_LINE, API_SETTINGS) else 1 if source.startswith("environment ") else 0
 
     def fail(key: str, message: str, *involved: str) -> None:
         # Name the source that set the offending combination last (command line > env > file).

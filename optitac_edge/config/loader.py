@@ -11,7 +11,7 @@ from types import MappingProxyType
 from typing import Any
 
 from optitac_edge.config.board import BoardConfig, BoardSensor
-from optitac_edge.config.checks import _check_consistency
+from optitac_edge.config.checks import COMMAND_LINE, _check_consistency
 from optitac_edge.config.files import _display, _read_toml, resolve_board_config, working_dir
 from optitac_edge.config.layers import _check, _Layers
 from optitac_edge.config.legacy import _apply_old_publish
@@ -136,6 +136,7 @@ def load_board_config(
     name_or_path: str | os.PathLike[str] = "sim",
     env: Mapping[str, str] | None = None,
     overrides: Mapping[str, Any] | None = None,
+    overrides_from: str = COMMAND_LINE,
 ) -> BoardConfig:
     """Read, layer and validate a board config.
 
@@ -150,6 +151,8 @@ def load_board_config(
         ``0,1,2`` for channels; numbers in ASCII digits). A SECTION that is not a config section is
         refused (a misspelling must not go unnoticed), but for :data:`NOT_CONFIG_VARS`;
         ``OPTITAC_CAMERAS_*`` and ``OPTITAC_SENSORS_*`` are refused (those are set in the file).
+    overrides_from
+        What the overrides are called in an error's line (``"command line"``, or the API's ``"settings"``).
     overrides
         From the command line, ``{"section.key": value}`` (e.g. ``{"camera.fps": 30}``,
         ``{"cameras.palm.fps": 30}`` for a named camera); values may be typed or text.
@@ -190,17 +193,17 @@ def load_board_config(
 
     for dotted, value in (overrides or {}).items():
         if dotted.startswith("publish.") and dotted.count(".") == 1:  # publish.NAME: True turns it on, False off
-            layers.publisher("command line", dotted[len("publish."):], on=bool(value))
+            layers.publisher(overrides_from, dotted[len("publish."):], on=bool(value))
             continue
         section, key = _split_override(dotted)
         into: str | None = None
         if section == "cameras":
             cam_name, _, key = key.partition(".")
             if cam_name not in named or not key:
-                raise ConfigError(f"command line: {dotted}: no camera {cam_name!r} on this board "
+                raise ConfigError(f"{overrides_from}: {dotted}: no camera {cam_name!r} on this board "
                                   f"(its cameras: {', '.join(named) or 'one [camera]: write camera.KEY'})")
             section, into = "camera", f"cameras.{cam_name}"
-        layers.set("command line", section, key, value, from_text=isinstance(value, str), base_dir=cwd,
+        layers.set(overrides_from, section, key, value, from_text=isinstance(value, str), base_dir=cwd,
                    target=into)
 
     sections = {name: cls(**layers.values[name]) for name, cls in _SECTIONS.items()}

@@ -23,7 +23,8 @@ def add_parser(sub: Subcommands) -> None:
     p.add_argument("--can-interface", default="socketcan", help="python-can interface (default socketcan)")
     p.add_argument("--send", action="append", default=[], metavar="CMD",
                    help="send a command at start (serial): ping, tare, 'stream on [DIV]', 'stream off', "
-                        "'threshold LEVEL', 'protocol 1|2' (SET_PROTOCOL: v2 sends CONTACT2 and RELEASE); repeatable")
+                        "'threshold LEVEL', 'protocol 1|2|3' (SET_PROTOCOL: v2 sends CONTACT2 and RELEASE, v3 "
+                        "also MOTION); repeatable")
     p.add_argument("--duration", type=number(0, 1e8, lo_open=True), default=None, metavar="S")
     p.add_argument("--all", action="store_true", help="print every message, not only a summary a second")
 

@@ -33,7 +33,7 @@ class CameraConfig:
     pipeline: str = setting(string(4096), "", "v4l2: a GStreamer pipeline ending in appsink (instead of device)")
     recording: str = setting(path_text, "", "recording: the recording directory to replay")
     warmup_frames: int = setting(integer(0, 1000), 5, "frames discarded after opening (auto exposure settles)")
-    timeout_s: float = setting(number(0, 60, lo_open=True), 1.0, "longest wait for one frame, s")
+    timeout_s: float = setting(number(0.001, 60), 1.0, "longest wait for one frame, s (at least 1 ms)")
     queue_frames: int = setting(integer(1, MAX_QUEUE_FRAMES), 4, "frames that may wait for the loop; when full the "
                                 "oldest is dropped (1 = latest frame only)")
     #: Backend-specific options (free names, scalar values), validated by the backend.
