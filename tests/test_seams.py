@@ -250,3 +250,24 @@ def test_messages_name_what_the_user_gave(capsys):
     with pytest.raises(SystemExit):
         main(["monitor", "--help"])
     assert "protocol 1|2|3" in " ".join(capsys.readouterr().out.split())  # argparse wraps the help
+
+
+def test_a_relative_camera_option_path_is_the_board_files(tmp_path, monkeypatch):
+    """Issue 52 §6: a relative ``[camera.options] layout`` resolved against the working directory (the systemd
+    unit runs in /), while [calibration] paths resolved against the file."""
+    from optitac_edge.config import load_board_config
+    from optitac_edge.io.layout_csv import save_layout_csv
+
+    board_dir = tmp_path / "etc"
+    board_dir.mkdir()
+    save_layout_csv(hex_layout(rings=4, pitch_mm=4.0), board_dir / "hex61.csv")
+    (board_dir / "board.toml").write_text('[camera]\nbackend = "sim"\n[camera.options]\nlayout = "hex61.csv"\n'
+                                          '[calibration]\nbundle = "cal.npz"\nlayout = "hex61.csv"\n')
+    elsewhere = tmp_path / "run"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    config = load_board_config(board_dir / "board.toml", env={})
+    assert config.camera.options["layout"] == str(board_dir / "hex61.csv")
+    with ot.open_sensor(str(board_dir / "board.toml")) as sensor:
+        assert sensor._pipeline.bundle.layout.n_fibers == 61  # calibrated at open from the 61-fiber camera
+        assert sensor.read(2.0) is not None  # its frames fit: the camera simulated the 61-fiber array

@@ -14,6 +14,10 @@ from optitac_edge.config.sections import _LISTS, _SECTIONS, CameraConfig, publis
 from optitac_edge.errors import ConfigError
 from optitac_edge.fields import Invalid, Scalar, path_text, scalar, type_name
 
+#: Camera options that name a file (the simulated camera's ``layout``): relative to the board file that sets
+#: them, as every path of a board file (the systemd unit runs in ``/``).
+PATH_OPTIONS = frozenset({"layout"})
+
 
 class _Layers:
     """Values of every section/key with their source, applied in precedence order.
@@ -73,9 +77,13 @@ class _Layers:
             if not re.fullmatch(r"[a-z][a-z0-9_]*", name):
                 raise ConfigError(f"{source}: {where}: option names are lower-case identifiers")
             try:
-                self.options[target][name] = scalar(value, from_text)
+                option = scalar(value, from_text)
             except Invalid as exc:
                 raise ConfigError(f"{source}: {where}: {exc}") from None
+            if name in PATH_OPTIONS and isinstance(option, str) and option and base_dir is not None:
+                expanded = Path(os.path.expanduser(option))  # relative to the file that set it, as every path
+                option = str(expanded if expanded.is_absolute() else base_dir / expanded)
+            self.options[target][name] = option
             self.origins[where] = source
             return
         if key not in spec:
