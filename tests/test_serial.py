@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import pytest
@@ -193,19 +194,39 @@ def test_registry_opens_serial():
         tr.close()
 
 
-def test_send_cost_and_throughput(mcu):
-    """send_contact is cheap (frame loop budget) and the link keeps up with a fast camera."""
+def test_every_frame_arrives_or_is_counted_lost(mcu):
+    """2 000 frames as fast as the loop sends them: every seq the MCU does not see is counted by the writer.
+
+    Issue 52 §7: under load one run lost seq 697 of 2 000 with ``writer.dropped == 0``. The cause was the
+    writer, not the fake MCU: a write the line takes nothing of for ``write_timeout`` (0.2 s: the MCU, here the
+    test's own thread, not reading while it sent) drops that frame, counted only in ``send_errors``. It is
+    now counted in ``writer.timed_out`` too. The MCU reads here in a thread of its own, as a real one does; how
+    fast a send is belongs to ``optitac-edge bench`` (docs/performance.md), not this test."""
     n = 2000
+    reader = threading.Thread(target=mcu.read_until, args=(lambda fr: len(fr) >= n,), kwargs={"timeout": 30})
     with SerialTransport(mcu.path, queue_size=n) as tr:
-        t0 = time.perf_counter()
+        reader.start()
         for i in range(n):
             send_message(tr, contact(i % 50))
-        per_call_us = (time.perf_counter() - t0) / n * 1e6
-        frames = mcu.read_until(lambda fr: len(fr) >= n, timeout=10)
-        assert len(frames) == n and tr.writer.dropped == 0
-        assert [f.seq for f in frames] == list(range(n))
-    print(f"send_contact: {per_call_us:.1f} us/call")
-    assert per_call_us < 200
+        reader.join()
+        seqs = [f.seq for f in mcu.frames]
+        w = tr.writer
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)  # in order, none twice
+        assert len(seqs) + w.dropped + w.timed_out + w.dropped_disconnected == n, (len(seqs), w.dropped,
+                                                                                    w.timed_out)
+        assert tr.counters.send_errors == w.dropped + w.timed_out + w.dropped_disconnected
+
+
+def test_a_write_the_line_does_not_take_is_counted(mcu):
+    """Nobody reads the line: the pty holds ~700 frames; the rest of the frame written in part, then each queued
+    frame, times out, each counted (before: only in send_errors: the frame cut there was seq 697, the one the
+    issue saw lost)."""
+    with SerialTransport(mcu.path, queue_size=5000) as tr:
+        for i in range(3000):  # ~100 kB: more than the pty holds
+            send_message(tr, contact(i % 50))
+        assert wait_for(lambda: tr.writer.timed_out >= 2, timeout=20)
+        w = tr.writer
+        assert w.dropped == 0 and tr.counters.send_errors >= w.timed_out >= 2
 
 
 def test_a_second_process_on_a_port_in_use_is_refused(mcu):

@@ -94,6 +94,9 @@ class FrameWriter:
         self.dropped = 0
         #: frames dropped because no port was open when they were due (also in send_errors)
         self.dropped_disconnected = 0
+        #: frames lost because the line took nothing for the write timeout (the MCU not reading; a part of
+        #: the frame may be on the line, which the MCU's CRC refuses; also in send_errors)
+        self.timed_out = 0
         #: ACKs written, by result code
         self.acks: dict[ResultCode, int] = {code: 0 for code in ResultCode}
         #: frames the frame loop wrote itself (the line was idle), of ``counters.sent``
@@ -304,6 +307,7 @@ class FrameWriter:
                 raise serial.SerialTimeoutException(f"wrote {n} of {len(data)} bytes")
         except serial.SerialTimeoutException:  # MCU not reading: drop, resync, keep the port
             self.counters.send_errors += 1
+            self.timed_out += 1
             self._numbering.resync = True
             return
         except Exception as exc:  # noqa: BLE001 - port gone (OSError, SerialException, ...)
