@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import time as time_module
 
@@ -597,3 +598,49 @@ def test_a_fresh_start_with_the_tip_in_the_skin_lifts_it_before_any_rest_frame(t
         assert next(line for line in machine.lines if line.startswith("G1")) == "G1 Z12.000 F600.0"
     finally:
         machine.close()
+
+
+@pytest.mark.parametrize(("experiment", "event"), [("seen", "door"), ("slide", "door"), ("slide", "alarm2")])
+def test_a_door_or_a_soft_limit_with_the_tip_in_the_skin_ends_at_safe_z(tmp_path, experiment, event) -> None:
+    """Issue 52 §3: a door (0x84) mid-press and mid-slide, ALARM:2 mid-slide, on GRBL 1.1h's behaviour
+    (tests/fakes/grbl.py: a door holds the feed, Door:1 while open, a reset once stopped keeps the position;
+    ALARM:2 keeps it, GRBL silent until a reset after [MSG:Reset to continue]). The collection ends with the
+    event's line and the tip at the safe height as the machine itself reports it."""
+    import threading
+
+    grbl = FakeGrbl(speed=4.0, tick_s=1 / 60)
+    fired: list[tuple[float, float, float]] = []
+    try:
+        camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+        bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+        last = [grbl.position()]
+
+        class Event:
+            def __getattr__(self, name):
+                return getattr(camera, name)
+
+            def read(self, timeout_s=1.0):
+                pos = grbl.position()
+                deep = MOUNT.surface_z_mm - pos[2] > 0.3
+                sliding = math.dist(pos[:2], last[0][:2]) > 1e-3
+                last[0] = pos
+                if not fired and deep and (experiment == "seen" or sliding):
+                    fired.append(pos)
+                    if event == "door":
+                        grbl.open_door()
+                        threading.Timer(0.5, grbl.close_door).start()
+                    else:
+                        grbl.inject_alarm(2)
+                return camera.read(timeout_s)
+
+        settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
+        lines: list[str] = []
+        with GcodeRig(grbl.port, LIMITS, clock_ns=grbl.now_ns) as rig, pytest.raises(RigError) as caught:
+            Collector(Event(), rig, bundle, settings, prompt=lines.append).run(experiment, tmp_path / "r", limit=3)
+        assert fired, "the event never came with the tip in the skin"
+        assert ("door" in str(caught.value)) if event == "door" else ("ALARM:2" in str(caught.value))
+        assert "NOT retracted" not in str(caught.value)
+        assert lines[-1] == f"retracted the tip to z = {LIMITS.safe_z_mm:g} mm"
+        assert grbl.position()[2] == pytest.approx(LIMITS.safe_z_mm) and not grbl.in_door
+    finally:
+        grbl.close()
