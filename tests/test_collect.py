@@ -73,7 +73,16 @@ def test_collect_from_the_command_line(tmp_path, capsys) -> None:
     assert "touch-off" in stdout and f"wrote {out}: seen, 2 presses" in stdout
     assert Recording(out).meta.extra["collect"]["presses"] == 2
     # minutes without a word before (issue 38, item 28): a line a press where the output is not a terminal
-    assert "press 1 of 2 done; about" in stdout and "press 2 of 2 done; about 0 min left" in stdout
+    # issue 52 §5: the first line said 'about 0 min left' (no press timed yet); the last has nothing left
+    assert "press 1 of 2 done\n" in stdout and "press 2 of 2 done\n" in stdout and "0 min left" not in stdout
+
+
+def test_the_time_left_is_said_from_timed_presses_only() -> None:
+    from optitac_edge.cli.commands.collect import _left
+
+    assert _left(0.0, 0, 10) == "" and _left(120.0, 1, 0) == ""
+    assert _left(30.0, 1, 1) == "; under a minute left"
+    assert _left(120.0, 2, 10) == "; about 10 min left"
 
 
 def test_the_rig_frame_and_surface_are_found_not_typed_in(tmp_path, capsys) -> None:

@@ -193,10 +193,14 @@ def test_collect_seen_through_grbl_interrupted_retracted_and_continued(grbl, tmp
         Recording(out)
     done = len((out / JOURNAL).read_text().splitlines()) - 1
     assert done == 7
+    asked: list[str] = []
     with GcodeRig(grbl.port, LIMITS) as rig:
-        result = Collector(camera, rig, bundle, settings, prompt=lines.append).run("seen", out, limit=14)
+        result = Collector(camera, rig, bundle, settings, prompt=lines.append,
+                           confirm=asked.append).run("seen", out, limit=14)
     assert result.resumed_at == done and result.presses == 14
     assert f"continuing seen after press {done} of 14" in lines
+    # issue 52 §3: the resume asked again to mount the indenter its presses had on (one indenter for all)
+    assert asked == [] and "continuing with the circle indenter, 5 mm, mounted as it was" in lines
     # parked at the safe height over the start point (before: over the last press, off-centre for the next run)
     assert grbl.position() == pytest.approx((100.6, 79.6, 12.0))
     assert lines[-1] == "parked the tip at z = 12 mm over the start point (100.60, 79.60)"

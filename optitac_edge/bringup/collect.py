@@ -198,6 +198,7 @@ class Collector:
             rec.write_rows([r for entry in entries for r in entry["rows"]], kept_t)
             if setup:
                 symmetry, touch = self._resume(rec, setup, f"{len(done)} of {len(presses)}", len(done) < len(presses))
+                self._assume_mounted(presses, len(done))
             else:
                 symmetry, touch = self._set_up(rec, presses, journal, {"experiment": experiment, "seed": seed})
             self._press_all(rec, presses, len(done), journal)
@@ -312,6 +313,17 @@ class Collector:
             rec.move((tx, ty, hover), "release", p, s.approach_feed_mm_s)
             rec.commit(journal, {"kind": "press", "index": k})
             self.progress(k + 1, len(presses))
+
+    def _assume_mounted(self, presses: list[PlannedPress], done: int) -> None:
+        """A resumed collection goes on with the indenter its last journalled step had on (the last press's,
+        else the registration's circle), said in a line; the operator is asked only where the plan changes it
+        (a rig that changes indenters itself is asked to mount each again)."""
+        if self.rig.changes_indenters:
+            return
+        first = next((p for p in presses if p.shape == "circle"), presses[0])
+        last = presses[done - 1] if done else first
+        self._mounted = last.indenter
+        self.prompt(f"continuing with the {last.shape} indenter, {last.size_mm:g} mm, mounted as it was")
 
     def _change_indenter(self, rec: RigRecorder, p: PlannedPress) -> None:
         if not self.rig.changes_indenters:

@@ -91,6 +91,15 @@ def _wait_for_enter(line: str) -> None:
         raise OptiTacError("standard input closed while waiting for the operator")
 
 
+def _left(elapsed_s: float, timed: int, left: int) -> str:
+    """'; about N min left' at the pace of the ``timed`` presses timed so far ("" before one was timed: the
+    clock starts when the first press is done, its time holding the setup and touch-off)."""
+    if timed < 1 or left < 1:
+        return ""
+    minutes = elapsed_s / timed * left / 60
+    return "; under a minute left" if minutes < 1 else f"; about {minutes:.0f} min left"
+
+
 class PressProgress:
     """Presses done of all, and the time left at the pace so far: a bar on a terminal (tqdm), else a line a press
     (a log, journald)."""
@@ -113,8 +122,8 @@ class PressProgress:
                 self._bar = tqdm(total=total, initial=done - 1, desc=self.experiment, unit="press", leave=False)
             self._bar.update(1)
             return
-        pace = (now - self._started) / max(done - self._first, 1)
-        print(f"press {done} of {total} done; about {pace * (total - done) / 60:.0f} min left", flush=True)
+        print(f"press {done} of {total} done{_left(now - self._started, done - self._first - 1, total - done)}",
+              flush=True)
 
     def close(self) -> None:
         if self._bar is not None:
