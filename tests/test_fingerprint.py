@@ -231,3 +231,23 @@ def test_a_recording_of_another_frame_size_is_refused_naming_it(bundle_path, tmp
     small = write_scenario(tmp_path / "small", "rest", seed=1, optics=CameraOptics(width=320, height=240))
     _one_line(capsys, ["replay", str(small), "--cal", str(bundle_path), "-o", str(tmp_path / "c.csv")],
               f"{small}: frame is uint8 (240, 320)", str(bundle_path))
+
+
+def test_run_says_once_why_a_sensor_sent_no_contact_and_each_event_once(hex61):
+    """run printed each event twice (a plain line and an INFO line); on another sensor's bundle it must say
+    why no contact was sent, in its summary."""
+    import subprocess
+    import sys
+
+    _, cal61, _ = hex61
+    proc = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "run", "--cal", str(cal61), "--duration", "1"],
+                          capture_output=True, text=True, timeout=120)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    assert "sensor 0 'sim': no contact sent: sim's camera frames are not of the sensor of" in proc.stdout
+    assert out.count("are not of the sensor of") == 2  # the log once, the summary once
+    assert "stopped after" not in out  # run's own summary says it
+    proc = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "run", "--duration", "1"], capture_output=True,
+                          text=True, timeout=120, cwd=str(cal61.parent))
+    out = proc.stdout + proc.stderr
+    assert out.count("calibrating") == 1, out

@@ -247,7 +247,8 @@ class Service:
             if not self.is_peer:
                 self.notifier.stopping()
             self.close()
-        log.info("camera %s stopped after %d frames (%d contacts, %d dropped and %d before the loop caught up, "
+        # debug: run's own summary says it (once: both reach journald under systemd)
+        log.debug("camera %s stopped after %d frames (%d contacts, %d dropped and %d before the loop caught up, "
                  "%d camera faults, %d reopens, %d processing errors, %d light changes, %d baseline raises, "
                  "%d not processed: not of the bundle's sensor)",
                  self.camera_name, st.frames, st.contacts, st.frames_dropped, st.frames_dropped_before_loop,

@@ -117,6 +117,24 @@ def _publish_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def _say_summary(service: Service, several_cameras: bool, several_sensors: bool, say: Callable[..., None]) -> None:
+    """A camera's frames, drops and errors at the end of a run; each sensor's, and why one sent no contact."""
+    stats = service.stats
+    commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
+    # with several sensors on a camera, the contacts are each sensor's (below): a camera's frame is one
+    contacts = f", {stats.contacts} with contact" if len(service.channels) == 1 else ""
+    before = stats.frames_dropped_before_loop
+    say("%sprocessed %d frames%s, dropped %d%s, camera errors %d, processing errors %d, commands %s",
+        f"camera {service.camera_name}: " if several_cameras else "", stats.frames, contacts, stats.frames_dropped,
+        f" (and {before} before it caught up with the camera, which streamed while the bundles were made)" if before else "",
+        stats.camera_errors, stats.processing_errors, commands)
+    for ch in service.channels:
+        if several_sensors:
+            say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
+        if ch.mismatch is not None:
+            say("  sensor %d %r: no contact sent: %s", ch.sensor_id, ch.name, ch.mismatch)
+
+
 def run(args: argparse.Namespace) -> int:
     STARTUP.mark("imports")
     if args.duration is not None and not args.duration > 0:
@@ -143,20 +161,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         say = logging.getLogger("optitac_edge.console").info
         services = _run_service(args, config, stop, say)
-        several = len(services) > 1
         for service in services:
-            stats = service.stats
-            commands = " ".join(f"{k}={v}" for k, v in sorted(stats.commands.items())) or "none"
-            # with several sensors on a camera, the contacts are each sensor's (below): a camera's frame is one
-            contacts = f", {stats.contacts} with contact" if len(service.channels) == 1 else ""
-            before = stats.frames_dropped_before_loop
-            say("%sprocessed %d frames%s, dropped %d%s, camera errors %d, processing errors %d, commands %s",
-                f"camera {service.camera_name}: " if several else "", stats.frames, contacts, stats.frames_dropped,
-                f" (and {before} before it caught up with the camera, which streamed while the bundles were made)" if before else "",
-                stats.camera_errors, stats.processing_errors, commands)
-            if len(config.sensors) > 1:
-                for ch in service.channels:
-                    say("  sensor %d %r: %d frames, %d with contact", ch.sensor_id, ch.name, ch.frames, ch.contacts)
+            _say_summary(service, len(services) > 1, len(config.sensors) > 1, say)
         if services:
             say("%s", _link_summary(services[0].transport))
             network = service.network
@@ -300,8 +306,8 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
         # a status line on a terminal only: a pipe or journald gets the log, and nothing that could block
         line = stack.enter_context(StatusLine(0.1, link)) if sys.stdout.isatty() else None
         several = len(config.sensors) > 1
-        if session.calibrates:
-            say("calibrating fibers from the first rest frames...")
+        if session.calibrates and logging.getLogger().getEffectiveLevel() > logging.INFO:
+            say("calibrating fibers from the first rest frames...")  # else the service's log line says it
         bundle = session.bundle()
         STARTUP.mark("bundles")
         if getattr(args, "view", None):
