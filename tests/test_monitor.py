@@ -33,7 +33,7 @@ def test_counts_rates_gaps_and_errors_from_the_wire() -> None:
     assert lines[0] == "#1 CONTACT t=5 us contact at +1.50, -2.25 mm, 4.00 x 3.00 mm, +30.0°, strength 12.0, shape none"
     assert lines[3].startswith("#6 STATUS 60.0 fps") and lines[4] == "#7 ACK of #7: OK"
     t = mon.tally
-    assert t.counts == {"CONTACT": 3, "STATUS": 1, "ACK": 1, "RELEASE": 0, "MOTION": 0, "other": 0} and (t.gaps, t.lost) == (1, 2)
+    assert t.counts == {"CONTACT": 3, "CONTACT2": 0, "STATUS": 1, "ACK": 1, "RELEASE": 0, "MOTION": 0, "other": 0} and (t.gaps, t.lost) == (1, 2)
     assert mon.decoder.counters.crc == 1
     assert "CONTACT    3.0/s" in mon.summary(now_ns=1_000_000_000) and "crc 1" in mon.summary(1)
 
@@ -170,3 +170,17 @@ def test_the_monitor_speaks_protocol_v3_and_decodes_motion() -> None:
     motion = [line for line in lines if " MOTION " in line]
     assert motion and any("v (" in line or "v unknown" in line for line in motion)
     assert mon.tally.counts["MOTION"] == len(motion) and mon.tally.bad_payloads == 0
+
+
+def test_the_summary_names_contact2_as_contact2() -> None:
+    """Issue 52 §6: on protocol v2 the summary labelled CONTACT2 messages as CONTACT."""
+    from optitac_edge.bringup.monitor import LinkTally
+
+    t = LinkTally()
+    for seq in range(4):
+        t.add("CONTACT2", seq, seq * 10**9)
+    line = t.report(4 * 10**9)
+    assert line.startswith("CONTACT2 ") and "totals: 4 CONTACT2," in line and "CONTACT " not in line
+    t = LinkTally()
+    t.add("CONTACT", 0, 0)
+    assert t.report(10**9).startswith("CONTACT ")

@@ -86,8 +86,8 @@ def command_frame(text: str, seq: int) -> tuple[bytes, str]:
 class LinkTally:
     """Counts of what arrived, rates over the last report period, sequence gaps; pure (no I/O, no clock)."""
 
-    counts: dict[str, int] = field(default_factory=lambda: {"CONTACT": 0, "STATUS": 0, "ACK": 0, "RELEASE": 0, "MOTION": 0,
-                                                            "other": 0})
+    counts: dict[str, int] = field(default_factory=lambda: {"CONTACT": 0, "CONTACT2": 0, "STATUS": 0, "ACK": 0,
+                                                            "RELEASE": 0, "MOTION": 0, "other": 0})
     gaps: int = 0
     lost: int = 0
     bad_payloads: int = 0
@@ -116,8 +116,9 @@ class LinkTally:
         """One line: rates since the last report, totals, gaps; the period starts again."""
         span = (now_ns - self._since_ns) / 1e9 if self._since_ns is not None else 0.0
         rate = (lambda n: n / span if span > 0 else 0.0)
-        line = (f"CONTACT {rate(self._period.get('CONTACT', 0)):6.1f}/s  STATUS {rate(self._period.get('STATUS', 0)):4.1f}/s"
-                f"  totals: {self.counts['CONTACT']} CONTACT, {self.counts['STATUS']} STATUS, {self.counts['ACK']} ACK"
+        kind = "CONTACT2" if self.counts["CONTACT2"] > self.counts["CONTACT"] else "CONTACT"  # v2/v3: CONTACT2
+        line = (f"{kind} {rate(self._period.get(kind, 0)):6.1f}/s  STATUS {rate(self._period.get('STATUS', 0)):4.1f}/s"
+                f"  totals: {self.counts[kind]} {kind}, {self.counts['STATUS']} STATUS, {self.counts['ACK']} ACK"
                 f"  gaps {self.gaps} ({self.lost} missing)")
         self._period.clear()
         self._since_ns = now_ns
@@ -172,9 +173,9 @@ class SerialMonitor:
                                  f"camera errors {st.camera_errors}, link errors {st.link_errors}, "
                                  f"calibration {st.calibration_id:08x}")
                 return f"#{frame.seq} STATUS {t.last_status}"
-            if frame.type == MsgType.CONTACT2:  # protocol v2: one for each contact of the frame
+            if frame.type == MsgType.CONTACT2:  # protocol v2: one for each contact of the frame (counted apart)
                 c2 = decode_contact2(frame.payload, frame.t_us)
-                t.add("CONTACT", frame.seq, now_ns)
+                t.add("CONTACT2", frame.seq, now_ns)
                 t.last_contact = _contact2_text(c2)
                 return f"#{frame.seq} CONTACT2 t={frame.t_us} us frame {c2.frame} {t.last_contact}"
             if frame.type == MsgType.MOTION:  # protocol v3: after each CONTACT2, its contact's motion
