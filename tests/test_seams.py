@@ -271,3 +271,17 @@ def test_a_relative_camera_option_path_is_the_board_files(tmp_path, monkeypatch)
     with ot.open_sensor(str(board_dir / "board.toml")) as sensor:
         assert sensor._pipeline.bundle.layout.n_fibers == 61  # calibrated at open from the 61-fiber camera
         assert sensor.read(2.0) is not None  # its frames fit: the camera simulated the 61-fiber array
+
+
+def test_record_keeps_the_boards_layout(tmp_path, capsys):
+    from optitac_edge.io.layout_csv import save_layout_csv
+
+    save_layout_csv(hex_layout(rings=4, pitch_mm=4.0), tmp_path / "hex61.csv")
+    board = tmp_path / "board.toml"
+    board.write_text('[camera]\nbackend = "sim"\n[camera.options]\nlayout = "hex61.csv"\n'
+                     '[calibration]\nlayout = "hex61.csv"\nbundle = "cal.npz"\n')
+    assert main(["record", "--board", str(board), "-o", str(tmp_path / "rec"), "--frames", "20"]) == 0
+    rec = Recording(tmp_path / "rec")
+    assert rec.layout is not None and rec.layout.n_fibers == 61
+    assert main(["calibrate", "fibers", str(tmp_path / "rec"), "-o", str(tmp_path / "c.npz")]) == 0
+    assert "61/61 fibers found" in capsys.readouterr().out

@@ -65,8 +65,14 @@ def record_board(config: BoardConfig, path: str | Path, frames: int, rest_frames
     with open_board_camera(config) as camera:
         if camera.pixel_format == "yuv420":
             raise OptiTacError("recordings hold gray or RGB frames: set camera.pixel_format = 'gray'")
-        meta = RecordingMeta(rest_frames=rest_frames, fps=camera.fps,
-                             extra={"board": config.source, "camera": config.camera.backend})
+        extra: dict[str, object] = {"board": config.source, "camera": config.camera.backend}
+        layout_path = config.calibration.layout_path
+        if layout_path is not None and len(config.sensors) == 1:  # the sensor's layout, for calibrate fibers
+            from optitac_edge.io.layout_csv import load_layout_csv
+            from optitac_edge.io.recording import LAYOUT_KEY, layout_meta
+
+            extra[LAYOUT_KEY] = layout_meta(load_layout_csv(layout_path))
+        meta = RecordingMeta(rest_frames=rest_frames, fps=camera.fps, extra=extra)
         writer: Any = (McapRecordingWriter(path, meta.to_json(), replace=replace) if mcap else
                        RecordingWriter(path, frames, camera.frame_shape, meta, replace=replace, storage=storage,
                                        find_fibers=fiber_finder(config)))
