@@ -285,3 +285,22 @@ def test_record_keeps_the_boards_layout(tmp_path, capsys):
     assert rec.layout is not None and rec.layout.n_fibers == 61
     assert main(["calibrate", "fibers", str(tmp_path / "rec"), "-o", str(tmp_path / "c.npz")]) == 0
     assert "61/61 fibers found" in capsys.readouterr().out
+
+
+def test_long_steps_say_their_progress_where_no_bar_is_shown(unseen_rec, bundle_path, tmp_path, caplog,
+                                                             monkeypatch):
+    """Issue 52 §6: long steps printed nothing when the output was not a terminal (calibrate levels 10 min)."""
+    import logging
+
+    from optitac_edge.calibration import measure
+
+    monkeypatch.setattr(measure, "PROGRESS_S", 0.0)
+    caplog.set_level(logging.DEBUG)
+    assert main(["replay", str(unseen_rec), "--cal", str(bundle_path), "-o", str(tmp_path / "c.csv")]) == 0
+    said = [r.getMessage() for r in caplog.records if r.name == "optitac_edge.progress" and r.levelno >= logging.INFO
+            and logging.getLogger(r.name).isEnabledFor(r.levelno)]
+    assert "replay: frame 64 of 448 (14 %)" in said, said
+    caplog.clear()
+    assert main(["-q", "replay", str(unseen_rec), "--cal", str(bundle_path), "-o", str(tmp_path / "d.csv")]) == 0
+    assert not logging.getLogger("optitac_edge.progress").isEnabledFor(logging.INFO)
+    logging.getLogger("optitac_edge.progress").setLevel(logging.NOTSET)

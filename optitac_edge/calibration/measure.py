@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import sys
+import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields
 from typing import Any
@@ -94,6 +96,12 @@ class FrameMotion:
         self.vibration_began[i] = result.vibration_began
 
 
+#: Where no progress bar is shown (the output is not a terminal), a line this often, s.
+PROGRESS_S = 5.0
+#: Progress lines of long steps (the command line shows them unless -q, docs: its log level).
+progress_log = logging.getLogger("optitac_edge.progress")
+
+
 def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None = None,
                      desc: str = "replay") -> Iterator[tuple[int, FrameResult]]:
     """Every frame of ``rec`` through ``pipeline`` at its capture time (``rec.t_ns``; ``i / fps`` when not stamped).
@@ -124,7 +132,11 @@ def replay_recording(rec: Recording, pipeline: Pipeline, progress: bool | None =
     t_ns = rec.t_ns
     tares = {t.frame: t.frames for t in rec.tares}
     show = sys.stderr.isatty() if progress is None else progress
+    said = time.monotonic()
     for i in tqdm(range(len(rec)), desc=desc, unit="frame", disable=not show, leave=False):
+        if not show and i % 64 == 0 and time.monotonic() - said >= PROGRESS_S:  # a log line where no bar is
+            said = time.monotonic()
+            progress_log.info("%s: frame %d of %d (%.0f %%)", desc, i, len(rec), 100 * i / len(rec))
         if i in tares:
             pipeline.reset_baseline(tares[i])
         yield i, pipeline.process_recorded(rec.frames[i], int(t_ns[i]))

@@ -77,6 +77,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logs = NonBlockingLogging(_log_level(args)).start()  # nothing that logs ever waits on stderr
+    # long steps' progress lines (where no bar is shown) unless -q
+    logging.getLogger("optitac_edge.progress").setLevel(logging.WARNING if args.quiet else logging.INFO)
     handler = command(args.command).run
     if getattr(args, "fresh", False):  # for the line an interrupt ends with: was a complete recording there?
         from optitac_edge.io.recording_paths import holds_recording
