@@ -12,22 +12,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_fingerprint import _one_line
 
 import optitac_edge as ot
 from optitac_edge.cli import main
 from optitac_edge.core.layout import FiberLayout, hex_layout
 from optitac_edge.errors import OptiTacError, OutputError, RecordingError
 from optitac_edge.io.recording import Recording
-
-
-def _one_line(capsys, argv, *needles):
-    code = main(argv)
-    err = capsys.readouterr().err.strip()
-    assert code == 2, err
-    assert err.startswith("optitac-edge: error:") and "\n" not in err and "Traceback" not in err, err
-    for needle in needles:
-        assert needle in err, err
-    return err
 
 
 @pytest.mark.parametrize("frames", [10**18, 2**64, 10**6])
