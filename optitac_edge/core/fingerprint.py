@@ -28,7 +28,7 @@ fiber stays high, so a press at start does not refuse a bundle.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -145,27 +145,14 @@ def fiber_contrast(mean_gray: np.ndarray, table: FiberTable, layout: FiberLayout
     return (spot - gap) / np.maximum(spot - black, 1.0)
 
 
-def mean_gray(frames: Sequence[np.ndarray] | np.ndarray, pixel_format: str) -> np.ndarray:
-    """The mean of ``frames`` as a gray image, float64."""
-    total: np.ndarray | None = None
-    for f in frames:
-        g = to_gray(np.asarray(f), pixel_format).astype(np.float64)
-        total = g if total is None else total + g
-    if total is None:
-        raise FrameMismatchError("no frames to check against the bundle")
-    return total / len(frames)
-
-
-def fingerprint_meta(bundle: CalibrationBundle, rest_frames: Sequence[np.ndarray] | np.ndarray) -> dict[str, Any]:
+def fingerprint_meta(bundle: CalibrationBundle, rest_frames: Iterable[np.ndarray] | np.ndarray) -> dict[str, Any]:
     """The sensor's fingerprint a bundle keeps (``extra_meta["sensor"]``): the layout (fibers, pitch,
     digest), the frames (size, pixel format) and the contrast of its live fibers in ``rest_frames``."""
     t = bundle.fibers
-    contrast = fiber_contrast(mean_gray(rest_frames, t.pixel_format), t, bundle.layout)
-    live = ~t.dead & np.isfinite(contrast)
+    fit = sensor_fit(bundle, rest_frames, t.pixel_format)
     return {"n_fibers": bundle.layout.n_fibers, "pitch_mm": round(bundle.layout.pitch_mm, 6),
             "layout": layout_digest(bundle.layout), "width": t.width, "height": t.height,
-            "pixel_format": t.pixel_format,
-            "contrast": round(float(np.median(contrast[live])), 4) if live.any() else DEFAULT_CONTRAST}
+            "pixel_format": t.pixel_format, "contrast": round(fit.contrast, 4) if fit.live else DEFAULT_CONTRAST}
 
 
 def expected_contrast(bundle: CalibrationBundle) -> float:
@@ -177,9 +164,12 @@ def expected_contrast(bundle: CalibrationBundle) -> float:
     return DEFAULT_CONTRAST
 
 
-def sensor_fit(bundle: CalibrationBundle, frames: Sequence[np.ndarray] | np.ndarray, pixel_format: str) -> SensorFit:
+def sensor_fit(bundle: CalibrationBundle, frames: Iterable[np.ndarray] | np.ndarray, pixel_format: str) -> SensorFit:
     """How well ``frames`` (contact-free, or mostly so; of the bundle's size) fit ``bundle``'s fiber map."""
-    return _fit(bundle, mean_gray(frames, pixel_format), len(frames))
+    check = SensorCheck(bundle, pixel_format=pixel_format)
+    for frame in frames:
+        check.add(np.asarray(frame))
+    return check.fit()
 
 
 def describe_bundle(bundle: CalibrationBundle) -> str:
@@ -199,10 +189,10 @@ def check_sensor(bundle: CalibrationBundle, frames: Sequence[np.ndarray] | np.nd
         bundle.fibers.check_frame(np.asarray(frames[0]), pixel_format)
     except FrameMismatchError as exc:
         raise SensorMismatchError(f"{source} does not fit {describe_bundle(bundle)}: {exc}") from None
-    fit = sensor_fit(bundle, frames, pixel_format)
-    if not fit.fits:
-        raise SensorMismatchError(_mismatch_line(source, bundle, fit))
-    return fit
+    check = SensorCheck(bundle, source, pixel_format)
+    for frame in frames:
+        check.add(np.asarray(frame))
+    return check.finish()
 
 
 class SensorCheck:
@@ -213,29 +203,35 @@ class SensorCheck:
     bundle : CalibrationBundle
     source : str
         What the frames come from, for the error's line (``"the camera's frames"``).
+    pixel_format : str, optional
+        The frames' (default: the bundle's).
     """
 
-    def __init__(self, bundle: CalibrationBundle, source: str = "the frames") -> None:
+    def __init__(self, bundle: CalibrationBundle, source: str = "the frames", pixel_format: str | None = None) -> None:
         self.bundle = bundle
         self.source = source
+        self._format = bundle.fibers.pixel_format if pixel_format is None else pixel_format
         self._total: np.ndarray | None = None
         self._frames = 0
 
     def add(self, frame: np.ndarray) -> None:
         """One more frame (of the bundle's size and pixel format: the pipeline checked it)."""
-        g = to_gray(frame, self.bundle.fibers.pixel_format)
+        g = to_gray(frame, self._format)
         if self._total is None:
             self._total = np.zeros(g.shape, dtype=np.float64)
         self._total += g
         self._frames += 1
 
-    def finish(self) -> SensorFit:
-        """The frames' fit, the sums released; :class:`SensorMismatchError` when they do not fit."""
-        total, frames = self._total, self._frames
-        self._total, self._frames = None, 0
-        if total is None:
+    def fit(self) -> SensorFit:
+        """How the frames added so far fit the bundle's fiber map."""
+        if self._total is None:
             raise FrameMismatchError(f"{self.source}: no frames to check against {describe_bundle(self.bundle)}")
-        fit = _fit(self.bundle, total / frames, frames)
+        return _fit(self.bundle, self._total / self._frames, self._frames)
+
+    def finish(self) -> SensorFit:
+        """:meth:`fit`, the sums released; :class:`SensorMismatchError` when the frames do not fit."""
+        fit = self.fit()
+        self._total, self._frames = None, 0
         if not fit.fits:
             raise SensorMismatchError(_mismatch_line(self.source, self.bundle, fit))
         return fit

@@ -46,8 +46,6 @@ class SensorChannel:
         self.name = name
         self.bundle = bundle
         self.pipeline = Pipeline(bundle, fps=fps, source=f"{name}'s camera frames")
-        #: Why the camera's frames are not of this sensor's bundle (then no frame is processed), or None.
-        self.mismatch: str | None = None
         #: Some fiber of the bundle is dead (every message's DEGRADED flag).
         self.degraded = bool(bundle.fibers.dead.any())
         #: The messages of each frame to the MCU.
@@ -62,6 +60,12 @@ class SensorChannel:
         self.light_since_status = False
         self._captured: CapturedFrame | None = None
 
+    @property
+    def mismatch(self) -> str | None:
+        """Why the camera's frames are not of this sensor's bundle (then no frame is processed), or None."""
+        refused = self.pipeline.mismatch
+        return None if refused is None else str(refused)
+
     def take(self, captured: CapturedFrame) -> None:
         """The checked frame :meth:`run_pipeline` processes next."""
         self._captured = captured
@@ -72,12 +76,11 @@ class SensorChannel:
         <optitac_edge.core.pipeline.Pipeline.process>`)."""
         c = self._captured
         assert c is not None, "take() a frame first"
-        if self.mismatch is not None:
+        if self.pipeline.mismatch is not None:
             return Skip.MISMATCH
         try:
             return self.pipeline.process(c.frame, c.t_ns)
         except SensorMismatchError as exc:
-            self.mismatch = str(exc)
             log.error("sensor %d: %s; no contacts are sent (STATUS: baseline not ready, camera fault)",
                       self.sensor_id, exc)
             return Skip.MISMATCH
@@ -87,4 +90,3 @@ class SensorChannel:
         with this one's contact ids, so the contacts of the old one are released."""
         pipeline.adopt_tracking(self.pipeline)
         self.pipeline = pipeline
-        self.mismatch = None
