@@ -81,8 +81,7 @@ class _Layers:
             except Invalid as exc:
                 raise ConfigError(f"{source}: {where}: {exc}") from None
             if name in PATH_OPTIONS and isinstance(option, str) and option and base_dir is not None:
-                expanded = Path(os.path.expanduser(option))  # relative to the file that set it, as every path
-                option = str(expanded if expanded.is_absolute() else base_dir / expanded)
+                option = _resolved(option, base_dir)  # relative to the file that set it, as every path
             self.options[target][name] = option
             self.origins[where] = source
             return
@@ -109,6 +108,12 @@ class _Layers:
                                  for name, source in self.publishers.items()})
 
 
+def _resolved(path: str, base_dir: Path) -> str:
+    """``path`` (``~`` expanded) against ``base_dir`` unless it is absolute."""
+    expanded = Path(os.path.expanduser(path))
+    return str(expanded if expanded.is_absolute() else base_dir / expanded)
+
+
 def _check(spec: Field[Any], value: object, from_text: bool, base_dir: Path | None, where: str) -> object:
     """``value`` checked by ``spec``'s checker (paths resolved against ``base_dir``); errors name ``where``."""
     try:
@@ -116,6 +121,5 @@ def _check(spec: Field[Any], value: object, from_text: bool, base_dir: Path | No
     except Invalid as exc:
         raise ConfigError(f"{where}: {exc}") from None
     if spec.metadata["check"] is path_text and converted and base_dir is not None:
-        expanded = Path(os.path.expanduser(converted))
-        converted = str(expanded if expanded.is_absolute() else base_dir / expanded)
+        converted = _resolved(converted, base_dir)
     return converted
