@@ -4,6 +4,7 @@ simulated board's live sliding scenario."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import queue
 import re
@@ -163,12 +164,21 @@ def test_a_tare_waits_until_the_baseline_is_ready_in_either_mode():
 
 
 def test_the_simulated_board_slides_live_and_refuses_an_unknown_scenario():
-    """At the camera's pace (the slides' speeds are in mm/s of frame time): 5 s hold the slides at 2 and 5 mm/s."""
+    """At the camera's pace (the slides' speeds are in mm/s of frame time): the slides at 2, 5 and 10 mm/s.
+
+    The window is the camera's own time, not the reading loop's: frame k is stamped ``t0 + k / fps`` with the
+    stream's ``t0`` after ``before`` (and moved later, never earlier, when the camera resynchronises), so a frame
+    stamped less than 7.0 s after ``before`` shows the scenario before 7.0 s, ahead of its 20 mm/s slide (7.01 s)
+    however long the sensor took to open on a busy machine (it was 5 s of readings after the open: flaky)."""
+    before = time.monotonic_ns()
     with ot.open_sensor("sim", settings={"camera.fps": 240, "camera.options.scenario": "slide"}) as sensor:
-        readings = list(sensor.readings(duration_s=5.0))
+        readings = list(itertools.takewhile(lambda r: r.t_ns - before < 7_000_000_000,
+                                            sensor.readings(duration_s=10.0)))
     sliding = [c for r in readings for c in r.contacts if c.sliding]
     assert len(sliding) > 100 and all(c.has_velocity for c in sliding)
-    assert 1.0 < max(math.hypot(c.vx_mm_s, c.vy_mm_s) for c in sliding) < 20.0
+    speeds = np.array([math.hypot(c.vx_mm_s, c.vy_mm_s) for c in sliding])
+    # the slides' own speeds; a lift's few frames may read faster (its centroid moves as the contact shrinks)
+    assert 1.0 < float(np.median(speeds)) < 10.0 and np.mean(speeds < 15.0) > 0.9
     with pytest.raises(ot.OptiTacError, match=r"^simulated camera: unknown scenario 'spin' \(presses, slide, "):
         _fast_sim(scenario="spin")
 
