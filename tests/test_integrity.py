@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import resource
 import signal
 import stat
@@ -286,3 +287,17 @@ def test_a_stop_signal_during_the_renames_waits_until_the_new_recording_is_in_pl
     assert len(calls) == 2 and len(Recording(out)) == 6 and not (tmp_path / "rest.new").exists()
     args = argparse.Namespace(out_dir=str(out), replacing=True)
     assert recording_left(args) == f"recording {out} replaced by the new one (complete)"
+
+
+def test_run_mcap_onto_a_full_disk_says_what_was_not_written(tmp_path):
+    """Before: '305 messages published, 0 dropped' beside 'wrote …: 185 messages' and '120 not written': the
+    first line now says the messages were given to the publisher, and how many of them were not written."""
+    out = tmp_path / "run.mcap"
+    proc = _cli_limited(["run", "--frames", "300", "--mcap", str(out)], 20_000)
+    assert proc.returncode == 0, proc.stderr
+    given = re.search(r"sensor 0 'sim': (\d+) messages given to the publisher, 0 dropped", proc.stdout)
+    lost = re.search(r"^  (\d+) of the messages NOT written \(failed writes", proc.stdout, re.MULTILINE)
+    kept = re.search(rf"^wrote {re.escape(str(out))}\.part: (\d+) messages .* before a failed write \(File too large\)",
+                     proc.stdout, re.MULTILINE)
+    assert given and lost and kept, proc.stdout
+    assert int(given[1]) == int(lost[1]) + int(kept[1]) and int(lost[1]) > 0 and "published" not in proc.stdout

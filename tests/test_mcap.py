@@ -252,7 +252,7 @@ def test_a_full_disk_is_counted_and_the_stop_stays_clean(tmp_path, caplog):
     summary = pub.summary
     assert summary[0].startswith(f"{tmp_path / 'run.mcap.part'}: ") and "failed write (No space left" in summary[0]
     assert "'mcap recover' restores its index" in summary[0]
-    assert summary[-1].endswith("messages not written (failed writes)")
+    assert pub.undelivered == pub.lost and len(summary) == len([f for f in pub.written if f.messages or not f.failed])
     from optitac_edge.io.mcap_file import part_contents
 
     on_disk = part_contents(tmp_path / "run.mcap.part")

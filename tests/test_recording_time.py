@@ -50,7 +50,7 @@ def test_bad_timestamps_are_refused_in_one_line(tmp_path, damage, message):
 def test_an_open_ended_recording_holds_exactly_the_frames_written(tmp_path):
     with RecordingWriter(tmp_path / "r", None, (6, 8), META) as w:
         for i in range(600):  # grows past GROW_FRAMES twice
-            w.write(i, np.full((6, 8), i % 251, np.uint8), 10 * i)
+            w.write(i, np.full((6, 8), i % 251, np.uint8), 20_000_000 * i)
     rec = Recording(tmp_path / "r")
     assert len(rec) == 600 and [int(rec.frames[i][0, 0]) for i in (0, 300, 599)] == [0, 300 % 251, 599 % 251]
     assert (tmp_path / "r" / "frames.npy").stat().st_size == 128 + 600 * 48
@@ -61,22 +61,22 @@ def test_an_interrupted_open_ended_recording_continues_after_its_kept_frames(tmp
     path = tmp_path / "r"
     with pytest.raises(KeyboardInterrupt), RecordingWriter(path, None, (6, 8), META, with_truth=True) as w:
         for i in range(40):
-            w.write(i, np.full((6, 8), i, np.uint8), 1000 + i)
+            w.write(i, np.full((6, 8), i, np.uint8), 1000 + 20_000_000 * i)
         raise KeyboardInterrupt
     with pytest.raises(RecordingError, match="incomplete recording"):
         Recording(path)
     kept = 30  # e.g. the frames of the presses that were finished
     with RecordingWriter(path, None, (6, 8), META, with_truth=True, keep_frames=kept,
-                         kept_t_ns=np.arange(1000, 1000 + kept)) as w:
+                         kept_t_ns=1000 + 20_000_000 * np.arange(kept)) as w:
         for i in range(kept):
             w.write_truth(i, None)
         for i in range(kept, 50):
-            w.write(i, np.full((6, 8), 100 + i, np.uint8), 5000 + i)
+            w.write(i, np.full((6, 8), 100 + i, np.uint8), 5000 + 20_000_000 * i)
             w.write_truth(i, None)
     rec = Recording(path)
     assert len(rec) == 50 and len(rec.truth) == 50
     assert [int(rec.frames[i][0, 0]) for i in (0, 29, 30, 49)] == [0, 29, 130, 149]
-    assert rec.t_ns[29] == 1029 and rec.t_ns[30] == 5030
+    assert rec.t_ns[29] == 1000 + 29 * 20_000_000 and rec.t_ns[30] == 5000 + 30 * 20_000_000
 
 
 def test_continuing_needs_frames_of_the_same_shape(tmp_path):
@@ -89,18 +89,18 @@ def test_continuing_needs_frames_of_the_same_shape(tmp_path):
 
 
 def test_rig_columns_keep_every_pose_and_score_only_rest_and_hold(tmp_path):
-    phases = ["rest", "rest", "approach", "hold", "hold", "release", "move"]
+    phases = ["rest"] * 5 + ["approach", "hold", "hold", "release", "move"]
     with RecordingWriter(tmp_path / "r", None, (6, 8), RecordingMeta(rest_frames=5, fps=50.0),
                          rig_columns=True) as w:
         for i, phase in enumerate(phases):
-            w.write(i, np.zeros((6, 8), np.uint8), i)
+            w.write(i, np.zeros((6, 8), np.uint8), 20_000_000 * i)
             pressed = phase in ("approach", "hold", "release")
             press = Press("circle", 1.0, 2.0, float("nan"), 5.0, 3.0 if phase == "hold" else 1.0) if pressed else None
             w.write_truth(i, press, phase=phase, rig_xyz_mm=(100.0, 50.0 + i, -3.0 if pressed else 2.0))
     rec = Recording(tmp_path / "r")
     assert rec.truth is not None and rec.rig_poses is not None
-    assert rec.truth.frame.tolist() == [0, 1, 3, 4] and rec.truth.depth_mm[2] == 3.0
-    assert rec.rig_poses.phase.tolist() == phases and rec.rig_poses.xyz_mm[6].tolist() == [100.0, 56.0, 2.0]
+    assert rec.truth.frame.tolist() == [0, 1, 2, 3, 4, 6, 7] and rec.truth.depth_mm[5] == 3.0
+    assert rec.rig_poses.phase.tolist() == phases and rec.rig_poses.xyz_mm[9].tolist() == [100.0, 59.0, 2.0]
     with (tmp_path / "r" / "truth.csv").open() as f:
         assert next(csv.reader(f))[-4:] == ["phase", "rig_x_mm", "rig_y_mm", "rig_z_mm"]
 

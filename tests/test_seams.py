@@ -6,6 +6,7 @@ import json
 import shutil
 import threading
 import tracemalloc
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -295,3 +296,82 @@ def test_long_steps_say_their_progress_where_no_bar_is_shown(unseen_rec, bundle_
     assert main(["-q", "replay", str(unseen_rec), "--cal", str(bundle_path), "-o", str(tmp_path / "d.csv")]) == 0
     assert not logging.getLogger("optitac_edge.progress").isEnabledFor(logging.INFO)
     logging.getLogger("optitac_edge.progress").setLevel(logging.NOTSET)
+
+
+def _with_meta(src: Path, dst: Path, **edits: object) -> Path:
+    shutil.copytree(src, dst)
+    meta = json.loads((dst / "meta.json").read_text())
+    (dst / "meta.json").write_text(json.dumps({**meta, **edits}))
+    return dst
+
+
+def test_a_stated_rate_the_frame_times_deny_is_refused(unseen_rec, tmp_path):
+    """Before: an fps edited 60 -> 90 (in meta.json or an MCAP's metadata) was taken, and frames all 1 ns apart
+    set ``vibrating`` on most frames; now both are one line naming the file and the rate."""
+    from optitac_edge.io.recording_mcap import recording_to_mcap
+
+    fps = Recording(unseen_rec).meta.fps
+    stamped = _with_meta(unseen_rec, tmp_path / "stamped")
+    n = len(Recording(stamped))
+    np.save(stamped / "timestamps.npy", np.round(np.arange(n) * 1e9 / fps).astype(np.int64))
+    assert Recording(stamped).timestamped  # its own times: accepted
+    edited = _with_meta(stamped, tmp_path / "edited", fps=fps * 1.5)
+    with pytest.raises(RecordingError, match=rf"edited/meta.json: 'fps' is {fps * 1.5:g} but its frames are "
+                                             rf"16.67 ms apart \(60 fps, lower quartile of {n - 1} intervals\)"):
+        Recording(edited)
+    one_ns = _with_meta(stamped, tmp_path / "one_ns")
+    np.save(one_ns / "timestamps.npy", np.arange(n, dtype=np.int64))
+    with pytest.raises(RecordingError, match=r"frames are 1e-06 ms apart \(1e\+09 fps"):
+        Recording(one_ns)
+    # a camera that lost two frames after every one it kept: half its intervals are three periods
+    lossy = _with_meta(stamped, tmp_path / "lossy")
+    periods = np.concatenate([[0], np.cumsum(np.where(np.arange(n - 1) % 2 == 0, 1, 3))])
+    np.save(lossy / "timestamps.npy", np.round(periods * 1e9 / fps).astype(np.int64))
+    assert Recording(lossy).meta.fps == fps
+    mcap = recording_to_mcap(Recording(stamped), tmp_path / "s.mcap")
+    assert Recording(mcap).meta.fps == fps
+    rec = Recording(stamped)
+    rec.meta = replace(rec.meta, fps=90.0)
+    with pytest.raises(RecordingError, match=r"e.mcap: 'fps' is 90 but its frames are 16.67 ms apart"):
+        Recording(recording_to_mcap(rec, tmp_path / "e.mcap"))
+
+
+def test_rest_frames_over_a_press_are_refused(unseen_rec, tmp_path):
+    """Before: rest_frames edited 10 -> 39 took the baseline from a press; now refused by the truth."""
+    from optitac_edge.io.recording_mcap import recording_to_mcap
+
+    rec = Recording(unseen_rec)
+    assert rec.truth is not None
+    first = int(np.flatnonzero(rec.truth.contact)[0])
+    over = _with_meta(unseen_rec, tmp_path / "over", rest_frames=first + 3)
+    with pytest.raises(RecordingError, match=rf"over/meta.json: 'rest_frames' is {first + 3} but its truth has a "
+                                             rf"contact at frame {first}: the rest frames must be contact-free"):
+        Recording(over)
+    rec.meta = replace(rec.meta, rest_frames=first + 3)
+    with pytest.raises(RecordingError, match=rf"o.mcap: 'rest_frames' is {first + 3} but its truth has a contact"):
+        Recording(recording_to_mcap(rec, tmp_path / "o.mcap"))
+
+
+def test_the_snapshot_gap_is_the_contact_options_default():
+    from optitac_edge.core.options import ContactOptions
+    from optitac_edge.io.recording import SNAPSHOT_GAP_NS
+
+    assert SNAPSHOT_GAP_NS == round(ContactOptions().gap_s * 1e9)
+
+
+def test_a_recording_whose_writer_was_killed_claims_no_frame_count(tmp_path):
+    """Before: a fibers recording killed after 33 s said '0 of 400 frames written' (the count its marker had
+    at the start); a writer that never finished cannot say how far it got, and the line says why."""
+    from optitac_edge.io.recording import RecordingMeta
+    from optitac_edge.io.recording_writer import RecordingWriter
+
+    w = RecordingWriter(tmp_path / "r", 400, (6, 8), RecordingMeta(rest_frames=5, fps=50.0))
+    for i in range(30):
+        w.write(i, np.zeros((6, 8), np.uint8), 20_000_000 * i)
+    with pytest.raises(RecordingError) as refused:  # as after SIGKILL: the writer never closes
+        Recording(tmp_path / "r")
+    assert str(refused.value) == (f"{tmp_path / 'r'}: incomplete recording (its writer stopped without finishing: "
+                                  "killed, crashed or the power lost while it wrote); record it again")
+    w.abort("interrupted")
+    with pytest.raises(RecordingError, match=r"\(interrupted: 30 of 400 frames written\)"):
+        Recording(tmp_path / "r")

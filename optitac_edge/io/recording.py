@@ -237,6 +237,56 @@ def read_timestamps(path: Path, n_frames: int) -> np.ndarray:
     return t
 
 
+#: A recording's stated rate must be within this factor of the rate its capture times show.
+FPS_TOLERANCE = 1.25
+#: Fewer frame intervals than this do not measure a rate (the stated one is taken as it is).
+MIN_RATE_INTERVALS = 8
+#: Frames at least this far apart are snapshots, each processed on its own, so no rate is used (the contact
+#: options' default ``gap_s``).
+SNAPSHOT_GAP_NS = 500_000_000
+
+
+def check_stated_rate(fps: float, t_ns: np.ndarray, where: Path) -> None:
+    """The stated ``fps`` agrees with the capture times ``t_ns`` (int64 ns, shape (N,)).
+
+    The rate shown is the lower quartile of the frame intervals, so a recording that lost frames (even most
+    of them, so long as a quarter of its intervals are one period) still shows its camera's period; motion and vibration are computed at the stated rate. Snapshots
+    (that quartile :data:`SNAPSHOT_GAP_NS` or more) are processed one by one: their stated rate is not used.
+
+    Raises
+    ------
+    RecordingError
+        The intervals' lower quartile is more than :data:`FPS_TOLERANCE` times off the stated period (an
+        edited ``fps``, or times that are not a camera's: all 1 ns apart, say).
+    """
+    if t_ns.shape[0] - 1 < MIN_RATE_INTERVALS:
+        return
+    gap_ns = float(np.percentile(np.diff(t_ns), 25))
+    period_ns = 1e9 / fps
+    if gap_ns >= SNAPSHOT_GAP_NS:
+        return
+    if not period_ns / FPS_TOLERANCE <= gap_ns <= period_ns * FPS_TOLERANCE:
+        shown = f"{1e9 / gap_ns:.4g} fps" if gap_ns > 0 else "no rate: frames at one time"
+        raise RecordingError(f"{where}: 'fps' is {fps:g} but its frames are {gap_ns / 1e6:.4g} ms apart ({shown}, "
+                             f"lower quartile of {t_ns.shape[0] - 1} intervals): the rate or the times are wrong")
+
+
+def check_rest_frames(rest_frames: int, truth: Truth | None, where: Path) -> None:
+    """The ``rest_frames`` leading frames hold no contact by the recording's own truth (when it has one).
+
+    Raises
+    ------
+    RecordingError
+        The truth has a contact in one of them (the baseline would be taken from a press).
+    """
+    if truth is None:
+        return
+    pressed = np.flatnonzero(truth.contact & (truth.frame < rest_frames))
+    if pressed.size:
+        raise RecordingError(f"{where}: 'rest_frames' is {rest_frames} but its truth has a contact at frame "
+                             f"{int(truth.frame[pressed[0]])}: the rest frames must be contact-free")
+
+
 def _check_regular_files(directory: Path) -> None:
     """Every recording file that exists is a regular file (a FIFO in its place hung the reader)."""
     for name in RECORDING_FILES:
@@ -301,6 +351,9 @@ def _missing_meta(directory: Path) -> str:
     if marker.exists():
         try:
             info = json.loads(marker.read_text(encoding="utf-8"))
+            if info.get("reason") == "being written":  # its writer never came back to say how far it got
+                return ("incomplete recording (its writer stopped without finishing: killed, crashed or the power "
+                        "lost while it wrote); record it again")
             return (f"incomplete recording ({info.get('reason', 'not finished')}: "
                     f"{int(info.get('frames_written', 0))} of {int(info.get('frames', 0))} frames written); "
                     "record it again")
@@ -527,6 +580,8 @@ class Recording:
         #: Capture time of each frame, int64 ns, shape (N,).
         self.t_ns: np.ndarray = (read_timestamps(stamps, len(frames)) if self.timestamped else
                                  np.round(np.arange(len(frames)) * (1e9 / self.meta.fps)).astype(np.int64))
+        check_stated_rate(self.meta.fps, self.t_ns, self.path / "meta.json")
+        check_rest_frames(self.meta.rest_frames, self.truth, self.path / "meta.json")
 
     def _open_mcap(self) -> None:
         """A recording in one MCAP file (:mod:`optitac_edge.io.recording_mcap`), with its truth if it holds one."""
@@ -549,6 +604,8 @@ class Recording:
             self.truth, self.rig_poses = read_truth_file(Path(f"{self.path}#truth.csv"), len(frames), text=truth)
         self.timestamped = True
         self.t_ns = t_ns
+        check_stated_rate(self.meta.fps, self.t_ns, self.path)
+        check_rest_frames(self.meta.rest_frames, self.truth, self.path)
 
     def __len__(self) -> int:
         return int(self.frames.shape[0])

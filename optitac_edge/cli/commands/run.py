@@ -167,10 +167,15 @@ def run(args: argparse.Namespace) -> int:
             say("%s", _link_summary(services[0].transport))
             network = service.network
             if network is not None:
+                # "published": taken by the publisher; a recording's failed writes are said of the run as a whole
+                lost = network.publisher.undelivered
+                taken = "published" if not lost else "given to the publisher"
                 for ch in service.channels:
                     published, dropped = network.counters(ch.sensor_id)
-                    say("  sensor %d %r: %d messages published, %d dropped (publishing errors %d; %s)",
-                        ch.sensor_id, ch.name, published, dropped, network.errors, network.publisher.where)
+                    say("  sensor %d %r: %d messages %s, %d dropped (publishing errors %d; %s)",
+                        ch.sensor_id, ch.name, published, taken, dropped, network.errors, network.publisher.where)
+                if lost:
+                    say("  %d of the messages NOT written (failed writes; what was written is below)", lost)
 
         network = services[0].network if services else None
         for line in network.publisher.summary if network is not None else ():

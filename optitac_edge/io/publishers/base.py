@@ -65,3 +65,8 @@ class Publisher(Device):
     def summary(self) -> list[str]:
         """Lines on what was written where (a recording's files), for the run's summary; none by default."""
         return []
+
+    @property
+    def undelivered(self) -> int:
+        """Messages it took but could not deliver (a recording's failed writes); 0 by default."""
+        return 0

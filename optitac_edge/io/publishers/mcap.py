@@ -353,12 +353,13 @@ class McapPublisher(Publisher):
         return f"MCAP {self.path}" + (" (numbered)" if self.rotating else "")
 
     @property
+    def undelivered(self) -> int:
+        return self.lost
+
+    @property
     def summary(self) -> list[str]:
-        """What each file of this run holds, and the messages lost to failed writes."""
-        lines = [f.describe() for f in self.written if f.messages or not f.failed]
-        if self.lost:
-            lines.append(f"{self.lost} messages not written (failed writes)")
-        return lines
+        """What each file of this run holds (the messages lost to failed writes: :attr:`undelivered`)."""
+        return [f.describe() for f in self.written if f.messages or not f.failed]
 
     def _close_internal(self) -> None:
         if self._writer is None:
