@@ -14,6 +14,7 @@ from optitac_edge.bringup.collect import JOURNAL, Collector, CollectSettings
 from optitac_edge.calibration.fibers import calibrate_fibers
 from optitac_edge.calibration.steps import calibrate_centroid
 from optitac_edge.errors import RecordingError, RigError
+from optitac_edge.io.clock import VirtualClock
 from optitac_edge.io.recording import Recording
 from optitac_edge.io.rigs.base import RigLimits
 from optitac_edge.io.rigs.gcode import GcodeRig
@@ -180,7 +181,7 @@ class InterruptDuringPress:
 def test_collect_seen_through_grbl_interrupted_retracted_and_continued(grbl, tmp_path) -> None:
     out = tmp_path / "seen"
     settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=5)
-    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
     bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
     lines: list[str] = []
     with GcodeRig(grbl.port, LIMITS) as rig:
@@ -218,7 +219,7 @@ def test_a_soft_limit_during_a_collection_is_recovered_and_the_tip_retracted(grb
     """Before: after ALARM:2 the tip stayed where it stopped (GRBL answered nothing to the retract's status
     polls) and the message did not say what GRBL needs."""
     settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
-    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
     bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
     grbl.travel = ((0.0, 200.0), (0.0, 200.0), (1.5, 40.0))  # the machine ends above the registration depth
     lines: list[str] = []
@@ -233,7 +234,7 @@ def test_a_soft_limit_during_a_collection_is_recovered_and_the_tip_retracted(grb
 def test_an_interrupt_whose_retract_fails_says_the_tip_was_not_retracted(grbl, tmp_path) -> None:
     """Ctrl-C after a hard limit: the line must not say 'tip retracted' (the position is lost, the tip stays)."""
     settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
-    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
     bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
 
     class HardLimitThenCtrlC:
@@ -266,7 +267,7 @@ def test_collect_slide_through_grbl_slides_at_the_feed_rate(tmp_path) -> None:
     settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=5)
     grbl = FakeGrbl(speed=4.0, tick_s=1 / 60)
     try:
-        camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+        camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
         bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
         with GcodeRig(grbl.port, LIMITS) as rig:
             Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", out, limit=3)
@@ -422,7 +423,7 @@ def test_a_slides_truth_velocity_is_the_rigs_whatever_the_cameras_pace(tmp_path)
     settings = CollectSettings(initial_rest_frames=12, rest_frames=6, hold_frames=5)
     grbl = FakeGrbl(speed=1.0, tick_s=0.05)
     try:
-        camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+        camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
         bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
         with GcodeRig(grbl.port, LIMITS, clock_ns=grbl.now_ns) as rig:
             Collector(camera, rig, bundle, settings, prompt=lambda line: None).run("slide", out, limit=2)
@@ -547,7 +548,7 @@ def test_a_signal_during_the_retract_after_an_error(grbl, tmp_path, monkeypatch,
     from optitac_edge.cli import _interrupt_on_signals
 
     settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
-    camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+    camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
     bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
     real_stop = GcodeRig._stop
 
@@ -583,7 +584,7 @@ def test_a_fresh_start_with_the_tip_in_the_skin_lifts_it_before_any_rest_frame(t
     baseline from those pressed frames."""
     machine = FakeGrbl(speed=20.0, start=(100.6, 79.6, MOUNT.surface_z_mm - 0.5))
     try:
-        camera = SimCamera(realtime=False, program=GrblSkin(machine, MOUNT))
+        camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(machine, MOUNT))
         bundle = calibrate_fibers([SimCamera(realtime=False).read().frame.copy() for _ in range(8)], "gray")
         depths: list[float] = []
 
@@ -615,7 +616,7 @@ def test_a_door_or_a_soft_limit_with_the_tip_in_the_skin_ends_at_safe_z(tmp_path
     grbl = FakeGrbl(speed=4.0, tick_s=1 / 60)
     fired: list[tuple[float, float, float]] = []
     try:
-        camera = SimCamera(realtime=False, program=GrblSkin(grbl, MOUNT))
+        camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
         bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
         last = [grbl.position()]
 

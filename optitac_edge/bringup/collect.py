@@ -51,7 +51,7 @@ from optitac_edge.errors import RigError
 from optitac_edge.io import interrupts
 from optitac_edge.io.cameras.base import Camera
 from optitac_edge.io.frame_store import FindFibers
-from optitac_edge.io.recording import RecordingMeta
+from optitac_edge.io.recording import LAYOUT_KEY, RecordingMeta, layout_meta
 from optitac_edge.io.recording_writer import RecordingWriter
 from optitac_edge.io.rigs.base import Rig
 
@@ -60,8 +60,14 @@ log = logging.getLogger(__name__)
 #: Registration fit RMS (pitches) above which the operator is warned (docs/bring-up.md: good is <= 0.2 pitch,
 #: 0.3 mm on the paper's 1.5 mm array) ...
 REGISTER_WARN_PITCH = 0.2
-#: ... and above which the collection is refused: the rig frame would misplace every press.
+#: ... and above which the collection is refused: the rig frame would misplace every press. Both judge the
+#: residual once the uncalibrated centroid's scale is allowed (RigFrame.shape_rms_mm): the scale is the
+#: centroid's to correct (calibrate centroid), not the rig's.
 REGISTER_REFUSE_PITCH = 0.4
+#: The scale an uncalibrated centroid may read the presses at: a weighted mean over the fibers a press darkens
+#: only pulls towards the array's middle (below 1); below half, or above 1.2, the bundle's pitch is not this
+#: sensor's (another layout or array) and the operator is warned.
+CENTROID_SCALE_RANGE = (0.5, 1.2)
 
 
 @dataclass(frozen=True)
@@ -182,7 +188,8 @@ class Collector:
                            "cannot reverse 0.05 mm that fast); use sim:// or a rig with a shaker")
         setup, done = ({}, []) if fresh else read_journal(out / JOURNAL, experiment, seed, len(presses))
         meta = RecordingMeta(rest_frames=self.settings.initial_rest_frames, fps=self.camera.fps,
-                             extra={"collect": {"experiment": experiment, "seed": seed}})
+                             extra={"collect": {"experiment": experiment, "seed": seed},
+                                    LAYOUT_KEY: layout_meta(self.bundle.layout)})  # for calibrate fibers
         entries = ([setup] if setup else []) + done
         kept = entries[-1]["end_frame"] if entries else 0
         kept_t = [t for entry in entries for t in entry["t_ns"]]
@@ -224,7 +231,9 @@ class Collector:
         saved = setup["rig_frame"]
         rec.frame = RigFrame(origin_xy_mm=(float(saved["origin_xy_mm"][0]), float(saved["origin_xy_mm"][1])),
                              rotation_deg=float(saved["rotation_deg"]), surface_z_mm=float(saved["surface_z_mm"]),
-                             fit_rms_mm=float(saved["fit_rms_mm"]))
+                             fit_rms_mm=float(saved["fit_rms_mm"]),
+                             centroid_scale=float(saved.get("centroid_scale", 1.0)),
+                             shape_rms_mm=float(saved.get("shape_rms_mm", saved["fit_rms_mm"])))
         start = setup.get("start_xyz_mm") or setup["rows"][0]["rig"]
         self._start = rec.at = (float(start[0]), float(start[1]), float(start[2]))
         self.prompt(f"continuing {setup['experiment']} after press {after}")
@@ -257,8 +266,8 @@ class Collector:
         self.prompt(f"registration: 5 presses around ({x0:.2f}, {y0:.2f})")
         frame, h = register(rec, (x0, y0, surface), tip, s, self.bundle.layout)
         pitch = self.bundle.layout.pitch_mm
-        if frame.fit_rms_mm > REGISTER_REFUSE_PITCH * pitch:
-            raise RigError(f"registration fit RMS {frame.fit_rms_mm:.2f} mm is too poor (good: <= "
+        if frame.shape_rms_mm > REGISTER_REFUSE_PITCH * pitch:
+            raise RigError(f"registration fit RMS {frame.shape_rms_mm:.2f} mm is too poor (good: <= "
                            f"{REGISTER_WARN_PITCH * pitch:.2f} mm = {REGISTER_WARN_PITCH} pitch): every press would "
                            "be misplaced; check that the indenter sits "
                            "tight, the start point is over the middle of the skin and the bundle is this sensor's")
@@ -268,9 +277,16 @@ class Collector:
                    new=True)
         self.prompt(f"sensor origin at rig ({frame.origin_xy_mm[0]:.2f}, {frame.origin_xy_mm[1]:.2f}), "
                     f"+x at {frame.rotation_deg:+.1f}° from the rig's +X, surface z {frame.surface_z_mm:.2f}, "
-                    f"fit RMS {frame.fit_rms_mm:.2f} mm")
-        if frame.fit_rms_mm > REGISTER_WARN_PITCH * pitch:
-            self.prompt(f"warning: registration fit RMS {frame.fit_rms_mm:.2f} mm (good: <= "
+                    f"fit RMS {frame.shape_rms_mm:.2f} mm with the uncalibrated centroid's scale "
+                    f"{frame.centroid_scale:.2f} ({frame.fit_rms_mm:.2f} mm without it; calibrate centroid corrects "
+                    "the scale)")
+        lo, hi = CENTROID_SCALE_RANGE
+        if not lo <= frame.centroid_scale <= hi:
+            self.prompt(f"warning: the bundle reads the registration presses {frame.centroid_scale:.2f} times as far "
+                        f"apart as the rig pressed them (an uncalibrated centroid reads {lo:g} to {hi:g}): is the "
+                        "bundle's layout this sensor's, with its pitch?")
+        if frame.shape_rms_mm > REGISTER_WARN_PITCH * pitch:
+            self.prompt(f"warning: registration fit RMS {frame.shape_rms_mm:.2f} mm (good: <= "
                         f"{REGISTER_WARN_PITCH * pitch:.2f} mm = {REGISTER_WARN_PITCH} pitch): "
                         "check that the indenter sits tight and the bundle's fiber map is this sensor's")
         if not h.is_identity:

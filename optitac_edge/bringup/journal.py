@@ -99,7 +99,8 @@ def _check_entry(entry: object, first: bool, start_frame: int, index: int) -> st
             return "a setup without its experiment, seed, presses, rig frame or orientation"
         origin = frame.get("origin_xy_mm")
         if not (isinstance(origin, list) and len(origin) == 2 and all(map(_is_num, origin))
-                and all(_is_num(frame.get(k)) for k in ("rotation_deg", "surface_z_mm", "fit_rms_mm"))):
+                and all(_is_num(frame.get(k)) for k in ("rotation_deg", "surface_z_mm", "fit_rms_mm"))
+                and all(_is_num(frame.get(k, 1.0)) for k in ("centroid_scale", "shape_rms_mm"))):
             return "a rig frame that is not finite numbers"
         start = entry.get("start_xyz_mm", [0.0, 0.0, 0.0])
         if not (isinstance(start, list) and len(start) == 3 and all(map(_is_num, start))):

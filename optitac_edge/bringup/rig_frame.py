@@ -39,12 +39,22 @@ class RigFrame:
         Rig z of the skin's surface (depth = surface_z - z).
     fit_rms_mm : float
         RMS residual of the registration presses.
+    centroid_scale : float
+        How far apart the bundle read the presses, as a fraction of how far apart the rig put them (a
+        similarity fit's scale). An uncalibrated centroid -- a weighted mean over the fibers a press darkens --
+        reads presses towards the array's middle (0.80 on a 61-fiber array at 4 mm pitch in the simulator)
+        until ``calibrate centroid`` corrects it; the rig frame itself stays rigid (the rig's mm are mm).
+    shape_rms_mm : float
+        RMS residual of the registration presses once that scale is allowed: what the rig frame can be
+        judged by before the centroid is calibrated.
     """
 
     origin_xy_mm: tuple[float, float]
     rotation_deg: float
     surface_z_mm: float
     fit_rms_mm: float = 0.0
+    centroid_scale: float = 1.0
+    shape_rms_mm: float = 0.0
 
     def to_sensor(self, xy: np.ndarray) -> np.ndarray:
         """Rig points (K, 2) -> sensor frame (K, 2), mm."""
@@ -67,7 +77,8 @@ class RigFrame:
 
     def to_json(self) -> dict[str, float | list[float]]:
         return {"origin_xy_mm": [round(v, 4) for v in self.origin_xy_mm], "rotation_deg": round(self.rotation_deg, 4),
-                "surface_z_mm": round(self.surface_z_mm, 4), "fit_rms_mm": round(self.fit_rms_mm, 4)}
+                "surface_z_mm": round(self.surface_z_mm, 4), "fit_rms_mm": round(self.fit_rms_mm, 4),
+                "centroid_scale": round(self.centroid_scale, 4), "shape_rms_mm": round(self.shape_rms_mm, 4)}
 
 
 def _inverse(h: Symmetry, xy: np.ndarray) -> np.ndarray:
@@ -78,16 +89,21 @@ def _inverse(h: Symmetry, xy: np.ndarray) -> np.ndarray:
     return np.stack([-x if h.mirror else x, y], axis=1)
 
 
-def _procrustes(rig: np.ndarray, sensor: np.ndarray) -> tuple[float, np.ndarray, float]:
-    """Rotation angle (deg), translation and RMS of the best proper rigid map rig -> sensor."""
+def _procrustes(rig: np.ndarray, sensor: np.ndarray) -> tuple[float, np.ndarray, float, float, float]:
+    """Of the best proper rigid map rig -> sensor: rotation angle (deg), translation and RMS; then the
+    scale of the best similarity map with that rotation (about the presses' mean) and its RMS."""
     mr, ms = rig.mean(axis=0), sensor.mean(axis=0)
     a, b = rig - mr, sensor - ms
     angle = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
     c, s = math.cos(angle), math.sin(angle)
     rot = np.array([[c, -s], [s, c]])
     t = ms - rot @ mr
-    rms = float(np.sqrt(np.mean(np.sum((a @ rot.T - b) ** 2, axis=1))))
-    return math.degrees(angle), t, rms
+    turned = a @ rot.T
+    rms = float(np.sqrt(np.mean(np.sum((turned - b) ** 2, axis=1))))
+    spread = float(np.sum(turned * turned))
+    scale = float(np.sum(turned * b)) / spread if spread > 0 else 1.0
+    shape_rms = float(np.sqrt(np.mean(np.sum((scale * turned - b) ** 2, axis=1))))
+    return math.degrees(angle), t, rms, scale, shape_rms
 
 
 def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float,
@@ -122,7 +138,7 @@ def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float
     step = min((r for r in rotations if r > 0), default=360.0)
     best: tuple[float, RigFrame, Symmetry] | None = None
     for h in symmetries:
-        angle, t, rms = _procrustes(rig, _inverse(h, seen))
+        angle, t, rms, scale, shape_rms = _procrustes(rig, _inverse(h, seen))
         if not -step / 2 - 1e-9 < angle <= step / 2 + 1e-9:
             continue
         # sensor = R(angle) rig + t  =>  origin (rig point mapped to 0) = -R(-angle) t
@@ -130,10 +146,11 @@ def fit_rig_frame(rig_xy: np.ndarray, sensor_xy: np.ndarray, surface_z_mm: float
         origin = (-(c * t[0] - s * t[1]), -(s * t[0] + c * t[1]))
         # the sensor's +x is rotated by -angle from the rig's +X (sensor = R(angle) rig)
         frame = RigFrame(origin_xy_mm=(float(origin[0]), float(origin[1])), rotation_deg=-angle,
-                         surface_z_mm=surface_z_mm, fit_rms_mm=rms)
+                         surface_z_mm=surface_z_mm, fit_rms_mm=rms, centroid_scale=scale, shape_rms_mm=shape_rms)
         if best is None or rms < best[0]:
             best = (rms, frame, h)
-    if best is None or best[0] > MAX_FIT_RMS_PITCH * pitch_mm:
+    if best is None or best[1].shape_rms_mm > MAX_FIT_RMS_PITCH * pitch_mm:  # judged with the centroid's scale
         raise ValueError(f"the registration presses fit no rigid placement of the sensor "
-                         f"(best RMS {best[0] if best else math.inf:.2f} mm): is the sensor fixed to the rig?")
+                         f"(best RMS {best[1].shape_rms_mm if best else math.inf:.2f} mm): is the sensor fixed to "
+                         "the rig?")
     return best[1], best[2]
