@@ -483,3 +483,30 @@ def test_a_headless_browser_draws_the_sliding_contacts_arrow(sliding_view) -> No
         assert errors == []
     finally:
         driver.quit()
+
+
+@pytest.mark.skipif(not (CHROMIUM and CHROMEDRIVER),
+                    reason="needs a browser: apt-get install chromium chromium-driver (.ci/run does)")
+def test_at_1280_px_every_panel_is_side_by_side_above_the_fold(view_process) -> None:
+    """Before: at a 1280 x 800 window the page was one column, the surface, contacts and fiber light below the
+    fold (the camera's section 781 px wide beside a 571 px one). Now two columns from 1000 px, one below."""
+    driver = browser()
+    try:
+        panels = "section.camera, #frame, #surface, #contacts, #levels"
+        for size, columns in (((1280, 800), 2), ((1920, 1080), 2), ((800, 1000), 1)):
+            driver.set_window_size(*size)
+            driver.get(view_process)
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not driver.execute_script(
+                    "return document.getElementById('frame').naturalWidth"):
+                time.sleep(0.05)
+            boxes, inner = driver.execute_script(
+                "return [[...document.querySelectorAll(arguments[0])].map(e => { const r = e.getBoundingClientRect();"
+                " return [r.left, r.top, r.right, r.bottom]; }), [innerWidth, innerHeight]]", panels)
+            camera, side = boxes[0], boxes[2]
+            assert (side[0] >= camera[2]) == (columns == 2), (size, boxes)
+            assert all(b[2] <= inner[0] for b in boxes), (size, boxes)  # nothing wider than the window
+            if columns == 2:
+                assert all(b[3] <= inner[1] for b in boxes), (size, inner, boxes)  # every panel above the fold
+    finally:
+        driver.quit()
