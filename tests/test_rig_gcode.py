@@ -579,6 +579,67 @@ def test_a_signal_during_the_retract_after_an_error(grbl, tmp_path, monkeypatch,
         assert not lines[-1].startswith("retracted")
 
 
+#: The retract's phases (io/rigs/gcode.py): feed hold and its wait, the reset and its banner, the lift's G1 Z,
+#: the wait for two reports at safe z.
+RETRACT_PHASES = ("_hold", "_reset", "_lift", "wait_until_at")
+
+
+@pytest.mark.parametrize("signals", [1, 2])
+@pytest.mark.parametrize("phase", RETRACT_PHASES)
+def test_a_signal_in_every_phase_of_the_retract(grbl, tmp_path, monkeypatch, phase, signals) -> None:
+    """The first signal in any phase of the retract after an error is held until the tip is at safe z (by the
+    machine's report); a second stops it there, and the line keeps the first error and says where the machine
+    last reported the tip. (The test above signals at the start of the stop only.)"""
+    import os
+    import signal as signals_module
+
+    from optitac_edge.cli import _interrupt_on_signals
+    from optitac_edge.io.rigs.base import Rig
+
+    settings = CollectSettings(initial_rest_frames=8, rest_frames=4, hold_frames=4)
+    camera = SimCamera(realtime=False, clock=VirtualClock(), program=GrblSkin(grbl, MOUNT))
+    bundle = calibrate_fibers([camera.read().frame.copy() for _ in range(8)], "gray")
+    retracting = [False]
+    sent = [0]
+    real_stop = GcodeRig._stop
+    owner = Rig if phase == "wait_until_at" else GcodeRig
+    real_phase = getattr(owner, phase)
+
+    def stop(self):
+        retracting[0] = True
+        real_stop(self)
+
+    def signalled(self, *args, **kwargs):
+        if retracting[0] and not sent[0]:
+            for _ in range(signals):
+                sent[0] += 1
+                os.kill(os.getpid(), signals_module.SIGTERM)
+                time_module.sleep(0.01)  # each handled before the next
+        return real_phase(self, *args, **kwargs)
+
+    monkeypatch.setattr(GcodeRig, "_stop", stop)
+    monkeypatch.setattr(owner, phase, signalled)
+    lines: list[str] = []
+    restore = _interrupt_on_signals()
+    try:
+        with GcodeRig(grbl.port, LIMITS) as rig, pytest.raises(RigError) as caught:
+            Collector(_FailsAt(camera, 60), rig, bundle, settings, prompt=lines.append).run("seen", tmp_path / "r",
+                                                                                            limit=3)
+    finally:
+        for signum, previous in restore.items():
+            signals_module.signal(signum, previous)
+    assert sent[0] == signals  # the phase was reached during the retract
+    text = str(caught.value)
+    assert text.startswith("the first error")
+    if signals == 1:
+        assert text == "the first error" and grbl.position()[2] == pytest.approx(LIMITS.safe_z_mm)
+        assert lines[-1] == f"retracted the tip to z = {LIMITS.safe_z_mm:g} mm"
+    else:
+        assert "; the tip was NOT retracted: a second signal stopped the retract; the machine last reported it at" \
+            in text and "jog it up clear of the skin" in text, text
+        assert not lines[-1].startswith("retracted")
+
+
 def test_a_fresh_start_with_the_tip_in_the_skin_lifts_it_before_any_rest_frame(tmp_path) -> None:
     """Before: a fresh start took the tip's position as rest, 0.5 mm in the skin, and the board calibrated its
     baseline from those pressed frames."""
