@@ -5,6 +5,7 @@ the tip is retracted on every way out but SIGKILL, and parked at the end."""
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -75,7 +76,8 @@ def test_an_interrupted_collection_continues_into_a_recording_that_calibrates(si
     said = capsys.readouterr().out
     fitted = [float(v) for v in said.split("fitted rmse mm ")[1].split()[0].rstrip(",").split("/")]
     assert max(fitted) < 0.05
-    assert int(np.sum(rec.rig_poses.phase == "hold")) == (5 + 6) * 8  # registration and presses, none twice
+    # the registration, the resumed collection's check of it and the presses, none twice
+    assert int(np.sum(rec.rig_poses.phase == "hold")) == (5 + 5 + 6) * 8
 
 
 def test_a_complete_recording_is_never_overwritten(tmp_path, capsys) -> None:
@@ -154,3 +156,30 @@ def test_an_edited_journal_is_one_line_not_a_traceback(tmp_path, capsys) -> None
         assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "6"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "collect.jsonl: line 2:" in err[0] and words in err[0], err
+
+
+@pytest.mark.parametrize(("rig", "said"), [
+    ("sim://?origin=101.5,80", r"the sensor's origin is at rig \(101\.\d\d, (79|80)\.\d\d\), 1\.\d\d mm from before"),
+    ("sim://?surface=2.5", r"the skin's surface is at z = 2\.5\d mm, 2\.0\d mm before"),
+])
+def test_a_collection_continued_on_a_moved_rig_is_refused_and_continues_once_it_is_back(rig, said, tmp_path,
+                                                                                         capsys) -> None:
+    """Before: a resume used the journalled rig frame as it was, so every later press's truth was off by the
+    move. Now the resume finds the surface again and fits the registration again first: a sensor moved by more
+    than the touch-off's resolution or 0.2 pitch is refused in one line (the tip retracted, the recording
+    kept), and once the rig is as it was the collection continues."""
+    out = tmp_path / "seen"
+    code, _, _ = _interrupt(out, signal.SIGTERM, after_presses=2, limit=4)
+    assert code == 128 + signal.SIGTERM
+    journal = (out / JOURNAL).read_text()
+    assert main(["collect", "seen", "--rig", rig, "-o", str(out), "--limit", "4"]) == 2
+    captured = capsys.readouterr()
+    line = captured.err.strip().splitlines()[-1]
+    assert line.startswith("optitac-edge: error: the sensor moved since the collection began: ")
+    assert re.search(said, line) and line.endswith("put it back, or start again with --fresh"), line
+    assert "retracted the tip to z = 12 mm" in captured.out
+    assert (out / JOURNAL).read_text() == journal  # nothing of the refused resume kept
+    assert main(["collect", "seen", "--rig", "sim://", "-o", str(out), "--limit", "4"]) == 0
+    said_out = capsys.readouterr().out
+    assert "the sensor is where the collection left it" in said_out and "parked the tip" in said_out
+    assert len(Recording(out)) > 0 and not (out / JOURNAL).exists()

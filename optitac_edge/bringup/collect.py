@@ -206,6 +206,8 @@ class Collector:
             if setup:
                 symmetry, touch = self._resume(rec, setup, f"{len(done)} of {len(presses)}", len(done) < len(presses))
                 self._assume_mounted(presses, len(done))
+                if len(done) < len(presses):
+                    self._check_unmoved(rec, presses, len(done))
             else:
                 symmetry, touch = self._set_up(rec, presses, journal, {"experiment": experiment, "seed": seed})
             self._press_all(rec, presses, len(done), journal)
@@ -329,6 +331,40 @@ class Collector:
             rec.move((tx, ty, hover), "release", p, s.approach_feed_mm_s)
             rec.commit(journal, {"kind": "press", "index": k})
             self.progress(k + 1, len(presses))
+
+    def _check_unmoved(self, rec: RigRecorder, presses: list[PlannedPress], done: int) -> None:
+        """Before a resumed collection presses again: the skin's surface found again (touch-off) and, with a
+        circle mounted, the registration's five presses fitted again, each compared with the journalled rig
+        frame. A sensor bumped, remounted or moved on the rig since is refused (every later press's truth
+        would be wrong); the recording so far stays, to be continued once the rig is as it was, or
+        started again with ``--fresh``."""
+        s, frame, pitch = self.settings, rec.frame, self.bundle.layout.pitch_mm
+        assert frame is not None  # the journalled one (_resume)
+        x0, y0, _ = self._start
+        last = presses[done - 1] if done else next((p for p in presses if p.shape == "circle"), presses[0])
+        tip = PlannedPress(0.0, 0.0, s.register_depth_mm, last.shape, last.size_mm, last.angle_deg)
+        self.prompt("checking that the sensor is where the collection left it: touch-off"
+                    + (" and the registration presses" if tip.shape == "circle" else ""))
+        surface, _ = touch_off(rec, (x0, y0, self.rig.limits.safe_z_mm), tip, s)
+        moved: list[str] = []
+        if abs(surface - frame.surface_z_mm) > 2 * s.touch_step_mm:  # the touch-off's own resolution, twice
+            moved.append(f"the skin's surface is at z = {surface:.2f} mm, {frame.surface_z_mm:.2f} mm before")
+        if tip.shape == "circle":
+            again, _ = register(rec, (x0, y0, frame.surface_z_mm), tip, s, self.bundle.layout)
+            shift = math.dist(again.origin_xy_mm, frame.origin_xy_mm)
+            turn = abs((again.rotation_deg - frame.rotation_deg + 180.0) % 360.0 - 180.0)
+            arc = math.radians(turn) * s.register_fraction * self.bundle.layout.radius_mm  # at the outer presses
+            if shift > REGISTER_WARN_PITCH * pitch or arc > REGISTER_WARN_PITCH * pitch:
+                moved.append(f"the sensor's origin is at rig ({again.origin_xy_mm[0]:.2f}, "
+                             f"{again.origin_xy_mm[1]:.2f}), {shift:.2f} mm from before, its +x turned {turn:.1f}°")
+        else:
+            self.prompt(f"the sensor's x and y are not checked: the {tip.shape} indenter is mounted (a circle "
+                        "reads a press's place)")
+        if moved:
+            raise RigError("the sensor moved since the collection began: " + "; ".join(moved) + " (allowed: "
+                           f"{2 * s.touch_step_mm:g} mm in z, {REGISTER_WARN_PITCH * pitch:.2f} mm = "
+                           f"{REGISTER_WARN_PITCH} pitch in x, y): put it back, or start again with --fresh")
+        self.prompt("the sensor is where the collection left it")
 
     def _assume_mounted(self, presses: list[PlannedPress], done: int) -> None:
         """A resumed collection goes on with the indenter its last journalled step had on (the last press's,
