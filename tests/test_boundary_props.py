@@ -239,3 +239,65 @@ def test_mcu_commands_parse_or_are_refused_with_a_result_code(msg_type, seq, pay
     else:
         _kind, code = got
         assert isinstance(code, ResultCode) and code != ResultCode.OK
+
+
+@pytest.fixture(scope="module")
+def small_mcap(small_rec, tmp_path_factory) -> tuple[bytes, np.ndarray, np.ndarray]:
+    from optitac_edge.io.recording import Recording
+    from optitac_edge.io.recording_mcap import recording_to_mcap
+
+    path = recording_to_mcap(Recording(small_rec), tmp_path_factory.mktemp("mcap") / "small.mcap")
+    rec = Recording(path)
+    return path.read_bytes(), np.array(rec.frames), rec.t_ns.copy()
+
+
+@settings(max_examples=BUDGET, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(offset=st.integers(0, 10**7), value=st.integers(0, 255), cut=st.booleans())
+def test_a_changed_mcap_recording_byte_reads_the_same_or_is_one_line(small_mcap, tmp_path_factory, offset, value,
+                                                                    cut):
+    """MCAP recordings (record --mcap): a flipped or cut byte anywhere is refused in one line naming the file,
+    or reads the very frames, times and metadata (bytes no reader looks at, CRC-checked chunks)."""
+    from optitac_edge.io.recording import Recording
+
+    data, frames, t_ns = small_mcap
+    raw = bytearray(data)
+    offset %= len(raw)
+    assume(raw[offset] != value or cut)
+    raw = raw[:offset] if cut else raw[:offset] + bytes([value]) + raw[offset + 1:]
+    path = tmp_path_factory.mktemp("mcap") / "x.mcap"
+    path.write_bytes(bytes(raw))
+    try:
+        rec = Recording(path)
+    except RecordingError as exc:
+        _one_line(exc)
+        assert str(path) in str(exc)
+        return
+    assert np.array_equal(rec.frames, frames) and np.array_equal(rec.t_ns, t_ns)
+
+
+@SLOW
+@given(changes=st.dictionaries(st.sampled_from(["rest_frames", "fps", "tares"]),
+                               st.one_of(JSON, st.integers(0, 60), st.floats(0.5, 200.0)), max_size=3))
+def test_mcap_metadata_edits_open_consistently_or_are_one_line(small_rec, tmp_path_factory, changes):
+    """An MCAP recording's metadata edited (its rate, rest frames, tares): opened only when the frames' own
+    times and truth agree with it, else one line."""
+    from optitac_edge.io.recording import Recording
+    from optitac_edge.io.recording_mcap import McapRecordingWriter
+
+    rec = Recording(small_rec)
+    path = tmp_path_factory.mktemp("mcap") / "m.mcap"
+    try:
+        writer = McapRecordingWriter(path, {**rec.meta.to_json(), **changes},
+                                     truth_csv=(small_rec / "truth.csv").read_bytes())
+    except (TypeError, ValueError):
+        return  # not a value JSON holds (the writer is ours: the reader is the boundary)
+    with writer:
+        for i in range(len(rec)):
+            writer.write(i, rec.frame(i), int(rec.t_ns[i]))
+    try:
+        back = Recording(path)
+    except RecordingError as exc:
+        _one_line(exc)
+        return
+    assert back.truth is not None and not back.truth.contact[back.truth.frame < back.meta.rest_frames].any()
+    assert abs(np.percentile(np.diff(back.t_ns), 25) * back.meta.fps / 1e9 - 1) <= 0.25

@@ -301,3 +301,11 @@ def test_run_mcap_onto_a_full_disk_says_what_was_not_written(tmp_path):
                      proc.stdout, re.MULTILINE)
     assert given and lost and kept, proc.stdout
     assert int(given[1]) == int(lost[1]) + int(kept[1]) and int(lost[1]) > 0 and "published" not in proc.stdout
+
+
+def test_record_mcap_onto_a_full_disk_names_its_file(tmp_path):
+    out = tmp_path / "r.mcap"
+    proc = _cli_limited(["record", "--board", "sim", "-o", str(out), "--mcap", "--frames", "600"], 2 << 20)
+    assert proc.returncode == 2, proc.stderr
+    assert _one_line(proc.stderr) == f"optitac-edge: error: cannot write {out}.part: File too large"
+    assert not out.exists()
