@@ -305,7 +305,7 @@ def _with_meta(src: Path, dst: Path, **edits: object) -> Path:
     return dst
 
 
-def test_a_stated_rate_the_frame_times_deny_is_refused(unseen_rec, tmp_path):
+def test_a_stated_rate_the_frame_times_deny_is_refused(unseen_rec, tmp_path, monkeypatch):
     """Before: an fps edited 60 -> 90 (in meta.json or an MCAP's metadata) was taken, and frames all 1 ns apart
     set ``vibrating`` on most frames; now both are one line naming the file and the rate."""
     from optitac_edge.io.recording_mcap import recording_to_mcap
@@ -332,6 +332,8 @@ def test_a_stated_rate_the_frame_times_deny_is_refused(unseen_rec, tmp_path):
     assert Recording(mcap).meta.fps == fps
     rec = Recording(stamped)
     rec.meta = replace(rec.meta, fps=90.0)
+    # the metadata as an editor leaves it (this program's writer states the rate the times show)
+    monkeypatch.setattr("optitac_edge.io.recording.state_rate_shown", lambda meta, t_ns, where: None)
     with pytest.raises(RecordingError, match=r"e.mcap: 'fps' is 90 but its frames are 16.67 ms apart"):
         Recording(recording_to_mcap(rec, tmp_path / "e.mcap"))
 
@@ -375,3 +377,31 @@ def test_a_recording_whose_writer_was_killed_claims_no_frame_count(tmp_path):
     w.abort("interrupted")
     with pytest.raises(RecordingError, match=r"\(interrupted: 30 of 400 frames written\)"):
         Recording(tmp_path / "r")
+
+
+def test_a_writer_states_the_rate_its_camera_delivered(tmp_path, caplog):
+    """A camera asked for 60 fps that delivers 30 (auto exposure in dim light) made a recording its reader
+    refuses ('fps' is 60 but its frames are 33.33 ms apart); every writer states the rate the times show and
+    keeps the asked one."""
+    from optitac_edge.io.recording import FPS_ASKED_KEY, RecordingMeta
+    from optitac_edge.io.recording_mcap import McapRecordingWriter
+    from optitac_edge.io.recording_writer import RecordingWriter
+
+    meta = RecordingMeta(rest_frames=5, fps=60.0)
+    times = [round(i * 1e9 / 30) for i in range(40)]
+    with caplog.at_level("WARNING", logger="optitac_edge.io.recording"):
+        with RecordingWriter(tmp_path / "d", 40, (6, 8), meta) as w:
+            for i, t in enumerate(times):
+                w.write(i, np.zeros((6, 8), np.uint8), t)
+        with McapRecordingWriter(tmp_path / "m.mcap", meta.to_json()) as m:
+            for i, t in enumerate(times):
+                m.write(i, np.zeros((6, 8), np.uint8), t)
+    for path in (tmp_path / "d", tmp_path / "m.mcap"):
+        rec = Recording(path)
+        assert rec.meta.fps == 30.0 and rec.meta.extra[FPS_ASKED_KEY] == 60.0
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 2 and all("the camera delivered 30 frames/s, not the 60 asked for" in w for w in warned)
+    with RecordingWriter(tmp_path / "ok", 40, (6, 8), meta) as w:  # a camera at its rate: nothing added
+        for i in range(40):
+            w.write(i, np.zeros((6, 8), np.uint8), round(i * 1e9 / 60))
+    assert FPS_ASKED_KEY not in Recording(tmp_path / "ok").meta.extra

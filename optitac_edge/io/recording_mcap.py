@@ -66,6 +66,8 @@ class McapRecordingWriter:
         self.frames_written = 0
         self._done = False
         self._sync = PeriodicSync()
+        self._meta = dict(meta)
+        self._t_ns = np.zeros(4096, np.int64)  # for the rate the frames show (8 bytes a frame)
 
     def write(self, index: int, frame: np.ndarray, t_ns: int) -> None:
         """Frame ``index`` (written in order) captured at ``t_ns``."""
@@ -77,13 +79,27 @@ class McapRecordingWriter:
             self._sync.after(self._writer, self._stream, int(t_ns))  # a power cut loses at most about a second
         except OSError as exc:
             raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
+        if index >= self._t_ns.size:
+            self._t_ns = np.concatenate([self._t_ns, np.zeros(self._t_ns.size, np.int64)])
+        self._t_ns[index] = t_ns
         self.frames_written += 1
 
     def close(self) -> None:
-        """Complete the file at ``path`` (idempotent)."""
+        """Complete the file at ``path`` (idempotent); where the frames' times show another rate than the
+        metadata's, a second metadata record says it (the reader takes the last)."""
         if self._done:
             return
         self._done = True
+        from optitac_edge.io.recording import state_rate_shown
+
+        meta = dict(self._meta)
+        state_rate_shown(meta, self._t_ns[: self.frames_written], self.path)
+        try:
+            if meta != self._meta:
+                self._writer.add_metadata(META_NAME, {k: json.dumps(v) for k, v in meta.items()})
+        except OSError as exc:
+            self._stream.close()
+            raise OutputError(f"cannot write {self._part}: {exc.strerror or exc}") from None
         complete(self._writer, self._stream, self._part, self.path)
 
     def abort(self) -> None:

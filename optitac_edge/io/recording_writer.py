@@ -39,6 +39,7 @@ from optitac_edge.io.recording import (
     TIMESTAMPS,
     TRUTH_HEADER,
     RecordingMeta,
+    state_rate_shown,
 )
 from optitac_edge.io.recording_paths import check_writable_recording, holds_recording, staging_path, swap_in
 
@@ -350,6 +351,8 @@ class RecordingWriter:
                                + (MOTION_COLUMNS if self._motion else ()) + ((FORCE_COLUMN,) if self._force else ()))
                     w.writerows(self._truth_rows)
             meta = self.meta.to_json()
+            if stamped.all():
+                state_rate_shown(meta, self._t_ns[: self._written], self.target)
             if len(self.segments) > 1:
                 meta["segments"] = self.segments
             if storage:
