@@ -7,6 +7,7 @@ contacts. Each consumer below failed before (it processed the frames).
 
 from __future__ import annotations
 
+import re
 import threading
 
 import numpy as np
@@ -251,3 +252,34 @@ def test_run_says_once_why_a_sensor_sent_no_contact_and_each_event_once(hex61):
                           capture_output=True, text=True, timeout=120, cwd=str(cal61.parent))
     out = proc.stdout + proc.stderr
     assert out.count("calibrating") == 1, out
+
+
+@pytest.mark.parametrize("policy", ["refuse", "remap"])
+def test_a_board_that_allows_it_maps_the_fibers_again_keeping_the_old_bundle(hex61, tmp_path, policy):
+    """calibration.if_mismatched: 'refuse' (the default) runs on the bundle and sends no contact; 'remap'
+    checks the bundle against the rest frames at start and, when they do not fit, maps the fibers again,
+    saying so, and keeps the old bundle beside the new (it may be the other skin's)."""
+    import subprocess
+    import sys
+
+    _, cal61, _ = hex61
+    bundle = tmp_path / "calibration.npz"
+    bundle.write_bytes(cal61.read_bytes())
+    board = tmp_path / "b.toml"
+    board.write_text(f'[calibration]\nbundle = "calibration.npz"\nif_mismatched = "{policy}"\n[camera]\nfps = 120\n')
+    proc = subprocess.run([sys.executable, "-m", "optitac_edge.cli", "run", "--board", str(board), "--frames", "240"],
+                          check=False, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    if policy == "refuse":
+        assert "no contact sent" in proc.stdout and sorted(p.name for p in tmp_path.iterdir()) == [
+            "b.toml", "calibration.npz"]
+        assert bundle.read_bytes() == cal61.read_bytes()
+        return
+    kept = tmp_path / "calibration.another-sensor.npz"
+    assert kept.read_bytes() == cal61.read_bytes()  # the old bundle, never deleted
+    assert load_bundle(bundle).layout.n_fibers == 217
+    assert re.search(r"the camera's rest frames are not of the sensor of .*61 fibers.*; mapping the fibers again from the rest "
+                     r"frames \(calibration.if_mismatched = 'remap'\)", proc.stderr), proc.stderr
+    assert f"the old bundle is kept as {kept}" in proc.stderr
+    assert "no contact sent" not in proc.stdout and re.search(r"processed 240 frames, [1-9]\d* with contact",
+                                                              proc.stdout), proc.stdout

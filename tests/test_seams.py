@@ -333,7 +333,7 @@ def test_a_stated_rate_the_frame_times_deny_is_refused(unseen_rec, tmp_path, mon
     rec = Recording(stamped)
     rec.meta = replace(rec.meta, fps=90.0)
     # the metadata as an editor leaves it (this program's writer states the rate the times show)
-    monkeypatch.setattr("optitac_edge.io.recording.state_rate_shown", lambda meta, t_ns, where: None)
+    monkeypatch.setattr("optitac_edge.io.recording_mcap.state_rate_shown", lambda meta, t_ns, where: None)
     with pytest.raises(RecordingError, match=r"e.mcap: 'fps' is 90 but its frames are 16.67 ms apart"):
         Recording(recording_to_mcap(rec, tmp_path / "e.mcap"))
 
@@ -356,7 +356,7 @@ def test_rest_frames_over_a_press_are_refused(unseen_rec, tmp_path):
 
 def test_the_snapshot_gap_is_the_contact_options_default():
     from optitac_edge.core.options import ContactOptions
-    from optitac_edge.io.recording import SNAPSHOT_GAP_NS
+    from optitac_edge.io.recording_rate import SNAPSHOT_GAP_NS
 
     assert SNAPSHOT_GAP_NS == round(ContactOptions().gap_s * 1e9)
 
@@ -383,13 +383,14 @@ def test_a_writer_states_the_rate_its_camera_delivered(tmp_path, caplog):
     """A camera asked for 60 fps that delivers 30 (auto exposure in dim light) made a recording its reader
     refuses ('fps' is 60 but its frames are 33.33 ms apart); every writer states the rate the times show and
     keeps the asked one."""
-    from optitac_edge.io.recording import FPS_ASKED_KEY, RecordingMeta
+    from optitac_edge.io.recording import RecordingMeta
     from optitac_edge.io.recording_mcap import McapRecordingWriter
+    from optitac_edge.io.recording_rate import FPS_ASKED_KEY
     from optitac_edge.io.recording_writer import RecordingWriter
 
     meta = RecordingMeta(rest_frames=5, fps=60.0)
     times = [round(i * 1e9 / 30) for i in range(40)]
-    with caplog.at_level("WARNING", logger="optitac_edge.io.recording"):
+    with caplog.at_level("WARNING", logger="optitac_edge.io.recording_rate"):
         with RecordingWriter(tmp_path / "d", 40, (6, 8), meta) as w:
             for i, t in enumerate(times):
                 w.write(i, np.zeros((6, 8), np.uint8), t)

@@ -52,6 +52,10 @@ class CalibrationConfig:
                           "calibration bundle ('' = calibrate at every start, keep nothing)")
     if_missing: str = setting(choice("calibrate", "fail"), "calibrate",
                               "no bundle: calibrate fibers from rest frames and save, or fail")
+    if_mismatched: str = setting(choice("refuse", "remap"), "refuse",
+                                 "a bundle the camera's rest frames do not fit (another skin, a moved camera): "
+                                 "refuse it (no contact; STATUS says the sensor cannot tell), or map the fibers "
+                                 "again from the rest frames at start, keeping the old bundle beside the new")
     rest_frames: int = setting(integer(1, MAX_REST_FRAMES), 10, "contact-free frames used to calibrate at start")
     rotation_deg: float = setting(number(-360, 360), 0.0, "orientation hint (docs/formats.md)")
     mirror: bool = setting(boolean, False, "orientation hint: the array appears mirrored")

@@ -19,6 +19,7 @@ import numpy as np
 
 from optitac_edge.errors import OutputError, RecordingError
 from optitac_edge.io.mcap_file import PeriodicSync, complete, open_part
+from optitac_edge.io.recording_rate import state_rate_shown
 from optitac_edge.io.ros2.messages import IMAGE, encode_image, ros2msg_schema
 
 if TYPE_CHECKING:
@@ -90,8 +91,6 @@ class McapRecordingWriter:
         if self._done:
             return
         self._done = True
-        from optitac_edge.io.recording import state_rate_shown
-
         meta = dict(self._meta)
         state_rate_shown(meta, self._t_ns[: self.frames_written], self.path)
         try:

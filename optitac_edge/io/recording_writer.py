@@ -39,9 +39,9 @@ from optitac_edge.io.recording import (
     TIMESTAMPS,
     TRUTH_HEADER,
     RecordingMeta,
-    state_rate_shown,
 )
 from optitac_edge.io.recording_paths import check_writable_recording, holds_recording, staging_path, swap_in
+from optitac_edge.io.recording_rate import state_rate_shown
 
 if TYPE_CHECKING:
     from typing_extensions import Self

@@ -12,6 +12,7 @@ and with it scipy, imported.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,7 @@ import numpy as np
 from optitac_edge.config import BoardConfig, BoardSensor
 from optitac_edge.core.bundle import CalibrationBundle
 from optitac_edge.core.fiber_table import FiberTable
+from optitac_edge.core.fingerprint import SensorMismatchError, check_sensor
 from optitac_edge.errors import BundleError, CameraError, ConfigError, OptiTacError, OutputError
 from optitac_edge.io.bundle_file import load_bundle, save_bundle
 from optitac_edge.io.cameras.base import Camera
@@ -59,7 +61,22 @@ def obtain_bundles(config: BoardConfig, camera_name: str, camera: Camera, cal_pa
     for sensor in sensors:
         path = cal_path if cal_path is not None else sensor.calibration.bundle_path
         if path is not None and Path(path).exists():
-            out.append(SensorBundle(sensor, sensor.check_bundle(load_bundle(path), path)))
+            bundle = sensor.check_bundle(load_bundle(path), path)
+            if cal_path is not None or sensor.calibration.if_mismatched != "remap":
+                out.append(SensorBundle(sensor, bundle))  # the pipeline checks it at its first baseline
+                continue
+            if rest is None:
+                rest = read_rest_frames(config, camera, led, "checking the bundles against")
+            try:
+                check_sensor(bundle, rest, camera.pixel_format, f"{sensor.label}: the camera's rest frames")
+                out.append(SensorBundle(sensor, bundle))
+                continue
+            except SensorMismatchError as exc:
+                log.warning("%s; mapping the fibers again from the rest frames (calibration.if_mismatched = "
+                            "'remap')", exc)
+            remapped = _calibrate(sensor, rest, camera.pixel_format)  # before the old one is moved
+            log.warning("%s: the old bundle is kept as %s", sensor.label, _set_aside(Path(path)))
+            out.append(SensorBundle(sensor, *_save(remapped, path, sensor)))
             continue
         if path is not None and cal_path is not None:
             raise BundleError(f"{path}: calibration bundle not found")
@@ -71,6 +88,21 @@ def obtain_bundles(config: BoardConfig, camera_name: str, camera: Camera, cal_pa
         bundle = _calibrate(sensor, rest, camera.pixel_format)
         out.append(SensorBundle(sensor, *_save(bundle, path, sensor)))
     return out
+
+
+def _set_aside(path: Path) -> Path:
+    """Rename a bundle the camera no longer fits to ``NAME.another-sensor[-K].npz`` beside it (never deleted:
+    it may be the other skin's), and return the new name."""
+    for k in range(1000):
+        kept = path.with_name(f"{path.stem}.another-sensor{'' if k == 0 else f'-{k}'}{path.suffix}")
+        if not kept.exists() and not kept.is_symlink():
+            try:
+                os.rename(path, kept)
+            except OSError as exc:
+                raise OutputError(f"{path}: cannot set the mismatched bundle aside as {kept.name}: "
+                                  f"{exc.strerror or exc}") from None
+            return kept
+    raise OutputError(f"{path}: 1000 bundles of other sensors beside it already; move some away")
 
 
 def _save(bundle: CalibrationBundle, path: Path | None, sensor: BoardSensor) -> tuple[CalibrationBundle, str | None]:
@@ -100,8 +132,10 @@ def obtain_bundle(config: BoardConfig, camera: Camera, cal_path: Path | None,
     return found.bundle, found.unsaved
 
 
-def read_rest_frames(config: BoardConfig, camera: Camera, led: LedRing | NoLed | None = None) -> list[np.ndarray]:
-    """``calibration.rest_frames`` frames of ``camera`` (nothing may touch the skins), copied.
+def read_rest_frames(config: BoardConfig, camera: Camera, led: LedRing | NoLed | None = None,
+                     doing: str = "calibrating the fiber map from") -> list[np.ndarray]:
+    """``calibration.rest_frames`` frames of ``camera`` (nothing may touch the skins), copied; ``doing``: what
+    they are for, for the log line.
 
     With an LED ring (``led``) and ``led.adjust_at_calibration``, its
     brightness is first lowered until no fiber saturates.
@@ -109,7 +143,7 @@ def read_rest_frames(config: BoardConfig, camera: Camera, led: LedRing | NoLed |
     if led is not None and config.led.enabled and config.led.adjust_at_calibration:
         adjust_led(config, camera, led)
     n = config.calibration.rest_frames
-    log.info("calibrating the fiber map from %d rest frames", n)
+    log.info("%s %d rest frames", doing, n)
     frames: list[np.ndarray] = []
     while len(frames) < n:
         captured = camera.read(config.camera.timeout_s)

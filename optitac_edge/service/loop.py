@@ -193,8 +193,9 @@ class Service:
     # -- the loop ----------------------------------------------------------------------------
 
     def run(self, stop: threading.Event, duration_s: float | None = None,
-            on_result: OnResult | None = None) -> ServiceStats:
-        """Process frames until ``stop`` is set, ``duration_s`` passes or a finite source ends.
+            on_result: OnResult | None = None, max_frames: int | None = None) -> ServiceStats:
+        """Process frames until ``stop`` is set, ``duration_s`` passes, ``max_frames`` camera frames were read
+        (processed or refused: a dark camera or another sensor's frames end it too) or a finite source ends.
 
         Raises
         ------
@@ -212,11 +213,12 @@ class Service:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
             with single_threaded_opencv():
-                return self._run(stop, duration_s, on_result)
+                return self._run(stop, duration_s, on_result, max_frames)
         finally:
             sys.setswitchinterval(switch_interval)
 
-    def _run(self, stop: threading.Event, duration_s: float | None, on_result: OnResult | None) -> ServiceStats:
+    def _run(self, stop: threading.Event, duration_s: float | None, on_result: OnResult | None,
+             max_frames: int | None = None) -> ServiceStats:
         st = self.stats
         st.started_ns = self._last_good_ns = self.heartbeat_ns = self.clock.monotonic_ns()
         end_ns = None if duration_s is None else st.started_ns + int(duration_s * 1e9)
@@ -239,6 +241,8 @@ class Service:
                 except _CameraEnded:
                     break
                 self._after_step(result, on_result)
+                if max_frames is not None and st.frames_read >= max_frames:
+                    break
         finally:
             try:  # a last STATUS: the MCU sees the final counters
                 self.status.send(self.clock.monotonic_ns(), self.camera is not None, self.network)
@@ -272,6 +276,7 @@ class Service:
             return None
         if captured is None:
             raise _CameraEnded
+        self.stats.frames_read += 1
         self.stats.frames_dropped += dropped
         result, device_fault = self._process(captured)
         if self.view is not None:  # the live view copies what it needs when an update is due; never waits

@@ -197,9 +197,10 @@ class BoardSession:
         self._stack.callback(self.network.close)
         return self.network
 
-    def run(self, stop: Event, duration_s: float | None = None, on_result: OnResult | None = None) -> ServiceStats:
-        """Run the frame loops until ``stop``, ``duration_s`` or the lead camera's end (see :meth:`Service.run`);
-        the lead's counters.
+    def run(self, stop: Event, duration_s: float | None = None, on_result: OnResult | None = None,
+            max_frames: int | None = None) -> ServiceStats:
+        """Run the frame loops until ``stop``, ``duration_s``, the lead camera's ``max_frames`` or its end (see
+        :meth:`Service.run`); the lead's counters.
 
         With several cameras, ``on_result`` is called from each camera's loop; when
         the lead's loop ends it sets ``stop`` so the others end too, and a loop that
@@ -239,7 +240,7 @@ class BoardSession:
         for thread in threads:
             thread.start()
         try:
-            stats = lead.run(stop, duration_s=duration_s, on_result=on_result)
+            stats = lead.run(stop, duration_s=duration_s, on_result=on_result, max_frames=max_frames)
         finally:
             if threads:
                 stop.set()

@@ -33,6 +33,8 @@ class ServiceStats:
     """
 
     frames: int = 0
+    #: Camera frames the loop read, processed or not (``run --frames N`` stops after N of them).
+    frames_read: int = 0
     contacts: int = 0
     sent: int = 0
     frames_dropped: int = 0

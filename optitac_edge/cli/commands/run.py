@@ -332,8 +332,6 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
             say(f"running {len(config.sensors)} sensors on {len(config.cameras)} camera(s) ({via}; Ctrl-C to stop)")
 
         def on_result(result: FrameResult, stats: ServiceStats) -> None:
-            if max_frames is not None and stats.frames >= max_frames:
-                stop.set()
             if line is None:
                 return
             if not several:
@@ -346,7 +344,7 @@ def _run_service(args: argparse.Namespace, config: BoardConfig, stop: threading.
                 line.offer(r.primary if r.baseline_ready else None, stats, channel.name)
 
         try:
-            session.run(stop, duration_s=args.duration, on_result=on_result)
+            session.run(stop, duration_s=args.duration, on_result=on_result, max_frames=max_frames)
         finally:
             if stage_times is not None:
                 _write_stage_times(stage_times, session.services)
